@@ -1,0 +1,48 @@
+# mds_ach -- `make run` starts the whole system on the simulated robot, `make test` runs every test.
+# Each target (re)creates the virtual environment in .venv when requirements changed.
+
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.mds_ach_installed
+export AMENT_PREFIX_PATH := $(abspath $(VENV))
+PYTEST_ARGS ?=
+
+.PHONY: all setup run test bench soak lint clean help
+
+help:
+	@echo "make run    set up if needed, then start the whole system on the simulated robot (Ctrl-C stops it)"
+	@echo "make test   set up if needed, then run all tests (inside a private network namespace)"
+	@echo "make bench  run every benchmark and print one table with baselines and ratios"
+	@echo "make soak   multi-minute soak test (not part of make test)"
+	@echo "make lint   ruff"
+
+all: setup
+
+setup: $(STAMP)
+
+$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml
+	@test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt
+	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
+	@touch $@
+
+run: $(STAMP)
+	tools/netns-run $(VENV)/bin/mds-ach run --nocan
+
+test: $(STAMP)
+	$(VENV)/bin/ruff check .
+	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	tools/netns-run $(PY) -m mds_ach.bench
+
+soak: $(STAMP)
+	tools/netns-run $(PY) -m mds_ach.soak
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf build install log .pytest_cache

@@ -1,0 +1,150 @@
+"""mds_ach: ROS 2 Jazzy + Ach-compatible middleware for the Xitome MDS humanoid upper body.
+
+``import mds_ach as mds`` gives the legacy constants, channel names, struct layouts and the joint table,
+like the original ``mds_ach.py`` did. Heavy modules (torch, fcl, rclpy) are never imported from here.
+"""
+
+from __future__ import annotations
+
+from mds_ach.joints import BY_ADDRESS, BY_NAME, BY_SHORT, JOINTS, Joint, getAddress, lookup
+from mds_ach.msgs import (
+    MDS_ARM_COUNT,
+    MDS_CHAR_PARAM_BUFFER_SIZE,
+    MDS_CMD,
+    MDS_COLLIDE,
+    MDS_COLLIDE_JNT_NUM,
+    MDS_IK,
+    MDS_IK_ARM,
+    MDS_JNT_COLLIDE,
+    MDS_JNT_PARAM,
+    MDS_JOINT_COUNT,
+    MDS_JOINT_PARAM,
+    MDS_JOINT_REF,
+    MDS_JOINT_STATE,
+    MDS_POWER,
+    MDS_REF,
+    MDS_STATE,
+)
+
+__version__ = "0.1.0"
+
+# --- legacy channel names (mds.h) -------------------------------------------------------------
+MDS_CHAN_REF_NAME = "mds-ref"
+MDS_CHAN_REF_FILTER_NAME = "mds-ref-filter"
+MDS_CHAN_STATE_NAME = "mds-state"
+MDS_CHAN_PARAM_NAME = "mds-param"
+MDS_CHAN_IK_NAME = "mds-ik"
+MDS_CHAN_COLLIDE_NAME = "mds-collide"
+MDS_CHAN_BOARD_CMD_NAME = "mds-cmd"  # the C name; the old Python's "mds-board-cmd" was a bug
+# --- new pipeline channels ----------------------------------------------------------------------
+MDS_CHAN_REF_IK_NAME = "mds-ref-ik"  # ik node -> mux
+MDS_CHAN_REF_ROS_NAME = "mds-ref-ros"  # bridge -> mux
+MDS_CHAN_REF_MUX_NAME = "mds-ref-mux"  # mux -> filter
+MDS_CHAN_REF_SMOOTH_NAME = "mds-ref-smooth"  # filter -> collision gate
+MDS_CHAN_IK_STATE_NAME = "mds-ik-state"  # ik node status
+MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"  # mux ownership / ages
+MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"  # loop rate, overruns, bus load, faults
+
+LEGACY_CHANNELS: tuple[str, ...] = (
+    MDS_CHAN_REF_NAME,
+    MDS_CHAN_REF_FILTER_NAME,
+    MDS_CHAN_STATE_NAME,
+    MDS_CHAN_PARAM_NAME,
+    MDS_CHAN_IK_NAME,
+    MDS_CHAN_COLLIDE_NAME,
+    MDS_CHAN_BOARD_CMD_NAME,
+)
+PIPELINE_CHANNELS: tuple[str, ...] = (
+    MDS_CHAN_REF_IK_NAME,
+    MDS_CHAN_REF_ROS_NAME,
+    MDS_CHAN_REF_MUX_NAME,
+    MDS_CHAN_REF_SMOOTH_NAME,
+    MDS_CHAN_IK_STATE_NAME,
+    MDS_CHAN_MUX_STATE_NAME,
+    MDS_CHAN_DAEMON_STATUS_NAME,
+)
+ALL_CHANNELS: tuple[str, ...] = LEGACY_CHANNELS + PIPELINE_CHANNELS
+# Original sizing: `ach -1 mk <name> -m 10 -n 3000`.
+CHANNEL_FRAME_COUNT = 10
+CHANNEL_FRAME_SIZE = 3000
+
+# --- arms and modes -----------------------------------------------------------------------------
+RIGHT = 0
+LEFT = 1
+MDS_REF_MODE_REF_FILTER = 0
+MDS_REF_MODE_REF = 1
+MDS_REF_MODE_COMPLIANT = 2
+MDS_REF_MODE_ENC_FILTER = 3
+
+# --- mds_collide_t part indices -----------------------------------------------------------------
+COLLIDE_L_HAND = 0
+COLLIDE_R_HAND = 1
+COLLIDE_R_SHOULDER = 2
+COLLIDE_L_SHOULDER = 3
+COLLIDE_R_FOREARM = 4
+COLLIDE_L_FOREARM = 5
+COLLIDE_R_ELBOW = 6
+COLLIDE_L_ELBOW = 7
+COLLIDE_R_WRIST = 8
+COLLIDE_L_WRIST = 9
+COLLIDE_PART_NAMES: tuple[str, ...] = (
+    "L_HAND",
+    "R_HAND",
+    "R_SHOULDER",
+    "L_SHOULDER",
+    "R_FOREARM",
+    "L_FOREARM",
+    "R_ELBOW",
+    "L_ELBOW",
+    "R_WRIST",
+    "L_WRIST",
+)
+
+# --- timing constants (mds.h) ---------------------------------------------------------------------
+MDS_LOOP_PERIOD = 0.1
+MDS_REF_FILTER_LENGTH = 40
+
+# --- mds-cmd commands (new) -----------------------------------------------------------------------
+MDS_CMD_ENABLE = 1
+MDS_CMD_DISABLE = 2
+MDS_CMD_HOME = 3
+MDS_CMD_RESET = 4
+MDS_CMD_ZERO_ENCODER = 5
+MDS_CMD_RESET_BUS = 6
+
+
+def _export_joint_constants() -> None:
+    """Legacy ``mds.LSP == 0x5f`` style constants for every short and long joint name."""
+    g = globals()
+    for j in JOINTS:
+        g[j.short] = j.address
+        g[j.name] = j.address
+
+
+_export_joint_constants()
+
+__all__ = [
+    "BY_ADDRESS",
+    "BY_NAME",
+    "BY_SHORT",
+    "JOINTS",
+    "Joint",
+    "getAddress",
+    "lookup",
+    "MDS_ARM_COUNT",
+    "MDS_CHAR_PARAM_BUFFER_SIZE",
+    "MDS_CMD",
+    "MDS_COLLIDE",
+    "MDS_COLLIDE_JNT_NUM",
+    "MDS_IK",
+    "MDS_IK_ARM",
+    "MDS_JNT_COLLIDE",
+    "MDS_JNT_PARAM",
+    "MDS_JOINT_COUNT",
+    "MDS_JOINT_PARAM",
+    "MDS_JOINT_REF",
+    "MDS_JOINT_STATE",
+    "MDS_POWER",
+    "MDS_REF",
+    "MDS_STATE",
+]

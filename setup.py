@@ -1,0 +1,43 @@
+"""ament_python package `mds_ach`: library, nodes and the `mds-ach` front-end."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "mds_ach"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=["mds_ach", "mds_ach.*", "mds_ach_bridge", "mds_ach_bridge.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
+        ("share/" + PACKAGE, ["package.xml"]),
+        ("share/" + PACKAGE + "/urdf", glob("urdf/*")),
+        ("share/" + PACKAGE + "/config", glob("config/*")),
+        ("share/" + PACKAGE + "/include", glob("include/*.h")),
+        ("include", glob("include/*.h")),
+    ],
+    package_data={"mds_ach": ["data/*", "web/*"]},
+    include_package_data=True,
+    install_requires=["setuptools"],
+    zip_safe=False,
+    maintainer="mds_ach developers",
+    maintainer_email="mds-ach@example.org",
+    description="ROS 2 Jazzy + Ach-compatible middleware for the Xitome MDS humanoid upper body",
+    license="BSD-3-Clause",
+    extras_require={"test": ["pytest"]},
+    entry_points={
+        "console_scripts": [
+            "daemon = mds_ach.daemon:main",
+            "filter = mds_ach.filter_node:main",
+            "mux = mds_ach.mux:main",
+            "ik = mds_ach.ik_node:main",
+            "collision = mds_ach.collision_node:main",
+            "bridge = mds_ach_bridge.bridge:main",
+            "console = mds_ach.console:main",
+            "read = mds_ach.read:main",
+            "mds-ach = mds_ach.cli:main",
+        ],
+    },
+)

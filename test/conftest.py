@@ -1,0 +1,62 @@
+"""Shared fixtures: where the reference material lives, a clean /dev/shm per test, polling helper."""
+
+from __future__ import annotations
+
+import glob
+import os
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+VENV_BIN = Path(sys.executable).parent
+
+
+def _shared_dir() -> Path:
+    env = os.environ.get("MDS_SHARED_DIR")
+    return Path(env) if env else REPO.parent / "shared"
+
+
+SHARED = _shared_dir()
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    """The reference material (specs, golden Ach files, MDS configs, CAN logs)."""
+    assert SHARED.is_dir(), f"reference material not found at {SHARED} (set MDS_SHARED_DIR)"
+    return SHARED
+
+
+def remove_mds_channels() -> None:
+    for path in glob.glob("/dev/shm/achshm-mds*") + glob.glob("/dev/shm/achshm-test*"):
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+
+
+@pytest.fixture
+def clean_shm() -> Iterator[None]:
+    """No MDS or test channels before or after the test."""
+    remove_mds_channels()
+    yield
+    remove_mds_channels()
+
+
+def wait_for(predicate: Callable[[], object], timeout: float = 10.0, interval: float = 0.01, what: str = "") -> object:
+    """Poll ``predicate`` until it returns a truthy value; fail with ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what or predicate}")
+        time.sleep(interval)
+
+
+def in_netns() -> bool:
+    return os.environ.get("MDS_NETNS_ACTIVE") == "1"
