@@ -2,13 +2,14 @@
 # Each target (re)creates the virtual environment in .venv when requirements changed.
 
 SHELL := /bin/bash
+.SHELLFLAGS := -eo pipefail -c
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mds_ach_installed
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 PYTEST_ARGS ?=
 
-.PHONY: all setup run test bench soak lint clean help
+.PHONY: all setup sysdeps run test bench soak lint clean help
 
 help:
 	@echo "make run    set up if needed, then start the whole system on the simulated robot (Ctrl-C stops it)"
@@ -23,23 +24,28 @@ setup: $(STAMP)
 
 $(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml
 	@test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt
+	$(PY) -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
+	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	@touch $@
 
 run: $(STAMP)
-	tools/netns-run $(VENV)/bin/mds-ach run --nocan
+	@# ROS nodes stay in a private network namespace; channels live on the host /dev/shm so that
+	@# `mds-ach console`, `read` and C clients in other terminals see them.
+	MDS_NETNS_SHARE_SHM=1 tools/netns-run $(VENV)/bin/mds-ach run --nocan
 
-test: $(STAMP)
+sysdeps:
+	@tools/install-system-deps
+
+test: $(STAMP) sysdeps
 	$(VENV)/bin/ruff check .
 	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
 
 bench: $(STAMP)
-	tools/netns-run $(PY) -m mds_ach.bench
+	tools/netns-run $(PY) -m bench
 
 soak: $(STAMP)
-	tools/netns-run $(PY) -m mds_ach.soak
+	tools/netns-run $(PY) -m bench.soak
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

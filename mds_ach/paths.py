@@ -1,0 +1,44 @@
+"""Where the package's data files are: the source tree when run from a checkout, else the ament share dir."""
+
+from __future__ import annotations
+
+import os
+from functools import lru_cache
+from pathlib import Path
+
+PACKAGE = "mds_ach"
+_SOURCE_ROOT = Path(__file__).resolve().parent.parent
+
+
+@lru_cache(maxsize=1)
+def share_dir() -> Path:
+    """``<repo>`` in a checkout (it has urdf/ and config/), else ``share/mds_ach`` of the install prefix."""
+    if (_SOURCE_ROOT / "urdf").is_dir() and (_SOURCE_ROOT / "config").is_dir():
+        return _SOURCE_ROOT
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory(PACKAGE))
+    except Exception as exc:  # PackageNotFoundError or missing AMENT_PREFIX_PATH
+        raise FileNotFoundError(
+            f"cannot find the {PACKAGE} data files: not in a source checkout and the ament index has no "
+            f"'{PACKAGE}' (AMENT_PREFIX_PATH={os.environ.get('AMENT_PREFIX_PATH', '')!r})"
+        ) from exc
+
+
+def config_path(name: str) -> Path:
+    """A file in ``config/``, e.g. ``config_path('joints.yaml')``."""
+    return share_dir() / "config" / name
+
+
+def urdf_path(name: str = "mds.urdf") -> Path:
+    return share_dir() / "urdf" / name
+
+
+def runtime_dir() -> Path:
+    """Pid files and logs of `mds-ach start`: $MDS_ACH_RUNTIME_DIR, else $XDG_RUNTIME_DIR/mds-ach, else /tmp."""
+    env = os.environ.get("MDS_ACH_RUNTIME_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/mds-ach-{os.getuid()}"
+    return Path(base) / "mds-ach" if os.environ.get("XDG_RUNTIME_DIR") else Path(base)

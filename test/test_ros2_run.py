@@ -1,0 +1,88 @@
+"""The package builds with colcon and every executable resolves exactly as `ros2 run mds_ach <exe>` would.
+
+ros2cli is not available as a wheel, so the test does what `ros2 run` does: ask the ament index for the
+package prefix, execute `<prefix>/lib/mds_ach/<exe>`.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+
+EXECUTABLES = ["daemon", "filter", "mux", "ik", "collision", "bridge", "console", "read", "mds-ach"]
+SOURCES = ["package.xml", "setup.py", "setup.cfg", "resource", "mds_ach", "mds_ach_bridge", "urdf", "config",
+           "include"]
+
+
+@pytest.fixture(scope="module")
+def colcon_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Build a copy of the package with colcon into a temporary install prefix (isolated layout)."""
+    root = tmp_path_factory.mktemp("colcon")
+    src = root / "src" / "mds_ach"
+    src.mkdir(parents=True)
+    for name in SOURCES:
+        path = REPO / name
+        if path.is_dir():
+            shutil.copytree(path, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        else:
+            shutil.copy2(path, src / name)
+    colcon = Path(sys.executable).parent / "colcon"
+    proc = subprocess.run(
+        [str(colcon), "--log-base", str(root / "log"), "build", "--base-paths", str(root / "src"),
+         "--build-base", str(root / "build"), "--install-base", str(root / "install")],
+        cwd=root, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, f"colcon build failed:\n{proc.stdout}\n{proc.stderr}"
+    return root / "install"
+
+
+def _env(install: Path) -> dict[str, str]:
+    prefix = install / "mds_ach"
+    env = dict(os.environ)
+    venv = Path(sys.executable).parent.parent
+    env["AMENT_PREFIX_PATH"] = f"{prefix}:{venv}"
+    site = next((prefix / "lib").glob("python3*/site-packages"))
+    env["PYTHONPATH"] = str(site)
+    return env
+
+
+def _resolve(install: Path, exe: str) -> Path:
+    """`ros2 run` resolution: package prefix from the ament index, then lib/<pkg>/<exe>."""
+    code = (
+        "from ament_index_python.packages import get_package_prefix;"
+        "print(get_package_prefix('mds_ach'))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=_env(install), capture_output=True, text=True,
+                         check=True, cwd="/")
+    return Path(out.stdout.strip()) / "lib" / "mds_ach" / exe
+
+
+def test_share_files_installed(colcon_install: Path) -> None:
+    code = (
+        "from ament_index_python.packages import get_package_share_directory as d;"
+        "print(d('mds_ach'))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=_env(colcon_install), capture_output=True, text=True,
+                         check=True, cwd="/")
+    share = Path(out.stdout.strip())
+    assert share == colcon_install / "mds_ach" / "share" / "mds_ach"
+    for rel in ["package.xml", "urdf/mds.urdf", "config/joints.yaml", "include/mds.h"]:
+        assert (share / rel).is_file(), f"{rel} not installed to share/mds_ach"
+
+
+@pytest.mark.parametrize("exe", EXECUTABLES)
+def test_ros2_run_help(colcon_install: Path, exe: str) -> None:
+    path = _resolve(colcon_install, exe)
+    assert path == colcon_install / "mds_ach" / "lib" / "mds_ach" / exe
+    assert os.access(path, os.X_OK), f"{path} is not executable"
+    proc = subprocess.run([str(path), "--help"], env=_env(colcon_install), capture_output=True, text=True,
+                          timeout=60, cwd="/")
+    assert proc.returncode == 0, f"{exe} --help failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
+    assert "usage" in proc.stdout.lower(), proc.stdout
