@@ -37,8 +37,8 @@ STRUCTS: tuple[type[ctypes.Structure], ...] = (
     msgs.MDS_CMD,
 )
 
-# Fixed-width C spelling of every ctypes scalar the structs use. Anything else is refused, so a new
-# field with a platform-sized type (c_int, c_long) cannot sneak into a wire struct.
+# Fixed-width C spelling of every ctypes scalar the structs use. Anything else (pointers, floats, bools)
+# is refused. ctypes aliases c_int/c_long to these on Linux, so they come out fixed-width too.
 _SCALARS: dict[type, str] = {
     ctypes.c_double: "double",
     ctypes.c_int8: "int8_t",
@@ -95,6 +95,8 @@ def _doc(cls: type) -> list[str]:
     """The class docstring as a C comment, without reST markup, wrapped to 100 columns."""
     text = " ".join((cls.__doc__ or "").replace("``", "").split())
     wrapped = textwrap.wrap(text, 96)
+    if not wrapped:
+        return []
     if len(wrapped) == 1:
         return [f"/* {wrapped[0]} */"]
     return ["/* " + wrapped[0], *(f"   {w}" for w in wrapped[1:-1]), f"   {wrapped[-1]} */"]

@@ -52,12 +52,15 @@ def velocity_limit_step(previous, target, max_velocity: float, dt: float):
 def accel_limit_step(previous, velocity, target, max_velocity: float, max_accel: float, dt: float):
     """Velocity- and acceleration-limited move towards ``target``; returns (position, velocity).
 
-    Decelerates so that it stops at the target: the commanded speed never exceeds sqrt(2*a*distance).
+    Decelerates so that it stops at the target: the commanded speed never exceeds the speed from which
+    braking by max_accel*dt per step still stops within the remaining distance (the discrete-time form of
+    sqrt(2*a*distance), which would arrive with speed left and stop in one step).
     """
     prev = np.asarray(previous, dtype=float)
     vel = np.asarray(velocity, dtype=float)
     err = np.asarray(target, dtype=float) - prev
-    stop_speed = np.sqrt(2.0 * max_accel * np.abs(err))
+    a_dt = max_accel * dt
+    stop_speed = a_dt * (np.sqrt(0.25 + 2.0 * np.abs(err) / (a_dt * dt)) - 0.5)
     desired = np.sign(err) * np.minimum(max_velocity, stop_speed)
     dv = np.clip(desired - vel, -max_accel * dt, max_accel * dt)
     new_vel = vel + dv

@@ -1,0 +1,292 @@
+"""Bridge latency and CPU: state frame -> /joint_states in another process, command -> reference in the channel.
+
+Runs inside tools/netns-run (``make bench``) with a private /dev/shm. This process plays the daemon (puts
+``mds-state`` at 100 Hz, each frame numbered and timed with CLOCK_MONOTONIC), the ROS user (subscribes to
+/joint_states, publishes position commands at random phases) and the mux (blocks on ``mds-ref-ros``); the
+``bridge`` executable runs as its own process in between. Baseline, same run: a plain rclpy JointState
+publisher process at the same rate and QoS, received here (one DDS hop, nothing else).
+
+Measured:
+* state frame put -> JointState received here (Ach hop + bridge + DDS hop);
+* state frame put -> reference in the channel, for the cycle that carries a pending command (the bridge's
+  per-cycle work; the ROS side of the command has already arrived);
+* ROS command published -> reference in the channel: by design the bridge writes in step with the state
+  stream, so this includes waiting for the next state frame (up to one period);
+* the bridge's CPU (user + system, /proc via psutil) while it bridges 100 Hz state plus the commands.
+"""
+
+from __future__ import annotations
+
+import bisect
+import os
+import random
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+from bench.common import Row, median, percentile
+
+RATE_HZ = 100.0
+COMMAND_HZ = 25.0
+GROUP = "bridge"
+BIN = Path(sys.executable).parent
+
+# A plain rclpy publisher: the same 17-joint JointState at the same rate and QoS, CLOCK_MONOTONIC in position[0].
+BASELINE_PUBLISHER = textwrap.dedent(
+    """
+    import sys, time, rclpy
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from mds_ach import joints
+    rate, seconds = float(sys.argv[1]), float(sys.argv[2])
+    rclpy.init()
+    node = rclpy.create_node('bench_baseline_publisher')
+    pub = node.create_publisher(JointState, 'bench/joint_states', qos_profile_sensor_data)
+    msg = JointState(name=list(joints.MODEL_JOINTS), position=[0.0] * len(joints.MODEL_JOINTS))
+    while pub.get_subscription_count() == 0:
+        time.sleep(0.01)
+    print('ready', flush=True)
+    period, t = 1.0 / rate, time.monotonic()
+    end = t + seconds
+    while t < end:
+        msg.position[0] = time.monotonic()
+        msg.header.stamp = node.get_clock().now().to_msg()
+        pub.publish(msg)
+        t += period
+        time.sleep(max(0.0, t - time.monotonic()))
+    rclpy.shutdown()
+    """
+)
+
+
+def _cpu_seconds(pid: int) -> float:
+    import psutil
+
+    t = psutil.Process(pid).cpu_times()
+    return t.user + t.system
+
+
+def _ms(samples: list[float]) -> list[float]:
+    return [s * 1e3 for s in samples]
+
+
+class _Ros:
+    """A private context, node and executor for this benchmark's subscriptions and publishers."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("bench_bridge_probe", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, pred, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"bench_bridge: timed out waiting for {what}")
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def _baseline(ros: _Ros, seconds: float) -> tuple[list[float], float]:
+    """One-way latency of a plain rclpy publisher process -> this process, and that publisher's CPU share."""
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+
+    latencies: list[float] = []
+    started = threading.Event()
+
+    def on_msg(msg: JointState) -> None:
+        if started.is_set():
+            latencies.append(time.monotonic() - msg.position[0])
+
+    sub = ros.node.create_subscription(JointState, "bench/joint_states", on_msg, qos_profile_sensor_data)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", BASELINE_PUBLISHER, str(RATE_HZ), str(seconds + 2.0)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        line = proc.stdout.readline() if proc.stdout else ""
+        if line.strip() != "ready":
+            raise RuntimeError("bench_bridge: the baseline publisher did not start")
+        ros.spin_for(0.5)  # let discovery settle
+        started.set()
+        cpu0, t0 = _cpu_seconds(proc.pid), time.monotonic()
+        ros.spin_for(seconds)
+        cpu = (_cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - t0)
+    finally:
+        proc.wait(timeout=seconds + 30)
+        ros.node.destroy_subscription(sub)
+    return latencies, cpu
+
+
+def _bridge(ros: _Ros, seconds: float) -> dict[str, object]:
+    """Run the bridge against a 100 Hz state stream plus random-phase commands; collect every latency."""
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+
+    import mds_ach as mds
+    from mds_ach import ach, joints
+    from mds_ach.channels import StructChannel
+    from mds_ach.msgs import MDS_REF, MDS_STATE
+    from mds_ach_bridge.limits import load_limits
+
+    for name in (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_IK_NAME):
+        if ach.exists(name):
+            ach.unlink(name)
+    state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+    ref_ch = StructChannel(mds.MDS_CHAN_REF_ROS_NAME, MDS_REF)
+    nkr = joints.MODEL_JOINTS.index("NKR")
+    lep = joints.BY_SHORT["LEP"].address
+    lo, hi = load_limits()["LEP"]
+    values = [lo + (hi - lo) * (0.1 + 0.8 * i / 49) for i in range(50)]  # distinct, cycled
+
+    put_times: list[float] = []  # index k -> CLOCK_MONOTONIC at put of frame k
+    js_latency: list[float] = []
+    ref_arrivals: list[tuple[float, float]] = []  # (arrival time, LEP value)
+    stop = threading.Event()
+    measuring = threading.Event()
+
+    def writer() -> None:
+        st = MDS_STATE()
+        for j in joints.JOINTS:
+            st.joint[j.address].address = j.address
+        period, t = 1.0 / RATE_HZ, time.monotonic()
+        while not stop.is_set():
+            st.joint[joints.BY_SHORT["NKR"].address].pos = float(len(put_times))
+            now = time.monotonic()
+            st.time = now
+            put_times.append(now)
+            state_ch.put(st)
+            t += period
+            time.sleep(max(0.0, t - time.monotonic()))
+
+    def ref_watcher() -> None:
+        while not stop.is_set():
+            ref = ref_ch.wait(timeout=0.1)
+            if ref is not None:
+                ref_arrivals.append((time.monotonic(), ref.joint[lep].ref))
+
+    def on_state(msg: JointState) -> None:
+        now = time.monotonic()
+        k = int(msg.position[nkr])
+        if measuring.is_set() and 0 <= k < len(put_times):
+            js_latency.append(now - put_times[k])
+
+    sub = ros.node.create_subscription(JointState, "joint_states", on_state, qos_profile_sensor_data)
+    cmd_pub = ros.node.create_publisher(JointState, "mds/joint_command", 10)
+    bridge = subprocess.Popen([str(BIN / "bridge")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    threads = [threading.Thread(target=writer, daemon=True), threading.Thread(target=ref_watcher, daemon=True)]
+    for th in threads:
+        th.start()
+    commands: list[tuple[float, float]] = []  # (publish time, LEP value)
+    try:
+        ros.spin_until(lambda: cmd_pub.get_subscription_count() > 0 and sub.get_publisher_count() > 0, 30.0,
+                       "the bridge's topics")  # fmt: skip
+        ros.spin_until(lambda: len(put_times) > 50, 10.0, "state frames")
+        ros.spin_for(0.5)
+        measuring.set()
+        cpu0, t0 = _cpu_seconds(bridge.pid), time.monotonic()
+        end = t0 + seconds
+        rng = random.Random(1)
+        next_cmd = time.monotonic() + rng.uniform(0.0, 2.0 / COMMAND_HZ)
+        i = 0
+        while time.monotonic() < end:
+            if time.monotonic() >= next_cmd:
+                value = values[i % len(values)]
+                i += 1
+                commands.append((time.monotonic(), value))
+                cmd_pub.publish(JointState(name=["LEP"], position=[value]))
+                next_cmd += rng.uniform(0.5 / COMMAND_HZ, 1.5 / COMMAND_HZ)
+            ros.executor.spin_once(timeout_sec=max(0.0, min(0.005, next_cmd - time.monotonic())))
+        cpu = (_cpu_seconds(bridge.pid) - cpu0) / (time.monotonic() - t0)
+        ros.spin_for(0.2)
+    finally:
+        stop.set()
+        for th in threads:
+            th.join(timeout=2.0)
+        bridge.terminate()
+        bridge_rc = bridge.wait(timeout=15)
+        ros.node.destroy_subscription(sub)
+        ros.node.destroy_publisher(cmd_pub)
+        state_ch.close()
+        ref_ch.close()
+    if bridge_rc != 0:
+        raise RuntimeError(f"bench_bridge: the bridge exited with {bridge_rc} on SIGTERM")
+
+    # Match each reference frame to its command (the newest command with that value) and to the state frame
+    # that triggered the write (the newest put before the arrival).
+    cmd_latency, cycle_latency = [], []
+    for arrival, value in ref_arrivals:
+        sent = [t for t, v in commands if v == value and t <= arrival]
+        if sent:
+            cmd_latency.append(arrival - sent[-1])
+        k = bisect.bisect_right(put_times, arrival) - 1
+        if k >= 0:
+            cycle_latency.append(arrival - put_times[k])
+    return {"joint_states": js_latency, "command": cmd_latency, "cycle": cycle_latency, "cpu": cpu,
+            "commands": len(commands), "references": len(ref_arrivals)}  # fmt: skip
+
+
+def run(quick: bool = False) -> list[Row]:
+    if os.environ.get("MDS_NETNS_ACTIVE") != "1" or os.environ.get("MDS_NETNS_SHARE_SHM") == "1":
+        raise RuntimeError("bench_bridge needs a private namespace and /dev/shm: run it through tools/netns-run")
+    seconds = 3.0 if quick else 10.0
+    # This process runs three threads (state writer, reference watcher, executor): keep the GIL hand-over
+    # short so the measurement itself does not add the default 5 ms switch interval to the tail.
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(0.0005)
+    ros = _Ros()
+    try:
+        base, base_cpu = _baseline(ros, seconds)
+        res = _bridge(ros, seconds)
+    finally:
+        ros.close()
+        sys.setswitchinterval(switch)
+    base_ms = _ms(base)
+    js, cycle, cmd = _ms(res["joint_states"]), _ms(res["cycle"]), _ms(res["command"])  # type: ignore[arg-type]
+    period_ms = 1e3 / RATE_HZ
+    b50, b99 = median(base_ms), percentile(base_ms, 99)
+    base_name = f"rclpy JointState pub->sub, {RATE_HZ:.0f} Hz"
+    rows = [
+        Row(GROUP, f"state frame -> /joint_states median (n={len(js)})", median(js), "ms", base_name + " p50", b50),
+        Row(GROUP, "state frame -> /joint_states p99", percentile(js, 99), "ms", base_name + " p99", b99,
+            target="p99 <= 2 ms", passed=percentile(js, 99) <= 2.0),
+        Row(GROUP, f"state frame -> reference (cmd pending) median (n={len(cycle)})", median(cycle), "ms",
+            base_name + " p50", b50),
+        Row(GROUP, "state frame -> reference (cmd pending) p99", percentile(cycle, 99), "ms", base_name + " p99", b99,
+            target="p99 <= 2 ms", passed=percentile(cycle, 99) <= 2.0),
+        Row(GROUP, f"ROS command -> reference (waits for state) median (n={len(cmd)})", median(cmd), "ms",
+            base_name + " p50", b50, target=f"<= period/2 + 2 ({period_ms / 2 + 2:.0f} ms)",
+            passed=median(cmd) <= period_ms / 2 + 2.0),
+        Row(GROUP, "ROS command -> reference (waits for state) p99", percentile(cmd, 99), "ms", base_name + " p99", b99,
+            target=f"p99 <= period + 2 ({period_ms + 2:.0f} ms)", passed=percentile(cmd, 99) <= period_ms + 2.0),
+        Row(GROUP, f"bridge CPU at {RATE_HZ:.0f} Hz + {COMMAND_HZ:.0f} Hz commands", 100.0 * res["cpu"], "% core",
+            f"rclpy publisher process, {RATE_HZ:.0f} Hz", 100.0 * base_cpu, target="<= 10 %",
+            passed=100.0 * res["cpu"] <= 10.0),
+        # Informational: two commands inside one state period coalesce into one write (newest wins).
+        Row(GROUP, f"reference frames written for {res['commands']} commands", float(res["references"]), "frames"),
+    ]  # fmt: skip
+    return rows
+
+
+if __name__ == "__main__":
+    for row in run(quick="--quick" in sys.argv):
+        print(row)

@@ -1,0 +1,1171 @@
+"""Pure-Python Ach: shared-memory channels that are byte- and lock-compatible with C libach.
+
+A channel is the file ``/dev/shm/achshm-<name>`` laid out exactly as libach 2.0 lays it out (see
+``specs/ach-format.md``). Readers and writers synchronise through the process-shared, robust,
+priority-inheriting pthread mutex and condition variable stored inside the file, called through glibc
+with ctypes, so C programs linked against libach and Python programs using this module share channels.
+
+The API mirrors the classic ``ach`` Python binding so that old client code ports by changing one import::
+
+    from mds_ach import ach
+    c = ach.Channel("mds-state")              # opens; creates with 16 x 512 if missing
+    status, size = c.get(state, wait=True, last=True)
+    c.put(ref)
+
+Why some things look the way they do:
+
+* ``put`` and ``get`` follow libach's algorithms literally (index wrap, overlap eviction, reader
+  ``next_index`` starting at 1, ...) because golden files and mixed C/Python deployments need the very
+  same bytes, not just equivalent behaviour.
+* Blocking waits use short timed slices so that Ctrl-C, ``cancel()`` and ``close()`` are honoured even
+  though ``pthread_cond_wait`` is not interruptible by signals.
+* A Python exception (Ctrl-C) can surface right after a ctypes call returned with the mutex held, so every
+  locked section releases the mutex if the kernel lock word says this thread owns it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import math
+import os
+import platform
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+
+# --- status codes (enum ach_status) --------------------------------------------------------------
+ACH_OK = 0
+ACH_OVERFLOW = 1
+ACH_INVALID_NAME = 2
+ACH_BAD_SHM_FILE = 3
+ACH_FAILED_SYSCALL = 4
+ACH_EAGAIN = 5
+ACH_STALE_FRAMES = ACH_EAGAIN
+ACH_LOCKED = ACH_EAGAIN
+ACH_MISSED_FRAME = 6
+ACH_TIMEOUT = 7
+ACH_EEXIST = 8
+ACH_ENOENT = 9
+ACH_CLOSED = 10
+ACH_BUG = 11
+ACH_EINVAL = 12
+ACH_CORRUPT = 13
+ACH_BAD_HEADER = 14
+ACH_EACCES = 15
+ACH_CANCELED = 16
+ACH_EFAULT = 17
+ACH_EINTR = 18
+ACH_ENOTSUP = 19
+
+_STATUS_NAMES = (
+    "ACH_OK",
+    "ACH_OVERFLOW",
+    "ACH_INVALID_NAME",
+    "ACH_BAD_SHM_FILE",
+    "ACH_FAILED_SYSCALL",
+    "ACH_EAGAIN",
+    "ACH_MISSED_FRAME",
+    "ACH_TIMEOUT",
+    "ACH_EEXIST",
+    "ACH_ENOENT",
+    "ACH_CLOSED",
+    "ACH_BUG",
+    "ACH_EINVAL",
+    "ACH_CORRUPT",
+    "ACH_BAD_HEADER",
+    "ACH_EACCES",
+    "ACH_CANCELED",
+    "ACH_EFAULT",
+    "ACH_EINTR",
+    "ACH_ENOTSUP",
+)
+
+_EXPLANATIONS = {
+    ACH_OK: "success",
+    ACH_OVERFLOW: "frame does not fit (buffer too small for the frame, or frame larger than the channel)",
+    ACH_INVALID_NAME: "invalid channel name (1-63 characters of [A-Za-z0-9_.-], not starting with '.')",
+    ACH_BAD_SHM_FILE: "not an Ach channel file (bad magic number or too short)",
+    ACH_FAILED_SYSCALL: "a system call failed",
+    ACH_EAGAIN: "no new frame (stale frames)",
+    ACH_MISSED_FRAME: "frames were skipped",
+    ACH_TIMEOUT: "timed out waiting for a frame",
+    ACH_EEXIST: "channel already exists",
+    ACH_ENOENT: "channel does not exist",
+    ACH_CLOSED: "channel handle is closed",
+    ACH_BUG: "internal inconsistency (was the channel re-created while open?)",
+    ACH_EINVAL: "invalid argument",
+    ACH_CORRUPT: "channel is corrupt (bad guard words, or a writer died mid-put); re-create it",
+    ACH_BAD_HEADER: "bad header",
+    ACH_EACCES: "permission denied",
+    ACH_CANCELED: "operation canceled",
+    ACH_EFAULT: "bad address",
+    ACH_EINTR: "interrupted",
+    ACH_ENOTSUP: "not supported on this platform",
+}
+
+# --- get() options -------------------------------------------------------------------------------
+ACH_O_NONBLOCK = 0
+ACH_O_FIRST = 0
+ACH_O_ABSTIME = 0
+ACH_O_WAIT = 1
+ACH_O_LAST = 2
+ACH_O_COPY = 4
+ACH_O_RELTIME = 8
+
+ACH_DEFAULT_FRAME_COUNT = 16
+ACH_DEFAULT_FRAME_SIZE = 512
+
+MAGIC = 0xB07511F3
+GUARD_HEADER = 0x1A2A3A4A5A6A7A8A
+GUARD_INDEX = 0x1B2B3B4B5B6B7B8B
+GUARD_DATA = 0x1C2C3C4C5C6C7C8C
+
+SHM_DIR = "/dev/shm"
+SHM_PREFIX = "achshm-"
+NAME_MAX = 64  # libach: strlen(name) < 64
+WAIT_SLICE = 0.1  # seconds per timed wait slice, so Ctrl-C / cancel / close are seen promptly
+
+CLOCK_REALTIME = 0
+CLOCK_MONOTONIC = 1
+
+# glibc constants, identical on x86_64 and aarch64
+_PTHREAD_PROCESS_SHARED = 1
+_PTHREAD_PRIO_INHERIT = 1
+_PTHREAD_MUTEX_ROBUST = 1
+_EOWNERDEAD = 130
+_ENOTRECOVERABLE = 131
+_ETIMEDOUT = 110
+_FUTEX_TID_MASK = 0x3FFFFFFF
+
+_U64 = struct.Struct("<Q")
+_NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
+
+
+def result_string(status: int) -> str:
+    """libach's ``ach_result_to_string``: the enum name, ``"ACH_EAGAIN"`` for 5."""
+    if 0 <= status < len(_STATUS_NAMES):
+        return _STATUS_NAMES[status]
+    return f"ACH_UNKNOWN({status})"
+
+
+def explain(status: int) -> str:
+    """A human sentence for a status code."""
+    return _EXPLANATIONS.get(status, "unknown status")
+
+
+class AchException(Exception):  # noqa: N818 - the classic binding's name
+    """An Ach call failed. ``status`` is the libach status code; ``str()`` names it and explains it.
+
+    For ``ACH_OVERFLOW`` from ``get`` the exception carries ``frame_size``, the buffer size that is needed.
+    """
+
+    def __init__(self, status: int, detail: str = "", *, channel: str | None = None, frame_size: int | None = None):
+        self.status = status
+        self.detail = detail
+        self.channel = channel
+        self.frame_size = frame_size
+        super().__init__(status)
+
+    @property
+    def reason(self) -> str:
+        """Status name, explanation and detail, without the channel name."""
+        text = f"{result_string(self.status)}: {explain(self.status)}"
+        return f"{text}: {self.detail}" if self.detail else text
+
+    def __str__(self) -> str:
+        return f"channel '{self.channel}': {self.reason}" if self.channel is not None else self.reason
+
+
+# --- layout ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Byte offsets of one architecture's channel file; only the mutex size differs between arches."""
+
+    arch: str
+    mutex_size: int
+
+    @property
+    def mutex(self) -> int:
+        return 216
+
+    @property
+    def cond(self) -> int:
+        return 216 + self.mutex_size
+
+    @property
+    def dirty(self) -> int:
+        return 264 + self.mutex_size
+
+    @property
+    def last_seq(self) -> int:
+        return 272 + self.mutex_size
+
+    @property
+    def header_size(self) -> int:
+        return 280 + self.mutex_size
+
+    def file_size(self, index_cnt: int, data_size: int) -> int:
+        """``sizeof(header) + guard + 24*cnt + guard + data_size + guard``."""
+        return self.header_size + 24 * index_cnt + data_size + 24
+
+    def index_offset(self) -> int:
+        return self.header_size + 8
+
+    def data_offset(self, index_cnt: int) -> int:
+        return self.header_size + 16 + 24 * index_cnt
+
+
+LAYOUT_X86_64 = Layout("x86_64", 40)
+LAYOUT_AARCH64 = Layout("aarch64", 48)
+LAYOUTS = {"x86_64": LAYOUT_X86_64, "aarch64": LAYOUT_AARCH64}
+_MACHINE_ALIASES = {"amd64": "x86_64", "x86_64": "x86_64", "aarch64": "aarch64", "arm64": "aarch64"}
+
+
+def native_layout() -> Layout:
+    """The layout for this machine (glibc on 64-bit x86 or ARM); other platforms are refused."""
+    arch = _MACHINE_ALIASES.get(platform.machine().lower())
+    if arch is None or ctypes.sizeof(ctypes.c_void_p) != 8:
+        raise AchException(ACH_ENOTSUP, f"no known Ach layout for {platform.machine()} "
+                                        f"({8 * ctypes.sizeof(ctypes.c_void_p)}-bit); only x86_64 and aarch64")
+    return LAYOUTS[arch]
+
+
+# Header fields at fixed offsets, in units of u64 (the mmap is 8-aligned).
+_Q_LEN = 1
+_Q_INDEX_CNT = 11
+_Q_DATA_SIZE = 12
+_Q_DATA_HEAD = 13
+_Q_DATA_FREE = 14
+_Q_INDEX_HEAD = 15
+_Q_INDEX_FREE = 16
+_OFF_NAME = 16
+_OFF_CLOCK = 136
+
+
+def validate_name(name: object) -> str:
+    """libach's ``libach_name_ok``: raise ``AchException(ACH_INVALID_NAME)`` with the reason."""
+    if not isinstance(name, str):
+        raise AchException(ACH_INVALID_NAME, f"channel name must be a str, got {type(name).__name__}")
+    if not name:
+        raise AchException(ACH_INVALID_NAME, "channel name is empty")
+    if len(name) >= NAME_MAX:
+        raise AchException(ACH_INVALID_NAME, f"{name[:20]!r}... is {len(name)} characters, at most 63 allowed")
+    if name.startswith("."):
+        raise AchException(ACH_INVALID_NAME, f"{name!r} starts with '.'")
+    bad = sorted({c for c in name if c not in _NAME_CHARS})
+    if bad:
+        raise AchException(ACH_INVALID_NAME, f"{name!r} contains {''.join(bad)!r}; allowed are [A-Za-z0-9_.-]")
+    return name
+
+
+def shm_path(name: str) -> str:
+    """``/dev/shm/achshm-<name>``, the file behind ``shm_open("/achshm-<name>")``."""
+    return os.path.join(SHM_DIR, SHM_PREFIX + validate_name(name))
+
+
+def exists(name: str) -> bool:
+    """True when a channel file of that name exists (its contents are not checked)."""
+    return os.path.exists(shm_path(name))
+
+
+def unlink(name: str) -> None:
+    """Remove the channel (``shm_unlink``); processes that have it open keep the orphaned memory."""
+    path = shm_path(name)
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        raise AchException(ACH_ENOENT, path, channel=name) from None
+    except PermissionError as exc:
+        raise AchException(ACH_EACCES, f"{path}: {exc.strerror}", channel=name) from None
+
+
+# --- read-only parsing (any arch, no locking) ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class IndexEntry:
+    size: int
+    offset: int
+    seq_num: int
+
+
+@dataclass
+class ChannelImage:
+    """A decoded channel file. Parsing takes no lock: use it for inspection, foreign-arch files and tests."""
+
+    layout: Layout
+    len: int
+    name: str
+    index_cnt: int
+    data_size: int
+    data_head: int
+    data_free: int
+    index_head: int
+    index_free: int
+    clock: int
+    dirty: int
+    last_seq: int
+    index: list[IndexEntry]
+    data: bytes = field(repr=False)
+
+    @property
+    def frame_size(self) -> int:
+        """Nominal frame size, as achd reports it."""
+        return self.data_size // self.index_cnt
+
+    def frames(self) -> list[tuple[int, bytes]]:
+        """Live frames as ``(seq_num, payload)``, oldest first."""
+        live = [e for e in self.index if e.seq_num]
+        return [(e.seq_num, self.data[e.offset:e.offset + e.size]) for e in sorted(live, key=lambda e: e.seq_num)]
+
+    def newest(self) -> bytes | None:
+        frames = self.frames()
+        return frames[-1][1] if frames else None
+
+
+def detect_layout(image: bytes) -> Layout:
+    """Pick the arch whose size formula matches the file (magic and guard H decide)."""
+    for layout in LAYOUTS.values():
+        h = layout.header_size
+        if len(image) >= h + 8 and struct.unpack_from("<Q", image, h)[0] == GUARD_HEADER:
+            return layout
+    raise AchException(ACH_BAD_SHM_FILE, "no header guard where x86_64 or aarch64 libach puts it")
+
+
+def parse_image(image: bytes | bytearray | memoryview, arch: str | None = None) -> ChannelImage:
+    """Decode a whole channel file. Bad magic -> ACH_BAD_SHM_FILE; wrong length or guards -> ACH_CORRUPT."""
+    data = bytes(image)
+    if len(data) < 4 or struct.unpack_from("<I", data, 0)[0] != MAGIC:
+        raise AchException(ACH_BAD_SHM_FILE, "bad magic number")
+    layout = LAYOUTS[arch] if arch else detect_layout(data)
+    _check_geometry(data, layout)
+    h = layout.header_size
+    cnt, dsize = struct.unpack_from("<QQ", data, 88)
+    fields = struct.unpack_from("<QQQQ", data, 104)
+    index = [IndexEntry(*struct.unpack_from("<QQQ", data, h + 8 + 24 * i)) for i in range(cnt)]
+    d0 = layout.data_offset(cnt)
+    return ChannelImage(
+        layout=layout,
+        len=struct.unpack_from("<Q", data, 8)[0],
+        name=data[_OFF_NAME:_OFF_NAME + 65].split(b"\0", 1)[0].decode("ascii", "replace"),
+        index_cnt=cnt,
+        data_size=dsize,
+        data_head=fields[0],
+        data_free=fields[1],
+        index_head=fields[2],
+        index_free=fields[3],
+        clock=struct.unpack_from("<i", data, _OFF_CLOCK)[0],
+        dirty=struct.unpack_from("<i", data, layout.dirty)[0],
+        last_seq=struct.unpack_from("<Q", data, layout.last_seq)[0],
+        index=index,
+        data=data[d0:d0 + dsize],
+    )
+
+
+def _check_geometry(data: bytes | memoryview, layout: Layout) -> None:
+    """Header length fields, file length and the three guards; raises AchException with the reason."""
+    h = layout.header_size
+    size = len(data)
+    if size < h + 24:
+        raise AchException(ACH_BAD_SHM_FILE, f"truncated: {size} bytes, an Ach header alone needs {h + 24}")
+    length, = struct.unpack_from("<Q", data, 8)
+    cnt, dsize = struct.unpack_from("<QQ", data, 88)
+    if length != size:
+        raise AchException(ACH_CORRUPT, f"header says {length} bytes but the file has {size} (truncated?)")
+    expected = layout.file_size(cnt, dsize)
+    if cnt == 0 or dsize == 0 or expected != length:
+        other = [a.arch for a in LAYOUTS.values() if a is not layout and cnt and a.file_size(cnt, dsize) == length]
+        hint = f"; it looks like a {other[0]} file (Ach files are not portable across architectures)" if other else ""
+        raise AchException(ACH_CORRUPT, f"inconsistent header: index_cnt={cnt} data_size={dsize} len={length}, "
+                                        f"{layout.arch} expects {expected}{hint}")
+    guards = (
+        (h, GUARD_HEADER, "header"),
+        (h + 8 + 24 * cnt, GUARD_INDEX, "index"),
+        (h + 16 + 24 * cnt + dsize, GUARD_DATA, "data"),
+    )
+    for offset, value, what in guards:
+        if struct.unpack_from("<Q", data, offset)[0] != value:
+            raise AchException(ACH_CORRUPT, f"bad {what} guard at offset {offset}")
+
+
+# --- glibc ---------------------------------------------------------------------------------------
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+class _Pthread:
+    """The glibc pthread calls Ach needs, with argtypes set once (cached function pointers)."""
+
+    def __init__(self) -> None:
+        try:
+            libc = ctypes.CDLL("libc.so.6", use_errno=True)
+            libc.pthread_mutex_consistent  # noqa: B018 - glibc >= 2.34 has pthread in libc
+        except (OSError, AttributeError):
+            libc = ctypes.CDLL("libpthread.so.0", use_errno=True)
+        vp = [ctypes.c_void_p]
+        self.mutex_lock = self._fn(libc.pthread_mutex_lock, vp)
+        self.mutex_unlock = self._fn(libc.pthread_mutex_unlock, vp)
+        self.mutex_consistent = self._fn(libc.pthread_mutex_consistent, vp)
+        self.cond_broadcast = self._fn(libc.pthread_cond_broadcast, vp)
+        self.cond_timedwait = self._fn(libc.pthread_cond_timedwait,
+                                       [ctypes.c_void_p, ctypes.c_void_p, ctypes.POINTER(_Timespec)])
+        self.mutex_init = self._fn(libc.pthread_mutex_init, [ctypes.c_void_p, ctypes.c_void_p])
+        self.cond_init = self._fn(libc.pthread_cond_init, [ctypes.c_void_p, ctypes.c_void_p])
+        self.mutexattr_init = self._fn(libc.pthread_mutexattr_init, vp)
+        self.mutexattr_destroy = self._fn(libc.pthread_mutexattr_destroy, vp)
+        self.mutexattr_setpshared = self._fn(libc.pthread_mutexattr_setpshared, [ctypes.c_void_p, ctypes.c_int])
+        self.mutexattr_setprotocol = self._fn(libc.pthread_mutexattr_setprotocol, [ctypes.c_void_p, ctypes.c_int])
+        self.mutexattr_setrobust = self._fn(libc.pthread_mutexattr_setrobust, [ctypes.c_void_p, ctypes.c_int])
+        self.condattr_init = self._fn(libc.pthread_condattr_init, vp)
+        self.condattr_destroy = self._fn(libc.pthread_condattr_destroy, vp)
+        self.condattr_setpshared = self._fn(libc.pthread_condattr_setpshared, [ctypes.c_void_p, ctypes.c_int])
+        self.condattr_setclock = self._fn(libc.pthread_condattr_setclock, [ctypes.c_void_p, ctypes.c_int])
+
+    @staticmethod
+    def _fn(f, argtypes):
+        f.argtypes = argtypes
+        f.restype = ctypes.c_int
+        return f
+
+    def init_sync(self, mutex_addr: int, cond_addr: int, clock: int) -> None:
+        """libach's creation: cond (pshared + clock), then mutex (pshared + PRIO_INHERIT + ROBUST)."""
+        cattr = ctypes.create_string_buffer(64)
+        _check_zero(self.condattr_init(cattr), "pthread_condattr_init")
+        try:
+            _check_zero(self.condattr_setpshared(cattr, _PTHREAD_PROCESS_SHARED), "pthread_condattr_setpshared")
+            _check_zero(self.condattr_setclock(cattr, clock), "pthread_condattr_setclock")
+            _check_zero(self.cond_init(cond_addr, cattr), "pthread_cond_init")
+        finally:
+            self.condattr_destroy(cattr)
+        mattr = ctypes.create_string_buffer(64)
+        _check_zero(self.mutexattr_init(mattr), "pthread_mutexattr_init")
+        try:
+            _check_zero(self.mutexattr_setpshared(mattr, _PTHREAD_PROCESS_SHARED), "pthread_mutexattr_setpshared")
+            _check_zero(self.mutexattr_setprotocol(mattr, _PTHREAD_PRIO_INHERIT), "pthread_mutexattr_setprotocol")
+            _check_zero(self.mutexattr_setrobust(mattr, _PTHREAD_MUTEX_ROBUST), "pthread_mutexattr_setrobust")
+            _check_zero(self.mutex_init(mutex_addr, mattr), "pthread_mutex_init")
+        finally:
+            self.mutexattr_destroy(mattr)
+
+
+def _check_zero(r: int, what: str) -> None:
+    if r != 0:
+        raise AchException(ACH_FAILED_SYSCALL, f"{what}: {os.strerror(r)}")
+
+
+_pthread: _Pthread | None = None
+
+
+def _libc() -> _Pthread:
+    global _pthread
+    if _pthread is None:
+        _pthread = _Pthread()
+    return _pthread
+
+
+# --- create ----------------------------------------------------------------------------------------
+
+
+def create(
+    name: str,
+    frame_count: int = 0,
+    frame_size: int = 0,
+    mode: int = 0o660,
+    truncate: bool = False,
+    clock: int = CLOCK_MONOTONIC,
+) -> None:
+    """Create channel ``name`` with ``frame_count`` frames of nominal ``frame_size`` bytes (0 = libach default).
+
+    The file is built under a temporary name and linked into place, so no process ever opens a half
+    initialised channel. Without ``truncate`` an existing channel gives ``ACH_EEXIST``; with it the old file
+    is atomically replaced (processes that still have it open keep the old memory, they are not clobbered).
+    ``mode`` is applied exactly (not filtered by the umask).
+    """
+    validate_name(name)
+    count = ACH_DEFAULT_FRAME_COUNT if frame_count == 0 else frame_count
+    size = ACH_DEFAULT_FRAME_SIZE if frame_size == 0 else frame_size
+    for what, value in (("frame_count", count), ("frame_size", size)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise AchException(ACH_EINVAL, f"{what} must be a positive integer, got {value!r}", channel=name)
+    if count * size > 1 << 40:
+        raise AchException(ACH_EINVAL, f"{count} x {size} bytes is unreasonably large", channel=name)
+    layout = native_layout()
+    length = layout.file_size(count, count * size)
+    path = shm_path(name)
+    tmp = os.path.join(SHM_DIR, f".{SHM_PREFIX}{name}.{os.getpid()}.{threading.get_native_id()}.tmp")
+    try:
+        fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        raise _os_error(exc, name, tmp) from None
+    try:
+        try:
+            os.ftruncate(fd, length)
+            _initialise(fd, length, layout, name, count, count * size, clock)
+            os.fchmod(fd, mode)
+            if truncate:
+                os.replace(tmp, path)
+            else:
+                os.link(tmp, path)
+        except FileExistsError:
+            raise AchException(ACH_EEXIST, path, channel=name) from None
+        except OSError as exc:
+            raise _os_error(exc, name, path) from None
+    finally:
+        os.close(fd)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+_create = create  # Channel.__init__ has a parameter called ``create``
+
+
+def _initialise(fd: int, length: int, layout: Layout, name: str, count: int, dsize: int, clock: int) -> None:
+    import mmap
+
+    mm = mmap.mmap(fd, length)
+    try:
+        anchor = ctypes.c_char.from_buffer(mm)
+        try:
+            base = ctypes.addressof(anchor)
+            _libc().init_sync(base + layout.mutex, base + layout.cond, clock)
+        finally:
+            del anchor
+        h = layout.header_size
+        struct.pack_into("<IxxxxQ", mm, 0, MAGIC, length)
+        mm[_OFF_NAME:_OFF_NAME + len(name)] = name.encode("ascii")
+        struct.pack_into("<QQQQQQ", mm, 88, count, dsize, 0, dsize, 0, count)
+        struct.pack_into("<i", mm, _OFF_CLOCK, clock)
+        struct.pack_into("<Q", mm, h, GUARD_HEADER)
+        struct.pack_into("<Q", mm, h + 8 + 24 * count, GUARD_INDEX)
+        struct.pack_into("<Q", mm, h + 16 + 24 * count + dsize, GUARD_DATA)
+    finally:
+        mm.close()
+
+
+def _os_error(exc: OSError, name: str, path: str) -> AchException:
+    if exc.errno == errno.ENOENT:
+        return AchException(ACH_ENOENT, path, channel=name)
+    if exc.errno in (errno.EACCES, errno.EPERM):
+        return AchException(ACH_EACCES, f"{path}: {exc.strerror}", channel=name)
+    if exc.errno == errno.EEXIST:
+        return AchException(ACH_EEXIST, path, channel=name)
+    return AchException(ACH_FAILED_SYSCALL, f"{path}: {exc.strerror}", channel=name)
+
+
+# --- channel handle --------------------------------------------------------------------------------
+
+
+def _byte_view(buf: object, writable: bool) -> memoryview:
+    """A flat unsigned-byte view of any contiguous buffer (bytes, bytearray, memoryview, ctypes object)."""
+    if type(buf) is memoryview:
+        mv = buf
+    else:
+        try:
+            mv = memoryview(buf)
+        except TypeError:
+            raise TypeError(f"Ach frames are bytes-like objects (bytes, bytearray, memoryview, ctypes structure), "
+                            f"got {type(buf).__name__}") from None
+    if writable and mv.readonly:
+        raise TypeError(f"get() needs a writable buffer (bytearray, memoryview, ctypes object), "
+                        f"got read-only {type(buf).__name__}")
+    if mv.format == "B" and mv.ndim == 1:
+        return mv
+    try:
+        return mv.cast("B")
+    except TypeError:
+        if not mv.c_contiguous:
+            raise TypeError("Ach buffers must be contiguous") from None
+        if mv.readonly:
+            return memoryview(mv.tobytes())
+        return memoryview((ctypes.c_ubyte * mv.nbytes).from_buffer(buf)).cast("B")
+
+
+class Channel:
+    """An open Ach channel: one per reader/writer. Reader state (last seen frame) lives in this handle.
+
+    ``Channel(name)`` opens the channel, creating it first with ``frame_count`` x ``frame_size`` (0 means the
+    libach defaults 16 x 512) when it does not exist and ``create`` is true, like the classic binding.
+    A handle may be shared between threads; ``close()`` waits for calls in progress to leave.
+    """
+
+    def __init__(self, name: str, frame_count: int = 0, frame_size: int = 0, *, create: bool = True,
+                 mode: int = 0o660):
+        self.name = validate_name(name)
+        self._closed = True  # until fully open, so __del__ / close() are harmless
+        try:
+            self._open()
+        except AchException as exc:
+            if exc.status != ACH_ENOENT or not create:
+                raise
+            try:
+                _create(name, frame_count, frame_size, mode=mode)
+            except AchException as exc2:
+                if exc2.status != ACH_EEXIST:  # lost a creation race: fine, open theirs
+                    raise
+            self._open()
+
+    # -- open / close ------------------------------------------------------------------------------
+
+    def _open(self) -> None:
+        import mmap
+
+        layout = native_layout()
+        path = shm_path(self.name)
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CLOEXEC)
+        except OSError as exc:
+            raise _os_error(exc, self.name, path) from None
+        try:
+            size = os.fstat(fd).st_size
+            head = os.pread(fd, 4, 0)
+            if len(head) < 4 or struct.unpack("<I", head)[0] != MAGIC:
+                raise AchException(ACH_BAD_SHM_FILE, f"{path}: bad magic number ({size} bytes)", channel=self.name)
+            if size < layout.header_size + 24:
+                raise AchException(ACH_BAD_SHM_FILE, f"{path}: truncated, {size} bytes", channel=self.name)
+            mm = mmap.mmap(fd, size)
+        except BaseException:
+            os.close(fd)
+            raise
+        try:
+            _check_geometry(mm, layout)
+        except AchException as exc:
+            mm.close()
+            os.close(fd)
+            exc.channel = self.name
+            raise
+        self._layout = layout
+        self._fd = fd
+        self._mm = mm
+        self._anchor = ctypes.c_char.from_buffer(mm)
+        base = ctypes.addressof(self._anchor)
+        self._mutex = ctypes.c_void_p(base + layout.mutex)
+        self._cond = ctypes.c_void_p(base + layout.cond)
+        self._mv = memoryview(mm)
+        self._q = self._mv[: size - size % 8].cast("Q")
+        self._i32 = self._mv[: size - size % 4].cast("i")
+        q = self._q
+        cnt = q[_Q_INDEX_CNT]
+        dsize = q[_Q_DATA_SIZE]
+        h = layout.header_size
+        self._cnt = cnt
+        self._dsize = dsize
+        self._ix = (h + 8) // 8  # u64 index of index[0].size
+        self._d0 = h + 16 + 24 * cnt  # byte offset of the data ring
+        self._qg_h = h // 8
+        self._qg_i = (h + 8 + 24 * cnt) // 8
+        self._off_g_d = h + 16 + 24 * cnt + dsize  # may be unaligned
+        self._q_last = layout.last_seq // 8
+        self._i_dirty = layout.dirty // 4
+        self._i_lock = layout.mutex // 4
+        self._clock = self._i32[_OFF_CLOCK // 4]
+        self._fn = _libc()
+        self._mutex_lock = self._fn.mutex_lock  # cached: attribute lookups show up on the hot path
+        self._mutex_unlock = self._fn.mutex_unlock
+        self._cond_broadcast = self._fn.cond_broadcast
+        self._ts = _Timespec()
+        # reader state (libach ach_open): seq_num = 0, next_index = 1
+        self._seq = 0
+        self._next = 1
+        self._cancel = False
+        self._active: list[int] = []
+        self._release_lock = threading.Lock()
+        self._released = False
+        self._closed = False
+
+    def close(self) -> None:
+        """Unmap and close. Calls in progress in other threads are woken and finish first (or later, in the
+        background: the last one to leave releases the mapping)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._active:
+            self._cond_broadcast(self._cond)  # wake waiters; they see _closed within one slice at worst
+            deadline = time.monotonic() + 1.0
+            while self._active and time.monotonic() < deadline:
+                time.sleep(0.001)
+            if self._active:
+                return  # e.g. called from a signal handler on the waiting thread: _leave() releases
+        self._release()
+
+    def _release(self) -> None:
+        with self._release_lock:
+            if self._released:
+                return
+            self._released = True
+        self._q.release()
+        self._i32.release()
+        self._mv.release()
+        del self._anchor
+        self._mm.close()
+        os.close(self._fd)
+
+    def __enter__(self) -> Channel:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            if not self._closed:
+                self.close()
+        except Exception:  # interpreter shutdown: nothing sensible left to do
+            pass
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else f"{self._cnt} x {self._dsize // self._cnt} B"
+        return f"<ach.Channel {self.name!r} {state}>"
+
+    def _enter(self) -> None:
+        """Register a call in progress (list append/pop are atomic under the GIL), then check for close."""
+        self._active.append(1)
+        if self._closed:
+            self._leave()
+            raise AchException(ACH_CLOSED, channel=self.name)
+
+    def _leave(self) -> None:
+        self._active.pop()
+        if self._closed and not self._active:
+            self._release()
+
+    # -- properties --------------------------------------------------------------------------------
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def frame_count(self) -> int:
+        return self._cnt
+
+    @property
+    def data_size(self) -> int:
+        """Largest frame the channel accepts (the whole data ring)."""
+        return self._dsize
+
+    @property
+    def frame_size(self) -> int:
+        """Nominal frame size given at creation (data_size / frame_count)."""
+        return self._dsize // self._cnt
+
+    @property
+    def seq_num(self) -> int:
+        """Sequence number of the last frame this handle read."""
+        return self._seq
+
+    @property
+    def next_index(self) -> int:
+        return self._next
+
+    @property
+    def last_seq(self) -> int:
+        """Sequence number of the newest frame in the channel (read without the lock; 0 = empty)."""
+        self._enter()
+        try:
+            return self._q[self._q_last]
+        finally:
+            self._leave()
+
+    @property
+    def layout(self) -> Layout:
+        return self._layout
+
+    # -- locking -----------------------------------------------------------------------------------
+
+    def _guards_ok(self) -> bool:
+        q = self._q
+        return (q[self._qg_h] == GUARD_HEADER and q[self._qg_i] == GUARD_INDEX
+                and _U64.unpack_from(self._mv, self._off_g_d)[0] == GUARD_DATA and q[0] & 0xFFFFFFFF == MAGIC)
+
+    def _lock(self) -> int:
+        """libach ``chan_lock``: lock, recover a dead owner, then refuse a dirty channel."""
+        r = self._mutex_lock(self._mutex)
+        if r or self._i32[self._i_dirty]:
+            return self._lock_slow(r)
+        return ACH_OK
+
+    def _lock_slow(self, r: int) -> int:
+        """After ``pthread_mutex_lock`` returned ``r``: EOWNERDEAD -> consistent; then the dirty check."""
+        if r == _EOWNERDEAD:
+            self._fn.mutex_consistent(self._mutex)
+        elif r == _ENOTRECOVERABLE:
+            return ACH_CORRUPT
+        elif r:
+            return ACH_FAILED_SYSCALL
+        if self._i32[self._i_dirty]:
+            self._mutex_unlock(self._mutex)
+            return ACH_CORRUPT
+        return ACH_OK
+
+    def _owned(self) -> bool:
+        """True when the PI futex word names this thread as owner (the kernel's view, always accurate)."""
+        return self._i32[self._i_lock] & _FUTEX_TID_MASK == threading.get_native_id()
+
+    def _unlock_if_owned(self) -> None:
+        if self._owned():
+            self._mutex_unlock(self._mutex)
+
+    def _wait(self, deadline: float | None) -> int:
+        """Holding the lock, wait for a frame newer than ``seq_num``; returns with the lock held on OK/TIMEOUT/
+        CANCELED, released on CORRUPT/FAILED_SYSCALL."""
+        q = self._q
+        ql = self._q_last
+        ts = self._ts
+        while True:
+            if self._cancel or self._closed:
+                return ACH_CANCELED
+            if self._seq != q[ql]:
+                return ACH_OK
+            now = time.clock_gettime(self._clock)
+            if deadline is not None and now >= deadline:
+                return ACH_TIMEOUT
+            end = now + WAIT_SLICE if deadline is None or deadline > now + WAIT_SLICE else deadline
+            sec = math.floor(end)
+            ts.tv_sec = sec
+            ts.tv_nsec = min(int((end - sec) * 1e9), 999_999_999)
+            r = self._fn.cond_timedwait(self._cond, self._mutex, ts)
+            if r == _EOWNERDEAD:
+                self._fn.mutex_consistent(self._mutex)
+            elif r not in (0, _ETIMEDOUT):
+                self._unlock_if_owned()
+                return ACH_CORRUPT if r == _ENOTRECOVERABLE else ACH_FAILED_SYSCALL
+            if self._i32[self._i_dirty]:
+                self._mutex_unlock(self._mutex)
+                return ACH_CORRUPT
+
+    # -- put ---------------------------------------------------------------------------------------
+
+    def put(self, buf: object) -> None:
+        """Write one frame (bytes, bytearray, memoryview or ctypes object). Raises AchException on any
+        non-OK status (classic binding), e.g. ACH_OVERFLOW when the frame is larger than the channel."""
+        src = _byte_view(buf, False)
+        r = self._put(src)
+        if r:
+            detail = f"{src.nbytes} bytes > data_size {self._dsize}" if r == ACH_OVERFLOW else ""
+            raise AchException(r, detail, channel=self.name)
+
+    def put_status(self, buf: object) -> int:
+        """Like ``put`` but returns the libach status instead of raising."""
+        return self._put(_byte_view(buf, False))
+
+    def _put(self, src: memoryview) -> int:
+        n = src.nbytes
+        active = self._active
+        active.append(1)  # inlined _enter(): this is the hot path
+        try:
+            if self._closed:
+                raise AchException(ACH_CLOSED, channel=self.name)
+            if n == 0:
+                return ACH_EINVAL
+            if not self._guards_ok():
+                return ACH_CORRUPT
+            if n > self._dsize:
+                return ACH_OVERFLOW
+            mutex = self._mutex
+            try:
+                r = self._mutex_lock(mutex)
+                if r or self._i32[self._i_dirty]:
+                    r = self._lock_slow(r)
+                    if r:
+                        return r
+                self._write_locked(src, n)
+                self._i32[self._i_dirty] = 0
+                self._mutex_unlock(mutex)
+            except BaseException:
+                # Interrupted while holding the lock: release it. If the update was half done, dirty stays 1 and
+                # the channel reads as CORRUPT everywhere -- exactly what libach does when a writer dies mid-put.
+                self._unlock_if_owned()
+                self._cond_broadcast(self._cond)
+                raise
+            self._cond_broadcast(self._cond)
+            return ACH_OK
+        finally:
+            active.pop()
+            if self._closed and not active:
+                self._release()
+
+    def _write_locked(self, src: memoryview, n: int) -> None:
+        """libach ``ach_put`` steps 1-7, literally (see ach-format.md section 4). Caller holds the lock."""
+        q = self._q
+        self._i32[self._i_dirty] = 1
+        cnt = self._cnt
+        dsize = self._dsize
+        ix = self._ix
+        index_head = q[_Q_INDEX_HEAD]
+        index_free = q[_Q_INDEX_FREE]
+        data_head = q[_Q_DATA_HEAD]
+        data_free = q[_Q_DATA_FREE]
+        slot = index_head
+        if index_free == 0:  # index full: drop the oldest frame, which sits in our slot
+            e = ix + 3 * index_head
+            data_free += q[e]
+            index_free += 1
+            q[e] = q[e + 1] = q[e + 2] = 0
+        if dsize - data_head < n:  # tail wrap: drop the frames after data_head, restart at offset 0
+            i = (index_head + index_free) % cnt
+            while q[ix + 3 * i + 1] > data_head:
+                e = ix + 3 * i
+                data_free += q[e]
+                index_free += 1
+                q[e] = q[e + 1] = q[e + 2] = 0
+                i = (i + 1) % cnt
+            if i == index_head:
+                data_free = dsize
+            else:
+                data_free = q[ix + 3 * ((index_head + index_free) % cnt) + 1]
+            data_head = 0
+        i = (index_head + index_free) % cnt
+        while data_free < n:  # clear overlap with the oldest frames
+            if i == index_head:
+                data_free = dsize
+            else:
+                e = ix + 3 * i
+                data_free += q[e]
+                index_free += 1
+                q[e] = q[e + 1] = q[e + 2] = 0
+            i = (i + 1) % cnt
+        if dsize - data_head < n:  # libach's sanity check; cannot happen
+            raise AchException(ACH_BUG, "no room after eviction", channel=self.name)
+        start = self._d0 + data_head
+        self._mv[start:start + n] = src
+        seq = q[self._q_last] + 1
+        q[self._q_last] = seq
+        e = ix + 3 * slot
+        q[e] = n
+        q[e + 1] = data_head
+        q[e + 2] = seq
+        q[_Q_DATA_HEAD] = (data_head + n) % dsize
+        q[_Q_DATA_FREE] = data_free - n
+        q[_Q_INDEX_HEAD] = (index_head + 1) % cnt
+        q[_Q_INDEX_FREE] = index_free - 1
+
+    # -- get ---------------------------------------------------------------------------------------
+
+    def get(self, buf: object, wait: bool = False, last: bool = False, timeout: float | None = None,
+            copy: bool = False) -> tuple[int, int]:
+        """Read one frame into ``buf`` (bytearray, memoryview or ctypes object), in place.
+
+        Default: the next frame in order. ``last``: the newest frame (older ones are skipped). ``copy``: return
+        the last frame again even if already seen. ``wait``: block until there is a frame this handle has not
+        seen; ``timeout`` (seconds, relative, only with ``wait``) bounds the wait, None = forever.
+
+        Returns ``(status, frame_size)`` for ACH_OK, ACH_MISSED_FRAME (data returned, frames were skipped),
+        ACH_STALE_FRAMES (nothing new, frame_size 0), ACH_TIMEOUT and ACH_CANCELED. Raises AchException for
+        ACH_OVERFLOW (``exc.frame_size`` = needed size; the frame stays unread) and for every error.
+        """
+        options = (ACH_O_WAIT if wait else 0) | (ACH_O_LAST if last else 0) | (ACH_O_COPY if copy else 0)
+        status, size = self.get_status(buf, options, timeout)
+        if status in (ACH_OK, ACH_MISSED_FRAME, ACH_STALE_FRAMES, ACH_TIMEOUT, ACH_CANCELED):
+            return status, size
+        if status == ACH_OVERFLOW:
+            raise AchException(status, f"frame is {size} bytes, buffer holds {_byte_view(buf, True).nbytes}",
+                               channel=self.name, frame_size=size)
+        raise AchException(status, channel=self.name)
+
+    def get_status(self, buf: object, options: int = 0, timeout: float | None = None) -> tuple[int, int]:
+        """libach ``ach_get`` with ACH_O_* ``options``; never raises for a status. ``timeout`` is relative
+        seconds (used with ACH_O_WAIT). Returns ``(status, frame_size)``; frame_size is the needed size on
+        ACH_OVERFLOW and 0 when no frame was looked at."""
+        dst = _byte_view(buf, True)
+        deadline = None
+        if options & ACH_O_WAIT and timeout is not None:
+            if timeout != timeout:
+                raise ValueError("timeout is NaN")
+            if timeout != math.inf:
+                deadline = time.clock_gettime(self._clock) + max(0.0, timeout)
+        return self._get(dst, options, deadline)
+
+    def _get(self, dst: memoryview, options: int, deadline: float | None) -> tuple[int, int]:
+        active = self._active
+        active.append(1)  # inlined _enter(): this is the hot path
+        try:
+            if self._closed:
+                raise AchException(ACH_CLOSED, channel=self.name)
+            if not self._guards_ok():
+                return ACH_CORRUPT, 0
+            mutex = self._mutex
+            try:
+                r = self._mutex_lock(mutex)
+                if r or self._i32[self._i_dirty]:
+                    r = self._lock_slow(r)
+                    if r:
+                        return r, 0
+                if self._cancel:
+                    self._mutex_unlock(mutex)
+                    return ACH_CANCELED, 0
+                if options & ACH_O_WAIT:
+                    r = self._wait(deadline)
+                    if r:
+                        if r in (ACH_TIMEOUT, ACH_CANCELED):
+                            self._mutex_unlock(mutex)
+                        return r, 0
+                result = self._read_locked(dst, options)
+                self._mutex_unlock(mutex)
+                return result
+            except BaseException:
+                self._unlock_if_owned()
+                raise
+        finally:
+            active.pop()
+            if self._closed and not active:
+                self._release()
+
+    def _read_locked(self, dst: memoryview, options: int) -> tuple[int, int]:
+        """libach ``ach_get`` steps 3-7, literally. Caller holds the lock."""
+        q = self._q
+        last_seq = q[self._q_last]
+        seq = self._seq
+        if last_seq == 0 or (seq == last_seq and not options & ACH_O_COPY):
+            return ACH_STALE_FRAMES, 0
+        cnt = self._cnt
+        ix = self._ix
+        if options & ACH_O_LAST:
+            ri = (q[_Q_INDEX_HEAD] + cnt - 1) % cnt
+        elif q[ix + 3 * self._next + 2] == seq + 1:
+            ri = self._next
+        elif seq == last_seq:
+            ri = (q[_Q_INDEX_HEAD] + cnt - 1) % cnt
+        else:
+            ri = (q[_Q_INDEX_HEAD] + q[_Q_INDEX_FREE]) % cnt
+        e = ix + 3 * ri
+        size = q[e]
+        offset = q[e + 1]
+        eseq = q[e + 2]
+        if offset >= self._dsize or seq > eseq:
+            return ACH_BUG, 0
+        if offset + size > self._dsize:
+            return ACH_CORRUPT, 0
+        if dst.nbytes < size:
+            return ACH_OVERFLOW, size
+        start = self._d0 + offset
+        dst[:size] = self._mv[start:start + size]
+        self._seq = eseq
+        self._next = (ri + 1) % cnt
+        return (ACH_MISSED_FRAME if eseq > seq + 1 else ACH_OK), size
+
+    def poll(self, buf: object, timeout: float | None = None, last: bool = True) -> tuple[int, int]:
+        """Busy-poll: spin on ``last_seq`` without touching the lock or the condvar, then take the lock and copy
+        (newest frame by default). Lowest latency, burns a CPU core while waiting; mind the GIL. Returns like
+        ``get``; ACH_TIMEOUT when nothing arrived within ``timeout`` seconds."""
+        dst = _byte_view(buf, True)
+        self._enter()
+        try:
+            q = self._q
+            ql = self._q_last
+            seq = self._seq
+            deadline = None if timeout is None else time.monotonic() + timeout
+            spins = 0
+            while q[ql] == seq:
+                spins += 1
+                if spins & 0x3FF == 0:
+                    if self._cancel or self._closed:
+                        return ACH_CANCELED, 0
+                    if deadline is not None and time.monotonic() > deadline:
+                        return ACH_TIMEOUT, 0
+            # last_seq changes while the writer still holds the mutex: locking now would put us to sleep in the
+            # kernel (PI futex) and cost a context switch. Spin (briefly) until the futex word is free.
+            i32 = self._i32
+            il = self._i_lock
+            spins = 0
+            while i32[il] and spins < 100_000:
+                spins += 1
+        finally:
+            self._leave()
+        status, size = self._get(dst, ACH_O_LAST if last else 0, None)
+        if status in (ACH_OK, ACH_MISSED_FRAME, ACH_STALE_FRAMES, ACH_CANCELED):
+            return status, size
+        if status == ACH_OVERFLOW:
+            raise AchException(status, channel=self.name, frame_size=size)
+        raise AchException(status, channel=self.name)
+
+    # -- flush / cancel / admin --------------------------------------------------------------------
+
+    def flush(self) -> None:
+        """Mark every frame in the channel as seen by this handle (libach ``ach_flush``)."""
+        self._enter()
+        try:
+            try:
+                r = self._lock()
+                if r == ACH_OK:
+                    if self._cancel:
+                        r = ACH_CANCELED
+                    else:
+                        self._seq = self._q[self._q_last]
+                        self._next = self._q[_Q_INDEX_HEAD]
+                    self._mutex_unlock(self._mutex)
+            except BaseException:
+                self._unlock_if_owned()
+                raise
+        finally:
+            self._leave()
+        if r:
+            raise AchException(r, channel=self.name)
+
+    def cancel(self, *, async_unsafe: bool = False) -> None:
+        """Make every current and future get/flush on this handle return ACH_CANCELED (sticky).
+
+        Default: set the flag and broadcast the condvar without taking the mutex, which is safe from a signal
+        handler even if this very thread holds the lock (a waiter that misses the wake-up sees the flag within
+        one wait slice). ``async_unsafe=True`` is libach's thread variant: lock, set, unlock, broadcast.
+        """
+        self._enter()
+        try:
+            if async_unsafe:
+                try:
+                    r = self._mutex_lock(self._mutex)
+                    if r == _EOWNERDEAD:
+                        self._fn.mutex_consistent(self._mutex)
+                    self._cancel = True
+                    if r in (0, _EOWNERDEAD):
+                        self._mutex_unlock(self._mutex)
+                except BaseException:
+                    self._unlock_if_owned()
+                    raise
+            self._cancel = True
+            self._cond_broadcast(self._cond)
+        finally:
+            self._leave()
+
+    @property
+    def canceled(self) -> bool:
+        return self._cancel
+
+    def chmod(self, mode: int) -> None:
+        """``fchmod`` the channel file (every participant needs read-write access)."""
+        self._enter()
+        try:
+            os.fchmod(self._fd, mode)
+        except OSError as exc:
+            raise _os_error(exc, self.name, shm_path(self.name)) from None
+        finally:
+            self._leave()
+
+    def unlink(self) -> None:
+        """Remove the channel by name; this handle stays usable (classic binding)."""
+        unlink(self.name)
+
+    def snapshot(self) -> ChannelImage:
+        """A parsed copy of the whole file taken under the lock (header counters, index, frames)."""
+        self._enter()
+        try:
+            try:
+                r = self._lock()
+                if r:
+                    raise AchException(r, channel=self.name)
+                data = self._mm[:]
+                self._mutex_unlock(self._mutex)
+            except BaseException:
+                self._unlock_if_owned()
+                raise
+        finally:
+            self._leave()
+        return parse_image(data, self._layout.arch)
+
+    def fileno(self) -> int:
+        return self._fd

@@ -1,0 +1,485 @@
+"""Robot kinematics from ``urdf/mds.urdf``: numpy FK/Jacobian for the arms, whole-tree link poses, torch path.
+
+The URDF is the single source of truth. It is parsed here with the standard library (no yourdfpy, no torch),
+so the console, the viewer and the collision gate get forward kinematics without torch's start-up cost.
+``torch_chain``/``torch_fk``/``torch_jacobian`` build pytorch-kinematics chains from the same file for
+batched work; torch is imported only when one of them is called.
+
+Arm frames follow the original IK (specs section e.1): the arm chain runs from ``torso`` (robot frame,
+midway between the shoulders, x forward, y left, z up) to ``left_tool``/``right_tool`` (mid-hand, 0.0635 m
+below the wrist); joint order ``[SP, SR, SY, EP, WY, WR]``.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mds_ach.paths import urdf_path
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    import torch
+
+ARMS: tuple[str, str] = ("left", "right")
+ARM_ROOT = "torso"
+_NEXT, _PREV = [1, 2, 0], [2, 0, 1]  # (a x b)_i = a_next b_prev - a_prev b_next
+_REVOLUTE = ("revolute", "continuous")
+
+
+# --------------------------------------------------------------------------------------------- parsing
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """One visual or collision primitive: ``kind`` box|cylinder|sphere|mesh, placed by ``origin`` (4x4, link frame).
+
+    ``size`` is (x, y, z) for a box, (radius, length) for a cylinder (axis along local z), (radius,) for a sphere.
+    """
+
+    kind: str
+    size: tuple[float, ...]
+    origin: np.ndarray
+    rgba: tuple[float, float, float, float] | None = None
+    filename: str = ""
+
+
+@dataclass(frozen=True)
+class Link:
+    name: str
+    visuals: tuple[Geometry, ...]
+    collisions: tuple[Geometry, ...]
+
+
+@dataclass(frozen=True)
+class Joint:
+    name: str
+    type: str
+    parent: str
+    child: str
+    origin: np.ndarray  # 4x4, child joint frame in the parent link frame at q = 0
+    axis: np.ndarray  # unit vector in the joint frame
+    lower: float
+    upper: float
+    velocity: float
+    effort: float
+
+    @property
+    def actuated(self) -> bool:
+        return self.type in _REVOLUTE or self.type == "prismatic"
+
+
+def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """URDF fixed-axis roll-pitch-yaw: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
+                              math.cos(yaw), math.sin(yaw))
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def _floats(text: str | None, n: int, default: float = 0.0) -> tuple[float, ...]:
+    if text is None:
+        return (default,) * n
+    vals = tuple(float(v) for v in text.split())
+    if len(vals) != n:
+        raise ValueError(f"expected {n} numbers, got {text!r}")
+    return vals
+
+
+def _origin(elem: ET.Element | None) -> np.ndarray:
+    T = np.eye(4)
+    if elem is not None:
+        T[:3, :3] = rpy_matrix(*_floats(elem.get("rpy"), 3))
+        T[:3, 3] = _floats(elem.get("xyz"), 3)
+    return T
+
+
+def _geometry(elem: ET.Element, materials: Mapping[str, tuple[float, ...]]) -> Geometry:
+    geo = elem.find("geometry")
+    if geo is None or len(geo) != 1:
+        raise ValueError("a visual/collision needs exactly one geometry element")
+    shape = geo[0]
+    if shape.tag == "box":
+        kind, size, fname = "box", _floats(shape.get("size"), 3), ""
+    elif shape.tag == "cylinder":
+        kind, size, fname = "cylinder", (float(shape.get("radius", "0")), float(shape.get("length", "0"))), ""
+    elif shape.tag == "sphere":
+        kind, size, fname = "sphere", (float(shape.get("radius", "0")),), ""
+    elif shape.tag == "mesh":
+        kind, size, fname = "mesh", _floats(shape.get("scale"), 3, 1.0), shape.get("filename", "")
+    else:
+        raise ValueError(f"unsupported geometry {shape.tag!r}")
+    rgba = None
+    mat = elem.find("material")
+    if mat is not None:
+        color = mat.find("color")
+        if color is not None:
+            rgba = _floats(color.get("rgba"), 4)
+        else:
+            rgba = materials.get(mat.get("name", ""))
+    return Geometry(kind, size, _origin(elem.find("origin")), rgba, fname)  # type: ignore[arg-type]
+
+
+class RobotModel:
+    """The parsed URDF tree: links with their primitives, joints with origins, axes and limits."""
+
+    def __init__(self, root: ET.Element, source: str = "") -> None:
+        self.name = root.get("name", "")
+        self.source = source
+        materials: dict[str, tuple[float, ...]] = {}
+        for mat in root.findall("material"):
+            color = mat.find("color")
+            if color is not None:
+                materials[mat.get("name", "")] = _floats(color.get("rgba"), 4)
+        self.links: dict[str, Link] = {}
+        for el in root.findall("link"):
+            name = el.get("name", "")
+            self.links[name] = Link(
+                name,
+                tuple(_geometry(v, materials) for v in el.findall("visual")),
+                tuple(_geometry(c, materials) for c in el.findall("collision")),
+            )
+        self.joints: dict[str, Joint] = {}
+        for el in root.findall("joint"):
+            jtype = el.get("type", "")
+            limit = el.find("limit")
+            lower = float(limit.get("lower", "0")) if limit is not None else 0.0
+            upper = float(limit.get("upper", "0")) if limit is not None else 0.0
+            if jtype == "continuous":
+                lower, upper = -math.inf, math.inf
+            axis = np.array(_floats(el.find("axis").get("xyz") if el.find("axis") is not None else "1 0 0", 3))
+            norm = float(np.linalg.norm(axis))
+            self.joints[el.get("name", "")] = Joint(
+                name=el.get("name", ""),
+                type=jtype,
+                parent=el.find("parent").get("link", ""),  # type: ignore[union-attr]
+                child=el.find("child").get("link", ""),  # type: ignore[union-attr]
+                origin=_origin(el.find("origin")),
+                axis=axis / norm if norm > 0 else axis,
+                lower=lower,
+                upper=upper,
+                velocity=float(limit.get("velocity", "0")) if limit is not None else 0.0,
+                effort=float(limit.get("effort", "0")) if limit is not None else 0.0,
+            )
+        self._parent_joint = {j.child: j for j in self.joints.values()}
+        roots = [n for n in self.links if n not in self._parent_joint]
+        if len(roots) != 1:
+            raise ValueError(f"URDF {source}: expected one root link, found {roots}")
+        self.root = roots[0]
+
+    @property
+    def actuated_joints(self) -> tuple[str, ...]:
+        return tuple(n for n, j in self.joints.items() if j.actuated)
+
+    def limits(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) arrays for the named joints, in that order."""
+        return (np.array([self.joints[n].lower for n in names]), np.array([self.joints[n].upper for n in names]))
+
+    def chain(self, root: str, tip: str) -> list[Joint]:
+        """Joints on the path from ``root`` down to ``tip`` (tip must be a descendant of root)."""
+        path: list[Joint] = []
+        link = tip
+        while link != root:
+            joint = self._parent_joint.get(link)
+            if joint is None:
+                raise ValueError(f"link {tip!r} is not below {root!r}")
+            path.append(joint)
+            link = joint.parent
+        return path[::-1]
+
+    def link_poses(self, q: Mapping[str, float] | None = None, root: str | None = None) -> dict[str, np.ndarray]:
+        """4x4 pose of every link in the ``root`` frame (default the URDF root) for joint values ``q`` (missing = 0).
+
+        Cheap (a few tens of microseconds): meant for viewers and collision checks of one configuration.
+        """
+        q = q or {}
+        poses: dict[str, np.ndarray] = {self.root: np.eye(4)}
+        pending = [self.root]
+        children: dict[str, list[Joint]] = {}
+        for j in self.joints.values():
+            children.setdefault(j.parent, []).append(j)
+        while pending:
+            parent = pending.pop()
+            for j in children.get(parent, ()):
+                poses[j.child] = poses[parent] @ j.origin @ _joint_motion(j, float(q.get(j.name, 0.0)))
+                pending.append(j.child)
+        if root is not None and root != self.root:
+            inv = np.linalg.inv(poses[root])
+            poses = {name: inv @ T for name, T in poses.items()}
+        return poses
+
+
+def _joint_motion(joint: Joint, value: float) -> np.ndarray:
+    T = np.eye(4)
+    if joint.type in _REVOLUTE:
+        T[:3, :3] = axis_angle(joint.axis, value)
+    elif joint.type == "prismatic":
+        T[:3, 3] = joint.axis * value
+    return T
+
+
+def axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix about a unit axis (Rodrigues)."""
+    K = _skew(axis)
+    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def load_model(path: str | Path | None = None) -> RobotModel:
+    """Parse a URDF (default: the package's ``urdf/mds.urdf``; that one is cached)."""
+    if path is None:
+        return _default_model()
+    return RobotModel(ET.parse(path).getroot(), str(path))
+
+
+@lru_cache(maxsize=1)
+def _default_model() -> RobotModel:
+    path = urdf_path()
+    return RobotModel(ET.parse(path).getroot(), str(path))
+
+
+# --------------------------------------------------------------------------------------------- arms
+
+
+def arm_name(arm: str | int) -> str:
+    """Normalise an arm selector: 'left'/'right' (any case, or 'l'/'r') or the legacy ints LEFT=1, RIGHT=0."""
+    if isinstance(arm, int | np.integer) and not isinstance(arm, bool):
+        if arm == 1:
+            return "left"
+        if arm == 0:
+            return "right"
+    elif isinstance(arm, str):
+        a = arm.strip().lower()
+        if a in ("left", "l"):
+            return "left"
+        if a in ("right", "r"):
+            return "right"
+    raise ValueError(f"unknown arm {arm!r}: use 'left' or 'right' (or LEFT=1 / RIGHT=0)")
+
+
+class ArmKinematics:
+    """Batched FK and geometric Jacobian of one arm (torso -> tool point), from the URDF chain.
+
+    Every method takes joint vectors of shape (..., 6) in the IK order and works on any leading batch
+    shape. Poses are in the torso (robot) frame.
+    """
+
+    def __init__(self, model: RobotModel, arm: str | int) -> None:
+        self.arm = arm_name(arm)
+        self.tip = f"{self.arm}_tool"
+        chain = model.chain(ARM_ROOT, self.tip)
+        moving = [j for j in chain if j.actuated]
+        if any(j.type == "prismatic" for j in moving):
+            raise ValueError("arm chains must be revolute")
+        self.joint_names: tuple[str, ...] = tuple(j.name for j in moving)
+        self.lower, self.upper = model.limits(self.joint_names)
+        # Fold the fixed transforms into the next joint's origin; whatever follows the last joint is the tail.
+        origins: list[np.ndarray] = []
+        pending = np.eye(4)
+        for j in chain:
+            pending = pending @ j.origin
+            if j.actuated:
+                origins.append(pending)
+                pending = np.eye(4)
+        # The tool frame is usually parallel to the last link: skip that product then.
+        self._tail_R = None if np.allclose(pending[:3, :3], np.eye(3), atol=0) else pending[:3, :3].copy()
+        self._tail_p = pending[:3, 3].copy()
+        self._origin_p = np.array([T[:3, 3] for T in origins])  # (n, 3)
+        Ro = np.array([T[:3, :3] for T in origins])  # (n, 3, 3)
+        K = np.array([_skew(j.axis) for j in moving])
+        # R_i(q) = Ro_i @ (I + sin q K + (1 - cos q) K^2): three constant matrices per joint.
+        self._A0 = Ro
+        self._A1 = Ro @ K
+        self._A2 = Ro @ K @ K
+        axis_in_parent = np.einsum("nij,nj->ni", Ro, np.array([j.axis for j in moving]))  # (n, 3)
+        self._origin_and_axis = np.stack([self._origin_p, axis_in_parent], axis=-1)  # (n, 3, 2)
+
+    @property
+    def dof(self) -> int:
+        return len(self.joint_names)
+
+    def _joint_rotations(self, q: np.ndarray) -> np.ndarray:
+        s = np.sin(q)[..., None, None]
+        c1 = (1.0 - np.cos(q))[..., None, None]
+        return self._A0 + s * self._A1 + c1 * self._A2  # (..., n, 3, 3)
+
+    def _frames(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """World axes (..., n, 3) and positions (..., n, 3) of the joints, the last link's rotation and position."""
+        Rj = self._joint_rotations(q)
+        before = np.empty(Rj.shape)  # rotation of the frame each joint's origin is expressed in
+        before[..., 0, :, :] = np.eye(3)
+        R = Rj[..., 0, :, :]
+        for i in range(1, self.dof):
+            before[..., i, :, :] = R
+            R = R @ Rj[..., i, :, :]
+        # One product gives each joint's world axis and the world step from the previous joint to it.
+        both = before @ self._origin_and_axis  # (..., n, 3, 2)
+        points = np.cumsum(both[..., 0], axis=-2)
+        return both[..., 1], points, R, points[..., -1, :]
+
+    def fk(self, q: np.ndarray | Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+        """Tool rotation (..., 3, 3) and position (..., 3)."""
+        q = np.asarray(q, dtype=float)
+        Rj = self._joint_rotations(q)
+        R = Rj[..., 0, :, :]
+        p = np.broadcast_to(self._origin_p[0], q.shape[:-1] + (3,))
+        for i in range(1, self.dof):
+            p = p + R @ self._origin_p[i]
+            R = R @ Rj[..., i, :, :]
+        return (R if self._tail_R is None else R @ self._tail_R), p + R @ self._tail_p
+
+    def fk_jacobian(self, q: np.ndarray | Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Tool rotation, position and the geometric Jacobian (..., 6, n): rows v (m/rad) then w (rad/rad)."""
+        q = np.asarray(q, dtype=float)
+        axes, points, R, p_last = self._frames(q)
+        p_tool = p_last + R @ self._tail_p
+        r = p_tool[..., None, :] - points
+        # v_i = axis_i x (p_tool - p_i), written with index permutations: np.cross is slow on small arrays.
+        v = axes[..., _NEXT] * r[..., _PREV] - axes[..., _PREV] * r[..., _NEXT]
+        J = np.concatenate([v, axes], axis=-1).swapaxes(-1, -2)
+        return (R if self._tail_R is None else R @ self._tail_R), p_tool, J
+
+    def fk_matrix(self, q: np.ndarray | Sequence[float]) -> np.ndarray:
+        """Homogeneous tool pose(s) (..., 4, 4)."""
+        R, p = self.fk(q)
+        T = np.zeros(R.shape[:-2] + (4, 4))
+        T[..., :3, :3] = R
+        T[..., :3, 3] = p
+        T[..., 3, 3] = 1.0
+        return T
+
+    def joint_points(self, q: np.ndarray | Sequence[float]) -> dict[str, np.ndarray]:
+        """Shoulder, elbow, wrist and tool positions (..., 3): the skeleton for viewers and quick checks."""
+        q = np.asarray(q, dtype=float)
+        _, points, R, _ = self._frames(q)
+        return {"shoulder": points[..., 0, :], "elbow": points[..., 3, :], "wrist": points[..., 4, :],
+                "tool": points[..., -1, :] + R @ self._tail_p}
+
+    def clamp(self, q: np.ndarray) -> np.ndarray:
+        return np.clip(q, self.lower, self.upper)
+
+    def within_limits(self, q: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        return np.all((q >= self.lower - tol) & (q <= self.upper + tol), axis=-1)
+
+
+@lru_cache(maxsize=4)
+def _arm_cached(arm: str) -> ArmKinematics:
+    return ArmKinematics(_default_model(), arm)
+
+
+def arm_kinematics(arm: str | int) -> ArmKinematics:
+    """The cached ``ArmKinematics`` of the package URDF for 'left'/'right'."""
+    return _arm_cached(arm_name(arm))
+
+
+def fk_matrix(q: np.ndarray | Sequence[float], arm: str | int) -> np.ndarray:
+    """4x4 tool pose of one arm in the torso frame (batched over leading dimensions)."""
+    return arm_kinematics(arm).fk_matrix(q)
+
+
+def euler_zyx(R: np.ndarray) -> np.ndarray:
+    """(roll, pitch, yaw) of rotation matrices (..., 3, 3), the original ``getRot`` Z-Y-X extraction.
+
+    roll = atan2(R21, R22), pitch = atan2(-R20, sqrt(R21^2 + R22^2)), yaw = atan2(R10, R00).
+    """
+    R = np.asarray(R, dtype=float)
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 2, 1], R[..., 2, 2]))
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def rotation_zyx(roll: Any, pitch: Any, yaw: Any) -> np.ndarray:
+    """Rz(yaw) Ry(pitch) Rx(roll), the inverse of ``euler_zyx`` (batched over array inputs)."""
+    r, p, y = np.broadcast_arrays(np.asarray(roll, float), np.asarray(pitch, float), np.asarray(yaw, float))
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    return np.stack(
+        [
+            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], axis=-1),
+            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], axis=-1),
+            np.stack([-sp, cp * sr, cp * cr], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+# --------------------------------------------------------------------------------------------- torch path
+
+
+def torch_chain(arm: str | int | None = None, dtype: Any = None, device: Any = "cpu") -> Any:
+    """A pytorch-kinematics chain built from the package URDF (imports torch lazily).
+
+    With ``arm`` the serial chain torso -> ``<arm>_tool`` (joint order [SP, SR, SY, EP, WY, WR]); without it
+    the whole tree (``get_joint_parameter_names()`` gives its joint order). Default dtype float64.
+    """
+    import torch
+
+    return _torch_chain_cached(None if arm is None else arm_name(arm), dtype or torch.float64, str(device))
+
+
+@lru_cache(maxsize=8)
+def _torch_chain_cached(arm: str | None, dtype: Any, device: str) -> Any:
+    # Built from our own parse rather than pk.build_chain_from_urdf: pytorch-kinematics parses origins in
+    # float32, which would cost ~1e-8 m of accuracy even after .to(float64).
+    import pytorch_kinematics as pk
+    import torch
+
+    model = _default_model()
+    children: dict[str, list[Joint]] = {}
+    for j in model.joints.values():
+        children.setdefault(j.parent, []).append(j)
+
+    def frame(link: str, joint: Joint | None) -> Any:
+        f = pk.Frame(link, link=pk.Link(link))
+        if joint is not None:
+            f.joint = pk.Joint(
+                joint.name,
+                offset=pk.Transform3d(matrix=torch.as_tensor(joint.origin, dtype=dtype), dtype=dtype, device=device),
+                joint_type="revolute" if joint.type in _REVOLUTE else joint.type,
+                axis=torch.as_tensor(joint.axis, dtype=dtype),
+                dtype=dtype,
+                device=device,
+                limits=(joint.lower, joint.upper) if joint.actuated else None,
+                velocity_limits=(-joint.velocity, joint.velocity) if joint.actuated else None,
+                effort_limits=(-joint.effort, joint.effort) if joint.actuated else None,
+            )
+        f.children = [frame(j.child, j) for j in children.get(link, ())]
+        return f
+
+    chain = pk.Chain(frame(model.root, None), dtype=dtype, device=device)
+    if arm is not None:
+        chain = pk.SerialChain(chain, f"{arm}_tool", ARM_ROOT, dtype=dtype, device=device)
+    return chain
+
+
+def torch_fk(q: torch.Tensor | np.ndarray, arm: str | int) -> torch.Tensor:
+    """Batched tool poses (B, 4, 4) of one arm in the torso frame with pytorch-kinematics."""
+    import torch
+
+    chain = torch_chain(arm)
+    th = torch.as_tensor(q, dtype=chain.dtype, device=chain.device)
+    return chain.forward_kinematics(th).get_matrix()
+
+
+def torch_jacobian(q: torch.Tensor | np.ndarray, arm: str | int) -> torch.Tensor:
+    """Batched geometric Jacobians (B, 6, 6) at the tool point, torso frame, with pytorch-kinematics."""
+    import torch
+
+    chain = torch_chain(arm)
+    th = torch.as_tensor(q, dtype=chain.dtype, device=chain.device)
+    return chain.jacobian(th)

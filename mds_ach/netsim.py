@@ -1,0 +1,114 @@
+"""Simulated machines for network tests and benchmarks: namespaces joined by a veth pair.
+
+A :class:`Host` is a network namespace (only ``lo`` at first) plus a mount namespace with its own tmpfs
+``/dev/shm`` (so its Ach channels are its own) and ``/run`` (so an sshd can have ``/run/sshd``). It is
+held open by a ``sleep`` process; commands enter it with ``nsenter``. Everything disappears with that
+process: the veth end inside, the mounts, the namespaces. Needs root, and refuses to run outside a
+private namespace (``tools/netns-run``), so no interface is ever added to the real host.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+from collections.abc import Sequence
+
+HOLD_S = 900  # a forgotten host removes itself after this long
+
+
+def _require_private_namespace() -> None:
+    if os.geteuid() != 0:
+        raise RuntimeError("simulated hosts need root (network and mount namespaces, veth pairs)")
+    if os.environ.get("MDS_NETNS_ACTIVE") != "1":
+        raise RuntimeError("simulated hosts are made only inside tools/netns-run (a private network namespace)")
+
+
+def _ip(*args: str, argv_prefix: Sequence[str] = ()) -> None:
+    cmd = [*argv_prefix, "ip", *args]
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=10)
+    if result.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed: {result.stderr.strip()}")
+
+
+class Host:
+    """One simulated machine. ``argv(cmd)`` runs ``cmd`` inside it; ``close()`` (or ``with``) ends it."""
+
+    def __init__(self, name: str) -> None:
+        _require_private_namespace()
+        self.name = name
+        script = (
+            "mount -t tmpfs -o mode=1777 tmpfs /dev/shm && mount -t tmpfs -o mode=755 tmpfs /run && "
+            "mkdir -p -m 755 /run/sshd && mkdir -p -m 1777 /run/lock && ip link set lo up && "
+            f"echo ready && exec sleep {HOLD_S}"
+        )
+        self._proc = subprocess.Popen(
+            ["unshare", "-n", "-m", "--propagation", "private", "sh", "-c", script],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )
+        assert self._proc.stdout is not None
+        line = self._proc.stdout.readline().strip()
+        if line != "ready":
+            self._proc.kill()
+            err = self._proc.communicate(timeout=5)[1]
+            raise RuntimeError(f"cannot create simulated host {name}: {err.strip() or line}")
+        self.pid = self._proc.pid
+
+    def argv(self, cmd: Sequence[str]) -> list[str]:
+        """``cmd`` run inside this host, in the caller's current directory."""
+        return ["nsenter", "-t", str(self.pid), "-m", "-n", f"--wd={os.getcwd()}", "--", *cmd]
+
+    def run(self, cmd: Sequence[str], **kwargs) -> subprocess.CompletedProcess:
+        kwargs.setdefault("timeout", 30)
+        return subprocess.run(self.argv(cmd), **kwargs)
+
+    def popen(self, cmd: Sequence[str], **kwargs) -> subprocess.Popen:
+        return subprocess.Popen(self.argv(cmd), **kwargs)
+
+    def close(self) -> None:
+        if self._proc.poll() is None:
+            self._proc.send_signal(signal.SIGKILL)
+        self._proc.wait(timeout=10)
+
+    def __enter__(self) -> Host:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Veth:
+    """A veth pair: ``local`` end in this process's namespace (or in ``host_a``), ``peer`` end in ``host_b``."""
+
+    def __init__(
+        self, name: str, host_b: Host, addr_a: str, addr_b: str, prefix: int = 24, host_a: Host | None = None
+    ) -> None:
+        _require_private_namespace()
+        self.local = f"{name}a"
+        self.peer = f"{name}b"
+        self.host_a = host_a
+        self.host_b = host_b
+        self.addr_a = addr_a
+        self.addr_b = addr_b
+        _ip("link", "add", self.local, "type", "veth", "peer", "name", self.peer)
+        _ip("link", "set", self.peer, "netns", str(host_b.pid))
+        if host_a is not None:
+            _ip("link", "set", self.local, "netns", str(host_a.pid))
+        _ip("addr", "add", f"{addr_a}/{prefix}", "dev", self.local, argv_prefix=self._prefix_a())
+        _ip("link", "set", self.local, "up", argv_prefix=self._prefix_a())
+        _ip("addr", "add", f"{addr_b}/{prefix}", "dev", self.peer, argv_prefix=host_b.argv([]))
+        _ip("link", "set", self.peer, "up", argv_prefix=host_b.argv([]))
+
+    def _prefix_a(self) -> list[str]:
+        return self.host_a.argv([]) if self.host_a is not None else []
+
+    def down(self) -> None:
+        """Cut the link (the ``a`` end goes down, as if its cable were pulled)."""
+        _ip("link", "set", self.local, "down", argv_prefix=self._prefix_a())
+
+    def up(self) -> None:
+        _ip("link", "set", self.local, "up", argv_prefix=self._prefix_a())
+
+    def close(self) -> None:
+        """Delete the pair (it also disappears when host_b ends)."""
+        subprocess.run([*self._prefix_a(), "ip", "link", "del", self.local], capture_output=True, timeout=10)

@@ -1,0 +1,230 @@
+"""Plumbing shared by the reference-pipeline nodes (mux, filter, collision gate).
+
+* ``MDS_REF`` frames <-> numpy arrays (100 refs + 100 modes, indexed by CAN address), so the nodes do their
+  per-joint work vectorised;
+* joint selections from config (``'all'``, group names, fnmatch patterns such as ``'L*'``, addresses);
+* the *current reference* at start-up, so a node started late (or restarted) continues from what the daemon
+  is already commanding instead of jumping;
+* ``run_node``: the common ``main()`` of an rclpy node with an Ach real-time thread (``--help`` without rclpy
+  start-up, ROS args, clean exit 0 on SIGINT/SIGTERM).
+
+No rclpy import at module level: the helpers are used by tests and tools that never start DDS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
+
+REF_DTYPE = np.dtype([("ref", "<f8"), ("mode", "<i2")])  # packed, itemsize 10 == sizeof(MDS_JOINT_REF)
+KNOWN_ADDRESSES: tuple[int, ...] = tuple(j.address for j in JOINTS)
+JOINT_GROUPS: dict[str, tuple[str, ...]] = {
+    "left_arm": LEFT_ARM,
+    "right_arm": RIGHT_ARM,
+    "arms": LEFT_ARM + RIGHT_ARM,
+    "neck": NECK,
+    "head": NECK,
+    "torso": TORSO,
+    "model": MODEL_JOINTS,
+    "all": tuple(j.short for j in JOINTS),
+}
+
+
+# --------------------------------------------------------------------------------------------- ref arrays
+
+
+def ref_arrays(frame: mds.MDS_REF) -> tuple[np.ndarray, np.ndarray]:
+    """(ref, mode) arrays of length 100 (copies) from an ``MDS_REF``."""
+    a = np.frombuffer(bytes(frame), dtype=REF_DTYPE)
+    return a["ref"].astype(float), a["mode"].astype(np.int16)
+
+
+def make_ref(ref: np.ndarray, mode: np.ndarray) -> mds.MDS_REF:
+    """An ``MDS_REF`` from ref/mode arrays of length 100."""
+    a = np.empty(mds.MDS_JOINT_COUNT, dtype=REF_DTYPE)
+    a["ref"] = ref
+    a["mode"] = mode
+    return mds.MDS_REF.from_buffer_copy(a.tobytes())
+
+
+def state_refs(state: mds.MDS_STATE) -> np.ndarray:
+    """``state.joint[i].ref`` for all 100 addresses: what the daemon is commanding now."""
+    return np.array([state.joint[i].ref for i in range(mds.MDS_JOINT_COUNT)], dtype=float)
+
+
+def state_positions(state: mds.MDS_STATE) -> np.ndarray:
+    """``state.joint[i].pos`` (measured, rad) for all 100 addresses."""
+    return np.array([state.joint[i].pos for i in range(mds.MDS_JOINT_COUNT)], dtype=float)
+
+
+def joint_label(address: int) -> str:
+    j = BY_ADDRESS.get(int(address))
+    return j.short if j else f"0x{int(address):02X}"
+
+
+def labels(addresses: Iterable[int]) -> str:
+    return ", ".join(joint_label(a) for a in addresses)
+
+
+# --------------------------------------------------------------------------------------------- joint selections
+
+
+def select_joints(spec: Any, where: str = "joints") -> tuple[int, ...]:
+    """Addresses (sorted) selected by ``spec``: ``'all'``, a group (left_arm, right_arm, arms, neck, torso, model),
+    a short/long name or address, an fnmatch pattern on short names (``'L*'``, ``'?SP'``), or a list of those.
+
+    A pattern or name that selects nothing is an error (a typo must not silently drop permissions).
+    """
+    items = [spec] if isinstance(spec, str | int) else list(spec or [])
+    if not items:
+        raise ValueError(f"{where}: empty joint selection")
+    out: set[int] = set()
+    for item in items:
+        if isinstance(item, int) and not isinstance(item, bool):
+            if item not in BY_ADDRESS:
+                raise ValueError(f"{where}: no joint at address {item:#x}")
+            out.add(item)
+            continue
+        text = str(item).strip()
+        if text.lower() in JOINT_GROUPS:
+            out.update(BY_SHORT[s].address for s in JOINT_GROUPS[text.lower()])
+            continue
+        if any(ch in text for ch in "*?["):
+            hits = [j.address for j in JOINTS if fnmatch.fnmatchcase(j.short, text.upper())]
+            if not hits:
+                raise ValueError(f"{where}: pattern {text!r} matches no joint short name")
+            out.update(hits)
+            continue
+        try:
+            out.add(lookup(text).address)
+        except KeyError as exc:
+            groups = ", ".join(JOINT_GROUPS)
+            raise ValueError(f"{where}: {exc.args[0]}; or use a group ({groups}) or a pattern such as 'L*'") from None
+    return tuple(sorted(out))
+
+
+# --------------------------------------------------------------------------------------------- current reference
+
+
+def current_reference(sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)
+                      ) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """(ref, mode, source) from the newest frame on the first source channel that has one, else None.
+
+    ``mds-ref`` gives ref and mode; ``mds-state`` gives ``joint[].ref`` (mode 0); any other name is read as an
+    ``MDS_REF`` channel. Channels are created if missing, so nodes can start in any order.
+    """
+    from mds_ach.channels import StructChannel
+
+    for name in sources:
+        ctype = mds.MDS_STATE if name == mds.MDS_CHAN_STATE_NAME else mds.MDS_REF
+        ch = StructChannel(name, ctype)
+        try:
+            frame = ch.latest()
+        finally:
+            ch.close()
+        if frame is None:
+            continue
+        if isinstance(frame, mds.MDS_STATE):
+            ref = state_refs(frame)
+            if not np.all(np.isfinite(ref)):
+                continue
+            return ref, np.zeros(mds.MDS_JOINT_COUNT, dtype=np.int16), name
+        ref, mode = ref_arrays(frame)
+        if np.all(np.isfinite(ref)):
+            return ref, mode, name
+    return None
+
+
+def wait_current_reference(stop: threading.Event, log: Callable[[str], None],
+                           sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME),
+                           poll: float = 0.1) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Poll ``current_reference`` until one exists (None if ``stop`` is set first); logs once while waiting.
+
+    Why wait instead of starting at zero: an all-zero reference would send every joint to its homed zero.
+    """
+    said = False
+    while not stop.is_set():
+        found = current_reference(sources)
+        if found is not None:
+            return found
+        if not said:
+            log(f"waiting for a current reference on {' or '.join(sources)} (is the daemon running?)")
+            said = True
+        stop.wait(poll)
+    return None
+
+
+# --------------------------------------------------------------------------------------------- timing
+
+
+class Periodic:
+    """Absolute-time schedule on CLOCK_MONOTONIC: ``wait()`` sleeps until the next tick; overruns re-sync
+    (and are counted) instead of bursting to catch up."""
+
+    def __init__(self, period: float) -> None:
+        if not period > 0:
+            raise ValueError("period must be > 0")
+        self.period = period
+        self.next = time.monotonic() + period
+        self.overruns = 0
+
+    def wait(self, stop: threading.Event) -> bool:
+        """Sleep until the next tick; False if ``stop`` was set meanwhile."""
+        delay = self.next - time.monotonic()
+        if delay > 0:
+            if stop.wait(delay):
+                return False
+        self.next += self.period
+        now = time.monotonic()
+        if now > self.next:
+            self.overruns += 1
+            self.next = now + self.period
+        return not stop.is_set()
+
+
+# --------------------------------------------------------------------------------------------- main()
+
+
+def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
+             make_node: Callable[[argparse.Namespace], Any]) -> int:
+    """Parse CLI args (ROS args removed), start rclpy, build the node, spin until SIGINT/SIGTERM; exit 0.
+
+    ``make_node(args)`` returns an rclpy Node that has a ``shutdown()`` method stopping its real-time thread.
+    A ``ValueError`` from it (bad config) is printed as a one-line error with exit status 2.
+    """
+    argv = list(sys.argv if argv is None else argv)
+    from rclpy.utilities import remove_ros_args
+
+    args = parser.parse_args(remove_ros_args(argv)[1:])
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    rclpy.init(args=argv)
+    node = None
+    status = 0
+    try:
+        node = make_node(args)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        status = 2
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return status

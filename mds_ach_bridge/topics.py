@@ -1,0 +1,13 @@
+"""Topic names of the bridge (relative, so a namespace or a remap moves them; /diagnostics stays global)."""
+
+from __future__ import annotations
+
+JOINT_STATES = "joint_states"  # sensor_msgs/JointState, measured positions, one message per mds-state frame
+JOINT_REFERENCES = "mds/joint_references"  # sensor_msgs/JointState, the daemon's reference (state.ref)
+JOINT_COMMAND = "mds/joint_command"  # sensor_msgs/JointState in: position commands by joint name
+JOINT_TRAJECTORY = "mds/joint_trajectory"  # trajectory_msgs/JointTrajectory in
+JOINT_POSITIONS = "mds/joint_positions"  # std_msgs/Float64MultiArray in: one value per MODEL_JOINTS entry
+IK_LEFT = "mds/ik/left"  # geometry_msgs/PoseStamped in: left hand target -> mds-ik
+IK_RIGHT = "mds/ik/right"  # geometry_msgs/PoseStamped in: right hand target -> mds-ik
+ROBOT_DESCRIPTION = "robot_description"  # std_msgs/String, transient local: the URDF
+DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray

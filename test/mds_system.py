@@ -1,0 +1,74 @@
+"""Start and stop the whole simulated system for a test module (``mds-ach start nocan`` ... ``killall``).
+
+Why a helper module instead of a conftest fixture: only the operator-tool tests need a full system, and each
+of their modules starts it once (module scope) to keep the suite fast.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from conftest import VENV_BIN, in_netns, remove_mds_channels
+
+import mds_ach as mds
+from mds_ach import ach
+
+START_TIMEOUT = 150.0  # s: cold start imports torch, fcl and rclpy on a shared 2-core machine
+
+
+def system_env(runtime: Path) -> dict[str, str]:
+    """Environment for the system and its clients: private runtime and config dirs, the default robot."""
+    env = dict(os.environ)
+    env["MDS_ACH_RUNTIME_DIR"] = str(runtime)
+    env["MDS_ACH_CONFIG_DIR"] = str(runtime / "config")
+    env["MDS_ACH_HISTORY"] = str(runtime / "console_history")
+    env.pop("MDS_ACH_ROBOT", None)
+    return env
+
+
+def mds_ach(*args: str, env: dict[str, str], timeout: float = 60.0) -> subprocess.CompletedProcess:
+    return subprocess.run([str(VENV_BIN / "mds-ach"), *args], env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+@contextmanager
+def running_system(runtime: Path) -> Iterator[dict[str, str]]:
+    """``mds-ach start nocan`` in a clean /dev/shm; yields the environment; ``mds-ach killall`` afterwards."""
+    assert in_netns(), "run the tests through tools/netns-run (private /dev/shm and network namespace)"
+    remove_mds_channels()
+    env = system_env(runtime)
+    proc = mds_ach("start", "nocan", "--timeout", str(START_TIMEOUT), env=env, timeout=START_TIMEOUT + 60)
+    assert proc.returncode == 0, f"mds-ach start nocan failed:\n{proc.stdout}\n{proc.stderr}"
+    try:
+        yield env
+    finally:
+        mds_ach("stop", env=env, timeout=60)
+        mds_ach("killall", env=env, timeout=60)
+        remove_mds_channels()
+
+
+def newest(name: str, ctype: type[ctypes.Structure]) -> ctypes.Structure | None:
+    """The newest frame of a channel (read-only, even if seen before)."""
+    obj = ctype()
+    with ach.Channel(name, create=False) as chan:
+        status, size = chan.get(obj, last=True, copy=True)
+    return obj if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(ctype) else None
+
+
+def state() -> mds.MDS_STATE:
+    st = newest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+    assert st is not None, "no frame on mds-state"
+    return st
+
+
+def joint_pos(short: str) -> float:
+    return float(state().joint[mds.BY_SHORT[short].address].pos)
+
+
+def joint_ref(short: str) -> float:
+    return float(state().joint[mds.BY_SHORT[short].address].ref)

@@ -1,0 +1,443 @@
+"""achd-compatible networking: our server and links on loopback, then two simulated hosts over a veth pair.
+
+The fast tests run a :class:`mds_ach.achd.Server` and :class:`mds_ach.achd.Link` in this process on
+loopback. The slow ones build a robot host (its own network and /dev/shm) joined to this namespace (the
+operator station) by a veth pair; the robot runs the simulated system (``daemon --nocan`` -- or a stand-in
+until the daemon exists -- plus mux, filter and collision gate) and ``mds-ach remote serve``; the operator
+runs ``mds-ach remote``. References written here move the robot, and its state comes back; the same
+through an SSH tunnel to a real sshd on the robot; a cut link recovers without losing the newest reference.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib.util
+import json
+import math
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import REPO, VENV_BIN, in_netns, wait_for
+
+import mds_ach as mds
+from mds_ach import ach, achd, msgs
+from mds_ach import achd_protocol as ap
+
+OP_IP = "10.77.0.1"
+ROBOT_IP = "10.77.0.2"
+LOOPBACK_ONLY_PORT = 8077  # a second robot server that listens on the robot's loopback only (for --ssh)
+SSHD = "/usr/sbin/sshd"
+
+
+def _need_netns() -> None:
+    assert in_netns(), "run inside tools/netns-run (make test does): these tests bind sockets and build namespaces"
+
+
+# --------------------------------------------------------------------------------------------------
+# Fast: one process, loopback
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def server(clean_shm):
+    _need_netns()
+    for name in ("mds-ref-filter", "mds-ref", "mds-state", "test-state", "test-src", "test-dst"):
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("127.0.0.1",), 0, policy=achd.AccessPolicy(writable=("mds-ref-filter", "test-dst")),
+                      dead_after_s=2.0).start()
+    yield srv
+    srv.stop()
+    srv.join()
+
+
+def _raw_session(port: int, request: bytes) -> tuple[socket.socket, ap.Headers]:
+    """A bare client: send ``request``, read the response headers."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+    sock.sendall(request)
+    headers, rest = achd._read_headers(sock, 5.0)
+    assert rest == b""
+    return sock, headers
+
+
+def _ref(value: float, address: int = mds.LSP) -> msgs.MDS_REF:
+    ref = msgs.MDS_REF()
+    ref.joint[address].ref = value
+    return ref
+
+
+def _frames(name: str) -> list[bytes]:
+    """Every frame currently in a channel, oldest first."""
+    return [f for _, f in ach.Channel(name, create=False).snapshot().frames()]
+
+
+def test_server_writes_only_valid_frames(server):
+    sock, headers = _raw_session(server.ports[0], ap.encode_request("mds-ref-filter", "tcp", "pull"))
+    assert headers.status == ap.ACH_OK
+    assert (headers.frame_count, headers.frame_size) == (mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    nan_ref = _ref(0.0)
+    nan_ref.joint[mds.RSP].ref = math.nan
+    bad_mode = _ref(0.1)
+    bad_mode.joint[mds.LEP].mode = 7
+    for payload in (bytes(_ref(-0.25)), bytes(nan_ref), b"\0" * 999, bytes(_ref(50.0)), bytes(bad_mode),
+                    bytes(_ref(0.5))):
+        sock.sendall(ap.encode_frame(payload))
+    stats = wait_for(lambda: next(iter(server.stats.values()), None), 5, what="server stats")
+    wait_for(lambda: stats.written + stats.dropped_size + stats.dropped_invalid == 6, 5, what="all six frames")
+    sock.close()
+    assert (stats.written, stats.dropped_size, stats.dropped_invalid) == (2, 1, 3)
+    written = [msgs.MDS_REF.from_bytes(f).joint[mds.LSP].ref for f in _frames("mds-ref-filter")]
+    assert written == [-0.25, 0.5]
+
+
+@pytest.mark.parametrize(
+    "request_bytes, status, fragment",
+    [
+        (ap.encode_request("mds-ref", "tcp", "pull"), ap.ACH_EACCES, "may not be written"),
+        (ap.encode_request("mds-nothing", "tcp", "push"), ap.ACH_ENOENT, "mds-nothing"),
+        (b"channel-name: ../../etc/passwd\ntransport: tcp\ndirection: push\n.\n", ap.ACH_INVALID_NAME, "invalid"),
+        (b"channel-name: mds-state\ntransport: tcp\ndirection: push\nflavour: x\n.\n", ap.ACH_BAD_HEADER, "flavour"),
+        (b"channel-name: mds-state\ntransport: udp\ndirection: push\n.\n", ap.ACH_BAD_HEADER, "remote-port"),
+    ],
+)
+def test_server_refuses_with_achd_error_headers(server, request_bytes, status, fragment):
+    sock, headers = _raw_session(server.ports[0], request_bytes)
+    assert headers.status == status
+    assert fragment in headers.message
+    assert sock.recv(100) == b""  # and closes
+    sock.close()
+
+
+def test_link_refused_reports_the_server_message(server):
+    link = achd.Link("push", "127.0.0.1", "mds-ref", port=server.ports[0], reconnect=False).start()
+    assert link.finished.wait(10)
+    assert "ACH_EACCES" in link.stats.last_error and "mds-ref" in link.stats.last_error
+    assert link.stats.sent == 0
+
+
+@pytest.mark.parametrize("transport", ["tcp", "udp"])
+def test_pull_and_push_links(server, transport):
+    port = server.ports[0]
+    pull = achd.Link("pull", "127.0.0.1", "test-state", remote_channel="mds-state", port=port,
+                     transport=transport).start()
+    push = achd.Link("push", "127.0.0.1", "test-src", remote_channel="test-dst", port=port,
+                     transport=transport, get_last=False).start()
+    try:
+        assert pull.connected.wait(5) and push.connected.wait(5)
+        state_w = ach.Channel("mds-state")
+        state_r = ach.Channel("test-state")
+        state_r.flush()
+        got = msgs.MDS_STATE()
+        for i in range(5):
+            st = msgs.MDS_STATE()
+            st.time = i + 1.0
+            state_w.put(st)
+            status, size = state_r.get(got, wait=True, timeout=5)
+            assert (status, size, got.time) == (ach.ACH_OK, ctypes.sizeof(got), i + 1.0)
+        state_w.put(b"runt")  # wrong size for mds-state: never sent
+        src = ach.Channel("test-src")
+        dst = ach.Channel("test-dst")
+        dst.flush()
+        for word in (b"one", b"two", b"three"):
+            src.put(word)
+        buf = bytearray(64)
+        seen = []
+        while len(seen) < 3:
+            status, size = dst.get(buf, wait=True, timeout=5)
+            assert status == ach.ACH_OK
+            seen.append(bytes(buf[:size]))
+        assert seen == [b"one", b"two", b"three"]  # without get-last every frame, in order
+        served = {k: v for k, v in server.stats.items() if "mds-state" in k}
+        wait_for(lambda: sum(s.dropped_size for s in served.values()) == 1, 5, what="runt counted")
+    finally:
+        for link in (pull, push):
+            link.stop()
+            link.join(5)
+
+
+def test_udp_ignores_stray_datagrams(server):
+    link = achd.Link("pull", "127.0.0.1", "test-state", remote_channel="mds-state", port=server.ports[0],
+                     transport="udp").start()
+    try:
+        assert link.connected.wait(5)
+        udp_port = link.udp_port
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as intruder:
+            spoof = msgs.MDS_STATE()
+            spoof.time = 666.0
+            intruder.sendto(bytes(spoof), ("127.0.0.1", udp_port))
+        wait_for(lambda: link.stats.stray_datagrams == 1, 5, what="stray counted")
+        assert link.stats.written == 0
+    finally:
+        link.stop()
+        link.join(5)
+
+
+def test_reconnect_delivers_the_newest_frame(clean_shm):
+    """Server gone, frames written meanwhile, server back: the newest one arrives; the older are not resent."""
+    _need_netns()
+    for name in ("test-src", "test-dst"):
+        ach.create(name, 10, 64)
+    policy = achd.AccessPolicy(writable=("test-dst",))
+    srv = achd.Server(("127.0.0.1",), 0, policy=policy, dead_after_s=1.0).start()
+    port = srv.ports[0]
+    link = achd.Link("push", "127.0.0.1", "test-src", remote_channel="test-dst", port=port, dead_after_s=1.0).start()
+    src = ach.Channel("test-src")
+    dst = ach.Channel("test-dst")
+    buf = bytearray(64)
+    try:
+        assert link.connected.wait(5)
+        dst.flush()
+        src.put(b"before")
+        assert dst.get(buf, wait=True, timeout=5) == (ach.ACH_OK, 6)
+        srv.stop()
+        srv.join()
+        wait_for(lambda: not link.connected.is_set(), 10, what="link notices the server is gone")
+        for word in (b"old-1", b"old-2", b"newest"):
+            src.put(word)
+        srv = achd.Server(("127.0.0.1",), port, policy=policy, dead_after_s=1.0).start()
+        wait_for(link.connected.is_set, 10, what="reconnect")
+        status, size = dst.get(buf, wait=True, last=True, timeout=5)
+        assert status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and bytes(buf[:size]) == b"newest"
+        assert link.stats.connects >= 2
+    finally:
+        link.stop()
+        link.join(5)
+        srv.stop()
+        srv.join()
+
+
+def test_period_limits_rate_and_newest_wins(server):
+    """With period-ns the server sends at most one frame per period, always the newest."""
+    link = achd.Link("pull", "127.0.0.1", "test-state", remote_channel="mds-state", port=server.ports[0],
+                     period_ns=300_000_000).start()
+    try:
+        assert link.connected.wait(5)
+        writer = ach.Channel("mds-state")
+        st = msgs.MDS_STATE()
+        for i in range(40):
+            st.time = float(i)
+            writer.put(st)
+        reader = ach.Channel("test-state", create=False)
+        got = msgs.MDS_STATE()
+        wait_for(lambda: reader.get(got, last=True, copy=True)[0] in (ach.ACH_OK, ach.ACH_MISSED_FRAME)
+                 and got.time == 39.0, 10, what="newest frame")
+        assert link.stats.written < 40
+    finally:
+        link.stop()
+        link.join(5)
+
+
+# --------------------------------------------------------------------------------------------------
+# Slow: robot and operator on two simulated hosts
+# --------------------------------------------------------------------------------------------------
+
+
+class Robot:
+    def __init__(self, host, veth, env: dict[str, str], rt: Path) -> None:
+        self.host, self.veth, self.env, self.rt = host, veth, env, rt
+
+    def served(self) -> dict:
+        try:
+            return json.loads((self.rt / "remote-serve.status.json").read_text()).get("served", {})
+        except (OSError, ValueError):
+            return {}
+
+
+def _exe(name: str) -> str:
+    return str(VENV_BIN / name)
+
+
+def _reachable(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory):
+    from mds_ach.netsim import Host, Veth
+
+    _need_netns()
+    assert os.geteuid() == 0, "the network tests need root (namespaces and veth pairs)"
+    rt = tmp_path_factory.mktemp("robot-rt")
+    env = dict(os.environ, MDS_ACH_RUNTIME_DIR=str(rt), PYTHONPATH=str(REPO))
+    host = Host("robot")
+    veth = Veth("mdsn", host, OP_IP, ROBOT_IP)
+    procs: list[subprocess.Popen] = []
+    try:
+        nodes = ["mux", "filter", "collision"]
+        if importlib.util.find_spec("mds_ach.daemon") is not None:
+            nodes.insert(0, "daemon")
+        else:  # until the daemon exists: the stand-in simulated robot (see standin_robot.py)
+            procs.append(host.popen([sys.executable, str(REPO / "test" / "standin_robot.py"), "--seconds", "600"],
+                                    env=env, cwd=REPO))
+        start = host.run([_exe("mds-ach"), "start", "nocan", "--only", *nodes, "--timeout", "120"], env=env,
+                         capture_output=True, text=True, timeout=180)
+        assert start.returncode == 0, f"robot system did not start:\n{start.stdout}\n{start.stderr}"
+        procs.append(host.popen(
+            [_exe("mds-ach"), "remote", "serve", "--bind", ROBOT_IP, "--dead-after", "2"], env=env,
+            stdout=open(rt / "serve.out", "wb"), stderr=subprocess.STDOUT))
+        procs.append(host.popen(
+            [_exe("mds-ach"), "remote", "serve", "--port", str(LOOPBACK_ONLY_PORT), "--dead-after", "2"], env=env,
+            stdout=open(rt / "serve-lo.out", "wb"), stderr=subprocess.STDOUT))
+        wait_for(lambda: _reachable(ROBOT_IP, ap.ACHD_PORT), 20, what="robot achd server")
+        yield Robot(host, veth, env, rt)
+    finally:
+        for proc in procs:
+            proc.terminate()
+        host.run([_exe("mds-ach"), "stop"], env=env, capture_output=True, timeout=60)
+        for proc in procs:
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        veth.close()
+        host.close()
+
+
+@pytest.fixture
+def operator(robot, tmp_path, monkeypatch, clean_shm):
+    """This namespace as the operator station; ``mds-ach remote kill`` afterwards."""
+    monkeypatch.setenv("MDS_ACH_RUNTIME_DIR", str(tmp_path / "operator-rt"))
+    yield tmp_path / "operator-rt"
+    subprocess.run([_exe("mds-ach"), "remote", "kill"], capture_output=True, timeout=30)
+
+
+def _remote(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([_exe("mds-ach"), "remote", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def _session_status(rt: Path) -> dict:
+    try:
+        return json.loads((rt / "remote.status.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _state() -> msgs.MDS_STATE | None:
+    with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as chan:
+        st = msgs.MDS_STATE()
+        status, size = chan.get(st, last=True, copy=True)
+        return st if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(st) else None
+
+
+def _command(address: int, value: float) -> float:
+    """Read-modify-write of the local mds-ref-filter, as console ``goto`` does; returns the target."""
+    st = wait_for(_state, 20, what="state from the robot")
+    ref = msgs.MDS_REF()
+    for i in range(mds.MDS_JOINT_COUNT):
+        ref.joint[i].ref = st.joint[i].ref
+    ref.joint[address].ref = value
+    with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan:
+        chan.put(ref)
+    return value
+
+
+def _arrives(address: int, target: float, timeout: float = 40.0) -> None:
+    wait_for(lambda: (st := _state()) is not None and abs(st.joint[address].pos - target) < 0.02, timeout,
+             what=f"joint {address:#x} at {target} in the state that came back")
+
+
+def _check_state_and_param() -> None:
+    st = wait_for(_state, 20, what="mds-state from the robot")
+    assert msgs.get_name(st.joint[mds.LSP].nameshort) == "LSP"
+    with ach.Channel(mds.MDS_CHAN_PARAM_NAME, create=False) as chan:
+        param = msgs.MDS_JOINT_PARAM()
+        wait_for(lambda: chan.get(param, last=True, copy=True)[0] in (ach.ACH_OK, ach.ACH_MISSED_FRAME), 10,
+                 what="mds-param (published once, before we connected)")
+        assert msgs.get_name(param.joint[mds.LSP].nameshort) == "LSP"
+
+
+@pytest.mark.slow
+def test_remote_over_veth_moves_robot_and_recovers_a_cut_link(robot, operator):
+    result = _remote(ROBOT_IP, "--dead-after", "2")
+    assert result.returncode == 0, result.stderr
+    assert "mds-state" in result.stdout and "(udp)" in result.stdout
+    _check_state_and_param()
+    start = _state().joint[mds.LSP].pos
+    _arrives(mds.LSP, _command(mds.LSP, start - 0.2))
+    # a NaN reference written locally is never sent, and the robot stays where it is
+    bad = msgs.MDS_REF()
+    bad.joint[mds.LSP].ref = math.nan
+    with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan:
+        chan.put(bad)
+    wait_for(lambda: any(link["dropped_invalid"] for link in _session_status(operator).get("links", [])), 10,
+             what="NaN reference counted")
+    # cut the cable long enough for every connection to be declared dead
+    robot.veth.down()
+    try:
+        wait_for(lambda: (s := _session_status(operator)).get("links")
+                 and not any(link["connected"] for link in s["links"]), 30, what="links notice the cut")
+        target = _command(mds.LSP, start - 0.4)  # written while the link is down
+    finally:
+        robot.veth.up()
+    _arrives(mds.LSP, target)  # the newest reference was not lost, and state flows again
+    import time as _t; print("ARRIVED", _t.time(), _session_status(operator).get("time"))
+    wait_for(lambda: all(link["connected"] and link["connects"] >= 2 for link in _session_status(operator)["links"]),
+             10, what="every link reconnected")
+    killed = _remote("kill")
+    assert killed.returncode == 0 and "stopped" in killed.stdout
+
+
+@pytest.fixture(scope="module")
+def sshd(robot, tmp_path_factory):
+    """A real OpenSSH server on the robot, key-only; returns (identity, known_hosts, dir)."""
+    assert os.path.exists(SSHD) and shutil.which("ssh") and shutil.which("ssh-keygen"), (
+        "OpenSSH is missing: install the Debian packages openssh-server and openssh-client "
+        "(apt-get install openssh-server openssh-client)"
+    )
+    d = tmp_path_factory.mktemp("ssh")
+    for key in ("host_key", "client_key"):
+        subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(d / key)], check=True, timeout=30)
+    (d / "authorized_keys").write_text(
+        f'restrict,port-forwarding,permitopen="127.0.0.1:{LOOPBACK_ONLY_PORT}" ' + (d / "client_key.pub").read_text()
+    )
+    (d / "known_hosts").write_text(f"{ROBOT_IP} " + " ".join((d / "host_key.pub").read_text().split()[:2]) + "\n")
+    (d / "sshd_config").write_text(
+        f"ListenAddress {ROBOT_IP}\nPort 22\nHostKey {d / 'host_key'}\nAuthorizedKeysFile {d / 'authorized_keys'}\n"
+        f"PidFile {d / 'sshd.pid'}\nPermitRootLogin prohibit-password\nPasswordAuthentication no\n"
+        "KbdInteractiveAuthentication no\nUsePAM no\nStrictModes no\nAllowTcpForwarding local\n"
+        "X11Forwarding no\nAllowAgentForwarding no\nPermitTunnel no\nLogLevel VERBOSE\n"
+    )
+    proc = robot.host.popen([SSHD, "-D", "-e", "-f", str(d / "sshd_config")], stdout=open(d / "sshd.log", "wb"),
+                            stderr=subprocess.STDOUT)
+    try:
+        wait_for(lambda: _reachable(ROBOT_IP, 22) or proc.poll() is not None, 20, what="sshd")
+        assert proc.poll() is None, f"sshd exited:\n{(d / 'sshd.log').read_text()}"
+        yield d
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+@pytest.mark.slow
+def test_remote_through_ssh_tunnel(robot, sshd, operator):
+    # the loopback-only server cannot be reached from the operator: everything must go through ssh
+    assert not _reachable(ROBOT_IP, LOOPBACK_ONLY_PORT)
+    args = ["--ssh", f"root@{ROBOT_IP}", "--port", str(LOOPBACK_ONLY_PORT), "--ssh-identity",
+            str(sshd / "client_key"), "--ssh-known-hosts", str(sshd / "known_hosts"), "--dead-after", "2"]
+    result = _remote(*args)
+    assert result.returncode == 0, result.stderr + (sshd / "sshd.log").read_text()[-2000:]
+    assert "(udp)" not in result.stdout  # UDP cannot pass the tunnel: the state stream uses TCP
+    _check_state_and_param()
+    start = _state().joint[mds.LSP].pos
+    _arrives(mds.LSP, _command(mds.LSP, start - 0.15))
+    status = _session_status(operator)
+    assert status["ssh"] and status["tunnel"]["running"]
+    assert _remote("kill").returncode == 0
+
+
+@pytest.mark.slow
+def test_ssh_refuses_an_unknown_host_key(robot, sshd, operator, tmp_path):
+    (tmp_path / "empty_known_hosts").write_text("")
+    result = _remote("--ssh", f"root@{ROBOT_IP}", "--port", str(LOOPBACK_ONLY_PORT), "--ssh-identity",
+                     str(sshd / "client_key"), "--ssh-known-hosts", str(tmp_path / "empty_known_hosts"),
+                     "--wait", "8")
+    assert result.returncode == 1
+    assert "Host key verification failed" in result.stderr

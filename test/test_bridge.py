@@ -1,0 +1,569 @@
+"""The ROS 2 bridge: command validation, trajectory sampling, IK requests, and the running node.
+
+The node tests start a simulated daemon and the ``bridge`` executable as separate processes and talk to
+them from this process over DDS (inside tools/netns-run, like the whole suite) and over the Ach channels.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import VENV_BIN, in_netns, remove_mds_channels
+
+import mds_ach as mds
+from mds_ach import joints, kinematics, paths
+from mds_ach.msgs import MDS_IK, MDS_STATE
+from mds_ach_bridge import trajectory
+from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
+from mds_ach_bridge.ik_request import make_request, quaternion_to_rpy
+from mds_ach_bridge.limits import load_limits
+from mds_ach_bridge.stamps import state_stamp_ns
+
+LIMITS = {"LEP": (-2.4, 0.0), "LSP": (-1.9, 1.0), "WST": (-0.4, 0.4)}
+
+# --------------------------------------------------------------------------------------------- commands
+
+
+def test_positions_by_name_accepts_a_valid_command() -> None:
+    assert positions_by_name(["LEP", "WST"], [-1.0, 0.25], LIMITS) == {"LEP": -1.0, "WST": 0.25}
+
+
+@pytest.mark.parametrize(
+    ("names", "positions", "reason"),
+    [
+        (["LEP", "XYZ"], [-1.0, 0.0], "'XYZ' is not an MDS joint name"),
+        (["LEP", "RF1"], [-1.0, 0.0], "'RF1' is disabled in the joint table"),  # a real node the bridge does not drive
+        (["LEP", "LSP"], [-1.0], "2 joint names but 1 positions"),
+        (["LEP", "LEP"], [-1.0, -1.0], "appears twice"),
+        (["LEP"], [math.nan], "not finite"),
+        (["LEP"], [math.inf], "not finite"),
+        (["LEP", "LSP"], [-1.0, 1.5], "LSP: position 1.5 rad is outside the limits"),
+        ([], [], "no joint names"),
+    ],
+)
+def test_positions_by_name_rejects(names: list[str], positions: list[float], reason: str) -> None:
+    with pytest.raises(CommandError, match=reason):
+        positions_by_name(names, positions, LIMITS)
+
+
+def test_positions_from_array_uses_the_documented_order() -> None:
+    limits = load_limits()
+    values = [(lo + hi) / 2 for lo, hi in (limits[n] for n in joints.MODEL_JOINTS)]
+    got = positions_from_array(values, limits)
+    assert list(got) == list(joints.MODEL_JOINTS) and list(got.values()) == values
+    with pytest.raises(CommandError, match=f"expected {len(joints.MODEL_JOINTS)} values"):
+        positions_from_array(values[:-1], limits)
+
+
+def test_limits_come_from_the_joint_table() -> None:
+    from mds_ach import config
+
+    table = config.load()
+    limits = load_limits()
+    assert set(limits) == {n for n in joints.MODEL_JOINTS if table[n].enabled}
+    for name, (lower, upper) in limits.items():
+        assert (lower, upper) == (table[name].lower, table[name].upper)
+
+
+# --------------------------------------------------------------------------------------------- trajectories
+
+
+def _lin(names, points, current=None, start=100.0):
+    traj = trajectory.build(names, [(t, p, []) for t, p in points], start, LIMITS)
+    return traj.anchor(current or {}, LIMITS)
+
+
+def test_linear_trajectory_is_anchored_at_the_current_reference_and_interpolated() -> None:
+    traj = _lin(["LEP", "WST"], [(1.0, [-1.0, 0.2]), (3.0, [-2.0, -0.2])], current={"LEP": 0.0, "WST": 0.0})
+    assert traj.times == (0.0, 1.0, 3.0)
+    assert traj.sample(99.0) == ({"LEP": 0.0, "WST": 0.0}, False)  # before the start: hold the start
+    values, done = traj.sample(100.5)
+    assert not done and values == pytest.approx({"LEP": -0.5, "WST": 0.1})
+    values, done = traj.sample(102.0)
+    assert not done and values == pytest.approx({"LEP": -1.5, "WST": 0.0})
+    assert traj.sample(103.0) == ({"LEP": -2.0, "WST": -0.2}, True)
+    assert traj.sample(200.0) == ({"LEP": -2.0, "WST": -0.2}, True)
+
+
+def test_cubic_trajectory_meets_positions_and_velocities_at_the_points() -> None:
+    pts = [(0.0, [-1.0], [0.0]), (1.0, [-1.5], [-0.6]), (2.0, [-2.0], [0.0])]
+    traj = trajectory.build(["LEP"], pts, 0.0, LIMITS)
+    assert traj.anchored
+    for t, (p,), (v,) in pts:
+        assert traj.sample(t)[0]["LEP"] == pytest.approx(p)
+        if 0.0 < t < 2.0:
+            h = 1e-6
+            slope = (traj.sample(t + h)[0]["LEP"] - traj.sample(t - h)[0]["LEP"]) / (2 * h)
+            assert slope == pytest.approx(v, abs=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("points", "reason"),
+    [
+        ([], "no points"),
+        ([(1.0, [-1.0], []), (1.0, [-1.5], [])], "is not after the previous point"),
+        ([(1.0, [-1.0], []), (0.5, [-1.5], [])], "is not after the previous point"),
+        ([(-1.0, [-1.0], [])], "must be finite and >= 0"),
+        ([(1.0, [-1.0, 0.0], [])], "2 positions for 1 joints"),
+        ([(1.0, [-1.0], []), (2.0, [0.5], [])], "point 1: LEP: position 0.5 rad is outside"),
+        ([(1.0, [math.nan], [])], "point 0: LEP: position nan is not finite"),
+        ([(1.0, [-1.0], [0.0]), (2.0, [-1.5], [])], "on every point or on none"),
+        # Waypoints inside the limits, but the velocities make the cubic overshoot 0.0:
+        ([(0.0, [-0.05], [5.0]), (1.0, [-0.05], [5.0])], "a cubic segment reaches"),
+    ],
+)
+def test_trajectory_rejects(points: list, reason: str) -> None:
+    with pytest.raises(CommandError, match=reason):
+        trajectory.build(["LEP"], points, 0.0, LIMITS)
+
+
+def test_anchoring_checks_the_segment_from_the_current_reference() -> None:
+    traj = trajectory.build(["LEP"], [(1.0, [-0.02], [-3.0]), (2.0, [-0.1], [0.0])], 0.0, LIMITS)
+    assert not traj.anchored
+    with pytest.raises(ValueError, match="anchor"):
+        traj.sample(0.5)
+    with pytest.raises(CommandError, match="no current reference for LEP"):
+        traj.anchor({}, LIMITS)
+    # From -1.0 with v=0 up to -0.02, arriving while moving down at 3 rad/s: the cubic overshoots 0.0 first.
+    with pytest.raises(CommandError, match="a cubic segment reaches"):
+        traj.anchor({"LEP": -1.0}, LIMITS)
+    ok = trajectory.build(["LEP"], [(1.0, [-0.5], [0.0])], 0.0, LIMITS).anchor({"LEP": -1.0}, LIMITS)
+    assert ok.times == (0.0, 1.0) and ok.sample(0.5)[0]["LEP"] == pytest.approx(-0.75)
+
+
+# --------------------------------------------------------------------------------------------- IK, stamps
+
+
+@pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.0), (0.3, -0.4, 1.2), (-2.0, 1.1, -3.0), (1.57, 0.0, -1.57)])
+def test_quaternion_to_rpy_matches_the_kinematics_convention(rpy: tuple[float, float, float]) -> None:
+    """Same Z-Y-X angles the IK node extracts from a rotation matrix (mds_ach.kinematics.euler_zyx)."""
+    R = kinematics.rpy_matrix(*rpy)
+    # quaternion from the matrix (w-major branch is fine away from 180 deg rotations)
+    w = math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+    x, y, z = (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)
+    assert quaternion_to_rpy(x, y, z, w) == pytest.approx(tuple(kinematics.euler_zyx(R)), abs=1e-9)
+
+
+def test_ik_request_fills_the_chosen_arm() -> None:
+    half = math.sqrt(0.5)
+    req = make_request("right", (0.3, -0.2, 0.1), (0.0, 0.0, half, half), 6)
+    arm = req.arm[mds.RIGHT]
+    assert req.move == mds.RIGHT and arm.ik_method == 6
+    assert (arm.t_x, arm.t_y, arm.t_z) == (0.3, -0.2, 0.1)
+    assert (arm.r_x, arm.r_y, arm.r_z) == pytest.approx((0.0, 0.0, math.pi / 2))
+    assert bytes(req.arm[mds.LEFT]) == bytes(len(bytes(req.arm[mds.LEFT])))  # the other arm untouched
+
+
+@pytest.mark.parametrize(
+    ("arm", "pos", "quat", "dof", "reason"),
+    [
+        ("middle", (0, 0, 0), (0, 0, 0, 1), 3, "unknown arm"),
+        ("left", (0, 0, 0), (0, 0, 0, 1), 0, "must be 1..6"),
+        ("left", (0, 0, 0), (0, 0, 0, 1), 7, "must be 1..6"),
+        ("left", (math.nan, 0, 0), (0, 0, 0, 1), 3, "NaN or Inf"),
+        ("left", (0, 0, 0), (0, 0, 0, 0), 3, "norm 0"),
+    ],
+)
+def test_ik_request_rejects(arm: str, pos: tuple, quat: tuple, dof: int, reason: str) -> None:
+    with pytest.raises(CommandError, match=reason):
+        make_request(arm, pos, quat, dof)
+
+
+def test_state_stamp_subtracts_the_frame_age() -> None:
+    assert state_stamp_ns(10_000_000_000, 50.0, 49.99, 1.0) == (9_990_000_000, True)
+    assert state_stamp_ns(10_000_000_000, 50.0, 50.5, 1.0) == (10_000_000_000, False)  # from the future
+    assert state_stamp_ns(10_000_000_000, 50.0, 7.0, 1.0) == (10_000_000_000, False)  # other machine's clock
+
+
+def test_help_does_not_start_ros() -> None:
+    out = subprocess.run([str(VENV_BIN / "bridge"), "--help"], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr
+    for text in ("joint_states", "mds/joint_trajectory", "ik_dof_left", " ".join(joints.MODEL_JOINTS)):
+        assert text in out.stdout
+    code = textwrap.dedent(
+        """
+        import sys
+        from mds_ach_bridge import bridge
+        try:
+            bridge.main(['--help'])
+        except SystemExit:
+            pass
+        assert 'rclpy' not in sys.modules, 'bridge --help imported rclpy'
+        """
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert res.returncode == 0, res.stderr
+
+
+# --------------------------------------------------------------------------------------------- the node
+
+# A stand-in for `daemon --nocan`: publishes mds-state at RATE with the joints following the newest mds-ref
+# at once, and a frame counter in NKR's measured position so the test can tell frames apart.
+FAKE_DAEMON = textwrap.dedent(
+    """
+    import signal, sys, time
+    import mds_ach as mds
+    from mds_ach import joints
+    from mds_ach.channels import StructChannel
+    from mds_ach.msgs import MDS_REF, MDS_STATE
+    rate, start = float(sys.argv[1]), [float(v) for v in sys.argv[2].split(',')]
+    signal.signal(signal.SIGTERM, lambda *a: sys.exit(0))
+    state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+    ref_ch = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+    st = MDS_STATE()
+    for j in joints.JOINTS:
+        st.joint[j.address].address = j.address
+    for name, value in zip(joints.MODEL_JOINTS, start):
+        a = joints.BY_SHORT[name].address
+        st.joint[a].pos = st.joint[a].ref = st.joint[a].ref_r = value
+    nkr = joints.BY_SHORT['NKR'].address
+    k, period, t = 0, 1.0 / rate, time.monotonic()
+    while True:
+        ref = ref_ch.latest()
+        if ref is not None:
+            for a in range(mds.MDS_JOINT_COUNT):
+                st.joint[a].ref_r = st.joint[a].ref = st.joint[a].pos = ref.joint[a].ref
+        k += 1
+        st.joint[nkr].pos = k * 1e-3
+        st.time = time.monotonic()
+        state_ch.put(st)
+        t += period
+        time.sleep(max(0.0, t - time.monotonic()))
+    """
+)
+RATE = 50.0
+START = {n: (lo + hi) / 2 for n, (lo, hi) in load_limits().items()}  # mid-range start pose
+NKR_INDEX = joints.MODEL_JOINTS.index("NKR")
+
+
+class Harness:
+    """The stand-in daemon and the bridge as child processes, plus a probe node in this process."""
+
+    def __init__(self, tmp: Path) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray, String
+        from trajectory_msgs.msg import JointTrajectory
+
+        self.log = tmp / "bridge.log"
+        start = ",".join(str(START[n]) for n in joints.MODEL_JOINTS)
+        self.daemon = subprocess.Popen([sys.executable, "-c", FAKE_DAEMON, str(RATE), start])
+        self.bridge = subprocess.Popen(
+            [str(VENV_BIN / "bridge"), "--ros-args", "-p", "ref_channel:=mds-ref", "-p", "allow_ungated:=true",
+             "-p", "stale_timeout:=0.3", "-p", "diagnostics_period:=0.2", "-p", "ik_dof_left:=5"],
+            stdout=self.log.open("w"), stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("bridge_test_probe", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.states: list = []
+        self.refs: list = []
+        self.diags: list = []
+        self.descriptions: list = []
+        n = self.node
+        n.create_subscription(JointState, "/joint_states", self.states.append, qos_profile_sensor_data)
+        n.create_subscription(JointState, "/mds/joint_references", self.refs.append, qos_profile_sensor_data)
+        n.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
+        latched = QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+        )
+        n.create_subscription(String, "/robot_description", self.descriptions.append, latched)
+        self.command = n.create_publisher(JointState, "/mds/joint_command", 10)
+        self.positions = n.create_publisher(Float64MultiArray, "/mds/joint_positions", 10)
+        self.trajectory = n.create_publisher(JointTrajectory, "/mds/joint_trajectory", 10)
+        from geometry_msgs.msg import PoseStamped
+
+        self.ik_left = n.create_publisher(PoseStamped, "/mds/ik/left", 10)
+        for pub in (self.command, self.positions, self.trajectory, self.ik_left):
+            self.spin_until(lambda p=pub: p.get_subscription_count() > 0, 20.0, f"a subscriber on {pub.topic_name}")
+        self.spin_until(lambda: len(self.states) > 0, 20.0, "first /joint_states")
+
+    def spin_until(self, pred, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out after {timeout} s waiting for {what}; log:\n{self.bridge_log()}")
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def bridge_log(self) -> str:
+        return self.log.read_text() if self.log.exists() else ""
+
+    def last_diag(self, name_part: str):
+        for arr in reversed(self.diags):
+            for st in arr.status:
+                if name_part in st.name:
+                    return st
+        return None
+
+    def diag_values(self, name_part: str) -> dict[str, str]:
+        st = self.last_diag(name_part)
+        return {} if st is None else {kv.key: kv.value for kv in st.values}
+
+    def close(self) -> int:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+        for proc in (self.daemon,):
+            if proc.poll() is None:
+                os.kill(proc.pid, signal.SIGCONT)
+                proc.terminate()
+                proc.wait(timeout=10)
+        if self.bridge.poll() is None:
+            self.bridge.send_signal(signal.SIGTERM)
+        return self.bridge.wait(timeout=15)
+
+
+@pytest.fixture(scope="module")
+def harness(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Harness]:
+    assert in_netns(), "run the suite through tools/netns-run (make test)"
+    remove_mds_channels()
+    h = Harness(tmp_path_factory.mktemp("bridge"))
+    try:
+        yield h
+    finally:
+        rc = h.close()
+        remove_mds_channels()
+    assert rc == 0, f"bridge exited with {rc} on SIGTERM; log:\n{h.bridge_log()}"
+
+
+def _state_channel():
+    from mds_ach.channels import StructChannel
+
+    return StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE, create=False)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_joint_states_carry_every_state_frame_once(harness: Harness) -> None:
+    harness.states.clear()
+    harness.spin_for(1.0)
+    msgs = list(harness.states)
+    assert msgs, "no /joint_states"
+    counters = [round(m.position[NKR_INDEX] * 1000) for m in msgs]
+    assert counters == sorted(set(counters)), "a frame was published twice or out of order"
+    frames = counters[-1] - counters[0] + 1
+    assert len(msgs) >= 0.9 * frames, f"{len(msgs)} messages for {frames} state frames"
+    for m in msgs:
+        assert list(m.name) == list(joints.MODEL_JOINTS)
+        for i, n in enumerate(joints.MODEL_JOINTS):
+            if n != "NKR":
+                assert m.position[i] == pytest.approx(START[n], abs=1e-12)
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in msgs]
+    assert stamps == sorted(stamps) and abs(stamps[-1] - time.time()) < 5.0
+    assert harness.refs and list(harness.refs[-1].name) == list(joints.MODEL_JOINTS)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_robot_description_is_latched(harness: Harness) -> None:
+    harness.spin_until(lambda: harness.descriptions, 10.0, "/robot_description")
+    assert harness.descriptions[-1].data == paths.urdf_path().read_text()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_joint_command_moves_the_joint_and_rejects_bad_messages(harness: Harness) -> None:
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    limits = load_limits()
+    lep_lo, lep_hi = limits["LEP"]
+    lsp_lo, lsp_hi = limits["LSP"]
+    target_lep, target_lsp = lep_lo + 0.3 * (lep_hi - lep_lo), lsp_lo + 0.6 * (lsp_hi - lsp_lo)
+    i_lep, i_lsp = joints.MODEL_JOINTS.index("LEP"), joints.MODEL_JOINTS.index("LSP")
+    bad = [
+        (JointState(name=["LEP", "LSP"], position=[target_lep, lsp_hi + 0.1]), "outside the limits"),
+        (JointState(name=["LEP", "NOPE"], position=[target_lep, 0.0]), "'NOPE' is not an MDS joint name"),
+        (JointState(name=["LEP", "LSP"], position=[target_lep]), "2 joint names but 1 positions"),
+        (JointState(name=["LEP"], position=[math.nan]), "LEP: position nan is not finite"),
+    ]
+    rejected_before = harness.bridge_log().count("rejected message")
+    for msg, _ in bad:
+        harness.command.publish(msg)
+    harness.positions.publish(Float64MultiArray(data=[0.0] * 3))
+    harness.spin_until(
+        lambda: harness.bridge_log().count("rejected message") >= rejected_before + len(bad) + 1, 10.0, "rejections"
+    )
+    log = harness.bridge_log()
+    for _, reason in bad:
+        assert reason in log
+    assert "expected 17 values" in log
+    # nothing partial: LEP (valid in the first message) must not have moved
+    harness.states.clear()
+    harness.spin_for(0.3)
+    assert harness.states[-1].position[i_lep] == pytest.approx(START["LEP"])
+
+    harness.command.publish(JointState(name=["LEP", "LSP"], position=[target_lep, target_lsp]))
+    harness.spin_until(
+        lambda: harness.states and abs(harness.states[-1].position[i_lep] - target_lep) < 1e-9, 10.0, "LEP moved"
+    )
+    assert harness.states[-1].position[i_lsp] == pytest.approx(target_lsp)
+    untouched = [n for n in joints.MODEL_JOINTS if n not in ("LEP", "LSP", "NKR")]
+    for n in untouched:
+        assert harness.states[-1].position[joints.MODEL_JOINTS.index(n)] == pytest.approx(START[n])
+
+    def counted() -> bool:
+        values = harness.diag_values("state stream")
+        return int(values.get("commands rejected", 0)) >= len(bad) + 1 and int(values["commands accepted"]) >= 1
+
+    harness.spin_until(counted, 10.0, "the commands counted on /diagnostics")
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_trajectory_from_another_process_moves_the_simulated_joint(harness: Harness) -> None:
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    limits = load_limits()
+    lo, hi = limits["WST"]
+    a, b = lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo)
+    addr = joints.BY_SHORT["WST"].address
+    with _state_channel() as chan:
+        now = chan.wait(timeout=5.0)
+        assert now is not None
+        start_value = now.joint[addr].ref_r
+        msg = JointTrajectory(joint_names=["WST"])
+        msg.points = [
+            JointTrajectoryPoint(positions=[a], time_from_start=Duration(sec=0, nanosec=500_000_000)),
+            JointTrajectoryPoint(positions=[b], time_from_start=Duration(sec=1, nanosec=500_000_000)),
+        ]
+        sent = time.monotonic()
+        harness.trajectory.publish(msg)
+        samples: list[tuple[float, float]] = []  # (state time, WST position) seen by the daemon
+        while time.monotonic() - sent < 3.0:
+            harness.executor.spin_once(timeout_sec=0.0)
+            st = chan.wait(timeout=0.5)
+            if st is not None:
+                samples.append((st.time - sent, st.joint[addr].pos))
+    values = [v for _, v in samples]
+    assert values[-1] == pytest.approx(b), "the trajectory did not end at its last point"
+    # It moved through intermediate references on both segments instead of jumping:
+    seg1 = [v for v in values if min(start_value, a) + 1e-6 < v < max(start_value, a) - 1e-6]
+    seg2 = [v for v in values if a + 1e-6 < v < b - 1e-6]
+    assert len(seg1) >= 5 and len(seg2) >= 10, (seg1, seg2)
+    # Each sample lies on the commanded path: traj(t - lag) for a lag of at most 0.5 s (DDS delivery, one state
+    # cycle until the daemon reads the reference, a loaded CI machine). A jump or a wrong shape falls outside.
+    traj = trajectory.build(["WST"], [(0.5, [a], []), (1.5, [b], [])], 0.0, limits).anchor({"WST": start_value}, limits)
+    for t, v in samples:
+        path = [traj.sample(t - i * 0.01)[0]["WST"] for i in range(51)]
+        assert min(path) - 1e-9 <= v <= max(path) + 1e-9, f"WST={v} at t={t:.3f} s is off the trajectory"
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_ik_target_is_forwarded_and_bad_frames_rejected(harness: Harness) -> None:
+    from geometry_msgs.msg import PoseStamped
+
+    from mds_ach.channels import StructChannel
+
+    with StructChannel(mds.MDS_CHAN_IK_NAME, MDS_IK) as chan:
+        chan.flush()
+        wrong = PoseStamped()
+        wrong.header.frame_id = "map"
+        wrong.pose.orientation.w = 1.0
+        harness.ik_left.publish(wrong)
+        good = PoseStamped()
+        good.header.frame_id = "torso"
+        good.pose.position.x, good.pose.position.y, good.pose.position.z = 0.3, 0.2, -0.1
+        good.pose.orientation.w = 1.0
+        harness.ik_left.publish(good)
+        got = None
+        deadline = time.monotonic() + 10.0
+        while got is None and time.monotonic() < deadline:
+            harness.executor.spin_once(timeout_sec=0.02)
+            got = chan.latest()
+    assert got is not None, harness.bridge_log()
+    arm = got.arm[mds.LEFT]
+    assert got.move == mds.LEFT and arm.ik_method == 5  # ik_dof_left:=5 in the harness
+    assert (arm.t_x, arm.t_y, arm.t_z, arm.r_x, arm.r_y, arm.r_z) == (0.3, 0.2, -0.1, 0.0, 0.0, 0.0)
+    harness.spin_until(lambda: "frame_id 'map' is not the robot frame" in harness.bridge_log(), 5.0, "IK rejection")
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_stalled_daemon_gives_silence_and_an_error_diagnostic(harness: Harness) -> None:
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    OK, ERROR = DiagnosticStatus.OK, DiagnosticStatus.ERROR
+    os.kill(harness.daemon.pid, signal.SIGSTOP)
+    try:
+        harness.spin_until(
+            lambda: (d := harness.last_diag("state stream")) is not None and d.level == ERROR, 10.0, "stall ERROR"
+        )
+        assert "stalled" in harness.last_diag("state stream").message
+        harness.states.clear()
+        harness.spin_for(0.5)
+        assert harness.states == [], "old data republished while the daemon is stalled"
+    finally:
+        os.kill(harness.daemon.pid, signal.SIGCONT)
+    harness.spin_until(lambda: harness.states, 10.0, "/joint_states after the daemon resumed")
+    harness.spin_until(
+        lambda: (d := harness.last_diag("state stream")) is not None and d.level == OK, 10.0, "stream OK again"
+    )
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_first_frame_keeps_the_channel_content_for_joints_not_commanded(harness: Harness) -> None:
+    """A second bridge, namespaced and remapped, on the legacy mds-ref-filter that already holds a frame: only
+    the commanded joint may differ from that frame (the mux would take any other difference as a command)."""
+    from sensor_msgs.msg import JointState
+
+    from mds_ach.channels import StructChannel
+    from mds_ach.msgs import MDS_REF
+
+    limits = load_limits()
+    lo, hi = limits["LSP"]
+    target = lo + 0.4 * (hi - lo)
+    previous = MDS_REF()
+    for a in range(mds.MDS_JOINT_COUNT):
+        previous.joint[a].ref = 0.001 * a
+        previous.joint[a].mode = mds.MDS_REF_MODE_COMPLIANT
+    with StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF) as chan:
+        chan.put(previous)
+        chan.flush()
+        second = subprocess.Popen(
+            [str(VENV_BIN / "bridge"), "--ros-args", "-r", "__ns:=/b2", "-r", "__node:=bridge2",
+             "-p", "ref_channel:=mds-ref-filter", "-p", "publish_robot_description:=false"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            pub = harness.node.create_publisher(JointState, "/b2/mds/joint_command", 10)
+            harness.spin_until(lambda: pub.get_subscription_count() > 0, 20.0, "the second bridge")
+            got = None
+            deadline = time.monotonic() + 10.0
+            while got is None and time.monotonic() < deadline:
+                pub.publish(JointState(name=["LSP"], position=[target]))  # until its state stream is live
+                harness.spin_for(0.1)
+                got = chan.latest()
+        finally:
+            second.send_signal(signal.SIGINT)
+            assert second.wait(timeout=15) == 0
+            harness.node.destroy_publisher(pub)
+    assert got is not None, "the second bridge wrote nothing to mds-ref-filter"
+    lsp = joints.BY_SHORT["LSP"].address
+    assert got.joint[lsp].ref == target and got.joint[lsp].mode == mds.MDS_REF_MODE_REF_FILTER
+    for a in range(mds.MDS_JOINT_COUNT):
+        if a != lsp:
+            assert (got.joint[a].ref, got.joint[a].mode) == (0.001 * a, mds.MDS_REF_MODE_COMPLIANT), a

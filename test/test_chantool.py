@@ -1,0 +1,303 @@
+"""``mds-ach make | rm | dump`` and the channel-set helpers: files, modes, decoding, exit codes, messages."""
+
+from __future__ import annotations
+
+import grp
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import VENV_BIN
+
+import mds_ach as mds
+from mds_ach import ach, cli
+from mds_ach.channels import make_channels, remove_channels
+from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE, set_name
+
+
+@pytest.fixture
+def run(clean_shm: None, capsys: pytest.CaptureFixture[str]) -> Iterator:
+    """Run ``mds-ach ARGS`` in-process; returns (exit code, stdout, stderr)."""
+    old_term = signal.getsignal(signal.SIGTERM)
+
+    def invoke(*args: str) -> tuple[int, str, str]:
+        try:
+            rc = cli.main(list(args))
+        except SystemExit as exc:  # argparse: --help (0) and usage errors (2)
+            rc = int(exc.code or 0)
+        out, err = capsys.readouterr()
+        return rc, out, err
+
+    yield invoke
+    signal.signal(signal.SIGTERM, old_term)
+
+
+def mode_of(name: str) -> int:
+    return os.stat(ach.shm_path(name)).st_mode & 0o777
+
+
+# --- make -------------------------------------------------------------------------------------------
+
+
+def test_make_creates_every_channel(run) -> None:
+    rc, out, err = run("make")
+    assert (rc, err) == (0, "")
+    for name in mds.ALL_CHANNELS:
+        assert mode_of(name) == 0o660
+        with ach.Channel(name, create=False) as ch:
+            assert (ch.frame_count, ch.frame_size) == (10, 3000)
+        assert f"{name} " in out
+    assert out.count("created") == len(mds.ALL_CHANNELS)
+
+
+def test_make_keeps_existing_channels(run) -> None:
+    assert run("make", "-q")[0] == 0
+    with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as ch:
+        ch.put(MDS_STATE())
+    rc, out, err = run("make")
+    assert (rc, err) == (0, "")
+    assert out.count("exists") == len(mds.ALL_CHANNELS)
+    with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as ch:
+        assert ch.last_seq == 1  # not clobbered
+
+
+def test_make_reports_wrong_geometry(run) -> None:
+    ach.create(mds.MDS_CHAN_REF_NAME, 16, 512)
+    rc, out, err = run("make")
+    assert rc == 1
+    assert "mds-ref" in err and "16 x 512" in err and "mds-ach rm mds-ref" in err
+    assert all(ach.exists(n) for n in mds.ALL_CHANNELS)  # the others were still made
+    with ach.Channel(mds.MDS_CHAN_REF_NAME, create=False) as ch:
+        assert ch.frame_count == 16  # and the odd one left alone
+
+
+def test_make_reports_non_ach_file(run) -> None:
+    Path(ach.shm_path(mds.MDS_CHAN_IK_NAME)).write_bytes(b"not a channel")
+    rc, _, err = run("make")
+    assert rc == 1
+    assert "mds-ik" in err and "ACH_BAD_SHM_FILE" in err
+    assert Path(ach.shm_path(mds.MDS_CHAN_IK_NAME)).read_bytes() == b"not a channel"
+
+
+def other_group() -> grp.struct_group:
+    return next(g for g in grp.getgrall() if g.gr_gid != os.getgid())
+
+
+def test_make_group_and_mode(run) -> None:
+    group = other_group()
+    rc, out, _ = run("make", "--group", group.gr_name, "--mode", "640")
+    assert rc == 0
+    for name in mds.ALL_CHANNELS:
+        st = os.stat(ach.shm_path(name))
+        assert (st.st_gid, st.st_mode & 0o777) == (group.gr_gid, 0o640)
+    assert f"group {group.gr_name}" in out
+
+
+def test_make_refuses_world_writable_and_unknown_group(run) -> None:
+    rc, _, err = run("make", "--mode", "666")
+    assert rc == 1 and "world-writable" in err
+    rc, _, err = run("make", "--group", "no-such-group-here")
+    assert rc == 1 and "no such group" in err
+    assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
+    assert run("make", "--mode", "8")[0] == 2  # not octal: usage error
+
+
+def test_make_channels_api(clean_shm: None) -> None:
+    reports = make_channels(names=["test-a", "test-b"], mode=0o600)
+    assert [(r.name, r.action, r.ok) for r in reports] == [("test-a", "created", True), ("test-b", "created", True)]
+    assert mode_of("test-a") == 0o600
+    reports = make_channels(names=["test-a"])
+    assert (reports[0].action, reports[0].ok) == ("exists", True)
+    with pytest.raises(ValueError, match="world-writable"):
+        make_channels(names=["test-c"], mode=0o666)
+    assert remove_channels(["test-a", "test-b", "test-c"]) == ["test-a", "test-b"]
+
+
+# --- rm -----------------------------------------------------------------------------------------------
+
+
+def test_rm_all_and_named(run) -> None:
+    run("make", "-q")
+    ach.create("test-keep", 1, 8)
+    rc, out, err = run("rm", mds.MDS_CHAN_STATE_NAME)
+    assert (rc, out.strip(), err) == (0, "removed mds-state", "")
+    assert not ach.exists(mds.MDS_CHAN_STATE_NAME)
+    rc, out, _ = run("rm")
+    assert rc == 0
+    assert out.count("removed") == len(mds.ALL_CHANNELS) - 1
+    assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
+    assert ach.exists("test-keep")  # only MDS channels by default
+    assert run("rm")[0] == 0  # nothing left: still fine
+
+
+def test_rm_missing_or_invalid(run) -> None:
+    rc, _, err = run("rm", "mds-nothing")
+    assert rc == 1 and "mds-nothing" in err and "does not exist" in err
+    rc, _, err = run("rm", "bad/name")
+    assert rc == 1 and "ACH_INVALID_NAME" in err
+
+
+# --- dump ---------------------------------------------------------------------------------------------
+
+
+def put(name: str, obj: object) -> None:
+    with ach.Channel(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE) as ch:
+        ch.put(obj)
+
+
+def test_dump_state(run) -> None:
+    st = MDS_STATE()
+    st.time = 42.5
+    j = st.joint[mds.LSP]
+    j.enabled, j.address, j.pos, j.ref = 1, mds.LSP, -0.25, 0.5
+    set_name(j, "name", "LeftShoulderExt")
+    set_name(j, "nameshort", "LSP")
+    st.collide.isCollide = 1
+    st.collide.joint[mds.COLLIDE_L_HAND].isCollide = 1
+    put(mds.MDS_CHAN_STATE_NAME, MDS_STATE())  # older frame: dump shows the newest
+    put(mds.MDS_CHAN_STATE_NAME, st)
+    rc, out, err = run("dump", "mds-state")
+    assert (rc, err) == (0, "")
+    assert "state frame, 14051 B" in out and "seq 2" in out
+    assert "time 42.500000" in out
+    lines = [x for x in out.splitlines() if x.startswith("LSP ")]
+    assert len(lines) == 1
+    assert "LeftShoulderExt" in lines[0] and "0x005f" in lines[0] and "-0.25000" in lines[0] and "0.50000" in lines[0]
+    assert "LEP " not in out  # not enabled, not named: hidden ...
+    rc, out, _ = run("dump", "--all", "mds-state")
+    assert "LEP " in out  # ... unless --all
+    assert "collide: True" in out and "L_HAND" in out
+
+
+def test_dump_ref_ik_collide_param_cmd(run) -> None:
+    ref = MDS_REF()
+    ref.joint[mds.LEP].ref = 1.25
+    ref.joint[mds.LEP].mode = 1
+    put(mds.MDS_CHAN_REF_FILTER_NAME, ref)
+    rc, out, _ = run("dump", "mds-ref-filter")
+    assert rc == 0
+    assert [x.split() for x in out.splitlines() if x.startswith("LEP")] == [
+        ["LEP", "LeftElbowFlex", "0x004c", "1.25000", "1"]]
+
+    ik = MDS_IK(move=mds.LEFT)
+    ik.arm[mds.LEFT].t_y = 0.2
+    ik.arm[mds.LEFT].ik_method = 3
+    put(mds.MDS_CHAN_IK_NAME, ik)
+    rc, out, _ = run("dump", "mds-ik")
+    assert rc == 0 and "move: 1 (left)" in out
+    assert [x.split() for x in out.splitlines() if x.startswith("left")] == [
+        ["left", "0.0000", "0.2000", "0.0000", "0.0000", "0.0000", "0.0000", "3"]]
+
+    col = MDS_COLLIDE(isCollide=1)
+    col.joint[mds.COLLIDE_R_ELBOW].collision = 4
+    put(mds.MDS_CHAN_COLLIDE_NAME, col)
+    rc, out, _ = run("dump", "mds-collide")
+    assert rc == 0 and "isCollide 1" in out
+    assert [x.split()[:3] for x in out.splitlines() if x.startswith("R_ELBOW")] == [["R_ELBOW", "4", "0"]]
+
+    par = MDS_JOINT_PARAM()
+    p = par.joint[mds.RSP]
+    p.enabled, p.rom, p.direction = 1, 3.1, -1
+    set_name(p, "nameshort", "RSP")
+    set_name(p, "HomeType", "limit")
+    put(mds.MDS_CHAN_PARAM_NAME, par)
+    rc, out, _ = run("dump", "mds-param")
+    assert rc == 0
+    row = next(x for x in out.splitlines() if x.startswith("RSP"))
+    assert "RightShoulderExt" in row and "3.1000" in row and "limit" in row
+
+    put(mds.MDS_CHAN_BOARD_CMD_NAME, MDS_CMD(seq=7, cmd=mds.MDS_CMD_HOME, address=mds.LSP, value=0.5))
+    rc, out, _ = run("dump", "mds-cmd")
+    assert rc == 0 and "seq 7" in out and "MDS_CMD_HOME" in out and "LSP" in out
+
+
+def test_dump_unknown_channel_as_hex(run) -> None:
+    put("test-raw", b"Hello, Ach!\x00\x01")
+    rc, out, err = run("dump", "test-raw")
+    assert (rc, err) == (0, "")
+    assert "raw frame, 13 B" in out and "seq 1" in out and "data_head 13" in out
+    assert "48 65 6c 6c 6f 2c 20 41 63 68 21 00 01" in out and "Hello, Ach!.." in out
+
+
+def test_dump_wrong_size_frame_falls_back_to_hex(run) -> None:
+    put(mds.MDS_CHAN_STATE_NAME, b"short")
+    rc, out, err = run("dump", "mds-state")
+    assert rc == 0
+    assert "5 B but MDS_STATE is 14051 B" in err and "mds-state" in err
+    assert "73 68 6f 72 74" in out
+
+
+def test_dump_type_override_and_empty(run) -> None:
+    ref = MDS_REF()
+    ref.joint[mds.WST].ref = 0.75
+    put("test-myref", ref)
+    rc, out, _ = run("dump", "--type", "ref", "test-myref")
+    assert rc == 0 and "0.75000" in out and "WST" in out
+    rc, out, _ = run("dump", "--type", "hex", "test-myref")
+    assert rc == 0 and "00000000  " in out
+    ach.create("test-empty", 2, 8)
+    rc, out, _ = run("dump", "test-empty")
+    assert rc == 0 and "empty" in out and "seq 0" in out
+
+
+def test_dump_wait_for_first_frame(run) -> None:
+    ach.create("test-late", 2, 16)
+    t = threading.Timer(0.05, lambda: put("test-late", b"late frame"))
+    t.start()
+    rc, out, _ = run("dump", "--wait", "10", "test-late")
+    t.join()
+    assert rc == 0 and "late frame" in out
+
+
+def test_dump_errors(run) -> None:
+    rc, out, err = run("dump", "mds-nope")
+    assert (rc, out) == (1, "")
+    assert err.startswith("mds-ach dump: ") and "mds-nope" in err and "does not exist" in err
+    rc, _, err = run("dump", ".bad")
+    assert rc == 1 and "ACH_INVALID_NAME" in err
+    Path(ach.shm_path("test-junk")).write_bytes(b"\0" * 1000)
+    rc, _, err = run("dump", "test-junk")
+    assert rc == 1 and "test-junk" in err and "ACH_BAD_SHM_FILE" in err
+    assert run("dump")[0] == 2
+    assert run("dump", "--type", "nonsense", "mds-state")[0] == 2
+
+
+# --- front-end ------------------------------------------------------------------------------------------
+
+
+def test_help_and_usage_errors(run) -> None:
+    rc, out, _ = run("--help")
+    assert rc == 0 and all(v in out for v in ("make", "rm", "dump"))
+    for verb in ("make", "rm", "dump", "mk"):
+        rc, out, _ = run(verb, "--help")
+        assert rc == 0 and "usage: mds-ach" in out
+    assert run()[0] == 2
+    rc, _, err = run("frobnicate")
+    assert rc == 2 and "invalid choice" in err
+
+
+def test_ros_args_are_ignored(run) -> None:
+    assert cli.strip_ros_args(["rm", "--ros-args", "-r", "__node:=x", "--", "-q"]) == ["rm", "-q"]
+    assert cli.strip_ros_args(["make", "--ros-args", "-p", "a:=1"]) == ["make"]
+    rc, out, _ = run("make", "-q", "--ros-args", "-r", "__node:=chantool")
+    assert (rc, out) == (0, "")
+
+
+def test_console_script_and_light_startup(clean_shm: None) -> None:
+    exe = VENV_BIN / "mds-ach"
+    result = subprocess.run([str(exe), "dump", "mds-nope"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1 and "mds-nope" in result.stderr
+    result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "dump" in result.stdout
+    code = ("import sys\nfrom mds_ach import cli\n"
+            "rc = cli.main(['make', '-q'])\n"
+            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('rclpy', 'torch', 'fcl', 'yourdfpy', 'pytorch_kinematics', 'numpy', 'can'))\n"
+            "print(rc, heavy)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.stdout.strip() == "0 []", result.stderr

@@ -1,0 +1,235 @@
+"""include/mds.h against the Python layouts: compiled with gcc/g++, every sizeof/offsetof compared.
+
+The header is generated from mds_ach.msgs, so these tests check what generation cannot promise by
+itself: that a C compiler lays the structs out byte for byte like ctypes (packing, field types), that
+the bytes a C program writes decode correctly in Python, that the constants agree, and that the
+committed file is the generated one. The C examples need libach and are not built here.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+import mds_ach as mds
+from mds_ach import cheader, joints, msgs
+
+INCLUDE = cheader.HEADER_PATH.parent
+
+# Sizes from the original develop-branch mds.h (specs/mds-original.md §a.5), independent of msgs.py.
+SPEC_SIZES = {
+    "mds_joint_ref_t": 10,
+    "mds_ref_t": 1000,
+    "mds_joint_state_t": 138,
+    "mds_jnt_collide_t": 20,
+    "mds_collide_t": 218,
+    "mds_power_t": 24,
+    "mds_state_t": 14051,
+    "mds_jnt_param_t": 290,
+    "mds_joint_param_t": 29000,
+    "mds_ik_arm_t": 50,
+    "mds_ik_t": 102,
+}
+
+
+def _compile_and_run(tmp_path: Path, source: str, compiler: str = "gcc", std: str = "c11", extra: tuple = ()) -> str:
+    """Build ``source`` against include/mds.h with warnings as errors, run it, return stdout."""
+    exe = shutil.which(compiler)
+    assert exe, f"{compiler} is needed to check include/mds.h"
+    suffix = ".cpp" if compiler in ("g++", "c++") else ".c"
+    src = tmp_path / f"prog{suffix}"
+    src.write_text(source)
+    binary = tmp_path / "prog"
+    cmd = [exe, f"-std={std}", "-Wall", "-Wextra", "-Werror", f"-I{INCLUDE}", *extra, str(src), "-o", str(binary)]
+    build = subprocess.run(cmd, capture_output=True, text=True)
+    assert build.returncode == 0, f"{' '.join(cmd)} failed:\n{build.stderr}"
+    run = subprocess.run([str(binary)], capture_output=True, text=True, timeout=30)
+    assert run.returncode == 0, run.stderr
+    return run.stdout
+
+
+def _layout_program() -> str:
+    lines = ["#include <stddef.h>", "#include <stdio.h>", '#include "mds.h"', "int main(void) {"]
+    for cls in cheader.STRUCTS:
+        c = cheader.c_type_name(cls)
+        lines.append(f'    printf("{c} - %zu %zu\\n", (size_t)0, sizeof({c}));')
+        for name, _ in cls._fields_:
+            lines.append(f'    printf("{c} {name} %zu %zu\\n", offsetof({c}, {name}), sizeof((({c} *)0)->{name}));')
+    lines += ["    return 0;", "}"]
+    return "\n".join(lines) + "\n"
+
+
+def _python_layout() -> set[tuple[str, str, int, int]]:
+    rows = set()
+    for cls in cheader.STRUCTS:
+        c = cheader.c_type_name(cls)
+        rows.add((c, "-", 0, ctypes.sizeof(cls)))
+        for name, _ in cls._fields_:
+            field = getattr(cls, name)
+            rows.add((c, name, field.offset, field.size))
+    return rows
+
+
+def _parse_layout(out: str) -> set[tuple[str, str, int, int]]:
+    rows = set()
+    for line in out.splitlines():
+        struct, field, off, size = line.split()
+        rows.add((struct, field, int(off), int(size)))
+    return rows
+
+
+def test_committed_header_is_generated_text() -> None:
+    committed = cheader.HEADER_PATH.read_text()
+    assert committed == cheader.generate(), "include/mds.h is stale: run `python -m mds_ach.cheader` and commit it"
+    assert cheader.main(["--check"]) == 0
+
+
+def test_gcc_layout_equals_ctypes(tmp_path: Path) -> None:
+    c_rows = _parse_layout(_compile_and_run(tmp_path, _layout_program()))
+    py_rows = _python_layout()
+    assert c_rows == py_rows, f"only in C: {sorted(c_rows - py_rows)}; only in ctypes: {sorted(py_rows - c_rows)}"
+    sizes = {s: size for s, f, _, size in c_rows if f == "-"}
+    for name, size in SPEC_SIZES.items():
+        assert sizes[name] == size, f"{name}: gcc says {sizes[name]} B, the original mds.h had {size} B"
+
+
+def test_gxx_layout_equals_ctypes(tmp_path: Path) -> None:
+    """C++ controllers include the same header; the layout must not change under g++."""
+    out = _compile_and_run(tmp_path, _layout_program(), compiler="g++", std="c++11")
+    assert _parse_layout(out) == _python_layout()
+
+
+def test_header_compiles_as_c99_pedantic(tmp_path: Path) -> None:
+    """The C99 fallback of MDS_STATIC_ASSERT must still build (old controllers use -std=c99)."""
+    prog = '#include "mds.h"\nint main(void) { mds_state_t s = {0}; return (int)s.refWait; }\n'
+    _compile_and_run(tmp_path, prog, std="c99", extra=("-pedantic",))
+
+
+def test_bytes_written_in_c_decode_in_python(tmp_path: Path) -> None:
+    """A C program fills a state and an IK request; Python must read the same values from the bytes."""
+    prog = r"""
+#include <stdio.h>
+#include <string.h>
+#include "mds.h"
+int main(void) {
+    mds_state_t s;
+    mds_ik_t ik;
+    memset(&s, 0, sizeof s);
+    memset(&ik, 0, sizeof ik);
+    s.joint[MDS_JOINT_LSP].pos = 0.25;
+    s.joint[MDS_JOINT_LSP].ref_c_send = -1.5;
+    s.joint[MDS_JOINT_LSP].address = MDS_JOINT_LSP;
+    strcpy(s.joint[MDS_JOINT_LSP].nameshort, "LSP");
+    s.joint[MDS_JOINT_NKR].homed = 1;
+    s.collide.joint[MDS_COLLIDE_R_WRIST].isCollide = 1;
+    s.collide.time_dt = 0.125;
+    s.power.voltage = 24.0;
+    s.time = 1234.5;
+    s.refWait = 7;
+    ik.arm[MDS_LEFT].t_x = 0.3;
+    ik.arm[MDS_LEFT].r_z = -0.5;
+    ik.arm[MDS_LEFT].ik_method = 3;
+    ik.move = MDS_LEFT;
+    fwrite(&s, sizeof s, 1, stdout);
+    fwrite(&ik, sizeof ik, 1, stdout);
+    return 0;
+}
+"""
+    exe = tmp_path / "writer"
+    src = tmp_path / "writer.c"
+    src.write_text(prog)
+    subprocess.run(["gcc", "-std=c11", "-Wall", "-Werror", f"-I{INCLUDE}", str(src), "-o", str(exe)], check=True)
+    raw = subprocess.run([str(exe)], capture_output=True, check=True).stdout
+    n_state = ctypes.sizeof(msgs.MDS_STATE)
+    assert len(raw) == n_state + ctypes.sizeof(msgs.MDS_IK)
+    state = msgs.MDS_STATE.from_bytes(raw[:n_state])
+    ik = msgs.MDS_IK.from_bytes(raw[n_state:])
+    lsp = state.joint[mds.LSP]
+    assert (lsp.pos, lsp.ref_c_send, lsp.address) == (0.25, -1.5, 0x5F)
+    assert msgs.get_name(lsp.nameshort) == "LSP"
+    assert state.joint[joints.BY_SHORT["NKR"].address].homed == 1
+    assert state.collide.joint[mds.COLLIDE_R_WRIST].isCollide == 1
+    assert (state.collide.time_dt, state.power.voltage, state.time, state.refWait) == (0.125, 24.0, 1234.5, 7)
+    arm = ik.arm[mds.LEFT]
+    assert (arm.t_x, arm.r_z, arm.ik_method, ik.move) == (0.3, -0.5, 3, mds.LEFT)
+
+
+def test_constants_agree_with_python(tmp_path: Path) -> None:
+    channels = [k for k, v in vars(mds).items() if k.startswith("MDS_CHAN_") and k.endswith("_NAME")]
+    assert set(mds.ALL_CHANNELS) <= {getattr(mds, k) for k in channels}
+    ints = {
+        "MDS_JOINT_COUNT": mds.MDS_JOINT_COUNT,
+        "MDS_ARM_COUNT": mds.MDS_ARM_COUNT,
+        "MDS_COLLIDE_JNT_NUM": mds.MDS_COLLIDE_JNT_NUM,
+        "MDS_CHAR_PARAM_BUFFER_SIZE": mds.MDS_CHAR_PARAM_BUFFER_SIZE,
+        "MDS_REF_FILTER_LENGTH": mds.MDS_REF_FILTER_LENGTH,
+        "MDS_CHANNEL_FRAME_COUNT": mds.CHANNEL_FRAME_COUNT,
+        "MDS_CHANNEL_FRAME_SIZE": mds.CHANNEL_FRAME_SIZE,
+        "MDS_RIGHT": mds.RIGHT,
+        "MDS_LEFT": mds.LEFT,
+        "RIGHT": mds.RIGHT,
+        "LEFT": mds.LEFT,
+        "MDS_NODE_COUNT": len(joints.JOINTS),
+        "MDS_MODEL_JOINTS_COUNT": len(joints.MODEL_JOINTS),
+    }
+    for prefix in ("MDS_REF_MODE_", "MDS_CMD_"):
+        ints.update({k: v for k, v in vars(mds).items() if k.startswith(prefix) and type(v) is int})
+    ints.update({"MDS_" + k: v for k, v in vars(mds).items() if k.startswith("COLLIDE_") and type(v) is int})
+    for j in joints.JOINTS:
+        ints[f"MDS_JOINT_{j.short}"] = j.address
+        ints[f"MDS_JOINT_{cheader.snake_upper(j.name)}"] = j.address
+    for short in cheader.LEGACY_BARE_JOINTS:  # the original's bare macros, short and long
+        ints[short] = getattr(mds, short)
+        ints[joints.BY_SHORT[short].name] = getattr(mds, short)
+    body = [f'    printf("{k} %s\\n", {k});' for k in channels]
+    body += [f'    printf("{k} %ld\\n", (long)({k}));' for k in ints]
+    body.append('#define ROW(addr, s, l) printf("table %d %s %s\\n", addr, #s, #l);')
+    body.append("    MDS_JOINT_TABLE(ROW)")
+    body.append("    { int model[] = MDS_MODEL_JOINTS; for (int i = 0; i < MDS_MODEL_JOINTS_COUNT; i++)")
+    body.append('        printf("model %d %d\\n", i, model[i]); }')
+    body.append("    { int arm[] = MDS_LEFT_ARM_JOINTS; for (int i = 0; i < MDS_LEFT_ARM_JOINTS_COUNT; i++)")
+    body.append('        printf("left %d %d\\n", i, arm[i]); }')
+    prog = "#include <stdio.h>\n#include \"mds.h\"\nint main(void) {\n" + "\n".join(body) + "\n    return 0;\n}\n"
+    out = _compile_and_run(tmp_path, prog).splitlines()
+    got_text = dict(line.split(" ", 1) for line in out if line.startswith("MDS_CHAN_"))
+    assert got_text == {k: getattr(mds, k) for k in channels}
+    got_int = {k: int(v) for k, v in (line.split(" ", 1) for line in out) if k in ints}
+    assert got_int == ints
+    table = [tuple(line.split()[1:]) for line in out if line.startswith("table ")]
+    assert table == [(str(j.address), j.short, j.name) for j in joints.JOINTS]
+    model = [int(line.split()[2]) for line in out if line.startswith("model ")]
+    assert model == [joints.BY_SHORT[s].address for s in joints.MODEL_JOINTS]
+    left = [int(line.split()[2]) for line in out if line.startswith("left ")]
+    assert left == [joints.BY_SHORT[s].address for s in joints.LEFT_ARM]
+
+
+def test_legacy_macro_clash_is_a_compile_error(tmp_path: Path) -> None:
+    src = tmp_path / "clash.c"
+    src.write_text('#define LSP 4\n#include "mds.h"\nint main(void) { return 0; }\n')
+    res = subprocess.run(["gcc", "-std=c11", f"-I{INCLUDE}", "-fsyntax-only", str(src)], capture_output=True, text=True)
+    assert res.returncode != 0
+    assert "LSP is already a macro" in res.stderr and "MDS_NO_LEGACY_MACROS" in res.stderr
+
+
+def test_legacy_macros_can_be_left_out(tmp_path: Path) -> None:
+    prog = (
+        "#define LSP 4\n#define MDS_NO_LEGACY_MACROS\n#include <stdio.h>\n#include \"mds.h\"\n"
+        "#ifdef LEFT\n#error LEFT must not be defined\n#endif\n"
+        'int main(void) { printf("%d %d\\n", LSP, MDS_JOINT_LSP); return 0; }\n'
+    )
+    assert _compile_and_run(tmp_path, prog).split() == ["4", str(mds.LSP)]
+
+
+def test_generator_refuses_platform_sized_fields() -> None:
+    """A pointer-sized field (different on 32/64-bit) has no place in a wire struct."""
+
+    class Bad(ctypes.LittleEndianStructure):
+        _pack_ = 1
+        _fields_ = [("x", ctypes.c_void_p)]
+
+    with pytest.raises(TypeError, match="fixed-width"):
+        cheader._struct(Bad)

@@ -1,0 +1,231 @@
+"""Collision model: primitives from the URDF, FK against independent implementations, broad phase vs exhaustive
+fcl, margins, world objects, and a known colliding pair that must always be reported."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mds_ach as mds
+from mds_ach import collision
+from mds_ach.joints import MODEL_JOINTS
+from mds_ach.kinematics import load_model as load_kinematics
+from mds_ach.paths import config_path, urdf_path
+
+HOME = {"RSP": -0.445, "RSR": -1.18, "REP": -1.25, "RSY": 0.15, "LSP": -0.45, "LSR": 1.2, "LEP": -1.25,
+        "LSY": -0.25, "LWR": -0.28}
+
+
+@pytest.fixture(scope="module")
+def model() -> collision.CollisionModel:
+    return collision.load_model()
+
+
+def q_of(**joints: float) -> np.ndarray:
+    q = np.zeros(len(MODEL_JOINTS))
+    for name, value in joints.items():
+        q[MODEL_JOINTS.index(name)] = value
+    return q
+
+
+def random_configs(model: collision.CollisionModel, n: int, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(model.lower, model.upper, size=(n, len(model.lower)))
+
+
+def index(model: collision.CollisionModel, name: str) -> int:
+    return [p.name for p in model.primitives].index(name)
+
+
+# --------------------------------------------------------------------------------------------- primitives
+
+
+def test_every_urdf_collision_element_becomes_a_primitive(model: collision.CollisionModel) -> None:
+    kin = load_kinematics(urdf_path())  # independent stdlib parse of the same file
+    expected = {(name, g.kind, tuple(round(s, 9) for s in g.size))
+                for name, link in kin.links.items() for g in link.collisions}
+    ours = {(p.link, p.kind, tuple(round(s, 9) for s in p.size)) for p in model.primitives
+            if p.group != "world" and not p.name.endswith(("upper_arm", "lower_arm"))}
+    assert ours == expected
+    assert len(expected) >= 16
+
+
+def test_parts_and_groups(model: collision.CollisionModel) -> None:
+    by_name = {p.name: p for p in model.primitives}
+    for side, prefix in (("left", "L"), ("right", "R")):
+        for link, part in (("hand", "HAND"), ("wrist", "WRIST"), ("forearm", "FOREARM"), ("elbow", "ELBOW"),
+                           ("shoulder", "SHOULDER")):
+            p = by_name[f"{side}_{link}_link"]
+            assert p.group == side
+            assert p.part == getattr(mds, f"COLLIDE_{prefix}_{part}")
+    assert by_name["left_upper_arm"].part == mds.COLLIDE_L_SHOULDER
+    assert by_name["right_lower_arm"].part == mds.COLLIDE_R_FOREARM
+    assert by_name["head_link"].group == "head" and by_name["backpack_link"].group == "body"
+
+
+def test_pairs_cover_arm_arm_body_and_head_but_not_neighbours(model: collision.CollisionModel) -> None:
+    names = {tuple(sorted((model.primitives[i].name, model.primitives[j].name))) for i, j in model.pairs}
+    assert ("left_hand_link", "right_hand_link") in names
+    assert ("head_link", "left_hand_link") in names
+    assert ("backpack_link", "right_elbow_link") in names
+    assert ("left_hand_link", "left_shoulder_link") in names  # same arm, listed in same_arm_pairs
+    assert ("left_hand_link", "left_wrist_link") not in names  # neighbours touch by construction
+    assert ("left_shoulder_link", "torso") not in names  # ignore_pairs
+    assert not any(model.primitives[i].group not in ("left", "right") and model.primitives[j].group not in (
+        "left", "right") for i, j in model.pairs)
+
+
+# --------------------------------------------------------------------------------------------- kinematics
+
+
+def test_primitive_poses_match_the_kinematics_module(model: collision.CollisionModel) -> None:
+    kin = load_kinematics(urdf_path())
+    for q in random_configs(model, 25):
+        poses = model.primitive_poses(q)
+        links = kin.link_poses(dict(zip(MODEL_JOINTS, q, strict=True)))
+        for k, p in enumerate(model.primitives):
+            if p.group == "world" or p.name.endswith(("upper_arm", "lower_arm")):
+                continue
+            expected = links[p.link] @ kin.links[p.link].collisions[0].origin
+            np.testing.assert_allclose(poses[k], expected, atol=1e-12)
+
+
+def test_primitive_poses_match_yourdfpy(model: collision.CollisionModel) -> None:
+    import yourdfpy
+
+    urdf = yourdfpy.URDF.load(str(urdf_path()), load_meshes=False, build_collision_scene_graph=False)
+    for q in random_configs(model, 5, seed=7):
+        urdf.update_cfg(dict(zip(MODEL_JOINTS, q, strict=True)))
+        poses = model.primitive_poses(q)
+        for k, p in enumerate(model.primitives):
+            if p.group == "world" or p.name.endswith(("upper_arm", "lower_arm")):
+                continue
+            link = urdf.link_map[p.link]
+            expected = urdf.get_transform(p.link) @ link.collisions[0].origin
+            np.testing.assert_allclose(poses[k], expected, atol=1e-9)
+
+
+def test_hand_follows_the_original_ik_chain(model: collision.CollisionModel) -> None:
+    """Spec e.1: LSP = -pi/2 raises the left arm forward; the hand frame is 0.1046875 below the wrist."""
+    poses = model.primitive_poses(q_of(LSP=-np.pi / 2))
+    torso = model.tree.link_pose("torso", np.zeros(len(MODEL_JOINTS)))
+    hand = np.linalg.inv(torso) @ poses[index(model, "left_hand_link")]
+    reach = 0.282575 + 0.3127375 + 0.1046875 + 0.025
+    np.testing.assert_allclose(hand[:3, 3], [reach, 0.24551, 0.02], atol=1e-9)  # local +x offset turns up
+
+
+# --------------------------------------------------------------------------------------------- checking
+
+
+def test_home_pose_is_free_and_hanging_arms_hit_the_lower_body(model: collision.CollisionModel) -> None:
+    assert not model.check(q_of(**HOME)).collides
+    hanging = model.check(np.zeros(len(MODEL_JOINTS)))
+    assert ("box1_link", "left_hand_link") in hanging.pairs and hanging.arms == {"left", "right"}
+
+
+def test_broad_phase_never_drops_a_collision(model: collision.CollisionModel) -> None:
+    configs = random_configs(model, 400, seed=3)
+    colliding = 0
+    for q in configs:
+        fast, full = model.check(q), model.check_exhaustive(q)
+        assert fast.pairs == full.pairs
+        colliding += fast.collides
+    assert 40 < colliding < 400  # the sample exercises both outcomes
+
+
+def test_known_colliding_pair_is_always_reported(model: collision.CollisionModel) -> None:
+    """Hand spheres (r 0.1 each): reported exactly when the centres are closer than 0.2 m + margin.
+
+    The reference answer is computed here from the sphere centres, independently of fcl; configurations are
+    sampled with both hands in front of the chest so that many of them touch.
+    """
+    rng = np.random.default_rng(11)
+    li, ri = index(model, "left_hand_link"), index(model, "right_hand_link")
+    hits = 0
+    for _ in range(1500):
+        q = q_of(**HOME)
+        for side, sign in (("L", 1.0), ("R", -1.0)):
+            q[MODEL_JOINTS.index(f"{side}SP")] = rng.uniform(-1.6, -0.6)
+            q[MODEL_JOINTS.index(f"{side}SR")] = sign * rng.uniform(0.0, 0.4)
+            q[MODEL_JOINTS.index(f"{side}SY")] = -sign * rng.uniform(0.3, 1.0)
+            q[MODEL_JOINTS.index(f"{side}EP")] = rng.uniform(-2.0, -1.0)
+        poses = model.primitive_poses(q)
+        dist = np.linalg.norm(poses[li, :3, 3] - poses[ri, :3, 3])
+        reported = ("left_hand_link", "right_hand_link") in model.check(q).pairs
+        if abs(dist - (0.2 + model.margin)) < 1e-6:
+            continue  # exactly on the boundary: either answer is fine
+        assert reported == (dist < 0.2 + model.margin), (q, dist)
+        hits += reported
+    assert hits > 100
+
+
+def test_margin_is_the_clearance_between_surfaces() -> None:
+    """A world ball placed at a known gap from the left hand sphere (exact geometry: sphere vs sphere)."""
+    base = collision.load_model(config=config_path("collision.yaml"), world={})
+    q = q_of(**HOME)
+    hand = base.primitive_poses(q)[index(base, "left_hand_link"), :3, 3]
+    torso = base.tree.link_pose("torso", np.zeros(len(MODEL_JOINTS)))
+    for gap, expected in ((0.015, True), (0.025, False), (-0.01, True)):
+        centre = hand + np.array([0.0, 0.0, 0.1 + 0.05 + gap])  # above the hand: r_hand 0.1 + r_ball 0.05
+        local = np.linalg.inv(torso) @ np.append(centre, 1.0)
+        world = {"objects": [{"name": "ball", "shape": "sphere", "radius": 0.05, "xyz": local[:3].tolist()}]}
+        m = collision.load_model(world=world)
+        assert m.margin == 0.02
+        assert (("left_hand_link", "world:ball") in {tuple(sorted(p)) for p in m.check(q).pairs}) == expected, gap
+        d = m.distances(q)[("left_hand_link", "world:ball")]
+        assert d == pytest.approx(max(gap, 0.0), abs=1e-6)
+
+
+def test_world_objects_from_config_and_frames() -> None:
+    table = {"shape": "box", "size": [0.6, 1.4, 0.04], "xyz": [0.6, 0.0, -0.42]}
+    robot_frame = collision.load_model(world={"objects": [{"name": "t", **table}]})
+    base_frame = collision.load_model(world={"frame": "base", "objects": [
+        {"name": "t", **table, "xyz": [0.6, 0.0, -0.42 + 1.2065]}]})
+    k = index(robot_frame, "world:t")
+    np.testing.assert_allclose(robot_frame.primitive_poses(np.zeros(17))[k],
+                               base_frame.primitive_poses(np.zeros(17))[k], atol=1e-12)
+    disabled = collision.load_model(world={"objects": [{"name": "t", "enabled": False, **table}]})
+    assert not any(p.group == "world" for p in disabled.primitives)
+    # the hand pushed down through the table top collides with it, the home pose does not
+    assert not robot_frame.check(q_of(**HOME)).collides
+    reach_down = robot_frame.check(q_of(**{**HOME, "LSP": -0.9, "LSR": 0.3, "LEP": -0.4}))
+    assert ("left_hand_link", "world:t") in reach_down.pairs
+
+
+@pytest.mark.parametrize(
+    "obj, message",
+    [
+        ({"name": "a", "shape": "cone", "radius": 1}, "shape must be one of"),
+        ({"name": "a", "shape": "box", "size": [1, 1]}, "3 numbers"),
+        ({"name": "a", "shape": "sphere"}, "needs 'radius'"),
+        ({"name": "a", "shape": "sphere", "radius": -0.1}, "positive"),
+        ({"name": "a", "shape": "sphere", "radius": 0.1, "xyz": [0, 0]}, "xyz and rpy"),
+        ({"name": "a", "shape": "sphere", "radius": 0.1, "frame": "moon"}, "frame"),
+    ],
+)
+def test_bad_world_objects_are_refused(obj: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        collision.load_model(world={"objects": [obj]})
+
+
+def test_bad_collision_config_is_refused() -> None:
+    with pytest.raises(ValueError, match="margin"):
+        collision.load_model(config={"margin": -0.1})
+    with pytest.raises(ValueError, match="unknown collide part"):
+        collision.load_model(config={"parts": {"left_hand_link": "L_FOOT"}})
+    with pytest.raises(ValueError, match="unknown link"):
+        collision.load_model(config={"extra_primitives": [{"link": "tail", "shape": "sphere", "radius": 0.1}]})
+
+
+def test_ignore_pairs_removes_pairs() -> None:
+    m = collision.load_model(config={"ignore_pairs": [["left_hand_link", "right_hand_link"]]})
+    names = {(m.primitives[i].name, m.primitives[j].name) for i, j in m.pairs}
+    assert ("left_hand_link", "right_hand_link") not in names
+    assert ("left_hand_link", "right_wrist_link") in names
+
+
+def test_check_result_summaries(model: collision.CollisionModel) -> None:
+    res = model.check(np.zeros(17))
+    assert res.collides and res.arms == {"left", "right"}
+    assert mds.COLLIDE_L_HAND in res.parts and mds.COLLIDE_R_HAND in res.parts
+    assert all(c.part_a == -1 or c.part_b >= 0 for c in res.contacts)

@@ -1,0 +1,341 @@
+"""Collision gate: holding the affected arm, table, the other arm moving on, resuming, refusing bad references,
+the expert override, reporting on mds-collide, the channel runner and the node."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import mds_ach as mds
+from conftest import VENV_BIN, wait_for
+from mds_ach import ik
+from mds_ach.collision import load_model
+from mds_ach.collision_node import Gate, GateConfig, GateRunner, decision_to_dict, joint_limits
+from mds_ach.filter_node import FilterCore, parse_config
+from mds_ach.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
+from mds_ach.pipeline import make_ref, ref_arrays
+
+N = mds.MDS_JOINT_COUNT
+ZERO_MODE = np.zeros(N, dtype=np.int16)
+L = np.array([BY_SHORT[n].address for n in LEFT_ARM])
+R = np.array([BY_SHORT[n].address for n in RIGHT_ARM])
+HOME = np.zeros(N)
+for _name, _value in {"RSP": -0.445, "RSR": -1.18, "REP": -1.25, "RSY": 0.15, "LSP": -0.45, "LSR": 1.2,
+                      "LEP": -1.25, "LSY": -0.25, "LWR": -0.28}.items():
+    HOME[BY_SHORT[_name].address] = _value
+TABLE = {"objects": [{"name": "table", "shape": "box", "size": [0.6, 1.4, 0.04], "xyz": [0.6, 0.0, -0.42]}]}
+TABLE_TOP = -0.40
+DT = 0.025
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(world={})
+
+
+@pytest.fixture(scope="module")
+def table_model():
+    return load_model(world=TABLE)
+
+
+def make_gate(model, ref=HOME, **cfg) -> Gate:
+    lower, upper = joint_limits(model)
+    return Gate(model, GateConfig(**cfg), ref.copy(), ZERO_MODE.copy(), 0.0, lower, upper)
+
+
+def solve(arm: str, point: list[float], seed: np.ndarray = HOME) -> np.ndarray:
+    idx = L if arm == "left" else R
+    res = ik.solve(point, "p-x p-y p-z", arm, seed[idx])
+    assert res.success, res.message
+    return res.q
+
+
+def drive(gate: Gate, target: np.ndarray, seconds: float, t0: float | None = None) -> list:
+    """Feed the gate what the default filter (1.57 rad/s at 40 Hz) makes of ``target``, starting from its output."""
+    core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
+    core.set_target(target, ZERO_MODE)
+    now = gate.last_time if t0 is None else t0
+    decisions = []
+    for _ in range(int(seconds / DT)):
+        now += DT
+        decisions.append(gate.process(core.step(), core.mode, now))
+    return decisions
+
+
+def tool(model, q100: np.ndarray, prim: str) -> np.ndarray:
+    """Centre of a primitive in the robot (torso at WST = 0) frame."""
+    poses = model.primitive_poses(model.q_from_ref(q100))
+    torso = model.tree.link_pose("torso", np.zeros(17))
+    k = [p.name for p in model.primitives].index(prim)
+    return (np.linalg.inv(torso) @ poses[k])[:3, 3]
+
+
+# --------------------------------------------------------------------------------------------- behaviour
+
+
+def test_both_hands_to_the_same_point_stop_before_touching(model) -> None:
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    assert ("left_hand_link", "right_hand_link") in model.check(model.q_from_ref(target)).pairs
+    decisions = drive(gate, target, 6.0)
+    held = [d for d in decisions if d.held]
+    assert held and set(held[-1].held) == {"left", "right"}
+    assert all(("left_hand_link", "right_hand_link") in d.result.pairs for d in held[-10:])
+    gap = np.linalg.norm(tool(model, gate.ref, "left_hand_link") - tool(model, gate.ref, "right_hand_link")) - 0.2
+    assert gap >= model.margin - 1e-9  # stopped before touching, with the clearance margin
+    start_gap = np.linalg.norm(tool(model, HOME, "left_hand_link") - tool(model, HOME, "right_hand_link")) - 0.2
+    assert gap < start_gap - 0.2  # they did move towards each other
+    assert not model.check(model.q_from_ref(gate.ref)).collides
+    report = gate.report(gate.last_time)
+    assert report.isCollide == 1
+    assert report.joint[mds.COLLIDE_L_HAND].isCollide == 1 and report.joint[mds.COLLIDE_R_HAND].isCollide == 1
+    assert report.joint[mds.COLLIDE_L_HAND].collision > 1
+    assert report.joint[mds.COLLIDE_R_ELBOW].isCollide == 0
+
+
+def test_hand_driven_into_table_stops_above_it_while_the_other_arm_moves_on(table_model) -> None:
+    gate = make_gate(table_model)
+    target = HOME.copy()
+    target[L] = solve("left", [0.40, 0.25, -0.50])  # 10 cm below the table top
+    target[R] = solve("right", [0.30, -0.45, -0.15])  # free space beside the table
+    decisions = drive(gate, target, 6.0)
+    assert any(d.held == ("left",) for d in decisions)
+    assert not any("right" in d.held or "all" in d.held for d in decisions)
+    hand = tool(table_model, gate.ref, "left_hand_link")
+    assert hand[2] - 0.1 >= TABLE_TOP + table_model.margin - 1e-9  # the hand sphere stays above the table top
+    assert np.abs(gate.ref[L] - target[L]).max() > 0.05  # left arm stopped short
+    np.testing.assert_allclose(gate.ref[R], target[R], atol=1e-12)  # right arm reached its target
+    assert decisions[-1].result.parts == {mds.COLLIDE_L_HAND} or mds.COLLIDE_L_HAND in decisions[-1].result.parts
+
+
+def test_safe_command_after_a_blocked_one_goes_through(table_model) -> None:
+    gate = make_gate(table_model)
+    blocked = HOME.copy()
+    blocked[L] = solve("left", [0.40, 0.25, -0.50])
+    drive(gate, blocked, 5.0)
+    assert gate.report(gate.last_time).isCollide == 1
+    safe = HOME.copy()
+    safe[L] = solve("left", [0.35, 0.35, -0.05])
+    decisions = drive(gate, safe, 5.0)
+    assert not decisions[-1].held and not decisions[-1].result.collides
+    np.testing.assert_allclose(gate.ref, safe, atol=1e-12)
+    later = gate.last_time + gate.config.release_time + 0.01
+    report = gate.report(later)
+    assert report.isCollide == 0 and report.joint[mds.COLLIDE_L_HAND].isCollide == 0
+    assert report.joint[mds.COLLIDE_L_HAND].collision == 0
+
+
+def test_waist_turn_into_an_obstacle_holds_everything(model) -> None:
+    # a ball 5 cm from the left hand at home, in the direction the hand sweeps when the waist turns left
+    hand = tool(model, HOME, "left_hand_link")
+    sweep = np.array([-hand[1], hand[0], 0.0]) / np.hypot(hand[0], hand[1])
+    centre = hand + (0.1 + 0.05 + 0.05) * sweep
+    m = load_model(world={"objects": [{"name": "ball", "shape": "sphere", "radius": 0.05, "xyz": centre.tolist()}]})
+    gate = make_gate(m)
+    target = HOME.copy()
+    target[mds.WST] = 0.38
+    target[mds.NKY] = 0.3  # the neck is not involved, but it is a modelled joint: held too
+    target[mds.LF1] = 0.2  # an unmodelled finger joint still goes through
+    decisions = drive(gate, target, 2.0)
+    assert any(d.held == ("all",) for d in decisions)
+    assert 0 < gate.ref[mds.WST] < 0.38
+    assert not m.check(m.q_from_ref(gate.ref)).collides
+    assert gate.ref[mds.LF1] == pytest.approx(0.2)
+
+
+def test_non_finite_and_out_of_limit_references_are_never_passed(model) -> None:
+    gate = make_gate(model)
+    bad = HOME.copy()
+    bad[mds.LEP] = float("nan")
+    bad[mds.RSP] = float("inf")
+    bad[mds.LSR] = 3.0  # above the limit
+    bad[mds.NKY] = 0.1  # fine
+    d = gate.process(bad, ZERO_MODE, 0.1)
+    assert set(d.refused) == {mds.LEP, mds.RSP, mds.LSR}
+    assert np.all(np.isfinite(d.ref))
+    assert d.ref[mds.LEP] == HOME[mds.LEP] and d.ref[mds.RSP] == HOME[mds.RSP] and d.ref[mds.LSR] == HOME[mds.LSR]
+    assert d.ref[mds.NKY] == pytest.approx(0.1)
+    doc = decision_to_dict(d, gate, 0.1)
+    assert set(doc["refused"]) == {"LEP", "RSP", "LSR"}
+
+
+def test_speed_bound_keeps_a_jump_from_reaching_the_daemon(model) -> None:
+    gate = make_gate(model, max_velocity=2.0)
+    jump = HOME.copy()
+    jump[mds.NKY] = 0.5
+    d1 = gate.process(jump, ZERO_MODE, 0.025)
+    assert d1.ref[mds.NKY] == pytest.approx(2.0 * 0.025)
+    d2 = gate.process(jump, ZERO_MODE, 1.0)  # a long pause credits at most max_dt
+    assert d2.ref[mds.NKY] == pytest.approx(0.05 + 2.0 * 0.1)
+
+
+def test_expert_override_is_explicit_reported_and_expires(model) -> None:
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    drive(gate, target, 5.0, t0=0.0)
+    held_at = gate.ref.copy()
+    now = gate.last_time
+    assert gate.set_override(60.0, now) == gate.config.override_max  # capped
+    assert gate.set_override(1.0, now) == 1.0
+    d = gate.process(target, ZERO_MODE, now + 0.025)
+    assert d.overridden and not d.held and d.result.collides
+    assert gate.report(now + 0.025).isCollide == 2  # visible on mds-collide
+    assert decision_to_dict(d, gate, now + 0.025)["override_remaining"] == pytest.approx(0.975)
+    assert np.abs(d.ref - held_at).max() > 0  # it moved into the predicted collision
+    # expired: back to blocking; the robot is now in collision, so only moves that add no new pair pass
+    d = gate.process(target, ZERO_MODE, now + 1.5)
+    assert not d.overridden
+    home_again = drive(gate, HOME, 5.0)
+    assert not home_again[-1].result.collides and np.allclose(gate.ref, HOME)
+    assert gate.set_override(0.0, gate.last_time) == 0.0 and gate.override_remaining(gate.last_time) == 0.0
+
+
+def test_started_inside_a_collision_allows_only_moves_out(model) -> None:
+    inside = HOME.copy()
+    inside[L], inside[R] = solve("left", [0.40, 0.02, -0.1]), solve("right", [0.40, -0.02, -0.1])
+    gate = make_gate(model, ref=inside)
+    assert gate.current.collides
+    start_pairs = gate.current.pairs
+    decisions = drive(gate, HOME, 5.0)
+    assert all(d.result.pairs <= start_pairs or not d.held for d in decisions)
+    np.testing.assert_allclose(gate.ref, HOME, atol=1e-12)
+
+
+def test_report_hysteresis_on_wall_time(model) -> None:
+    gate = make_gate(model, release_time=0.1)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    drive(gate, target, 4.0, t0=0.0)
+    last = gate.last_time
+    hand = gate.parts[mds.COLLIDE_L_HAND]
+    assert hand.last == pytest.approx(last)
+    assert gate.report(last + 0.05).joint[mds.COLLIDE_L_HAND].isCollide == 1
+    c = gate.report(last + 0.15)
+    assert c.joint[mds.COLLIDE_L_HAND].isCollide == 0 and c.isCollide == 0
+    assert c.time == last + 0.15 and c.time_dt == pytest.approx(0.1)
+
+
+# --------------------------------------------------------------------------------------------- channels
+
+
+def _put(name: str, ref: np.ndarray) -> None:
+    from mds_ach.channels import StructChannel
+
+    with StructChannel(name, mds.MDS_REF) as ch:
+        ch.put(make_ref(ref, ZERO_MODE))
+
+
+def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
+    from mds_ach.channels import StructChannel
+
+    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    stale = HOME.copy()
+    stale[mds.NKY] = 0.4
+    _put(mds.MDS_CHAN_REF_SMOOTH_NAME, stale)  # left over from before: must not be acted on
+    lower, upper = joint_limits(table_model)
+    logs: list[str] = []
+    runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+    collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    try:
+        assert runner.ready.wait(10), logs
+        out.latest()  # our own HOME frame
+        time.sleep(0.3)
+        assert out.latest() is None  # the stale smooth frame was not passed on
+        target = HOME.copy()
+        target[L] = solve("left", [0.40, 0.25, -0.50])
+        core = FilterCore(parse_config({"rate": 40}), HOME, ZERO_MODE)
+        core.set_target(target, ZERO_MODE)
+        flagged = False
+        for _ in range(160):
+            smooth.put(make_ref(core.step(), ZERO_MODE))
+            time.sleep(0.005)
+            c = collide.latest()
+            flagged |= c is not None and c.isCollide == 1 and c.joint[mds.COLLIDE_L_HAND].isCollide == 1
+        wait_for(lambda: runner.processed >= 160, 10, what="the gate to process every frame")
+        got = ref_arrays(wait_for(lambda: out.latest(), 5, what="gated frame"))[0]
+        assert flagged
+        hand = tool(table_model, got, "left_hand_link")
+        assert hand[2] - 0.1 >= TABLE_TOP + table_model.margin - 1e-9
+        assert len(runner.check_times) == 160
+    finally:
+        runner.stop()
+        t.join(5)
+        for ch in (out, collide, smooth):
+            ch.close()
+    assert not t.is_alive()
+
+
+# --------------------------------------------------------------------------------------------- node
+
+
+def test_collision_help() -> None:
+    proc = subprocess.run([str(VENV_BIN / "collision"), "--help"], capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 0 and "usage: collision" in proc.stdout and "override" in proc.stdout
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path) -> None:
+    import rclpy
+    from rclpy.node import Node
+    from std_msgs.msg import Float64, String
+
+    world = tmp_path / "world.yaml"
+    world.write_text(json.dumps(TABLE))  # JSON is YAML
+    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    proc = subprocess.Popen([str(VENV_BIN / "collision"), "--world", str(world)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    rclpy.init()
+    node = Node("test_collision_client")
+    docs: list[dict] = []
+    node.create_subscription(String, "/mds/collision", lambda m: docs.append(json.loads(m.data)), 10)
+    override = node.create_publisher(Float64, "/mds/collision/override", 10)
+    from mds_ach.channels import StructChannel
+
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not (docs and override.get_subscription_count()):
+            rclpy.spin_once(node, timeout_sec=0.1)
+        assert docs and override.get_subscription_count(), proc.poll()
+        into_table = HOME.copy()
+        into_table[L] = solve("left", [0.40, 0.25, -0.50])
+        core = FilterCore(parse_config({"rate": 40}), HOME, ZERO_MODE)
+        core.set_target(into_table, ZERO_MODE)
+
+        def feed_until(pred, what: str) -> None:
+            end = time.monotonic() + 20
+            while time.monotonic() < end:
+                smooth.put(make_ref(core.step(), ZERO_MODE))
+                rclpy.spin_once(node, timeout_sec=0.025)
+                if pred():
+                    return
+            raise AssertionError(f"timed out waiting for {what}; last: {docs[-1:]}")
+
+        feed_until(lambda: any(d["held"] == ["left"] and "L_HAND" in d["parts"] for d in docs), "a held left arm")
+        override.publish(Float64(data=2.0))
+        feed_until(lambda: any(d["overridden"] and d["override_remaining"] > 0 for d in docs), "the override")
+    finally:
+        smooth.close()
+        node.destroy_node()
+        rclpy.shutdown()
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=15)
+    assert proc.returncode == 0, out
+    assert "EXPERT OVERRIDE ON for 2.0 s" in out and "EXPERT OVERRIDE passed a predicted collision" in out
+    assert "Traceback" not in out

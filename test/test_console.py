@@ -1,0 +1,346 @@
+"""The console: parser, bad input (fuzzed), and every command against the running simulated system."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import pytest
+from conftest import VENV_BIN, remove_mds_channels
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mds_system import joint_pos, joint_ref, running_system
+from pty_session import PtySession
+
+import mds_ach as mds
+from mds_ach import console
+from mds_ach.console import CommandError, Get, GetFk, Goto, Ik, Simple, parse
+
+# --------------------------------------------------------------------------------------------- parser
+
+
+@pytest.mark.parametrize(("line", "expected"), [
+    ("goto LSP -0.3", Goto(mds.BY_SHORT["LSP"], -0.3)),
+    ("GOTO lsp -0.3 wait", Goto(mds.BY_SHORT["LSP"], -0.3, wait=True)),
+    ("goto LeftShoulderExt 0.1", Goto(mds.BY_SHORT["LSP"], 0.1)),
+    ("goto filter LEP -0.2", Goto(mds.BY_SHORT["LEP"], -0.2)),
+    ("goto 0x5f 0", Goto(mds.BY_SHORT["LSP"], 0.0)),
+    ("get REP", Get(mds.BY_SHORT["REP"])),
+    ("get rightelbowflex", Get(mds.BY_SHORT["REP"])),
+    ("get fk left", GetFk("left")),
+    ("get FK Right", GetFk("right")),
+    ("ik left 3 0.3 0.2 0.0", Ik("left", 3, (0.3, 0.2, 0.0))),
+    ("ik right 6 0.3 -0.2 0 0 0 1.57 wait", Ik("right", 6, (0.3, -0.2, 0.0, 0.0, 0.0, 1.57), wait=True)),
+    ("help", Simple("help")),
+    ("?", Simple("help")),
+    ("exit", Simple("exit")),
+    ("quit", Simple("exit")),
+    ("zeroall", Simple("zeroall")),
+    ("", Simple("empty")),
+    ("   # a comment", Simple("empty")),
+])
+def test_parse_valid(line: str, expected: object) -> None:
+    assert parse(line) == expected
+
+
+@pytest.mark.parametrize(("line", "message"), [
+    ("fly", "unknown command 'fly'"),
+    ("goto", "usage: goto <joint> <rad>"),
+    ("goto LSP", "usage: goto <joint> <rad>"),
+    ("goto XYZ 0.1", "unknown joint 'XYZ'"),
+    ("goto LSP abc", "must be a number, got 'abc'"),
+    ("goto LSP nan", "must be finite"),
+    ("goto LSP inf", "must be finite"),
+    ("goto LSP -1e999", "must be finite"),
+    ("get", "usage: get <joint>"),
+    ("get fk", "usage: get <joint>"),
+    ("get fk middle", "arm must be 'left' or 'right'"),
+    ("get LSP REP", "usage: get <joint>"),
+    ("ik", "usage: ik <left|right>"),
+    ("ik up 3 0 0 0", "arm must be 'left' or 'right'"),
+    ("ik left three 0 0 0", "dof must be an integer"),
+    ("ik left 7 0 0 0 0 0 0 0", "dof must be 1..6"),
+    ("ik left 0", "dof must be 1..6"),
+    ("ik left 3 0.3 0.2", "needs 3 value(s) (x y z), got 2"),
+    ("ik left 2 0.3 0.2 0.1", "needs 2 value(s) (x y), got 3"),
+    ("ik left 3 0.3 nan 0", "y must be finite"),
+    ("help me", "'help' takes no arguments"),
+])
+def test_parse_errors_say_what_is_wrong(line: str, message: str) -> None:
+    with pytest.raises(CommandError) as info:
+        parse(line)
+    assert message in str(info.value)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.text(max_size=80))
+def test_parse_never_raises_anything_but_command_error(line: str) -> None:
+    try:
+        parse(line)
+    except CommandError as exc:
+        assert str(exc)
+
+
+# --------------------------------------------------------------------------------------------- fuzz against channels
+
+TOKENS = ["goto", "get", "fk", "ik", "left", "right", "wait", "filter", "help", "zeroall", "exit", "LSP", "lsp",
+          "LeftElbowFlex", "RSR", "NKY", "LF1", "0x5f", "0x00", "3", "6", "0", "-0.3", "0.2", "1e308", "-1e308",
+          "nan", "inf", "-inf", "1e-320", "x", "", "#", "\x00", "é", "--", "-c"]
+LINES = st.one_of(
+    st.text(max_size=60),
+    st.lists(st.sampled_from(TOKENS) | st.floats(allow_nan=True).map(repr) | st.integers().map(str),
+             max_size=9).map(" ".join),
+)
+
+
+@pytest.fixture
+def fake_system() -> Iterator[None]:
+    """Channels holding one state frame at the home pose, and nothing running: the console must cope."""
+    from mds_ach.channels import StructChannel, make_channels
+    from mds_ach.config import load
+
+    remove_mds_channels()
+    make_channels()
+    table = load()
+    st_frame = mds.MDS_STATE()
+    table.fill_state(st_frame)
+    for j in table:
+        st_frame.joint[j.address].ref = st_frame.joint[j.address].pos = j.home
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as ch:
+        ch.put(st_frame)
+    yield
+    remove_mds_channels()
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(LINES)
+def test_console_never_crashes_on_random_lines(fake_system: None, line: str) -> None:
+    out: list[str] = []
+    con = console.Console(out=out.append, err=out.append, progress=lambda: None)
+    with mock.patch.object(console, "IK_TIMEOUT", 0.05), mock.patch.object(console, "GOTO_TIMEOUT", 0.05), \
+            mock.patch.object(console, "STATE_WAIT", 0.01):
+        try:
+            ok = con.run_line(line)
+        finally:
+            con.close()
+    assert ok in (True, False)
+    if not ok:
+        assert out and out[0].strip(), "a failure must say what was wrong"
+
+
+def test_without_a_system_commands_fail_with_a_clear_message() -> None:
+    remove_mds_channels()
+    out: list[str] = []
+    con = console.Console(out=out.append, err=out.append, progress=lambda: None)
+    with mock.patch.object(console, "STATE_WAIT", 0.01):
+        assert not con.run_line("get LSP")
+        assert not con.run_line("goto LSP 0.1")
+    con.close()
+    assert "is MDS-Ach running?" in out[0]
+    assert not any(os.path.exists(f"/dev/shm/achshm-{n}") for n in mds.ALL_CHANNELS), "the console created channels"
+
+
+# --------------------------------------------------------------------------------------------- the real system
+
+
+@pytest.fixture(scope="module")
+def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]:
+    with running_system(tmp_path_factory.mktemp("console")) as env:
+        yield env
+
+
+def run_console(env: dict[str, str], *commands: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    args = [str(VENV_BIN / "mds-ach"), "console"]
+    for c in commands:
+        args += ["-c", c]
+    return subprocess.run(args, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def chain_fk(q: list[float], arm: str) -> tuple[np.ndarray, np.ndarray]:
+    """The original IK chain (mds-original.md section e.1), written out independently of mds_ach.kinematics."""
+    l1, l2, l3, l4 = 0.24551, 0.282575, 0.3127375, 0.0635
+    m = 1.0 if arm == "left" else -1.0
+
+    def rot(axis: str, a: float) -> np.ndarray:
+        c, s = math.cos(a), math.sin(a)
+        return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+                "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+                "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
+
+    steps = [((0, m * l1, 0), "y"), ((0, 0, 0), "x"), ((0, 0, 0), "z"), ((0, 0, -l2), "y"), ((0, 0, -l3), "z"),
+             ((0, 0, 0), "x")]
+    R, p = np.eye(3), np.zeros(3)
+    for (offset, axis), angle in zip(steps, q, strict=True):
+        p = p + R @ np.array(offset, dtype=float)
+        R = R @ rot(axis, angle)
+    p = p + R @ np.array([0.0, 0.0, -l4])
+    euler = np.array([math.atan2(R[2, 1], R[2, 2]), math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
+                      math.atan2(R[1, 0], R[0, 0])])
+    return p, euler
+
+
+FK_RE = re.compile(r"6DOF FK - for  (left|right)  arm\npos:\tx = (\S+) \ty = (\S+) \tz = (\S+)\n"
+                   r"rot:\tx = (\S+) \ty = (\S+) \tz = (\S+)")
+
+
+def parse_fk(text: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    out = {}
+    for m in FK_RE.finditer(text):
+        values = [float(v) for v in m.groups()[1:]]
+        for v in m.groups()[1:]:
+            assert re.fullmatch(r"-?\d+\.\d{5}", v), f"not 5 decimals: {v}"
+        out[m.group(1)] = (np.array(values[:3]), np.array(values[3:]))
+    return out
+
+
+def arm_refs(arm: str) -> list[float]:
+    names = mds.joints.LEFT_ARM if arm == "left" else mds.joints.RIGHT_ARM
+    return [joint_ref(n) for n in names]
+
+
+def arm_pos(arm: str) -> list[float]:
+    names = mds.joints.LEFT_ARM if arm == "left" else mds.joints.RIGHT_ARM
+    return [joint_pos(n) for n in names]
+
+
+@pytest.mark.slow
+def test_get_fk_prints_the_pose_of_the_current_references(system: dict[str, str]) -> None:
+    proc = run_console(system, "get fk left", "get fk right")
+    assert proc.returncode == 0, proc.stderr
+    poses = parse_fk(proc.stdout)
+    assert set(poses) == {"left", "right"}, proc.stdout
+    for arm in ("left", "right"):
+        p, euler = chain_fk(arm_refs(arm), arm)
+        np.testing.assert_allclose(poses[arm][0], p, atol=2e-5)
+        np.testing.assert_allclose(poses[arm][1], euler, atol=2e-5)
+
+
+@pytest.mark.slow
+def test_goto_moves_the_joint_through_the_pipeline(system: dict[str, str]) -> None:
+    proc = run_console(system, "goto LSP -0.3 wait", "get LSP")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "LSP -> -0.30000 rad (sent to mds-ref-filter)" in proc.stdout
+    assert "done" in proc.stdout
+    assert abs(joint_pos("LSP") + 0.3) < 0.011
+    m = re.search(r"^LSP  State =  (-?\d+\.\d{5})  rad\nLSP  Ref   =  (-?\d+\.\d{5})  rad$", proc.stdout, re.M)
+    assert m, proc.stdout
+    assert abs(float(m.group(1)) + 0.3) < 0.011 and abs(float(m.group(2)) + 0.3) < 0.011
+    # the motion went through the mux: the default controller owns LSP now
+    from mds_system import newest
+
+    from mds_ach.mux import MDS_MUX_STATE
+
+    mux_state = newest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+    owner = mux_state.owner[mds.LSP]
+    assert mds.msgs.get_name(mux_state.name[owner]) == "default"
+
+
+@pytest.mark.slow
+def test_goto_with_a_long_name_and_get_shows_state_and_ref(system: dict[str, str]) -> None:
+    proc = run_console(system, "goto LeftElbowFlex -0.4 wait")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert abs(joint_pos("LEP") + 0.4) < 0.011
+
+
+@pytest.mark.slow
+def test_goto_refuses_out_of_range_and_disabled_joints(system: dict[str, str]) -> None:
+    before = joint_ref("RSP")
+    proc = run_console(system, "goto RSP 5.0")
+    assert proc.returncode == 1
+    assert "outside RSP's range" in proc.stderr
+    proc = run_console(system, "goto LF1 0.1")
+    assert proc.returncode == 1
+    assert "disabled" in proc.stderr
+    time.sleep(0.3)  # a bad command must not move anything: give a wrong one time to show
+    assert joint_ref("RSP") == pytest.approx(before, abs=1e-9)
+
+
+@pytest.mark.slow
+def test_bad_input_prints_the_problem_and_the_usage(system: dict[str, str]) -> None:
+    proc = run_console(system, "get LSP", "goto LSP", "get LSP")
+    assert proc.returncode == 1
+    assert proc.stdout.count("State =") == 1, "commands after a failure must not run in -c mode"
+    assert "usage: goto <joint> <rad>" in proc.stderr and "commands (joint names" in proc.stderr
+
+
+@pytest.mark.slow
+def test_ik_moves_the_arm_to_the_target_and_reports_the_fk(system: dict[str, str]) -> None:
+    proc = run_console(system, "ik left 3 0.3 0.2 0.0 wait", timeout=90)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "solved" in proc.stdout and "done" in proc.stdout
+    reported = parse_fk(proc.stdout)["left"][0]
+    np.testing.assert_allclose(reported, [0.3, 0.2, 0.0], atol=0.011)
+    reached, _ = chain_fk(arm_pos("left"), "left")
+    np.testing.assert_allclose(reached, [0.3, 0.2, 0.0], atol=0.03)
+
+
+@pytest.mark.slow
+def test_ik_unreachable_moves_nothing(system: dict[str, str]) -> None:
+    before = arm_refs("right")
+    proc = run_console(system, "ik right 3 2.0 0.0 0.0", timeout=90)
+    assert proc.returncode == 1
+    assert "unreachable" in proc.stdout
+    time.sleep(0.3)
+    np.testing.assert_allclose(arm_refs("right"), before, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_interactive_prompt_history_and_exit(system: dict[str, str], tmp_path: Path) -> None:
+    env = dict(system, MDS_ACH_HISTORY=str(tmp_path / "history"))
+    with PtySession([str(VENV_BIN / "mds-ach"), "console"], env=env) as pty:
+        pty.expect(console.PROMPT, timeout=30)
+        pty.send("get LSP\r")
+        pty.expect(re.compile(r"LSP  Ref   =  -?\d+\.\d{5}  rad"), timeout=10)
+        pty.expect(console.PROMPT, timeout=10)
+        pty.send("goto nowhere 1\r")
+        pty.expect("unknown joint 'nowhere'", timeout=10)
+        pty.expect(console.PROMPT, timeout=10)
+        pty.send("\x03")  # Ctrl-C abandons the line, the console stays
+        pty.expect(console.PROMPT, timeout=10)
+        pty.send("exit\r")
+        assert pty.wait(timeout=10) == 0
+    history = (tmp_path / "history").read_text()
+    assert "get LSP" in history and "exit" in history
+
+
+@pytest.mark.slow
+def test_ctrl_d_and_sigterm_end_the_console_cleanly(system: dict[str, str]) -> None:
+    with PtySession([str(VENV_BIN / "mds-ach"), "console"], env=system) as pty:
+        pty.expect(console.PROMPT, timeout=30)
+        pty.send("\x04")
+        assert pty.wait(timeout=10) == 0
+    with PtySession([str(VENV_BIN / "console")], env=system) as pty:
+        pty.expect(console.PROMPT, timeout=30)
+        pty.terminate()
+        assert pty.wait(timeout=10) == 0
+
+
+@pytest.mark.slow
+def test_console_reads_commands_from_a_pipe(system: dict[str, str]) -> None:
+    proc = subprocess.run([str(VENV_BIN / "console")], input="get fk left\nget LEP\n", env=system,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "6DOF FK - for  left  arm" in proc.stdout and "LEP  State =" in proc.stdout
+
+
+def test_console_does_not_import_torch(fake_system: None) -> None:
+    code = ("import sys; from mds_ach.console import main; rc = main(['-c', 'get fk left']); "
+            "assert 'torch' not in sys.modules, 'console imported torch'; sys.exit(rc)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "6DOF FK - for  left  arm" in proc.stdout
+
+
+def test_help_exits_zero() -> None:
+    for args in (["console", "--help"], ["mds-ach", "console", "--help"]):
+        proc = subprocess.run([str(VENV_BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 0 and "usage" in proc.stdout.lower()
+        assert "goto <joint> <rad>" in proc.stdout

@@ -1,0 +1,582 @@
+"""The 3-D viewer (`mds-ach sim`): scene logic in-process, then the real page in headless Chromium.
+
+The browser tests drive Chromium through its DevTools protocol (remote debugging on loopback, `websockets`)
+and judge screenshots: the WebGL canvas is not blank, the robot on screen moves when mds-state says the arm
+moved, and a part flagged on mds-collide shows up in the highlight colour. A fake daemon (this test writing
+mds-state / mds-collide) keeps them independent of the other nodes.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REPO, VENV_BIN, remove_mds_channels, wait_for
+
+import mds_ach as mds
+from mds_ach import ach, viewer
+from mds_ach.channels import StructChannel, make_channels
+
+# --------------------------------------------------------------------------------------------------
+# helpers: frames for the fake daemon
+# --------------------------------------------------------------------------------------------------
+
+ARMS_DOWN: dict[str, float] = {}
+ARMS_UP = {"LSP": -1.4, "LEP": -1.2, "LSR": 0.4, "RSP": -0.9, "RSR": -0.9, "REP": -0.6}
+
+
+def state_frame(pos: dict[str, float], ref: dict[str, float] | None = None) -> mds.MDS_STATE:
+    """An MDS_STATE with the given measured positions and references (ref defaults to pos)."""
+    ref = pos if ref is None else ref
+    state = mds.MDS_STATE()
+    for name, value in pos.items():
+        state.joint[mds.lookup(name).address].pos = value
+    for name, value in ref.items():
+        state.joint[mds.lookup(name).address].ref = value
+    state.time = time.monotonic()
+    return state
+
+
+def collide_frame(*parts: int) -> mds.MDS_COLLIDE:
+    collide = mds.MDS_COLLIDE()
+    for part in parts:
+        collide.joint[part].isCollide = 1
+        collide.joint[part].collision = 240
+    collide.isCollide = 1 if parts else 0
+    collide.time = time.monotonic()
+    return collide
+
+
+@pytest.fixture
+def fresh_shm() -> Iterator[None]:
+    remove_mds_channels()
+    yield
+    remove_mds_channels()
+
+
+@pytest.fixture
+def inproc(fresh_shm: None) -> Iterator[viewer.Viewer]:
+    """A Viewer in this process on a free loopback port; ticked by hand, channels looked for at every tick."""
+    v = viewer.Viewer(viewer.ViewerOptions(port=viewer.free_port("127.0.0.1")))
+    for watch in (v.state, v.collide, v.ik):
+        watch.retry = 0.0
+    yield v
+    v.close()
+
+
+# --------------------------------------------------------------------------------------------------
+# in-process: channels, NaN, collisions, sliders, world objects
+# --------------------------------------------------------------------------------------------------
+
+
+def test_waits_for_state_without_creating_channels_then_follows_it(inproc: viewer.Viewer) -> None:
+    inproc.tick()
+    assert "waiting for mds-state" in inproc.status.content
+    assert "missing" in inproc.status.content
+    assert not any(ach.exists(name) for name in mds.ALL_CHANNELS), "the viewer must never create channels"
+
+    make_channels()
+    inproc.tick()
+    assert "no frame yet" in inproc.status.content
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as chan:
+        chan.put(state_frame(ARMS_UP, {"LSP": -1.0}))
+        assert inproc.tick()
+    assert "mds-state live" in inproc.status.content
+    assert inproc.solid.q["LSP"] == -1.4 and inproc.solid.q["REP"] == -0.6
+    assert inproc.ghost.q["LSP"] == -1.0 and inproc.ghost.q["REP"] == 0.0
+    # The solid elbow frame really moved to where the FK puts it.
+    expected = inproc.model.link_poses(inproc.solid.q)["left_elbow_link"][:3, 3]
+    assert np.allclose(inproc.solid._frames["left_elbow_link"].position, expected)
+    # The ghost shows only where reference and measurement disagree: the arms, not the body.
+    assert inproc.ghost._frames["left_hand_link"].visible
+    assert not inproc.ghost._frames["wheels_link"].visible
+
+
+def test_non_finite_state_values_are_skipped(inproc: viewer.Viewer) -> None:
+    make_channels()
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as chan:
+        chan.put(state_frame({"LEP": -0.5, "LSP": -0.2}))
+        inproc.tick()
+        chan.put(state_frame({"LEP": math.nan, "LSP": math.inf, "RSP": -0.3}, {"LEP": -0.5, "LSP": -0.2}))
+        inproc.tick()
+    assert inproc.solid.q["LEP"] == -0.5 and inproc.solid.q["LSP"] == -0.2, "NaN/Inf must keep the last value"
+    assert inproc.solid.q["RSP"] == -0.3, "the finite values of the same frame still apply"
+    assert "LEP.pos" in inproc.status.content and "LSP.pos" in inproc.status.content
+    for frame in inproc.solid._frames.values():
+        assert np.all(np.isfinite(frame.position)) and np.all(np.isfinite(frame.wxyz))
+
+
+def test_collide_part_highlights_its_primitives(inproc: viewer.Viewer) -> None:
+    assert inproc.collision is not None
+    prims = inproc.collision.model.primitives
+    # Every legacy part has at least one primitive on the robot (URDF + extra ones of collision.yaml).
+    assert {p.part for p in prims if p.part >= 0} == set(range(mds.MDS_COLLIDE_JNT_NUM))
+    make_channels()
+    with StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE) as chan:
+        chan.put(collide_frame(mds.COLLIDE_L_FOREARM))
+        assert inproc.tick()
+        hot = {prims[k].name for k, h in inproc.collision.handles.items() if h.color == viewer.HIGHLIGHT_RGB}
+        assert hot == {p.name for p in prims if p.part == mds.COLLIDE_L_FOREARM}
+        assert all(inproc.collision.handles[k].visible == (prims[k].name in hot) for k in inproc.collision.handles)
+        assert "L_FOREARM" in inproc.status.content
+        chan.put(collide_frame())
+        assert inproc.tick()
+    assert not any(h.color == viewer.HIGHLIGHT_RGB or h.visible for h in inproc.collision.handles.values())
+    inproc.show_collision.value = True  # the toggle shows every primitive
+    assert all(h.visible for h in inproc.collision.handles.values())
+
+
+def test_ik_request_places_the_marker_in_the_robot_frame(inproc: viewer.Viewer) -> None:
+    make_channels()
+    request = mds.MDS_IK()
+    request.move = mds.LEFT
+    request.arm[mds.LEFT].t_x, request.arm[mds.LEFT].t_y, request.arm[mds.LEFT].t_z = 0.3, 0.25, -0.2
+    request.arm[mds.LEFT].ik_method = 3
+    with StructChannel(mds.MDS_CHAN_IK_NAME, mds.MDS_IK) as chan:
+        chan.put(request)
+        inproc.tick()
+    assert inproc.ik_marker.visible
+    assert np.allclose(inproc.ik_marker.position, (0.3, 0.25, -0.2))
+    assert inproc.ik_marker.name.startswith(inproc.solid.link_path("torso") + "/")  # moves with the torso
+
+
+def test_ik_answer_recolours_and_captions_the_marker(inproc: viewer.Viewer) -> None:
+    from mds_ach.ik_msgs import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS
+
+    make_channels()
+    answer = MDS_IK_STATUS()
+    answer.arm, answer.dof, answer.status, answer.error = mds.RIGHT, 3, IK_SOLVED, 0.0004
+    answer.target[0], answer.target[1], answer.target[2] = 0.35, -0.2, -0.1
+    with StructChannel(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS) as chan:
+        chan.put(answer)
+        inproc.tick()
+        assert np.allclose(inproc.ik_marker.position, (0.35, -0.2, -0.1))
+        assert inproc.ik_marker.color == viewer.IK_RGB and "right: solved" in inproc.ik_label.text
+        answer.status = IK_UNREACHABLE
+        chan.put(answer)
+        inproc.tick()
+        assert inproc.ik_marker.color == viewer.IK_FAILED_RGB and "unreachable" in inproc.ik_label.text
+        answer.target[0] = math.nan
+        chan.put(answer)
+        inproc.tick()
+    assert np.allclose(inproc.ik_marker.position, (0.35, -0.2, -0.1)), "a NaN target is ignored"
+    inproc.show_ik.value = False
+    assert not inproc.ik_marker.visible and not inproc.ik_label.visible
+    inproc.show_ik.value = True
+    assert inproc.ik_marker.visible
+
+
+def test_sliders_are_off_by_default_and_write_goto_references_to_ref_filter(inproc: viewer.Viewer) -> None:
+    make_channels()
+    with (
+        StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as state,
+        StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF) as ref_filter,
+    ):
+        state.put(state_frame({"LSP": -0.3, "RSP": -0.2}))
+        inproc.tick()
+        assert inproc.sliders_on is not None and not inproc.sliders_on.value
+        assert all(s.disabled for s in inproc.sliders.values())
+        assert inproc.sliders["LSP"].value == pytest.approx(-0.3), "while off, the sliders follow the reference"
+        assert not inproc.send_goto("LEP", -0.5)
+        assert ref_filter.latest() is None, "nothing may be written while the toggle is off"
+
+        inproc.sliders_on.value = True
+        assert not any(s.disabled for s in inproc.sliders.values())
+        assert inproc.send_goto("LEP", -0.5)
+        first = ref_filter.latest()
+        assert first is not None
+        assert first.joint[mds.LEP].ref == -0.5
+        assert first.joint[mds.LSP].ref == -0.3 and first.joint[mds.RSP].ref == -0.2, "others keep their refs"
+        assert inproc.send_goto("LSR", 0.2)
+        second = ref_filter.latest()
+        assert second.joint[mds.LSR].ref == 0.2 and second.joint[mds.LEP].ref == -0.5, "builds on the last frame"
+
+        lower, upper = inproc.limits["LEP"]
+        for bad in (math.nan, math.inf, upper + 0.1, lower - 0.1):
+            assert not inproc.send_goto("LEP", bad)
+            assert "refused" in inproc.slider_status.content
+        assert ref_filter.latest() is None, "refused values are not written"
+        for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME):
+            with StructChannel(name, mds.MDS_REF, create=False) as other:
+                assert other.latest() is None, f"the sliders must not bypass the pipeline via {name}"
+
+
+def test_sliders_refuse_to_start_without_a_running_system(inproc: viewer.Viewer) -> None:
+    inproc.sliders_on.value = True
+    assert not inproc.sliders_on.value
+    assert "not sending" in inproc.slider_status.content
+    assert not ach.exists(mds.MDS_CHAN_REF_FILTER_NAME)
+
+
+def test_world_objects(tmp_path: Path) -> None:
+    robot_zero = np.eye(4)
+    robot_zero[2, 3] = 1.2065
+    world = tmp_path / "world.yaml"
+    world.write_text(
+        "frame: robot\n"
+        "objects:\n"
+        "  - {name: table, shape: box, size: [0.6, 1.4, 0.04], xyz: [0.6, 0, -0.42]}\n"
+        "  - {name: post, shape: cylinder, radius: 0.05, length: 1.0, xyz: [0.5, 0.5, 0.5], frame: base,"
+        " enabled: false}\n"
+    )
+    table, post = viewer.load_world(world, robot_zero)
+    assert table.kind == "box" and table.enabled and np.allclose(table.pose[:3, 3], (0.6, 0.0, 1.2065 - 0.42))
+    assert post.kind == "cylinder" and not post.enabled and np.allclose(post.pose[:3, 3], (0.5, 0.5, 0.5))
+    assert viewer.load_world(tmp_path / "absent.yaml", robot_zero) == []
+    world.write_text("objects:\n  - {name: blob, shape: torus, radius: 1}\n")
+    with pytest.raises(ValueError, match="blob"):
+        viewer.load_world(world, robot_zero)
+    # The shipped configuration loads.
+    viewer.load_world(REPO / "config" / "world.yaml", robot_zero)
+
+
+def test_strip_ros_args_and_options() -> None:
+    assert viewer.strip_ros_args(["--port", "1", "--ros-args", "-r", "a:=b", "--", "--rate", "5"]) == [
+        "--port",
+        "1",
+        "--rate",
+        "5",
+    ]
+    args = viewer.build_parser().parse_args(["--host", "0.0.0.0"])
+    assert not viewer.options_from_args(args).sliders, "no slider panel on a non-loopback address by default"
+    args = viewer.build_parser().parse_args([])
+    assert viewer.options_from_args(args).sliders
+    with pytest.raises(SystemExit, match="--rate"):
+        viewer.options_from_args(viewer.build_parser().parse_args(["--rate", "nan"]))
+
+
+# --------------------------------------------------------------------------------------------------
+# the process: --help, signals, `mds-ach sim` / `mds-ach sim kill`
+# --------------------------------------------------------------------------------------------------
+
+
+def _run_env(tmp_path: Path) -> dict[str, str]:
+    return {**os.environ, "MDS_ACH_RUNTIME_DIR": str(tmp_path / "run")}
+
+
+def test_help_exits_zero() -> None:
+    out = subprocess.run([sys.executable, "-m", "mds_ach.viewer", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "--port" in out.stdout and "mds-ref-filter" in out.stdout
+    out = subprocess.run([str(VENV_BIN / "mds-ach"), "sim", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "kill" in out.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_foreground_viewer_stops_cleanly_on_signals(sig: signal.Signals, tmp_path: Path, fresh_shm: None) -> None:
+    url_file = tmp_path / "url"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mds_ach.viewer", "--port", "0", "--url-file", str(url_file)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        wait_for(lambda: url_file.is_file() or proc.poll() is not None, 60, what="viewer URL")
+        assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    assert not url_file.exists()
+
+
+@pytest.mark.slow
+def test_sim_verb_starts_in_background_serves_the_page_and_kill_stops_it(tmp_path: Path, fresh_shm: None) -> None:
+    env = _run_env(tmp_path)
+    mds_ach = str(VENV_BIN / "mds-ach")
+    start = subprocess.run([mds_ach, "sim", "--port", "0"], capture_output=True, text=True, env=env, timeout=90)
+    try:
+        assert start.returncode == 0, start.stderr
+        url = next(w for w in start.stdout.split() if w.startswith("http://"))
+        assert url.startswith("http://127.0.0.1:"), "loopback by default"
+        with urllib.request.urlopen(url, timeout=10) as page:
+            assert b"<html" in page.read().lower()
+        pid = int((tmp_path / "run" / viewer.SIM_PID).read_text())
+        again = subprocess.run([mds_ach, "sim"], capture_output=True, text=True, env=env, timeout=30)
+        assert again.returncode == 0 and "already running" in again.stdout and url in again.stdout
+        assert not any(ach.exists(name) for name in mds.ALL_CHANNELS), "starting the viewer created channels"
+    finally:
+        stop = subprocess.run([mds_ach, "sim", "kill"], capture_output=True, text=True, env=env, timeout=30)
+    assert stop.returncode == 0 and "stopped" in stop.stdout, stop.stdout + stop.stderr
+    assert not Path(f"/proc/{pid}").exists() or b"mds_ach.viewer" not in Path(f"/proc/{pid}/cmdline").read_bytes()
+    assert not (tmp_path / "run" / viewer.SIM_PID).exists()
+    again = subprocess.run([mds_ach, "sim", "kill"], capture_output=True, text=True, env=env, timeout=30)
+    assert again.returncode == 0 and "not running" in again.stdout
+
+
+# --------------------------------------------------------------------------------------------------
+# the real page in headless Chromium
+# --------------------------------------------------------------------------------------------------
+
+
+def find_chromium() -> str:
+    """Chromium's path; installs Debian's package first if it is missing and we are root."""
+    for name in ("chromium", "chromium-browser"):
+        path = shutil.which(name)
+        if path:
+            return path
+    hint = "install it first: tools/install-system-deps (as root) or apt-get install -y chromium"
+    if os.geteuid() != 0:
+        pytest.fail(f"the viewer test needs Debian's chromium, which is not installed and we are not root; {hint}")
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    install = ["apt-get", "install", "-y", "-q", "--no-install-recommends", "chromium"]
+    result = subprocess.run(install, capture_output=True, text=True, env=env)
+    if result.returncode != 0:
+        subprocess.run(["apt-get", "update", "-q"], capture_output=True, env=env)
+        result = subprocess.run(install, capture_output=True, text=True, env=env)
+    path = shutil.which("chromium")
+    if result.returncode != 0 or path is None:
+        pytest.fail(
+            "chromium is not installed and `apt-get install chromium` failed (inside tools/netns-run there is "
+            f"no network); {hint}\n{result.stdout[-2000:]}{result.stderr[-2000:]}"
+        )
+    return path
+
+
+class Page:
+    """One browser tab driven over the DevTools protocol (JSON messages on a websocket)."""
+
+    def __init__(self, ws_url: str) -> None:
+        from websockets.sync.client import connect
+
+        self.ws = connect(ws_url, max_size=None, open_timeout=30)
+        self._id = 0
+
+    def call(self, method: str, timeout: float = 60.0, **params: object) -> dict:
+        self._id += 1
+        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
+        deadline = time.monotonic() + timeout
+        while True:
+            message = json.loads(self.ws.recv(timeout=max(0.1, deadline - time.monotonic())))
+            if message.get("id") == self._id:  # skip events and answers to nothing we wait for
+                if "error" in message:
+                    raise AssertionError(f"DevTools {method}: {message['error']}")
+                return message["result"]
+
+    def evaluate(self, expression: str) -> object:
+        result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)
+        return result["result"].get("value")
+
+    def screenshot(self) -> np.ndarray:
+        """The viewport as an (H, W, 3) uint8 array."""
+        from PIL import Image
+
+        data = self.call("Page.captureScreenshot", format="png")["data"]
+        return np.asarray(Image.open(io.BytesIO(base64.b64decode(data))).convert("RGB"))
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Page]:
+    """Headless Chromium with software WebGL (SwiftShader), remote debugging on loopback, a fresh profile."""
+    chromium = find_chromium()
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    args = [
+        chromium,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--disable-extensions",
+        "--disable-quic",
+        "--no-first-run",
+        "--no-default-browser-check",
+        "--mute-audio",
+        "--hide-scrollbars",
+        "--window-size=1280,800",
+        f"--user-data-dir={profile}",
+        "--remote-debugging-address=127.0.0.1",
+        "--remote-debugging-port=0",
+        "about:blank",
+    ]
+    log = open(profile.parent / "chromium.log", "wb")  # noqa: SIM115 - closed below
+    proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    page = None
+    try:
+        port_file = profile / "DevToolsActivePort"
+        wait_for(lambda: port_file.is_file() and port_file.read_text().strip() or proc.poll() is not None, 60,
+                 what="chromium's DevTools port")
+        assert proc.poll() is None, f"chromium exited: {(profile.parent / 'chromium.log').read_text()[-3000:]}"
+        port = int(port_file.read_text().split()[0])
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=30) as answer:
+            targets = json.load(answer)
+        page = Page(next(t["webSocketDebuggerUrl"] for t in targets if t["type"] == "page"))
+        yield page
+    finally:
+        if page is not None:
+            page.close()
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def live_viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """The channels of a running system (nothing writing yet) and the viewer process; yields its URL."""
+    remove_mds_channels()
+    assert all(r.ok for r in make_channels())
+    url_file = tmp_path_factory.mktemp("viewer") / "url"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mds_ach.viewer", "--port", "0", "--url-file", str(url_file)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        wait_for(lambda: url_file.is_file() or proc.poll() is not None, 60, what="viewer URL")
+        assert proc.poll() is None, proc.stdout.read().decode() if proc.stdout else ""
+        yield url_file.read_text().strip()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+        remove_mds_channels()
+
+
+def canvas_box(page: Page) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of the visible 3-D canvas: the canvas on the left half of the page, up to where the GUI
+    panel covers it."""
+    rect = page.evaluate(
+        """(() => {
+            const c = document.elementFromPoint(window.innerWidth / 4, window.innerHeight / 2);
+            if (!c || c.tagName !== 'CANVAS') return null;
+            const r = c.getBoundingClientRect();
+            const y = r.top + r.height / 2;
+            let right = r.right - 1;
+            while (right > r.left && document.elementFromPoint(right, y) !== c) right -= 2;
+            return JSON.stringify({left: r.left, top: r.top, right: right, bottom: r.bottom});
+        })()"""
+    )
+    assert rect, "no canvas on the page"
+    r = json.loads(str(rect))
+    return int(r["left"]) + 2, int(r["top"]) + 2, int(r["right"]) - 2, int(r["bottom"]) - 2
+
+
+def crop(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    x0, y0, x1, y1 = box
+    return image[y0:y1, x0:x1].astype(np.int16)
+
+
+def highlight_pixels(image: np.ndarray) -> int:
+    """Pixels in the highlight colour (magenta, shaded): red and blue strong and alike, green weak."""
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    return int(np.count_nonzero((r > 110) & (b > 110) & (abs(r - b) < 70) & (g < 0.55 * np.minimum(r, b))))
+
+
+def changed_pixels(a: np.ndarray, b: np.ndarray) -> int:
+    return int(np.count_nonzero(np.abs(a - b).max(axis=-1) > 40))
+
+
+def settled(page: Page, box: tuple[int, int, int, int], timeout: float = 30.0) -> np.ndarray:
+    """A screenshot of the canvas once two in a row agree (the page caught up with what we wrote)."""
+    previous = crop(page.screenshot(), box)
+    deadline = time.monotonic() + timeout
+    while True:
+        time.sleep(0.3)
+        current = crop(page.screenshot(), box)
+        if changed_pixels(previous, current) < 50:
+            return current
+        assert time.monotonic() < deadline, "the canvas never stopped changing"
+        previous = current
+
+
+@pytest.fixture(scope="module")
+def page(browser: Page, live_viewer: str) -> Page:
+    """The viewer's page, open and live (mds-state frames arriving)."""
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as state:
+        state.put(state_frame(ARMS_DOWN))
+    browser.call("Page.enable")
+    # The viewer's default view, but asked for in the URL: the page starts there, no camera move to wait for.
+    camera = "initialCameraPosition={}&initialCameraLookAt={}&initialCameraUp=0,0,1".format(
+        *(",".join(str(v) for v in xyz) for xyz in (viewer.CAMERA_POSITION, viewer.CAMERA_LOOK_AT))
+    )
+    browser.call("Page.navigate", url=f"{live_viewer}/?{camera}")
+    wait_for(lambda: "mds-state" in str(browser.evaluate("document.body ? document.body.innerText : ''")), 90,
+             interval=0.5, what="the viewer's status line on the page")
+    wait_for(lambda: browser.evaluate("document.querySelectorAll('canvas').length"), 60, interval=0.5,
+             what="the 3-D canvas")
+    return browser
+
+
+@pytest.mark.slow
+def test_browser_canvas_renders_the_robot(page: Page) -> None:
+    box = canvas_box(page)
+    assert box[2] - box[0] > 400 and box[3] - box[1] > 400, f"canvas too small: {box}"
+    image = settled(page, box)
+    assert image.std() > 15, "the 3-D canvas is blank"
+    # Not just the thin light-grey grid lines: a large patch of dark, shaded robot pixels (the wheel base).
+    dark = np.count_nonzero(image.mean(axis=-1) < 120)
+    assert dark > 3000, f"only {dark} dark pixels: the robot is not drawn"
+    text = str(page.evaluate("document.body.innerText"))
+    assert "mds-state" in text
+
+
+def until(measure: Callable[[], int], ok: Callable[[int], bool], what: str, timeout: float = 30.0) -> int:
+    """Poll ``measure`` (a screenshot statistic) until ``ok``; the failure names the last values seen."""
+    seen: list[int] = []
+    deadline = time.monotonic() + timeout
+    while True:
+        seen.append(measure())
+        if ok(seen[-1]):
+            return seen[-1]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}; last values {seen[-5:]}")
+        time.sleep(0.3)
+
+
+@pytest.mark.slow
+def test_browser_robot_moves_after_a_goto(page: Page) -> None:
+    box = canvas_box(page)
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as state:
+        state.put(state_frame(ARMS_DOWN))
+        before = settled(page, box)
+        state.put(state_frame(ARMS_UP))
+        until(lambda: changed_pixels(before, crop(page.screenshot(), box)), lambda n: n > 2000,
+              "the arms to move on screen (pixels changed)")
+        moved = changed_pixels(before, settled(page, box))
+        state.put(state_frame(ARMS_DOWN))
+        until(lambda: changed_pixels(before, crop(page.screenshot(), box)), lambda n: n < 0.1 * moved,
+              f"the arms to come back down on screen (pixels still differing; {moved} when up)")
+
+
+@pytest.mark.slow
+def test_browser_collision_turns_the_part_highlight_on(page: Page) -> None:
+    box = canvas_box(page)
+    with (
+        StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as state,
+        StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE, create=False) as collide,
+    ):
+        state.put(state_frame(ARMS_UP))  # the left hand out in front, in full view
+        collide.put(collide_frame())
+        quiet = highlight_pixels(settled(page, box))
+        assert quiet < 50, f"{quiet} highlight-coloured pixels before any collision"
+        collide.put(collide_frame(mds.COLLIDE_L_HAND))
+        until(lambda: highlight_pixels(crop(page.screenshot(), box)), lambda n: n > 800,
+              "the left hand's highlight on screen (highlight-coloured pixels)")
+        collide.put(collide_frame())
+        until(lambda: highlight_pixels(crop(page.screenshot(), box)), lambda n: n < 50,
+              "the highlight to go off (highlight-coloured pixels)")
