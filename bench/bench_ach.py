@@ -269,10 +269,15 @@ def run(quick: bool = False) -> list[Row]:
     n_inproc = 5000 if quick else 50000
     n_tput = 2000 if quick else 20000
     rows: list[Row] = []
+    print(f"[bench_ach] load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cpus "
+          "(latencies on a shared, loaded machine are much noisier)", file=sys.stderr)
     in_netns = os.environ.get("MDS_NETNS_ACTIVE") == "1"
     ros: list[float] = []
     if in_netns:
-        ros = rclpy_latency(n_lat, RATE_HZ)
+        try:
+            ros = rclpy_latency(n_lat, RATE_HZ)
+        except (RuntimeError, subprocess.TimeoutExpired, json.JSONDecodeError) as exc:
+            print(f"[bench_ach] rclpy baseline failed, ratios omitted: {exc}", file=sys.stderr)
     else:
         print("[bench_ach] not inside tools/netns-run: rclpy baseline skipped", file=sys.stderr)
     ros_med = median(ros) if ros else None

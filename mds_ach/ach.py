@@ -28,6 +28,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import math
+import mmap
 import os
 import platform
 import struct
@@ -526,8 +527,7 @@ _create = create  # Channel.__init__ has a parameter called ``create``
 
 
 def _initialise(fd: int, length: int, layout: Layout, name: str, count: int, dsize: int, clock: int) -> None:
-    import mmap
-
+    """Fill a zeroed file the way libach's ``ach_create`` does: sync objects, counters, guards, magic, name."""
     mm = mmap.mmap(fd, length)
     try:
         anchor = ctypes.c_char.from_buffer(mm)
@@ -613,8 +613,7 @@ class Channel:
     # -- open / close ------------------------------------------------------------------------------
 
     def _open(self) -> None:
-        import mmap
-
+        """libach ``ach_open``: map the whole file, check magic/length/guards, reset the reader state."""
         layout = native_layout()
         path = shm_path(self.name)
         try:

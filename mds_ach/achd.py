@@ -27,6 +27,7 @@ import ctypes
 import fnmatch
 import logging
 import math
+import os
 import select
 import signal
 import socket
@@ -47,6 +48,7 @@ SEND_BUFFER_BYTES = 128 * 1024
 """Socket send buffer of a sending link: small, so a slow link holds few stale frames (newest wins)."""
 HEADER_TIMEOUT_S = 5.0
 MAX_HEADER_BYTES = 32 * ap.LINE_LENGTH
+MAX_SERVED_STATS = 256
 REFUSED_RETRY_S = 2.0
 """Back-off after the server refused a request (missing channel, not allowed): slower than a drop."""
 REF_ABS_MAX = 2 * math.pi
@@ -237,6 +239,34 @@ class _Sink:
         self.stats.written += 1
 
 
+CHANNEL_CHECK_S = 1.0
+"""How often a streaming loop checks that its channel file is still the one it opened."""
+
+
+def channel_replaced(chan) -> bool:
+    """True when the channel's file was removed or re-created since ``chan`` opened it (e.g. the robot's stack
+    was restarted): the handle then reads and writes an orphan nobody else sees any more."""
+    try:
+        return os.stat(_ach().shm_path(chan.name)).st_ino != os.fstat(chan.fileno()).st_ino
+    except OSError:
+        return True
+
+
+class _ChannelWatch:
+    """Raises :class:`ConnectionLostError` from a streaming loop once its channel has been replaced."""
+
+    def __init__(self, chan) -> None:
+        self.chan = chan
+        self.next_check = time.monotonic() + CHANNEL_CHECK_S
+
+    def check(self) -> None:
+        now = time.monotonic()
+        if now >= self.next_check:
+            self.next_check = now + CHANNEL_CHECK_S
+            if channel_replaced(self.chan):
+                raise ConnectionLostError(f"channel {self.chan.name} was removed or re-created")
+
+
 def _count_drop(stats: LinkStats, problem: tuple[str, str], what: str) -> None:
     kind, reason = problem
     if kind == "size":
@@ -360,10 +390,12 @@ def _run_sender(
     """Send each new frame of ``source`` until stopped or the connection is lost."""
     period = period_ns / 1e9
     last_sent = 0.0
+    watch = _ChannelWatch(source.chan)
     if first is not None:
         _send(conn, first, stats)
         last_sent = time.monotonic()
     while not stop.is_set():
+        watch.check()
         if _peer_closed(conn):
             raise ConnectionLostError("peer closed the connection")
         if period and last_sent:
@@ -382,11 +414,13 @@ def _run_receiver(conn: _Conn, sink: _Sink, stats: LinkStats, stop: threading.Ev
     """Write each frame that arrives into ``sink`` until stopped or the connection is lost."""
     decoder = ap.FrameDecoder(max_size)
     oversize_seen = 0
+    watch = _ChannelWatch(sink.chan)
     if conn.udp is None and conn.leftover:
         for frame in decoder.feed(conn.leftover):
             sink.put(frame)
     socks = [conn.tcp] + ([conn.udp] if conn.udp is not None else [])
     while not stop.is_set():
+        watch.check()
         readable, _, _ = select.select(socks, [], [], POLL_S)
         if conn.tcp in readable:
             try:
@@ -482,6 +516,7 @@ class Link:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._chan = None
+        self._opened_once = False
         self._source: _Source | None = None
         self.udp_port: int | None = None
         """Our datagram port on the current UDP connection (what the peer must send from/to)."""
@@ -505,6 +540,7 @@ class Link:
 
     def run(self) -> None:
         """Connect, stream, and (with reconnect) start over after a drop, until :meth:`stop`."""
+        ach = _ach()
         try:
             while not self._stop.is_set():
                 t0 = time.monotonic()
@@ -520,6 +556,10 @@ class Link:
                     self.stats.last_error = str(exc)
                     log.error("%s: server refused: %s", self.name, exc)
                     retry_after = REFUSED_RETRY_S
+                except ach.AchException as exc:  # the local channel cannot be made or opened
+                    self.stats.last_error = str(exc)
+                    log.error("%s: local channel: %s", self.name, exc)
+                    retry_after = REFUSED_RETRY_S
                 except (OSError, ConnectionLostError, ap.HeaderError) as exc:
                     self.stats.last_error = str(exc) or type(exc).__name__
                     if self.connected.is_set():
@@ -530,6 +570,9 @@ class Link:
                     self.connected.clear()
                     if conn is not None:
                         conn.close()
+                    if self._chan is not None and channel_replaced(self._chan):
+                        self._chan.close()  # reopened (or re-created) at the next connection
+                        self._chan = None
                 if not self.reconnect:
                     break
                 self._stop.wait(max(0.0, t0 + retry_after - time.monotonic()))
@@ -572,7 +615,7 @@ class Link:
             raise
 
     def _open_local(self, headers: ap.Headers) -> None:
-        """First connection only: open (or create with the server's sizes) and flush, as achd does."""
+        """Open (or create with the server's sizes) the local channel; flushed the first time, as achd does."""
         if self._chan is not None:
             return
         ach = _ach()
@@ -585,7 +628,9 @@ class Link:
                 if exc.status != ach.ACH_EEXIST:
                     raise
         chan = ach.Channel(self.channel, create=False)
-        chan.flush()
+        if not self._opened_once:  # achd: only frames put after the link started; a re-created channel is new
+            chan.flush()
+            self._opened_once = True
         self._chan = chan
         if self.mode == "push":
             self._source = _Source(chan, self.rule, self.get_last, self.stats)
@@ -664,7 +709,9 @@ class Server:
                 sock.bind((address, self.port))
             except OSError as exc:
                 sock.close()
-                self.stop()
+                for listener in self._listeners:
+                    listener.close()
+                self._listeners.clear()
                 raise OSError(exc.errno, f"cannot listen on {address}:{self.port}: {exc.strerror}") from exc
             sock.listen(16)
             self._listeners.append(sock)
@@ -743,6 +790,8 @@ class Server:
             key = f"{who} {direction} {name} ({headers.transport})"
             with self._lock:
                 self.stats[key] = stats
+                while len(self.stats) > MAX_SERVED_STATS:  # keep the newest connections' counters
+                    del self.stats[next(iter(self.stats))]
             log.info("%s: serving %s %s via %s", who, direction, name, headers.transport)
             rule = rule_for(name)
             if direction == "push":
@@ -758,6 +807,8 @@ class Server:
                 _run_receiver(conn, _Sink(chan, rule, stats), stats, self._stop, self.max_frame)
         except (OSError, ConnectionLostError) as exc:
             log.info("%s: finished: %s", who, exc)
+        except Exception:  # one broken connection must never take the server down
+            log.exception("%s: connection failed", who)
         finally:
             conn.close()
             if chan is not None:

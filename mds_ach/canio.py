@@ -27,7 +27,7 @@ DEFAULT_BITRATE = 1_000_000  # the MDS bus
 LOG_SUFFIXES = (".asc", ".blf", ".csv", ".log", ".trc", ".txt", ".mf4")
 
 
-class BusConfigError(RuntimeError):
+class BusConfigError(ValueError):
     """No usable CAN configuration; the message says how to give one."""
 
 
@@ -44,12 +44,17 @@ def bus_config(interface: str | None = None, channel: str | None = None, bitrate
     try:
         cfg = dict(can.util.load_config(path=config_file, config=given, context=context))
     except can.CanInterfaceNotImplementedError as exc:
+        if '"None"' in str(exc):  # python-can's way of saying that no source named an interface
+            raise BusConfigError(_NO_INTERFACE) from None
         raise BusConfigError(f"unknown CAN interface: {exc}") from None
     if not cfg.get("interface"):
-        raise BusConfigError("no CAN interface configured: give --interface and --channel (e.g. socketcan can0), "
-                             "set CAN_INTERFACE/CAN_CHANNEL, write a python-can config file (~/.canrc), "
-                             "or run the simulated robot with --nocan")
+        raise BusConfigError(_NO_INTERFACE)
     return cfg
+
+
+_NO_INTERFACE = ("no CAN interface configured: give --interface and --channel (e.g. socketcan can0), set "
+                 "CAN_INTERFACE/CAN_CHANNEL, write a python-can config file (~/.canrc), or run the simulated "
+                 "robot with --nocan")
 
 
 @dataclass

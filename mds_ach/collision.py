@@ -64,6 +64,7 @@ class Contact:
     group_b: str
     part_a: int
     part_b: int
+    centre_distance: float = 0.0  # between the two primitives' centres (m), to tell "closer" from "apart"
 
     @property
     def arms(self) -> set[str]:
@@ -467,6 +468,7 @@ class CollisionModel:
     def _narrow(self, poses: np.ndarray, candidates: Iterable[int]) -> CheckResult:
         fcl, objs, prims = self._fcl, self._objects, self.primitives
         placed = np.zeros(len(prims), dtype=bool)
+        centres = poses[:, :3, 3]
         contacts = []
         for k in candidates:
             i, j = int(self._I[k]), int(self._J[k])
@@ -477,7 +479,8 @@ class CollisionModel:
                     placed[m] = True
             if fcl.collide(objs[i], objs[j], self._request, fcl.CollisionResult()) > 0:
                 a, b = prims[i], prims[j]
-                contacts.append(Contact(a.name, b.name, a.group, b.group, a.part, b.part))
+                gap = float(np.linalg.norm(centres[i] - centres[j]))
+                contacts.append(Contact(a.name, b.name, a.group, b.group, a.part, b.part, gap))
         return CheckResult(tuple(contacts))
 
     def distances(self, q: np.ndarray) -> dict[tuple[str, str], float]:

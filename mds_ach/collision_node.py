@@ -2,8 +2,9 @@
 
 Every reference is checked before it can reach the daemon, in this order:
 
-1. **Validation.** NaN/Inf or out-of-limit values (URDF limits intersected with the joint table) are never
-   passed on: those joints keep their last sent value and the refusal is logged (throttled).
+1. **Validation.** NaN/Inf or out-of-limit values (URDF limits intersected with the joint table) and unknown
+   ref modes (not 0..3) are never passed on: those joints keep their last sent value and mode, and the
+   refusal is logged (throttled).
 2. **Speed bound.** No joint moves faster than ``max_velocity`` between two outputs (wall time). The filter
    node is the smoother; this bound only keeps a restarted gate, a pass-through filter or an arm released
    from a hold from jumping.
@@ -11,8 +12,8 @@ Every reference is checked before it can reach the daemon, in this order:
    On a predicted collision the joints of the affected arm(s) keep their most recent safe value while the
    rest of the reference goes through; if that mix still collides (e.g. the waist or neck caused it), every
    modelled joint is held. The gate resumes as soon as the commanded reference is safe again. If the robot
-   is already in collision (started there, or after an override), moves that add no new colliding pair are
-   allowed so it can be driven out.
+   is already in collision (started there, or after an override), only moves out of it pass: no new colliding
+   pair, and the colliding parts not brought closer together overall.
 
 Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``/mds/collision``
 (std_msgs/String, JSON with pairs, parts, held arms, refusals and the override state).
@@ -48,7 +49,7 @@ import numpy as np
 import mds_ach as mds
 from mds_ach.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
 from mds_ach.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT
-from mds_ach.pipeline import KNOWN_ADDRESSES, labels
+from mds_ach.pipeline import KNOWN_ADDRESSES, cancel_wait, labels
 
 ARM_ADDRESSES: dict[str, np.ndarray] = {
     "left": np.array([BY_SHORT[n].address for n in LEFT_ARM]),
@@ -153,17 +154,23 @@ class Gate:
     # ----- the decision
 
     def _acceptable(self, result: Any) -> bool:
+        """Collision-free, or - when the output is already in collision - a move out of it: no new colliding
+        pair, and the pairs still colliding are not brought closer together overall (sum of the distances
+        between their primitives' centres)."""
         if not result.collides:
             return True
-        # Already in collision: allow moves that add no new colliding pair (to get out).
-        return self.current.collides and result.pairs <= self.current.pairs
+        if not self.current.collides or not result.pairs <= self.current.pairs:
+            return False
+        now = {(c.a, c.b): c.centre_distance for c in self.current.contacts}
+        before = sum(now[(c.a, c.b)] for c in result.contacts)
+        return sum(c.centre_distance for c in result.contacts) >= before - 1e-9
 
     def process(self, ref: np.ndarray, mode: np.ndarray, now: float) -> Decision:
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         cand = ref.copy()
         cand_mode = mode.copy()
-        bad = ~np.isfinite(ref) | (ref < self.lower) | (ref > self.upper)
+        bad = ~np.isfinite(ref) | (ref < self.lower) | (ref > self.upper) | (mode < 0) | (mode > 3)
         cand[bad] = self.ref[bad]
         cand_mode[bad] = self.mode[bad]
         refused = tuple(int(a) for a in np.flatnonzero(bad & self._known))
@@ -301,7 +308,7 @@ class GateRunner:
     def stop(self) -> None:
         self._stop.set()
         if self._inp is not None:
-            self._inp.cancel()
+            cancel_wait(self._inp)
 
     def request_override(self, seconds: float) -> None:
         """Thread-safe: queue an expert-override request (applied by the gate thread)."""
@@ -324,7 +331,7 @@ class GateRunner:
         self.gate = gate
         report_period = 1.0 / self.config.report_rate
         override_log = 0.0
-        last_refusal_log = -math.inf
+        last_refusal_log = last_override_log = -math.inf
         try:
             msg = f"started from {source}; margin {self.model.margin:g} m, {len(self.model.pairs)} pairs"
             if gate.current.collides:
@@ -348,12 +355,13 @@ class GateRunner:
                     out.put(make_ref(decision.ref, decision.mode))
                     self.processed += 1
                     if decision.refused and now - last_refusal_log > 1.0:
-                        self.log("error", f"refused out-of-limit/non-finite references for "
+                        self.log("error", f"refused out-of-limit/non-finite references or bad modes for "
                                           f"{labels(decision.refused)} (held at their last value)")
                         last_refusal_log = now
-                    if decision.overridden:
+                    if decision.overridden and now - last_override_log > 1.0:
                         self.log("error", f"EXPERT OVERRIDE passed a predicted collision: "
                                           f"{sorted(decision.result.pairs)}")
+                        last_override_log = now
                 if frame is not None or now - gate.last_report >= report_period:
                     collide.put(gate.report(now))
                     if self.on_report is not None:
@@ -420,6 +428,8 @@ def _make_node(args: argparse.Namespace) -> Any:
     from rclpy.node import Node
     from std_msgs.msg import Float64, String
 
+    from mds_ach.pipeline import ros_log, start_worker
+
     model, gate_cfg, lower, upper = build_gate_parts(args.config, args.world, args.urdf, args.margin)
 
     class CollisionNode(Node):
@@ -428,17 +438,11 @@ def _make_node(args: argparse.Namespace) -> Any:
             self.declare_parameter("margin", model.margin)
             self.pub = self.create_publisher(String, "/mds/collision", 10)
             self.create_subscription(Float64, "/mds/collision/override", self._on_override, 10)
-            levels = {"info": self.get_logger().info, "warn": self.get_logger().warning,
-                      "error": self.get_logger().error}
-
-            def log(level: str, msg: str) -> None:
-                levels.get(level, self.get_logger().info)(msg)
-
+            log = ros_log(self)
             self._last_pub = -math.inf
             self._last_doc: str = ""
             self.runner = GateRunner(model, gate_cfg, lower, upper, log=log, on_report=self._on_report)
-            self.thread = threading.Thread(target=self.runner.run, name="collision", daemon=True)
-            self.thread.start()
+            self.thread = start_worker(self, self.runner.run, "collision")
 
         def _on_override(self, msg: Any) -> None:
             self.get_logger().warning(f"expert override request received: {msg.data:g} s")

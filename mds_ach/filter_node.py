@@ -17,6 +17,10 @@ Why the velocity limiter is the default: its timing is predictable (a move of d 
 moves are quick), it never overshoots, and it is what the robot ran in 2015; the EMA makes every move take
 ~4 s and approaches the target only asymptotically.
 
+The legacy mode field of each joint travels with the reference, except that mode 0 ("first-order filter",
+what zero-initialised legacy frames carry) leaves a smoothing joint as mode 1 (pass-through): the reference
+is already smooth, so the daemon must not filter it a second time (config ``mark_smoothed``, default true).
+
 No jump when started late or restarted: the output starts at the current reference (``mds-ref``, else
 ``mds-state`` joint[].ref) and the newest ``mds-ref-mux`` frame (if any) becomes the target, so an
 interrupted move resumes from where the robot is. NaN/Inf targets are ignored per joint (with a warning).
@@ -54,6 +58,7 @@ class FilterParams:
     max_velocity: np.ndarray  # rad/s
     max_accel: np.ndarray  # rad/s^2, inf = no acceleration limit
     length: np.ndarray  # EMA L at this rate
+    mark_smoothed: bool = True  # mode 0 out of a smoothing joint becomes mode 1 (the daemon passes it through)
 
     @property
     def dt(self) -> float:
@@ -93,7 +98,7 @@ def _joint_params(entry: Mapping[str, Any], base: dict[str, Any], where: str) ->
 
 def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: float | None = None) -> FilterParams:
     """Validate filter.yaml: ``rate``, ``default`` parameters, ``joints`` overrides (applied in order)."""
-    unknown = set(data) - {"rate", "default", "joints"}
+    unknown = set(data) - {"rate", "default", "joints", "mark_smoothed"}
     if unknown:
         raise ValueError(f"{where}: unknown keys {sorted(unknown)}")
     rate = float(rate if rate is not None else data.get("rate", DEFAULT_RATE))
@@ -115,6 +120,7 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
         max_velocity=np.array([p["max_velocity"] for p in per]),
         max_accel=np.array([math.inf if p["max_accel"] is None else p["max_accel"] for p in per]),
         length=np.array([filters.filter_length(rate, p["settle_time"], p["settle_fraction"]) for p in per]),
+        mark_smoothed=bool(data.get("mark_smoothed", True)),
     )
 
 
@@ -186,6 +192,13 @@ class FilterCore:
         self.out = new
         return new
 
+    def out_mode(self) -> np.ndarray:
+        """The mode field to publish: mode 0 of a smoothing joint becomes 1 (see the module doc)."""
+        if not self.p.mark_smoothed:
+            return self.mode.copy()
+        smoothed = (self.mode == mds.MDS_REF_MODE_REF_FILTER) & (self.p.mode != PASS)
+        return np.where(smoothed, np.int16(mds.MDS_REF_MODE_REF), self.mode).astype(np.int16)
+
 
 # --------------------------------------------------------------------------------------------- Ach side
 
@@ -240,7 +253,7 @@ class FilterRunner:
                     elif measured is None and not warned_state:
                         self.log("warn", "enc_filter joints have no mds-state yet: using ema until it arrives")
                         warned_state = True
-                out.put(make_ref(core.step(measured), core.mode))
+                out.put(make_ref(core.step(measured), core.out_mode()))
                 self.ticks += 1
                 if not timer.wait(self._stop):
                     break
@@ -270,21 +283,17 @@ def _build_parser() -> argparse.ArgumentParser:
 def _make_node(args: argparse.Namespace) -> Any:
     from rclpy.node import Node
 
+    from mds_ach.pipeline import ros_log, start_worker
+
     params = load_config(args.config, args.rate)
 
     class FilterNode(Node):
         def __init__(self) -> None:
             super().__init__("filter")
             self.declare_parameter("rate", params.rate)
-            levels = {"info": self.get_logger().info, "warn": self.get_logger().warning,
-                      "error": self.get_logger().error}
-
-            def log(level: str, msg: str) -> None:
-                levels.get(level, self.get_logger().info)(msg)
-
+            log = ros_log(self)
             self.runner = FilterRunner(params, log=log)
-            self.thread = threading.Thread(target=self.runner.run, name="filter", daemon=True)
-            self.thread.start()
+            self.thread = start_worker(self, self.runner.run, "filter")
 
         def shutdown(self) -> None:
             self.runner.stop()

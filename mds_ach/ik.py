@@ -11,11 +11,14 @@ tool position in the torso frame and the tool orientation as the original's Z-Y-
 (roll = t-x, pitch = t-y, yaw = t-z; ``getRot``). The DOFs a task leaves free are used in the null
 space to stay close to the seed. Joint limits come from the URDF and are never left.
 
-How orientation is measured (why: Euler angles are singular at pitch = +-pi/2, which is the arm raised
-forward): a roll+pitch+yaw target is compared as a rotation (error = angle between the poses), a
-roll+pitch target as the direction of the world z axis seen from the tool (error = angle between
-them), and single angles (or roll/yaw, pitch/yaw pairs) as wrapped angle differences. Away from
-gimbal lock this is the original metric; the reported ``target`` is the canonical equivalent.
+Success is the original's test: the Euclidean norm of the target-minus-current components (m and rad
+mixed, angles wrapped to +-pi) within the tolerance. The steps are steered differently where the Z-Y-X
+angles are singular (pitch = +-pi/2, which is the arm raised forward): a roll+pitch+yaw target is
+approached as a rotation, a roll+pitch target as the direction of the world z axis seen from the tool;
+single angles (and roll/yaw or pitch/yaw pairs) use the analytic rates of the angles themselves. At
+gimbal lock the angles are not unique, so a pose within 1e-6 of the target counts as reached. Angle
+targets are canonicalised (``IKResult.target``): roll=0, pitch=2 describes the same tilt as roll=pi,
+pitch=pi-2.
 
 No torch here: ``import mds_ach.ik`` stays light.
 """
@@ -36,9 +39,12 @@ TASK_COMPONENTS: tuple[str, ...] = ("p-x", "p-y", "p-z", "t-x", "t-y", "t-z")
 DOF_ORDERS: dict[int, tuple[str, ...]] = {n: TASK_COMPONENTS[:n] for n in range(1, 7)}
 DEFAULT_ERR: tuple[float, float, float] = (0.01, 0.01, 0.01)
 DEFAULT_ITERATIONS = 1000
+_SQRT3 = math.sqrt(3.0)
+_TWO_PI = 2.0 * math.pi
 EXACT = 1e-6  # a pose this close to the target counts as reached whatever its Euler angles (gimbal lock)
-# Trust-region update after an accepted / rejected step (limits and LM damping).
-_GROW, _SHRINK, _LAM_DOWN, _LAM_UP = 16.0, 0.5, 0.5, 4.0
+# Trust-region update after an accepted / rejected step: (step-limit scale, LM damping) factors.
+_ACCEPT = np.array([16.0, 0.5])
+_REJECT = np.array([0.5, 4.0])
 
 SafetyCheck = Callable[[np.ndarray, str], bool]
 
@@ -73,14 +79,16 @@ def wrap_angle(a: np.ndarray | float) -> np.ndarray:
     return np.pi - np.mod(np.pi - np.asarray(a, dtype=float), 2.0 * np.pi)
 
 
+_ROWS_A, _COLS_A = [2, 0, 1], [1, 2, 0]
+
+
 def _rotvec(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation vectors (K, 3) and angles (K,) of rotation matrices (K, 3, 3)."""
-    v = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=-1)
-    s = np.sqrt(np.einsum("ki,ki->k", v, v))
-    c = 0.5 * (M[:, 0, 0] + M[:, 1, 1] + M[:, 2, 2] - 1.0)
+    v = 0.5 * (M[:, _ROWS_A, _COLS_A] - M[:, _COLS_A, _ROWS_A])  # vee(M - M^T) / 2 = sin(theta) * axis
+    s = np.sqrt((v * v).sum(1))
+    c = 0.5 * (M.trace(axis1=1, axis2=2) - 1.0)
     theta = np.arctan2(s, c)
-    scale = np.where(s > 1e-12, theta / np.maximum(s, 1e-300), 1.0)
-    rv = v * scale[:, None]
+    rv = v * (theta / np.maximum(s, 1e-300))[:, None]  # theta / s -> 1 as theta -> 0 (s = 0 gives v = 0)
     near_pi = (s < 1e-6) & (c < 0)
     if near_pi.any():  # half-turn: the axis is the dominant column of (M + I)
         for k in np.flatnonzero(near_pi):
@@ -93,7 +101,10 @@ def _rotvec(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class Task:
     """A parsed target: which components, canonical target values, and the residual / Jacobian rows."""
 
-    def __init__(self, target: Sequence[float] | np.ndarray, order: Sequence[str] | str) -> None:
+    def __init__(self, target: Sequence[float] | np.ndarray, order: Sequence[str] | str,
+                 tolerance: float | None = None) -> None:
+        """``tolerance``: when given, the reported error is only worked out where it can be below it."""
+        self.tolerance = tolerance
         self.idx = parse_order(order)
         values = np.asarray(target, dtype=float).reshape(-1)
         if values.size != len(self.idx):
@@ -132,6 +143,12 @@ class Task:
         # Canonical roll, pitch (and yaw) compared component-wise for the reported error in full/tilt mode.
         rotation = {"full": (3, 4, 5), "tilt": (3, 4)}.get(self.mode, ())
         self._rotation_target = np.array([canonical[i] for i in rotation])
+        # Plain-float copies for residual_scalar.
+        self._pos_list = self.pos_target.tolist()
+        self._euler_list = self.euler_target.tolist()
+        self._R_target_list = [] if self.R_target is None else self.R_target.reshape(-1).tolist()
+        self._up_list = [] if self.up_in_tool is None else self.up_in_tool.tolist()
+        self._rotation_list = self._rotation_target.tolist()
         n_pos = len(self.pos_idx)
         self._pos_sel: slice | list[int] = slice(0, n_pos) if self.pos_idx == list(range(n_pos)) else self.pos_idx
         self._euler_sel = [i - 3 for i in self.euler_idx]
@@ -156,22 +173,19 @@ class Task:
             e = self.pos_target - p[:, sel]
             rows.append(e)
             jac.append(J[:, sel, :])
-            sq = (e * e).sum(1)
+            sq_pos = (e * e).sum(1)
         else:
-            sq = np.zeros(p.shape[0])
+            sq_pos = np.zeros(p.shape[0])
         if self.mode == "position":
-            err = np.sqrt(sq)
+            err = np.sqrt(sq_pos)
             return rows[0], jac[0], err, err
         Jw = J[:, 3:, :]
-        ang = euler_zyx(R)
-        sq_reported = sq
+        sq_rot = 0.0  # the solver's orientation error, squared
         if self.mode == "full":
             rv, theta = _rotvec(self.R_target @ R.transpose(0, 2, 1))
             rows.append(rv)
             jac.append(Jw)
-            sq = sq + theta * theta
-            d = wrap_angle(self._rotation_target - ang)
-            sq_reported = sq_reported + (d * d).sum(1)
+            sq_rot = theta * theta
         elif self.mode == "tilt":
             u = R @ self.up_in_tool  # (K, 3): where the target's "up" currently points in the world
             s = np.hypot(u[:, 0], u[:, 1])
@@ -185,27 +199,93 @@ class Task:
             rows.append(rv)
             # Spinning about u itself does not change the error: project it out (rank 2 block).
             jac.append(Jw - u[:, :, None] * (u[:, None, :] @ Jw))
-            sq = sq + theta * theta
-            d = wrap_angle(self._rotation_target - ang[:, :2])
-            sq_reported = sq_reported + (d * d).sum(1)
+            sq_rot = theta * theta
+        ang = euler_zyx(R) if self.euler_idx or self.mode != "euler" else None
         if self.euler_idx:
             e = wrap_angle(self.euler_target - ang[:, self._euler_sel])
             rows.append(e)
             jac.append(_euler_rate_rows(R, self.euler_idx) @ Jw)
-            ee = (e * e).sum(1)
-            sq = sq + ee
-            sq_reported = sq_reported + ee
-        err = np.sqrt(sq)
-        if self.mode == "euler":
-            reported = err
-        else:
-            reported = np.sqrt(sq_reported)
+            sq_pos = sq_pos + (e * e).sum(1)  # identical in both errors
+        err = np.sqrt(sq_pos + sq_rot)
+        reported = err
+        if self.mode != "euler" and (self.tolerance is None or np.any(err <= _SQRT3 * self.tolerance)):
+            # Else reported >= err / sqrt(3) > tol (each angle difference bounds its share of the rotation
+            # angle), so err stands in for it where it cannot pass anyway.
+            d = wrap_angle(self._rotation_target - ang[:, : len(self._rotation_target)])
+            reported = np.sqrt(sq_pos + (d * d).sum(1))
             reported = np.where(err <= EXACT, np.minimum(err, reported), reported)
         return np.concatenate(rows, axis=1), np.concatenate(jac, axis=1), err, reported
 
     def error(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The reported error (K,) of tool poses: the success metric."""
         return self.residual(R, p, np.zeros(p.shape[:1] + (6, 1)))[3]
+
+    def residual_scalar(self, R: list[float], p: list[float], cols: list[list[float]]
+                        ) -> tuple[list[float], list[list[float]], float, float]:
+        """``residual`` for one pose in plain floats (R row-major, Jacobian as columns); rows are lists."""
+        e: list[float] = []
+        rows: list[list[float]] = []
+        sq_pos = 0.0
+        for i, t in zip(self.pos_idx, self._pos_list, strict=True):
+            d = t - p[i]
+            e.append(d)
+            rows.append([c[i] for c in cols])
+            sq_pos += d * d
+        if self.mode == "position":
+            err = math.sqrt(sq_pos)
+            return e, rows, err, err
+        sq_rot = 0.0
+        if self.mode == "full":
+            T = self._R_target_list  # M = R_target @ R^T
+            M = [T[i] * R[j] + T[i + 1] * R[j + 1] + T[i + 2] * R[j + 2] for i in (0, 3, 6) for j in (0, 3, 6)]
+            vx, vy, vz = 0.5 * (M[7] - M[5]), 0.5 * (M[2] - M[6]), 0.5 * (M[3] - M[1])
+            sin_t = math.sqrt(vx * vx + vy * vy + vz * vz)
+            cos_t = 0.5 * (M[0] + M[4] + M[8] - 1.0)
+            theta = math.atan2(sin_t, cos_t)
+            if sin_t < 1e-6 and cos_t < 0:  # half-turn: let the batched helper find the axis
+                rv = _rotvec(np.array(M).reshape(1, 3, 3))[0][0].tolist()
+            else:
+                f = theta / sin_t if sin_t > 1e-300 else 1.0
+                rv = [vx * f, vy * f, vz * f]
+            e += rv
+            rows += [[c[3] for c in cols], [c[4] for c in cols], [c[5] for c in cols]]
+            sq_rot = theta * theta
+        elif self.mode == "tilt":
+            b0, b1, b2 = self._up_list
+            u0, u1, u2 = (R[0] * b0 + R[1] * b1 + R[2] * b2, R[3] * b0 + R[4] * b1 + R[5] * b2,
+                          R[6] * b0 + R[7] * b1 + R[8] * b2)
+            sin_t = math.hypot(u0, u1)
+            theta = math.atan2(sin_t, u2)
+            if sin_t > 1e-12:
+                e += [u1 * theta / sin_t, -u0 * theta / sin_t, 0.0]
+            else:
+                e += [math.pi, 0.0, 0.0] if u2 < 0 else [0.0, 0.0, 0.0]
+            along = [u0 * c[3] + u1 * c[4] + u2 * c[5] for c in cols]
+            rows += [[c[3 + k] - u * a for c, a in zip(cols, along, strict=True)] for k, u in enumerate((u0, u1, u2))]
+            sq_rot = theta * theta
+        angles = (math.atan2(R[7], R[8]), math.atan2(-R[6], math.hypot(R[7], R[8])), math.atan2(R[3], R[0]))
+        for i, t in zip(self.euler_idx, self._euler_list, strict=True):
+            d = math.remainder(t - angles[i - 3], _TWO_PI)
+            e.append(d)
+            sq_pos += d * d
+            if i == 3:  # roll rate = (R00 wx + R10 wy) / cos^2(pitch)
+                c2 = max(R[7] * R[7] + R[8] * R[8], 1e-12)
+                g = (R[0] / c2, R[3] / c2, 0.0)
+            elif i == 4:  # pitch rate = (-R10 wx + R00 wy) / cos(pitch)
+                c1 = math.sqrt(max(R[7] * R[7] + R[8] * R[8], 1e-12))
+                g = (-R[3] / c1, R[0] / c1, 0.0)
+            else:  # yaw rate
+                dd = max(R[0] * R[0] + R[3] * R[3], 1e-12)
+                g = (-R[0] * R[6] / dd, -R[3] * R[6] / dd, 1.0)
+            rows.append([g[0] * c[3] + g[1] * c[4] + g[2] * c[5] for c in cols])
+        err = math.sqrt(sq_pos + sq_rot)
+        reported = err
+        if self.mode != "euler" and (self.tolerance is None or err <= _SQRT3 * self.tolerance):
+            d2 = sum(math.remainder(t - a, _TWO_PI) ** 2 for t, a in zip(self._rotation_list, angles, strict=False))
+            reported = math.sqrt(sq_pos + d2)
+            if err <= EXACT:
+                reported = min(err, reported)
+        return e, rows, err, reported
 
 
 def _euler_rate_rows(R: np.ndarray, which: list[int]) -> np.ndarray:
@@ -258,7 +338,8 @@ class IKOptions:
     raises the damping (Levenberg-Marquardt). The original's small steps are kept near trouble, but a far
     target does not take hundreds of iterations. With ``adaptive=False`` the limits hold for every step.
 
-    ``seeds`` searches run side by side; ``stall_iterations`` without progress restart a search from a
+    The first ``fast_iterations`` run one search from the caller's seed in plain floats (quick); if it does
+    not converge, ``seeds`` searches run side by side; ``stall_iterations`` without progress restart one from a
     random joint vector; once a search other than the caller's seed converges, the seed's own search gets
     ``grace_iterations`` more to finish (its answer is nearer the current pose). ``path_samples`` points on
     the joint-space line from the seed to a candidate are collision-checked along with it.
@@ -277,20 +358,28 @@ class IKOptions:
     stall_iterations: int = 25
     grace_iterations: int = 1
     path_samples: int = 4
+    fast_iterations: int = 40
     timeout: float | None = None
 
 
 class _Searches:
-    """The K parallel damped-least-squares searches of one solve (seed 0 starts at the caller's seed)."""
+    """The K parallel damped-least-squares searches of one solve (seed 0 starts at the caller's seed).
+
+    Written for few numpy calls per step: with 6 joints and a handful of seeds the cost is per call.
+    """
 
     def __init__(self, kin: ArmKinematics, task: Task, q: np.ndarray, opt: IKOptions) -> None:
         self.kin, self.task, self.opt = kin, task, opt
         K = q.shape[0]
         self.q = q
-        self.scale = np.ones(K)  # trust region: current step limits = scale * the initial ones (capped)
-        self.lam = np.full(K, opt.damping)
+        # Per search: trust-region scale (step limits = scale * the initial ones, capped) and LM damping.
+        self.ls = np.empty((K, 2))
+        self.ls[:, 0], self.ls[:, 1] = 1.0, opt.damping
+        max_scale = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)
+        self.ls_min = np.array([1e-4, opt.damping])
+        self.ls_max = np.array([max_scale, 1.0])
         self.since_progress = np.zeros(K, dtype=int)
-        self.max_scale = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)
+        self.best_q, self.best_err = q[0].copy(), math.inf
         self.evaluate()
         self.eye = np.eye(self.e.shape[1])
 
@@ -298,23 +387,33 @@ class _Searches:
         R, p, J = self.kin.fk_jacobian(self.q)
         self.e, self.Jt, self.err, self.reported = self.task.residual(R, p, J)
 
+    def note_best(self, slots: np.ndarray | None = None) -> None:
+        """Remember the best pose seen (before ``slots`` are restarted, and at the end)."""
+        err = self.err if slots is None else self.err[slots]
+        k = int(np.argmin(err))
+        if err[k] < self.best_err:
+            self.best_err = float(err[k])
+            self.best_q = (self.q if slots is None else self.q[slots])[k].copy()
+
     def restart(self, slots: np.ndarray, q: np.ndarray) -> None:
+        self.note_best(slots)
         self.q[slots] = q
-        self.scale[slots], self.lam[slots], self.since_progress[slots] = 1.0, self.opt.damping, 0
+        self.ls[slots] = (1.0, self.opt.damping)
+        self.since_progress[slots] = 0
         self.evaluate()
 
     def step(self, rest: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> None:
         """One trust-region step for every search: propose, evaluate, keep it only if the error went down."""
         opt, q, e, Jt = self.opt, self.q, self.e, self.Jt
-        norm_e = np.sqrt((e * e).sum(1))
-        task_limit = np.minimum(self.scale * opt.task_step, opt.max_task_step)
-        e_step = e * np.minimum(1.0, task_limit / np.maximum(norm_e, 1e-300))[:, None]
+        scale, lam = self.ls[:, 0], self.ls[:, 1]
+        task_limit = np.minimum(scale * opt.task_step, opt.max_task_step)
+        e_step = e * np.minimum(1.0, task_limit / (np.sqrt((e * e).sum(1)) + 1e-300))[:, None]
         # Active set: a joint at a limit whose error gradient J^T e points outward is held for this step.
         g = (e[:, None, :] @ Jt)[:, 0, :]
         free = ~np.where(g < 0, q <= lower, q >= upper)
         Jf = Jt * free[:, None, :]
         JfT = Jf.transpose(0, 2, 1)
-        A = Jf @ JfT + (self.lam * self.lam)[:, None, None] * self.eye
+        A = Jf @ JfT + (lam * lam)[:, None, None] * self.eye
         if self.task.dof < q.shape[1] and opt.null_gain > 0:
             # Plus a pull toward ``rest`` projected into the (damped) null space of the free columns.
             z = (-opt.null_gain * (q - rest)) * free
@@ -322,24 +421,27 @@ class _Searches:
             dq = y[..., 0] + z - y[..., 1]
         else:
             dq = (JfT @ np.linalg.solve(A, e_step[..., None]))[..., 0]
-        joint_limit = np.minimum(self.scale * opt.joint_step, opt.max_joint_step)
-        dq *= np.minimum(1.0, joint_limit / np.maximum(np.abs(dq).max(1), 1e-300))[:, None]
+        joint_limit = np.minimum(scale * opt.joint_step, opt.max_joint_step)
+        dq *= np.minimum(1.0, joint_limit / (np.abs(dq).max(1) + 1e-300))[:, None]
         q_new = np.minimum(np.maximum(q + dq, lower), upper)
         R, p, J = self.kin.fk_jacobian(q_new)
         e_new, Jt_new, err_new, reported_new = self.task.residual(R, p, J)
-        progress = err_new < self.err * (1.0 - 1e-4)
-        self.since_progress = np.where(progress, 0, self.since_progress + 1)
-        if opt.adaptive:
-            better = err_new < self.err
-            self.scale = np.minimum(np.maximum(self.scale * np.where(better, _GROW, _SHRINK), 1e-4), self.max_scale)
-            self.lam = np.minimum(np.maximum(self.lam * np.where(better, _LAM_DOWN, _LAM_UP), opt.damping), 1.0)
+        self.since_progress = np.where(err_new < self.err * (1.0 - 1e-4), 0, self.since_progress + 1)
+        better = err_new < self.err
+        if not opt.adaptive:
+            self.note_best()  # the error may go up again: remember the best
+        elif not better.all():
+            self.ls = np.minimum(np.maximum(self.ls * np.where(better[:, None], _ACCEPT, _REJECT), self.ls_min),
+                                 self.ls_max)
             self.q = np.where(better[:, None], q_new, q)
             self.e = np.where(better[:, None], e_new, e)
             self.Jt = np.where(better[:, None, None], Jt_new, Jt)
             self.err = np.where(better, err_new, self.err)
             self.reported = np.where(better, reported_new, self.reported)
+            return
         else:
-            self.q, self.e, self.Jt, self.err, self.reported = q_new, e_new, Jt_new, err_new, reported_new
+            self.ls = np.minimum(np.maximum(self.ls * _ACCEPT, self.ls_min), self.ls_max)
+        self.q, self.e, self.Jt, self.err, self.reported = q_new, e_new, Jt_new, err_new, reported_new
 
 
 class IKSolver:
@@ -372,6 +474,14 @@ class IKSolver:
                 bad = [n for n, a, b in zip(self.kin.joint_names, self.lower, self.upper, strict=True) if a > b]
                 raise ValueError(f"empty joint range for {', '.join(bad)} after applying the limits")
 
+    @property
+    def _lower_list(self) -> list[float]:
+        return self.lower.tolist()
+
+    @property
+    def _upper_list(self) -> list[float]:
+        return self.upper.tolist()
+
     def random_configurations(self, n: int) -> np.ndarray:
         return self.rng.uniform(self.lower, self.upper, size=(n, self.kin.dof))
 
@@ -382,7 +492,7 @@ class IKSolver:
         opt = options or self.options
         if not (opt.tolerance > 0 and opt.max_iterations >= 1 and opt.seeds >= 1):
             raise ValueError("tolerance must be > 0, max_iterations and seeds >= 1")
-        task = Task(target, order)
+        task = Task(target, order, opt.tolerance)
         n = self.kin.dof
         seed = np.zeros(n) if q0 is None else np.asarray(q0, dtype=float).reshape(-1)
         if seed.size != n or not np.all(np.isfinite(seed)):
@@ -391,16 +501,28 @@ class IKSolver:
         # If the arm already is in a (predicted) collision, any path out starts in one: check only the goal.
         samples = opt.path_samples if self.is_safe is not None and self.is_safe(seed.copy(), self.arm) else 0
         start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
+        iterations = restarts = unsafe = 0
+        fast: tuple[np.ndarray, float] | None = None
+        if opt.adaptive and opt.fast_iterations > 0 and self.kin.scalar_chain is not None:
+            # Fast path: the caller's seed alone, in plain floats. Most requests end here.
+            q1, reported, err1, iterations, converged = self._fast_search(task, seed, opt)
+            if converged and self._safe(q1, seed, samples):
+                return self._result(task, seed, q1, reported, True, iterations, t_start, 0, 0, "")
+            unsafe += int(converged)
+            # The batched searches take over: slot 0 from where the fast one stalled (or afresh if it collided).
+            start[0] = self.random_configurations(1)[0] if converged else q1
+            fast = (q1, err1)
         st = _Searches(self.kin, task, start, opt)
+        if fast is not None:
+            st.best_q, st.best_err = fast
 
         candidates: list[tuple[float, np.ndarray, float]] = []  # (max joint distance to seed, q, error)
         first_found = 0
-        restarts = unsafe = iterations = 0
-        best_q, best_e = seed, math.inf
         message = ""
         while True:
-            done = np.flatnonzero(st.reported <= opt.tolerance)
-            if len(done):
+            converged_now = st.reported <= opt.tolerance
+            if converged_now.any():
+                done = np.flatnonzero(converged_now)
                 for k in done:
                     if self._safe(st.q[k], seed, samples):
                         if not candidates:
@@ -416,35 +538,93 @@ class IKSolver:
                 restarts += len(done)
             elif candidates and iterations - first_found >= opt.grace_iterations:
                 break
-            k_best = int(np.argmin(st.reported))
-            if st.reported[k_best] < best_e:
-                best_q, best_e = st.q[k_best].copy(), float(st.reported[k_best])
             if iterations >= opt.max_iterations:
-                message = f"no IK solution within {opt.max_iterations} iterations (best error {best_e:.4g})"
+                message = f"no IK solution within {opt.max_iterations} iterations"
                 break
             if opt.timeout is not None and time.perf_counter() - t_start > opt.timeout:
-                message = f"IK gave up after {opt.timeout:.3g} s (best error {best_e:.4g})"
+                message = f"IK gave up after {opt.timeout:.3g} s"
                 break
             iterations += 1
             st.step(seed, self.lower, self.upper)
-            stuck = np.flatnonzero((st.since_progress > opt.stall_iterations) & (st.reported > opt.tolerance))
-            if len(stuck):
-                st.restart(stuck, self.random_configurations(len(stuck)))
-                restarts += len(stuck)
+            if iterations % 5 == 0:  # a stall is counted in tens of iterations: no need to look every time
+                stuck = np.flatnonzero((st.since_progress > opt.stall_iterations) & (st.reported > opt.tolerance))
+                if len(stuck):
+                    st.restart(stuck, self.random_configurations(len(stuck)))
+                    restarts += len(stuck)
 
         if candidates:
-            dist, q, err = min(candidates, key=lambda c: c[0])
-            success = True
-        else:
-            q, err, success = best_q, best_e, False
+            _, q, err = min(candidates, key=lambda c: c[0])
+            return self._result(task, seed, q, err, True, iterations, t_start, restarts, unsafe, "")
+        st.note_best()
+        return self._result(task, seed, st.best_q, None, False, iterations, t_start, restarts, unsafe, message)
+
+    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, err: float | None, success: bool,
+                iterations: int, t_start: float, restarts: int, unsafe: int, message: str) -> IKResult:
+        R, p = self.kin.fk(q[None])
+        if err is None:
+            err = float(task.error(R, p)[0])
+        if not success:
+            message += f" (best error {err:.4g})"
             if unsafe:
                 message += f"; {unsafe} solution(s) rejected by the collision check"
-        R, p = self.kin.fk(q[None])
         return IKResult(q=q, success=success, error=err, iterations=iterations,
                         time=time.perf_counter() - t_start, arm=self.arm,
                         order=tuple(TASK_COMPONENTS[i] for i in task.idx), target=task.target,
                         achieved=_components(R[0], p[0], task.idx), restarts=restarts, rejected_unsafe=unsafe,
                         message=message or "solved", seed=seed)
+
+    def _fast_search(self, task: Task, seed: np.ndarray, opt: IKOptions
+                     ) -> tuple[np.ndarray, float, float, int, bool]:
+        """One search from ``seed`` with the same steps as ``_Searches`` (trust region, LM damping, active set,
+        null-space pull), FK and errors in plain floats: numpy's per-call cost would dominate for one arm.
+
+        Stops when converged, after ``opt.fast_iterations`` or when stalled. Returns (q, reported error,
+        solver error, iterations, converged).
+        """
+        kin = self.kin
+        lower, upper = self._lower_list, self._upper_list
+        n = kin.dof
+        rest = seed
+        q = seed.tolist()
+        e, rows, err, reported = task.residual_scalar(*kin.fk_jacobian_scalar(q))
+        scale, lam = 1.0, opt.damping
+        max_scale = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)
+        null = task.dof < n and opt.null_gain > 0
+        stall = min(opt.stall_iterations, 10)
+        since = iterations = 0
+        budget = min(opt.fast_iterations, opt.max_iterations)
+        while reported > opt.tolerance and iterations < budget and since <= stall:
+            iterations += 1
+            Jt = np.array(rows)
+            ev = np.array(e)
+            g = ev @ Jt
+            free = np.array([not (q[j] <= lower[j] if g[j] < 0 else q[j] >= upper[j]) for j in range(n)])
+            Jf = Jt * free
+            A = Jf @ Jf.T
+            A.flat[:: A.shape[0] + 1] += lam * lam
+            norm_e = math.sqrt(sum(x * x for x in e))
+            cut = min(1.0, min(scale * opt.task_step, opt.max_task_step) / (norm_e + 1e-300))
+            if null:
+                z = (-opt.null_gain * (np.array(q) - rest)) * free
+                y = Jf.T @ np.linalg.solve(A, np.stack([ev * cut, Jf @ z], axis=1))
+                dq = y[:, 0] + z - y[:, 1]
+            else:
+                dq = Jf.T @ np.linalg.solve(A, ev * cut)
+            dq = dq.tolist()
+            big = max(abs(x) for x in dq)
+            joint_limit = min(scale * opt.joint_step, opt.max_joint_step)
+            f = joint_limit / big if big > joint_limit else 1.0
+            q_new = [min(max(a + f * d, lo), hi) for a, d, lo, hi in zip(q, dq, lower, upper, strict=True)]
+            e_new, rows_new, err_new, reported_new = task.residual_scalar(*kin.fk_jacobian_scalar(q_new))
+            since = 0 if err_new < err * (1.0 - 1e-4) else since + 1
+            if err_new < err:
+                q, e, rows, err, reported = q_new, e_new, rows_new, err_new, reported_new
+                scale = min(scale * _ACCEPT[0], max_scale)
+                lam = max(lam * _ACCEPT[1], opt.damping)
+            else:
+                scale = max(scale * _REJECT[0], 1e-4)
+                lam = min(lam * _REJECT[1], 1.0)
+        return np.array(q), reported, err, iterations, reported <= opt.tolerance
 
     def _safe(self, q: np.ndarray, seed: np.ndarray, samples: int) -> bool:
         """The collision hook on the candidate and on ``samples`` points of the joint-space path to it.

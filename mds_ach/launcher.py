@@ -434,22 +434,6 @@ def send_command(cmd: int, address: int = 0, value: float = 0.0) -> int:
     return seq
 
 
-def _newest(name: str, ctype: type[ctypes.Structure]) -> ctypes.Structure | None:
-    """The newest frame of a channel (even if seen before), read-only; None if missing or empty."""
-    from mds_ach import ach
-
-    if not ach.exists(name):
-        return None
-    obj = ctype()
-    try:
-        with ach.Channel(name, create=False) as chan:
-            status, size = chan.get(obj, last=True, copy=True)
-    except ach.AchException:
-        return None
-    ok = status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(ctype)
-    return obj if ok else None
-
-
 def state_rate(window: float = 1.0) -> float | None:
     """New ``mds-state`` frames per second over ``window`` s (None when the channel does not exist)."""
     from mds_ach import ach
@@ -474,8 +458,8 @@ def state_rate(window: float = 1.0) -> float | None:
 
 def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str], bool]:
     """Lines for ``mds-ach status`` and whether every node runs."""
-    from mds_ach.collision_report import collision_summary
-    from mds_ach.daemon_report import daemon_summary
+    from mds_ach.daemon_status import MDS_DAEMON_STATUS
+    from mds_ach.monitor import Latest, collision_summary, daemon_line
     from mds_ach.robot_choice import effective_robot
 
     rt = rt or runtime_dir()
@@ -494,8 +478,17 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     else:
         lines.append(f"state      {rate:.1f} frames/s on {mds.MDS_CHAN_STATE_NAME}" + ("" if rate > 0 else
                                                                                          "  (not live)"))
-    lines.append("daemon     " + daemon_summary())
-    lines.append("collision  " + collision_summary(_newest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)))
+    daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
+    collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+    try:
+        daemon.read()
+        live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
+        stale = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
+        lines.append("daemon     " + daemon_line(daemon.frame, None) + stale)
+        lines.append("collision  " + collision_summary(collide.read()))
+    finally:
+        daemon.close()
+        collide.close()
     return lines, len(running) == len(NODES)
 
 
@@ -668,20 +661,39 @@ def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Ask the daemon to reset the CAN bus (recover from bus-off): sends MDS_CMD_RESET_BUS on "
                      f"{mds.MDS_CHAN_BOARD_CMD_NAME}. The CAN link itself is configured by the operator, see "
                      "docs/operator.md.")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the daemon's acknowledgement")
 
 
 def run_resetbus(args: argparse.Namespace) -> int:
     from mds_ach import ach
+    from mds_ach.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
+    from mds_ach.monitor import Latest
 
+    status = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     try:
-        seq = send_command(mds.MDS_CMD_RESET_BUS)
-    except ach.AchException as exc:
-        _err(f"mds-ach resetbus: cannot write {mds.MDS_CHAN_BOARD_CMD_NAME}: {exc} (is the system started?)")
-        return 1
-    if read_pid("daemon") is None:
-        _err("mds-ach resetbus: note: the daemon is not running; it will not see this command")
-    _out(f"sent MDS_CMD_RESET_BUS (seq {seq}) on {mds.MDS_CHAN_BOARD_CMD_NAME}")
-    return 0
+        status.read()
+        try:
+            seq = send_command(mds.MDS_CMD_RESET_BUS)
+        except ach.AchException as exc:
+            _err(f"mds-ach resetbus: cannot write {mds.MDS_CHAN_BOARD_CMD_NAME}: {exc} (is the system started?)")
+            return 1
+        _out(f"sent MDS_CMD_RESET_BUS (seq {seq}) on {mds.MDS_CHAN_BOARD_CMD_NAME}")
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:  # the daemon echoes the seq of each command it handled
+            st = status.wait_new(0.2)
+            if st is not None and st.cmd_seq == seq:
+                if st.cmd_result != CMD_OK:
+                    _err(f"mds-ach resetbus: the daemon could not reset the bus (result {st.cmd_result}); see "
+                         f"{log_path('daemon')}")
+                    return 1
+                _out(f"bus reset by the daemon: state {BUS_STATE_NAMES.get(st.bus_state, '?')}, "
+                     f"{st.bus_resets} reset(s) so far")
+                return 0
+    finally:
+        status.close()
+    _err(f"mds-ach resetbus: no acknowledgement from the daemon within {args.timeout:g} s (is it running? "
+         "'mds-ach status')")
+    return 1
 
 
 def add_changerobot_arguments(p: argparse.ArgumentParser) -> None:

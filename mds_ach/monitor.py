@@ -163,3 +163,30 @@ def collision_block(collide: mds.MDS_COLLIDE | None) -> list[str]:
     else:
         lines.append(f"Collide: {bool(collide.isCollide)!s:<6}  dt = {collide.time_dt:.7f}")
     return lines
+
+
+def daemon_line(status: ctypes.Structure | None, age: float | None) -> str:
+    """The daemon's health in one line (``mds-daemon-status``), flagged when it stopped publishing."""
+    from mds_ach.daemon_status import summary_line
+
+    if status is None:
+        return f"unknown (nothing on {mds.MDS_CHAN_DAEMON_STATUS_NAME})"
+    line = summary_line(status)
+    if age is not None and age > 1.0:
+        line += f"  STALE: no update for {age:.1f} s"
+    return line
+
+
+def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
+    """'yes' when the daemon heard the joint's node recently, 'STALE' when not, '-' for joints it does not poll,
+    '?' without daemon status."""
+    from mds_ach.daemon_status import JOINT_ENABLED, JOINT_FRESH, JOINT_STALE
+
+    if status is None:
+        return "?"
+    flags = status.joint_flags[address]
+    if flags & JOINT_FRESH:
+        return "yes"
+    if flags & JOINT_STALE:
+        return "STALE"
+    return "-" if not flags & JOINT_ENABLED else "?"

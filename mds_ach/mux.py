@@ -42,7 +42,7 @@ import numpy as np
 
 import mds_ach as mds
 from mds_ach.msgs import MDS_JOINT_COUNT, Name30, get_name
-from mds_ach.pipeline import KNOWN_ADDRESSES, joint_label, labels, make_ref, ref_arrays, select_joints
+from mds_ach.pipeline import KNOWN_ADDRESSES, cancel_wait, joint_label, labels, make_ref, ref_arrays, select_joints
 
 MUX_MAX_CONTROLLERS = 8
 DEFAULT_STATE_RATE = 10.0
@@ -287,7 +287,7 @@ class MuxRunner:
     def stop(self) -> None:
         self._stop.set()
         for ch in self._inputs:
-            ch.cancel()
+            cancel_wait(ch)
 
     def run(self) -> None:
         from mds_ach.channels import StructChannel
@@ -325,7 +325,7 @@ class MuxRunner:
         finally:
             self._stop.set()
             for ch in self._inputs:
-                ch.cancel()
+                cancel_wait(ch)
             for t in self._threads:
                 t.join(timeout=2.0)
             for ch in self._inputs:
@@ -389,21 +389,17 @@ def _make_node(args: argparse.Namespace) -> Any:
     from rclpy.node import Node
     from std_msgs.msg import String
 
+    from mds_ach.pipeline import ros_log, start_worker
+
     cfg = load_config(args.config)
 
     class MuxNode(Node):
         def __init__(self) -> None:
             super().__init__("mux")
             self.pub = self.create_publisher(String, "/mds/mux_state", 10)
-            levels = {"info": self.get_logger().info, "warn": self.get_logger().warning,
-                      "error": self.get_logger().error}
-
-            def log(level: str, msg: str) -> None:
-                levels.get(level, self.get_logger().info)(msg)
-
+            log = ros_log(self)
             self.runner = MuxRunner(cfg["controllers"], cfg["state_rate"], log=log, on_state=self._on_state)
-            self.thread = threading.Thread(target=self.runner.run, name="mux", daemon=True)
-            self.thread.start()
+            self.thread = start_worker(self, self.runner.run, "mux")
 
         def _on_state(self, st: MDS_MUX_STATE) -> None:
             if self.context.ok():  # not after SIGINT/SIGTERM shut the context down

@@ -10,9 +10,13 @@ private namespace (``tools/netns-run``), so no interface is ever added to the re
 from __future__ import annotations
 
 import os
+import shutil
 import signal
+import socket
 import subprocess
+import time
 from collections.abc import Sequence
+from pathlib import Path
 
 HOLD_S = 900  # a forgotten host removes itself after this long
 
@@ -112,3 +116,68 @@ class Veth:
     def close(self) -> None:
         """Delete the pair (it also disappears when host_b ends)."""
         subprocess.run([*self._prefix_a(), "ip", "link", "del", self.local], capture_output=True, timeout=10)
+
+
+SSHD = "/usr/sbin/sshd"
+
+
+class Sshd:
+    """A real OpenSSH server inside ``host``: key-only, its own host key, one authorized client key.
+
+    ``identity`` (client private key) and ``known_hosts`` (the server's host key for ``address``) are
+    what an operator needs for ``mds-ach remote --ssh``. The client key may only forward to
+    ``permit_open`` (``host:port``): no shell, no other forwards.
+    """
+
+    def __init__(self, host: Host, address: str, workdir: Path, permit_open: str, port: int = 22) -> None:
+        if not (os.path.exists(SSHD) and shutil.which("ssh") and shutil.which("ssh-keygen")):
+            raise RuntimeError("OpenSSH is missing: install the Debian packages openssh-server and openssh-client "
+                               "(apt-get install openssh-server openssh-client)")
+        self.dir = workdir
+        self.address = address
+        self.port = port
+        for key in ("host_key", "client_key"):
+            subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(workdir / key)],
+                           check=True, timeout=30, capture_output=True)
+        self.identity = workdir / "client_key"
+        self.known_hosts = workdir / "known_hosts"
+        host_pub = " ".join((workdir / "host_key.pub").read_text().split()[:2])
+        where = address if port == 22 else f"[{address}]:{port}"
+        self.known_hosts.write_text(f"{where} {host_pub}\n")
+        (workdir / "authorized_keys").write_text(
+            f'restrict,port-forwarding,permitopen="{permit_open}" ' + (workdir / "client_key.pub").read_text()
+        )
+        config = workdir / "sshd_config"
+        config.write_text(
+            f"ListenAddress {address}\nPort {port}\nHostKey {workdir / 'host_key'}\n"
+            f"AuthorizedKeysFile {workdir / 'authorized_keys'}\nPidFile {workdir / 'sshd.pid'}\n"
+            "PermitRootLogin prohibit-password\nPasswordAuthentication no\nKbdInteractiveAuthentication no\n"
+            "UsePAM no\nStrictModes no\nAllowTcpForwarding local\nX11Forwarding no\nAllowAgentForwarding no\n"
+            "PermitTunnel no\nLogLevel VERBOSE\n"
+        )
+        self.log = workdir / "sshd.log"
+        with open(self.log, "wb") as logf:
+            self.proc = host.popen([SSHD, "-D", "-e", "-f", str(config)], stdout=logf, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 20
+        while not reachable(address, port):
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.close()
+                raise RuntimeError(f"sshd did not start:\n{self.log.read_text()[-2000:]}")
+            time.sleep(0.05)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+
+
+def reachable(address: str, port: int) -> bool:
+    try:
+        with socket.create_connection((address, port), timeout=0.5):
+            return True
+    except OSError:
+        return False

@@ -164,6 +164,17 @@ def wait_current_reference(stop: threading.Event, log: Callable[[str], None],
     return None
 
 
+def cancel_wait(channel: Any) -> None:
+    """Wake a thread blocked in ``channel.wait()``; a channel that is already closed needs no waking."""
+    from mds_ach import ach
+
+    try:
+        channel.cancel()
+    except ach.AchException as exc:
+        if exc.status != ach.ACH_CLOSED:
+            raise
+
+
 # --------------------------------------------------------------------------------------------- timing
 
 
@@ -195,12 +206,51 @@ class Periodic:
 # --------------------------------------------------------------------------------------------- main()
 
 
+def ros_log(node: Any) -> Callable[[str, str], None]:
+    """``log(level, msg)`` for the Ach-side runners, backed by the node's logger.
+
+    One call site per severity: rclpy's logger refuses a call site whose severity changes between calls.
+    """
+    logger = node.get_logger()
+
+    def log(level: str, msg: str) -> None:
+        if level == "error":
+            logger.error(msg)
+        elif level == "warn":
+            logger.warning(msg)
+        else:
+            logger.info(msg)
+
+    return log
+
+
+def start_worker(node: Any, target: Callable[[], None], name: str) -> threading.Thread:
+    """Run the node's real-time loop on its own thread. If it raises, the error is logged with its traceback
+    and the node shuts down (``run_node`` then exits 1): a dead real-time loop must not look like a live node."""
+    import traceback
+
+    def body() -> None:
+        try:
+            target()
+        except Exception as exc:  # report and stop: never limp on without the loop
+            node.worker_error = exc
+            node.get_logger().fatal(f"{name} loop failed: {exc!r}\n{traceback.format_exc()}")
+            node.context.try_shutdown()
+
+    node.worker_error = None
+    thread = threading.Thread(target=body, name=name, daemon=True)
+    thread.start()
+    return thread
+
+
+
 def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
              make_node: Callable[[argparse.Namespace], Any]) -> int:
     """Parse CLI args (ROS args removed), start rclpy, build the node, spin until SIGINT/SIGTERM; exit 0.
 
     ``make_node(args)`` returns an rclpy Node that has a ``shutdown()`` method stopping its real-time thread.
-    A ``ValueError`` from it (bad config) is printed as a one-line error with exit status 2.
+    A ``ValueError`` from it (bad config) is printed as a one-line error with exit status 2; a real-time loop
+    that died (``start_worker``) gives exit status 1.
     """
     argv = list(sys.argv if argv is None else argv)
     from rclpy.utilities import remove_ros_args
@@ -225,6 +275,8 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
     finally:
         if node is not None:
             node.shutdown()
+            if getattr(node, "worker_error", None) is not None:
+                status = 1
             node.destroy_node()
         rclpy.try_shutdown()
     return status

@@ -12,6 +12,7 @@ and stop at any time without disturbing the system.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import select
 import shutil
@@ -56,7 +57,7 @@ class Sources:
         self.daemon.close()
 
 
-def table_rows(state: mds.MDS_STATE | None, show_all: bool) -> list[str]:
+def table_rows(state: mds.MDS_STATE | None, daemon: ctypes.Structure | None, show_all: bool) -> list[str]:
     """One row per joint: enabled joints only (like ``read``) or every named joint (``read all``)."""
     rows = []
     for j in JOINTS:
@@ -69,7 +70,7 @@ def table_rows(state: mds.MDS_STATE | None, show_all: bool) -> list[str]:
         if js is None:
             rows.append(f"{short:<6}{name:<24}{'-':>8}  0x{j.address:04x}  {'-':>15}{'-':>13}  {'-':<5}")
             continue
-        fresh = joint_fresh(js)
+        fresh = joint_fresh(daemon, j.address)
         rows.append(f"{short:<6}{name:<24}{int(enabled):>8}  0x{j.address:04x}  {js.ref:>15.5f}{js.pos:>13.5f}  "
                     f"{fresh:<5}")
     return rows
@@ -91,7 +92,7 @@ def render(src: Sources, show_all: bool, width: int, height: int) -> list[str]:
            f"daemon: {daemon_line(src.daemon.frame, src.daemon.age())}   collision: "
            f"{collision_summary(src.collide.frame)}",
            HEADER]
-    rows = table_rows(state, show_all)
+    rows = table_rows(state, src.daemon.frame, show_all)
     block = [""] + collision_block(src.collide.frame)
     room = height - len(top)
     if room >= len(rows) + len(block):
@@ -101,7 +102,7 @@ def render(src: Sources, show_all: bool, width: int, height: int) -> list[str]:
     else:
         keep = max(0, room - 1)
         lines = top + rows[:keep] + [f"... {len(rows) - keep} more joints: enlarge the terminal"]
-    return [line[: max(1, width - 1)] for line in lines[: max(1, height)]]
+    return [line[: max(1, width - 1)].rstrip() for line in lines[: max(1, height)]]
 
 
 def snapshot(src: Sources, show_all: bool, wait: float = 1.0) -> list[str]:

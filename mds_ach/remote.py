@@ -60,9 +60,18 @@ def _rt() -> Path:
 
 
 def _files(role: str) -> tuple[Path, Path, Path]:
-    """pid, log and status file of the operator session (``remote``) or the robot server (``remote-serve``)."""
+    """pid, log and status file of the operator session (``remote``) or a robot server (``remote-serve``)."""
     rt = _rt()
     return rt / f"{role}.pid", rt / f"{role}.log", rt / f"{role}.status.json"
+
+
+def _serve_role(port: int) -> str:
+    """One set of files per server port, so two servers (e.g. LAN and loopback-only) can run side by side."""
+    return "remote-serve" if port == ap.ACHD_PORT else f"remote-serve-{port}"
+
+
+def _roles() -> list[str]:
+    return ["remote"] + sorted(p.name[: -len(".pid")] for p in _rt().glob("remote-serve*.pid"))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -370,7 +379,7 @@ def _is_zombie(pid: int) -> bool:
 def kill_all() -> int:
     """Stop the operator session and a background robot server started from this runtime directory."""
     stopped = 0
-    for role in ("remote", "remote-serve"):
+    for role in _roles():
         pid_path, _, _ = _files(role)
         pid = read_pid(pid_path)
         if pid is not None:
@@ -385,7 +394,7 @@ def kill_all() -> int:
 
 def show_status() -> int:
     found = False
-    for role in ("remote", "remote-serve"):
+    for role in _roles():
         pid_path, _, status_path = _files(role)
         pid = read_pid(pid_path)
         if pid is None:
@@ -436,7 +445,7 @@ def run_serve(args: argparse.Namespace, stop: threading.Event) -> int:
         print(f"mds-ach remote serve: {exc.strerror or exc}", file=sys.stderr)
         return 1
     print(f"mds-ach remote serve: listening on {', '.join(binds)} port {args.port}", flush=True)
-    _, _, status_path = _files("remote-serve")
+    _, _, status_path = _files(_serve_role(args.port))
     try:
         while not stop.wait(STATUS_PERIOD_S):
             served = {k: v.as_dict() for k, v in list(server.stats.items())[-32:]}
@@ -523,7 +532,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if target == "serve":
         if args.background and not args.foreground:
-            return _spawn("remote-serve", _serve_argv(args), lambda s: s.get("listening"), args.wait)
+            return _spawn(_serve_role(args.port), _serve_argv(args), lambda s: s.get("listening"), args.wait)
         return _foreground(run_serve, args)
     if args.ssh:
         args.host = args.ssh.split("@", 1)[1]
@@ -535,12 +544,32 @@ def run(args: argparse.Namespace) -> int:
         return 2
     else:
         args.host = target
+    if is_this_machine(args.host):
+        print(f"mds-ach remote: {args.host} is this machine; bridging its channels into themselves would loop "
+              "(run 'mds-ach remote HOST' on the operator station, 'mds-ach remote serve' here)", file=sys.stderr)
+        return 2
     if args.foreground:
         return _foreground(run_session, args)
     return _spawn(
         "remote", _session_argv(args),
         lambda s: bool(s.get("links")) and all(link["connected"] for link in s["links"]), args.wait,
     )
+
+
+def is_this_machine(host: str) -> bool:
+    """Does ``host`` resolve to an address of this machine? (Only a local address can be bound.)"""
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_DGRAM)
+    except OSError:
+        return False
+    for family, _, _, _, sockaddr in infos:
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind((sockaddr[0], 0))
+                return True
+            except OSError:
+                continue
+    return False
 
 
 def _foreground(func, args: argparse.Namespace) -> int:

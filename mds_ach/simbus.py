@@ -36,7 +36,7 @@ import can
 import numpy as np
 
 from mds_ach import mcb
-from mds_ach.mcb import Command, ErrorCode, Response, StateArg, TrajectoryMode
+from mds_ach.mcb import Command, ErrorCode, StateArg, TrajectoryMode
 
 # Linux <linux/can/error.h> error-frame classes (arbitration_id bits) and controller status (data[1]).
 CAN_ERR_TX_TIMEOUT = 0x001
@@ -299,8 +299,14 @@ class SimNetwork:
                 self._handle(address, frame, end)
 
     def host_recv(self, timeout: float | None) -> can.Message | None:
-        """The next frame for the host whose wire time has come; waits up to ``timeout`` (real) seconds."""
-        deadline = None if timeout is None else time.monotonic() + timeout
+        """The next frame for the host whose wire time has come; waits up to ``timeout`` seconds.
+
+        With a :class:`ManualClock` the wait is simulated: time jumps to the next delivery (or to the end of
+        the timeout), so a test's loop runs as fast as the CPU allows and exactly as scheduled.
+        """
+        manual = isinstance(self.clock, ManualClock)
+        wall = self.clock if manual else time.monotonic
+        deadline = None if timeout is None else wall() + timeout
         with self._lock:
             while True:
                 now = self.clock()
@@ -309,16 +315,18 @@ class SimNetwork:
                     item = heapq.heappop(self._queue)
                     item.msg.timestamp = time.time()
                     return item.msg
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
+                wait = None if deadline is None else deadline - wall()
+                if wait is not None and wait <= 0:
                     return None
-                wait = remaining
                 if self._queue:
                     until_due = self._queue[0].due - now
                     wait = until_due if wait is None else min(wait, until_due)
-                if isinstance(self.clock, ManualClock):
-                    return None  # simulated time does not pass while we wait
-                self._lock.wait(wait if wait is None or wait > 0 else 0)
+                if manual:
+                    if wait is None:
+                        return None  # nothing will arrive in simulated time
+                    self.clock.advance(wait)
+                else:
+                    self._lock.wait(wait)
 
     def pending(self) -> int:
         with self._lock:
@@ -489,10 +497,14 @@ class SimBus(can.BusABC):
             raise can.CanOperationError("bus is shut down")
         self.network.host_send(msg)
 
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """Straight to the network: python-can's retry loop counts real time, which a simulated clock breaks."""
         if self._is_shutdown:
             raise can.CanOperationError("bus is shut down")
-        return self.network.host_recv(timeout), False
+        return self.network.host_recv(timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.recv(timeout), False
 
     @property
     def state(self) -> can.BusState:

@@ -482,6 +482,7 @@ class Viewer:
         self.server.request_share_url = _refuse_share  # type: ignore[method-assign]
         self.server.gui.configure_theme(control_layout="fixed", show_share_button=False, brand_color=(40, 90, 160))
         self.server.scene.set_up_direction("+z")
+        self.server.scene.configure_environment_map(hdri=None)
         self.server.scene.add_grid("/grid", width=4.0, height=4.0, cell_size=0.25, plane="xy")
         self.server.on_client_connect(self._on_connect)
 

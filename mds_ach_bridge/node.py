@@ -1,11 +1,11 @@
 """The bridge node: ``mds-state`` -> JointState, ROS commands -> the bridge's reference channel.
 
 Threads: a dedicated state thread blocks on the state channel (newest frame wins) and, for every new
-frame, publishes ``joint_states`` and ``mds/joint_references`` and then writes the bridge's reference
-(the newest accepted command, or the running trajectory sampled at this cycle). The executor thread only
-runs subscription callbacks, which validate a command completely and hand it over under a lock, and the
-diagnostics timer. A frame is never published twice; when the daemon stalls the topics fall silent and
-/diagnostics reports it.
+frame, writes the bridge's reference if there is something new (the newest accepted command, or the
+running trajectory sampled at this cycle) and publishes ``joint_states`` and ``mds/joint_references``.
+The executor thread only runs subscription callbacks, which validate a command completely and hand it
+over under a lock, and the diagnostics timer. A frame is never published twice; when the daemon stalls
+the topics fall silent and /diagnostics reports it.
 """
 
 from __future__ import annotations
@@ -205,7 +205,7 @@ class BridgeNode(Node):
     # ------------------------------------------------------------------------------------ state -> ROS
 
     def _state_loop(self) -> None:
-        """Block on the state channel; each new frame is published once, then the reference is written."""
+        """Block on the state channel; for each new frame write the reference, then publish the frame once."""
         try:
             while not self._stop.is_set():
                 # The wait returns on every put; its timeout only paces the stall check.

@@ -37,11 +37,15 @@ def mds_ach(*args: str, env: dict[str, str], timeout: float = 60.0) -> subproces
 
 
 @contextmanager
-def running_system(runtime: Path) -> Iterator[dict[str, str]]:
-    """``mds-ach start nocan`` in a clean /dev/shm; yields the environment; ``mds-ach killall`` afterwards."""
+def running_system(runtime: Path, robot: str | None = None) -> Iterator[dict[str, str]]:
+    """``mds-ach start nocan`` in a clean /dev/shm (after ``changerobot robot`` if given); yields the
+    environment; ``mds-ach stop`` and ``killall`` afterwards."""
     assert in_netns(), "run the tests through tools/netns-run (private /dev/shm and network namespace)"
     remove_mds_channels()
     env = system_env(runtime)
+    if robot:
+        proc = mds_ach("changerobot", robot, env=env)
+        assert proc.returncode == 0, proc.stderr
     proc = mds_ach("start", "nocan", "--timeout", str(START_TIMEOUT), env=env, timeout=START_TIMEOUT + 60)
     assert proc.returncode == 0, f"mds-ach start nocan failed:\n{proc.stdout}\n{proc.stderr}"
     try:

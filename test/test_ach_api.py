@@ -16,12 +16,19 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from conftest import wait_for
 
 from mds_ach import ach
 from mds_ach.channels import StructChannel
 from mds_ach.msgs import MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
 
 NAME = "test-api"
+
+
+def cond_waiters(name: str) -> int:
+    """Threads blocked on the channel's condvar (glibc >= 2.25 counts them in __wrefs, bits 3 and up)."""
+    raw = Path(ach.shm_path(name)).read_bytes()
+    return struct.unpack_from("<I", raw, ach.native_layout().cond + 36)[0] >> 3
 
 
 @pytest.fixture
@@ -313,7 +320,7 @@ def test_cancel_wakes_waiter_and_is_sticky(pair: tuple[ach.Channel, ach.Channel]
     result: list[tuple[int, int]] = []
     t = threading.Thread(target=lambda: result.append(r.get(bytearray(64), wait=True)))
     t.start()
-    time.sleep(0.05)
+    wait_for(lambda: cond_waiters(NAME) > 0, timeout=20, what="reader thread blocked in get(wait=True)")
     r.cancel(async_unsafe=async_unsafe)
     t.join(timeout=5)
     assert not t.is_alive()
@@ -331,7 +338,7 @@ def test_close_wakes_waiter_and_refuses_calls(pair: tuple[ach.Channel, ach.Chann
     result: list[tuple[int, int]] = []
     t = threading.Thread(target=lambda: result.append(r.get(bytearray(64), wait=True)))
     t.start()
-    time.sleep(0.05)
+    wait_for(lambda: cond_waiters(NAME) > 0, timeout=20, what="reader thread blocked in get(wait=True)")
     r.close()
     t.join(timeout=5)
     assert result == [(ach.ACH_CANCELED, 0)]

@@ -2,8 +2,8 @@
 
 The fast tests run a :class:`mds_ach.achd.Server` and :class:`mds_ach.achd.Link` in this process on
 loopback. The slow ones build a robot host (its own network and /dev/shm) joined to this namespace (the
-operator station) by a veth pair; the robot runs the simulated system (``daemon --nocan`` -- or a stand-in
-until the daemon exists -- plus mux, filter and collision gate) and ``mds-ach remote serve``; the operator
+operator station) by a veth pair; the robot runs the simulated system (``daemon --nocan``, mux, filter and
+collision gate) and ``mds-ach remote serve``; the operator
 runs ``mds-ach remote``. References written here move the robot, and its state comes back; the same
 through an SSH tunnel to a real sshd on the robot; a cut link recovers without losing the newest reference.
 """
@@ -11,27 +11,24 @@ through an SSH tunnel to a real sshd on the robot; a cut link recovers without l
 from __future__ import annotations
 
 import ctypes
-import importlib.util
 import json
 import math
 import os
-import shutil
 import socket
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO, VENV_BIN, in_netns, wait_for
+from conftest import VENV_BIN, in_netns, wait_for
 
 import mds_ach as mds
 from mds_ach import ach, achd, msgs
 from mds_ach import achd_protocol as ap
+from mds_ach.netsim import Host, Sshd, Veth, reachable
 
 OP_IP = "10.77.0.1"
 ROBOT_IP = "10.77.0.2"
 LOOPBACK_ONLY_PORT = 8077  # a second robot server that listens on the robot's loopback only (for --ssh)
-SSHD = "/usr/sbin/sshd"
 
 
 def _need_netns() -> None:
@@ -210,6 +207,28 @@ def test_reconnect_delivers_the_newest_frame(clean_shm):
         srv.join()
 
 
+def test_recreated_channel_is_followed(server):
+    """The robot's stack restarts (channel removed and made again): the link finds the new channel."""
+    link = achd.Link("pull", "127.0.0.1", "test-state", remote_channel="mds-state", port=server.ports[0],
+                     dead_after_s=2.0).start()
+    try:
+        assert link.connected.wait(5)
+        ach.unlink("mds-state")
+        ach.create("mds-state", mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+        wait_for(lambda: link.stats.connects >= 2 and link.connected.is_set(), 15, what="reconnect to the new one")
+        writer = ach.Channel("mds-state", create=False)
+        reader = ach.Channel("test-state", create=False)
+        reader.flush()
+        st = msgs.MDS_STATE()
+        st.time = 42.0
+        writer.put(st)
+        got = msgs.MDS_STATE()
+        assert reader.get(got, wait=True, timeout=5)[0] == ach.ACH_OK and got.time == 42.0
+    finally:
+        link.stop()
+        link.join(5)
+
+
 def test_period_limits_rate_and_newest_wins(server):
     """With period-ns the server sends at most one frame per period, always the newest."""
     link = achd.Link("pull", "127.0.0.1", "test-state", remote_channel="mds-state", port=server.ports[0],
@@ -240,53 +259,30 @@ class Robot:
     def __init__(self, host, veth, env: dict[str, str], rt: Path) -> None:
         self.host, self.veth, self.env, self.rt = host, veth, env, rt
 
-    def served(self) -> dict:
-        try:
-            return json.loads((self.rt / "remote-serve.status.json").read_text()).get("served", {})
-        except (OSError, ValueError):
-            return {}
-
 
 def _exe(name: str) -> str:
     return str(VENV_BIN / name)
 
 
-def _reachable(host: str, port: int) -> bool:
-    try:
-        with socket.create_connection((host, port), timeout=0.5):
-            return True
-    except OSError:
-        return False
-
-
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
-    from mds_ach.netsim import Host, Veth
-
     _need_netns()
     assert os.geteuid() == 0, "the network tests need root (namespaces and veth pairs)"
     rt = tmp_path_factory.mktemp("robot-rt")
-    env = dict(os.environ, MDS_ACH_RUNTIME_DIR=str(rt), PYTHONPATH=str(REPO))
+    env = dict(os.environ, MDS_ACH_RUNTIME_DIR=str(rt))
     host = Host("robot")
     veth = Veth("mdsn", host, OP_IP, ROBOT_IP)
     procs: list[subprocess.Popen] = []
     try:
-        nodes = ["mux", "filter", "collision"]
-        if importlib.util.find_spec("mds_ach.daemon") is not None:
-            nodes.insert(0, "daemon")
-        else:  # until the daemon exists: the stand-in simulated robot (see standin_robot.py)
-            procs.append(host.popen([sys.executable, str(REPO / "test" / "standin_robot.py"), "--seconds", "600"],
-                                    env=env, cwd=REPO))
-        start = host.run([_exe("mds-ach"), "start", "nocan", "--only", *nodes, "--timeout", "120"], env=env,
-                         capture_output=True, text=True, timeout=180)
+        start = host.run([_exe("mds-ach"), "start", "nocan", "--only", "daemon", "mux", "filter", "collision",
+                          "--timeout", "120"], env=env, capture_output=True, text=True, timeout=180)
         assert start.returncode == 0, f"robot system did not start:\n{start.stdout}\n{start.stderr}"
-        procs.append(host.popen(
-            [_exe("mds-ach"), "remote", "serve", "--bind", ROBOT_IP, "--dead-after", "2"], env=env,
-            stdout=open(rt / "serve.out", "wb"), stderr=subprocess.STDOUT))
-        procs.append(host.popen(
-            [_exe("mds-ach"), "remote", "serve", "--port", str(LOOPBACK_ONLY_PORT), "--dead-after", "2"], env=env,
-            stdout=open(rt / "serve-lo.out", "wb"), stderr=subprocess.STDOUT))
-        wait_for(lambda: _reachable(ROBOT_IP, ap.ACHD_PORT), 20, what="robot achd server")
+        # one server on the veth address (plain mode), one on the robot's loopback only (for --ssh)
+        for extra, out in ((["--bind", ROBOT_IP], "serve.out"), (["--port", str(LOOPBACK_ONLY_PORT)], "serve-lo.out")):
+            with open(rt / out, "wb") as log:
+                procs.append(host.popen([_exe("mds-ach"), "remote", "serve", *extra, "--dead-after", "2"], env=env,
+                                        stdout=log, stderr=subprocess.STDOUT))
+        wait_for(lambda: reachable(ROBOT_IP, ap.ACHD_PORT), 20, what="robot achd server")
         yield Robot(host, veth, env, rt)
     finally:
         for proc in procs:
@@ -378,7 +374,6 @@ def test_remote_over_veth_moves_robot_and_recovers_a_cut_link(robot, operator):
     finally:
         robot.veth.up()
     _arrives(mds.LSP, target)  # the newest reference was not lost, and state flows again
-    import time as _t; print("ARRIVED", _t.time(), _session_status(operator).get("time"))
     wait_for(lambda: all(link["connected"] and link["connects"] >= 2 for link in _session_status(operator)["links"]),
              10, what="every link reconnected")
     killed = _remote("kill")
@@ -387,43 +382,20 @@ def test_remote_over_veth_moves_robot_and_recovers_a_cut_link(robot, operator):
 
 @pytest.fixture(scope="module")
 def sshd(robot, tmp_path_factory):
-    """A real OpenSSH server on the robot, key-only; returns (identity, known_hosts, dir)."""
-    assert os.path.exists(SSHD) and shutil.which("ssh") and shutil.which("ssh-keygen"), (
-        "OpenSSH is missing: install the Debian packages openssh-server and openssh-client "
-        "(apt-get install openssh-server openssh-client)"
-    )
-    d = tmp_path_factory.mktemp("ssh")
-    for key in ("host_key", "client_key"):
-        subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(d / key)], check=True, timeout=30)
-    (d / "authorized_keys").write_text(
-        f'restrict,port-forwarding,permitopen="127.0.0.1:{LOOPBACK_ONLY_PORT}" ' + (d / "client_key.pub").read_text()
-    )
-    (d / "known_hosts").write_text(f"{ROBOT_IP} " + " ".join((d / "host_key.pub").read_text().split()[:2]) + "\n")
-    (d / "sshd_config").write_text(
-        f"ListenAddress {ROBOT_IP}\nPort 22\nHostKey {d / 'host_key'}\nAuthorizedKeysFile {d / 'authorized_keys'}\n"
-        f"PidFile {d / 'sshd.pid'}\nPermitRootLogin prohibit-password\nPasswordAuthentication no\n"
-        "KbdInteractiveAuthentication no\nUsePAM no\nStrictModes no\nAllowTcpForwarding local\n"
-        "X11Forwarding no\nAllowAgentForwarding no\nPermitTunnel no\nLogLevel VERBOSE\n"
-    )
-    proc = robot.host.popen([SSHD, "-D", "-e", "-f", str(d / "sshd_config")], stdout=open(d / "sshd.log", "wb"),
-                            stderr=subprocess.STDOUT)
-    try:
-        wait_for(lambda: _reachable(ROBOT_IP, 22) or proc.poll() is not None, 20, what="sshd")
-        assert proc.poll() is None, f"sshd exited:\n{(d / 'sshd.log').read_text()}"
-        yield d
-    finally:
-        proc.terminate()
-        proc.wait(10)
+    """A real OpenSSH server on the robot, key-only, whose key may only forward to the loopback server."""
+    server = Sshd(robot.host, ROBOT_IP, tmp_path_factory.mktemp("ssh"), f"127.0.0.1:{LOOPBACK_ONLY_PORT}")
+    yield server
+    server.close()
 
 
 @pytest.mark.slow
 def test_remote_through_ssh_tunnel(robot, sshd, operator):
     # the loopback-only server cannot be reached from the operator: everything must go through ssh
-    assert not _reachable(ROBOT_IP, LOOPBACK_ONLY_PORT)
-    args = ["--ssh", f"root@{ROBOT_IP}", "--port", str(LOOPBACK_ONLY_PORT), "--ssh-identity",
-            str(sshd / "client_key"), "--ssh-known-hosts", str(sshd / "known_hosts"), "--dead-after", "2"]
+    assert not reachable(ROBOT_IP, LOOPBACK_ONLY_PORT)
+    args = ["--ssh", f"root@{ROBOT_IP}", "--port", str(LOOPBACK_ONLY_PORT), "--ssh-identity", str(sshd.identity),
+            "--ssh-known-hosts", str(sshd.known_hosts), "--dead-after", "2"]
     result = _remote(*args)
-    assert result.returncode == 0, result.stderr + (sshd / "sshd.log").read_text()[-2000:]
+    assert result.returncode == 0, result.stderr + sshd.log.read_text()[-2000:]
     assert "(udp)" not in result.stdout  # UDP cannot pass the tunnel: the state stream uses TCP
     _check_state_and_param()
     start = _state().joint[mds.LSP].pos
@@ -437,7 +409,15 @@ def test_remote_through_ssh_tunnel(robot, sshd, operator):
 def test_ssh_refuses_an_unknown_host_key(robot, sshd, operator, tmp_path):
     (tmp_path / "empty_known_hosts").write_text("")
     result = _remote("--ssh", f"root@{ROBOT_IP}", "--port", str(LOOPBACK_ONLY_PORT), "--ssh-identity",
-                     str(sshd / "client_key"), "--ssh-known-hosts", str(tmp_path / "empty_known_hosts"),
+                     str(sshd.identity), "--ssh-known-hosts", str(tmp_path / "empty_known_hosts"),
                      "--wait", "8")
     assert result.returncode == 1
     assert "Host key verification failed" in result.stderr
+
+
+def test_remote_refuses_to_bridge_this_machine_into_itself(tmp_path, monkeypatch):
+    monkeypatch.setenv("MDS_ACH_RUNTIME_DIR", str(tmp_path))
+    result = _remote("127.0.0.1")
+    assert result.returncode == 2
+    assert "is this machine" in result.stderr
+    assert not (tmp_path / "remote.pid").exists()

@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 import pytest
+from conftest import VENV_BIN, wait_for
 
 import mds_ach as mds
-from conftest import VENV_BIN, wait_for
 from mds_ach import ik
 from mds_ach.collision import load_model
 from mds_ach.collision_node import Gate, GateConfig, GateRunner, decision_to_dict, joint_limits
@@ -134,12 +134,13 @@ def test_safe_command_after_a_blocked_one_goes_through(table_model) -> None:
 
 
 def test_waist_turn_into_an_obstacle_holds_everything(model) -> None:
-    # a ball 5 cm from the left hand at home, in the direction the hand sweeps when the waist turns left
+    # a ball where the left hand would be after the waist turned 0.35 rad to the left
     hand = tool(model, HOME, "left_hand_link")
-    sweep = np.array([-hand[1], hand[0], 0.0]) / np.hypot(hand[0], hand[1])
-    centre = hand + (0.1 + 0.05 + 0.05) * sweep
-    m = load_model(world={"objects": [{"name": "ball", "shape": "sphere", "radius": 0.05, "xyz": centre.tolist()}]})
+    c, s = np.cos(0.35), np.sin(0.35)
+    centre = [c * hand[0] - s * hand[1], s * hand[0] + c * hand[1], hand[2]]
+    m = load_model(world={"objects": [{"name": "ball", "shape": "sphere", "radius": 0.05, "xyz": centre}]})
     gate = make_gate(m)
+    assert not gate.current.collides
     target = HOME.copy()
     target[mds.WST] = 0.38
     target[mds.NKY] = 0.3  # the neck is not involved, but it is a modelled joint: held too
@@ -158,13 +159,16 @@ def test_non_finite_and_out_of_limit_references_are_never_passed(model) -> None:
     bad[mds.RSP] = float("inf")
     bad[mds.LSR] = 3.0  # above the limit
     bad[mds.NKY] = 0.1  # fine
-    d = gate.process(bad, ZERO_MODE, 0.1)
-    assert set(d.refused) == {mds.LEP, mds.RSP, mds.LSR}
+    mode = ZERO_MODE.copy()
+    mode[mds.WST] = 7  # no such ref mode
+    d = gate.process(bad, mode, 0.1)
+    assert set(d.refused) == {mds.LEP, mds.RSP, mds.LSR, mds.WST}
+    assert d.mode[mds.WST] == 0
     assert np.all(np.isfinite(d.ref))
     assert d.ref[mds.LEP] == HOME[mds.LEP] and d.ref[mds.RSP] == HOME[mds.RSP] and d.ref[mds.LSR] == HOME[mds.LSR]
     assert d.ref[mds.NKY] == pytest.approx(0.1)
     doc = decision_to_dict(d, gate, 0.1)
-    assert set(doc["refused"]) == {"LEP", "RSP", "LSR"}
+    assert set(doc["refused"]) == {"LEP", "RSP", "LSR", "WST"}
 
 
 def test_speed_bound_keeps_a_jump_from_reaching_the_daemon(model) -> None:
@@ -261,12 +265,11 @@ def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
         core = FilterCore(parse_config({"rate": 40}), HOME, ZERO_MODE)
         core.set_target(target, ZERO_MODE)
         flagged = False
-        for _ in range(160):
+        for k in range(160):  # lock-step, so that every frame is gated (the gate itself takes the newest)
             smooth.put(make_ref(core.step(), ZERO_MODE))
-            time.sleep(0.005)
+            wait_for(lambda k=k: runner.processed > k, 10, what=f"the gate to process frame {k}")
             c = collide.latest()
             flagged |= c is not None and c.isCollide == 1 and c.joint[mds.COLLIDE_L_HAND].isCollide == 1
-        wait_for(lambda: runner.processed >= 160, 10, what="the gate to process every frame")
         got = ref_arrays(wait_for(lambda: out.latest(), 5, what="gated frame"))[0]
         assert flagged
         hand = tool(table_model, got, "left_hand_link")
@@ -315,17 +318,16 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
         assert docs and override.get_subscription_count(), proc.poll()
         into_table = HOME.copy()
         into_table[L] = solve("left", [0.40, 0.25, -0.50])
-        core = FilterCore(parse_config({"rate": 40}), HOME, ZERO_MODE)
-        core.set_target(into_table, ZERO_MODE)
 
         def feed_until(pred, what: str) -> None:
-            end = time.monotonic() + 20
+            end = time.monotonic() + 40
             while time.monotonic() < end:
-                smooth.put(make_ref(core.step(), ZERO_MODE))
+                smooth.put(make_ref(into_table, ZERO_MODE))  # unsmoothed: the gate's speed bound paces it
                 rclpy.spin_once(node, timeout_sec=0.025)
                 if pred():
                     return
-            raise AssertionError(f"timed out waiting for {what}; last: {docs[-1:]}")
+            proc.send_signal(signal.SIGTERM)
+            raise AssertionError(f"timed out waiting for {what}; last: {docs[-1:]}; node: {proc.communicate()[0]}")
 
         feed_until(lambda: any(d["held"] == ["left"] and "L_HAND" in d["parts"] for d in docs), "a held left arm")
         override.publish(Float64(data=2.0))

@@ -9,11 +9,11 @@ import threading
 
 import numpy as np
 import pytest
+from conftest import VENV_BIN, wait_for
 
 import mds_ach as mds
-from conftest import VENV_BIN, wait_for
 from mds_ach import filters
-from mds_ach.filter_node import ENC, EMA, PASS, VEL, FilterCore, FilterRunner, load_config, parse_config
+from mds_ach.filter_node import EMA, ENC, PASS, VEL, FilterCore, FilterRunner, load_config, parse_config
 from mds_ach.pipeline import make_ref, ref_arrays
 
 N = mds.MDS_JOINT_COUNT
@@ -136,6 +136,19 @@ def test_pass_mode_and_mode_field_pass_through() -> None:
     mode[mds.NKY] = mds.MDS_REF_MODE_REF
     core.set_target(_target(NKY=0.4), mode)
     assert core.step()[mds.NKY] == 0.4 and core.mode[mds.NKY] == mds.MDS_REF_MODE_REF
+
+
+def test_smoothed_joints_tell_the_daemon_not_to_filter_again() -> None:
+    p = parse_config({"joints": [{"joints": "WST", "mode": "pass"}]})
+    core = FilterCore(p, np.zeros(N), ZERO_MODE)
+    mode = ZERO_MODE.copy()
+    mode[mds.NKY] = mds.MDS_REF_MODE_COMPLIANT
+    core.set_target(np.zeros(N), mode)
+    out = core.out_mode()
+    assert out[mds.LSP] == mds.MDS_REF_MODE_REF  # legacy mode 0 -> already smoothed here
+    assert out[mds.NKY] == mds.MDS_REF_MODE_COMPLIANT  # explicit requests pass through
+    assert out[mds.WST] == mds.MDS_REF_MODE_REF_FILTER  # not smoothed here: the daemon's filter still applies
+    assert np.all(FilterCore(parse_config({"mark_smoothed": False}), np.zeros(N), ZERO_MODE).out_mode() == 0)
 
 
 def test_non_finite_targets_are_ignored_per_joint() -> None:

@@ -262,3 +262,15 @@ def test_bad_seed_and_dof_are_refused() -> None:
     with pytest.raises(ValueError, match="bad IK dof"):
         ik.order_for_dof(7)
     assert ik.order_for_dof(4) == ("p-x", "p-y", "p-z", "t-x")
+
+
+def test_rotation_vectors_including_half_turns() -> None:
+    rng = np.random.default_rng(4)
+    R = kinematics.rotation_zyx(*rng.uniform(-3, 3, (3, 50)))
+    half = kinematics.axis_angle(np.array([1.0, 2.0, -2.0]) / 3.0, math.pi)
+    R = np.concatenate([R, np.eye(3)[None], half[None]])
+    rv, theta = ik._rotvec(R)
+    assert np.allclose(np.linalg.norm(rv, axis=1), theta) and np.all(theta <= math.pi + 1e-12)
+    for k in range(len(R)):
+        axis = rv[k] / theta[k] if theta[k] > 0 else np.array([1.0, 0, 0])
+        assert np.allclose(kinematics.axis_angle(axis, theta[k]), R[k], atol=1e-9)

@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 import pytest
+from conftest import VENV_BIN, wait_for
 
 import mds_ach as mds
-from conftest import VENV_BIN, wait_for
 from mds_ach.mux import MDS_MUX_STATE, Controller, MuxCore, MuxRunner, load_config, parse_controllers, state_to_dict
 from mds_ach.pipeline import make_ref, ref_arrays, select_joints
 

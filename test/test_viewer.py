@@ -548,19 +548,36 @@ def until(measure: Callable[[], int], ok: Callable[[int], bool], what: str, time
         time.sleep(0.3)
 
 
+def shot_once_changed(page: Page, box: tuple[int, int, int, int], reference: np.ndarray) -> np.ndarray:
+    """The settled canvas once it differs from ``reference`` (the page has drawn what we just wrote)."""
+    until(lambda: changed_pixels(reference, crop(page.screenshot(), box)), lambda n: n > 500,
+          "the canvas to change (pixels changed)")
+    return settled(page, box)
+
+
 @pytest.mark.slow
 def test_browser_robot_moves_after_a_goto(page: Page) -> None:
+    """Arms down, arms up, arms down again: the second and first pictures agree, the middle one differs.
+
+    viser lowers the canvas resolution step by step while the frame rate is low (software GL), which changes
+    every edge on screen; a round that saw such a step (first and last pictures differ) is repeated.
+    """
     box = canvas_box(page)
+    rounds = []
     with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as state:
-        state.put(state_frame(ARMS_DOWN))
-        before = settled(page, box)
-        state.put(state_frame(ARMS_UP))
-        until(lambda: changed_pixels(before, crop(page.screenshot(), box)), lambda n: n > 2000,
-              "the arms to move on screen (pixels changed)")
-        moved = changed_pixels(before, settled(page, box))
-        state.put(state_frame(ARMS_DOWN))
-        until(lambda: changed_pixels(before, crop(page.screenshot(), box)), lambda n: n < 0.1 * moved,
-              f"the arms to come back down on screen (pixels still differing; {moved} when up)")
+        for _ in range(6):
+            state.put(state_frame(ARMS_DOWN))
+            down = settled(page, box)
+            state.put(state_frame(ARMS_UP))
+            up = shot_once_changed(page, box, down)
+            state.put(state_frame(ARMS_DOWN))
+            down_again = shot_once_changed(page, box, up)
+            moved, residue = changed_pixels(down, up), changed_pixels(down, down_again)
+            rounds.append((moved, residue))
+            if residue < 300:  # same resolution throughout: this round counts
+                break
+    assert residue < 300, f"the picture never came back after the arms did (changed pixels up/back: {rounds})"
+    assert moved > 3000, f"the arms moved but the picture hardly changed (changed pixels up/back: {rounds})"
 
 
 @pytest.mark.slow

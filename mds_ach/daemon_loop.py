@@ -1,0 +1,713 @@
+"""The daemon's real-time loop: references in, MCB frames out, positions back, ``mds-state`` published.
+
+One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread:
+
+1. setup commands queued from ``mds-cmd`` or the ROS service (enable, disable, home, reset, zero, reset bus);
+2. newest ``mds-collide`` (copied into ``state.collide``) and newest ``mds-ref`` -- nothing new means the
+   previous reference holds (zero-order hold); NaN/Inf or an unknown mode refuses that joint's value;
+3. per joint: clamp to the joint limits, then the legacy mode (0 first-order filter with L giving 95 % of a
+   step in 4.0 s at the loop rate, 1 pass-through, 2 compliant (follow the encoder), 3 encoder filter);
+4. for enabled joints whose target (float32 counts) changed, unless ``mds-collide`` says a collision is
+   predicted: the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
+5. one broadcast ACTUAL_POSITION query; replies decoded in binary until every live node answered or the
+   reply window closes; a node silent for ``stale_after`` is stale (``state.active`` 0, flagged in
+   ``mds-daemon-status``), never reported as fresh;
+6. ``mds-state`` (legacy layout, CLOCK_MONOTONIC time) and ``mds-daemon-status``.
+
+``state.joint[a].active`` is 1 while the joint's position is fresh, ``pos`` is NaN until a first reading
+arrived, ``vel`` is the finite difference of fresh readings, ``cur`` the last CURRENT reply (raw units).
+Setup commands (enable, reset, zero encoder, home) never move a joint by themselves except HOME: afterwards
+the joint holds where it is until its reference on ``mds-ref`` changes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import math
+import os
+import queue
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach import daemon_status as ds
+from mds_ach import filters, mcb
+from mds_ach.canio import CanIO
+from mds_ach.config import JointConfig, JointTable
+from mds_ach.mcb import Response, StateArg
+from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
+
+log = logging.getLogger("mds_ach.daemon")
+
+CAN_ERR_CRTL = 0x004
+CAN_ERR_BUSOFF = 0x040
+CAN_ERR_RESTARTED = 0x100
+CAN_ERR_CRTL_PASSIVE = 0x30  # RX or TX passive in data[1]
+CAN_ERR_CRTL_WARNING = 0x0C
+
+HOMING_TIMEOUT = 60.0  # s: stop waiting for a homing joint to settle
+COMMAND_NAMES = {mds.MDS_CMD_ENABLE: "enable", mds.MDS_CMD_DISABLE: "disable", mds.MDS_CMD_HOME: "home",
+                 mds.MDS_CMD_RESET: "reset", mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET_BUS: "resetbus"}
+_F32 = struct.Struct("<f")
+
+
+def f32(value: float) -> float:
+    """The value as the float32 that goes on the wire (what decides whether a target 'changed')."""
+    return _F32.unpack(_F32.pack(value))[0]
+
+
+# --- absolute-time sleeping -----------------------------------------------------------------------------
+
+CLOCK_MONOTONIC = 1
+TIMER_ABSTIME = 1
+PR_SET_TIMERSLACK = 29
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+try:
+    _libc = ctypes.CDLL(None, use_errno=True)
+    _clock_nanosleep = _libc.clock_nanosleep
+    _clock_nanosleep.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Timespec), ctypes.c_void_p]
+    _clock_nanosleep.restype = ctypes.c_int
+except (OSError, AttributeError):  # not glibc: fall back to a relative sleep to the deadline
+    _libc = None
+    _clock_nanosleep = None
+
+
+def sleep_until(deadline: float) -> None:
+    """Sleep until ``deadline`` on the CLOCK_MONOTONIC timeline (``time.monotonic()``), absolute, so that
+    lateness never accumulates; restarts after signals. The GIL is released while sleeping."""
+    if _clock_nanosleep is None:
+        remaining = deadline - time.monotonic()
+        if remaining > 0:
+            time.sleep(remaining)
+        return
+    sec = math.floor(deadline)
+    ts = _Timespec(int(sec), int((deadline - sec) * 1e9))
+    while _clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, ctypes.byref(ts), None) == 4:  # EINTR
+        pass
+
+
+def tune_thread(rt_priority: int = 0) -> list[str]:
+    """Best effort for the calling thread: 1 ns timer slack, optional SCHED_FIFO. Returns what failed."""
+    problems = []
+    if _libc is not None:
+        try:
+            if _libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(1), 0, 0, 0) != 0:
+                problems.append("timer slack unchanged")
+        except AttributeError:
+            problems.append("no prctl")
+    if rt_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+        except (PermissionError, OSError) as exc:
+            problems.append(f"SCHED_FIFO {rt_priority} refused ({exc.strerror or exc}); running with normal priority")
+    return problems
+
+
+# --- channels --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DaemonChannels:
+    """The Ach channels the daemon reads and writes (created if missing)."""
+
+    ref: object
+    state: object
+    collide: object
+    cmd: object
+    status: object
+    param: object
+
+    @classmethod
+    def open(cls) -> DaemonChannels:
+        from mds_ach import ach
+        from mds_ach.channels import StructChannel
+
+        names = {"ref": (mds.MDS_CHAN_REF_NAME, MDS_REF), "state": (mds.MDS_CHAN_STATE_NAME, MDS_STATE),
+                 "collide": (mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE),
+                 "status": (mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS),
+                 "param": (mds.MDS_CHAN_PARAM_NAME, MDS_JOINT_PARAM)}
+        opened = {}
+        try:
+            for key, (name, ctype) in names.items():
+                opened[key] = StructChannel(name, ctype)
+            opened["cmd"] = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+        except Exception:
+            for ch in opened.values():
+                ch.close()
+            raise
+        return cls(**opened)
+
+    def close(self) -> None:
+        for ch in (self.ref, self.state, self.collide, self.cmd, self.status, self.param):
+            ch.close()
+
+
+# --- per-joint runtime state ---------------------------------------------------------------------------
+
+
+@dataclass
+class JointRuntime:
+    """What the loop knows about one configured joint between cycles."""
+
+    cfg: JointConfig
+    ref_r: float  # last accepted reference from mds-ref (joint rad)
+    ref: float  # filtered / moded reference (what is commanded)
+    mode: int = mds.MDS_REF_MODE_REF
+    enabled: bool = True  # commands are sent (config enabled and not disabled at run time)
+    pos: float = math.nan
+    vel: float = 0.0
+    cur: float = 0.0
+    ref_c: float = 0.0
+    last_reply: float = -math.inf  # monotonic time of the last position reply
+    sent_counts: float | None = None  # float32 counts of the last MOVETO that went out completely
+    ref_c_send: float = math.nan
+    ack_due: float = math.inf  # MOVETO ACK expected before this time
+    hold: float | None = None  # after a setup command: hold until ref_r differs from this
+    flags: int = 0
+    homing_since: float | None = None
+
+
+@dataclass
+class Command:
+    """A setup command for the loop; ``done`` is set with ``result``/``message`` when handled."""
+
+    code: int
+    address: int = 0
+    value: float = 0.0
+    seq: int = 0
+    done: threading.Event = field(default_factory=threading.Event)
+    result: int = ds.CMD_OK
+    message: str = ""
+
+
+class Stats:
+    """Loop timing over a sliding window of cycles (ring buffers; the first cycle has no period)."""
+
+    def __init__(self, window: int) -> None:
+        self.window = window
+        self.period_err = np.zeros(window)
+        self.wake = np.zeros(window)
+        self.cpu = np.zeros(window)
+        self.load = np.zeros(window)
+        self.n = 0  # cycles recorded
+        self.n_period = 0  # period errors recorded
+
+    def add(self, period_err: float | None, wake: float, cpu: float, load: float) -> None:
+        i = self.n % self.window
+        self.wake[i], self.cpu[i], self.load[i] = wake, cpu, load
+        self.n += 1
+        if period_err is not None:
+            self.period_err[self.n_period % self.window] = period_err
+            self.n_period += 1
+
+    def view(self, a: np.ndarray) -> np.ndarray:
+        return a[: min(self.n_period if a is self.period_err else self.n, self.window)]
+
+
+# --- the loop ----------------------------------------------------------------------------------------------
+
+
+class DaemonLoop:
+    """The MDS driver loop; ``cycle()`` is one period, ``run()`` the scheduled thread body."""
+
+    def __init__(
+        self,
+        table: JointTable,
+        io: CanIO,
+        channels: DaemonChannels,
+        *,
+        rate_hz: float = 1.0 / mds.MDS_LOOP_PERIOD,
+        reply_wait: float | None = None,
+        stale_after: float | None = None,
+        filter_length: float | None = None,
+        collide_gate: bool = True,
+        nocan: bool = False,
+        rt_priority: int = 0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
+            raise ValueError(f"loop rate must be in (0, 1000] Hz, got {rate_hz}")
+        self.table = table
+        self.io = io
+        self.ch = channels
+        self.rate = rate_hz
+        self.period = 1.0 / rate_hz
+        self.reply_wait = self.period * 0.5 if reply_wait is None else reply_wait
+        self.stale_after = max(3.5 * self.period, 0.02) if stale_after is None else stale_after
+        self.ack_timeout = max(2.5 * self.period, 0.05)
+        self.L = filters.filter_length(rate_hz) if filter_length is None else filter_length
+        self.collide_gate = collide_gate
+        self.nocan = nocan
+        self.rt_priority = rt_priority
+        self.clock = clock
+        self.joints: dict[int, JointRuntime] = {
+            j.address: JointRuntime(j, ref_r=j.home, ref=j.home, enabled=j.enabled) for j in table
+        }
+        self.state = MDS_STATE()
+        table.fill_state(self.state)
+        self.collide = MDS_COLLIDE()
+        self.status = ds.MDS_DAEMON_STATUS(version=ds.DAEMON_STATUS_VERSION, pid=os.getpid())
+        self.status.rate_hz, self.status.bitrate, self.status.nocan = rate_hz, io.bitrate, int(nocan)
+        self.status.stale_after, self.status.filter_length = self.stale_after, self.L
+        self.stats = Stats(max(50, min(2000, int(rate_hz * 10))))
+        self.commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._cmd_buf = bytearray(max(ctypes.sizeof(MDS_CMD), channels.cmd.data_size))
+        self.bus_state = ds.BUS_STATE_ACTIVE
+        self.unknown_addresses: set[int] = set()
+        self.cycle_count = 0
+        self._last_start: float | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()  # guards snapshot() against the loop thread
+        self._snapshot = ds.MDS_DAEMON_STATUS()
+        self._warned: set[str] = set()
+        self._last_warn: dict[str, float] = {}
+        self._answered: set[int] = set()
+        self.start_time = clock()
+        self.status.start_time = self.start_time
+
+    # --- start-up --------------------------------------------------------------------------------------
+
+    def start_up(self, listen: float = 0.5, queries: int = 3) -> int:
+        """Publish ``mds-param``, read where the robot is and start the reference there (no step).
+
+        Joints that answer start at their measured position, the others at the configured home pose; no
+        motion frame is sent until a reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped.
+        Returns how many joints answered.
+        """
+        self.ch.param.put(self.table.to_param())
+        self.ch.ref.flush()
+        self.ch.cmd.flush()
+        for _ in range(max(1, queries)):
+            self.io.send(mcb.encode_query_positions())
+            deadline = self.clock() + listen / max(1, queries)
+            while self.clock() < deadline:
+                msg = self.io.recv(max(0.0, deadline - self.clock()))
+                if msg is not None:
+                    self._handle(msg, self.clock())
+                if all(math.isfinite(jr.pos) for jr in self.joints.values()):
+                    break
+            if all(math.isfinite(jr.pos) for jr in self.joints.values()):
+                break
+        answered = 0
+        for jr in self.joints.values():
+            if math.isfinite(jr.pos):
+                jr.ref_r = jr.ref = jr.pos
+                answered += 1
+            jr.sent_counts = f32(jr.cfg.to_counts(jr.ref))  # the node already holds this: nothing to send
+            jr.ref_c_send = jr.ref
+        self._fill_state(self.clock())
+        self.state.time = time.monotonic()
+        self.ch.state.put(self.state)
+        if answered == 0:
+            log.warning("no joint answered the position query; starting from the configured home pose")
+        else:
+            missing = [jr.cfg.short for jr in self.joints.values() if not math.isfinite(jr.pos)]
+            log.info("start-up: %d of %d joints answered%s", answered, len(self.joints),
+                     f" (silent: {', '.join(missing)})" if missing else "")
+        return answered
+
+    # --- thread ------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.run, name="mds-daemon-loop", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def run(self) -> None:
+        """Absolute-time schedule: deadlines at start + k*period; a missed deadline is an overrun and the
+        schedule skips to the next future slot (never a burst of catch-up cycles)."""
+        for problem in tune_thread(self.rt_priority):
+            log.warning("loop thread: %s", problem)
+        next_deadline = self.clock()
+        try:
+            while not self._stop.is_set():
+                sleep_until(next_deadline)
+                start = self.clock()
+                self.cycle(deadline=next_deadline, start=start)
+                next_deadline += self.period
+                now = self.clock()
+                if now > next_deadline:
+                    missed = math.ceil((now - next_deadline) / self.period)
+                    self.status.overruns += 1
+                    next_deadline += missed * self.period
+        except Exception:
+            log.exception("daemon loop stopped by an internal error")
+            raise
+
+    def submit(self, code: int, address: int = 0, value: float = 0.0, seq: int = 0) -> Command:
+        """Queue a setup command for the next cycle (thread-safe); wait on ``.done`` for the result."""
+        cmd = Command(code, address, value, seq)
+        self.commands.put(cmd)
+        return cmd
+
+    def snapshot(self) -> ds.MDS_DAEMON_STATUS:
+        """A consistent copy of the last published status (for the diagnostics publisher thread)."""
+        with self._lock:
+            return ds.MDS_DAEMON_STATUS.from_buffer_copy(self._snapshot)
+
+    # --- one cycle ---------------------------------------------------------------------------------------
+
+    def cycle(self, deadline: float | None = None, start: float | None = None) -> None:
+        start = self.clock() if start is None else start
+        deadline = start if deadline is None else deadline
+        cpu0 = time.thread_time()
+        self.io.counters.take_bits()  # bus load counts the frames sent and received during this cycle
+        self._read_commands()
+        self._run_commands(start)
+        collide = self.ch.collide.latest()
+        if collide is not None:
+            self.collide = collide
+            ctypes.memmove(ctypes.addressof(self.state.collide), ctypes.addressof(collide), ctypes.sizeof(collide))
+        ref = self.ch.ref.latest()
+        if ref is not None:
+            self.status.refs_received += 1
+            self._accept_ref(ref)
+        self._drain(start)  # late replies and ACKs of the previous cycle
+        self._check_acks(start)
+        self._update_refs(start)
+        self._send_targets(start)
+        self._query(start)
+        now = self.clock()
+        self._fill_state(now)
+        self.state.time = time.monotonic()
+        self.ch.state.put(self.state)
+        self._publish_status(start, deadline, cpu0)
+
+    def _read_commands(self) -> None:
+        """Every new mds-cmd frame in order (not just the newest: two quick commands must both count)."""
+        from mds_ach import ach
+
+        for _ in range(mds.CHANNEL_FRAME_COUNT):
+            try:
+                status, size = self.ch.cmd.get(self._cmd_buf)
+            except ach.AchException as exc:
+                self._warn_once("cmd-overflow", f"mds-cmd: {exc}")
+                return
+            if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+                return
+            if size != ctypes.sizeof(MDS_CMD):
+                self._warn_once(f"cmd-size-{size}", f"mds-cmd: ignored a {size}-byte frame (MDS_CMD is "
+                                                    f"{ctypes.sizeof(MDS_CMD)} bytes)")
+                continue
+            c = MDS_CMD.from_buffer_copy(self._cmd_buf[:size])
+            self.commands.put(Command(c.cmd, c.address, c.value, c.seq))
+
+    def _run_commands(self, now: float) -> None:
+        while True:
+            try:
+                cmd = self.commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                cmd.result, cmd.message = self._execute(cmd, now)
+            except Exception as exc:  # a bad command must never stop the loop
+                cmd.result, cmd.message = ds.CMD_FAILED, f"internal error: {exc}"
+                log.exception("command %s failed", cmd)
+            level = logging.INFO if cmd.result == ds.CMD_OK else logging.WARNING
+            log.log(level, "command %s: %s", COMMAND_NAMES.get(cmd.code, cmd.code), cmd.message)
+            self.status.cmd_seq, self.status.cmd_result = cmd.seq, cmd.result
+            cmd.done.set()
+
+    def _execute(self, cmd: Command, now: float) -> tuple[int, str]:
+        if cmd.code == mds.MDS_CMD_RESET_BUS:
+            self.io.reopen()
+            self.status.bus_resets += 1
+            self.bus_state = ds.BUS_STATE_ACTIVE
+            for jr in self.joints.values():
+                jr.sent_counts = None  # frames may have been lost while the bus was down: send targets again
+            return ds.CMD_OK, f"CAN bus re-opened ({self.io.description})"
+        if cmd.code not in COMMAND_NAMES:
+            return ds.CMD_REFUSED, f"unknown command code {cmd.code}"
+        if cmd.address == 0:
+            targets = [jr for jr in self.joints.values() if jr.cfg.enabled]
+        else:
+            jr = self.joints.get(cmd.address)
+            if jr is None:
+                return ds.CMD_REFUSED, f"no joint at address 0x{cmd.address:02X}"
+            if not jr.cfg.enabled:
+                return ds.CMD_REFUSED, f"{jr.cfg.short} is disabled in the joint table: no frames go to it"
+            targets = [jr]
+        build = {mds.MDS_CMD_ENABLE: mcb.encode_enable, mds.MDS_CMD_DISABLE: mcb.encode_disable,
+                 mds.MDS_CMD_HOME: mcb.encode_home, mds.MDS_CMD_RESET: mcb.encode_reset,
+                 mds.MDS_CMD_ZERO_ENCODER: mcb.encode_zero_encoder}[cmd.code]
+        failed = [jr.cfg.short for jr in targets if not self.io.send(build(jr.cfg.address))]
+        for jr in targets:
+            if cmd.code == mds.MDS_CMD_DISABLE:
+                jr.enabled = False
+            else:
+                jr.enabled = True
+                # Hold where the joint is until its reference changes (see module doc); HOME moves it itself.
+                jr.hold = jr.ref_r
+                jr.sent_counts = None
+                jr.ack_due = math.inf
+                if cmd.code in (mds.MDS_CMD_RESET, mds.MDS_CMD_ZERO_ENCODER, mds.MDS_CMD_HOME):
+                    jr.pos, jr.last_reply = math.nan, -math.inf  # the count restarts: old readings are void
+                jr.homing_since = now if cmd.code == mds.MDS_CMD_HOME else None
+        names = ", ".join(jr.cfg.short for jr in targets)
+        if failed:
+            return ds.CMD_FAILED, f"{COMMAND_NAMES[cmd.code]} not sent to {', '.join(failed)}: " \
+                                  f"{self.io.counters.last_error}"
+        return ds.CMD_OK, f"{COMMAND_NAMES[cmd.code]} sent to {names}"
+
+    def _accept_ref(self, ref: MDS_REF) -> None:
+        for a, jr in self.joints.items():
+            entry = ref.joint[a]
+            value, mode = entry.ref, entry.mode
+            if not math.isfinite(value) or mode not in (0, 1, 2, 3):
+                if not jr.flags & ds.JOINT_REFUSED:
+                    self.status.refs_refused += 1
+                    what = f"mode {mode}" if math.isfinite(value) else f"value {value}"
+                    self._warn_rate(f"refuse-{a}", f"mds-ref: {jr.cfg.short} {what} refused; holding "
+                                                    f"{jr.ref_r:.4f}")
+                jr.flags |= ds.JOINT_REFUSED
+                continue
+            jr.flags &= ~ds.JOINT_REFUSED
+            if value != jr.ref_r and not jr.cfg.within_limits(value):
+                self.status.refs_clamped += 1
+                self._warn_rate(f"clamp-{a}", f"mds-ref: {jr.cfg.short} {value:.4f} outside "
+                                              f"[{jr.cfg.lower:.4f}, {jr.cfg.upper:.4f}]: clamped")
+            jr.ref_r, jr.mode = value, mode
+
+    def _update_refs(self, now: float) -> None:
+        for jr in self.joints.values():
+            cfg = jr.cfg
+            jr.flags &= ~(ds.JOINT_CLAMPED | ds.JOINT_MOVING)
+            if not cfg.within_limits(jr.ref_r):
+                jr.flags |= ds.JOINT_CLAMPED
+            desired = cfg.clamp(jr.ref_r)
+            fresh = now - jr.last_reply <= self.stale_after
+            if jr.hold is not None:
+                if jr.ref_r == jr.hold:
+                    if fresh:
+                        jr.ref = jr.pos  # report what the joint does: it stays where it is
+                    continue
+                jr.hold = None
+            if jr.mode == mds.MDS_REF_MODE_REF:
+                new = desired
+            elif jr.mode == mds.MDS_REF_MODE_REF_FILTER:
+                new = filters.ema_step(jr.ref, desired, self.L)
+            elif jr.mode == mds.MDS_REF_MODE_COMPLIANT:
+                new = jr.pos if fresh else jr.ref
+            else:  # MDS_REF_MODE_ENC_FILTER
+                new = filters.enc_filter_step(jr.pos, desired, self.L) if fresh else \
+                    filters.ema_step(jr.ref, desired, self.L)
+            jr.ref = cfg.clamp(new)
+
+    def _send_targets(self, now: float) -> None:
+        if self.collide_gate and self.collide.isCollide:
+            # Like the original: nothing moves while a collision is predicted; the current target goes out
+            # as soon as it clears.
+            self.status.collision_holds += 1
+            return
+        if self.bus_state == ds.BUS_STATE_BUS_OFF:
+            return  # nothing gets through; `mds-ach resetbus` re-opens the bus
+        accel_period = self.table.trajectory_period
+        for a, jr in self.joints.items():
+            if not jr.enabled or jr.hold is not None or jr.homing_since is not None:
+                continue
+            counts = jr.cfg.to_counts(jr.ref)
+            c32 = f32(counts)
+            if c32 == jr.sent_counts:
+                continue
+            frames = mcb.encode_position_sequence(a, counts, self.table.accel_counts(jr.cfg), accel_period)
+            if all(self.io.send(f) for f in frames):
+                jr.sent_counts = c32
+                jr.ref_c_send = jr.ref
+                jr.ack_due = now + self.ack_timeout
+                jr.flags |= ds.JOINT_MOVING
+            # else: counted as tx errors; the target goes out again next cycle
+
+    def _check_acks(self, now: float) -> None:
+        for jr in self.joints.values():
+            if now > jr.ack_due:
+                jr.ack_due = math.inf
+                jr.sent_counts = None  # send the target again
+                self.status.acks_missing += 1
+
+    def _query(self, start: float) -> None:
+        # Stale joints are not waited for (their replies are still taken when they come); when every joint
+        # is silent the whole window is used, in case the robot just came back.
+        expected = {a for a, jr in self.joints.items() if start - jr.last_reply <= self.stale_after}
+        expected = expected or set(self.joints)
+        self.status.replies_expected = len(expected)
+        self._answered = set()
+        if not self.io.send(mcb.encode_query_positions()):
+            self.status.replies_received = 0
+            return
+        deadline = start + self.reply_wait
+        while not expected <= self._answered:
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                break
+            msg = self.io.recv(remaining)
+            if msg is None:
+                break
+            self._handle(msg, self.clock())
+        self.status.replies_received = len(self._answered)
+
+    def _drain(self, now: float) -> None:
+        self._answered = set()
+        for _ in range(10_000):
+            msg = self.io.recv(0)
+            if msg is None:
+                return
+            self._handle(msg, now)
+
+    def _handle(self, msg, now: float) -> None:
+        """One received frame: positions, ACKs, node errors, bus errors, junk -- each counted."""
+        if msg.is_error_frame:
+            self._bus_error(msg)
+            return
+        if msg.is_extended_id or msg.is_remote_frame or msg.dlc != mcb.DLC or len(msg.data) != mcb.DLC:
+            self.status.malformed_frames += 1
+            self._warn_rate("malformed", f"malformed frame ignored: {msg}")
+            return
+        if msg.arbitration_id != mcb.HOST_SID:
+            self.status.unknown_node_frames += 1  # another host's traffic, or a node on a wrong ID
+            return
+        pos = mcb.decode_position(msg.data)
+        if pos is not None:
+            address, counts = pos
+            jr = self.joints.get(address)
+            if jr is None:
+                self._unknown(address)
+                return
+            if not math.isfinite(counts):
+                self.status.malformed_frames += 1
+                return
+            q = jr.cfg.to_joint(counts)
+            if math.isfinite(jr.pos) and now > jr.last_reply and now - jr.last_reply <= self.stale_after:
+                jr.vel = (q - jr.pos) / (now - jr.last_reply)
+            else:
+                jr.vel = 0.0
+            jr.pos, jr.last_reply = q, now
+            self._answered.add(address)
+            return
+        frame = mcb.decode(msg.arbitration_id, msg.data)
+        jr = self.joints.get(frame.address)
+        if jr is None:
+            self._unknown(frame.address)
+            return
+        if frame.command == Response.ACK:
+            if frame.acked_argument == StateArg.MOVETO_TARGET:
+                jr.ack_due = math.inf
+        elif frame.command == Response.STATE:
+            if frame.argument == StateArg.CURRENT:
+                jr.cur = float(frame.value)
+            elif frame.argument == StateArg.DESIRED_POSITION and math.isfinite(frame.value):
+                jr.ref_c = jr.cfg.to_joint(frame.value)
+        elif frame.command in (Response.WARNING, Response.ERROR):
+            if frame.command == Response.WARNING and frame.argument == mcb.ErrorCode.TRAJECTORY_BUFFER_EMPTY:
+                return  # the node finished its move: normal
+            self.status.node_errors += 1
+            self._warn_rate(f"node-{frame.address}", f"{jr.cfg.short}: {frame}")
+
+    def _unknown(self, address: int) -> None:
+        self.status.unknown_node_frames += 1
+        if address not in self.unknown_addresses:
+            self.unknown_addresses.add(address)
+            log.warning("frames from node 0x%02X, which is not in the joint table (counted, ignored)", address)
+
+    def _bus_error(self, msg) -> None:
+        err = msg.arbitration_id
+        status = msg.data[1] if len(msg.data) > 1 else 0
+        if err & CAN_ERR_BUSOFF:
+            if self.bus_state != ds.BUS_STATE_BUS_OFF:
+                self.status.bus_off_count += 1
+                log.error("CAN bus-off: nothing reaches the robot until `mds-ach resetbus`")
+            self.bus_state = ds.BUS_STATE_BUS_OFF
+        elif err & CAN_ERR_RESTARTED:
+            self.bus_state = ds.BUS_STATE_ACTIVE
+            log.info("CAN controller restarted")
+        elif err & CAN_ERR_CRTL and status & (CAN_ERR_CRTL_PASSIVE | CAN_ERR_CRTL_WARNING):
+            if self.bus_state == ds.BUS_STATE_ACTIVE:
+                self.bus_state = ds.BUS_STATE_PASSIVE
+                self._warn_rate("passive", f"CAN controller error-passive/warning (status 0x{status:02X})")
+
+    # --- publishing -----------------------------------------------------------------------------------------
+
+    def _fill_state(self, now: float) -> None:
+        stale = 0
+        for a, jr in self.joints.items():
+            s = self.state.joint[a]
+            fresh = now - jr.last_reply <= self.stale_after
+            if jr.homing_since is not None and now - jr.homing_since > 1.0:
+                counts_per_cycle = abs(jr.vel) * self.period * jr.cfg.cpr / (2 * math.pi)
+                if (fresh and counts_per_cycle < 2.0) or now - jr.homing_since > HOMING_TIMEOUT:
+                    jr.homing_since = None  # settled: hold there (jr.hold) until the reference changes
+            s.ref_r, s.ref, s.ref_c_send, s.ref_c = jr.ref_r, jr.ref, jr.ref_c_send, jr.ref_c
+            s.pos, s.vel, s.cur = jr.pos, (jr.vel if fresh else 0.0), jr.cur
+            s.enabled, s.active = int(jr.enabled), int(fresh)
+            flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING)
+            flags |= ds.JOINT_CONFIGURED | (ds.JOINT_ENABLED if jr.enabled else 0)
+            flags |= ds.JOINT_FRESH if fresh else ds.JOINT_STALE
+            self.status.joint_flags[a] = flags
+            self.status.joint_age[a] = now - jr.last_reply if math.isfinite(jr.last_reply) else -1.0
+            if not fresh and jr.enabled:
+                stale += 1
+        self.status.stale_count = stale
+
+    def _publish_status(self, start: float, deadline: float, cpu0: float) -> None:
+        st = self.status
+        now = self.clock()
+        period_err = None if self._last_start is None else (start - self._last_start) - self.period
+        self._last_start = start
+        load = 100.0 * self.io.counters.bits / (self.io.bitrate * self.period)
+        self.stats.add(period_err, start - deadline, time.thread_time() - cpu0, load)
+        self.cycle_count += 1
+        st.cycle, st.time = self.cycle_count, time.monotonic()
+        st.period_error, st.cycle_time = period_err or 0.0, now - start
+        st.cycle_time_max = max(st.cycle_time_max, st.cycle_time)
+        errs = self.stats.view(self.stats.period_err)
+        # Window statistics ten times a second (percentiles cost ~0.3 ms; per-cycle values stay current).
+        if errs.size and (self.cycle_count % max(1, round(self.rate / 10)) == 0 or errs.size < 3):
+            abs_errs = np.abs(errs)
+            st.period_error_p50, st.period_error_p99 = np.percentile(abs_errs, [50, 99])
+            st.period_error_max = float(abs_errs.max())
+            st.measured_rate_hz = 1.0 / (self.period + float(errs.mean()))
+        st.wake_latency_max = float(self.stats.view(self.stats.wake).max())
+        st.cpu_per_cycle = float(self.stats.view(self.stats.cpu).mean())
+        st.bus_load, st.bus_load_avg = load, float(self.stats.view(self.stats.load).mean())
+        c = self.io.counters
+        st.tx_frames, st.rx_frames, st.tx_errors, st.rx_errors = c.tx_frames, c.rx_frames, c.tx_errors, c.rx_errors
+        st.error_frames = c.error_frames
+        if self.bus_state != ds.BUS_STATE_BUS_OFF and self.io.state.name == "ERROR":
+            st.bus_off_count += 1
+            self.bus_state = ds.BUS_STATE_BUS_OFF
+            log.error("CAN interface reports bus-off: nothing reaches the robot until `mds-ach resetbus`")
+        st.bus_state = self.bus_state
+        self.ch.status.put(st)
+        with self._lock:
+            ctypes.memmove(ctypes.addressof(self._snapshot), ctypes.addressof(st), ctypes.sizeof(st))
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning(text)
+
+    def _warn_rate(self, key: str, text: str, every: float = 5.0) -> None:
+        """At most one warning per ``every`` seconds per key (a flood must not stall the loop)."""
+        now = time.monotonic()
+        if now - self._last_warn.get(key, -math.inf) >= every:
+            self._last_warn[key] = now
+            log.warning(text)

@@ -1,0 +1,289 @@
+"""``mds-ach start/stop/kill/killall/status/resetbus/changerobot/run``: the process manager, end to end."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import REPO, VENV_BIN, in_netns, remove_mds_channels, wait_for
+from mds_system import mds_ach, newest, running_system, system_env
+
+import mds_ach as mds
+from mds_ach import ach
+from mds_ach.config import load
+from mds_ach.daemon_status import MDS_DAEMON_STATUS
+from mds_ach.launcher import NODES, node_command
+from mds_ach.msgs import get_name
+
+VERBS = ["start", "run", "stop", "kill", "killall", "status", "resetbus", "changerobot", "console", "read"]
+
+
+@pytest.mark.parametrize("verb", VERBS)
+def test_every_verb_has_help(verb: str) -> None:
+    proc = subprocess.run([str(VENV_BIN / "mds-ach"), verb, "--help"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f"usage: mds-ach {verb}")
+
+
+def test_node_commands_are_this_packages_scripts() -> None:
+    for name in NODES:
+        cmd = node_command(name)
+        assert Path(cmd[0]).name == name and "mds_ach" in Path(cmd[0]).read_text(errors="replace"), cmd
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rfind(")") + 2] != "Z"
+
+
+def _processes_of(runtime: Path) -> list[int]:
+    """Live processes started with this runtime dir (other tests on the machine have their own)."""
+    marker = f"MDS_ACH_RUNTIME_DIR={runtime}".encode()
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            try:
+                if marker in (entry / "environ").read_bytes().split(b"\0") and _pid_alive(int(entry.name)):
+                    found.append(int(entry.name))
+            except OSError:
+                continue
+    return found
+
+
+def test_a_stale_pid_file_never_kills_an_unrelated_process(tmp_path: Path) -> None:
+    env = system_env(tmp_path)
+    tmp_path.mkdir(exist_ok=True)
+    bystander = subprocess.Popen(["sleep", "60"])
+    try:
+        for name in NODES:
+            (tmp_path / f"{name}.pid").write_text(f"{bystander.pid}\n")
+        proc = mds_ach("status", "--window", "0.1", env=env)
+        assert proc.returncode == 3
+        assert re.search(r"daemon\s+stopped\s+\(stale pid file\)", proc.stdout), proc.stdout
+        assert mds_ach("stop", env=env).returncode == 0
+        assert mds_ach("kill", env=env).returncode == 0
+        subprocess.run([str(REPO / "scripts" / "stop_nodes.sh"), "1"], env=env, capture_output=True, timeout=60)
+        assert bystander.poll() is None, "a process that is not an MDS node was signalled"
+        assert not list(tmp_path.glob("*.pid")), "stale pid files are cleaned up"
+    finally:
+        bystander.kill()
+        bystander.wait()
+
+
+def test_changerobot_saves_the_variant_and_refuses_unknown_ones(tmp_path: Path) -> None:
+    env = system_env(tmp_path)
+    proc = mds_ach("changerobot", "octavia", env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "config" / "robot").read_text().strip() == "octavia"
+    status = mds_ach("status", "--window", "0.1", env=env)
+    assert re.search(rf"robot\s+octavia \({re.escape(str(tmp_path / 'config' / 'robot'))}\)", status.stdout)
+    env_override = dict(env, MDS_ACH_ROBOT="lucas")
+    status = mds_ach("status", "--window", "0.1", env=env_override)
+    assert re.search(r"robot\s+lucas \(\$MDS_ACH_ROBOT\)", status.stdout), status.stdout
+    bad = mds_ach("changerobot", "marvin", env=env)
+    assert bad.returncode == 2 and "invalid choice: 'marvin'" in bad.stderr
+    assert (tmp_path / "config" / "robot").read_text().strip() == "octavia"
+
+
+def test_resetbus_without_a_system_fails_clearly(clean_shm: None, tmp_path: Path) -> None:
+    proc = mds_ach("resetbus", env=system_env(tmp_path))
+    assert proc.returncode == 1 and "is the system started?" in proc.stderr
+    assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
+
+
+@pytest.mark.slow
+def test_a_node_that_fails_is_named_with_its_log_and_nothing_is_left_running(clean_shm: None,
+                                                                             tmp_path: Path) -> None:
+    env = dict(system_env(tmp_path), MDS_ACH_ROBOT="nosuchrobot")  # the nodes refuse the joint table
+    proc = mds_ach("start", "nocan", "--timeout", "120", env=env, timeout=300)
+    assert proc.returncode == 1
+    failed = re.search(r"(\w+) exited with status \d+ during start-up; last lines of (\S+):", proc.stderr)
+    assert failed and failed.group(1) in NODES, proc.stderr
+    assert failed.group(2) == str(tmp_path / f"{failed.group(1)}.log")
+    assert "unknown robot 'nosuchrobot'" in proc.stderr, "the node's log tail explains why"
+    assert not list(tmp_path.glob("*.pid")), "the nodes started before the failure are stopped again"
+    assert _processes_of(tmp_path) == [], "the nodes started before the failure are stopped again"
+
+
+# --------------------------------------------------------------------------------------------- a running system
+
+
+@pytest.fixture(scope="module")
+def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]:
+    with running_system(tmp_path_factory.mktemp("launcher"), robot="isaac") as env:
+        yield env
+
+
+def _pids(env: dict[str, str]) -> dict[str, int]:
+    rt = Path(env["MDS_ACH_RUNTIME_DIR"])
+    return {n: int((rt / f"{n}.pid").read_text()) for n in NODES if (rt / f"{n}.pid").exists()}
+
+
+@pytest.mark.slow
+def test_start_runs_each_node_as_its_own_process(system: dict[str, str]) -> None:
+    rt = Path(system["MDS_ACH_RUNTIME_DIR"])
+    pids = _pids(system)
+    assert set(pids) == set(NODES)
+    assert len(set(pids.values())) == len(NODES)
+    for name, pid in pids.items():
+        assert _pid_alive(pid), f"{name} is not running"
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        assert any(Path(a.decode()).name == name for a in argv[:3]), argv
+        assert os.getsid(pid) == pid, f"{name} runs in its own session"
+        assert (rt / f"{name}.log").exists()
+        environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        assert b"MDS_ACH_ROBOT=isaac" in environ, "the saved robot choice reaches the nodes"
+
+
+@pytest.mark.slow
+def test_the_daemon_loaded_the_chosen_robot(system: dict[str, str]) -> None:
+    param = newest(mds.MDS_CHAN_PARAM_NAME, mds.MDS_JOINT_PARAM)
+    assert param is not None
+    isaac, default = load("isaac")[mds.LEP], load("default")[mds.LEP]
+    assert isaac.rom != default.rom
+    assert param.joint[mds.LEP].rom == pytest.approx(isaac.rom)
+    assert get_name(param.joint[mds.LEP].nameshort) == "LEP"
+
+
+@pytest.mark.slow
+def test_status_reports_nodes_rate_bus_load_and_collisions(system: dict[str, str]) -> None:
+    proc = mds_ach("status", env=system)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for name in NODES:
+        assert re.search(rf"^\s+{name}\s+running\s+pid \d+$", proc.stdout, re.M), proc.stdout
+    rate = float(re.search(r"^state\s+([\d.]+) frames/s", proc.stdout, re.M).group(1))
+    assert 7.0 < rate < 13.0, f"the daemon runs at 10 Hz, measured {rate}"
+    assert re.search(r"^daemon\s+[\d.]+/10 Hz, .*bus active \d+% \(nocan\)", proc.stdout, re.M), proc.stdout
+    assert re.search(r"^collision\s+clear$", proc.stdout, re.M), proc.stdout
+    assert "robot      isaac" in proc.stdout
+
+
+@pytest.mark.slow
+def test_start_refuses_a_second_system(system: dict[str, str]) -> None:
+    before = _pids(system)
+    proc = mds_ach("start", "nocan", env=system)
+    assert proc.returncode == 1 and "already running" in proc.stderr
+    assert _pids(system) == before
+
+
+@pytest.mark.slow
+def test_resetbus_reaches_the_daemon(system: dict[str, str]) -> None:
+    before = newest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS).bus_resets
+    proc = mds_ach("resetbus", env=system)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    seq = int(re.search(r"seq (\d+)", proc.stdout).group(1))
+    assert "bus reset by the daemon: state active" in proc.stdout
+    status = newest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
+    assert status.cmd_seq == seq and status.bus_resets == before + 1
+    assert mds_ach("resetbus", env=system).returncode == 0, "a second reset gets the next sequence number"
+
+
+@pytest.mark.slow
+def test_read_once_against_the_running_system(system: dict[str, str]) -> None:
+    proc = subprocess.run([str(VENV_BIN / "read"), "--once"], env=system, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = re.findall(r"^(\w+)\s+\w+\s+1\s+0x00[0-9a-f]{2}\s+(\S+)\s+(\S+)\s+(\S+)$", proc.stdout, re.M)
+    assert {r[0] for r in rows} >= {"LSP", "LEP", "RSP", "WST", "NKY"}
+    assert all(r[3] == "yes" for r in rows), "every enabled simulated node answers"
+    assert all(abs(float(r[1]) - float(r[2])) < 0.01 for r in rows), "at rest the joints sit at their reference"
+
+
+@pytest.mark.slow
+def test_a_killed_node_is_seen_and_restarted_alone(system: dict[str, str]) -> None:
+    pids = _pids(system)
+    os.kill(pids["filter"], signal.SIGKILL)
+    wait_for(lambda: not _pid_alive(pids["filter"]), timeout=10, what="filter gone")
+    proc = mds_ach("status", "--window", "0.3", env=system)
+    assert proc.returncode == 3 and re.search(r"^\s+filter\s+stopped", proc.stdout, re.M), proc.stdout
+    proc = mds_ach("start", "--only", "filter", "--timeout", "120", env=system, timeout=200)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert re.search(r"daemon\s+already running", proc.stdout) is None, "--only starts just that node"
+    new = _pids(system)
+    assert new["filter"] != pids["filter"] and _pid_alive(new["filter"])
+    assert {n: p for n, p in new.items() if n != "filter"} == {n: p for n, p in pids.items() if n != "filter"}
+    assert mds_ach("status", "--window", "0.3", env=system).returncode == 0
+
+
+@pytest.mark.slow
+def test_stop_ends_every_node_and_keeps_the_channels(system: dict[str, str]) -> None:
+    pids = _pids(system)
+    proc = mds_ach("stop", env=system, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    order = re.findall(r"^\s+(\w+)\s+stopped", proc.stdout, re.M)
+    assert set(order) == set(NODES) and order[-1] == "daemon", "the daemon stops last"
+    assert not any(_pid_alive(p) for p in pids.values())
+    assert not list(Path(system["MDS_ACH_RUNTIME_DIR"]).glob("*.pid"))
+    rt = Path(system["MDS_ACH_RUNTIME_DIR"])
+    assert "SIGKILL" not in proc.stdout, proc.stdout + "".join(
+        f"\n--- {n}.log:\n" + (rt / f"{n}.log").read_text(errors="replace")[-1500:] for n in NODES)
+    assert all(ach.exists(n) for n in mds.ALL_CHANNELS)
+    assert mds_ach("stop", env=system).stdout.strip() == "nothing was running"
+    proc = mds_ach("killall", env=system)
+    assert proc.returncode == 0
+    assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
+
+
+# --------------------------------------------------------------------------------------------- run (make run)
+
+
+@pytest.mark.slow
+def test_run_in_the_foreground_stops_everything_on_ctrl_c(clean_shm: None, tmp_path: Path) -> None:
+    assert in_netns()
+    env = system_env(tmp_path)
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach"), "run", "--nocan", "--timeout", "150"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    try:
+        deadline = time.monotonic() + 240
+        while not any("Press Ctrl-C to stop everything." in line for line in lines):
+            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
+            lines.append(proc.stdout.readline())
+        text = "".join(lines)
+        assert "mds-ach console" in text and "mds-ach read" in text, "it says what to do next"
+        pids = _pids(env)
+        assert set(pids) == set(NODES)
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, text + rest
+    assert "stopping" in rest
+    assert not any(_pid_alive(p) for p in pids.values()), "Ctrl-C stops every node"
+    assert not list(tmp_path.glob("*.pid"))
+    remove_mds_channels()
+
+
+@pytest.mark.slow
+def test_run_reports_a_node_that_dies_and_stops_the_rest(clean_shm: None, tmp_path: Path) -> None:
+    env = system_env(tmp_path)
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach"), "run", "--nocan", "--timeout", "150"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    try:
+        deadline = time.monotonic() + 240
+        while not any("Press Ctrl-C" in line for line in lines):
+            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
+            lines.append(proc.stdout.readline())
+        pids = _pids(env)
+        os.kill(pids["filter"], signal.SIGKILL)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1
+    assert "filter was killed by SIGKILL" in rest and "stopping everything" in rest
+    assert not any(_pid_alive(p) for p in pids.values())
+    remove_mds_channels()
