@@ -1,10 +1,22 @@
 """ament_python package `mds_ach`: library, nodes and the `mds-ach` front-end."""
 
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
 
 PACKAGE = "mds_ach"
+
+
+def tree(src: str) -> list[tuple[str, list[str]]]:
+    """data_files entries installing every file under ``src`` to share/mds_ach/<src>, keeping sub-folders."""
+    entries = []
+    for root, _dirs, files in os.walk(src):
+        paths = [os.path.join(root, f) for f in sorted(files) if not f.endswith((".pyc", "~"))]
+        if paths:
+            entries.append((os.path.join("share", PACKAGE, root), paths))
+    return entries
+
 
 setup(
     name=PACKAGE,
@@ -13,8 +25,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         ("share/" + PACKAGE, ["package.xml"]),
-        ("share/" + PACKAGE + "/urdf", glob("urdf/*")),
-        ("share/" + PACKAGE + "/config", glob("config/*")),
+        *tree("urdf"),
+        *tree("config"),
         ("share/" + PACKAGE + "/include", glob("include/*.h")),
         ("include", glob("include/*.h")),
     ],

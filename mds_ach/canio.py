@@ -76,7 +76,7 @@ class BusCounters:
 
 def message_bits(msg: can.Message) -> int:
     """Worst-case wire bits of one frame (error frames counted as a DLC-8 frame's worth: a conservative guess)."""
-    if msg.is_error_frame:
+    if msg.is_error_frame or (msg.dlc == mcb.DLC and not msg.is_extended_id):
         return mcb.FRAME_BITS
     return mcb.frame_bits(msg.dlc, msg.is_extended_id)
 

@@ -36,6 +36,8 @@ VERBS: dict[str, Verb] = {
                "mds_ach.chantool:add_rm_arguments", "mds_ach.chantool:run_rm"),
     "dump": Verb("print the newest frame of a channel, decoded by its type",
                  "mds_ach.chantool:add_dump_arguments", "mds_ach.chantool:run_dump"),
+    "repair": Verb("check the channels; repair corrupt ones in place (a writer killed inside a put)",
+                   "mds_ach.repair:add_arguments", "mds_ach.repair:run"),
     # operator verbs (mds_ach.launcher, console, read)
     "start": Verb("start every node as its own process ('start nocan': simulated bus); returns when state is live",
                   "mds_ach.launcher:add_start_arguments", "mds_ach.launcher:run_start"),

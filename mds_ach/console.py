@@ -33,6 +33,7 @@ GOTO_TIMEOUT = 20.0  # s
 IK_TIMEOUT = 10.0  # s for the IK node's answer
 IK_MOTION_TIMEOUT = 20.0  # s for the arm to arrive (ik ... wait)
 STATE_WAIT = 1.0  # s to wait for a first state frame
+RELEASE_TIMEOUT = 10.0  # s to wait for a higher-priority mux controller to release a joint
 
 USAGE = f"""\
 commands (joint names: short or long, e.g. LSP or LeftShoulderExt, any case):
@@ -249,6 +250,45 @@ class Console:
                 ref.joint[address].ref = value
             chan.put(ref)
 
+    def _wait_until_free(self, addresses: list[int]) -> None:
+        """Wait (up to ``RELEASE_TIMEOUT`` s) while a higher-priority mux controller owns one of the joints.
+
+        Why: the mux applies a frame only to joints its controller may write *now*; a goto sent while the IK
+        node (or ROS) still owns the joint is absorbed without effect, and is not replayed after the release.
+        """
+        from mds_ach.msgs import get_name
+        from mds_ach.mux import MDS_MUX_STATE
+
+        mine = _default_controller_name()
+        chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        try:
+            deadline = time.monotonic() + RELEASE_TIMEOUT
+            said = False
+            while True:
+                st = chan.read()
+                if st is None:
+                    return  # no mux (legacy set-up: the filter reads mds-ref-filter directly)
+                names = [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
+                if mine not in names:
+                    return
+                my_priority = st.priority[names.index(mine)]
+                held = {a: names[st.owner[a]] for a in addresses
+                        if 0 <= st.owner[a] < len(names) and names[st.owner[a]] != mine
+                        and st.priority[st.owner[a]] > my_priority}
+                if not held:
+                    return
+                text = ", ".join(f"{mds.BY_ADDRESS[a].short} (held by '{n}')" for a, n in held.items())
+                if time.monotonic() > deadline:
+                    raise CommandError(f"{text}: a higher-priority controller still commands it after "
+                                       f"{RELEASE_TIMEOUT:g} s; nothing sent (see 'mds-ach dump mds-mux-state')",
+                                       usage=False)
+                if not said:
+                    self.out(f"waiting for the mux to release {text} ...")
+                    said = True
+                chan.wait_new(0.2)
+        finally:
+            chan.close()
+
     def _wait_arrival(self, targets: dict[int, float], timeout: float) -> bool:
         """Print a dot per half second until every target joint's measured position is within tolerance."""
         deadline = time.monotonic() + timeout
@@ -304,6 +344,7 @@ class Console:
     def goto(self, cmd: Goto) -> None:
         state = self._state()
         self._check_target(cmd.joint, cmd.value, state)
+        self._wait_until_free([cmd.joint.address])
         self._put_refs({cmd.joint.address: cmd.value}, state)
         self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
         if cmd.wait:
@@ -317,6 +358,7 @@ class Console:
         targets = {j.address: 0.0 for j in JOINTS if state.joint[j.address].enabled}
         for a in targets:
             self._check_target(mds.BY_ADDRESS[a], 0.0, state)
+        self._wait_until_free(list(targets))
         self._put_refs(targets, state)
         self.out(f"{len(targets)} enabled joints -> 0 rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
 
@@ -346,7 +388,7 @@ class Console:
         except IkTimeout as exc:
             raise CommandError(str(exc), usage=False) from None
         if not reply.success:
-            self.out(f"unreachable: {reply.message} (nothing moved)")
+            self.out(reply.message or "unreachable; nothing moved")
             raise CommandError(f"ik {cmd.arm} {cmd.dof}: target not reachable", usage=False)
         self.out(f"solved: error {reply.error:.5f} in {reply.iterations} iterations "
                  f"({reply.time * 1000:.1f} ms)")
@@ -369,6 +411,19 @@ class Console:
             if exc.show_usage:
                 self.err(USAGE)
             return False
+
+
+def _default_controller_name() -> str:
+    """The mux controller fed by mds-ref-filter (config/mux.yaml), 'default' unless configured otherwise."""
+    try:
+        from mds_ach.mux import load_config
+
+        for c in load_config()["controllers"]:
+            if c.channel == mds.MDS_CHAN_REF_FILTER_NAME:
+                return c.name
+    except (ValueError, OSError):
+        pass
+    return "default"
 
 
 def _default_out(text: str) -> None:

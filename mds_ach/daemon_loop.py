@@ -23,6 +23,7 @@ the joint holds where it is until its reference on ``mds-ref`` changes.
 from __future__ import annotations
 
 import ctypes
+import gc
 import logging
 import math
 import os
@@ -254,6 +255,10 @@ class DaemonLoop:
         self.joints: dict[int, JointRuntime] = {
             j.address: JointRuntime(j, ref_r=j.home, ref=j.home, enabled=j.enabled) for j in table
         }
+        self._fixed_frames = {
+            j.address: (mcb.encode_set_acceleration(j.address, table.accel_counts(j)),
+                        mcb.encode_trajectory_mode(j.address, mcb.TrajectoryMode.MOVETO),
+                        mcb.encode_trajectory_period(j.address, table.trajectory_period)) for j in table}
         self.state = MDS_STATE()
         table.fill_state(self.state)
         self.collide = MDS_COLLIDE()
@@ -338,6 +343,10 @@ class DaemonLoop:
         schedule skips to the next future slot (never a burst of catch-up cycles)."""
         for problem in tune_thread(self.rt_priority):
             log.warning("loop thread: %s", problem)
+        # Everything allocated so far lives for the whole run: keep it out of the cyclic GC's full passes,
+        # whose pauses would otherwise land in the loop.
+        gc.collect()
+        gc.freeze()
         next_deadline = self.clock()
         try:
             while not self._stop.is_set():
@@ -379,6 +388,9 @@ class DaemonLoop:
             self.collide = collide
             ctypes.memmove(ctypes.addressof(self.state.collide), ctypes.addressof(collide), ctypes.sizeof(collide))
         ref = self.ch.ref.latest()
+        if self.ch.ref.bad_frames:
+            self._warn_once("ref-size", f"mds-ref: frames of the wrong size ignored (MDS_REF is "
+                                        f"{ctypes.sizeof(MDS_REF)} bytes)")
         if ref is not None:
             self.status.refs_received += 1
             self._accept_ref(ref)
@@ -521,7 +533,6 @@ class DaemonLoop:
             return
         if self.bus_state == ds.BUS_STATE_BUS_OFF:
             return  # nothing gets through; `mds-ach resetbus` re-opens the bus
-        accel_period = self.table.trajectory_period
         for a, jr in self.joints.items():
             if not jr.enabled or jr.hold is not None or jr.homing_since is not None:
                 continue
@@ -529,7 +540,9 @@ class DaemonLoop:
             c32 = f32(counts)
             if c32 == jr.sent_counts:
                 continue
-            frames = mcb.encode_position_sequence(a, counts, self.table.accel_counts(jr.cfg), accel_period)
+            accel, mode, period = self._fixed_frames[a]
+            # The original daemon's sequence (mcb.encode_position_sequence), three of its frames precomputed.
+            frames = (accel, mcb.encode_moveto(a, counts), mode, period)
             if all(self.io.send(f) for f in frames):
                 jr.sent_counts = c32
                 jr.ref_c_send = jr.ref
@@ -566,12 +579,15 @@ class DaemonLoop:
         self.status.replies_received = len(self._answered)
 
     def _drain(self, now: float) -> None:
+        """Frames that arrived since the last reply window, each dated by its receive timestamp."""
         self._answered = set()
+        wall = time.time()
         for _ in range(10_000):
             msg = self.io.recv(0)
             if msg is None:
                 return
-            self._handle(msg, now)
+            waited = min(max(0.0, wall - msg.timestamp), self.period) if msg.timestamp else 0.0
+            self._handle(msg, now - waited)
 
     def _handle(self, msg, now: float) -> None:
         """One received frame: positions, ACKs, node errors, bus errors, junk -- each counted."""
@@ -603,15 +619,19 @@ class DaemonLoop:
             jr.pos, jr.last_reply = q, now
             self._answered.add(address)
             return
-        frame = mcb.decode(msg.arbitration_id, msg.data)
+        data = msg.data
+        if data[7] == Response.ACK:  # fast path: the 4 ACKs of every SET sequence
+            jr = self.joints.get(data[4] | data[5] << 8)
+            if jr is not None:
+                if data[6] == mcb.Command.SET and data[3] == StateArg.MOVETO_TARGET:
+                    jr.ack_due = math.inf
+                return
+        frame = mcb.decode(msg.arbitration_id, data)
         jr = self.joints.get(frame.address)
         if jr is None:
             self._unknown(frame.address)
             return
-        if frame.command == Response.ACK:
-            if frame.acked_argument == StateArg.MOVETO_TARGET:
-                jr.ack_due = math.inf
-        elif frame.command == Response.STATE:
+        if frame.command == Response.STATE:
             if frame.argument == StateArg.CURRENT:
                 jr.cur = float(frame.value)
             elif frame.argument == StateArg.DESIRED_POSITION and math.isfinite(frame.value):

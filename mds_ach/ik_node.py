@@ -220,19 +220,12 @@ class IkRunner:
                 request = requests.wait(timeout=0.5)
                 if request is None:
                     continue
-                found = current_reference(self.config.seed_sources)
-                outcome = self.service.handle(request, None if found is None else found[0])
-                st = outcome.status
-                if outcome.refs is not None:
-                    base = current_reference(self.config.base_sources)
-                    if base is None:  # cannot happen when a seed was found, but never write a zero frame
-                        st.status = IK_NOT_READY
-                        set_message(st, "no reference to modify; nothing moved")
-                    else:
-                        ref, mode, _ = base
-                        for address, value in outcome.refs.items():
-                            ref[address] = value
-                        out.put(make_ref(ref, mode))
+                try:
+                    st = self._handle(request, out, current_reference, make_ref)
+                except Exception as exc:  # keep serving: one bad request must not take the node down
+                    self.log("error", f"request failed: {exc!r}; nothing moved")
+                    st = IkService._refuse(MDS_IK_STATUS(), IK_BAD_REQUEST, f"internal error: {exc!r}"[:79]).status
+                    st.arm = -1
                 st.stamp = time.monotonic()
                 status_ch.put(st)
                 self.handled += 1
@@ -241,6 +234,23 @@ class IkRunner:
             requests.close()
             status_ch.close()
             out.close()
+
+    def _handle(self, request: mds.MDS_IK, out: Any, current_reference: Callable[..., Any],
+                make_ref: Callable[..., Any]) -> MDS_IK_STATUS:
+        found = current_reference(self.config.seed_sources)
+        outcome = self.service.handle(request, None if found is None else found[0])
+        st = outcome.status
+        if outcome.refs is not None:
+            base = current_reference(self.config.base_sources)
+            if base is None:  # cannot happen when a seed was found, but never write a zero frame
+                st.status = IK_NOT_READY
+                set_message(st, "no reference to modify; nothing moved")
+            else:
+                ref, mode, _ = base
+                for address, value in outcome.refs.items():
+                    ref[address] = value
+                out.put(make_ref(ref, mode))
+        return st
 
     def _report(self, st: MDS_IK_STATUS) -> None:
         doc = status_to_dict(st)
@@ -293,11 +303,16 @@ def _make_node(args: argparse.Namespace) -> Any:
     class IkNode(Node):
         def __init__(self) -> None:
             super().__init__("ik")
-            levels = {"info": self.get_logger().info, "warn": self.get_logger().warning,
-                      "error": self.get_logger().error}
+            logger = self.get_logger()
 
             def log(level: str, msg: str) -> None:
-                levels.get(level, self.get_logger().info)(msg)
+                # One call site per severity: rclpy refuses a call site whose severity changes between calls.
+                if level == "error":
+                    logger.error(msg)
+                elif level == "warn":
+                    logger.warning(msg)
+                else:
+                    logger.info(msg)
 
             service = build_service(args, log)
             self.declare_parameter("output", service.config.output)

@@ -298,6 +298,7 @@ class ArmKinematics:
         # The tool frame is usually parallel to the last link: skip that product then.
         self._tail_R = None if np.allclose(pending[:3, :3], np.eye(3), atol=0) else pending[:3, :3].copy()
         self._tail_p = pending[:3, 3].copy()
+        self._tail_floats = tuple(float(v) for v in self._tail_p)
         self._origin_p = np.array([T[:3, 3] for T in origins])  # (n, 3)
         Ro = np.array([T[:3, :3] for T in origins])  # (n, 3, 3)
         K = np.array([_skew(j.axis) for j in moving])
@@ -377,19 +378,22 @@ class ArmKinematics:
         axes = []
         points = []
         for (k, sign, tx, ty, tz), angle in zip(chain, q, strict=True):
-            px += r[0] * tx + r[1] * ty + r[2] * tz
-            py += r[3] * tx + r[4] * ty + r[5] * tz
-            pz += r[6] * tx + r[7] * ty + r[8] * tz
+            if tx or ty or tz:
+                px += r[0] * tx + r[1] * ty + r[2] * tz
+                py += r[3] * tx + r[4] * ty + r[5] * tz
+                pz += r[6] * tx + r[7] * ty + r[8] * tz
             axes.append((sign * r[k], sign * r[3 + k], sign * r[6 + k]))
             points.append((px, py, pz))
             # R <- R @ Rot(axis k, angle): the other two columns a, b turn into each other.
             c, s = math.cos(angle), sign * math.sin(angle)
             a, b = _NEXT[k], _PREV[k]
-            for row in (0, 3, 6):
-                ca, cb = r[row + a], r[row + b]
-                r[row + a] = ca * c + cb * s
-                r[row + b] = cb * c - ca * s
-        tx, ty, tz = self._tail_p
+            ca, cb = r[a], r[b]
+            r[a], r[b] = ca * c + cb * s, cb * c - ca * s
+            ca, cb = r[3 + a], r[3 + b]
+            r[3 + a], r[3 + b] = ca * c + cb * s, cb * c - ca * s
+            ca, cb = r[6 + a], r[6 + b]
+            r[6 + a], r[6 + b] = ca * c + cb * s, cb * c - ca * s
+        tx, ty, tz = self._tail_floats
         px += r[0] * tx + r[1] * ty + r[2] * tz
         py += r[3] * tx + r[4] * ty + r[5] * tz
         pz += r[6] * tx + r[7] * ty + r[8] * tz

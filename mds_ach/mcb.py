@@ -433,11 +433,15 @@ def decode(arbitration_id: int, data: bytes | bytearray | memoryview) -> McbFram
     return McbFrame(arbitration_id, False, command, argument_e, arbitration_id, value, word)
 
 
-def _typed(argument: int, word: int) -> float | int:
+def typed_value(argument: int, word: int) -> float | int:
+    """The raw 32-bit value word read as the type ``argument`` carries (float32, int16, uint8...)."""
     code = _ARG_FORMAT.get(argument, "I")
     if code == "I":
         return word
     return _STRUCTS[code].unpack_from(_STRUCTS["I"].pack(word))[0]
+
+
+_typed = typed_value
 
 
 def decode_position(data: bytes | bytearray | memoryview) -> tuple[int, float] | None:

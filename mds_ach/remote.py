@@ -325,27 +325,35 @@ def _spawn(role: str, argv: list[str], ready, wait_s: float) -> int:
     pid_path.write_text(f"{proc.pid}\n")
     deadline = time.monotonic() + wait_s
     status: dict = {}
-    while time.monotonic() < deadline and proc.poll() is None:
-        try:
-            status = json.loads(status_path.read_text())
-        except (OSError, ValueError):
-            status = {}
-        if status and ready(status):
-            print(f"mds-ach remote: running in the background (pid {proc.pid}, log {log_path})")
-            for link in status.get("links", []):
-                print(f"  {link['name']}: connected")
-            return 0
-        time.sleep(0.1)
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                status = json.loads(status_path.read_text())
+            except (OSError, ValueError):
+                status = {}
+            if status and ready(status):
+                break
+            time.sleep(0.1)
+    except BaseException:  # Ctrl-C, a closed pipe...: never leave a half-started child behind
+        _stop_pid(proc.pid)
+        proc.wait()
+        pid_path.unlink(missing_ok=True)
+        raise
+    if status and ready(status) and proc.poll() is None:
+        print(f"mds-ach remote: running in the background (pid {proc.pid}, log {log_path})")
+        for link in status.get("links", []):
+            print(f"  {link['name']}: connected")
+        return 0
     why = "exited" if proc.poll() is not None else f"not ready after {wait_s:.0f} s"
+    _stop_pid(proc.pid)  # first, so nothing below can leave it running
+    proc.wait()
+    pid_path.unlink(missing_ok=True)
     print(f"mds-ach remote: {why}", file=sys.stderr)
     for link in status.get("links", []):
         if not link.get("connected"):
             print(f"  {link['name']}: NOT connected ({link.get('last_error') or 'no answer'})", file=sys.stderr)
     if status.get("tunnel") and status["tunnel"].get("stderr"):
         print("  ssh: " + " | ".join(status["tunnel"]["stderr"]), file=sys.stderr)
-    _stop_pid(proc.pid)
-    proc.wait()
-    pid_path.unlink(missing_ok=True)
     tail = log_path.read_text(errors="replace").splitlines()[-15:]
     if tail:
         print(f"last lines of {log_path}:\n" + "\n".join(tail), file=sys.stderr)

@@ -27,16 +27,19 @@ from __future__ import annotations
 import heapq
 import math
 import random
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import can
 import numpy as np
 
 from mds_ach import mcb
 from mds_ach.mcb import Command, ErrorCode, StateArg, TrajectoryMode
+
+_WORD = struct.Struct("<IHBB")  # value word, address, argument, command (see mds_ach.mcb)
 
 # Linux <linux/can/error.h> error-frame classes (arbitration_id bits) and controller status (data[1]).
 CAN_ERR_TX_TIMEOUT = 0x001
@@ -103,13 +106,6 @@ class _NodeFaults:
     delay: float = 0.0
 
 
-@dataclass(order=True)
-class _Queued:
-    due: float
-    seq: int
-    msg: can.Message = field(compare=False)
-
-
 class SimNetwork:
     """The simulated nodes and the wire between them and the host."""
 
@@ -154,7 +150,7 @@ class SimNetwork:
         self.rng = random.Random(seed)
         self._next_tick = np.full(n, math.inf)  # next trajectory tick per node
         self._lock = threading.Condition()
-        self._queue: list[_Queued] = []
+        self._queue: list[tuple[float, int, can.Message]] = []  # heap of (due, seq, frame)
         self._seq = 0
         self._wire_free = 0.0
         self._earliest_tick = math.inf  # no trajectory tick due before this time
@@ -164,8 +160,8 @@ class SimNetwork:
         self.rx_frames = 0  # frames the nodes received
         self.tx_frames = 0  # frames the nodes sent
         self.frames_by_address: dict[int, int] = {}
-        self.commands: list[tuple[float, mcb.McbFrame]] = []  # every decoded host frame (bounded)
-        self.keep_commands = 10_000
+        self._sent: list[tuple[float, int, bytes]] = []  # every host frame as (time, id, data), bounded
+        self.keep_commands = 20_000
 
     @classmethod
     def from_table(cls, table, pose: dict[str, float] | None = None, extra_nodes: Iterable[int] = (),
@@ -266,7 +262,7 @@ class SimNetwork:
         else:
             due = ready
         self._seq += 1
-        heapq.heappush(self._queue, _Queued(due, self._seq, msg))
+        heapq.heappush(self._queue, (due, self._seq, msg))
         self._lock.notify_all()
 
     def host_send(self, msg: can.Message) -> None:
@@ -286,17 +282,25 @@ class SimNetwork:
                 end = now
             if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id or msg.dlc != mcb.DLC:
                 return  # MCB nodes only understand 8-byte standard data frames
-            frame = mcb.decode(msg.arbitration_id, msg.data)
-            if len(self.commands) < self.keep_commands:
-                self.commands.append((now, frame))
+            data = bytes(msg.data)
+            if len(self._sent) < self.keep_commands:
+                self._sent.append((now, msg.arbitration_id, data))
             if msg.arbitration_id == mcb.BROADCAST_SID:
                 targets = self.addresses
             elif msg.arbitration_id in self.index:
                 targets = (msg.arbitration_id,)
             else:
                 return
+            word, _, arg, cmd = _WORD.unpack(data)
             for address in targets:
-                self._handle(address, frame, end)
+                self._handle(address, cmd, arg, word, end)
+
+    @property
+    def commands(self) -> list[tuple[float, mcb.McbFrame]]:
+        """Every frame the host sent (up to ``keep_commands``), decoded, with the simulated time it was sent."""
+        with self._lock:
+            sent = list(self._sent)
+        return [(t, mcb.decode(i, d)) for t, i, d in sent]
 
     def host_recv(self, timeout: float | None) -> can.Message | None:
         """The next frame for the host whose wire time has come; waits up to ``timeout`` seconds.
@@ -311,15 +315,15 @@ class SimNetwork:
             while True:
                 now = self.clock()
                 self._advance(now)
-                if self._queue and self._queue[0].due <= now:
-                    item = heapq.heappop(self._queue)
-                    item.msg.timestamp = time.time()
-                    return item.msg
+                if self._queue and self._queue[0][0] <= now:
+                    msg = heapq.heappop(self._queue)[2]
+                    msg.timestamp = time.time()
+                    return msg
                 wait = None if deadline is None else deadline - wall()
                 if wait is not None and wait <= 0:
                     return None
                 if self._queue:
-                    until_due = self._queue[0].due - now
+                    until_due = self._queue[0][0] - now
                     wait = until_due if wait is None else min(wait, until_due)
                 if manual:
                     if wait is None:
@@ -350,20 +354,19 @@ class SimNetwork:
         self.ack_counter[i] = (self.ack_counter[i] + 1) % mcb.ACK_COUNTER_MODULO
         self._reply(address, mcb.encode_ack(address, command, argument, int(self.ack_counter[i])), ready)
 
-    def _handle(self, address: int, frame: mcb.McbFrame, ready: float) -> None:
+    def _handle(self, address: int, cmd: int, arg: int, word: int, ready: float) -> None:
         if self.faults[address].offline:
             return
         i = self.index[address]
         self.rx_frames += 1
         self.frames_by_address[address] = self.frames_by_address.get(address, 0) + 1
-        cmd, arg = frame.command, frame.argument
         if cmd == Command.QUERY_STATE:
             value = self._read(i, arg)
             if value is not None:
                 self._reply(address, mcb.encode_state_reply(address, arg, value), ready)
             return
         if cmd == Command.SET:
-            self._set(i, arg, frame.value)
+            self._set(i, arg, mcb.typed_value(arg, word))
             self._start(i, ready)
         elif cmd == Command.ENABLE:
             self.enabled[i] = True
@@ -387,10 +390,16 @@ class SimNetwork:
         self._next_tick[i] = math.inf
 
     def _start(self, i: int, t: float) -> None:
-        """A node that has a move to run and is not ticking yet starts its trajectory clock at ``t``."""
+        """A node that has a move to run and is not ticking yet starts at the next tick of its period.
+
+        Ticks lie on a common grid per period length (the nodes' clocks are not modelled as independent), so
+        all moving nodes step together in one vectorised update.
+        """
         if self.running[i] and self.enabled[i] and math.isinf(self._next_tick[i]):
-            self._next_tick[i] = t
-            self._earliest_tick = min(self._earliest_tick, t)
+            dt = self.period[i] / mcb.TRAJECTORY_TICK_HZ
+            tick = math.ceil(t / dt) * dt
+            self._next_tick[i] = tick
+            self._earliest_tick = min(self._earliest_tick, tick)
 
     def _set(self, i: int, arg: int, value: float | int) -> None:
         if arg == StateArg.TRAJECTORY_ACCELERATION and value > 0:
@@ -461,7 +470,7 @@ class SimNetwork:
             if tick > now:
                 self._earliest_tick = tick
                 return
-            due = moving & (self._next_tick <= tick)
+            due = moving & (self._next_tick <= tick + 1e-6)  # same grid tick despite float rounding
             dt = self.period[due] / mcb.TRAJECTORY_TICK_HZ
             pos, vel = trajectory_step(self.physical[due], self.velocity[due], self.target[due],
                                        self.max_velocity[due], self.accel[due], dt)

@@ -122,10 +122,30 @@ def _rgb(rgba: Sequence[float] | None) -> tuple[int, int, int]:
     return (r, g, b)
 
 
-def _wxyz_position(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    import viser.transforms as vtf
+def quaternion_wxyz(rotation: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion (w, x, y, z) of a 3x3 rotation matrix (Shepperd's method).
 
-    return vtf.SO3.from_matrix(matrix[:3, :3]).wxyz, matrix[:3, 3].copy()
+    Scalar code on purpose: the viewer converts a few dozen poses per update, where a batched converter
+    (viser's SO3.from_matrix) costs ~30x more per call.
+    """
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = rotation[:3, :3].tolist()
+    trace = m00 + m11 + m22
+    if trace > 0.0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        return 0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s
+    if m00 > m11 and m00 > m22:
+        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
+        return (m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s
+    if m11 > m22:
+        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
+        return (m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s
+    s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
+    return (m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s
+
+
+def _wxyz_position(matrix: np.ndarray) -> tuple[tuple[float, float, float, float], tuple[float, float, float]]:
+    x, y, z = matrix[:3, 3].tolist()
+    return quaternion_wxyz(matrix), (x, y, z)
 
 
 def _add_mesh(
@@ -194,6 +214,10 @@ class RobotScene:
     def link_path(self, link: str) -> str:
         """Scene path of a link's frame (things added below it move with the link)."""
         return f"{self.root}/{link}"
+
+    def frame(self, link: str) -> Any:
+        """The viser frame handle of a link (its pose and visibility as sent to the browser)."""
+        return self._frames[link]
 
     def set_joints(self, q: Mapping[str, float]) -> int:
         """Pose the robot for these joint values (the others keep theirs); returns how many links moved."""
@@ -477,6 +501,7 @@ class Viewer:
 
         self.options = options
         self.model = kin.load_model(options.urdf)  # None: the package's urdf/mds.urdf
+        _use_shipped_client()
         self.server = viser.ViserServer(host=options.host, port=options.port, label="MDS", verbose=False)
         # viser opens a public tunnel when a page asks for a share link: never from this viewer.
         self.server.request_share_url = _refuse_share  # type: ignore[method-assign]
@@ -756,6 +781,22 @@ class Viewer:
                 self._ref_chan.close()
                 self._ref_chan = None
         self.server.stop()
+
+
+def _use_shipped_client() -> None:
+    """Serve the web client that ships in the viser wheel, never rebuild it.
+
+    viser's start-up check scans every process on the machine (psutil; it crashes when one exits meanwhile)
+    and rebuilds the client with node/yarn, downloaded from the network, whenever its sources look newer than
+    the build. Neither belongs in a robot's viewer: check that the build is there and use it.
+    """
+    from viser import _client_autobuild
+
+    def check() -> None:
+        if not (_client_autobuild.build_dir / "index.html").is_file():
+            raise FileNotFoundError(f"viser's web client is missing ({_client_autobuild.build_dir}); reinstall viser")
+
+    _client_autobuild.ensure_client_is_built = check
 
 
 def _ik_status_type() -> type[ctypes.Structure]:

@@ -240,7 +240,7 @@ def test_goto_moves_the_joint_through_the_pipeline(system: dict[str, str]) -> No
 
     mux_state = newest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
     owner = mux_state.owner[mds.LSP]
-    assert mds.msgs.get_name(mux_state.name[owner]) == "default"
+    assert mds.msgs.get_name(bytes(mux_state.name[owner])) == "default"
 
 
 @pytest.mark.slow
@@ -280,6 +280,14 @@ def test_ik_moves_the_arm_to_the_target_and_reports_the_fk(system: dict[str, str
     np.testing.assert_allclose(reported, [0.3, 0.2, 0.0], atol=0.011)
     reached, _ = chain_fk(arm_pos("left"), "left")
     np.testing.assert_allclose(reached, [0.3, 0.2, 0.0], atol=0.03)
+
+
+@pytest.mark.slow
+def test_goto_waits_while_a_higher_priority_controller_holds_the_joint(system: dict[str, str]) -> None:
+    proc = run_console(system, "ik left 3 0.32 0.22 0.0", "goto LSP -0.35 wait", timeout=90)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "waiting for the mux to release LSP (held by 'ik')" in proc.stdout
+    assert abs(joint_pos("LSP") + 0.35) < 0.011, "the goto is applied once the IK controller lets go"
 
 
 @pytest.mark.slow

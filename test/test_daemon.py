@@ -655,3 +655,22 @@ def test_status_struct_layout() -> None:
     line = ds.summary_line(st)
     assert "9.5/10 Hz" in line and "23%" in line and "stale 1" in line and "tx-err 2" in line
     assert sys.byteorder == "little"
+
+
+def test_diagnostics_levels() -> None:
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    st = ds.MDS_DAEMON_STATUS(rate_hz=10, bus_load_avg=20.0)
+    assert daemon.diagnostic_status(st, True, []).level == DiagnosticStatus.OK
+    st.bus_load_avg = 61.0
+    busy = daemon.diagnostic_status(st, True, [])
+    assert busy.level == DiagnosticStatus.WARN and "bus load 61 % > 60 %" in busy.message
+    st.bus_load_avg, st.stale_count = 10.0, 1
+    stale = daemon.diagnostic_status(st, True, ["LEP"])
+    assert stale.level == DiagnosticStatus.WARN and "LEP" in stale.message
+    st.bus_state = ds.BUS_STATE_BUS_OFF
+    off = daemon.diagnostic_status(st, True, ["LEP"])
+    assert off.level == DiagnosticStatus.ERROR and "resetbus" in off.message
+    assert daemon.diagnostic_status(ds.MDS_DAEMON_STATUS(rate_hz=10), False, []).level == DiagnosticStatus.ERROR
+    values = {kv.key for kv in off.values}
+    assert {"period_error_p99_ms", "overruns", "bus_load_percent", "cpu_per_cycle_ms", "stale_joints"} <= values

@@ -274,3 +274,35 @@ def test_rotation_vectors_including_half_turns() -> None:
     for k in range(len(R)):
         axis = rv[k] / theta[k] if theta[k] > 0 else np.array([1.0, 0, 0])
         assert np.allclose(kinematics.axis_angle(axis, theta[k]), R[k], atol=1e-9)
+
+
+@pytest.mark.parametrize("dof", [3, 4, 5, 6])
+def test_batched_searches_alone_solve_reachable_targets(dof: int) -> None:
+    """The restarts path (numpy-batched searches), without the one-search fast path in front of it."""
+    order = ik.DOF_ORDERS[dof]
+    opts = ik.IKOptions(fast_iterations=0)
+    _, T = reachable("right", 12, seed=30 + dof)
+    seeds = np.random.default_rng(dof).uniform(-1, 1, size=(12, 6))
+    for k in range(12):
+        target = ik.getPosCurrentFromOrder(T[k], order)
+        res = ik.solve(target, order, "right", seeds[k], options=opts)
+        assert res.success, res.message
+        assert task_error(res.q, "right", target, list(order)) <= 0.01
+
+
+def test_plain_float_residual_equals_the_batched_one() -> None:
+    kin = kinematics.arm_kinematics("left")
+    rng = np.random.default_rng(6)
+    orders = [ik.DOF_ORDERS[d] for d in range(1, 7)] + [("t-z", "p-x"), ("t-y",), ("t-x", "t-z", "p-y"),
+                                                         ("t-y", "t-z"), ("t-x", "t-y", "p-z")]
+    for order in orders:
+        target = ik.getPosCurrentFromOrder(kin.fk_matrix(rng.uniform(kin.lower, kin.upper)), order)
+        for tolerance in (None, 0.01):
+            task = ik.Task(target, order, tolerance)
+            for q in rng.uniform(kin.lower, kin.upper, size=(10, 6)):
+                batched = task.residual(*kin.fk_jacobian(q[None]))
+                scalar = task.residual_scalar(*kin.fk_jacobian_scalar(q.tolist()))
+                assert np.allclose(batched[0][0], scalar[0], atol=1e-12)
+                assert np.allclose(batched[1][0], np.array(scalar[1]), atol=1e-12)
+                assert batched[2][0] == pytest.approx(scalar[2], abs=1e-12)
+                assert batched[3][0] == pytest.approx(scalar[3], abs=1e-12)

@@ -287,6 +287,12 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
         # A 5-DOF pose the left hand can take (arm forward, elbow bent) with the body clear.
         pose = kinematics.fk_matrix([-0.6, 0.3, 0.2, -1.2, 0.3, 0.2], "left")
         with IkClient() as client:
+            # A refused request first (logged as a warning), then a solved one (info): both must be answered.
+            bad = make_request("left", 3, [0.3, 0.2, 0.0])
+            bad.move = 5
+            client.requests.put(bad)
+            refused = wait_for(lambda: client.answers.latest(), 20, what="the answer to the bad request")
+            assert refused.status == IK_BAD_REQUEST
             reply = client.request("left", 5, ik.getPosCurrentFromOrder(pose, ik.DOF_ORDERS[5]), timeout=30)
         assert reply.success, reply.message
         frame = wait_for(lambda: out.latest(), 5, what="the solution on mds-ref-ik")
@@ -294,10 +300,11 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
 
         def topic() -> bool:
             rclpy.spin_once(node, timeout_sec=0.05)
-            return bool(got)
+            return len(got) >= 2
 
-        wait_for(topic, 20, what=f"a message on {IK_STATUS_TOPIC}")
-        assert got[-1]["status_name"] == "solved" and got[-1]["arm"] == "left" and got[-1]["dof"] == 5
+        wait_for(topic, 20, what=f"both answers on {IK_STATUS_TOPIC}")
+        assert [d["status_name"] for d in got] == ["bad request", "solved"]
+        assert got[-1]["arm"] == "left" and got[-1]["dof"] == 5 and got[-1]["seq"] == reply.seq
         assert got[-1]["q"] == pytest.approx(list(reply.q))
     finally:
         proc.send_signal(sig)

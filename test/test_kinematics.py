@@ -131,3 +131,48 @@ def test_a_urdf_with_another_arm_geometry_is_followed(tmp_path) -> None:
     path.write_text(text)
     kin = kinematics.ArmKinematics(kinematics.load_model(path), "left")
     assert np.allclose(kin.fk_matrix(np.zeros(6))[:3, 3], [0, 0.24551, -(0.282575 + 0.4 + 0.0635)])
+
+
+@pytest.mark.parametrize("arm", ["left", "right"])
+def test_scalar_fk_jacobian_equals_numpy(arm: str) -> None:
+    kin = kinematics.arm_kinematics(arm)
+    assert kin.scalar_chain is not None  # the MDS arms turn about principal axes only
+    q = _q(40, seed=12)
+    R, p, J = kin.fk_jacobian(q)
+    for k in range(len(q)):
+        r, pos, cols = kin.fk_jacobian_scalar(q[k].tolist())
+        assert np.abs(np.reshape(r, (3, 3)) - R[k]).max() < 1e-14
+        assert np.abs(np.array(pos) - p[k]).max() < 1e-14
+        assert np.abs(np.array(cols).T - J[k]).max() < 1e-14
+
+
+def test_skewed_joint_axes_use_the_numpy_path(tmp_path) -> None:
+    """A joint axis off x/y/z has no plain-float chain; FK still works through numpy (and IK with it)."""
+    from mds_ach import ik
+    from mds_ach.paths import urdf_path
+
+    text = urdf_path().read_text()
+    marker = '<joint name="LSY" type="revolute">'
+    head, tail = text.split(marker)
+    tail = tail.replace('<axis xyz="0 0 1"/>', '<axis xyz="0 0.6 0.8"/>', 1)
+    path = tmp_path / "skew.urdf"
+    path.write_text(head + marker + tail)
+    kin = kinematics.ArmKinematics(kinematics.load_model(path), "left")
+    assert kin.scalar_chain is None
+    with pytest.raises(ValueError, match="principal axes"):
+        kin.fk_jacobian_scalar([0.0] * 6)
+    q = np.array([0.1, 0.2, 0.7, -0.5, 0.3, 0.2])
+    R, p = kin.fk(q)
+    axes = [np.array(a, dtype=float) for a in ((0, 1, 0), (1, 0, 0), (0, 0.6, 0.8), (0, 1, 0), (0, 0, 1), (1, 0, 0))]
+    steps = [(0, 0.24551, 0), (0, 0, 0), (0, 0, 0), (0, 0, -0.282575), (0, 0, -0.3127375), (0, 0, 0)]
+    T = np.eye(4)
+    for axis, t, angle in zip(axes, steps, q, strict=True):
+        A = np.eye(4)
+        A[:3, :3] = kinematics.axis_angle(axis, angle)
+        A[:3, 3] = t
+        T = T @ A
+    assert np.allclose(R, T[:3, :3], atol=1e-12) and np.allclose(p, T[:3, :3] @ [0, 0, -0.0635] + T[:3, 3])
+    solver = ik.IKSolver("left")
+    solver.kin = kin  # the solver uses whatever chain it is given
+    res = solver.solve(p, ["p-x", "p-y", "p-z"], np.zeros(6))
+    assert res.success and np.linalg.norm(kin.fk(res.q)[1] - p) <= 0.01

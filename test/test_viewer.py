@@ -9,6 +9,7 @@ mds-state / mds-collide) keeps them independent of the other nodes.
 from __future__ import annotations
 
 import base64
+import ctypes
 import io
 import json
 import math
@@ -99,10 +100,10 @@ def test_waits_for_state_without_creating_channels_then_follows_it(inproc: viewe
     assert inproc.ghost.q["LSP"] == -1.0 and inproc.ghost.q["REP"] == 0.0
     # The solid elbow frame really moved to where the FK puts it.
     expected = inproc.model.link_poses(inproc.solid.q)["left_elbow_link"][:3, 3]
-    assert np.allclose(inproc.solid._frames["left_elbow_link"].position, expected)
+    assert np.allclose(inproc.solid.frame("left_elbow_link").position, expected)
     # The ghost shows only where reference and measurement disagree: the arms, not the body.
-    assert inproc.ghost._frames["left_hand_link"].visible
-    assert not inproc.ghost._frames["wheels_link"].visible
+    assert inproc.ghost.frame("left_hand_link").visible
+    assert not inproc.ghost.frame("wheels_link").visible
 
 
 def test_non_finite_state_values_are_skipped(inproc: viewer.Viewer) -> None:
@@ -115,7 +116,7 @@ def test_non_finite_state_values_are_skipped(inproc: viewer.Viewer) -> None:
     assert inproc.solid.q["LEP"] == -0.5 and inproc.solid.q["LSP"] == -0.2, "NaN/Inf must keep the last value"
     assert inproc.solid.q["RSP"] == -0.3, "the finite values of the same frame still apply"
     assert "LEP.pos" in inproc.status.content and "LSP.pos" in inproc.status.content
-    for frame in inproc.solid._frames.values():
+    for frame in (inproc.solid.frame(name) for name in inproc.model.links):
         assert np.all(np.isfinite(frame.position)) and np.all(np.isfinite(frame.wxyz))
 
 
@@ -219,6 +220,18 @@ def test_sliders_refuse_to_start_without_a_running_system(inproc: viewer.Viewer)
     assert not inproc.sliders_on.value
     assert "not sending" in inproc.slider_status.content
     assert not ach.exists(mds.MDS_CHAN_REF_FILTER_NAME)
+
+
+def test_quaternions_match_viser() -> None:
+    from viser.transforms import SO3
+
+    rng = np.random.default_rng(7)
+    rotations = [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+    rotations += [SO3.exp(rng.normal(size=3) * 2.0).as_matrix() for _ in range(200)]
+    for rotation in rotations:
+        ours = np.array(viewer.quaternion_wxyz(rotation))
+        theirs = SO3.from_matrix(rotation).wxyz
+        assert np.allclose(ours, theirs, atol=1e-9) or np.allclose(ours, -theirs, atol=1e-9)
 
 
 def test_world_objects(tmp_path: Path) -> None:
@@ -597,3 +610,80 @@ def test_browser_collision_turns_the_part_highlight_on(page: Page) -> None:
         collide.put(collide_frame())
         until(lambda: highlight_pixels(crop(page.screenshot(), box)), lambda n: n < 50,
               "the highlight to go off (highlight-coloured pixels)")
+
+
+# --------------------------------------------------------------------------------------------------
+# with the real daemon on the simulated bus
+# --------------------------------------------------------------------------------------------------
+
+
+def newest_state() -> mds.MDS_STATE | None:
+    """The newest mds-state frame, even if seen before (read-only)."""
+    state = mds.MDS_STATE()
+    with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as chan:
+        status, size = chan.get(state, last=True, copy=True)
+    return state if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(state) else None
+
+
+def goto(targets: dict[str, float]) -> None:
+    """A reference frame on mds-ref (what the collision gate passes on): the daemon's refs with ``targets``."""
+    state = newest_state()
+    assert state is not None
+    ref = mds.MDS_REF()
+    for addr in range(mds.MDS_JOINT_COUNT):
+        ref.joint[addr].ref = state.joint[addr].ref
+    for name, value in targets.items():
+        ref.joint[mds.lookup(name).address].ref = value
+    with StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF, create=False) as chan:
+        chan.put(ref)
+
+
+def reached(targets: dict[str, float], tolerance: float = 0.03) -> bool:
+    state = newest_state()
+    return state is not None and all(
+        abs(state.joint[mds.lookup(n).address].pos - v) < tolerance for n, v in targets.items()
+    )
+
+
+@pytest.mark.slow
+def test_browser_follows_the_real_daemon_nocan(page: Page, tmp_path: Path) -> None:
+    """`daemon --nocan` moves the simulated arm after a reference on mds-ref; the page shows it moving there and
+    back (same protocol as the fake-daemon test, against the daemon's own mds-state)."""
+    log = open(tmp_path / "daemon.log", "wb")  # noqa: SIM115 - closed below
+    daemon = subprocess.Popen(
+        [str(VENV_BIN / "daemon"), "--nocan"],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, "MDS_ACH_RUNTIME_DIR": str(tmp_path / "run")},
+    )
+    try:
+        first = newest_state()
+        stamp = first.time if first is not None else None
+        wait_for(lambda: (s := newest_state()) is not None and s.time != stamp and s.time > 0 or daemon.poll(), 60,
+                 interval=0.1, what="the daemon's first mds-state frames")
+        assert daemon.poll() is None, (tmp_path / "daemon.log").read_text()[-3000:]
+        start = {n: newest_state().joint[mds.lookup(n).address].pos for n in ARMS_UP}
+        box = canvas_box(page)
+        rounds = []
+        for _ in range(3):
+            wait_for(lambda: reached(start), 30, interval=0.1, what=f"the arms back at {start}")
+            down = settled(page, box)
+            goto(ARMS_UP)
+            wait_for(lambda: reached(ARMS_UP), 30, interval=0.1, what="the simulated arms at the goto target")
+            up = shot_once_changed(page, box, down)
+            goto(start)
+            wait_for(lambda: reached(start), 30, interval=0.1, what="the simulated arms back at the start")
+            down_again = shot_once_changed(page, box, up)
+            moved, residue = changed_pixels(down, up), changed_pixels(down, down_again)
+            rounds.append((moved, residue))
+            if residue < 300:
+                break
+        assert residue < 300, f"the picture never came back after the arms did (changed pixels up/back: {rounds})"
+        assert moved > 3000, f"the daemon moved the arms but the picture hardly changed ({rounds})"
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=30) == 0, (tmp_path / "daemon.log").read_text()[-3000:]
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+        log.close()
