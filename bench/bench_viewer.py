@@ -100,7 +100,7 @@ def run(quick: bool = False) -> list[Row]:
             stop = threading.Event()
             loop = threading.Thread(target=v.run, args=(stop,), daemon=True)
             written = 0
-            first = v._state_frames
+            first = v.state_frames
             loop.start()
             t_start = time.monotonic()
             next_t = t_start
@@ -110,7 +110,7 @@ def run(quick: bool = False) -> list[Row]:
                 next_t += 0.02
                 time.sleep(max(0.0, next_t - time.monotonic()))
             elapsed = time.monotonic() - t_start
-            applied = v._state_frames - first
+            applied = v.state_frames - first
             stop.set()
             loop.join(timeout=5)
             rate = applied / elapsed

@@ -873,7 +873,7 @@ class Channel:
                     r = self._lock_slow(r)
                     if r:
                         return r
-                self._write_locked(src, n)
+                r = self._write_locked(src, n)
                 self._i32[self._i_dirty] = 0
                 self._mutex_unlock(mutex)
             except BaseException:
@@ -883,13 +883,13 @@ class Channel:
                 self._cond_broadcast(self._cond)
                 raise
             self._cond_broadcast(self._cond)
-            return ACH_OK
+            return r
         finally:
             active.pop()
             if self._closed and not active:
                 self._release()
 
-    def _write_locked(self, src: memoryview, n: int) -> None:
+    def _write_locked(self, src: memoryview, n: int) -> int:
         """libach ``ach_put`` steps 1-7, literally (see ach-format.md section 4). Caller holds the lock."""
         q = self._q
         self._i32[self._i_dirty] = 1
@@ -930,7 +930,8 @@ class Channel:
                 q[e] = q[e + 1] = q[e + 2] = 0
             i = (i + 1) % cnt
         if dsize - data_head < n:  # libach's sanity check; cannot happen
-            raise AchException(ACH_BUG, "no room after eviction", channel=self.name)
+            q[_Q_DATA_HEAD], q[_Q_DATA_FREE], q[_Q_INDEX_FREE] = data_head, data_free, index_free
+            return ACH_BUG
         start = self._d0 + data_head
         self._mv[start:start + n] = src
         seq = q[self._q_last] + 1
@@ -943,6 +944,7 @@ class Channel:
         q[_Q_DATA_FREE] = data_free - n
         q[_Q_INDEX_HEAD] = (index_head + 1) % cnt
         q[_Q_INDEX_FREE] = index_free - 1
+        return ACH_OK
 
     # -- get ---------------------------------------------------------------------------------------
 

@@ -14,6 +14,7 @@ Setup commands reach it two ways:
   Example: ``ros2 service call /mds_daemon/command diagnostic_msgs/srv/AddDiagnostics
   "{load_namespace: 'home LEP'}"``.
 
+ROS parameters ``robot``, ``rate`` and ``nocan`` (defaults from the command line) serve launch files.
 The real-time loop runs on its own thread (see :mod:`mds_ach.daemon_loop`); the executor only serves the
 service and the diagnostics timer.
 """
@@ -228,6 +229,11 @@ def _make_node(args: argparse.Namespace):
 
         def __init__(self) -> None:
             super().__init__("mds_daemon")
+            # ROS parameters for launch files; the command line gives their defaults.
+            robot = self.declare_parameter("robot", args.robot or "").value
+            rate = self.declare_parameter("rate", float(args.rate)).value
+            nocan = self.declare_parameter("nocan", bool(args.nocan)).value
+            args.robot, args.rate, args.nocan = robot or None, float(rate), bool(nocan)
             self.daemon = build(args)
             self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.create_timer(1.0, self._diagnostics)
@@ -235,6 +241,11 @@ def _make_node(args: argparse.Namespace):
 
         def _diagnostics(self) -> None:
             st = self.daemon.loop.snapshot()
+            if not self.daemon.loop.running:
+                # The loop thread died (its traceback is in the log): stop the process so a supervisor notices;
+                # the MCB nodes hold their last targets.
+                self.get_logger().fatal("control loop stopped; exiting")
+                raise SystemExit(1)
             stale = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_STALE
                      and st.joint_flags[a] & ds.JOINT_ENABLED]
             msg = DiagnosticArray()

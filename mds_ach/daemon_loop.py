@@ -51,6 +51,7 @@ CAN_ERR_BUSOFF = 0x040
 CAN_ERR_RESTARTED = 0x100
 CAN_ERR_CRTL_PASSIVE = 0x30  # RX or TX passive in data[1]
 CAN_ERR_CRTL_WARNING = 0x0C
+CAN_ERR_CRTL_ACTIVE = 0x40  # recovered to error-active
 
 HOMING_TIMEOUT = 60.0  # s: stop waiting for a homing joint to settle
 COMMAND_NAMES = {mds.MDS_CMD_ENABLE: "enable", mds.MDS_CMD_DISABLE: "disable", mds.MDS_CMD_HOME: "home",
@@ -659,6 +660,10 @@ class DaemonLoop:
         elif err & CAN_ERR_RESTARTED:
             self.bus_state = ds.BUS_STATE_ACTIVE
             log.info("CAN controller restarted")
+        elif err & CAN_ERR_CRTL and status & CAN_ERR_CRTL_ACTIVE:
+            if self.bus_state == ds.BUS_STATE_PASSIVE:
+                self.bus_state = ds.BUS_STATE_ACTIVE
+                log.info("CAN controller back to error-active")
         elif err & CAN_ERR_CRTL and status & (CAN_ERR_CRTL_PASSIVE | CAN_ERR_CRTL_WARNING):
             if self.bus_state == ds.BUS_STATE_ACTIVE:
                 self.bus_state = ds.BUS_STATE_PASSIVE

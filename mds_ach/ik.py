@@ -41,6 +41,8 @@ DEFAULT_ERR: tuple[float, float, float] = (0.01, 0.01, 0.01)
 DEFAULT_ITERATIONS = 1000
 _SQRT3 = math.sqrt(3.0)
 _TWO_PI = 2.0 * math.pi
+# The fast search hands over to the batched ones when its error fell less than 10 % over 5 iterations.
+_CREEP_WINDOW, _CREEP_RATIO = 5, 0.9
 EXACT = 1e-6  # a pose this close to the target counts as reached whatever its Euler angles (gimbal lock)
 # Trust-region update after an accepted / rejected step: (step-limit scale, LM damping) factors.
 _ACCEPT = np.array([16.0, 0.5])
@@ -586,7 +588,8 @@ class IKSolver:
 
         Starts at ``start`` (default ``seed``) with step limits ``scale`` times the initial ones; stops when the
         error is within ``tolerance`` (default the options'), after ``budget`` iterations (default
-        ``opt.fast_iterations``) or when stalled. Returns (q, reported error, solver error, iterations, converged).
+        ``opt.fast_iterations``) or when stalled or creeping (the batched searches do better from there).
+        Returns (q, reported error, solver error, iterations, converged).
         """
         kin = self.kin
         lower, upper = self._lower_list, self._upper_list
@@ -599,9 +602,12 @@ class IKSolver:
         max_scale = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)
         null = task.dof < n and opt.null_gain > 0
         stall = min(opt.stall_iterations, 10)
+        history = [err]
         since = iterations = 0
         budget = min(opt.fast_iterations if budget is None else budget, opt.max_iterations)
         while reported > tol and iterations < budget and since <= stall:
+            if len(history) > _CREEP_WINDOW and history[-1] > _CREEP_RATIO * history[-1 - _CREEP_WINDOW]:
+                break  # creeping: most likely a local minimum at the joint limits; the batched searches take over
             iterations += 1
             Jt = np.array(rows)
             ev = np.array(e)
@@ -625,6 +631,7 @@ class IKSolver:
             q_new = [min(max(a + f * d, lo), hi) for a, d, lo, hi in zip(q, dq, lower, upper, strict=True)]
             e_new, rows_new, err_new, reported_new = task.residual_scalar(*kin.fk_jacobian_scalar(q_new))
             since = 0 if err_new < err * (1.0 - 1e-4) else since + 1
+            history.append(min(err_new, err))
             if err_new < err:
                 q, e, rows, err, reported = q_new, e_new, rows_new, err_new, reported_new
                 scale = min(scale * _ACCEPT[0], max_scale)

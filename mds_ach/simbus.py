@@ -55,6 +55,7 @@ CAN_ERR_CRTL_RX_WARNING = 0x04
 CAN_ERR_CRTL_TX_WARNING = 0x08
 CAN_ERR_CRTL_RX_PASSIVE = 0x10
 CAN_ERR_CRTL_TX_PASSIVE = 0x20
+CAN_ERR_CRTL_ACTIVE = 0x40  # recovered to error-active
 
 DEFAULT_MAX_VELOCITY_REV_S = 0.5  # motor revolutions/s when nothing set it (assumption: not in any source)
 DEFAULT_ACCEL_DEG_S2 = 80.0
@@ -230,6 +231,8 @@ class SimNetwork:
         with self._lock:
             if status & (CAN_ERR_CRTL_RX_PASSIVE | CAN_ERR_CRTL_TX_PASSIVE):
                 self.state = can.BusState.PASSIVE
+            elif status & CAN_ERR_CRTL_ACTIVE and not self.bus_off_active:
+                self.state = can.BusState.ACTIVE
             self._enqueue(msg, self.clock(), wire=False)
 
     def bus_off(self) -> None:

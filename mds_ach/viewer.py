@@ -287,9 +287,6 @@ class CollisionScene:
             self.highlighted_parts = set(parts)
             self._restyle()
 
-    def highlighted_primitives(self) -> list[str]:
-        return [self.model.primitives[k].name for k in self._robot if self._is_hot(k)]
-
     def _is_hot(self, k: int) -> bool:
         return self.model.primitives[k].part in self.highlighted_parts
 
@@ -507,6 +504,8 @@ class Viewer:
         self.server.request_share_url = _refuse_share  # type: ignore[method-assign]
         self.server.gui.configure_theme(control_layout="fixed", show_share_button=False, brand_color=(40, 90, 160))
         self.server.scene.set_up_direction("+z")
+        # No HDRI environment: viser would fetch it from the server's hdri/ folder, which lacks the default one
+        # (the page then renders without it anyway); the default lights are enough for primitives.
         self.server.scene.configure_environment_map(hdri=None)
         self.server.scene.add_grid("/grid", width=4.0, height=4.0, cell_size=0.25, plane="xy")
         self.server.on_client_connect(self._on_connect)
@@ -532,7 +531,7 @@ class Viewer:
         self.ik_shown: IkTarget | None = None
         self.last_state: Any = None
         self._last_state_at = 0.0
-        self._state_frames = 0
+        self.state_frames = 0  # mds-state frames applied (status line, bench)
         self._rate_window = (time.monotonic(), 0)
         self._state_rate = 0.0
         self._bad_values: list[str] = []
@@ -725,7 +724,7 @@ class Viewer:
             self.collision.set_joints(measured)
         self.last_state = state
         self._last_state_at = now
-        self._state_frames += 1
+        self.state_frames += 1
         if self.sliders_on is not None and not self.sliders_on.value:
             for name, value in reference.items():
                 slider = self.sliders[name]
@@ -736,8 +735,8 @@ class Viewer:
     def _update_status(self, now: float) -> None:
         start, frames = self._rate_window
         if now - start >= 1.0:
-            self._state_rate = (self._state_frames - frames) / (now - start)
-            self._rate_window = (now, self._state_frames)
+            self._state_rate = (self.state_frames - frames) / (now - start)
+            self._rate_window = (now, self.state_frames)
         name = mds.MDS_CHAN_STATE_NAME
         if self.last_state is None:
             why = "no frame yet" if self.state.available else f"channel {self.state.error}; retrying"

@@ -371,7 +371,7 @@ def test_gate_resumes_after_a_crash(clean_shm: None) -> None:
             procs.append(proc)
             out.flush()
             wait_for(lambda: out.latest() is not None, 30, what=f"gated frames from gate #{attempt + 1}")
-            time.sleep(0.2)
+            time.sleep(3.0)  # a few hundred wake-ups of its condvar wait
             proc.kill()
             proc.wait(10)
     finally:

