@@ -26,7 +26,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 JOINTS = ["LSP", "LEP"]
 # (seconds from start, [LSP, LEP] in rad): raise the arm forward a little, bend the elbow, then settle.
-POINTS = [(2.0, [-0.3, -0.5]), (4.0, [-0.2, -0.3])]
+POINTS = [(3.0, [-0.3, -0.6]), (6.0, [-0.2, -0.3])]
 
 
 def make_trajectory() -> JointTrajectory:

@@ -63,7 +63,7 @@ COLLIDE_OVERRIDDEN = 2
 @dataclass(frozen=True)
 class GateConfig:
     max_velocity: float | None = 2.0  # rad/s, None = no bound
-    max_dt: float = 0.1  # s, longest interval the speed bound credits
+    max_dt: float = 0.05  # s, longest interval the speed bound credits (>= 2 filter periods)
     release_time: float = 0.1  # s, reporting hysteresis
     counter_max: int = 240
     override_max: float = 10.0  # s
@@ -85,7 +85,7 @@ class GateConfig:
 
         return cls(
             max_velocity=num("max_velocity", 2.0, allow_none=True),
-            max_dt=num("max_dt", 0.1),  # type: ignore[arg-type]
+            max_dt=num("max_dt", 0.05),  # type: ignore[arg-type]
             release_time=num("release_time", 0.1),  # type: ignore[arg-type]
             counter_max=int(num("counter_max", 240)),  # type: ignore[arg-type]
             override_max=num("override_max", 10.0),  # type: ignore[arg-type]
@@ -128,6 +128,7 @@ class Gate:
         self.ref = np.array(self.ref, dtype=float)
         self.mode = np.array(self.mode, dtype=np.int16)
         self.last_time = self.now
+        self._first = True
         self.current = self.model.check(self.model.q_from_ref(self.ref))  # the output's own state
         self.override_until = -math.inf
         self.parts = [_PartState() for _ in range(MDS_COLLIDE_JNT_NUM)]
@@ -175,7 +176,9 @@ class Gate:
         cand_mode[bad] = self.mode[bad]
         refused = tuple(int(a) for a in np.flatnonzero(bad & self._known))
         if self.config.max_velocity is not None:
-            dt = min(max(now - self.last_time, 0.0), self.config.max_dt)
+            # The first reference after start gets no credit: whatever the input says, the output starts
+            # from where the daemon is (a restarted gate must not step).
+            dt = 0.0 if self._first else min(max(now - self.last_time, 0.0), self.config.max_dt)
             step = self.config.max_velocity * dt
             cand = self.ref + np.clip(cand - self.ref, -step, step)
         q = self.model.q_from_ref
@@ -203,6 +206,7 @@ class Gate:
                     out_result, held = self.current, ("all",)
         self._track(result, now, overridden)
         self.ref, self.mode, self.current, self.last_time = out, out_mode, out_result, now
+        self._first = False
         return Decision(out.copy(), out_mode.copy(), result, held, refused, overridden)
 
     # ----- reporting

@@ -19,11 +19,17 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mds_ach as mds
 from mds_ach.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.monitor import Latest
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    from mds_ach.config import JointTable
+    from mds_ach.mux import MDS_MUX_STATE
 
 PROMPT = ">> mds-ach-console$ "
 ARMS = {"left": (mds.LEFT, LEFT_ARM), "right": (mds.RIGHT, RIGHT_ARM)}
@@ -193,13 +199,10 @@ class Console:
         self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
         self.progress = progress or (lambda: print(".", end="", flush=True))
         self.state = Latest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
-        self.ik_state = None  # opened on first use (the IK node's status channel)
-        self._table = None
+        self._table: JointTable | None = None
 
     def close(self) -> None:
         self.state.close()
-        if self.ik_state is not None:
-            self.ik_state.close()
 
     # -- helpers ----------------------------------------------------------------------------------
 
@@ -212,7 +215,7 @@ class Console:
                                "is MDS-Ach running? (mds-ach start)", usage=False)
         return state
 
-    def _joint_table(self):  # -> mds_ach.config.JointTable
+    def _joint_table(self) -> JointTable:
         if self._table is None:
             from mds_ach.config import load
             from mds_ach.robot_choice import effective_robot
@@ -250,31 +253,46 @@ class Console:
                 ref.joint[address].ref = value
             chan.put(ref)
 
+    @staticmethod
+    def _mux_holders(st: MDS_MUX_STATE, addresses: list[int]) -> dict[int, str]:
+        """Joints of ``addresses`` owned by a higher-priority mux controller than ours (the mds-ref-filter one)."""
+        from mds_ach.msgs import get_name
+
+        mine = _default_controller_name()
+        names = [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
+        if mine not in names:
+            return {}
+        my_priority = st.priority[names.index(mine)]
+        return {a: names[st.owner[a]] for a in addresses
+                if 0 <= st.owner[a] < len(names) and names[st.owner[a]] != mine
+                and st.priority[st.owner[a]] > my_priority}
+
+    @staticmethod
+    def _mux_state(newer_than: float, chan: Latest) -> MDS_MUX_STATE | None:
+        """The first mux state published after ``newer_than`` (CLOCK_MONOTONIC); None without a live mux."""
+        deadline = time.monotonic() + 0.5  # the mux publishes at 10 Hz
+        st = chan.read()
+        while st is not None and st.time <= newer_than and time.monotonic() < deadline:
+            st = chan.wait_new(0.1) or st
+        return st if st is not None and st.time > newer_than else None
+
     def _wait_until_free(self, addresses: list[int]) -> None:
         """Wait (up to ``RELEASE_TIMEOUT`` s) while a higher-priority mux controller owns one of the joints.
 
         Why: the mux applies a frame only to joints its controller may write *now*; a goto sent while the IK
-        node (or ROS) still owns the joint is absorbed without effect, and is not replayed after the release.
+        node (or ROS) still owns the joint is absorbed without effect and is not replayed after the release.
+        A mux state published after this call started is awaited first, so a move the IK node answered a
+        moment ago is already visible.
         """
-        from mds_ach.msgs import get_name
         from mds_ach.mux import MDS_MUX_STATE
 
-        mine = _default_controller_name()
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
+            st = self._mux_state(time.monotonic(), chan)
             deadline = time.monotonic() + RELEASE_TIMEOUT
             said = False
-            while True:
-                st = chan.read()
-                if st is None:
-                    return  # no mux (legacy set-up: the filter reads mds-ref-filter directly)
-                names = [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
-                if mine not in names:
-                    return
-                my_priority = st.priority[names.index(mine)]
-                held = {a: names[st.owner[a]] for a in addresses
-                        if 0 <= st.owner[a] < len(names) and names[st.owner[a]] != mine
-                        and st.priority[st.owner[a]] > my_priority}
+            while st is not None:
+                held = self._mux_holders(st, addresses)
                 if not held:
                     return
                 text = ", ".join(f"{mds.BY_ADDRESS[a].short} (held by '{n}')" for a, n in held.items())
@@ -285,9 +303,27 @@ class Console:
                 if not said:
                     self.out(f"waiting for the mux to release {text} ...")
                     said = True
-                chan.wait_new(0.2)
+                st = chan.wait_new(0.2) or st
         finally:
             chan.close()
+
+    def _check_applied(self, addresses: list[int], sent_at: float) -> None:
+        """After a put: refuse to report success when the mux did not take the joints (another controller
+        grabbed them in between)."""
+        from mds_ach.mux import MDS_MUX_STATE
+
+        chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        try:
+            st = self._mux_state(sent_at, chan)
+            if st is None:
+                return
+            held = self._mux_holders(st, addresses)
+        finally:
+            chan.close()
+        if held:
+            text = ", ".join(f"{mds.BY_ADDRESS[a].short} (held by '{n}')" for a, n in held.items())
+            raise CommandError(f"not applied: {text} took the joint first; send the goto again once it is free",
+                               usage=False)
 
     def _wait_arrival(self, targets: dict[int, float], timeout: float) -> bool:
         """Print a dot per half second until every target joint's measured position is within tolerance."""
@@ -345,7 +381,9 @@ class Console:
         state = self._state()
         self._check_target(cmd.joint, cmd.value, state)
         self._wait_until_free([cmd.joint.address])
+        sent_at = time.monotonic()
         self._put_refs({cmd.joint.address: cmd.value}, state)
+        self._check_applied([cmd.joint.address], sent_at)
         self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
         if cmd.wait:
             if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT):
@@ -359,7 +397,9 @@ class Console:
         for a in targets:
             self._check_target(mds.BY_ADDRESS[a], 0.0, state)
         self._wait_until_free(list(targets))
+        sent_at = time.monotonic()
         self._put_refs(targets, state)
+        self._check_applied(list(targets), sent_at)
         self.out(f"{len(targets)} enabled joints -> 0 rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
 
     def get(self, joint: Joint) -> None:
@@ -413,6 +453,7 @@ class Console:
             return False
 
 
+@lru_cache(maxsize=1)
 def _default_controller_name() -> str:
     """The mux controller fed by mds-ref-filter (config/mux.yaml), 'default' unless configured otherwise."""
     try:

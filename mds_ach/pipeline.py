@@ -251,23 +251,38 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
     ``make_node(args)`` returns an rclpy Node that has a ``shutdown()`` method stopping its real-time thread.
     A ``ValueError`` from it (bad config) is printed as a one-line error with exit status 2; a real-time loop
     that died (``start_worker``) gives exit status 1.
+
+    Signals: our own SIGINT/SIGTERM handlers set a flag that a ``spin_once`` loop checks every 0.1 s. rclpy's
+    handlers are not used: a signal that arrives while the node is still being built could be lost there and
+    leave the executor spinning forever.
     """
+    import signal
+
     argv = list(sys.argv if argv is None else argv)
     from rclpy.utilities import remove_ros_args
 
     args = parser.parse_args(remove_ros_args(argv)[1:])
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=argv)
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     status = 0
     try:
-        node = make_node(args)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
+        if not stop.is_set():
+            node = make_node(args)
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)
+    except ExternalShutdownException:
         pass
     except ValueError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
@@ -279,4 +294,6 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
                 status = 1
             node.destroy_node()
         rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return status

@@ -208,11 +208,12 @@ def show_param(which: str) -> int:
     chan = Latest(mds.MDS_CHAN_PARAM_NAME, mds.MDS_JOINT_PARAM)
     try:
         param = chan.read()
+        why = chan.error or "no frames"
     finally:
         chan.close()
     if param is None:
-        print(f"read param: nothing on {mds.MDS_CHAN_PARAM_NAME} ({chan.error or 'no frames'}); the daemon publishes "
-              "it at start", file=sys.stderr)
+        print(f"read param: nothing on {mds.MDS_CHAN_PARAM_NAME} ({why}); the daemon publishes it at start",
+              file=sys.stderr)
         return 1
     joint = BY_ADDRESS.get(address)
     print("\n".join(param_lines(param, address)) + ("" if joint else "\n  (no MDS joint at this address)"))

@@ -7,12 +7,14 @@ of their modules starts it once (module scope) to keep the suite fast.
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import subprocess
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 from conftest import VENV_BIN, in_netns, remove_mds_channels
 
 import mds_ach as mds
@@ -76,3 +78,36 @@ def joint_pos(short: str) -> float:
 
 def joint_ref(short: str) -> float:
     return float(state().joint[mds.BY_SHORT[short].address].ref)
+
+
+def arm_refs(arm: str) -> list[float]:
+    names = mds.joints.LEFT_ARM if arm == "left" else mds.joints.RIGHT_ARM
+    return [joint_ref(n) for n in names]
+
+
+def arm_pos(arm: str) -> list[float]:
+    names = mds.joints.LEFT_ARM if arm == "left" else mds.joints.RIGHT_ARM
+    return [joint_pos(n) for n in names]
+
+
+def chain_fk(q: list[float], arm: str) -> tuple[np.ndarray, np.ndarray]:
+    """The original IK chain (mds-original.md section e.1), written out independently of mds_ach.kinematics."""
+    l1, l2, l3, l4 = 0.24551, 0.282575, 0.3127375, 0.0635
+    m = 1.0 if arm == "left" else -1.0
+
+    def rot(axis: str, a: float) -> np.ndarray:
+        c, s = math.cos(a), math.sin(a)
+        return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+                "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+                "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
+
+    steps = [((0, m * l1, 0), "y"), ((0, 0, 0), "x"), ((0, 0, 0), "z"), ((0, 0, -l2), "y"), ((0, 0, -l3), "z"),
+             ((0, 0, 0), "x")]
+    R, p = np.eye(3), np.zeros(3)
+    for (offset, axis), angle in zip(steps, q, strict=True):
+        p = p + R @ np.array(offset, dtype=float)
+        R = R @ rot(axis, angle)
+    p = p + R @ np.array([0.0, 0.0, -l4])
+    euler = np.array([math.atan2(R[2, 1], R[2, 2]), math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
+                      math.atan2(R[1, 0], R[0, 0])])
+    return p, euler

@@ -22,6 +22,8 @@ class PtySession:
         pid, fd = pty.fork()
         if pid == 0:  # child: the pty is already its controlling terminal and stdio
             try:
+                for sig in (signal.SIGINT, signal.SIGQUIT, signal.SIGPIPE):  # as in a user's shell, even if
+                    signal.signal(sig, signal.SIG_DFL)  # the test runner was started with them ignored
                 fcntl.ioctl(0, termios.TIOCSWINSZ, struct.pack("HHHH", rows, cols, 0, 0))
                 os.execvpe(argv[0], argv, env if env is not None else os.environ)
             finally:

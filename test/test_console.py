@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import subprocess
@@ -17,7 +16,7 @@ import pytest
 from conftest import VENV_BIN, remove_mds_channels
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mds_system import joint_pos, joint_ref, running_system
+from mds_system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, running_system
 from pty_session import PtySession
 
 import mds_ach as mds
@@ -164,29 +163,6 @@ def run_console(env: dict[str, str], *commands: str, timeout: float = 60.0) -> s
     return subprocess.run(args, env=env, capture_output=True, text=True, timeout=timeout)
 
 
-def chain_fk(q: list[float], arm: str) -> tuple[np.ndarray, np.ndarray]:
-    """The original IK chain (mds-original.md section e.1), written out independently of mds_ach.kinematics."""
-    l1, l2, l3, l4 = 0.24551, 0.282575, 0.3127375, 0.0635
-    m = 1.0 if arm == "left" else -1.0
-
-    def rot(axis: str, a: float) -> np.ndarray:
-        c, s = math.cos(a), math.sin(a)
-        return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
-                "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
-                "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
-
-    steps = [((0, m * l1, 0), "y"), ((0, 0, 0), "x"), ((0, 0, 0), "z"), ((0, 0, -l2), "y"), ((0, 0, -l3), "z"),
-             ((0, 0, 0), "x")]
-    R, p = np.eye(3), np.zeros(3)
-    for (offset, axis), angle in zip(steps, q, strict=True):
-        p = p + R @ np.array(offset, dtype=float)
-        R = R @ rot(axis, angle)
-    p = p + R @ np.array([0.0, 0.0, -l4])
-    euler = np.array([math.atan2(R[2, 1], R[2, 2]), math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
-                      math.atan2(R[1, 0], R[0, 0])])
-    return p, euler
-
-
 FK_RE = re.compile(r"6DOF FK - for  (left|right)  arm\npos:\tx = (\S+) \ty = (\S+) \tz = (\S+)\n"
                    r"rot:\tx = (\S+) \ty = (\S+) \tz = (\S+)")
 
@@ -199,16 +175,6 @@ def parse_fk(text: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
             assert re.fullmatch(r"-?\d+\.\d{5}", v), f"not 5 decimals: {v}"
         out[m.group(1)] = (np.array(values[:3]), np.array(values[3:]))
     return out
-
-
-def arm_refs(arm: str) -> list[float]:
-    names = mds.joints.LEFT_ARM if arm == "left" else mds.joints.RIGHT_ARM
-    return [joint_ref(n) for n in names]
-
-
-def arm_pos(arm: str) -> list[float]:
-    names = mds.joints.LEFT_ARM if arm == "left" else mds.joints.RIGHT_ARM
-    return [joint_pos(n) for n in names]
 
 
 @pytest.mark.slow
@@ -284,10 +250,10 @@ def test_ik_moves_the_arm_to_the_target_and_reports_the_fk(system: dict[str, str
 
 @pytest.mark.slow
 def test_goto_waits_while_a_higher_priority_controller_holds_the_joint(system: dict[str, str]) -> None:
-    proc = run_console(system, "ik left 3 0.32 0.22 0.0", "goto LSP -0.35 wait", timeout=90)
+    proc = run_console(system, "ik left 3 0.32 0.22 0.0", "goto LWY 0.3 wait", timeout=90)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "waiting for the mux to release LSP (held by 'ik')" in proc.stdout
-    assert abs(joint_pos("LSP") + 0.35) < 0.011, "the goto is applied once the IK controller lets go"
+    assert "waiting for the mux to release LWY (held by 'ik')" in proc.stdout
+    assert abs(joint_pos("LWY") - 0.3) < 0.011, "the goto is applied once the IK controller lets go"
 
 
 @pytest.mark.slow
@@ -311,6 +277,8 @@ def test_interactive_prompt_history_and_exit(system: dict[str, str], tmp_path: P
         pty.send("goto nowhere 1\r")
         pty.expect("unknown joint 'nowhere'", timeout=10)
         pty.expect(console.PROMPT, timeout=10)
+        pty.send("get LS")
+        pty.expect("get LS", timeout=10)  # echoed: readline is reading the line
         pty.send("\x03")  # Ctrl-C abandons the line, the console stays
         pty.expect(console.PROMPT, timeout=10)
         pty.send("exit\r")

@@ -365,6 +365,9 @@ def test_unknown_nodes_malformed_and_error_frames_are_counted(rig: Rig) -> None:
     assert status.node_errors == 1
     assert status.error_frames == 1 and status.bus_state == ds.BUS_STATE_PASSIVE
     assert math.isfinite(st.joint[0x4C].pos)
+    rig.net.inject_error_frame(CAN_ERR_CRTL, status=0x40)  # CAN_ERR_CRTL_ACTIVE: back to error-active
+    rig.step()
+    assert status_of(rig).bus_state == ds.BUS_STATE_ACTIVE
 
 
 def test_bus_off_and_reset_bus_command(rig: Rig) -> None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+import select
 import signal
 import struct
 import subprocess
@@ -126,7 +127,8 @@ class StuckWriter:
         self.proc = subprocess.Popen([sys.executable, "-c", STUCK_WRITER, name, str(before), marker], env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert self.proc.stdout is not None
-        line = self.proc.stdout.readline().strip()
+        ready, _, _ = select.select([self.proc.stdout], [], [], 60)
+        line = self.proc.stdout.readline().strip() if ready else ""
         if line != "stuck":
             self.proc.kill()
             raise AssertionError(f"the writer did not stop inside put (printed {line!r}):\n{self.proc.stderr.read()}")
@@ -147,6 +149,46 @@ def test_writer_killed_holding_the_lock_before_marking_dirty_harms_nothing(clean
         ch.put(payload(7))
     report = repair.repair(TEST_CHANNEL)
     assert report.ok and report.action == ""
+
+
+WAITER = """
+from mds_ach import ach
+c = ach.Channel("test-faults", create=False)
+c.flush()
+print("waiting", flush=True)
+c.get(bytearray(256), wait=True)
+"""
+WRITER = """
+from mds_ach import ach
+c = ach.Channel("test-faults", create=False)
+for _ in range(3):
+    c.put(b"x" * 10)
+"""
+
+
+def test_reader_killed_while_waiting_does_not_wedge_the_writers(clean_shm: None) -> None:
+    """Any node blocked in ``get(wait=True)`` may be SIGKILLed (that is what this module does to every node). The
+    channel must stay usable: later writers must not hang. glibc's process-shared condvar is not robust: a waiter
+    killed inside ``pthread_cond_(timed)wait`` keeps a group reference forever and the next
+    ``pthread_cond_broadcast`` waits for it to drop, i.e. forever. Waiting through the condvar is therefore not
+    safe for readers that can be killed (e.g. wait on a futex keyed on last_seq, which the kernel cleans up)."""
+    ach.create(TEST_CHANNEL, 4, 256)
+    for trial in range(10):
+        waiter = subprocess.Popen([sys.executable, "-c", WAITER], stdout=subprocess.PIPE, text=True)
+        assert waiter.stdout.readline().strip() == "waiting"
+        time.sleep(0.05)  # inside the wait
+        waiter.kill()
+        waiter.wait(10)
+        waiter.stdout.close()
+        writer = subprocess.Popen([sys.executable, "-c", WRITER])
+        try:
+            writer.wait(10)
+        except subprocess.TimeoutExpired:
+            writer.kill()
+            writer.wait(10)
+            raise AssertionError(f"trial {trial}: a writer hangs in put() after a reader was killed while waiting "
+                                 "(pthread_cond_broadcast waits for the dead waiter)") from None
+        assert writer.returncode == 0
 
 
 def read_all(ch: ach.Channel) -> list[bytes]:
@@ -352,16 +394,21 @@ class CanRig:
         j = TABLE[short]
         return j.clamp(self.centre[short] + AMPLITUDE * math.sin(2 * math.pi * t / MOTION_PERIOD))
 
-    def run(self, seconds: float, inject: Callable[[CanRig], None] | None = None) -> None:
-        """Move the arms for ``seconds`` of robot time, one mds-ref frame per cycle (mode 1, pass-through)."""
-        for _ in range(round(seconds / self.loop.period)):
-            ref = MDS_REF()
-            for j in TABLE:
-                ref.joint[j.address].ref = self.loop.state.joint[j.address].ref_r
-                ref.joint[j.address].mode = mds.MDS_REF_MODE_REF
-            for s in MOVING:
-                ref.joint[TABLE[s].address].ref = self.target(s, self.t)
-            self.ref_out.put(ref)
+    def run(self, seconds: float, inject: Callable[[CanRig], None] | None = None, move: bool = True,
+            mode: int = mds.MDS_REF_MODE_REF) -> None:
+        """Run ``seconds`` of robot time; with ``move`` one mds-ref frame per cycle moves the arms (``mode`` for the
+        moving joints, pass-through by default; the others hold their reference)."""
+        for _ in range(max(1, round(seconds / self.loop.period))):
+            if move:
+                ref = MDS_REF()
+                for j in TABLE:
+                    r = self.loop.state.joint[j.address].ref_r
+                    ref.joint[j.address].ref = r if math.isfinite(r) else self.loop.state.joint[j.address].ref
+                    ref.joint[j.address].mode = mds.MDS_REF_MODE_REF
+                for s in MOVING:
+                    ref.joint[TABLE[s].address].ref = self.target(s, self.t)
+                    ref.joint[TABLE[s].address].mode = mode
+                self.ref_out.put(ref)
             if inject is not None:
                 inject(self)
             start = self.clock.now
@@ -503,13 +550,41 @@ def test_garbled_frames_are_counted_and_never_taken_as_positions(can_rig: CanRig
 
 # ============================================================================================ 3. the running system
 
-NODES = ("mux", "filter", "collision", "ik", "bridge")
+# Kill order: the filter and the daemon wait on no channel; the others block in get(wait=True) when killed.
+NODES = ("filter", "mux", "collision", "ik", "bridge")
 SYSTEM_MOVING = ("LSP", "LEP", "RSP", "REP")  # driven through mds-ref-filter (the mux's default input)
 SYSTEM_AMPLITUDE = 0.2  # rad
 SYSTEM_PERIOD = 3.0  # s: at most 0.42 rad/s, well inside the filter's 1.57 rad/s
 GATE_SPEED = 2.0  # rad/s, config/collision.yaml max_velocity: no reference may move faster
 START_TIMEOUT = 150.0  # s: cold imports (torch, fcl, rclpy) on a shared 2-core machine
 MODEL = [mds.BY_SHORT[n].address for n in mds.joints.MODEL_JOINTS]
+HEARTBEATS = {  # node -> a channel it writes periodically (mds-collide: reports at 10 Hz even without input)
+    "daemon": mds.MDS_CHAN_STATE_NAME,
+    "mux": mds.MDS_CHAN_MUX_STATE_NAME,
+    "filter": mds.MDS_CHAN_REF_SMOOTH_NAME,
+    "collision": mds.MDS_CHAN_COLLIDE_NAME,
+}
+
+
+def bounded(fn: Callable[[], object], timeout: float, what: str) -> object:
+    """Run ``fn`` on a helper thread; fail (instead of hanging the test run) if it does not return in time. Ach
+    calls from this process go through here when a killed node may have wedged the channel."""
+    result: list[object] = []
+    error: list[BaseException] = []
+
+    def body() -> None:
+        try:
+            result.append(fn())
+        except BaseException as exc:  # handed to the test thread
+            error.append(exc)
+
+    t = threading.Thread(target=body, name=what, daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), f"{what} hangs (more than {timeout:g} s)"
+    if error:
+        raise error[0]
+    return result[0] if result else None
 
 
 class Driver:
@@ -517,13 +592,18 @@ class Driver:
     the mux seeded). Put errors (a corrupt channel) are counted and retried, as a careful client would."""
 
     def __init__(self) -> None:
-        base = StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF).latest()
+        with StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF) as seeded:
+            base = seeded.latest()
         assert base is not None, "the mux did not seed mds-ref-filter"
         self.base = base
         self.centre = {s: TABLE[s].clamp(base.joint[TABLE[s].address].ref) for s in SYSTEM_MOVING}
         self.chan = ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False)
         self.errors = 0
         self.puts = 0
+        self.last_put = time.monotonic()
+        self.phase = 0.0
+        self.offset = 0.0  # added to every target (to move the commanded pose away from where the robot is)
+        self.frozen: float | None = None  # hold the sinusoid at this phase
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="driver", daemon=True)
         self._thread.start()
@@ -533,18 +613,29 @@ class Driver:
         while not self._stop.wait(0.05):
             frame = MDS_REF.from_buffer_copy(self.base)
             phase = math.sin(2 * math.pi * (time.monotonic() - t0) / SYSTEM_PERIOD)
+            if self.frozen is not None:
+                phase = self.frozen
+            self.phase = phase
             for s in SYSTEM_MOVING:
-                frame.joint[TABLE[s].address].ref = TABLE[s].clamp(self.centre[s] + SYSTEM_AMPLITUDE * phase)
+                target = self.centre[s] + SYSTEM_AMPLITUDE * phase + self.offset
+                frame.joint[TABLE[s].address].ref = TABLE[s].clamp(target)
             try:
                 self.chan.put(frame)
                 self.puts += 1
             except ach.AchException:
                 self.errors += 1
+            self.last_put = time.monotonic()
+
+    @property
+    def stuck(self) -> bool:
+        """Its put has not returned for a second: the channel is wedged."""
+        return time.monotonic() - self.last_put > 1.0
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(5)
-        self.chan.close()
+        self._thread.join(2)
+        if not self._thread.is_alive():  # a put stuck in the channel: leave the handle to the process exit
+            self.chan.close()
 
 
 @dataclass
@@ -556,7 +647,8 @@ class Frame:
 
 
 class Recorder:
-    """Every mds-state frame, with its receipt time, from a background thread."""
+    """Every mds-state frame, with its receipt time, from a background thread (it only reads: it can never hang
+    on a wedged channel)."""
 
     def __init__(self) -> None:
         self.frames: list[Frame] = []
@@ -590,7 +682,6 @@ class Recorder:
 
     def close(self) -> None:
         self._stop.set()
-        self._chan.cancel()
         self._thread.join(5)
         self._chan.close()
 
@@ -615,6 +706,14 @@ def assert_no_jump(frames: list[Frame], what: str) -> None:
             assert j.lower - 1e-9 <= f.ref[j.address] <= j.upper + 1e-9, f"{what}: {j.short} ref outside its limits"
 
 
+def live(channel: str, within: float = 1.5) -> bool:
+    """Does someone still publish on ``channel`` (a new frame within ``within`` s)?"""
+    with ach.Channel(channel, create=False) as ch:
+        ch.flush()
+        status, _ = ch.get(bytearray(ch.data_size), wait=True, timeout=within)
+    return status in (ach.ACH_OK, ach.ACH_MISSED_FRAME)
+
+
 class System:
     """daemon --nocan (with a CAN log), then `mds-ach start --only` the other nodes; the driver and the recorder."""
 
@@ -626,6 +725,16 @@ class System:
 
     def cli(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
         return mds_ach_cli(*args, timeout=timeout)
+
+    def start(self, pose: dict[str, float] | None = None) -> None:
+        from mds_ach.channels import make_channels
+
+        assert all(r.ok for r in make_channels())
+        self.start_daemon(pose)
+        self.start_nodes(*NODES)
+        self.recorder = Recorder()
+        self.driver = Driver()
+        self.moving(20)
 
     def start_daemon(self, pose: dict[str, float] | None = None) -> None:
         from mds_ach import launcher
@@ -646,7 +755,7 @@ class System:
                 frames += state.wait(0.2) is not None
 
     def start_nodes(self, *names: str) -> None:
-        proc = self.cli("start", "--only", *names, "--timeout", str(START_TIMEOUT), timeout=START_TIMEOUT + 60)
+        proc = self.cli("start", "--only", *names, "--timeout", str(START_TIMEOUT), timeout=START_TIMEOUT + 30)
         assert proc.returncode == 0, f"mds-ach start --only {' '.join(names)}:\n{proc.stdout}\n{proc.stderr}"
 
     def pid(self, name: str) -> int | None:
@@ -669,22 +778,33 @@ class System:
     def moving(self, timeout: float = 10.0) -> None:
         """Wait until the arms are seen moving (the driver's motion reaches the daemon)."""
         mark = self.recorder.mark()
-        wait_for(lambda: travel(self.recorder.since(mark), "LSP") > 0.05, timeout, what="the arms to move")
+        deadline = time.monotonic() + timeout
+        while travel(self.recorder.since(mark), "LSP") <= 0.05:
+            if time.monotonic() > deadline:
+                stuck = [n for n, ch in HEARTBEATS.items() if not live(ch)]
+                raise AssertionError(f"the arms do not move within {timeout:g} s; nodes not publishing: {stuck}; "
+                                     f"client put {'hangs' if self.driver.stuck else 'works'}")
+            time.sleep(0.05)
+
+    def healthy(self) -> bool:
+        """Every node runs and publishes, the channels are sound, and the client's motion reaches the robot."""
+        if not (all(self.pid(n) for n in ("daemon", *NODES)) and all(live(ch) for ch in HEARTBEATS.values())
+                and not self.driver.stuck and all(r.ok for r in repair.scan())):
+            return False
+        try:
+            self.moving(5)
+        except AssertionError:
+            return False
+        return True
 
     def heal(self) -> None:
-        """Bring every node back (after a test that failed half way), so the next test starts from a whole system."""
-        if not self.pid("daemon") or not self._state_live():
-            if self.pid("daemon"):
-                self.kill("daemon")
-            self.start_daemon(self.pose())
-        missing = [n for n in NODES if self.pid(n) is None]
-        if missing:
-            self.start_nodes(*missing)
-
-    def _state_live(self) -> bool:
-        mark = self.recorder.mark()
-        time.sleep(0.5)
-        return self.recorder.mark() > mark
+        """After a test that left the system broken (a hung node, a wedged channel), start it again from scratch
+        where the robot stands, so the next test does not inherit the damage."""
+        if self.healthy():
+            return
+        pose = self.pose()
+        self.stop()
+        self.start(pose)
 
     def pose(self) -> dict[str, float]:
         """Where the simulated joints are now (the robot stays there while its driver is down)."""
@@ -696,6 +816,7 @@ class System:
         for obj in (self.driver, self.recorder):
             if obj is not None:
                 obj.close()
+        self.driver = self.recorder = None
         self.cli("stop")
         self.cli("killall")
 
@@ -711,19 +832,10 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
     remove_mds_channels()
     s = System(rt)
     try:
-        from mds_ach.channels import make_channels
-
-        assert all(r.ok for r in make_channels())
-        s.start_daemon()
-        s.start_nodes(*NODES)
-        s.recorder = Recorder()
-        s.driver = Driver()
-        s.moving(20)
+        s.start()
         yield s
-        # Everything any daemon sent during the whole module, from its CAN log: never outside a joint's limits.
-        s.driver.close()
-        s.driver = None
-        s.cli("stop")
+        # Everything any daemon sent during the whole module, from its CAN logs: never outside a joint's limits.
+        s.stop()
         import can
 
         sent = []
@@ -731,12 +843,97 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
             for msg in can.LogReader(str(path)):
                 if not msg.is_error_frame and msg.arbitration_id != mcb.HOST_SID and len(msg.data) == mcb.DLC:
                     sent.append((msg.timestamp, mcb.decode(msg.arbitration_id, bytes(msg.data))))
-        assert len([1 for _, f in sent if f.argument == StateArg.MOVETO_TARGET]) > 100, "no motion was logged"
+        # (a SIGKILLed daemon loses the tail of its log; the last one is stopped cleanly)
+        assert any(f.argument == StateArg.MOVETO_TARGET for _, f in sent), "no motion was logged"
         assert unsafe_commands(sent) == []
     finally:
         s.stop()
         mp.undo()
         remove_mds_channels()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_sigkill_daemon_while_the_arms_move(system: System) -> None:
+    """The pipeline survives its daemon; a restarted daemon starts where the robot stands and resumes the motion
+    without a jump (the simulated robot lives in the daemon's process: it is restarted where it stood)."""
+    s = system
+    s.moving()
+    s.kill("daemon")
+    pose = s.pose()
+    mark = s.recorder.mark()
+    # The operator's client goes on commanding while the daemon is down: the pipeline's reference moves 0.35 rad
+    # away from where the robot stands (the robot cannot follow without its daemon).
+    s.driver.frozen, s.driver.offset = s.driver.phase, -0.35
+    time.sleep(1.5)
+    try:
+        assert s.recorder.since(mark) == [], "frames on mds-state without a daemon"
+        assert all(s.pid(n) is not None for n in NODES), "a node died with the daemon"
+        s.start_daemon(pose)
+        time.sleep(1.0)
+        s.driver.frozen, s.driver.offset = None, 0.0
+        s.moving()
+        after = s.recorder.since(mark)
+        for n, q in pose.items():
+            assert after[0].ref[TABLE[n].address] == pytest.approx(q, abs=1e-3), f"{n} does not start where it stands"
+        assert_no_jump(after, "daemon killed and restarted")
+    finally:
+        s.heal()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_client_killed_inside_a_put_on_a_mux_input(system: System) -> None:
+    """A legacy client dies inside its put on mds-ref-filter: the mux reports the corrupt input and the robot stays
+    safe; `mds-ach repair` fixes the channel in place and the client's frames move the robot again, through the same
+    mux (no node restarted)."""
+    s = system
+    s.moving()
+    mark = s.recorder.mark()
+    StuckWriter(mds.MDS_CHAN_REF_FILTER_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
+    try:
+        wait_for(lambda: s.driver.errors > 0, 5, what="the client to see ACH_CORRUPT")
+        time.sleep(1.5)
+        assert len(s.recorder.since(mark)) >= 10 and all(s.pid(n) for n in ("daemon", *NODES))
+        check = s.cli("repair", "--check")
+        assert check.returncode == 1
+        assert [ln.split()[0] for ln in check.stderr.splitlines()] == [mds.MDS_CHAN_REF_FILTER_NAME], check.stderr
+        assert "corrupt" in s.log("mux").lower(), "the mux did not report its corrupt input"
+        fixed = s.cli("repair")
+        assert fixed.returncode == 0 and "repaired in place" in fixed.stdout, fixed.stdout + fixed.stderr
+        errors = s.driver.errors
+        s.moving(timeout=10)  # the client's frames reach the robot again, through the same mux
+        assert s.driver.errors == errors
+        assert_no_jump(s.recorder.since(mark), "corrupt mux input repaired")
+    finally:
+        s.heal()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
+    """mds-ref (collision gate -> daemon) left corrupt: the daemon keeps publishing mds-state and holds the last
+    reference; `mds-ach repair`, plus `mds-ach start --only` for any node that stopped, resume the motion."""
+    s = system
+    s.moving()
+    mark = s.recorder.mark()
+    StuckWriter(mds.MDS_CHAN_REF_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
+    try:
+        time.sleep(2.0)
+        frames = s.recorder.since(mark)
+        assert len(frames) >= 10, f"the daemon stopped publishing mds-state ({len(frames)} frames in 2 s)"
+        held = [f for f in frames if f.received > frames[0].received + 0.5]
+        assert held and all(np.array_equal(f.ref[MODEL], held[0].ref[MODEL]) for f in held)
+        check = s.cli("repair", "--check")
+        assert check.returncode == 1 and mds.MDS_CHAN_REF_NAME in check.stderr
+        assert s.cli("repair").returncode == 0
+        stopped = [n for n in NODES if s.pid(n) is None]
+        if stopped:
+            s.start_nodes(*stopped)
+        s.moving()
+        assert_no_jump(s.recorder.since(mark), "corrupt daemon input repaired")
+    finally:
+        s.heal()
 
 
 @pytest.mark.ros
@@ -760,20 +957,28 @@ def test_sigkill_node_while_the_arms_move(system: System, node: str) -> None:
         s.start_nodes(node)
         s.moving()
         if node == "ik":  # it answers requests again
-            from mds_ach.console import fk_pose
-            from mds_ach.ik_client import IkClient
-
-            last = s.recorder.last()
-            q = [last.ref[mds.BY_SHORT[n].address] for n in mds.joints.LEFT_ARM]
-            pos, _ = fk_pose(q, "left")
-            with IkClient() as client:
-                reply = client.request("left", 3, [pos[0], pos[1], pos[2] + 0.02], timeout=30)
-            assert reply.success, reply.message
+            assert_ik_answers(s)
         if node == "bridge":
-            assert_bridge_commands_reach_the_robot(s)
+            bounded(lambda: assert_bridge_commands_reach_the_robot(s), 60, "a ROS command through the bridge")
         assert_no_jump(s.recorder.since(mark), f"{node} killed and restarted")
     finally:
         s.heal()
+
+
+def assert_ik_answers(s: System) -> None:
+    from mds_ach.console import fk_pose
+    from mds_ach.ik_client import IkClient
+
+    last = s.recorder.last()
+    q = [last.ref[mds.BY_SHORT[n].address] for n in mds.joints.LEFT_ARM]
+    pos, _ = fk_pose(q, "left")
+
+    def ask() -> object:
+        with IkClient() as client:
+            return client.request("left", 3, [pos[0], pos[1], pos[2] + 0.02], timeout=30)
+
+    reply = bounded(ask, 40, "an IK request")
+    assert reply.success, reply.message
 
 
 def assert_bridge_commands_reach_the_robot(s: System) -> None:
@@ -806,90 +1011,3 @@ def assert_bridge_commands_reach_the_robot(s: System) -> None:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-
-
-@pytest.mark.ros
-@pytest.mark.slow
-def test_sigkill_daemon_while_the_arms_move(system: System) -> None:
-    """The pipeline survives its daemon; a restarted daemon starts where the robot stands and resumes the motion
-    without a jump (the simulated robot lives in the daemon's process: it restarts where it stood)."""
-    s = system
-    s.moving()
-    s.kill("daemon")
-    pose = s.pose()
-    mark = s.recorder.mark()
-    time.sleep(1.5)
-    try:
-        assert s.recorder.since(mark) == [], "frames on mds-state without a daemon"
-        assert all(s.pid(n) is not None for n in NODES), "a node died with the daemon"
-        s.start_daemon(pose)
-        s.moving()
-        after = s.recorder.since(mark)
-        first = after[0]
-        for n, q in pose.items():
-            assert first.ref[TABLE[n].address] == pytest.approx(q, abs=1e-3), f"{n} does not start where it stands"
-        assert_no_jump(after, "daemon killed and restarted")
-    finally:
-        s.heal()
-
-
-@pytest.mark.ros
-@pytest.mark.slow
-def test_client_killed_inside_a_put_on_a_mux_input(system: System) -> None:
-    """A legacy client dies inside its put on mds-ref-filter: the mux reports the corrupt input and keeps the robot
-    safe; `mds-ach repair` fixes the channel in place and the same client resumes without restarting any node."""
-    s = system
-    s.moving()
-    mark = s.recorder.mark()
-    StuckWriter(mds.MDS_CHAN_REF_FILTER_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
-    resumed = False
-    try:
-        wait_for(lambda: s.driver.errors > 0, 5, what="the client to see ACH_CORRUPT")
-        time.sleep(1.5)
-        assert len(s.recorder.since(mark)) >= 10 and all(s.pid(n) for n in ("daemon", *NODES))
-        check = s.cli("repair", "--check")
-        assert check.returncode == 1
-        assert [ln.split()[0] for ln in check.stderr.splitlines()] == [mds.MDS_CHAN_REF_FILTER_NAME], check.stderr
-        assert "corrupt" in s.log("mux").lower(), "the mux did not report its corrupt input"
-        fixed = s.cli("repair")
-        assert fixed.returncode == 0 and "repaired in place" in fixed.stdout, fixed.stdout + fixed.stderr
-        errors = s.driver.errors
-        s.moving(timeout=10)  # the client's frames reach the robot again, through the same mux
-        resumed = True
-        assert s.driver.errors == errors
-        assert_no_jump(s.recorder.since(mark), "corrupt mux input repaired")
-    finally:
-        if s.cli("repair", "--check", "-q").returncode != 0:
-            s.cli("repair")
-        if not resumed:  # the mux never took the input back: restart it for the next test
-            s.cli("stop", "mux")
-        s.heal()
-
-
-@pytest.mark.ros
-@pytest.mark.slow
-def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
-    """mds-ref (collision gate -> daemon) left corrupt: the daemon keeps publishing mds-state and holds the last
-    reference; `mds-ach repair` plus `mds-ach start --only` for any node that stopped resume the motion."""
-    s = system
-    s.moving()
-    mark = s.recorder.mark()
-    StuckWriter(mds.MDS_CHAN_REF_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
-    try:
-        time.sleep(2.0)
-        frames = s.recorder.since(mark)
-        assert len(frames) >= 10, f"the daemon stopped publishing mds-state ({len(frames)} frames in 2 s)"
-        held = [f for f in frames if f.received > frames[0].received + 0.5]
-        assert held and all(np.array_equal(f.ref[MODEL], held[0].ref[MODEL]) for f in held)
-        check = s.cli("repair", "--check")
-        assert check.returncode == 1 and mds.MDS_CHAN_REF_NAME in check.stderr
-        assert s.cli("repair").returncode == 0
-        stopped = [n for n in NODES if s.pid(n) is None]
-        if stopped:
-            s.start_nodes(*stopped)
-        s.moving()
-        assert_no_jump(s.recorder.since(mark), "corrupt daemon input repaired")
-    finally:
-        if s.cli("repair", "--check", "-q").returncode != 0:
-            s.cli("repair")
-        s.heal()

@@ -153,11 +153,15 @@ class System:
             ch.close()
 
 
+SAMPLING_SLACK = 0.05  # s: the daemon samples mds-ref at a slightly different point of each cycle than it stamps
+
+
 def assert_smooth(trace: list[tuple[float, np.ndarray, np.ndarray]], what: str) -> None:
-    """No modelled joint's reference moves faster than the gate's bound between consecutive state frames."""
+    """No modelled joint's reference moves faster than the gate's bound between consecutive state frames
+    (a jump would be the whole remaining distance, up to 1.5 rad here)."""
     for (t0, r0, _), (t1, r1, _) in zip(trace, trace[1:], strict=False):
         step = np.abs(r1[MODEL] - r0[MODEL]).max()
-        assert step <= GATE_SPEED * (t1 - t0) + 0.02, f"{what}: jump of {step:.3f} rad in {t1 - t0:.3f} s"
+        assert step <= GATE_SPEED * (t1 - t0 + SAMPLING_SLACK), f"{what}: jump of {step:.3f} rad in {t1 - t0:.3f} s"
 
 
 def assert_frozen(system: System, seconds: float, what: str) -> np.ndarray:
@@ -187,15 +191,15 @@ def system(clean_shm: None, tmp_path: Path):
 
 
 def test_ik_moves_the_hand_smoothly_and_nodes_can_die_and_come_back(system: System) -> None:
-    # Nodes are killed with SIGTERM. A SIGKILL of a node blocked in an Ach wait currently wedges that channel
-    # for the next waiter (mds_ach.ach), see test_collision_node.py::test_gate_resumes_after_a_crash.
+    # Nodes are killed with SIGTERM. A SIGKILL of a node blocked in an Ach wait can currently wedge that
+    # channel's condvar for the next waiter (mds_ach.ach; reported), so a crash is not tested here yet.
     sig = signal.SIGTERM
     s = system
     _, home, _ = s.frame()
     kin = arm_kinematics("left")
-    _, tool_home = kin.fk(home[LEFT])
-    targets = [tool_home + np.array([0.10, -0.08, 0.12]), tool_home + np.array([0.02, 0.05, 0.20]),
-               tool_home + np.array([0.12, 0.0, 0.05]), tool_home]
+    # left tool points (robot frame) far enough apart that each move takes about a second at 1.57 rad/s
+    targets = [np.array(p) for p in ((0.20, 0.45, -0.45), (0.50, 0.45, 0.20), (0.15, 0.60, -0.40),
+                                     (0.35, 0.55, 0.25), (0.30, 0.30, -0.30))]
 
     # 1. an IK request reaches the target smoothly, without collisions, in the expected time
     q = s.ik(targets[0])
@@ -236,7 +240,7 @@ def test_ik_moves_the_hand_smoothly_and_nodes_can_die_and_come_back(system: Syst
     s.start("mux")
     assert_frozen(s, 1.0, "mux restarted")
     assert np.array_equal(s.frame()[1], held)
-    q = s.ik(targets[0])
+    q = s.ik(targets[4])
     s.follow(lambda ref, pos: np.abs(ref[LEFT] - q).max() < 1e-9, timeout=15)
     assert_smooth(s.trace, "mux killed and restarted")
     assert not any(s.collide_flags)

@@ -154,7 +154,7 @@ def test_without_channels_nothing_is_created(clean_shm: None) -> None:
     assert "waiting for mds-state (channel mds-state does not exist)" in proc.stdout
     assert not any(ach.exists(n) for n in mds.ALL_CHANNELS), "read must never create channels"
     proc = subprocess.run([READ, "param", "LSP"], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 1 and "nothing on mds-param" in proc.stderr
+    assert proc.returncode == 1 and "nothing on mds-param (channel mds-param does not exist)" in proc.stderr
     assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
 
 
