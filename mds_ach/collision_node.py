@@ -5,9 +5,10 @@ Every reference is checked before it can reach the daemon, in this order:
 1. **Validation.** NaN/Inf or out-of-limit values (URDF limits intersected with the joint table) and unknown
    ref modes (not 0..3) are never passed on: those joints keep their last sent value and mode, and the
    refusal is logged (throttled).
-2. **Speed bound.** No joint moves faster than ``max_velocity`` between two outputs (wall time). The filter
-   node is the smoother; this bound only keeps a restarted gate, a pass-through filter or an arm released
-   from a hold from jumping.
+2. **Speed bound.** No joint moves faster than ``max_velocity`` between two outputs (wall time; a pause
+   credits at most ``max_dt``; the first reference after start moves nothing). The filter node is the
+   smoother; this bound only keeps a restarted gate, a pass-through filter or an arm released from a hold
+   from jumping.
 3. **Collision check** (``mds_ach.collision``: self-collision and world objects, clearance ``margin``).
    On a predicted collision the joints of the affected arm(s) keep their most recent safe value while the
    rest of the reference goes through; if that mix still collides (e.g. the waist or neck caused it), every
