@@ -24,6 +24,7 @@ import ctypes
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -41,6 +42,7 @@ MOVER = 4  # the mds-ref-ros writer swings the neck
 RSS_LIMIT_KB = 5 * 1024
 FD_SLACK = 2  # a transient socket at the sample instant is not a leak; a leak grows steadily
 STALL_LIMIT = 1.0  # s without an mds-state frame
+LTTNG_WAIT = re.compile(rf"lttng-ust-wait-\d+(-{os.getuid()})?")  # liblttng-ust's shared wait files (rclpy tracing)
 SPARE = tuple(a for a in range(mds.MDS_JOINT_COUNT) if a not in mds.BY_ADDRESS)
 _ID, _SEQ, _CRC = SPARE[0], SPARE[1], SPARE[2]
 _PATTERN = SPARE[3:]
@@ -391,9 +393,14 @@ def _report(procs: dict[str, Proc], children: list[Proc], results: list[dict], s
               f"{status.period_error_max * 1e3:.2f} ms, cpu/cycle {status.cpu_per_cycle * 1e3:.2f} ms")
         if status.rate_hz != rate:
             failures.append(f"the daemon ran at {status.rate_hz:g} Hz, not {rate:g} Hz")
-    leaked = sorted(shm_after - shm_before)
+    new = shm_after - shm_before
+    tracing = sorted(n for n in new if LTTNG_WAIT.fullmatch(n))
+    leaked = sorted(new - set(tracing))
     print(f"\n/dev/shm after mds-ach stop + killall: {len(shm_after)} entries "
           f"({'as before' if not leaked else 'left behind: ' + ' '.join(leaked)})")
+    if tracing:
+        print(f"  (plus {' '.join(tracing)}: LTTng-UST's per-user registration files, created once by the ROS 2 "
+              "tracing library in any process and reused; not channels, not per-process)")
     if leaked:
         failures.append(f"/dev/shm not clean after killall: {' '.join(leaked)}")
     print(f"\n{written} frames written in {elapsed:.0f} s")

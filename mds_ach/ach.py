@@ -17,8 +17,16 @@ Why some things look the way they do:
 * ``put`` and ``get`` follow libach's algorithms literally (index wrap, overlap eviction, reader
   ``next_index`` starting at 1, ...) because golden files and mixed C/Python deployments need the very
   same bytes, not just equivalent behaviour.
-* Blocking waits use short timed slices so that Ctrl-C, ``cancel()`` and ``close()`` are honoured even
-  though ``pthread_cond_wait`` is not interruptible by signals.
+* Readers do not wait inside the channel's pthread condvar by default. glibc's process-shared condvar is not
+  robust: a waiter SIGKILLed inside ``pthread_cond_wait`` keeps a group reference forever, and the next
+  ``pthread_cond_broadcast`` (every writer's, C or Python) then waits for it -- forever. Instead a reader sleeps
+  on a futex keyed on the ``last_seq`` word, which leaves nothing behind when the process dies; Python writers
+  wake it directly (``FUTEX_WAKE`` after the unlock) and still broadcast the condvar for C readers. Frames from
+  C libach writers, which only broadcast, are noticed by the reader's periodic re-check (``POLL_SLICE``).
+  ``Channel(..., condvar_wait=True)`` waits in the condvar exactly like libach instead (C writers wake it at
+  once; the dead-waiter hazard is then libach's too).
+* Waits are cut into short timed slices so that Ctrl-C, ``cancel()`` and ``close()`` are honoured even though
+  neither the futex nor the condvar wait is interrupted by Python's signal handling.
 * A Python exception (Ctrl-C) can surface right after a ctypes call returned with the mutex held, so every
   locked section releases the mutex if the kernel lock word says this thread owns it.
 """
@@ -126,7 +134,8 @@ GUARD_DATA = 0x1C2C3C4C5C6C7C8C
 SHM_DIR = "/dev/shm"
 SHM_PREFIX = "achshm-"
 NAME_MAX = 64  # libach: strlen(name) < 64
-WAIT_SLICE = 0.1  # seconds per timed wait slice, so Ctrl-C / cancel / close are seen promptly
+WAIT_SLICE = 0.1  # s per condvar wait slice (condvar_wait=True), so Ctrl-C / cancel / close are seen promptly
+POLL_SLICE = 0.005  # s per futex wait slice: how late a frame from a C writer (no futex wake) can be noticed
 
 CLOCK_REALTIME = 0
 CLOCK_MONOTONIC = 1
@@ -139,6 +148,9 @@ _EOWNERDEAD = 130
 _ENOTRECOVERABLE = 131
 _ETIMEDOUT = 110
 _FUTEX_TID_MASK = 0x3FFFFFFF
+_FUTEX_WAIT = 0  # shared (no FUTEX_PRIVATE_FLAG): the word lives in a file mapped by several processes
+_FUTEX_WAKE = 1
+_SYS_FUTEX = {"x86_64": 202, "aarch64": 98}
 
 _U64 = struct.Struct("<Q")
 _NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
@@ -427,6 +439,8 @@ class _Pthread:
         self.condattr_destroy = self._fn(libc.pthread_condattr_destroy, vp)
         self.condattr_setpshared = self._fn(libc.pthread_condattr_setpshared, [ctypes.c_void_p, ctypes.c_int])
         self.condattr_setclock = self._fn(libc.pthread_condattr_setclock, [ctypes.c_void_p, ctypes.c_int])
+        self.syscall = libc.syscall  # variadic: called with explicit ctypes arguments
+        self.syscall.restype = ctypes.c_long
 
     @staticmethod
     def _fn(f, argtypes):
@@ -592,11 +606,13 @@ class Channel:
     ``Channel(name)`` opens the channel, creating it first with ``frame_count`` x ``frame_size`` (0 means the
     libach defaults 16 x 512) when it does not exist and ``create`` is true, like the classic binding.
     A handle may be shared between threads; ``close()`` waits for calls in progress to leave.
+    ``condvar_wait`` selects libach's condvar waits instead of the crash-safe futex waits (module docstring).
     """
 
     def __init__(self, name: str, frame_count: int = 0, frame_size: int = 0, *, create: bool = True,
-                 mode: int = 0o660):
+                 mode: int = 0o660, condvar_wait: bool = False):
         self.name = validate_name(name)
+        self.condvar_wait = condvar_wait
         self._closed = True  # until fully open, so __del__ / close() are harmless
         try:
             self._open()
@@ -667,7 +683,11 @@ class Channel:
         self._mutex_lock = self._fn.mutex_lock  # cached: attribute lookups show up on the hot path
         self._mutex_unlock = self._fn.mutex_unlock
         self._cond_broadcast = self._fn.cond_broadcast
-        self._ts = _Timespec()
+        sys_futex = ctypes.c_long(_SYS_FUTEX[layout.arch])
+        last_seq_word = ctypes.c_void_p(base + layout.last_seq)  # low 32 bits of last_seq (little-endian)
+        self._futex_wait_args = (sys_futex, last_seq_word, ctypes.c_int(_FUTEX_WAIT))
+        self._futex_wake_args = (sys_futex, last_seq_word, ctypes.c_int(_FUTEX_WAKE), ctypes.c_int(0x7FFFFFFF))
+        self._syscall = self._fn.syscall
         # reader state (libach ach_open): seq_num = 0, next_index = 1
         self._seq = 0
         self._next = 1
@@ -682,15 +702,18 @@ class Channel:
         background: the last one to leave releases the mapping)."""
         if self._closed:
             return
-        self._closed = True
-        if self._active:
-            self._cond_broadcast(self._cond)  # wake waiters; they see _closed within one slice at worst
-            deadline = time.monotonic() + 1.0
-            while self._active and time.monotonic() < deadline:
-                time.sleep(0.001)
-            if self._active:
-                return  # e.g. called from a signal handler on the waiting thread: _leave() releases
-        self._release()
+        self._active.append(1)  # keep the mapping while we wake the others: a woken waiter may leave at once
+        try:
+            self._closed = True
+            if len(self._active) > 1:
+                self._wake_all()  # waiters see _closed at once (or within one slice at worst)
+        finally:
+            self._active.pop()
+        deadline = time.monotonic() + 1.0
+        while self._active and time.monotonic() < deadline:
+            time.sleep(0.001)
+        if not self._active:  # otherwise (e.g. called from a signal handler on the waiting thread) _leave() does it
+            self._release()
 
     def _release(self) -> None:
         with self._release_lock:
@@ -810,28 +833,47 @@ class Channel:
         if self._owned():
             self._mutex_unlock(self._mutex)
 
+    def _wake_all(self) -> None:
+        """Wake every waiter of this channel in every process: futex waiters (this module) and condvar waiters
+        (C libach, ``condvar_wait=True``). Called after the unlock, like libach's broadcast."""
+        self._syscall(*self._futex_wake_args)
+        self._cond_broadcast(self._cond)
+
     def _wait(self, deadline: float | None) -> int:
-        """Holding the lock, wait for a frame newer than ``seq_num``; returns with the lock held on OK/TIMEOUT/
-        CANCELED, released on CORRUPT/FAILED_SYSCALL."""
+        """Holding the lock, wait for a frame newer than ``seq_num``. Returns with the lock held on OK / TIMEOUT /
+        CANCELED, released on CORRUPT / FAILED_SYSCALL."""
         q = self._q
         ql = self._q_last
-        ts = self._ts
+        ts = _Timespec()  # per call: threads sharing a handle may wait at the same time
+        ts_ref = ctypes.byref(ts)  # the variadic syscall() needs the pointer spelled out
         while True:
             if self._cancel or self._closed:
                 return ACH_CANCELED
-            if self._seq != q[ql]:
+            last = q[ql]
+            if self._seq != last:
                 return ACH_OK
             now = time.clock_gettime(self._clock)
             if deadline is not None and now >= deadline:
                 return ACH_TIMEOUT
-            end = now + WAIT_SLICE if deadline is None or deadline > now + WAIT_SLICE else deadline
-            sec = math.floor(end)
-            ts.tv_sec = sec
-            ts.tv_nsec = min(int((end - sec) * 1e9), 999_999_999)
-            r = self._fn.cond_timedwait(self._cond, self._mutex, ts)
+            if self.condvar_wait:
+                end = now + WAIT_SLICE if deadline is None or deadline > now + WAIT_SLICE else deadline
+                sec = math.floor(end)
+                ts.tv_sec = sec
+                ts.tv_nsec = min(int((end - sec) * 1e9), 999_999_999)
+                r = self._fn.cond_timedwait(self._cond, self._mutex, ts)  # returns holding the mutex
+                if r == _ETIMEDOUT:
+                    r = 0
+            else:
+                # Sleep on the last_seq word without the lock. FUTEX_WAIT returns at once if a put has changed it
+                # since we read it under the lock, so no wake-up is lost. A dead sleeper leaves no state behind.
+                span = POLL_SLICE if deadline is None or deadline - now > POLL_SLICE else deadline - now
+                ts.tv_sec, ts.tv_nsec = divmod(int(span * 1e9), 1_000_000_000)
+                self._mutex_unlock(self._mutex)
+                self._syscall(*self._futex_wait_args, ctypes.c_uint32(last & 0xFFFFFFFF), ts_ref, None, 0)
+                r = self._mutex_lock(self._mutex)
             if r == _EOWNERDEAD:
                 self._fn.mutex_consistent(self._mutex)
-            elif r not in (0, _ETIMEDOUT):
+            elif r:
                 self._unlock_if_owned()
                 return ACH_CORRUPT if r == _ENOTRECOVERABLE else ACH_FAILED_SYSCALL
             if self._i32[self._i_dirty]:
@@ -880,9 +922,9 @@ class Channel:
                 # Interrupted while holding the lock: release it. If the update was half done, dirty stays 1 and
                 # the channel reads as CORRUPT everywhere -- exactly what libach does when a writer dies mid-put.
                 self._unlock_if_owned()
-                self._cond_broadcast(self._cond)
+                self._wake_all()
                 raise
-            self._cond_broadcast(self._cond)
+            self._wake_all()
             return r
         finally:
             active.pop()
@@ -1111,9 +1153,9 @@ class Channel:
     def cancel(self, *, async_unsafe: bool = False) -> None:
         """Make every current and future get/flush on this handle return ACH_CANCELED (sticky).
 
-        Default: set the flag and broadcast the condvar without taking the mutex, which is safe from a signal
-        handler even if this very thread holds the lock (a waiter that misses the wake-up sees the flag within
-        one wait slice). ``async_unsafe=True`` is libach's thread variant: lock, set, unlock, broadcast.
+        Default: set the flag and wake the waiters without taking the mutex, which is safe from a signal handler
+        even if this very thread holds the lock (a waiter that misses the wake-up sees the flag within one wait
+        slice). ``async_unsafe=True`` is libach's thread variant: lock, set, unlock, wake.
         """
         self._enter()
         try:
@@ -1129,7 +1171,7 @@ class Channel:
                     self._unlock_if_owned()
                     raise
             self._cancel = True
-            self._cond_broadcast(self._cond)
+            self._wake_all()
         finally:
             self._leave()
 

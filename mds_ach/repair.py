@@ -13,7 +13,7 @@ pipeline nodes carry on with their open handles:
    interrupted put, entries torn by a half-done eviction and anything not contiguous with the newest good
    frame are dropped;
 3. rebuild the ring counters from the kept frames, set ``last_seq`` to the newest kept frame (no reader can
-   have seen a frame whose put never finished), clear ``dirty``, unlock, and wake every waiter.
+   have seen a frame whose put never finished), clear ``dirty`` and unlock. The condvar is never touched.
 
 The result is a state libach itself produces, so C and Python clients alike continue. A channel whose header,
 guards or mutex are damaged cannot be repaired in place: it is re-created with the same geometry and mode, and
@@ -94,7 +94,7 @@ class _Timespec(ctypes.Structure):
 
 
 class _Libc:
-    """The four pthread calls a repair needs (glibc >= 2.34 has them in libc, older ones in libpthread)."""
+    """The pthread calls a repair needs (glibc >= 2.34 has them in libc, older ones in libpthread)."""
 
     def __init__(self) -> None:
         try:
@@ -107,10 +107,9 @@ class _Libc:
         self.timedlock.argtypes = [ctypes.c_void_p, ctypes.POINTER(_Timespec)]
         self.consistent = lib.pthread_mutex_consistent
         self.unlock = lib.pthread_mutex_unlock
-        self.broadcast = lib.pthread_cond_broadcast
-        for f in (self.consistent, self.unlock, self.broadcast):
+        for f in (self.consistent, self.unlock):
             f.argtypes = vp
-        for f in (self.timedlock, self.consistent, self.unlock, self.broadcast):
+        for f in (self.timedlock, self.consistent, self.unlock):
             f.restype = ctypes.c_int
 
 
@@ -163,7 +162,7 @@ def _holder(tid: int) -> str:
 
 
 class _Mapped:
-    """The channel file mapped read-write, with the mutex and cond addresses libach uses."""
+    """The channel file mapped read-write, with the address of the mutex libach locks."""
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -179,7 +178,6 @@ class _Mapped:
         self._anchor = ctypes.c_char.from_buffer(self.mm)
         base = ctypes.addressof(self._anchor)
         self.mutex = ctypes.c_void_p(base + self.layout.mutex)
-        self.cond = ctypes.c_void_p(base + self.layout.cond)
 
     def u64(self, offset: int) -> int:
         return _U64.unpack_from(self.mm, offset)[0]
@@ -233,9 +231,9 @@ def _lock(m: _Mapped, timeout: float) -> tuple[int, str]:
 
 
 def _unlock(m: _Mapped) -> None:
-    fn = _pthread()
-    fn.unlock(m.mutex)
-    fn.broadcast(m.cond)  # waiters re-check: their next lock sees a clean channel
+    """Unlock only. No condvar broadcast: a corrupt channel has no waiters (every wait returns ACH_CORRUPT), the
+    next put wakes readers anyway, and a condvar wedged by a killed waiter would hang the broadcast forever."""
+    _pthread().unlock(m.mutex)
 
 
 # --------------------------------------------------------------------------------------------- in-place rebuild

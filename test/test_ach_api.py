@@ -25,10 +25,15 @@ from mds_ach.msgs import MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
 NAME = "test-api"
 
 
-def cond_waiters(name: str) -> int:
-    """Threads blocked on the channel's condvar (glibc >= 2.25 counts them in __wrefs, bits 3 and up)."""
-    raw = Path(ach.shm_path(name)).read_bytes()
-    return struct.unpack_from("<I", raw, ach.native_layout().cond + 36)[0] >> 3
+SYS_FUTEX = {"x86_64": 202, "aarch64": 98}[ach.native_layout().arch]
+FUTEX_PRIVATE_FLAG = 128
+
+
+def blocked_in_wait(thread: threading.Thread) -> bool:
+    """The thread sleeps in a process-shared futex wait: where get(wait=True) blocks, in either wait mode (the
+    GIL and other process-private waits set FUTEX_PRIVATE_FLAG)."""
+    fields = Path(f"/proc/{os.getpid()}/task/{thread.native_id}/syscall").read_text().split()
+    return fields[0] == str(SYS_FUTEX) and int(fields[2], 16) & FUTEX_PRIVATE_FLAG == 0
 
 
 @pytest.fixture
@@ -269,8 +274,11 @@ def test_flush(pair: tuple[ach.Channel, ach.Channel]) -> None:
     assert buf[0] == 7
 
 
-def test_wait_timeout_and_wakeup_by_thread(pair: tuple[ach.Channel, ach.Channel]) -> None:
-    w, r = pair
+@pytest.mark.parametrize("condvar_wait", [False, True])
+def test_wait_timeout_and_wakeup_by_thread(clean_shm: None, condvar_wait: bool) -> None:
+    ach.create(NAME, 4, 64)
+    w = ach.Channel(NAME)
+    r = ach.Channel(NAME, condvar_wait=condvar_wait)
     buf = bytearray(64)
     assert r.get(buf, wait=True, timeout=0.05) == (ach.ACH_TIMEOUT, 0)
     assert r.get(buf, wait=True, timeout=0) == (ach.ACH_TIMEOUT, 0)
@@ -289,6 +297,8 @@ def test_wait_timeout_and_wakeup_by_thread(pair: tuple[ach.Channel, ach.Channel]
     assert buf[:7] == b"wake up"
     with pytest.raises(ValueError, match="NaN"):
         r.get(buf, wait=True, timeout=float("nan"))
+    w.close()
+    r.close()
 
 
 def test_wait_returns_at_once_when_a_frame_is_unseen(pair: tuple[ach.Channel, ach.Channel]) -> None:
@@ -314,13 +324,16 @@ def test_poll(pair: tuple[ach.Channel, ach.Channel]) -> None:
     t.join()
 
 
+@pytest.mark.parametrize("condvar_wait", [False, True])
 @pytest.mark.parametrize("async_unsafe", [False, True])
-def test_cancel_wakes_waiter_and_is_sticky(pair: tuple[ach.Channel, ach.Channel], async_unsafe: bool) -> None:
-    w, r = pair
+def test_cancel_wakes_waiter_and_is_sticky(clean_shm: None, async_unsafe: bool, condvar_wait: bool) -> None:
+    ach.create(NAME, 4, 64)
+    w = ach.Channel(NAME)
+    r = ach.Channel(NAME, condvar_wait=condvar_wait)
     result: list[tuple[int, int]] = []
     t = threading.Thread(target=lambda: result.append(r.get(bytearray(64), wait=True)))
     t.start()
-    wait_for(lambda: cond_waiters(NAME) > 0, timeout=20, what="reader thread blocked in get(wait=True)")
+    wait_for(lambda: blocked_in_wait(t), timeout=20, what="reader thread blocked in get(wait=True)")
     r.cancel(async_unsafe=async_unsafe)
     t.join(timeout=5)
     assert not t.is_alive()
@@ -331,17 +344,24 @@ def test_cancel_wakes_waiter_and_is_sticky(pair: tuple[ach.Channel, ach.Channel]
         r.flush()
     assert info.value.status == ach.ACH_CANCELED
     assert w.get(bytearray(64)) == (ach.ACH_OK, 4)  # other handles are unaffected
+    w.close()
+    r.close()
 
 
-def test_close_wakes_waiter_and_refuses_calls(pair: tuple[ach.Channel, ach.Channel]) -> None:
-    w, r = pair
+@pytest.mark.parametrize("condvar_wait", [False, True])
+def test_close_wakes_waiter_and_refuses_calls(clean_shm: None, condvar_wait: bool) -> None:
+    ach.create(NAME, 4, 64)
+    w = ach.Channel(NAME)
+    r = ach.Channel(NAME, condvar_wait=condvar_wait)
     result: list[tuple[int, int]] = []
     t = threading.Thread(target=lambda: result.append(r.get(bytearray(64), wait=True)))
     t.start()
-    wait_for(lambda: cond_waiters(NAME) > 0, timeout=20, what="reader thread blocked in get(wait=True)")
+    wait_for(lambda: blocked_in_wait(t), timeout=20, what="reader thread blocked in get(wait=True)")
+    t0 = time.monotonic()
     r.close()
     t.join(timeout=5)
     assert result == [(ach.ACH_CANCELED, 0)]
+    assert time.monotonic() - t0 < 5
     assert r.closed
     r.close()  # idempotent
     for call in (lambda: r.get(bytearray(8)), lambda: r.put(b"x"), r.flush):
@@ -349,12 +369,16 @@ def test_close_wakes_waiter_and_refuses_calls(pair: tuple[ach.Channel, ach.Chann
             call()
         assert info.value.status == ach.ACH_CLOSED
     w.put(b"writer unaffected")
+    w.close()
 
 
-def test_interrupt_while_waiting_releases_lock(pair: tuple[ach.Channel, ach.Channel]) -> None:
-    """A Python signal handler raising (Ctrl-C) surfaces after cond_timedwait returned holding the mutex: the
+@pytest.mark.parametrize("condvar_wait", [False, True])
+def test_interrupt_while_waiting_releases_lock(clean_shm: None, condvar_wait: bool) -> None:
+    """A Python signal handler raising (Ctrl-C) surfaces after the wait returned, possibly holding the mutex: the
     exception must not leave the channel locked."""
-    w, r = pair
+    ach.create(NAME, 4, 64)
+    w = ach.Channel(NAME)
+    r = ach.Channel(NAME, condvar_wait=condvar_wait)
 
     class InterruptError(Exception):
         pass
@@ -374,6 +398,8 @@ def test_interrupt_while_waiting_releases_lock(pair: tuple[ach.Channel, ach.Chan
     assert lock_word & 0x3FFFFFFF == 0  # nobody owns the mutex
     w.put(b"ok")
     assert r.get(bytearray(8)) == (ach.ACH_OK, 2)
+    w.close()
+    r.close()
 
 
 # --- corruption and bad files ---------------------------------------------------------------------
@@ -574,3 +600,21 @@ def test_permission_denied(clean_shm: None) -> None:
             ach.Channel(NAME)
         assert info.value.status == ach.ACH_EACCES
         assert "ermission" in str(info.value)
+
+
+@pytest.mark.parametrize("condvar_wait", [False, True])
+def test_put_wakes_waiter_without_polling(clean_shm: None, monkeypatch: pytest.MonkeyPatch,
+                                          condvar_wait: bool) -> None:
+    """With the re-check slices stretched to 60 s, only the writer's wake-up (futex wake / condvar broadcast)
+    can end the wait before the 30 s timeout."""
+    monkeypatch.setattr(ach, "POLL_SLICE", 60.0)
+    monkeypatch.setattr(ach, "WAIT_SLICE", 60.0)
+    ach.create(NAME, 4, 64)
+    with ach.Channel(NAME) as w, ach.Channel(NAME, condvar_wait=condvar_wait) as r:
+        result: list[tuple[int, int]] = []
+        t = threading.Thread(target=lambda: result.append(r.get(bytearray(64), wait=True, timeout=30)))
+        t.start()
+        wait_for(lambda: blocked_in_wait(t), timeout=20, what="reader thread blocked in get(wait=True)")
+        w.put(b"wake")
+        t.join(timeout=25)
+        assert result == [(ach.ACH_OK, 4)]

@@ -88,10 +88,17 @@ def file_i32(offset: int) -> int:
     return struct.unpack_from("<i", Path(ach.shm_path(NAME)).read_bytes(), offset)[0]
 
 
-def cond_waiters() -> int:
-    """glibc >= 2.25 counts waiters in the condvar's __wrefs (bits 3 and up)."""
-    wrefs = struct.unpack_from("<I", Path(ach.shm_path(NAME)).read_bytes(), LAYOUT.cond + 36)[0]
-    return wrefs >> 3
+SYS_FUTEX = {"x86_64": 202, "aarch64": 98}[LAYOUT.arch]
+
+
+def blocked_in_wait(pid: int, tid: int | None = None) -> bool:
+    """The thread sleeps in a process-shared futex wait, where get(wait=True) blocks in either wait mode (the
+    GIL and other process-private waits set FUTEX_PRIVATE_FLAG, 128)."""
+    try:
+        fields = Path(f"/proc/{pid}/task/{tid or pid}/syscall").read_text().split()
+    except FileNotFoundError:
+        return False
+    return fields[0] == str(SYS_FUTEX) and int(fields[2], 16) & 128 == 0
 
 
 READER = """
@@ -174,33 +181,39 @@ def test_concurrent_writers_keep_channel_consistent(children: list[Child]) -> No
     assert img.dirty == 0
 
 
-def test_blocked_get_woken_by_other_process(children: list[Child]) -> None:
+@pytest.mark.parametrize("condvar_wait", [False, True])
+def test_blocked_get_woken_by_other_process(children: list[Child], condvar_wait: bool) -> None:
     ach.create(NAME, 10, 64)
     code = """
-        ch = ach.Channel(sys.argv[1], create=False)
+        ach.POLL_SLICE = ach.WAIT_SLICE = 60.0  # only the writer's wake-up can end this wait in time
+        ch = ach.Channel(sys.argv[1], create=False, condvar_wait=sys.argv[2] == "True")
         buf = bytearray(64)
         print("ready", flush=True)
         status, size = ch.get(buf, wait=True, timeout=30)
         print("got", status, size, bytes(buf[:size]).decode(), flush=True)
     """
-    r = spawn(children, code, NAME)
+    r = spawn(children, code, NAME, str(condvar_wait))
     r.expect("ready")
-    wait_for(lambda: cond_waiters() > 0, timeout=20, what="child blocked on the channel's condvar")
+    wait_for(lambda: blocked_in_wait(r.proc.pid), timeout=20, what="child blocked in get(wait=True)")
     with ach.Channel(NAME) as w:
         w.put(b"wake up")
     assert r.expect("got") == f"{ach.ACH_OK} 7 wake up"
     assert r.finish() == 0
 
 
-def test_blocked_get_woken_by_other_process_put_reverse(children: list[Child]) -> None:
+@pytest.mark.parametrize("condvar_wait", [False, True])
+def test_blocked_get_woken_by_other_process_put_reverse(children: list[Child], condvar_wait: bool,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """This process blocks; another process's put wakes it."""
+    monkeypatch.setattr(ach, "POLL_SLICE", 60.0)
+    monkeypatch.setattr(ach, "WAIT_SLICE", 60.0)
     ach.create(NAME, 10, 64)
     result: list[tuple[int, int]] = []
     buf = bytearray(64)
-    with ach.Channel(NAME) as r:
+    with ach.Channel(NAME, condvar_wait=condvar_wait) as r:
         t = threading.Thread(target=lambda: result.append(r.get(buf, wait=True, timeout=30)))
         t.start()
-        wait_for(lambda: cond_waiters() > 0, timeout=20, what="our thread blocked on the condvar")
+        wait_for(lambda: blocked_in_wait(os.getpid(), t.native_id), timeout=20, what="our thread blocked in get")
         w = spawn(children, 'ach.Channel(sys.argv[1], create=False).put(b"from child")\nprint("done", flush=True)',
                   NAME)
         w.expect("done")
@@ -285,3 +298,38 @@ def test_file_mode_shared_between_processes(children: list[Child]) -> None:
     child.expect("ok")
     with ach.Channel(NAME) as ch:
         assert ch.last_seq == 1
+
+
+def put_returns(ch: ach.Channel, frame: bytes, timeout: float) -> bool:
+    """Put from a daemon thread; False if it has not returned within ``timeout`` (a wedged writer)."""
+    done = threading.Event()
+    threading.Thread(target=lambda: (ch.put(frame), done.set()), daemon=True).start()
+    return done.wait(timeout)
+
+
+WAITER = """
+    ch = ach.Channel(sys.argv[1], create=False)
+    print("ready", flush=True)
+    while True:
+        status, size = ch.get(bytearray(64), wait=True, timeout=60)
+        print("got", status, size, flush=True)
+"""
+
+
+def test_reader_killed_while_waiting_does_not_wedge(children: list[Child]) -> None:
+    """A reader SIGKILLed while blocked in get(wait=True) leaves nothing behind: writers never hang and the next
+    waiter is woken by the next put. (A reader dying inside glibc's process-shared condvar wait would make every
+    later pthread_cond_broadcast wait for it forever; the default futex wait is not exposed to that.)"""
+    ach.create(NAME, 10, 64)
+    with ach.Channel(NAME) as w:
+        for trial in range(5):
+            victim = spawn(children, WAITER, NAME)
+            victim.expect("ready")
+            wait_for(lambda p=victim.proc.pid: blocked_in_wait(p), timeout=20, what="victim blocked in get")
+            victim.kill9()
+            survivor = spawn(children, WAITER, NAME)
+            survivor.expect("ready")
+            wait_for(lambda p=survivor.proc.pid: blocked_in_wait(p), timeout=20, what="next waiter blocked")
+            assert put_returns(w, b"after %d" % trial, timeout=10), f"trial {trial}: put() hangs after the kill"
+            assert survivor.expect("got") == f"{ach.ACH_OK} 7"
+            survivor.kill9()

@@ -647,8 +647,8 @@ class Frame:
 
 
 class Recorder:
-    """Every mds-state frame, with its receipt time, from a background thread (it only reads: it can never hang
-    on a wedged channel)."""
+    """Every mds-state frame, with its receipt time, from a background thread (it polls: it can never hang on a
+    wedged channel)."""
 
     def __init__(self) -> None:
         self.frames: list[Frame] = []
@@ -660,8 +660,10 @@ class Recorder:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            st = self._chan.wait(0.2)
-            if st is not None:
+            st = self._chan.latest()  # polled: a blocking wait could hang on a condvar wedged by a killed node
+            if st is None:
+                time.sleep(0.005)
+            else:
                 ref = np.array([st.joint[a].ref for a in range(mds.MDS_JOINT_COUNT)])
                 pos = np.array([st.joint[a].pos for a in range(mds.MDS_JOINT_COUNT)])
                 with self._lock:
@@ -707,11 +709,31 @@ def assert_no_jump(frames: list[Frame], what: str) -> None:
 
 
 def live(channel: str, within: float = 1.5) -> bool:
-    """Does someone still publish on ``channel`` (a new frame within ``within`` s)?"""
+    """Does someone still publish on ``channel`` (a new frame within ``within`` s)? Polls without waiting on the
+    channel's condvar, which a killed node may have wedged."""
     with ach.Channel(channel, create=False) as ch:
         ch.flush()
-        status, _ = ch.get(bytearray(ch.data_size), wait=True, timeout=within)
-    return status in (ach.ACH_OK, ach.ACH_MISSED_FRAME)
+        buf = bytearray(ch.data_size)
+        deadline = time.monotonic() + within
+        while time.monotonic() < deadline:
+            if ch.get(buf)[0] in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+                return True
+            time.sleep(0.02)
+    return False
+
+
+def pipeline_lsp() -> str:
+    """LSP's newest reference and mode on each pipeline channel: where a motion stops when it does not arrive."""
+    parts = []
+    for name in (mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME,
+                 mds.MDS_CHAN_REF_NAME):
+        frame = MDS_REF()
+        with ach.Channel(name, create=False) as ch:
+            status, size = ch.get(frame, last=True, copy=True)
+            seq = ch.last_seq
+        j = frame.joint[TABLE["LSP"].address]
+        parts.append(f"{name} seq {seq}: {j.ref:.4f}/{j.mode}" if size == ctypes.sizeof(frame) else f"{name}: -")
+    return "LSP " + ", ".join(parts)
 
 
 class System:
@@ -752,7 +774,8 @@ class System:
             while frames < 2:
                 assert proc.poll() is None, f"daemon exited:\n{launcher.log_tail('daemon', rt=self.rt)}"
                 assert time.monotonic() < deadline, f"daemon not up:\n{launcher.log_tail('daemon', rt=self.rt)}"
-                frames += state.wait(0.2) is not None
+                frames += state.latest() is not None
+                time.sleep(0.02)
 
     def start_nodes(self, *names: str) -> None:
         proc = self.cli("start", "--only", *names, "--timeout", str(START_TIMEOUT), timeout=START_TIMEOUT + 30)
@@ -783,11 +806,13 @@ class System:
             if time.monotonic() > deadline:
                 stuck = [n for n, ch in HEARTBEATS.items() if not live(ch)]
                 raise AssertionError(f"the arms do not move within {timeout:g} s; nodes not publishing: {stuck}; "
-                                     f"client put {'hangs' if self.driver.stuck else 'works'}")
+                                     f"client put {'hangs' if self.driver.stuck else 'works'}; {pipeline_lsp()}")
             time.sleep(0.05)
 
     def healthy(self) -> bool:
         """Every node runs and publishes, the channels are sound, and the client's motion reaches the robot."""
+        if self.driver is None or self.recorder is None:
+            return False
         if not (all(self.pid(n) for n in ("daemon", *NODES)) and all(live(ch) for ch in HEARTBEATS.values())
                 and not self.driver.stuck and all(r.ok for r in repair.scan())):
             return False
@@ -808,6 +833,8 @@ class System:
 
     def pose(self) -> dict[str, float]:
         """Where the simulated joints are now (the robot stays there while its driver is down)."""
+        if self.recorder is None:
+            return {}
         last = self.recorder.last()
         return {n: TABLE[n].clamp(float(last.pos[mds.BY_SHORT[n].address])) for n in mds.joints.MODEL_JOINTS
                 if math.isfinite(last.pos[mds.BY_SHORT[n].address]) and TABLE[n].enabled}
