@@ -373,8 +373,8 @@ def _report(procs: dict[str, Proc], children: list[Proc], results: list[dict], s
             if r["errors"]:
                 failures.append(f"{r['name']}: {r['errors']} put errors")
         elif r["role"] == "reader":
-            print(f"  {r['name']:<26} verified {r['ok']:>8}, skipped while lagging {r['missed']:>6}, "
-                  f"torn/corrupt {r['bad']}")
+            print(f"  {r['name']:<26} verified {r['ok']:>8}, lagged behind {r['missed']:>5} times (frames "
+                  f"overwritten before it read them), torn/corrupt {r['bad']}")
             if r["bad"]:
                 failures.append(f"{r['name']}: {r['bad']} torn or corrupt frames: {r['problems']}")
             if r["ok"] == 0:
@@ -396,8 +396,8 @@ def _report(procs: dict[str, Proc], children: list[Proc], results: list[dict], s
     new = shm_after - shm_before
     tracing = sorted(n for n in new if LTTNG_WAIT.fullmatch(n))
     leaked = sorted(new - set(tracing))
-    print(f"\n/dev/shm after mds-ach stop + killall: {len(shm_after)} entries "
-          f"({'as before' if not leaked else 'left behind: ' + ' '.join(leaked)})")
+    print(f"\n/dev/shm after mds-ach stop + killall: "
+          f"{'nothing left behind' if not leaked else 'left behind: ' + ' '.join(leaked)}")
     if tracing:
         print(f"  (plus {' '.join(tracing)}: LTTng-UST's per-user registration files, created once by the ROS 2 "
               "tracing library in any process and reused; not channels, not per-process)")

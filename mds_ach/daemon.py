@@ -173,8 +173,9 @@ def parse_command(text: str) -> tuple[int, int]:
         raise ValueError(exc.args[0]) from None
 
 
-def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list[str]):
-    """The daemon's DiagnosticStatus (OK / WARN above 60 % bus load, stale joints, overruns / ERROR bus-off)."""
+def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list[str], new_channel_errors: int = 0):
+    """The daemon's DiagnosticStatus (OK / WARN above 60 % bus load, stale joints, late loop, channel errors
+    since the last report / ERROR bus-off or loop stopped)."""
     from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
     level, problems = DiagnosticStatus.OK, []
@@ -184,6 +185,9 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
     if st.stale_count:
         level = DiagnosticStatus.WARN
         problems.append(f"{st.stale_count} stale joint(s): {' '.join(stale_names)}")
+    if new_channel_errors:
+        level = DiagnosticStatus.WARN
+        problems.append(f"{new_channel_errors} Ach channel error(s): see the log, `mds-ach repair`")
     if st.bus_state == ds.BUS_STATE_PASSIVE:
         level = DiagnosticStatus.WARN
         problems.append("CAN error-passive")
@@ -210,6 +214,7 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
         "malformed_frames": str(st.malformed_frames), "node_errors": str(st.node_errors),
         "acks_missing": str(st.acks_missing), "refs_refused": str(st.refs_refused),
         "refs_clamped": str(st.refs_clamped), "collision_holds": str(st.collision_holds),
+        "channel_errors": str(st.channel_errors),
         "stale_joints": " ".join(stale_names), "replies": f"{st.replies_received}/{st.replies_expected}",
     }
     return DiagnosticStatus(level=level, name="mds_daemon: control loop", hardware_id="mds",
@@ -235,6 +240,7 @@ def _make_node(args: argparse.Namespace):
             nocan = self.declare_parameter("nocan", bool(args.nocan)).value
             args.robot, args.rate, args.nocan = robot or None, float(rate), bool(nocan)
             self.daemon = build(args)
+            self._channel_errors = 0
             self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.create_timer(1.0, self._diagnostics)
             self.create_service(AddDiagnostics, "~/command", self._command)
@@ -250,7 +256,8 @@ def _make_node(args: argparse.Namespace):
                      and st.joint_flags[a] & ds.JOINT_ENABLED]
             msg = DiagnosticArray()
             msg.header.stamp = self.get_clock().now().to_msg()
-            msg.status = [diagnostic_status(st, self.daemon.loop.running, stale)]
+            new_errors, self._channel_errors = st.channel_errors - self._channel_errors, st.channel_errors
+            msg.status = [diagnostic_status(st, self.daemon.loop.running, stale, new_errors)]
             self.diag_pub.publish(msg)
 
         def _command(self, request, response):

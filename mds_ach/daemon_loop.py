@@ -292,9 +292,12 @@ class DaemonLoop:
         motion frame is sent until a reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped.
         Returns how many joints answered.
         """
-        self.ch.param.put(self.table.to_param())
-        self.ch.ref.flush()
-        self.ch.cmd.flush()
+        self._put(self.ch.param, self.table.to_param())
+        for ch in (self.ch.ref, self.ch.cmd):
+            try:
+                ch.flush()
+            except Exception as exc:  # a corrupt channel: reported on every read later
+                self._channel_error(getattr(ch, "name", "?"), exc)
         for _ in range(max(1, queries)):
             self.io.send(mcb.encode_query_positions())
             deadline = self.clock() + listen / max(1, queries)
@@ -315,7 +318,7 @@ class DaemonLoop:
             jr.ref_c_send = jr.ref
         self._fill_state(self.clock())
         self.state.time = time.monotonic()
-        self.ch.state.put(self.state)
+        self._put(self.ch.state, self.state)
         if answered == 0:
             log.warning("no joint answered the position query; starting from the configured home pose")
         else:
@@ -384,11 +387,11 @@ class DaemonLoop:
         self.io.counters.take_bits()  # bus load counts the frames sent and received during this cycle
         self._read_commands()
         self._run_commands(start)
-        collide = self.ch.collide.latest()
+        collide = self._latest(self.ch.collide)
         if collide is not None:
             self.collide = collide
             ctypes.memmove(ctypes.addressof(self.state.collide), ctypes.addressof(collide), ctypes.sizeof(collide))
-        ref = self.ch.ref.latest()
+        ref = self._latest(self.ch.ref)  # a corrupt or silent channel means no new reference: hold
         if self.ch.ref.bad_frames:
             self._warn_once("ref-size", f"mds-ref: frames of the wrong size ignored (MDS_REF is "
                                         f"{ctypes.sizeof(MDS_REF)} bytes)")
@@ -403,8 +406,27 @@ class DaemonLoop:
         now = self.clock()
         self._fill_state(now)
         self.state.time = time.monotonic()
-        self.ch.state.put(self.state)
+        self._put(self.ch.state, self.state)
         self._publish_status(start, deadline, cpu0)
+
+    def _latest(self, channel):
+        """Newest new frame of an input channel; a broken channel (e.g. a writer killed mid-put) is reported,
+        never allowed to stop the loop: it reads as 'nothing new'."""
+        try:
+            return channel.latest()
+        except Exception as exc:
+            self._channel_error(channel.name, exc)
+            return None
+
+    def _put(self, channel, frame) -> None:
+        try:
+            channel.put(frame)
+        except Exception as exc:
+            self._channel_error(channel.name, exc)
+
+    def _channel_error(self, name: str, exc: Exception) -> None:
+        self.status.channel_errors += 1
+        self._warn_rate(f"channel-{name}", f"channel {name}: {exc} (`mds-ach repair` fixes a corrupt channel)")
 
     def _read_commands(self) -> None:
         """Every new mds-cmd frame in order (not just the newest: two quick commands must both count)."""
@@ -414,7 +436,7 @@ class DaemonLoop:
             try:
                 status, size = self.ch.cmd.get(self._cmd_buf)
             except ach.AchException as exc:
-                self._warn_once("cmd-overflow", f"mds-cmd: {exc}")
+                self._channel_error(mds.MDS_CHAN_BOARD_CMD_NAME, exc)
                 return
             if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
                 return
@@ -721,7 +743,7 @@ class DaemonLoop:
             self.bus_state = ds.BUS_STATE_BUS_OFF
             log.error("CAN interface reports bus-off: nothing reaches the robot until `mds-ach resetbus`")
         st.bus_state = self.bus_state
-        self.ch.status.put(st)
+        self._put(self.ch.status, st)
         with self._lock:
             ctypes.memmove(ctypes.addressof(self._snapshot), ctypes.addressof(st), ctypes.sizeof(st))
 

@@ -82,6 +82,7 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         ("cmd_result", ctypes.c_uint8),
         ("joint_flags", ctypes.c_uint8 * MDS_JOINT_COUNT),
         ("joint_age", ctypes.c_float * MDS_JOINT_COUNT),  # s since the last position reply; -1 never
+        ("channel_errors", ctypes.c_uint32),  # Ach channel reads/writes that failed (e.g. a corrupt mds-ref)
     ]
 
 
@@ -97,7 +98,8 @@ def summary_line(st: MDS_DAEMON_STATUS) -> str:
     faults = []
     for name, value in (("tx-err", st.tx_errors), ("err-frames", st.error_frames), ("bus-off", st.bus_off_count),
                         ("unknown", st.unknown_node_frames), ("malformed", st.malformed_frames),
-                        ("refused", st.refs_refused), ("clamped", st.refs_clamped), ("no-ack", st.acks_missing)):
+                        ("refused", st.refs_refused), ("clamped", st.refs_clamped), ("no-ack", st.acks_missing),
+                        ("channel-err", st.channel_errors)):
         if value:
             faults.append(f"{name} {value}")
     return (f"{st.measured_rate_hz:.1f}/{st.rate_hz:g} Hz, period err p99 {st.period_error_p99 * 1e3:.2f} ms, "

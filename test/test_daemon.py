@@ -391,6 +391,21 @@ def test_bus_off_and_reset_bus_command(rig: Rig) -> None:
     assert rig.state().joint[0x4C].pos == pytest.approx(-0.7, abs=1e-5)
 
 
+def test_corrupt_input_channel_holds_the_reference(rig: Rig) -> None:
+    """A writer killed inside a put leaves mds-ref marked dirty: the daemon keeps its loop and holds."""
+    from mds_ach import ach
+
+    rig.put_ref(LEP=-0.8)
+    rig.step()
+    with ach.Channel(mds.MDS_CHAN_REF_NAME, create=False) as raw:
+        raw._i32[raw._i_dirty] = 1  # what a writer that died between 'dirty' and 'clean' leaves behind
+    states = [rig.step() for _ in range(5)]
+    assert all(st.joint[0x4C].ref == -0.8 for st in states)
+    status = status_of(rig)
+    assert status.channel_errors == 5 and status.cycle == rig.loop.cycle_count
+    assert "channel-err 5" in ds.summary_line(status)
+
+
 def test_missing_acks_resend_the_target(clean_shm) -> None:
     r = make_rig(bitrate=None)
     try:
@@ -675,5 +690,9 @@ def test_diagnostics_levels() -> None:
     off = daemon.diagnostic_status(st, True, ["LEP"])
     assert off.level == DiagnosticStatus.ERROR and "resetbus" in off.message
     assert daemon.diagnostic_status(ds.MDS_DAEMON_STATUS(rate_hz=10), False, []).level == DiagnosticStatus.ERROR
+    corrupt = daemon.diagnostic_status(ds.MDS_DAEMON_STATUS(rate_hz=10, channel_errors=4), True, [], 2)
+    assert corrupt.level == DiagnosticStatus.WARN and "repair" in corrupt.message
+    assert daemon.diagnostic_status(ds.MDS_DAEMON_STATUS(rate_hz=10, channel_errors=4), True, [], 0).level == \
+        DiagnosticStatus.OK
     values = {kv.key for kv in off.values}
     assert {"period_error_p99_ms", "overruns", "bus_load_percent", "cpu_per_cycle_ms", "stale_joints"} <= values
