@@ -8,7 +8,8 @@ One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread
 3. per joint: clamp to the joint limits, then the legacy mode (0 first-order filter with L giving 95 % of a
    step in 4.0 s at the loop rate, 1 pass-through, 2 compliant (follow the encoder), 3 encoder filter);
 4. for enabled joints whose target (float32 counts) changed, unless ``mds-collide`` says a collision is
-   predicted: the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
+   predicted for that arm (``_collision_held``): the 4-frame SET sequence (acceleration, MOVETO target,
+   trajectory mode, period);
 5. one broadcast ACTUAL_POSITION query; replies decoded in binary until every live node answered or the
    reply window closes; a node silent for ``stale_after`` is stale (``state.active`` 0, flagged in
    ``mds-daemon-status``), never reported as fresh;
@@ -41,6 +42,7 @@ from mds_ach import daemon_status as ds
 from mds_ach import filters, mcb
 from mds_ach.canio import CanIO
 from mds_ach.config import JointConfig, JointTable
+from mds_ach.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.mcb import Response, StateArg
 from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
 
@@ -69,6 +71,14 @@ def f32(value: float) -> float:
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 PR_SET_TIMERSLACK = 29
+
+
+_LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
+               mds.COLLIDE_L_WRIST)
+_RIGHT_PARTS = (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
+                mds.COLLIDE_R_WRIST)
+_LEFT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in LEFT_ARM)
+_RIGHT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in RIGHT_ARM)
 
 
 class _Timespec(ctypes.Structure):
@@ -548,16 +558,34 @@ class DaemonLoop:
                     filters.ema_step(jr.ref, desired, self.L)
             jr.ref = cfg.clamp(new)
 
+    def _collision_held(self) -> frozenset[int] | None:
+        """Joints not to command while ``mds-collide`` reports a predicted collision (``isCollide == 1``).
+
+        Like the original, held targets go out as soon as the collision clears. Unlike the original, only the
+        arm whose parts are flagged is held, so the gate's per-arm hold is not turned into a whole-robot stop;
+        a report that flags no part (e.g. an external legacy checker) holds every joint. ``isCollide == 2`` is
+        the gate's logged expert override and holds nothing. ``None`` means hold everything.
+        """
+        c = self.collide
+        if not self.collide_gate or c.isCollide != 1:
+            return frozenset()
+        held: set[int] = set()
+        if any(c.joint[i].isCollide for i in _LEFT_PARTS):
+            held.update(_LEFT_ARM_ADDRESSES)
+        if any(c.joint[i].isCollide for i in _RIGHT_PARTS):
+            held.update(_RIGHT_ARM_ADDRESSES)
+        return frozenset(held) if held else None
+
     def _send_targets(self, now: float) -> None:
-        if self.collide_gate and self.collide.isCollide:
-            # Like the original: nothing moves while a collision is predicted; the current target goes out
-            # as soon as it clears.
+        held = self._collision_held()
+        if held is None or held:
             self.status.collision_holds += 1
-            return
+            if held is None:
+                return
         if self.bus_state == ds.BUS_STATE_BUS_OFF:
             return  # nothing gets through; `mds-ach resetbus` re-opens the bus
         for a, jr in self.joints.items():
-            if not jr.enabled or jr.hold is not None or jr.homing_since is not None:
+            if not jr.enabled or jr.hold is not None or jr.homing_since is not None or a in held:
                 continue
             counts = jr.cfg.to_counts(jr.ref)
             c32 = f32(counts)

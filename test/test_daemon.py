@@ -439,6 +439,39 @@ def test_collision_gate_holds_and_releases(rig: Rig) -> None:
     assert [f for f in rig.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET]
 
 
+
+def test_collision_hold_is_per_arm(rig: Rig) -> None:
+    """A left-arm collision report holds the left arm only: the right arm keeps moving (the gate's per-arm
+    hold must not become a whole-robot stop at the daemon)."""
+    collide = MDS_COLLIDE()
+    collide.isCollide = 1
+    collide.joint[mds.COLLIDE_L_FOREARM].isCollide = 1
+    rig.collide_out.put(collide)
+    rig.put_ref(LEP=-0.5, REP=-0.5)
+    rig.step(3)
+    assert not [f for f in rig.frames_to(0x4C) if f.command is Command.SET]  # LEP held
+    assert [f for f in rig.frames_to(0x48) if f.argument is StateArg.MOVETO_TARGET]  # REP moves
+
+
+def test_collision_report_without_parts_holds_everything(rig: Rig) -> None:
+    collide = MDS_COLLIDE()
+    collide.isCollide = 1  # e.g. an external legacy checker that flags no part
+    rig.collide_out.put(collide)
+    rig.put_ref(LEP=-0.5, REP=-0.5)
+    rig.step(3)
+    assert not [f for f in rig.frames_to(0x4C) if f.command is Command.SET]
+    assert not [f for f in rig.frames_to(0x48) if f.command is Command.SET]
+
+
+def test_collision_override_report_holds_nothing(rig: Rig) -> None:
+    collide = MDS_COLLIDE()
+    collide.isCollide = 2  # the gate's expert override: logged there, not a hold here
+    collide.joint[mds.COLLIDE_L_HAND].isCollide = 1
+    rig.collide_out.put(collide)
+    rig.put_ref(LEP=-0.5)
+    rig.step(3)
+    assert [f for f in rig.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET]
+
 # --- setup commands ---------------------------------------------------------------------------------------
 
 
