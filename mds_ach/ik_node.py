@@ -300,20 +300,12 @@ def _make_node(args: argparse.Namespace) -> Any:
     from rclpy.qos import DurabilityPolicy, QoSProfile
     from std_msgs.msg import String
 
+    from mds_ach.pipeline import ros_log
+
     class IkNode(Node):
         def __init__(self) -> None:
             super().__init__("ik")
-            logger = self.get_logger()
-
-            def log(level: str, msg: str) -> None:
-                # One call site per severity: rclpy refuses a call site whose severity changes between calls.
-                if level == "error":
-                    logger.error(msg)
-                elif level == "warn":
-                    logger.warning(msg)
-                else:
-                    logger.info(msg)
-
+            log = ros_log(self)
             service = build_service(args, log)
             self.declare_parameter("output", service.config.output)
             self.declare_parameter("tolerance", service.config.tolerance)
