@@ -628,8 +628,8 @@ class Driver:
 
     @property
     def stuck(self) -> bool:
-        """Its put has not returned for a second: the channel is wedged."""
-        return time.monotonic() - self.last_put > 1.0
+        """Its put has not returned for two seconds: the channel is wedged (or a lock is held)."""
+        return time.monotonic() - self.last_put > 2.0
 
     def close(self) -> None:
         self._stop.set()
@@ -723,10 +723,15 @@ def live(channel: str, within: float = 1.5) -> bool:
 
 
 def pipeline_lsp() -> str:
-    """LSP's newest reference and mode on each pipeline channel: where a motion stops when it does not arrive."""
+    """LSP's newest reference and mode on each pipeline channel: where a motion stops when it does not arrive (a
+    channel whose lock is held is reported with the holder instead of being read)."""
     parts = []
     for name in (mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME,
                  mds.MDS_CHAN_REF_NAME):
+        health = repair.check(name, timeout=0.2)
+        if not health.ok:
+            parts.append(f"{name}: {health.state}: {health.detail}")
+            continue
         frame = MDS_REF()
         with ach.Channel(name, create=False) as ch:
             status, size = ch.get(frame, last=True, copy=True)
