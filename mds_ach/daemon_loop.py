@@ -188,6 +188,7 @@ class JointRuntime:
     hold: float | None = None  # after a setup command: hold until ref_r differs from this
     flags: int = 0
     homing_since: float | None = None
+    catching_up: bool = False  # after start-up: the commanded reference approaches the first one at a capped speed
 
 
 @dataclass
@@ -247,6 +248,7 @@ class DaemonLoop:
         nocan: bool = False,
         rt_priority: int = 0,
         clock: Callable[[], float] = time.monotonic,
+        catchup_velocity: float = filters.DEFAULT_MAX_VELOCITY,
     ) -> None:
         if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
             raise ValueError(f"loop rate must be in (0, 1000] Hz, got {rate_hz}")
@@ -259,6 +261,10 @@ class DaemonLoop:
         self.stale_after = max(3.5 * self.period, 0.02) if stale_after is None else stale_after
         self.ack_timeout = max(2.5 * self.period, 0.05)
         self.L = filters.filter_length(rate_hz) if filter_length is None else filter_length
+        if not catchup_velocity > 0:
+            raise ValueError(f"catch-up velocity must be > 0 rad/s, got {catchup_velocity}")
+        self.catchup_velocity = catchup_velocity  # rad/s towards the first reference after start-up (inf: off)
+        self._last_update = -math.inf
         self.collide_gate = collide_gate
         self.nocan = nocan
         self.rt_priority = rt_priority
@@ -320,7 +326,9 @@ class DaemonLoop:
             if all(math.isfinite(jr.pos) for jr in self.joints.values()):
                 break
         answered = 0
+        self._last_update = self.clock()
         for jr in self.joints.values():
+            jr.catching_up = True  # a (re)started daemon never jumps to a reference the pipeline kept sending
             if math.isfinite(jr.pos):
                 jr.ref_r = jr.ref = jr.pos
                 answered += 1
@@ -534,6 +542,10 @@ class DaemonLoop:
             jr.ref_r, jr.mode = value, mode
 
     def _update_refs(self, now: float) -> None:
+        # Time since the previous update (at most one period): the catch-up ramp is a speed, and the first cycle
+        # after start-up can come early.
+        dt = min(max(now - self._last_update, 0.0), self.period)
+        self._last_update = now
         for jr in self.joints.values():
             cfg = jr.cfg
             jr.flags &= ~(ds.JOINT_CLAMPED | ds.JOINT_MOVING)
@@ -556,6 +568,15 @@ class DaemonLoop:
             else:  # MDS_REF_MODE_ENC_FILTER
                 new = filters.enc_filter_step(jr.pos, desired, self.L) if fresh else \
                     filters.ema_step(jr.ref, desired, self.L)
+            if jr.catching_up and math.isfinite(self.catchup_velocity):
+                # Until the commanded reference first reaches the requested one after start-up, move towards it
+                # no faster than the deployed smoothing speed: a restarted daemon must not step to whatever the
+                # pipeline kept commanding while it was down.
+                if abs(new - jr.ref) <= self.catchup_velocity * self.period:
+                    jr.catching_up = False  # no jump pending: from now on the modes apply as they are
+                else:
+                    new = filters.velocity_limit_step(jr.ref, new, self.catchup_velocity,
+                                                      max(dt, 0.5 * self.period))
             jr.ref = cfg.clamp(new)
 
     def _collision_held(self) -> frozenset[int] | None:

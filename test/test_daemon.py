@@ -114,7 +114,9 @@ def close_rig(rig: Rig) -> None:
 
 @pytest.fixture
 def rig(clean_shm) -> Iterator[Rig]:
-    r = make_rig(pose={"LEP": -1.0, "RSR": -0.6, "NKY": 0.1})
+    # The start-up catch-up ramp is off here so that the per-cycle semantics are visible;
+    # test_restart_ramps_to_the_running_reference covers it.
+    r = make_rig(pose={"LEP": -1.0, "RSR": -0.6, "NKY": 0.1}, catchup_velocity=math.inf)
     r.loop.start_up()
     r.state()
     yield r
@@ -407,7 +409,7 @@ def test_corrupt_input_channel_holds_the_reference(rig: Rig) -> None:
 
 
 def test_missing_acks_resend_the_target(clean_shm) -> None:
-    r = make_rig(bitrate=None)
+    r = make_rig(bitrate=None, catchup_velocity=math.inf)
     try:
         r.loop.start_up()
         r.state()
@@ -438,6 +440,24 @@ def test_collision_gate_holds_and_releases(rig: Rig) -> None:
     assert st.joint[0x4C].ref_c_send == -0.5
     assert [f for f in rig.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET]
 
+
+
+def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
+    """A daemon (re)started while the pipeline keeps commanding a distant reference approaches it at the
+    catch-up speed (1.57 rad/s), never in one step; afterwards references pass through again."""
+    r = make_rig(pose={"LEP": -1.0})
+    try:
+        r.loop.start_up()
+        r.state()
+        r.put_ref(LEP=-0.2)
+        refs = [r.step().joint[0x4C].ref for _ in range(12)]
+        steps = [abs(b - a) for a, b in zip([-1.0] + refs, refs, strict=False)]
+        assert max(steps) <= 0.157 + 1e-9  # 1.57 rad/s at 10 Hz
+        assert refs[-1] == pytest.approx(-0.2)
+        r.put_ref(LEP=-0.5)
+        assert r.step().joint[0x4C].ref == pytest.approx(-0.5)  # caught up: pass-through again
+    finally:
+        close_rig(r)
 
 
 def test_collision_hold_is_per_arm(rig: Rig) -> None:
