@@ -322,7 +322,7 @@ class GateRunner:
 
     def run(self) -> None:
         from mds_ach.channels import StructChannel
-        from mds_ach.pipeline import make_ref, ref_arrays, wait_current_reference
+        from mds_ach.pipeline import ChannelGuard, make_ref, ref_arrays, wait_current_reference
 
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
@@ -337,6 +337,7 @@ class GateRunner:
         report_period = 1.0 / self.config.report_rate
         override_log = 0.0
         last_refusal_log = last_override_log = -math.inf
+        guard = ChannelGuard(self.log, self._stop)
         try:
             msg = f"started from {source}; margin {self.model.margin:g} m, {len(self.model.pairs)} pairs"
             if gate.current.collides:
@@ -347,7 +348,7 @@ class GateRunner:
             collide.put(gate.report(time.monotonic()))
             self.ready.set()
             while not self._stop.is_set():
-                frame = inp.wait(timeout=report_period)
+                frame = guard.call(inp.name, inp.wait, timeout=report_period)  # broken input: hold, report
                 now = time.monotonic()
                 override_log = self._apply_overrides(gate, now, override_log)
                 decision = None
@@ -357,7 +358,7 @@ class GateRunner:
                     self.check_times.append(time.perf_counter() - t0)
                     if len(self.check_times) > 10000:
                         del self.check_times[:5000]
-                    out.put(make_ref(decision.ref, decision.mode))
+                    guard.call(out.name, out.put, make_ref(decision.ref, decision.mode))
                     self.processed += 1
                     if decision.refused and now - last_refusal_log > 1.0:
                         self.log("error", f"refused out-of-limit/non-finite references or bad modes for "
@@ -368,7 +369,7 @@ class GateRunner:
                                           f"{sorted(decision.result.pairs)}")
                         last_override_log = now
                 if frame is not None or now - gate.last_report >= report_period:
-                    collide.put(gate.report(now))
+                    guard.call(collide.name, collide.put, gate.report(now))
                     if self.on_report is not None:
                         self.on_report(decision, gate, now)
         finally:

@@ -222,7 +222,7 @@ class FilterRunner:
 
     def run(self) -> None:
         from mds_ach.channels import StructChannel
-        from mds_ach.pipeline import Periodic, state_positions, wait_current_reference
+        from mds_ach.pipeline import ChannelGuard, Periodic, state_positions, wait_current_reference
 
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
@@ -236,24 +236,25 @@ class FilterRunner:
         measured: np.ndarray | None = None
         warned_state = False
         self.core = core
+        guard = ChannelGuard(self.log, self._stop)
         try:
             self.log("info", f"started from {source} at {self.params.rate:g} Hz ({self.params.describe()})")
             timer = Periodic(self.params.dt)
             self.ready.set()
             while True:
-                frame = inp.latest()
+                frame = guard.call(inp.name, inp.latest)  # a broken input: keep smoothing to the last target
                 if frame is not None:
                     problem = core.set_target(*ref_arrays(frame))
                     if problem:
                         self.log("warn", problem)
                 if needs_state:
-                    st = state_ch.latest()
+                    st = guard.call(state_ch.name, state_ch.latest)
                     if st is not None:
                         measured = state_positions(st)
                     elif measured is None and not warned_state:
                         self.log("warn", "enc_filter joints have no mds-state yet: using ema until it arrives")
                         warned_state = True
-                out.put(make_ref(core.step(measured), core.out_mode()))
+                guard.call(out.name, out.put, make_ref(core.step(measured), core.out_mode()))
                 self.ticks += 1
                 if not timer.wait(self._stop):
                     break

@@ -297,3 +297,33 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return status
+
+
+class ChannelGuard:
+    """Keeps a node running through a broken channel and says so, at most every ``every`` seconds.
+
+    A client killed inside a put leaves its channel ACH_CORRUPT until ``mds-ach repair``; a node that died on
+    that would take the whole pipeline down with it. ``call`` returns ``default`` instead and pauses briefly so
+    a failing wait does not spin; once the channel is repaired the same handle works again.
+    """
+
+    def __init__(self, log: Callable[[str, str], None], stop: threading.Event, every: float = 5.0) -> None:
+        self._log = log
+        self._stop = stop
+        self._every = every
+        self._last: dict[str, float] = {}
+        self.errors = 0
+
+    def call(self, name: str, fn: Callable[..., Any], *args: Any, default: Any = None, **kwargs: Any) -> Any:
+        from mds_ach import ach
+
+        try:
+            return fn(*args, **kwargs)
+        except ach.AchException as exc:
+            self.errors += 1
+            now = time.monotonic()
+            if now - self._last.get(name, -float("inf")) >= self._every:
+                self._last[name] = now
+                self._log("error", f"channel {name}: {exc}; holding until `mds-ach repair {name}`")
+            self._stop.wait(0.05)
+            return default
