@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -497,13 +498,21 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
 
 NEXT_STEPS = """\
 MDS-Ach is running{mode}. Node logs: {rt}
-In another terminal (same machine):
+In another terminal (same machine){activate}:
   mds-ach read                 live joint table (q quits)
   mds-ach console              goto / get / get fk / ik  (try: get fk left, goto LSP -0.3)
   mds-ach status               nodes, loop rate, bus load, collisions
   python examples/one_joint.py
 ROS 2 topics (/joint_states, /robot_description, ...) are inside this network namespace.
 Press Ctrl-C to stop everything."""
+
+
+def _activate_hint() -> str:
+    """How to get `mds-ach` on PATH in another shell, when it is not there already (e.g. after `make run`)."""
+    if shutil.which("mds-ach"):
+        return ""
+    activate = Path(sys.prefix) / "bin" / "activate"
+    return f", after `source {activate}`" if activate.is_file() else ""
 
 
 def run_foreground(nocan: bool, timeout: float, out: Printer = _out) -> int:
@@ -533,7 +542,8 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out) -> int:
                 return 0
             _err(f"mds-ach run: {exc}")
             return 1
-        out(NEXT_STEPS.format(mode=" on the simulated robot (nocan)" if nocan else "", rt=rt))
+        out(NEXT_STEPS.format(mode=" on the simulated robot (nocan)" if nocan else "", rt=rt,
+                              activate=_activate_hint()))
         failed = None
         while not stop_requested and failed is None:
             failed = _dead(procs)
