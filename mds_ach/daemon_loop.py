@@ -73,6 +73,11 @@ TIMER_ABSTIME = 1
 PR_SET_TIMERSLACK = 29
 
 
+# rad/s: how fast a (re)started daemon moves its commanded reference towards a distant running reference.
+# Below the filter's 1.57 rad/s so that, with state stamps jittering by up to the reply window, no observer
+# sees more than the collision gate's 2 rad/s speed bound.
+CATCHUP_VELOCITY = 1.0
+
 _LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
                mds.COLLIDE_L_WRIST)
 _RIGHT_PARTS = (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
@@ -248,7 +253,7 @@ class DaemonLoop:
         nocan: bool = False,
         rt_priority: int = 0,
         clock: Callable[[], float] = time.monotonic,
-        catchup_velocity: float = filters.DEFAULT_MAX_VELOCITY,
+        catchup_velocity: float = CATCHUP_VELOCITY,
     ) -> None:
         if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
             raise ValueError(f"loop rate must be in (0, 1000] Hz, got {rate_hz}")
@@ -570,7 +575,7 @@ class DaemonLoop:
                     filters.ema_step(jr.ref, desired, self.L)
             if jr.catching_up and math.isfinite(self.catchup_velocity):
                 # Until the commanded reference first reaches the requested one after start-up, move towards it
-                # no faster than the deployed smoothing speed: a restarted daemon must not step to whatever the
+                # no faster than CATCHUP_VELOCITY: a restarted daemon must not step to whatever the
                 # pipeline kept commanding while it was down.
                 if abs(new - jr.ref) <= self.catchup_velocity * self.period:
                     jr.catching_up = False  # no jump pending: from now on the modes apply as they are
