@@ -41,9 +41,17 @@ from typing import Any
 import numpy as np
 
 import mds_ach as mds
-from mds_ach import ach
 from mds_ach.msgs import MDS_JOINT_COUNT, Name30, get_name
-from mds_ach.pipeline import KNOWN_ADDRESSES, cancel_wait, joint_label, labels, make_ref, ref_arrays, select_joints
+from mds_ach.pipeline import (
+    KNOWN_ADDRESSES,
+    ChannelGuard,
+    cancel_wait,
+    joint_label,
+    labels,
+    make_ref,
+    ref_arrays,
+    select_joints,
+)
 
 MUX_MAX_CONTROLLERS = 8
 DEFAULT_STATE_RATE = 10.0
@@ -337,20 +345,11 @@ class MuxRunner:
     def _reader(self, index: int) -> None:
         """Block on one input channel; hand every new frame to the mux thread with its arrival time."""
         ch = self._inputs[index]
-        last_report = -math.inf
+        # A client that died inside a put leaves its input ACH_CORRUPT: keep this thread alive, say so, and pick
+        # the channel up again once `mds-ach repair` fixed it.
+        guard = ChannelGuard(self.log, self._stop)
         while not self._stop.is_set():
-            try:
-                frame = ch.wait(timeout=0.5)
-            except ach.AchException as exc:
-                # A client died inside a put (ACH_CORRUPT) or the channel was damaged: keep this input's thread
-                # alive, say so at most every 5 s, and pick the channel up again once `mds-ach repair` fixed it.
-                now = time.monotonic()
-                if now - last_report >= 5.0:
-                    self.log("error", f"input {ch.name}: {exc}; this controller is ignored until "
-                                      f"`mds-ach repair {ch.name}`")
-                    last_report = now
-                self._stop.wait(0.2)
-                continue
+            frame = guard.call(ch.name, ch.wait, timeout=0.5)
             if frame is not None:
                 self._queue.put((index, frame, time.monotonic()))
 

@@ -38,6 +38,7 @@ import numpy as np
 import mds_ach as mds
 from mds_ach import kinematics as kin
 from mds_ach import paths
+from mds_ach.cli import strip_ros_args
 from mds_ach.joints import MODEL_JOINTS, lookup
 
 if TYPE_CHECKING:  # heavy imports stay out of `import mds_ach.viewer` (the `mds-ach sim` start-up path)
@@ -845,20 +846,6 @@ def free_port(host: str) -> int:
 # --------------------------------------------------------------------------------------------------
 # Command line: the foreground process and the `mds-ach sim` verb
 # --------------------------------------------------------------------------------------------------
-
-
-def strip_ros_args(argv: Sequence[str]) -> list[str]:
-    """Drop ``--ros-args ... [--]`` (what rclpy's remove_ros_args does) without importing rclpy."""
-    out: list[str] = []
-    skipping = False
-    for arg in argv:
-        if arg == "--ros-args":
-            skipping = True
-        elif skipping and arg == "--":
-            skipping = False
-        elif not skipping:
-            out.append(arg)
-    return out
 
 
 def add_server_arguments(parser: argparse.ArgumentParser) -> None:
