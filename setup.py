@@ -3,7 +3,7 @@
 import os
 from glob import glob
 
-from setuptools import find_packages, setup
+from setuptools import Extension, find_packages, setup
 
 PACKAGE = "mds_ach"
 
@@ -31,6 +31,9 @@ setup(
         ("include", glob("include/*.h")),
     ],
     package_data={"mds_ach": ["data/*", "web/*"]},
+    # The C fast path of mds_ach.ach; optional: without a compiler the pure-Python code is used.
+    ext_modules=[Extension("mds_ach._achfast", ["mds_ach/_achfast.c"], extra_compile_args=["-O2", "-Wall"],
+                           optional=True)],
     include_package_data=True,
     install_requires=["setuptools"],
     zip_safe=False,

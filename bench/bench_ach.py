@@ -5,7 +5,8 @@ Measured (each for a 1 KB frame and a 14051 B ``MDS_STATE`` frame):
 * across processes, newest-frame latency at 1 kHz: a writer process stamps CLOCK_MONOTONIC into the frame and
   puts; a reader process takes it with a blocking ``get(wait=True, last=True)`` (condvar wake-up) or with the
   busy-poll path ``poll()`` (spins on ``last_seq``) and subtracts the stamp from its own clock;
-* across processes, throughput: the writer puts back to back, a blocking in-order reader counts what it gets;
+* across processes, throughput: the writer puts back to back, a blocking in-order reader counts what it gets
+  (10-frame ring: a writer that outruns the reader overwrites the oldest frames, by design, as in libach);
 * baseline: rclpy ``sensor_msgs/JointState`` (17 joints) publish -> receive across two processes, the same
   stamp-in-message method, same rate, default QoS. This needs the private network namespace of
   ``tools/netns-run`` (``make bench`` provides it); outside it the baseline is skipped.
@@ -15,7 +16,8 @@ depend on what other benchmarks loaded into the parent. All children (Ach and rc
 priority to nice -20 when allowed, as a robot's real-time processes would run; on a shared, loaded machine this
 keeps other load from dominating either side.
 Targets (issue 2): blocking >= 5x lower median than rclpy, busy-poll >= 20x lower, in-process put+get of
-MDS_STATE <= 10 us median.
+MDS_STATE <= 10 us median. They apply to the default implementation (the C fast path ``mds_ach._achfast`` when
+built); the pure-Python path (``MDS_ACH_PURE_PYTHON=1``) is measured in the same run and printed for reference.
 """
 
 from __future__ import annotations
@@ -179,8 +181,9 @@ def role_ros_subscriber() -> None:
 # --- orchestration ---------------------------------------------------------------------------------
 
 
-def _spawn(*args: object) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "bench.bench_ach", *map(str, args)], cwd=REPO, text=True,
+def _spawn(*args: object, pure: bool = False) -> subprocess.Popen[str]:
+    env = dict(os.environ, MDS_ACH_PURE_PYTHON="1") if pure else None
+    return subprocess.Popen([sys.executable, "-m", "bench.bench_ach", *map(str, args)], cwd=REPO, text=True, env=env,
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
@@ -199,7 +202,7 @@ def _result(proc: subprocess.Popen[str], timeout: float = 300) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
-def cross_process(name: str, size: int, mode: str, count: int, rate: float) -> dict:
+def cross_process(name: str, size: int, mode: str, count: int, rate: float, pure: bool = False) -> dict:
     """One writer process and one reader process on a fresh channel; returns the reader's JSON."""
     from mds_ach import ach
 
@@ -207,9 +210,9 @@ def cross_process(name: str, size: int, mode: str, count: int, rate: float) -> d
         ach.unlink(name)
     ach.create(name, 10, max(size, 3000))
     try:
-        reader = _spawn("ach-reader", name, size, mode)
+        reader = _spawn("ach-reader", name, size, mode, pure=pure)
         _expect_ready(reader)
-        writer = _spawn("ach-writer", name, size, count, rate)
+        writer = _spawn("ach-writer", name, size, count, rate, pure=pure)
         assert writer.stdin is not None
         writer.stdin.write("go\n")
         writer.stdin.flush()
@@ -231,7 +234,7 @@ def rclpy_latency(count: int, rate: float) -> list[float]:
     return [x / 1e3 for x in result["latency_ns"]]
 
 
-def in_process(size: int, count: int) -> tuple[list[float], float]:
+def in_process(size: int, count: int, pure: bool = False) -> tuple[list[float], float]:
     """put + get(last) pairs on two handles of one channel: per-pair latency (us) and pairs per second."""
     from mds_ach import ach
 
@@ -240,7 +243,7 @@ def in_process(size: int, count: int) -> tuple[list[float], float]:
         ach.unlink(name)
     ach.create(name, 10, max(size, 3000))
     try:
-        with ach.Channel(name) as w, ach.Channel(name) as r:
+        with ach.Channel(name, fast=not pure) as w, ach.Channel(name, fast=not pure) as r:
             src = memoryview(bytearray(size))
             dst = memoryview(bytearray(size))
             put, get = w.put, r.get_status
@@ -285,34 +288,49 @@ def run(quick: bool = False) -> list[Row]:
         rows.append(Row(GROUP, "rclpy JointState x-proc median (baseline)", ros_med, "us"))
         rows.append(Row(GROUP, "rclpy JointState x-proc p99", percentile(ros, 99), "us"))
 
-    for label, size in SIZES.items():
-        samples, rate = in_process(size, n_inproc)
-        med = median(samples)
-        is_state = size == 14051
-        rows.append(Row(GROUP, f"in-proc put+get {label} median", med, "us",
-                        target="<= 10 us" if is_state else "", passed=(med <= 10.0) if is_state else None))
-        rows.append(Row(GROUP, f"in-proc put+get {label} p99", percentile(samples, 99), "us"))
-        rows.append(Row(GROUP, f"in-proc put+get {label} throughput", rate, "pairs/s", higher_is_better=True))
+    from mds_ach import ach
 
-        for mode, factor in (("block", 5.0), ("poll", 20.0)):
-            result = cross_process(f"bench-ach-{mode}", size, mode, n_lat, RATE_HZ)
-            lat = [x / 1e3 for x in result["latency_ns"]]
-            med = median(lat)
-            what = "blocking get" if mode == "block" else "busy-poll"
-            ratio_ok = (ros_med / med >= factor) if ros_med else None
-            rows.append(Row(GROUP, f"x-proc {what} {label} median", med, "us",
-                            baseline_name="rclpy JointState median" if ros else "", baseline_value=ros_med,
-                            target=f">= {factor:g}x lower" if ros else "", passed=ratio_ok))
-            rows.append(Row(GROUP, f"x-proc {what} {label} p99", percentile(lat, 99), "us",
-                            baseline_name="rclpy JointState p99" if ros else "",
-                            baseline_value=percentile(ros, 99) if ros else None))
+    impls = [False, True] if ach.FAST_AVAILABLE else [True]
+    print(f"[bench_ach] default implementation: {'C fast path' if ach.FAST_AVAILABLE else 'pure Python'}",
+          file=sys.stderr)
+    for pure in impls:
+        default = pure == impls[0]  # the targets apply to what users get by default
+        tag = " [pure Python]" if pure and not default else ""
+        for label, size in SIZES.items():
+            rows += _size_rows(label + tag, size, pure, default, ros, ros_med, n_lat, n_inproc, n_tput)
+    return rows
 
-        result = cross_process("bench-ach-tput", size, "throughput", n_tput, 0)
-        rows.append(Row(GROUP, f"x-proc throughput {label} (in-order reader)",
-                        result["received"] / result["seconds"] if result["seconds"] else 0.0, "frames/s",
-                        higher_is_better=True))
-        rows.append(Row(GROUP, f"x-proc throughput {label}: frames delivered",
-                        100.0 * (result["received"]) / (n_tput + WARMUP), "%", higher_is_better=True))
+
+def _size_rows(label: str, size: int, pure: bool, default: bool, ros: list[float], ros_med: float | None,
+               n_lat: int, n_inproc: int, n_tput: int) -> list[Row]:
+    rows: list[Row] = []
+    samples, rate = in_process(size, n_inproc, pure)
+    med = median(samples)
+    is_state = size == 14051 and default
+    rows.append(Row(GROUP, f"in-proc put+get {label} median", med, "us",
+                    target="<= 10 us" if is_state else "", passed=(med <= 10.0) if is_state else None))
+    rows.append(Row(GROUP, f"in-proc put+get {label} p99", percentile(samples, 99), "us"))
+    rows.append(Row(GROUP, f"in-proc put+get {label} throughput", rate, "pairs/s", higher_is_better=True))
+
+    for mode, factor in (("block", 5.0), ("poll", 20.0)):
+        result = cross_process(f"bench-ach-{mode}", size, mode, n_lat, RATE_HZ, pure)
+        lat = [x / 1e3 for x in result["latency_ns"]]
+        med = median(lat)
+        what = "blocking get" if mode == "block" else "busy-poll"
+        ratio_ok = (ros_med / med >= factor) if ros_med and default else None
+        rows.append(Row(GROUP, f"x-proc {what} {label} median", med, "us",
+                        baseline_name="rclpy JointState median" if ros else "", baseline_value=ros_med,
+                        target=f">= {factor:g}x lower" if ros and default else "", passed=ratio_ok))
+        rows.append(Row(GROUP, f"x-proc {what} {label} p99", percentile(lat, 99), "us",
+                        baseline_name="rclpy JointState p99" if ros else "",
+                        baseline_value=percentile(ros, 99) if ros else None))
+
+    result = cross_process("bench-ach-tput", size, "throughput", n_tput, 0, pure)
+    rows.append(Row(GROUP, f"x-proc throughput {label} (in-order reader)",
+                    result["received"] / result["seconds"] if result["seconds"] else 0.0, "frames/s",
+                    higher_is_better=True))
+    rows.append(Row(GROUP, f"x-proc throughput {label}: frames delivered",
+                    100.0 * (result["received"]) / (n_tput + WARMUP), "%", higher_is_better=True))
     return rows
 
 

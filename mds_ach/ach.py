@@ -29,6 +29,10 @@ Why some things look the way they do:
   neither the futex nor the condvar wait is interrupted by Python's signal handling.
 * A Python exception (Ctrl-C) can surface right after a ctypes call returned with the mutex held, so every
   locked section releases the mutex if the kernel lock word says this thread owns it.
+* The hot calls (put, get, poll, flush) have an optional C twin, ``mds_ach._achfast``, built with the package
+  when a compiler is there: one C call per frame instead of a few ctypes calls and ~100 bytecodes, which matters
+  on a process that wakes with cold caches every cycle. Same algorithms, same bytes (the tests run both);
+  ``MDS_ACH_PURE_PYTHON=1`` or ``Channel(..., fast=False)`` uses this module's code alone.
 """
 
 from __future__ import annotations
@@ -153,6 +157,21 @@ _FUTEX_WAKE = 1
 _SYS_FUTEX = {"x86_64": 202, "aarch64": 98}
 
 _U64 = struct.Struct("<Q")
+_SPIN_SLICE_NS = 10_000_000  # a busy-poll returns to Python this often to see cancel, close and Ctrl-C
+
+
+def _load_fast():  # noqa: ANN202 - the optional extension module, or None
+    if os.environ.get("MDS_ACH_PURE_PYTHON", "") not in ("", "0"):
+        return None
+    try:
+        from mds_ach import _achfast
+    except ImportError:
+        return None
+    return _achfast
+
+
+_achfast = _load_fast()
+FAST_AVAILABLE = _achfast is not None  # the C fast path is built and not disabled
 _NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
 
 
@@ -606,13 +625,15 @@ class Channel:
     ``Channel(name)`` opens the channel, creating it first with ``frame_count`` x ``frame_size`` (0 means the
     libach defaults 16 x 512) when it does not exist and ``create`` is true, like the classic binding.
     A handle may be shared between threads; ``close()`` waits for calls in progress to leave.
-    ``condvar_wait`` selects libach's condvar waits instead of the crash-safe futex waits (module docstring).
+    ``condvar_wait`` selects libach's condvar waits instead of the crash-safe futex waits (module docstring);
+    such handles use the pure-Python path. ``fast=False`` refuses the C fast path for this handle.
     """
 
     def __init__(self, name: str, frame_count: int = 0, frame_size: int = 0, *, create: bool = True,
-                 mode: int = 0o660, condvar_wait: bool = False):
+                 mode: int = 0o660, condvar_wait: bool = False, fast: bool = True):
         self.name = validate_name(name)
-        self.condvar_wait = condvar_wait
+        self._condvar_wait = condvar_wait
+        self._want_fast = fast
         self._closed = True  # until fully open, so __del__ / close() are harmless
         try:
             self._open()
@@ -688,9 +709,16 @@ class Channel:
         self._futex_wait_args = (sys_futex, last_seq_word, ctypes.c_int(_FUTEX_WAIT))
         self._futex_wake_args = (sys_futex, last_seq_word, ctypes.c_int(_FUTEX_WAKE), ctypes.c_int(0x7FFFFFFF))
         self._syscall = self._fn.syscall
-        # reader state (libach ach_open): seq_num = 0, next_index = 1
+        # reader state (libach ach_open): seq_num = 0, next_index = 1; kept in the C handle when there is one
         self._seq = 0
         self._next = 1
+        self._fast = None
+        if _achfast is not None and self._want_fast and not self._condvar_wait:
+            try:
+                self._fast = _achfast.Handle(base, layout.mutex, layout.cond, layout.dirty, layout.last_seq,
+                                             layout.header_size)
+            except ValueError:  # a libc whose mutex size differs from the layout: stay in Python
+                self._fast = None
         self._cancel = False
         self._active: list[int] = []
         self._release_lock = threading.Lock()
@@ -720,6 +748,8 @@ class Channel:
             if self._released:
                 return
             self._released = True
+        if self._fast is not None:
+            self._fast.detach()
         self._q.release()
         self._i32.release()
         self._mv.release()
@@ -779,11 +809,21 @@ class Channel:
     @property
     def seq_num(self) -> int:
         """Sequence number of the last frame this handle read."""
-        return self._seq
+        return self._seq if self._fast is None else self._fast.seq
 
     @property
     def next_index(self) -> int:
-        return self._next
+        return self._next if self._fast is None else self._fast.next
+
+    @property
+    def condvar_wait(self) -> bool:
+        """Waits happen in the channel's condvar, exactly like libach (set at open)."""
+        return self._condvar_wait
+
+    @property
+    def fast(self) -> bool:
+        """This handle's put/get run in the C fast path (``mds_ach._achfast``)."""
+        return self._fast is not None
 
     @property
     def last_seq(self) -> int:
@@ -885,15 +925,29 @@ class Channel:
     def put(self, buf: object) -> None:
         """Write one frame (bytes, bytearray, memoryview or ctypes object). Raises AchException on any
         non-OK status (classic binding), e.g. ACH_OVERFLOW when the frame is larger than the channel."""
-        src = _byte_view(buf, False)
-        r = self._put(src)
+        r = self._put_fast(buf) if self._fast is not None else self._put(_byte_view(buf, False))
         if r:
-            detail = f"{src.nbytes} bytes > data_size {self._dsize}" if r == ACH_OVERFLOW else ""
+            detail = f"{_byte_view(buf, False).nbytes} bytes > data_size {self._dsize}" if r == ACH_OVERFLOW else ""
             raise AchException(r, detail, channel=self.name)
 
     def put_status(self, buf: object) -> int:
         """Like ``put`` but returns the libach status instead of raising."""
-        return self._put(_byte_view(buf, False))
+        return self._put_fast(buf) if self._fast is not None else self._put(_byte_view(buf, False))
+
+    def _put_fast(self, buf: object) -> int:
+        active = self._active
+        active.append(1)
+        try:
+            if self._closed:
+                raise AchException(ACH_CLOSED, channel=self.name)
+            try:
+                return self._fast.put(buf)
+            except (TypeError, BufferError):  # not a plain contiguous buffer: convert it, or say what is wrong
+                return self._fast.put(_byte_view(buf, False))
+        finally:
+            active.pop()
+            if self._closed and not active:
+                self._release()
 
     def _put(self, src: memoryview) -> int:
         n = src.nbytes
@@ -1015,14 +1069,54 @@ class Channel:
         """libach ``ach_get`` with ACH_O_* ``options``; never raises for a status. ``timeout`` is relative
         seconds (used with ACH_O_WAIT). Returns ``(status, frame_size)``; frame_size is the needed size on
         ACH_OVERFLOW and 0 when no frame was looked at."""
-        dst = _byte_view(buf, True)
         deadline = None
         if options & ACH_O_WAIT and timeout is not None:
             if timeout != timeout:
                 raise ValueError("timeout is NaN")
             if timeout != math.inf:
                 deadline = time.clock_gettime(self._clock) + max(0.0, timeout)
-        return self._get(dst, options, deadline)
+        if self._fast is not None:
+            return self._get_fast(buf, options, deadline)
+        return self._get(_byte_view(buf, True), options, deadline)
+
+    def _slice(self, deadline: float | None) -> tuple[int, bool]:
+        """Nanoseconds of the next wait slice (POLL_SLICE, or less to end at ``deadline``), and whether it is
+        the last one before the deadline."""
+        full = int(POLL_SLICE * 1e9)
+        if deadline is None:
+            return full, False
+        left = int((deadline - time.clock_gettime(self._clock)) * 1e9)
+        return (full, False) if left > full else (max(0, left), True)
+
+    def _get_fast(self, buf: object, options: int, deadline: float | None) -> tuple[int, int]:
+        """``_get`` through the C handle: one call per frame; waits in GIL-free futex slices."""
+        active = self._active
+        active.append(1)
+        try:
+            if self._closed:
+                raise AchException(ACH_CLOSED, channel=self.name)
+            if self._cancel:
+                return ACH_CANCELED, 0
+            get = self._fast.get
+            wait = options & ACH_O_WAIT
+            span, final = self._slice(deadline) if wait else (0, True)
+            try:
+                status, size = get(buf, options, span)
+            except (TypeError, BufferError):  # not a plain writable buffer: convert it, or say what is wrong
+                buf = _byte_view(buf, True)
+                status, size = get(buf, options, span)
+            while wait and status == ACH_TIMEOUT:  # a slice passed without a new frame
+                if self._cancel or self._closed:
+                    return ACH_CANCELED, 0
+                if final:  # that was the last slice before the deadline
+                    return ACH_TIMEOUT, 0
+                span, final = self._slice(deadline)
+                status, size = get(buf, options, span)
+            return status, size
+        finally:
+            active.pop()
+            if self._closed and not active:
+                self._release()
 
     def _get(self, dst: memoryview, options: int, deadline: float | None) -> tuple[int, int]:
         active = self._active
@@ -1097,6 +1191,13 @@ class Channel:
         (newest frame by default). Lowest latency, burns a CPU core while waiting; mind the GIL. Returns like
         ``get``; ACH_TIMEOUT when nothing arrived within ``timeout`` seconds."""
         dst = _byte_view(buf, True)
+        if self._fast is not None:
+            status, size = self._poll_fast(dst, timeout, ACH_O_LAST if last else 0)
+            if status in (ACH_OK, ACH_MISSED_FRAME, ACH_STALE_FRAMES, ACH_CANCELED, ACH_TIMEOUT):
+                return status, size
+            if status == ACH_OVERFLOW:
+                raise AchException(status, channel=self.name, frame_size=size)
+            raise AchException(status, channel=self.name)
         self._enter()
         try:
             q = self._q
@@ -1127,28 +1228,53 @@ class Channel:
             raise AchException(status, channel=self.name, frame_size=size)
         raise AchException(status, channel=self.name)
 
+    def _poll_fast(self, dst: memoryview, timeout: float | None, options: int) -> tuple[int, int]:
+        """``poll`` through the C handle: it spins with the GIL released, in slices, then gets."""
+        self._enter()
+        try:
+            deadline = None if timeout is None else time.monotonic() + timeout
+            poll = self._fast.poll
+            while True:
+                if self._cancel or self._closed:
+                    return ACH_CANCELED, 0
+                span = _SPIN_SLICE_NS
+                if deadline is not None:
+                    span = min(span, max(0, int((deadline - time.monotonic()) * 1e9)))
+                status, size = poll(dst, options, span)
+                if status != ACH_TIMEOUT or span < _SPIN_SLICE_NS:
+                    return status, size
+        finally:
+            self._leave()
+
     # -- flush / cancel / admin --------------------------------------------------------------------
 
     def flush(self) -> None:
         """Mark every frame in the channel as seen by this handle (libach ``ach_flush``)."""
         self._enter()
         try:
-            try:
-                r = self._lock()
-                if r == ACH_OK:
-                    if self._cancel:
-                        r = ACH_CANCELED
-                    else:
-                        self._seq = self._q[self._q_last]
-                        self._next = self._q[_Q_INDEX_HEAD]
-                    self._mutex_unlock(self._mutex)
-            except BaseException:
-                self._unlock_if_owned()
-                raise
+            if self._fast is not None:
+                r = ACH_CANCELED if self._cancel else self._fast.flush()
+            else:
+                r = self._flush_locked()
         finally:
             self._leave()
         if r:
             raise AchException(r, channel=self.name)
+
+    def _flush_locked(self) -> int:
+        try:
+            r = self._lock()
+            if r == ACH_OK:
+                if self._cancel:
+                    r = ACH_CANCELED
+                else:
+                    self._seq = self._q[self._q_last]
+                    self._next = self._q[_Q_INDEX_HEAD]
+                self._mutex_unlock(self._mutex)
+        except BaseException:
+            self._unlock_if_owned()
+            raise
+        return r
 
     def cancel(self, *, async_unsafe: bool = False) -> None:
         """Make every current and future get/flush on this handle return ACH_CANCELED (sticky).

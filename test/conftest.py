@@ -60,3 +60,20 @@ def wait_for(predicate: Callable[[], object], timeout: float = 10.0, interval: f
 
 def in_netns() -> bool:
     return os.environ.get("MDS_NETNS_ACTIVE") == "1"
+
+
+@pytest.fixture(params=["fast", "pure"])
+def ach_impl(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run a test once with the C fast path of ``mds_ach.ach`` and once with its pure-Python code.
+
+    The environment variable reaches child processes too. ``test_ach_fast.py`` fails when the fast path
+    could have been built but was not, so "fast" never silently means "pure".
+    """
+    from mds_ach import ach
+
+    if request.param == "pure":
+        monkeypatch.setattr(ach, "_achfast", None)
+        monkeypatch.setenv("MDS_ACH_PURE_PYTHON", "1")
+    elif not ach.FAST_AVAILABLE:
+        pytest.skip("mds_ach._achfast is not built here (no C compiler); test_ach_fast.py reports why")
+    return request.param

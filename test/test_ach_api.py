@@ -22,6 +22,8 @@ from mds_ach import ach
 from mds_ach.channels import StructChannel
 from mds_ach.msgs import MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
 
+pytestmark = pytest.mark.usefixtures("ach_impl")  # every test: C fast path and pure Python
+
 NAME = "test-api"
 
 

@@ -20,6 +20,8 @@ from conftest import wait_for
 
 from mds_ach import ach
 
+pytestmark = pytest.mark.usefixtures("ach_impl")  # every test: C fast path and pure Python
+
 NAME = "test-xproc"
 LAYOUT = ach.native_layout()
 FUTEX_OWNER_DIED = 0x40000000
@@ -255,7 +257,7 @@ def test_writer_killed_mid_put(children: list[Child]) -> None:
     """A writer SIGKILLed mid-put leaves dirty=1: every later get/put/flush, in every process, is CORRUPT."""
     ach.create(NAME, 10, 64)
     code = """
-        ch = ach.Channel(sys.argv[1], create=False)
+        ch = ach.Channel(sys.argv[1], create=False, fast=False)  # a C put cannot be stopped half-way
         ch.put(b"good frame")
 
         def stuck(self, src, n):  # the real put path, stopped half-way through its update

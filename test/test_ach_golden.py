@@ -17,6 +17,8 @@ import pytest
 
 from mds_ach import ach
 
+pytestmark = pytest.mark.usefixtures("ach_impl")  # every test: C fast path and pure Python
+
 NATIVE = ach.native_layout().arch
 ARCHES = ("x86_64", "aarch64")
 WRAP_LENGTHS = (20, 20, 20, 10, 30, 5, 64, 3, 65, 12, 12, 12)

@@ -86,7 +86,7 @@ from mds_ach import ach
 from test_faults import payload
 
 name, before, marker = sys.argv[1], int(sys.argv[2]), sys.argv[3]
-ch = ach.Channel(name, create=False)
+ch = ach.Channel(name, create=False, fast=False)  # the pure-Python put, so a trace can stop it half-way
 for seq in range(1, before + 1):
     ch.put(payload(seq))
 lines, first = inspect.getsourcelines(ach.Channel._write_locked)

@@ -1,0 +1,229 @@
+"""The C fast path (``mds_ach._achfast``) against the pure-Python reference: built where it can be, same bytes,
+same statuses, same reader state, and the properties only C can break (threads sharing a handle, the GIL)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from conftest import wait_for
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mds_ach import ach
+
+NAME_FAST, NAME_PURE = "test-fast-c", "test-fast-py"
+LAYOUT = ach.native_layout()
+SYNC = (LAYOUT.mutex, LAYOUT.dirty)  # mutex + condvar bytes: process-specific, masked like the golden tests
+
+
+def _can_build() -> bool:
+    include = sysconfig.get_paths().get("include", "")
+    return bool(shutil.which(sysconfig.get_config_var("CC").split()[0] if sysconfig.get_config_var("CC") else "cc")
+                and Path(include, "Python.h").is_file())
+
+
+def test_fast_path_is_built_where_it_can_be() -> None:
+    """With a C compiler and Python headers, `make setup` builds the extension; a silent fallback would hide a
+    10x slower hot path."""
+    if not _can_build():
+        pytest.skip("no C compiler or Python headers here: the pure-Python path is the only one")
+    assert ach.FAST_AVAILABLE, "mds_ach._achfast is not importable: run `make setup` (pip install -e .)"
+    assert os.environ.get("MDS_ACH_PURE_PYTHON", "") in ("", "0")
+
+
+needs_fast = pytest.mark.skipif(not ach.FAST_AVAILABLE, reason="mds_ach._achfast not built")
+
+
+def _image(name: str) -> bytes:
+    data = bytearray(Path(ach.shm_path(name)).read_bytes())
+    data[SYNC[0]:SYNC[1]] = bytes(SYNC[1] - SYNC[0])
+    data[16:81] = bytes(65)  # the channel name differs
+    return bytes(data)
+
+
+GET_OPTIONS = [0, ach.ACH_O_LAST, ach.ACH_O_COPY, ach.ACH_O_LAST | ach.ACH_O_COPY]
+OPS = st.lists(
+    st.one_of(
+        st.tuples(st.just("put"), st.integers(min_value=1, max_value=70)),
+        st.tuples(st.just("get"), st.sampled_from(GET_OPTIONS)),
+        st.tuples(st.just("get-small"), st.just(0)),
+        st.tuples(st.just("flush"), st.just(0)),
+    ),
+    max_size=60,
+)
+
+
+@needs_fast
+@settings(max_examples=150, deadline=None)
+@given(ops=OPS, count=st.integers(min_value=1, max_value=6), size=st.integers(min_value=8, max_value=40))
+def test_same_bytes_statuses_and_reader_state_as_pure_python(ops: list[tuple[str, int]], count: int,
+                                                            size: int) -> None:
+    for name in (NAME_FAST, NAME_PURE):
+        ach.create(name, count, size, truncate=True)
+    try:
+        with ach.Channel(NAME_FAST) as fast, ach.Channel(NAME_PURE, fast=False) as pure:
+            assert fast.fast and not pure.fast
+            for i, (op, arg) in enumerate(ops):
+                results = []
+                for ch in (fast, pure):
+                    if op == "put":
+                        results.append(ch.put_status(bytes((i + k) % 251 for k in range(arg))))
+                    elif op == "flush":
+                        ch.flush()
+                        results.append(None)
+                    else:
+                        buf = bytearray(5 if op == "get-small" else 80)
+                        status, n = ch.get_status(buf, arg)
+                        results.append((status, n, bytes(buf[:n]) if status != ach.ACH_OVERFLOW else b""))
+                    results[-1] = (results[-1], ch.seq_num, ch.next_index)
+                assert results[0] == results[1], f"step {i}: {op} {arg}"
+            assert _image(NAME_FAST) == _image(NAME_PURE)
+    finally:
+        for name in (NAME_FAST, NAME_PURE):
+            ach.unlink(name)
+
+
+@needs_fast
+def test_fast_and_pure_handles_share_a_channel(clean_shm: None) -> None:
+    ach.create(NAME_FAST, 4, 32)
+    with ach.Channel(NAME_FAST) as cw, ach.Channel(NAME_FAST, fast=False) as pw, \
+            ach.Channel(NAME_FAST) as cr, ach.Channel(NAME_FAST, fast=False) as pr:
+        for i in range(10):
+            (cw if i % 2 else pw).put(f"frame {i}".encode())
+            for r in (cr, pr):
+                buf = bytearray(32)
+                assert r.get(buf, wait=True, timeout=1.0) == (ach.ACH_OK, 7)
+                assert buf[:7] == f"frame {i}".encode()
+
+
+@needs_fast
+def test_bad_buffers_get_the_same_clear_errors(clean_shm: None) -> None:
+    ach.create(NAME_FAST, 4, 32)
+    with ach.Channel(NAME_FAST) as ch:
+        with pytest.raises(TypeError, match="bytes-like"):
+            ch.put(12)  # type: ignore[arg-type]
+        ch.put(b"abc")
+        with pytest.raises(TypeError, match="writable"):
+            ch.get(b"xxxx")
+        with pytest.raises(ach.AchException) as info:
+            ch.get(bytearray(2))
+        assert info.value.status == ach.ACH_OVERFLOW and info.value.frame_size == 3
+        with pytest.raises(ach.AchException) as info:
+            ch.put(bytes(200))
+        assert info.value.status == ach.ACH_OVERFLOW and "200 bytes" in str(info.value)
+        wide = memoryview(bytearray(16)).cast("Q")  # non-byte formats are read as bytes
+        assert ch.put_status(wide) == ach.ACH_OK
+        assert ch.get(bytearray(32), last=True) == (ach.ACH_MISSED_FRAME, 16)  # "abc" was never read
+
+
+@needs_fast
+def test_closed_handle_refuses_calls(clean_shm: None) -> None:
+    ach.create(NAME_FAST, 4, 32)
+    ch = ach.Channel(NAME_FAST)
+    handle = ch._fast
+    ch.close()
+    for call in (lambda: ch.put(b"x"), lambda: ch.get(bytearray(8)), ch.flush, lambda: ch.poll(bytearray(8))):
+        with pytest.raises(ach.AchException) as info:
+            call()
+        assert info.value.status == ach.ACH_CLOSED
+    with pytest.raises(ValueError, match="detached"):  # the unmapped memory is never touched
+        handle.put(b"x")
+
+
+@needs_fast
+def test_condvar_wait_and_fast_false_use_python(clean_shm: None) -> None:
+    ach.create(NAME_FAST, 4, 32)
+    with ach.Channel(NAME_FAST, condvar_wait=True) as a, ach.Channel(NAME_FAST, fast=False) as b, \
+            ach.Channel(NAME_FAST) as c:
+        assert (a.fast, b.fast, c.fast) == (False, False, True)
+
+
+@needs_fast
+def test_threads_sharing_a_handle_never_get_a_frame_twice(clean_shm: None) -> None:
+    """The reader state lives in the C handle and changes under the channel mutex, as libach's does."""
+    ach.create(NAME_FAST, 64, 16)
+    got: list[list[int]] = [[], [], []]
+    total = 3000
+    with ach.Channel(NAME_FAST) as w, ach.Channel(NAME_FAST) as r:
+        def read(k: int) -> None:
+            buf = bytearray(16)
+            while True:
+                status, _ = r.get(buf, wait=True, timeout=5.0)
+                if status == ach.ACH_TIMEOUT:
+                    return
+                n = int.from_bytes(buf[:4], "little")
+                if n == 0xFFFFFFFF:
+                    return
+                got[k].append(n)
+
+        threads = [threading.Thread(target=read, args=(k,)) for k in range(3)]
+        for t in threads:
+            t.start()
+        for i in range(total):
+            w.put(i.to_bytes(4, "little"))
+            if i % 50 == 0:
+                time.sleep(0.001)  # let the readers keep up (missed frames are allowed, duplicates are not)
+        for _ in threads:
+            w.put((0xFFFFFFFF).to_bytes(4, "little"))
+        for t in threads:
+            t.join(timeout=20)
+    seen = [n for g in got for n in g]
+    assert len(seen) == len(set(seen)), "a frame was delivered twice"
+    assert len(seen) > total // 2
+    for g in got:
+        assert g == sorted(g)
+
+
+@needs_fast
+def test_a_held_lock_blocks_only_the_calling_thread(clean_shm: None) -> None:
+    """Waiting for the channel mutex releases the GIL: another process holding the lock (here: stopped inside
+    it) stalls the one call, not the whole process. When the holder dies, the call recovers (EOWNERDEAD)."""
+    ach.create(NAME_FAST, 4, 32)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom mds_ach import ach\n"
+         "ch = ach.Channel(sys.argv[1], create=False)\nassert ch._lock() == 0\nprint('locked', flush=True)\n"
+         "time.sleep(60)", NAME_FAST], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "locked"
+        with ach.Channel(NAME_FAST) as ch:
+            result: list[int] = []
+            t = threading.Thread(target=lambda: result.append(ch.put_status(b"after")))
+            t.start()
+            ticks = 0
+            end = time.monotonic() + 0.3
+            while time.monotonic() < end:  # this thread keeps running Python while the other one waits
+                ticks += 1
+            assert t.is_alive() and ticks > 1000
+            holder.kill()
+            holder.wait(timeout=10)
+            t.join(timeout=10)
+            assert result == [ach.ACH_OK]
+            assert ch.get(bytearray(32), last=True) == (ach.ACH_OK, 5)
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@needs_fast
+def test_poll_returns_on_cancel_and_timeout(clean_shm: None) -> None:
+    ach.create(NAME_FAST, 4, 32)
+    with ach.Channel(NAME_FAST) as ch:
+        t0 = time.monotonic()
+        assert ch.poll(bytearray(32), timeout=0.05) == (ach.ACH_TIMEOUT, 0)
+        assert 0.04 < time.monotonic() - t0 < 2.0
+        result: list[tuple[int, int]] = []
+        t = threading.Thread(target=lambda: result.append(ch.poll(bytearray(32))))
+        t.start()
+        wait_for(lambda: t.is_alive(), timeout=5)
+        time.sleep(0.05)
+        ch.cancel()
+        t.join(timeout=5)
+        assert result == [(ach.ACH_CANCELED, 0)]
