@@ -22,11 +22,14 @@ all: setup
 
 setup: $(STAMP)
 
-$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml
+# pip install -e . also compiles mds_ach/_achfast.c (the optional C fast path of mds_ach.ach) when gcc is there.
+$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml mds_ach/_achfast.c
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
 	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
-	$(PY) -m pip install -q --no-deps --no-build-isolation -e .
+	PYTHONWARNINGS=ignore $(PY) -m pip install -q --no-deps --no-build-isolation -e .
+	@$(PY) -c 'from mds_ach import ach; print("mds_ach.ach:", "C fast path" if ach.FAST_AVAILABLE else \
+		"pure Python (no C compiler or Python headers: slower; see README)")'
 	@touch $@
 
 run: $(STAMP)
@@ -37,7 +40,7 @@ run: $(STAMP)
 sysdeps:
 	@tools/install-system-deps
 
-test: $(STAMP) sysdeps
+test: sysdeps $(STAMP)
 	$(VENV)/bin/ruff check .
 	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
 
@@ -51,4 +54,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf build install log .pytest_cache
+	rm -rf build install log .pytest_cache mds_ach/_achfast.*.so

@@ -29,7 +29,7 @@ def colcon_install(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for name in SOURCES:
         path = REPO / name
         if path.is_dir():
-            shutil.copytree(path, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+            shutil.copytree(path, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.so"))
         else:
             shutil.copy2(path, src / name)
     colcon = Path(sys.executable).parent / "colcon"
@@ -50,6 +50,18 @@ def _env(install: Path) -> dict[str, str]:
     site = next((prefix / "lib").glob("python3*/site-packages"))
     env["PYTHONPATH"] = str(site)
     return env
+
+
+def test_colcon_builds_the_ach_fast_path(colcon_install: Path) -> None:
+    """The installed package imports from the prefix and has the C fast path wherever the dev install has it."""
+    from mds_ach import ach
+
+    code = "from mds_ach import ach; print(ach.__file__); print(ach.FAST_AVAILABLE)"
+    out = subprocess.run([sys.executable, "-c", code], env=_env(colcon_install), capture_output=True, text=True,
+                         check=True, cwd="/")
+    where, fast = out.stdout.split()
+    assert where.startswith(str(colcon_install))
+    assert fast == str(ach.FAST_AVAILABLE)
 
 
 def _resolve(install: Path, exe: str) -> Path:
