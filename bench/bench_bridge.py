@@ -1,10 +1,11 @@
 """Bridge latency and CPU: state frame -> /joint_states in another process, command -> reference in the channel.
 
-Runs inside tools/netns-run (``make bench``) with a private /dev/shm. This process plays the daemon (puts
-``mds-state`` at 100 Hz, each frame numbered and timed with CLOCK_MONOTONIC), the ROS user (subscribes to
-/joint_states, publishes position commands at random phases) and the mux (blocks on ``mds-ref-ros``); the
-``bridge`` executable runs as its own process in between. Baseline, same run: a plain rclpy JointState
-publisher process at the same rate and QoS, received here (one DDS hop, nothing else).
+Runs inside tools/netns-run (``make bench``) with a private /dev/shm. A child process plays the daemon and the
+mux (puts ``mds-state`` at 100 Hz, each frame numbered and timed with CLOCK_MONOTONIC; blocks on
+``mds-ref-ros`` and times each reference), this process plays the ROS user (subscribes to /joint_states,
+publishes position commands at random phases) with nothing else running in it, exactly as it receives the
+baseline; the ``bridge`` executable runs as its own process in between. Baseline, same run: a plain rclpy
+JointState publisher process at the same rate and QoS, received here (one DDS hop, nothing else).
 
 Measured:
 * state frame put -> JointState received here (Ach hop + bridge + DDS hop);
@@ -18,6 +19,7 @@ Measured:
 from __future__ import annotations
 
 import bisect
+import json
 import os
 import random
 import subprocess
@@ -58,6 +60,56 @@ BASELINE_PUBLISHER = textwrap.dedent(
         t += period
         time.sleep(max(0.0, t - time.monotonic()))
     rclpy.shutdown()
+    """
+)
+
+
+# The daemon and the mux: state frames out, references in; prints what it did as JSON when told to stop.
+FAKE_DAEMON = textwrap.dedent(
+    """
+    import json, sys, threading, time
+    import mds_ach as mds
+    from mds_ach import ach, joints
+    from mds_ach.channels import StructChannel
+    from mds_ach.msgs import MDS_REF, MDS_STATE
+    rate = float(sys.argv[1])
+    for name in (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_IK_NAME):
+        if ach.exists(name):
+            ach.unlink(name)
+    state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+    ref_ch = StructChannel(mds.MDS_CHAN_REF_ROS_NAME, MDS_REF)
+    nkr, lep = joints.BY_SHORT["NKR"].address, joints.BY_SHORT["LEP"].address
+    put_times, arrivals, stop = [], [], threading.Event()
+
+    def writer():
+        st = MDS_STATE()
+        for j in joints.JOINTS:
+            st.joint[j.address].address = j.address
+        period, t = 1.0 / rate, time.monotonic()
+        while not stop.is_set():
+            st.joint[nkr].pos = float(len(put_times))
+            now = time.monotonic()
+            st.time = now
+            put_times.append(now)
+            state_ch.put(st)
+            t += period
+            time.sleep(max(0.0, t - time.monotonic()))
+
+    def watcher():
+        while not stop.is_set():
+            ref = ref_ch.wait(timeout=0.1)
+            if ref is not None:
+                arrivals.append((time.monotonic(), ref.joint[lep].ref))
+
+    threads = [threading.Thread(target=writer), threading.Thread(target=watcher)]
+    for th in threads:
+        th.start()
+    print("ready", flush=True)
+    sys.stdin.readline()
+    stop.set()
+    for th in threads:
+        th.join()
+    print(json.dumps({"put_times": put_times, "arrivals": arrivals}), flush=True)
     """
 )
 
@@ -142,66 +194,34 @@ def _bridge(ros: _Ros, seconds: float) -> dict[str, object]:
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
 
-    import mds_ach as mds
-    from mds_ach import ach, joints
-    from mds_ach.channels import StructChannel
-    from mds_ach.msgs import MDS_REF, MDS_STATE
+    from mds_ach import joints
     from mds_ach_bridge.limits import load_limits
 
-    for name in (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_IK_NAME):
-        if ach.exists(name):
-            ach.unlink(name)
-    state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
-    ref_ch = StructChannel(mds.MDS_CHAN_REF_ROS_NAME, MDS_REF)
     nkr = joints.MODEL_JOINTS.index("NKR")
-    lep = joints.BY_SHORT["LEP"].address
     lo, hi = load_limits()["LEP"]
     values = [lo + (hi - lo) * (0.1 + 0.8 * i / 49) for i in range(50)]  # distinct, cycled
-
-    put_times: list[float] = []  # index k -> CLOCK_MONOTONIC at put of frame k
-    js_latency: list[float] = []
-    ref_arrivals: list[tuple[float, float]] = []  # (arrival time, LEP value)
-    stop = threading.Event()
+    received: list[tuple[int, float]] = []  # (state frame number, CLOCK_MONOTONIC at receipt)
     measuring = threading.Event()
-
-    def writer() -> None:
-        st = MDS_STATE()
-        for j in joints.JOINTS:
-            st.joint[j.address].address = j.address
-        period, t = 1.0 / RATE_HZ, time.monotonic()
-        while not stop.is_set():
-            st.joint[joints.BY_SHORT["NKR"].address].pos = float(len(put_times))
-            now = time.monotonic()
-            st.time = now
-            put_times.append(now)
-            state_ch.put(st)
-            t += period
-            time.sleep(max(0.0, t - time.monotonic()))
-
-    def ref_watcher() -> None:
-        while not stop.is_set():
-            ref = ref_ch.wait(timeout=0.1)
-            if ref is not None:
-                ref_arrivals.append((time.monotonic(), ref.joint[lep].ref))
 
     def on_state(msg: JointState) -> None:
         now = time.monotonic()
-        k = int(msg.position[nkr])
-        if measuring.is_set() and 0 <= k < len(put_times):
-            js_latency.append(now - put_times[k])
+        if measuring.is_set():
+            received.append((int(msg.position[nkr]), now))
 
+    daemon = subprocess.Popen([sys.executable, "-c", FAKE_DAEMON, str(RATE_HZ)], text=True,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    assert daemon.stdout is not None and daemon.stdin is not None
+    if daemon.stdout.readline().strip() != "ready":
+        daemon.kill()
+        raise RuntimeError("bench_bridge: the state writer did not start")
     sub = ros.node.create_subscription(JointState, "joint_states", on_state, qos_profile_sensor_data)
     cmd_pub = ros.node.create_publisher(JointState, "mds/joint_command", 10)
     bridge = subprocess.Popen([str(BIN / "bridge")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    threads = [threading.Thread(target=writer, daemon=True), threading.Thread(target=ref_watcher, daemon=True)]
-    for th in threads:
-        th.start()
     commands: list[tuple[float, float]] = []  # (publish time, LEP value)
     try:
         ros.spin_until(lambda: cmd_pub.get_subscription_count() > 0 and sub.get_publisher_count() > 0, 30.0,
                        "the bridge's topics")  # fmt: skip
-        ros.spin_until(lambda: len(put_times) > 50, 10.0, "state frames")
-        ros.spin_for(0.5)
+        ros.spin_for(1.0)
         measuring.set()
         cpu0, t0 = _cpu_seconds(bridge.pid), time.monotonic()
         end = t0 + seconds
@@ -219,17 +239,17 @@ def _bridge(ros: _Ros, seconds: float) -> dict[str, object]:
         cpu = (_cpu_seconds(bridge.pid) - cpu0) / (time.monotonic() - t0)
         ros.spin_for(0.2)
     finally:
-        stop.set()
-        for th in threads:
-            th.join(timeout=2.0)
         bridge.terminate()
         bridge_rc = bridge.wait(timeout=15)
+        out, _ = daemon.communicate("stop\n", timeout=30)
         ros.node.destroy_subscription(sub)
         ros.node.destroy_publisher(cmd_pub)
-        state_ch.close()
-        ref_ch.close()
     if bridge_rc != 0:
         raise RuntimeError(f"bench_bridge: the bridge exited with {bridge_rc} on SIGTERM")
+    report = json.loads(out.strip().splitlines()[-1])
+    put_times: list[float] = report["put_times"]
+    ref_arrivals = [(t, v) for t, v in report["arrivals"] if t >= t0]
+    js_latency = [now - put_times[k] for k, now in received if 0 <= k < len(put_times)]
 
     # Match each reference frame to its command (the newest command with that value) and to the state frame
     # that triggered the write (the newest put before the arrival).
@@ -249,17 +269,12 @@ def run(quick: bool = False) -> list[Row]:
     if os.environ.get("MDS_NETNS_ACTIVE") != "1" or os.environ.get("MDS_NETNS_SHARE_SHM") == "1":
         raise RuntimeError("bench_bridge needs a private namespace and /dev/shm: run it through tools/netns-run")
     seconds = 3.0 if quick else 10.0
-    # This process runs three threads (state writer, reference watcher, executor): keep the GIL hand-over
-    # short so the measurement itself does not add the default 5 ms switch interval to the tail.
-    switch = sys.getswitchinterval()
-    sys.setswitchinterval(0.0005)
     ros = _Ros()
     try:
         base, base_cpu = _baseline(ros, seconds)
         res = _bridge(ros, seconds)
     finally:
         ros.close()
-        sys.setswitchinterval(switch)
     base_ms = _ms(base)
     js, cycle, cmd = _ms(res["joint_states"]), _ms(res["cycle"]), _ms(res["command"])  # type: ignore[arg-type]
     period_ms = 1e3 / RATE_HZ

@@ -39,12 +39,14 @@ p-x p-y p-z t-x t-y t-z: 3 = position only, 6 = full pose).
 parameters (--ros-args -p name:=value; `ros2 param describe` shows every one):
   state_channel, ref_channel, ik_channel, allow_ungated, state_qos (sensor_data|reliable),
   stale_timeout, max_state_age, command_mode, trajectory_mode,
-  ik_dof_left, ik_dof_right, ik_frame, urdf, robot, publish_robot_description, diagnostics_period
+  ik_dof_left, ik_dof_right, ik_frame, urdf, robot, publish_robot_description, diagnostics_period,
+  rt_priority (SCHED_FIFO priority of the state thread, 0 = normal)
 
 examples:
   bridge
   bridge --ros-args -p ref_channel:=mds-ref-filter      # no mux running: write the legacy input
   bridge --ros-args -r __ns:=/mds1 -p state_qos:=reliable
+  bridge --ros-args -p rt_priority:=50                  # real-time state thread (root or rtprio limit)
 """
 
 

@@ -30,6 +30,7 @@ from trajectory_msgs.msg import JointTrajectory
 import mds_ach as mds
 from mds_ach import ach, joints, paths
 from mds_ach.channels import StructChannel
+from mds_ach.daemon_loop import tune_thread
 from mds_ach.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach_bridge import topics, trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
@@ -82,6 +83,7 @@ class BridgeNode(Node):
         qos_name: str = p("state_qos").value
         if qos_name not in STATE_QOS:
             raise ValueError(f"state_qos must be one of {', '.join(STATE_QOS)}, not {qos_name!r}")
+        self._rt_priority: int = p("rt_priority").value
         self._stale_timeout: float = p("stale_timeout").value
         self._max_age: float = p("max_state_age").value
         self._command_mode: int = p("command_mode").value
@@ -96,7 +98,6 @@ class BridgeNode(Node):
         self._addresses = [joints.BY_SHORT[n].address for n in self._names]
         self._lock = threading.Lock()
         self._counters = _Counters()
-        self._current_ref: dict[str, float] = {}  # state ref_r of the model joints, newest frame
         self._pending: dict[str, float] = {}  # accepted position commands not yet written
         self._trajectory: trajectory.Trajectory | None = None
         self._frame: MDS_REF | None = None  # the bridge's reference, created on the first write
@@ -176,6 +177,10 @@ class BridgeNode(Node):
                                     "else default)", read_only=True)),
             ("publish_robot_description", True, _describe(
                 "publish the URDF on robot_description (transient local)", read_only=True)),
+            ("rt_priority", 0, _describe(
+                "SCHED_FIFO priority (1-99) of the state thread, which wakes on every state frame and publishes it; "
+                "0 = normal scheduling. Needs CAP_SYS_NICE or an rtprio limit; refused -> logged, normal priority",
+                read_only=True, integer_range=[IntegerRange(from_value=0, to_value=99, step=1)])),
             ("diagnostics_period", 1.0, _describe("seconds between /diagnostics messages", read_only=True,
                                                   floating_point_range=[seconds])),
         ]  # fmt: skip
@@ -206,6 +211,9 @@ class BridgeNode(Node):
 
     def _state_loop(self) -> None:
         """Block on the state channel; for each new frame write the reference, then publish the frame once."""
+        for problem in tune_thread(self._rt_priority):
+            if "SCHED_FIFO" in problem:  # asked for and refused; the timer slack is a nicety
+                self.get_logger().warning(f"state thread: {problem}")
         try:
             while not self._stop.is_set():
                 # The wait returns on every put; its timeout only paces the stall check.
@@ -229,7 +237,6 @@ class BridgeNode(Node):
             self._stalled = False
             self._last_frame_mono = mono
             self._counters.frames += 1
-            self._current_ref = {n: j.ref_r for n, j in zip(self._names, js, strict=True)}
             ref = self._next_reference(state, now_ns * 1e-9)
             late, self._late_rejections = self._late_rejections, []
         if ref is not None:

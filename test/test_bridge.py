@@ -213,6 +213,7 @@ NODE_PARAMS = [
     "-p", "ref_channel:=mds-ref", "-p", "allow_ungated:=true",  # no mux/filter/gate here: straight to the daemon
     "-p", "command_mode:=1",  # pass-through, so a command shows in pos within a second, not after the filter
     "-p", "stale_timeout:=0.5", "-p", "diagnostics_period:=0.2", "-p", "ik_dof_left:=5",
+    "-p", "rt_priority:=7",  # the state thread runs SCHED_FIFO 7 where allowed
 ]  # fmt: skip
 
 
@@ -375,6 +376,30 @@ def test_joint_states_carry_every_state_frame_once(harness: Harness) -> None:
     span = matched[-1] - matched[0] + 1
     assert len(matched) >= 0.9 * span, f"{len(matched)} messages for {span} state frames: frames were dropped"
     assert harness.refs and list(harness.refs[-1].name) == list(joints.MODEL_JOINTS)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_state_thread_gets_the_requested_realtime_priority(harness: Harness) -> None:
+    """rt_priority:=7 puts exactly one thread (the state thread) under SCHED_FIFO 7, or says why not."""
+    tasks = [int(t) for t in os.listdir(f"/proc/{harness.bridge.pid}/task")]
+    fifo = []
+    for tid in tasks:
+        try:
+            if os.sched_getscheduler(tid) == os.SCHED_FIFO:
+                fifo.append(os.sched_getparam(tid).sched_priority)
+        except ProcessLookupError:
+            pass
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        allowed = True
+    except PermissionError:
+        allowed = False
+    if allowed:
+        assert fifo == [7], f"SCHED_FIFO priorities of the bridge's threads: {fifo}"
+    else:
+        assert fifo == [] and "SCHED_FIFO 7 refused" in harness.bridge_log()
 
 
 @pytest.mark.ros
