@@ -278,6 +278,22 @@ static PyObject *Handle_put(Handle *h, PyObject *src_obj) {
     return PyLong_FromLong(r);
 }
 
+/* The (dst, options, slice_ns) arguments of get and poll; on success dst is a held writable buffer. */
+static int read_args(Handle *h, const char *name, PyObject *const *args, Py_ssize_t nargs, Py_buffer *dst,
+                     int *options, long long *slice_ns) {
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "%s(dst, options, slice_ns)", name);
+        return -1;
+    }
+    if (check_open(h))
+        return -1;
+    *options = (int)PyLong_AsLong(args[1]);
+    *slice_ns = PyLong_AsLongLong(args[2]);
+    if (PyErr_Occurred())
+        return -1;
+    return PyObject_GetBuffer(args[0], dst, PyBUF_WRITABLE);
+}
+
 PyDoc_STRVAR(get_doc,
              "get(dst, options, slice_ns) -> (status, size)\n\n"
              "Non-blocking libach get into the writable buffer dst. With ACH_O_WAIT and nothing new, sleep on the\n"
@@ -285,18 +301,10 @@ PyDoc_STRVAR(get_doc,
              "caller loops, checking cancel, close, signals and its own deadline between slices.");
 
 static PyObject *Handle_get(Handle *h, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 3) {
-        PyErr_SetString(PyExc_TypeError, "get(dst, options, slice_ns)");
-        return NULL;
-    }
-    if (check_open(h))
-        return NULL;
-    int options = (int)PyLong_AsLong(args[1]);
-    long long slice_ns = PyLong_AsLongLong(args[2]);
-    if (PyErr_Occurred())
-        return NULL;
     Py_buffer dst;
-    if (PyObject_GetBuffer(args[0], &dst, PyBUF_WRITABLE) < 0)
+    int options;
+    long long slice_ns;
+    if (read_args(h, "get", args, nargs, &dst, &options, &slice_ns) < 0)
         return NULL;
     uint64_t size = 0;
     int r;
@@ -340,18 +348,10 @@ static long long mono_ns(void) {
 }
 
 static PyObject *Handle_poll(Handle *h, PyObject *const *args, Py_ssize_t nargs) {
-    if (nargs != 3) {
-        PyErr_SetString(PyExc_TypeError, "poll(dst, options, slice_ns)");
-        return NULL;
-    }
-    if (check_open(h))
-        return NULL;
-    int options = (int)PyLong_AsLong(args[1]);
-    long long slice_ns = PyLong_AsLongLong(args[2]);
-    if (PyErr_Occurred())
-        return NULL;
     Py_buffer dst;
-    if (PyObject_GetBuffer(args[0], &dst, PyBUF_WRITABLE) < 0)
+    int options;
+    long long slice_ns;
+    if (read_args(h, "poll", args, nargs, &dst, &options, &slice_ns) < 0)
         return NULL;
     int changed = *h->last_seq != h->seq;
     if (!changed) {
