@@ -299,6 +299,7 @@ class DaemonLoop:
         self._lock = threading.Lock()  # guards snapshot() against the loop thread
         self._snapshot = ds.MDS_DAEMON_STATUS()
         self._warned: set[str] = set()
+        self._unreadable: set[str] = set()  # input channels whose last read failed (e.g. left corrupt)
         self._last_warn: dict[str, float] = {}
         self._answered: set[int] = set()
         self.start_time = clock()
@@ -420,6 +421,8 @@ class DaemonLoop:
                                         f"{ctypes.sizeof(MDS_REF)} bytes)")
         if ref is not None:
             self.status.refs_received += 1
+            if self.ch.ref.name in self._unreadable:
+                self._resume_ref()
             self._accept_ref(ref)
         self._drain(start)  # late replies and ACKs of the previous cycle
         self._check_acks(start)
@@ -436,10 +439,24 @@ class DaemonLoop:
         """Newest new frame of an input channel; a broken channel (e.g. a writer killed mid-put) is reported,
         never allowed to stop the loop: it reads as 'nothing new'."""
         try:
-            return channel.latest()
+            frame = channel.latest()
         except Exception as exc:
+            self._unreadable.add(channel.name)
             self._channel_error(channel.name, exc)
             return None
+        if frame is not None and channel is not self.ch.ref:
+            self._unreadable.discard(channel.name)
+        return frame
+
+    def _resume_ref(self) -> None:
+        """The reference input is readable again after an outage (e.g. repaired after a writer died mid-put).
+        Upstream kept moving while the daemon held its last reference, so approach the new one like after a
+        restart: at most CATCHUP_VELOCITY, never a step."""
+        self._unreadable.discard(self.ch.ref.name)
+        for jr in self.joints.values():
+            jr.catching_up = True
+        log.warning(f"{self.ch.ref.name} readable again: approaching its reference at <= "
+                    f"{self.catchup_velocity:g} rad/s")
 
     def _put(self, channel, frame) -> None:
         try:
@@ -548,7 +565,7 @@ class DaemonLoop:
 
     def _update_refs(self, now: float) -> None:
         # Time since the previous update (at most one period): the catch-up ramp is a speed, and the first cycle
-        # after start-up can come early.
+        # after start-up (or after a late cycle) can come early: its step is scaled down with it.
         dt = min(max(now - self._last_update, 0.0), self.period)
         self._last_update = now
         for jr in self.joints.values():
@@ -577,11 +594,10 @@ class DaemonLoop:
                 # Until the commanded reference first reaches the requested one after start-up, move towards it
                 # no faster than CATCHUP_VELOCITY: a restarted daemon must not step to whatever the
                 # pipeline kept commanding while it was down.
-                if abs(new - jr.ref) <= self.catchup_velocity * self.period:
+                if abs(new - jr.ref) <= self.catchup_velocity * dt:
                     jr.catching_up = False  # no jump pending: from now on the modes apply as they are
                 else:
-                    new = filters.velocity_limit_step(jr.ref, new, self.catchup_velocity,
-                                                      max(dt, 0.5 * self.period))
+                    new = filters.velocity_limit_step(jr.ref, new, self.catchup_velocity, dt)
             jr.ref = cfg.clamp(new)
 
     def _collision_held(self) -> frozenset[int] | None:

@@ -265,7 +265,7 @@ def test_mode_0_filter_reaches_95_percent_in_4_seconds(clean_shm, rate: float) -
     r = make_rig(rate=rate, bitrate=None)
     try:
         r.loop.start_up()
-        r.state()
+        r.step()  # the loop's first cycle runs right after start-up (no time passes: nothing may move yet)
         lsr = TABLE["LSR"]
         start = r.loop.state.joint[lsr.address].ref
         target = start + 0.8
@@ -459,6 +459,34 @@ def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
         assert r.step().joint[0x4C].ref == pytest.approx(-0.5)  # caught up: pass-through again
     finally:
         close_rig(r)
+
+
+def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clean_shm) -> None:
+    """mds-ref left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
+    `mds-ach repair` the first new reference is approached at the catch-up speed, like after a restart."""
+    from mds_ach import ach, repair
+
+    rig = make_rig(pose={"LEP": -1.0})
+    try:
+        rig.loop.start_up()
+        rig.state()
+        rig.put_ref(LEP=-1.0)
+        rig.step(2)
+        rig.put_ref(LEP=-0.95)
+        assert rig.step().joint[0x4C].ref == pytest.approx(-0.95)  # normally a reference passes through at once
+        with ach.Channel(mds.MDS_CHAN_REF_NAME, fast=False) as raw:
+            raw._i32[raw._i_dirty] = 1  # what a writer killed inside its put leaves behind
+        assert rig.step(3).joint[0x4C].ref == pytest.approx(-0.95)  # unreadable input: hold
+        assert status_of(rig).channel_errors > 0
+        assert repair.repair(mds.MDS_CHAN_REF_NAME).ok
+        rig.put_ref(LEP=-0.2)  # where upstream got to in the meantime
+        refs = [rig.step().joint[0x4C].ref for _ in range(10)]
+        steps = [abs(b - a) for a, b in zip([-0.95] + refs, refs, strict=False)]
+        assert max(steps) <= CATCHUP_VELOCITY * 0.1 + 1e-9 and refs[-1] == pytest.approx(-0.2)
+        rig.put_ref(LEP=-0.5)
+        assert rig.step().joint[0x4C].ref == pytest.approx(-0.5)  # caught up: pass-through again
+    finally:
+        close_rig(rig)
 
 
 def test_collision_hold_is_per_arm(rig: Rig) -> None:
