@@ -74,7 +74,7 @@ def verify(data: bytes) -> str | None:
     crc = frame.joint[_CRC].ref
     frame.joint[_CRC].ref = 0.0
     if float(zlib.crc32(bytes(frame))) != crc:
-        return "bad CRC"
+        return f"bad CRC (writer slot {frame.joint[_ID].ref:g}, seq slot {frame.joint[_SEQ].ref:g})"
     writer, seq = int(frame.joint[_ID].ref), int(frame.joint[_SEQ].ref)
     for k, a in enumerate(_PATTERN):
         if frame.joint[a].ref != _pattern(writer, seq, k) or frame.joint[a].mode != (seq + k) & 0x7FFF:
@@ -138,6 +138,7 @@ def run_reader(channel: str) -> int:
 
     stop = _Stop()
     chan = ach.Channel(channel, create=False)
+    chan.flush()  # only the writers' frames: an input may hold an older frame, e.g. the mux's start-up seed
     buf = bytearray(chan.data_size)
     counts = {"ok": 0, "missed": 0, "bad": 0}
     problems: list[str] = []
