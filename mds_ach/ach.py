@@ -47,6 +47,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass, field
+from types import ModuleType
 
 # --- status codes (enum ach_status) --------------------------------------------------------------
 ACH_OK = 0
@@ -160,7 +161,8 @@ _U64 = struct.Struct("<Q")
 _SPIN_SLICE_NS = 10_000_000  # a busy-poll returns to Python this often to see cancel, close and Ctrl-C
 
 
-def _load_fast():  # noqa: ANN202 - the optional extension module, or None
+def _load_fast() -> ModuleType | None:
+    """The optional C extension, unless it is missing or MDS_ACH_PURE_PYTHON is set."""
     if os.environ.get("MDS_ACH_PURE_PYTHON", "") not in ("", "0"):
         return None
     try:
