@@ -32,6 +32,10 @@ enum {
     ACH_TIMEOUT = 7, ACH_CLOSED = 10, ACH_BUG = 11, ACH_EINVAL = 12, ACH_CORRUPT = 13
 };
 enum { ACH_O_WAIT = 1, ACH_O_LAST = 2, ACH_O_COPY = 4 };
+/* how a get's futex wait ended: not at all (a frame was there), woken (FUTEX_WAKE, or the word had changed),
+ * or at the end of the slice. A frame found after a timed-out wait came from a writer that does not wake the
+ * futex (C libach): the caller then uses short slices. */
+enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_TIMED_OUT = 2 };
 
 #define MAGIC 0xB07511F3u
 #define GUARD_HEADER 0x1A2A3A4A5A6A7A8AULL
@@ -59,6 +63,7 @@ typedef struct {
     uint64_t cnt, dsize;
     size_t off_guard_h, off_guard_i, off_guard_d;
     uint64_t seq, next;       /* reader state */
+    int woken;                /* how the last get's futex wait ended: WAIT_NONE / WAIT_WOKEN / WAIT_TIMED_OUT */
 } Handle;
 
 static inline int guards_ok(const Handle *h) {
@@ -313,12 +318,17 @@ static PyObject *Handle_get(Handle *h, PyObject *const *args, Py_ssize_t nargs) 
     } else {
         /* the lock-free look at last_seq is only a hint; get_once decides under the lock */
         uint64_t last = *h->last_seq;
+        h->woken = WAIT_NONE;
         if (last == h->seq) {
             struct timespec ts;
+            long fr;
+            int err;
             ns_to_timespec(slice_ns, &ts);
             Py_BEGIN_ALLOW_THREADS
-            syscall(SYS_futex, (void *)h->last_seq, FUTEX_WAIT, (uint32_t)last, &ts, NULL, 0);
+            fr = syscall(SYS_futex, (void *)h->last_seq, FUTEX_WAIT, (uint32_t)last, &ts, NULL, 0);
+            err = errno;
             Py_END_ALLOW_THREADS
+            h->woken = (fr == -1 && err == ETIMEDOUT) ? WAIT_TIMED_OUT : WAIT_WOKEN;
         }
         r = get_once(h, dst.buf, (uint64_t)dst.len, options & ~ACH_O_WAIT, &size);
         if (r == ACH_STALE_FRAMES)
@@ -410,10 +420,13 @@ static PyMethodDef Handle_methods[] = {
 
 static PyObject *Handle_get_seq(Handle *h, void *unused) { return PyLong_FromUnsignedLongLong(h->seq); }
 static PyObject *Handle_get_next(Handle *h, void *unused) { return PyLong_FromUnsignedLongLong(h->next); }
+static PyObject *Handle_get_woken(Handle *h, void *unused) { return PyLong_FromLong(h->woken); }
 
 static PyGetSetDef Handle_getset[] = {
     {"seq", (getter)Handle_get_seq, NULL, "sequence number of the last frame this handle read", NULL},
     {"next", (getter)Handle_get_next, NULL, "index slot this handle reads next in order", NULL},
+    {"woken", (getter)Handle_get_woken, NULL, "how the last get's wait ended: 0 no wait, 1 woken, 2 timed out",
+     NULL},
     {NULL, NULL, NULL, NULL, NULL},
 };
 

@@ -22,7 +22,8 @@ Why some things look the way they do:
   ``pthread_cond_broadcast`` (every writer's, C or Python) then waits for it -- forever. Instead a reader sleeps
   on a futex keyed on the ``last_seq`` word, which leaves nothing behind when the process dies; Python writers
   wake it directly (``FUTEX_WAKE`` after the unlock) and still broadcast the condvar for C readers. Frames from
-  C libach writers, which only broadcast, are noticed by the reader's periodic re-check (``POLL_SLICE``).
+  C libach writers, which only broadcast, are noticed by the reader's periodic re-check (``POLL_SLICE``; with
+  the C fast path an idle reader re-checks every ``IDLE_SLICE`` until it has seen such a frame).
   ``Channel(..., condvar_wait=True)`` waits in the condvar exactly like libach instead (C writers wake it at
   once; the dead-waiter hazard is then libach's too).
 * Waits are cut into short timed slices so that Ctrl-C, ``cancel()`` and ``close()`` are honoured even though
@@ -141,6 +142,8 @@ SHM_PREFIX = "achshm-"
 NAME_MAX = 64  # libach: strlen(name) < 64
 WAIT_SLICE = 0.1  # s per condvar wait slice (condvar_wait=True), so Ctrl-C / cancel / close are seen promptly
 POLL_SLICE = 0.005  # s per futex wait slice: how late a frame from a C writer (no futex wake) can be noticed
+IDLE_SLICE = 0.05  # C fast path: s per futex wait slice while every frame comes with a wake-up (fewer idle wakes)
+_SHORT_SLICE_FRAMES = 100  # after a frame that came without a wake-up, this many woken frames before IDLE_SLICE
 
 CLOCK_REALTIME = 0
 CLOCK_MONOTONIC = 1
@@ -715,6 +718,7 @@ class Channel:
         self._seq = 0
         self._next = 1
         self._fast = None
+        self._short_slices = 0  # > 0: a writer that does not wake the futex was seen; wait in POLL_SLICE slices
         if _achfast is not None and self._want_fast and not self._condvar_wait:
             try:
                 self._fast = _achfast.Handle(base, layout.mutex, layout.cond, layout.dirty, layout.last_seq,
@@ -1082,9 +1086,12 @@ class Channel:
         return self._get(_byte_view(buf, True), options, deadline)
 
     def _slice(self, deadline: float | None) -> tuple[int, bool]:
-        """Nanoseconds of the next wait slice (POLL_SLICE, or less to end at ``deadline``), and whether it is
-        the last one before the deadline."""
-        full = int(POLL_SLICE * 1e9)
+        """Nanoseconds of the next wait slice, and whether it is the last one before the deadline.
+
+        Python and C-fast-path writers wake waiting readers, so a reader only needs to look again now and then
+        (IDLE_SLICE) for cancel and close. Once a frame has turned up without a wake-up (a C libach writer, which
+        only broadcasts the condvar) the reader looks every POLL_SLICE, until that many woken frames later."""
+        full = int((POLL_SLICE if self._short_slices else IDLE_SLICE) * 1e9)
         if deadline is None:
             return full, False
         left = int((deadline - time.clock_gettime(self._clock)) * 1e9)
@@ -1114,6 +1121,12 @@ class Channel:
                     return ACH_TIMEOUT, 0
                 span, final = self._slice(deadline)
                 status, size = get(buf, options, span)
+            if wait and status in (ACH_OK, ACH_MISSED_FRAME):
+                woken = self._fast.woken
+                if woken == 2:  # the frame came without a wake-up
+                    self._short_slices = _SHORT_SLICE_FRAMES
+                elif woken == 1 and self._short_slices:
+                    self._short_slices -= 1
             return status, size
         finally:
             active.pop()

@@ -610,6 +610,7 @@ def test_put_wakes_waiter_without_polling(clean_shm: None, monkeypatch: pytest.M
     """With the re-check slices stretched to 60 s, only the writer's wake-up (futex wake / condvar broadcast)
     can end the wait before the 30 s timeout."""
     monkeypatch.setattr(ach, "POLL_SLICE", 60.0)
+    monkeypatch.setattr(ach, "IDLE_SLICE", 60.0)
     monkeypatch.setattr(ach, "WAIT_SLICE", 60.0)
     ach.create(NAME, 4, 64)
     with ach.Channel(NAME) as w, ach.Channel(NAME, condvar_wait=condvar_wait) as r:

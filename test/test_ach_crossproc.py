@@ -208,6 +208,7 @@ def test_blocked_get_woken_by_other_process_put_reverse(children: list[Child], c
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """This process blocks; another process's put wakes it."""
     monkeypatch.setattr(ach, "POLL_SLICE", 60.0)
+    monkeypatch.setattr(ach, "IDLE_SLICE", 60.0)
     monkeypatch.setattr(ach, "WAIT_SLICE", 60.0)
     ach.create(NAME, 10, 64)
     result: list[tuple[int, int]] = []

@@ -227,3 +227,37 @@ def test_poll_returns_on_cancel_and_timeout(clean_shm: None) -> None:
         ch.cancel()
         t.join(timeout=5)
         assert result == [(ach.ACH_CANCELED, 0)]
+
+
+@needs_fast
+def test_frames_without_a_wake_up_switch_the_reader_to_short_slices(clean_shm: None,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Writers of this package wake waiting readers, so idle readers look again only every IDLE_SLICE. A C libach
+    writer only broadcasts the condvar: its first frame is seen within IDLE_SLICE, the next ones within
+    POLL_SLICE; after enough woken frames the reader goes back to IDLE_SLICE."""
+    monkeypatch.setattr(ach, "IDLE_SLICE", 0.4)
+    monkeypatch.setattr(ach, "POLL_SLICE", 0.005)
+    monkeypatch.setattr(ach, "_SHORT_SLICE_FRAMES", 3)
+    ach.create(NAME_FAST, 8, 32)
+    with ach.Channel(NAME_FAST) as r, ach.Channel(NAME_FAST, fast=False) as c_like, ach.Channel(NAME_FAST) as w:
+        c_like._wake_all = lambda: c_like._cond_broadcast(c_like._cond)  # libach's put: broadcast, no futex wake
+
+        def delay(writer: ach.Channel) -> float:
+            """Seconds from a put (made while the reader waits) until the reader has the frame."""
+            got: list[float] = []
+            t = threading.Thread(target=lambda: (r.get(bytearray(32), wait=True, timeout=5), got.append(
+                time.monotonic())))
+            t.start()
+            time.sleep(0.05)  # the reader is in its wait slice now
+            t0 = time.monotonic()
+            writer.put(b"frame")
+            t.join(timeout=10)
+            return got[0] - t0
+
+        assert delay(w) < 0.03  # woken
+        first = delay(c_like)
+        assert first > 0.2  # not woken: seen at the end of the 0.4 s slice (0.35 s after the put)
+        assert max(delay(c_like) for _ in range(3)) < 0.1  # now looking every 5 ms
+        for _ in range(3):
+            assert delay(w) < 0.03
+        assert delay(c_like) > 0.2  # three woken frames later: long slices again
