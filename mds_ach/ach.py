@@ -144,6 +144,7 @@ WAIT_SLICE = 0.1  # s per condvar wait slice (condvar_wait=True), so Ctrl-C / ca
 POLL_SLICE = 0.005  # s per futex wait slice: how late a frame from a C writer (no futex wake) can be noticed
 IDLE_SLICE = 0.05  # C fast path: s per futex wait slice while every frame comes with a wake-up (fewer idle wakes)
 _SHORT_SLICE_FRAMES = 100  # after a frame that came without a wake-up, this many woken frames before IDLE_SLICE
+_WAIT_WOKEN, _WAIT_TIMED_OUT = 1, 2  # _achfast.Handle.woken: how the last get's futex wait ended (0: no wait)
 
 CLOCK_REALTIME = 0
 CLOCK_MONOTONIC = 1
@@ -1123,9 +1124,9 @@ class Channel:
                 status, size = get(buf, options, span)
             if wait and status in (ACH_OK, ACH_MISSED_FRAME):
                 woken = self._fast.woken
-                if woken == 2:  # the frame came without a wake-up
+                if woken == _WAIT_TIMED_OUT:  # the frame came without a wake-up
                     self._short_slices = _SHORT_SLICE_FRAMES
-                elif woken == 1 and self._short_slices:
+                elif woken == _WAIT_WOKEN and self._short_slices:
                     self._short_slices -= 1
             return status, size
         finally:

@@ -299,7 +299,7 @@ class DaemonLoop:
         self._lock = threading.Lock()  # guards snapshot() against the loop thread
         self._snapshot = ds.MDS_DAEMON_STATUS()
         self._warned: set[str] = set()
-        self._unreadable: set[str] = set()  # input channels whose last read failed (e.g. left corrupt)
+        self._ref_unreadable = False  # the last read of mds-ref failed (e.g. left corrupt by a dead writer)
         self._last_warn: dict[str, float] = {}
         self._answered: set[int] = set()
         self.start_time = clock()
@@ -421,7 +421,7 @@ class DaemonLoop:
                                         f"{ctypes.sizeof(MDS_REF)} bytes)")
         if ref is not None:
             self.status.refs_received += 1
-            if self.ch.ref.name in self._unreadable:
+            if self._ref_unreadable:
                 self._resume_ref()
             self._accept_ref(ref)
         self._drain(start)  # late replies and ACKs of the previous cycle
@@ -439,20 +439,18 @@ class DaemonLoop:
         """Newest new frame of an input channel; a broken channel (e.g. a writer killed mid-put) is reported,
         never allowed to stop the loop: it reads as 'nothing new'."""
         try:
-            frame = channel.latest()
+            return channel.latest()
         except Exception as exc:
-            self._unreadable.add(channel.name)
+            if channel is self.ch.ref:
+                self._ref_unreadable = True
             self._channel_error(channel.name, exc)
             return None
-        if frame is not None and channel is not self.ch.ref:
-            self._unreadable.discard(channel.name)
-        return frame
 
     def _resume_ref(self) -> None:
         """The reference input is readable again after an outage (e.g. repaired after a writer died mid-put).
         Upstream kept moving while the daemon held its last reference, so approach the new one like after a
         restart: at most CATCHUP_VELOCITY, never a step."""
-        self._unreadable.discard(self.ch.ref.name)
+        self._ref_unreadable = False
         for jr in self.joints.values():
             jr.catching_up = True
         log.warning(f"{self.ch.ref.name} readable again: approaching its reference at <= "

@@ -212,8 +212,7 @@ class BridgeNode(Node):
     def _state_loop(self) -> None:
         """Block on the state channel; for each new frame write the reference, then publish the frame once."""
         for problem in tune_thread(self._rt_priority):
-            if "SCHED_FIFO" in problem:  # asked for and refused; the timer slack is a nicety
-                self.get_logger().warning(f"state thread: {problem}")
+            self.get_logger().warning(f"state thread: {problem}")
         try:
             while not self._stop.is_set():
                 # The wait returns on every put; its timeout only paces the stall check.
