@@ -233,10 +233,8 @@ def test_stop_ends_every_node_and_keeps_the_channels(system: dict[str, str]) -> 
 # --------------------------------------------------------------------------------------------- run (make run)
 
 
-@pytest.mark.slow
-def test_run_in_the_foreground_stops_everything_on_ctrl_c(clean_shm: None, tmp_path: Path) -> None:
-    assert in_netns()
-    env = system_env(tmp_path)
+def _start_run(env: dict[str, str]) -> tuple[subprocess.Popen[str], str]:
+    """`mds-ach run --nocan` in the foreground, read until it says everything is up; returns it and its output."""
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach"), "run", "--nocan", "--timeout", "150"], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
@@ -245,7 +243,19 @@ def test_run_in_the_foreground_stops_everything_on_ctrl_c(clean_shm: None, tmp_p
         while not any("Press Ctrl-C to stop everything." in line for line in lines):
             assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
             lines.append(proc.stdout.readline())
-        text = "".join(lines)
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
+    return proc, "".join(lines)
+
+
+@pytest.mark.slow
+def test_run_in_the_foreground_stops_everything_on_ctrl_c(clean_shm: None, tmp_path: Path) -> None:
+    assert in_netns()
+    env = system_env(tmp_path)
+    proc, text = _start_run(env)
+    try:
         assert "mds-ach console" in text and "mds-ach read" in text, "it says what to do next"
         pids = _pids(env)
         assert set(pids) == set(NODES)
@@ -265,14 +275,8 @@ def test_run_in_the_foreground_stops_everything_on_ctrl_c(clean_shm: None, tmp_p
 @pytest.mark.slow
 def test_run_reports_a_node_that_dies_and_stops_the_rest(clean_shm: None, tmp_path: Path) -> None:
     env = system_env(tmp_path)
-    proc = subprocess.Popen([str(VENV_BIN / "mds-ach"), "run", "--nocan", "--timeout", "150"], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    lines: list[str] = []
+    proc, _ = _start_run(env)
     try:
-        deadline = time.monotonic() + 240
-        while not any("Press Ctrl-C" in line for line in lines):
-            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)
-            lines.append(proc.stdout.readline())
         pids = _pids(env)
         os.kill(pids["filter"], signal.SIGKILL)
         rest, _ = proc.communicate(timeout=120)
