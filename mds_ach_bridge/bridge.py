@@ -70,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.parse_args(_split_ros_args(args)[1:])
 
     import rclpy
+    from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
 
     from mds_ach_bridge.node import BridgeNode
@@ -84,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ValueError, OSError) as exc:  # bad parameters, configuration or files: say what, no traceback
+    except (ValueError, OSError, ParameterException) as exc:  # bad parameters, configuration or files: say what
         print(f"bridge: {exc}", file=sys.stderr)
         return 2
     finally:

@@ -22,7 +22,7 @@ import pytest
 from conftest import VENV_BIN, in_netns, remove_mds_channels
 
 import mds_ach as mds
-from mds_ach import joints, kinematics, paths
+from mds_ach import ach, joints, kinematics, paths
 from mds_ach.msgs import MDS_IK, MDS_STATE
 from mds_ach_bridge import trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
@@ -204,6 +204,21 @@ def test_help_does_not_start_ros() -> None:
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
     assert res.returncode == 0, res.stderr
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(("param", "reason"), [
+    ("rt_priority:=200", "out of range"),
+    ("command_mode:=7", "out of range"),
+    ("ref_channel:=mds-ref", "past the mux, filter and collision gate"),
+])
+def test_bad_parameters_are_refused_with_a_message(clean_shm: None, param: str, reason: str) -> None:
+    """A bad parameter stops the bridge before it touches a channel: exit 2 and one line, no traceback."""
+    res = subprocess.run([str(VENV_BIN / "bridge"), "--ros-args", "-p", param], capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 2, res.stderr
+    assert reason in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert not any(ach.exists(n) for n in (mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME))
 
 
 # --------------------------------------------------------------------------------------------- the node
