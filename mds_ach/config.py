@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from mds_ach import joints as node_table
+from mds_ach import motion
 from mds_ach.msgs import MDS_JOINT_COUNT, MDS_JOINT_PARAM, MDS_JOINT_STATE, MDS_STATE, set_name
 
 ROBOT_ENV = "MDS_ACH_ROBOT"  # mds_ach.robot_choice (mds-ach changerobot) builds on these names
@@ -134,6 +135,8 @@ class JointTable:
     sources: tuple[str, ...] = ()
     accel_deg_s2: float = DEFAULT_ACCEL_DEG_S2
     trajectory_period: int = DEFAULT_TRAJECTORY_PERIOD
+    max_velocity: float = motion.DEFAULT_MAX_VELOCITY  # rad/s, every sent target (mds_ach.motion)
+    max_acceleration: float = motion.DEFAULT_MAX_ACCELERATION  # rad/s^2
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_by_address", {j.address: j for j in self.joints})
@@ -164,6 +167,11 @@ class JointTable:
     @property
     def enabled(self) -> tuple[JointConfig, ...]:
         return tuple(j for j in self.joints if j.enabled)
+
+    def motion_bounds(self, period: float) -> motion.MotionBounds:
+        """The daemon's last-line bounds for a loop of ``period`` s (mds_ach.motion)."""
+        return motion.MotionBounds(self.max_velocity, self.max_acceleration,
+                                   motion.DEFAULT_INTERVAL_PERIODS * period)
 
     def accel_counts(self, joint: JointConfig) -> float:
         return joint.rad_to_counts(math.radians(self.accel_deg_s2))
@@ -207,8 +215,8 @@ _JOINT_KEYS = {
 _ENCODER_KEYS = {"resolution", "gear_ratio", "ticks_per_count"}
 _HOMING_KEYS = {"type", "acceleration", "velocity", "error", "buffer", "timeout", "target"}
 _GAIN_KEYS = {"p", "i", "d", "m"}
-_TOP_KEYS = {"format", "robot", "description", "source", "trajectory", "joints"}
-_OVERLAY_TOP_KEYS = {"format", "robot", "description", "source", "trajectory", "joints"}
+_TOP_KEYS = {"format", "robot", "description", "source", "trajectory", "motion", "joints"}
+_OVERLAY_TOP_KEYS = {"format", "robot", "description", "source", "trajectory", "motion", "joints"}
 
 
 def robot_name(robot: str | None = None) -> str:
@@ -245,6 +253,7 @@ def load(robot: str | None = None, path: str | Path | None = None) -> JointTable
     _check_keys(base, _TOP_KEYS, f"{base_path}")
     raw_joints = _expect(base.get("joints"), dict, f"{base_path}: field 'joints'")
     trajectory = base.get("trajectory") or {}
+    motion_cfg = base.get("motion") or {}
     sources = [str(base_path)]
     overrides: dict[str, Any] = {}
     overlay_path: Path | None = None
@@ -256,6 +265,7 @@ def load(robot: str | None = None, path: str | Path | None = None) -> JointTable
         _check_keys(overlay, _OVERLAY_TOP_KEYS, f"{overlay_path}")
         overrides = _expect(overlay.get("joints") or {}, dict, f"{overlay_path}: field 'joints'")
         trajectory = {**trajectory, **(overlay.get("trajectory") or {})}
+        motion_cfg = {**motion_cfg, **(overlay.get("motion") or {})}
         sources.append(str(overlay_path))
         for short in overrides:
             if short not in raw_joints:
@@ -276,6 +286,10 @@ def load(robot: str | None = None, path: str | Path | None = None) -> JointTable
                              f"{base_path}: trajectory: field 'acceleration_deg_s2'", positive=True),
         trajectory_period=_integer(trajectory.get("period", DEFAULT_TRAJECTORY_PERIOD),
                                    f"{base_path}: trajectory: field 'period'"),
+        max_velocity=_number(motion_cfg.get("max_velocity_rad_s", motion.DEFAULT_MAX_VELOCITY),
+                             f"{base_path}: motion: field 'max_velocity_rad_s'", positive=True),
+        max_acceleration=_number(motion_cfg.get("max_acceleration_rad_s2", motion.DEFAULT_MAX_ACCELERATION),
+                                 f"{base_path}: motion: field 'max_acceleration_rad_s2'", positive=True),
     )
     validate(table, str(base_path))
     return table
@@ -548,7 +562,10 @@ def to_yaml(table: JointTable, description: str = "") -> str:
     if table.sources:
         lines.append("source: [" + ", ".join(Path(s).name for s in table.sources) + "]")
     lines += ["trajectory:", f"  acceleration_deg_s2: {_fmt(table.accel_deg_s2)}  # MOVETO acceleration",
-              f"  period: 0x{table.trajectory_period:04X}  # ticks of 1/93750 s (0x0727 = 19.53 ms)", "joints:"]
+              f"  period: 0x{table.trajectory_period:04X}  # ticks of 1/93750 s (0x0727 = 19.53 ms)",
+              "motion:  # the daemon's last-line bounds on every sent target (mds_ach.motion)",
+              f"  max_velocity_rad_s: {_fmt(table.max_velocity)}",
+              f"  max_acceleration_rad_s2: {_fmt(table.max_acceleration)}", "joints:"]
     for j in table.joints:
         lines.append(f"  {j.short}:  # range [{j.lower:.4f}, {j.upper:.4f}] rad, cpr {_fmt(j.cpr)}")
         lines += [f"    {k}: {v}" for k, v in _joint_fields(j).items()]

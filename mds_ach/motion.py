@@ -1,0 +1,126 @@
+"""The motion bounds every target sent to a motor obeys: one definition, enforced and audited.
+
+The daemon is the last stage before the bus, so it enforces these bounds on every MOVETO it sends, whatever
+happened upstream (a mode change, a stall, a gate release, HOME, a restarted node, a node back online). The
+CAN-log auditor (``mds-ach check-log``) checks recorded traffic against the very same definition, so a log
+that passes the audit is a log the daemon could have produced, and vice versa.
+
+Definition, per joint, over the sequence of targets q_i sent at times t_i:
+
+* ``h_i = min(t_i - t_{i-1}, max_interval)``: a stall or a pause never earns a bigger step than one
+  ``max_interval`` (the daemon uses 1.5 periods);
+* speed ``|q_i - q_{i-1}| / h_i <= max_velocity``;
+* the step's velocity ``v_i = (q_i - q_{i-1}) / h_i``; the previous velocity is ``v_{i-1}`` if the previous
+  target came at most ``max_interval`` earlier, else 0 (the joint was told to stand still meanwhile);
+  acceleration ``|v_i - v_prev| / h_i <= max_acceleration``;
+* a re-seed (start-up, HOME, a node whose replies resume after a gap) restarts the sequence at the measured
+  position with velocity 0.
+
+``limit()`` picks the target closest to the desired one that keeps both bounds at ``margin`` times their
+value (clock jitter between the daemon and a log's time stamps must never turn into a violation);
+``check()`` reports what a recorded step breaks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+# Defaults of the joint table's `motion:` section (config/joints.yaml).
+DEFAULT_MAX_VELOCITY = 2.0  # rad/s: the speed bound the pipeline promises (filter: 1.57)
+DEFAULT_MAX_ACCELERATION = 8.0  # rad/s^2
+DEFAULT_INTERVAL_PERIODS = 1.5  # max_interval in daemon periods
+LIMIT_MARGIN = 0.9  # the daemon's limiter stays this far inside the bounds
+# Tolerance of the audit: float32 counts on the wire and float rounding, far below any motion of interest.
+CHECK_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class MotionBounds:
+    """Speed and acceleration bounds of one joint, and the longest interval a step may count on."""
+
+    max_velocity: float  # rad/s
+    max_acceleration: float  # rad/s^2
+    max_interval: float  # s
+
+    def __post_init__(self) -> None:
+        for name in ("max_velocity", "max_acceleration", "max_interval"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"motion bound {name} must be finite and > 0, got {value}")
+
+    def interval(self, dt: float) -> float:
+        return min(max(dt, 0.0), self.max_interval)
+
+
+@dataclass
+class Track:
+    """The last target sent to one joint: position (rad), the velocity of that step, and when."""
+
+    q: float
+    v: float = 0.0
+    t: float = -math.inf
+
+    def reseed(self, q: float, t: float) -> None:
+        """Start again from a measured position at rest (start-up, after HOME, a node back online)."""
+        self.q, self.v, self.t = q, 0.0, t
+
+    def previous_velocity(self, now: float, bounds: MotionBounds) -> float:
+        return self.v if now - self.t <= bounds.max_interval else 0.0
+
+    def advance(self, q: float, now: float, bounds: MotionBounds) -> None:
+        """Record that ``q`` was sent at ``now``."""
+        h = bounds.interval(now - self.t)
+        self.v = (q - self.q) / h if h > 0 else 0.0
+        self.q, self.t = q, now
+
+
+def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin: float = LIMIT_MARGIN) -> float:
+    """The target to send at ``now``: as close to ``desired`` as the bounds allow, braking in time.
+
+    Velocity-limited, acceleration-limited, and decelerating early enough to stop at ``desired`` when it
+    stays put; if ``desired`` jumps back the joint may pass it by a small, bounded amount (never a jump).
+    """
+    h = bounds.interval(now - track.t)
+    if h <= 0:
+        return track.q
+    v_max, a_max = margin * bounds.max_velocity, margin * bounds.max_acceleration
+    v0 = track.previous_velocity(now, bounds)
+    d = desired - track.q
+    if abs(d) <= a_max * h * h:
+        goal = d / h  # arrive this step and stop the next within the bound
+    else:
+        # Largest speed from which braking by a_max*h per step still stops within |d|:
+        # v*h + v^2/(2*a_max) = |d|.
+        goal = math.copysign(min(v_max, a_max * (math.sqrt(h * h + 2.0 * abs(d) / a_max) - h)), d)
+    lo, hi = max(-v_max, v0 - a_max * h), min(v_max, v0 + a_max * h)
+    if lo > hi:  # only if the track came from elsewhere faster than v_max: brake as hard as allowed
+        lo = hi = lo if v0 > 0 else hi
+    v = min(max(goal, lo), hi)
+    return track.q + v * h
+
+
+@dataclass(frozen=True)
+class Violation:
+    """A recorded step that breaks a bound: what, by how much, and the bound."""
+
+    kind: str  # "speed" or "acceleration"
+    value: float
+    bound: float
+
+
+def check(track: Track, q: float, t: float, bounds: MotionBounds,
+          tolerance: float = CHECK_TOLERANCE) -> list[Violation]:
+    """What the step from ``track`` to ``q`` sent at ``t`` violates (empty: nothing). Does not advance."""
+    h = bounds.interval(t - track.t)
+    if h <= 0:
+        return [] if abs(q - track.q) <= tolerance else [Violation("speed", math.inf, bounds.max_velocity)]
+    out = []
+    slack = tolerance / h
+    speed = abs(q - track.q) / h
+    if speed > bounds.max_velocity * (1 + tolerance) + slack:
+        out.append(Violation("speed", speed, bounds.max_velocity))
+    accel = abs((q - track.q) / h - track.previous_velocity(t, bounds)) / h
+    if accel > bounds.max_acceleration * (1 + tolerance) + slack / h:
+        out.append(Violation("acceleration", accel, bounds.max_acceleration))
+    return out
