@@ -321,18 +321,26 @@ def wait_ready(procs: dict[str, subprocess.Popen], checks: dict[str, _Heartbeat]
 
 def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[str] = NODES,
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
-           out: Printer = _out) -> dict[str, subprocess.Popen]:
-    """Create the channels, start ``names`` (those not already running) and wait until ``mds-state`` is live
-    and each started node is up (see ``READY_CHANNELS``).
+           out: Printer = _out, group: str | None = None) -> dict[str, subprocess.Popen]:
+    """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
+    until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``).
+
+    Existing channels must be ones the stack may trust (``channel_access``: owner, mode, group); otherwise
+    nothing is started.
 
     On failure every node started here is stopped again and LaunchError is raised (the system is left as
     it was found)."""
     from mds_ach.channels import make_channels
 
     rt = rt or runtime_dir()
-    bad = [r for r in make_channels() if not r.ok]
+    try:
+        reports = make_channels(group=group)
+    except ValueError as exc:  # unknown group
+        raise LaunchError("", str(exc)) from None
+    bad = [r for r in reports if not r.ok]
     if bad:
-        raise LaunchError("", "cannot create the channels:\n" + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
+        raise LaunchError("", "refusing to start, channel problems:\n"
+                          + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
     already = running_nodes(rt)
     env = child_env()
     procs: dict[str, subprocess.Popen] = {}
@@ -515,7 +523,7 @@ def _activate_hint() -> str:
     return f", after `source {activate}`" if activate.is_file() else ""
 
 
-def run_foreground(nocan: bool, timeout: float, out: Printer = _out) -> int:
+def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None) -> int:
     """``mds-ach run``: start everything, print what to do next, supervise until Ctrl-C/SIGTERM, stop cleanly.
 
     A node that dies takes the whole system down (with its log tail): a half-running pipeline would hold the
@@ -535,7 +543,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out) -> int:
             return 1
         out(f"starting MDS-Ach{' on the simulated robot (nocan)' if nocan else ''} ...")
         try:
-            procs = launch(nocan, timeout, rt=rt, abort=lambda: bool(stop_requested), out=out)
+            procs = launch(nocan, timeout, rt=rt, abort=lambda: bool(stop_requested), out=out, group=group)
         except LaunchError as exc:
             if stop_requested:
                 out("interrupted; everything stopped")
@@ -571,6 +579,9 @@ def _add_nocan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nocan", dest="nocan_flag", action="store_true", help="same as the 'nocan' word")
     p.add_argument("--timeout", type=float, default=DEFAULT_START_TIMEOUT,
                    help=f"seconds to wait for the state channel to go live (default {DEFAULT_START_TIMEOUT:g})")
+    p.add_argument("--group", metavar="GROUP",
+                   help="give channels created now to this group (the operators'), like 'mds-ach make --group'; "
+                        "existing channels must belong to it")
 
 
 def add_start_arguments(p: argparse.ArgumentParser) -> None:
@@ -593,7 +604,7 @@ def run_start(args: argparse.Namespace) -> int:
         return 1
     _out(f"starting MDS-Ach{' (nocan: simulated bus)' if nocan else ''}; runtime dir {rt}")
     try:
-        launch(nocan, args.timeout, names, rt)
+        launch(nocan, args.timeout, names, rt, group=args.group)
     except LaunchError as exc:
         _err(f"mds-ach start: {exc}")
         return 1
@@ -611,7 +622,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_run(args: argparse.Namespace) -> int:
-    return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout)
+    return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group)
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import REPO, VENV_BIN, in_netns, remove_mds_channels, wait_for
+from conftest import NOBODY, REPO, VENV_BIN, in_netns, remove_mds_channels, run_as, wait_for
 from mds_system import mds_ach, newest, running_system, system_env
 
 import mds_ach as mds
@@ -98,6 +98,43 @@ def test_resetbus_without_a_system_fails_clearly(clean_shm: None, tmp_path: Path
     proc = mds_ach("resetbus", env=system_env(tmp_path))
     assert proc.returncode == 1 and "is the system started?" in proc.stderr
     assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
+
+
+def _plant(names: tuple[str, ...] = mds.ALL_CHANNELS) -> None:
+    """User nobody creates channels of the stack before it starts, world-writable (the adversarial run)."""
+    def plant() -> int:
+        for name in names:
+            ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o666)
+        return 0
+
+    assert run_as(NOBODY, NOBODY, plant) == 0
+
+
+def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: Path) -> None:
+    _plant()
+    proc = mds_ach("start", "nocan", env=system_env(tmp_path), timeout=120)
+    assert proc.returncode == 1
+    assert "refusing to start, channel problems:" in proc.stderr
+    for name in mds.ALL_CHANNELS:
+        assert f"{name}: /dev/shm/achshm-{name} is owned by uid {NOBODY} (nobody)" in proc.stderr
+        assert f"mds-ach repair --recreate {name}" in proc.stderr
+    assert "started" not in proc.stdout, "no node was started"
+    assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
+
+
+def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path) -> None:
+    """Started by hand (not through 'mds-ach start', which checks first), a node still refuses the file."""
+    _plant((mds.MDS_CHAN_DAEMON_INPUT_NAME,))
+    env = system_env(tmp_path)
+    daemon = subprocess.run([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--duration", "30"], env=env,
+                            capture_output=True, text=True, timeout=120)
+    assert daemon.returncode == 2, daemon.stderr
+    assert f"refusing channel 'mds-ref': /dev/shm/achshm-mds-ref is owned by uid {NOBODY}" in daemon.stderr
+    assert "mds-ach repair --recreate mds-ref" in daemon.stderr
+    mux = subprocess.run([str(VENV_BIN / "mux")], env=env, capture_output=True, text=True, timeout=120)
+    assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref for its start reference
+    assert "refusing channel 'mds-ref'" in mux.stdout + mux.stderr
+    assert os.stat(ach.shm_path(mds.MDS_CHAN_DAEMON_INPUT_NAME)).st_uid == NOBODY, "the file was left alone"
 
 
 @pytest.mark.slow
@@ -196,6 +233,22 @@ def test_read_once_against_the_running_system(system: dict[str, str]) -> None:
     assert {r[0] for r in rows} >= {"LSP", "LEP", "RSP", "WST", "NKY"}
     assert all(r[3] == "yes" for r in rows), "every enabled simulated node answers"
     assert all(abs(float(r[1]) - float(r[2])) < 0.01 for r in rows), "at rest the joints sit at their reference"
+
+
+@pytest.mark.slow
+def test_an_operator_cannot_open_the_daemon_input_of_a_running_system(system: dict[str, str]) -> None:
+    group = os.stat(ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME)).st_gid
+
+    def operator() -> int:  # in the channels' group: may command through the pipeline, not around it
+        ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False).close()
+        try:
+            ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, create=False)
+        except ach.AchException as exc:
+            return 0 if exc.status == ach.ACH_EACCES else 3
+        return 4
+
+    assert run_as(NOBODY, NOBODY, operator, groups=(group,)) == 0
+    assert os.stat(ach.shm_path(mds.MDS_CHAN_DAEMON_INPUT_NAME)).st_mode & 0o777 == 0o640
 
 
 @pytest.mark.slow
