@@ -443,8 +443,9 @@ def send_command(cmd: int, address: int = 0, value: float = 0.0) -> int:
     return seq
 
 
-def state_rate(window: float = 1.0) -> float | None:
-    """New ``mds-state`` frames per second over ``window`` s (None when the channel does not exist)."""
+def state_rate(window: float = 1.0) -> tuple[float, int] | None:
+    """New ``mds-state`` frames per second over ``window`` s, and how many frames of the wrong size arrived
+    (None when the channel does not exist). Raises ``ach.AchException``/``ValueError`` for a damaged channel."""
     from mds_ach import ach
     from mds_ach.channels import StructChannel
 
@@ -461,12 +462,35 @@ def state_rate(window: float = 1.0) -> float | None:
                 first = now if first is None else first
                 last = now
         if frames >= 2 and first is not None and last is not None and last > first:
-            return (frames - 1) / (last - first)
-        return float(frames) / window
+            return (frames - 1) / (last - first), chan.bad_frames
+        return float(frames) / window, chan.bad_frames
 
 
-def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str], bool]:
-    """Lines for ``mds-ach status`` and whether every node runs."""
+def channel_problems(names: Sequence[str] = mds.ALL_CHANNELS) -> dict[str, str]:
+    """channel -> what is wrong with it and what to do, for every MDS channel the system cannot use: missing
+    (while others exist), owned by another user or too open, not an Ach file, truncated, corrupt, locked, or of
+    the wrong size."""
+    from mds_ach import ach, repair
+    from mds_ach.channels import check_existing
+
+    if not any(os.path.lexists(ach.shm_path(n)) for n in names):
+        return {}  # nothing made yet: the node lines already say that nothing runs
+    problems = {}
+    for name in names:
+        health = repair.check(name)
+        if not health.ok:
+            problems[name] = f"{health.state}: {health.detail}; {health.hint()}"
+            continue
+        made = check_existing(name)
+        if not made.ok:
+            problems[name] = made.detail
+    return problems
+
+
+def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str], int]:
+    """Lines for ``mds-ach status`` and its exit status: 0 all well, 1 a channel is damaged or not to be
+    trusted, 3 a node is not running. Never raises for a damaged channel: it is reported with the repair hint."""
+    from mds_ach import ach
     from mds_ach.daemon_status import MDS_DAEMON_STATUS
     from mds_ach.monitor import Latest, collision_summary, daemon_line
     from mds_ach.robot_choice import effective_robot
@@ -481,12 +505,25 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
         lines.append(f"  {name:<10} {state}")
     robot, where = effective_robot()
     lines.append(f"robot      {robot} ({where})")
-    rate = state_rate(window)
-    if rate is None:
-        lines.append(f"state      no {mds.MDS_CHAN_STATE_NAME} channel")
+    problems = channel_problems()
+    lines += [f"channel    {name}: {text}" for name, text in problems.items()]
+    if not problems and any(ach.exists(n) for n in mds.ALL_CHANNELS):
+        lines.append(f"channels   ok ({len(mds.ALL_CHANNELS)})")
+    try:
+        measured = None if mds.MDS_CHAN_STATE_NAME in problems else state_rate(window)
+    except (ach.AchException, ValueError) as exc:
+        lines.append(f"state      unreadable: {exc}")
     else:
-        lines.append(f"state      {rate:.1f} frames/s on {mds.MDS_CHAN_STATE_NAME}" + ("" if rate > 0 else
-                                                                                         "  (not live)"))
+        if mds.MDS_CHAN_STATE_NAME in problems:
+            lines.append(f"state      unreadable (channel {mds.MDS_CHAN_STATE_NAME} above)")
+        elif measured is None:
+            lines.append(f"state      no {mds.MDS_CHAN_STATE_NAME} channel")
+        else:
+            rate, bad = measured
+            lines.append(f"state      {rate:.1f} frames/s on {mds.MDS_CHAN_STATE_NAME}" + ("" if rate > 0 else
+                                                                                             "  (not live)")
+                         + (f"  {bad} frame(s) of the wrong size ignored (not {ctypes.sizeof(mds.MDS_STATE)} B: "
+                            "a writer built against another mds.h?)" if bad else ""))
     daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
     try:
@@ -498,7 +535,7 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     finally:
         daemon.close()
         collide.close()
-    return lines, len(running) == len(NODES)
+    return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
 
 
 # --------------------------------------------------------------------------------------------- foreground run
@@ -667,15 +704,17 @@ def run_killall(args: argparse.Namespace) -> int:
 
 
 def add_status_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("Which nodes run, the state rate, the daemon's loop rate and bus load, and the collision "
-                     "state. Exit status 0 when every node runs, 3 otherwise.")
+    p.description = ("Which nodes run, the health of every MDS channel (with the command that repairs a damaged "
+                     "one), the state rate, the daemon's loop rate and bus load, and the collision state. Exit "
+                     "status 0 when every node runs and every channel is sound, 1 when a channel is damaged or "
+                     "not to be trusted, 3 when a node is not running.")
     p.add_argument("--window", type=float, default=1.0, help="seconds to measure the state rate (default 1)")
 
 
 def run_status(args: argparse.Namespace) -> int:
-    lines, all_running = status_report(window=args.window)
+    lines, status = status_report(window=args.window)
     _out("\n".join(lines))
-    return 0 if all_running else 3
+    return status
 
 
 def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:

@@ -15,7 +15,7 @@ from conftest import NOBODY, REPO, VENV_BIN, in_netns, remove_mds_channels, run_
 from mds_system import mds_ach, newest, running_system, system_env
 
 import mds_ach as mds
-from mds_ach import ach
+from mds_ach import ach, repair
 from mds_ach.config import load
 from mds_ach.daemon_status import MDS_DAEMON_STATUS
 from mds_ach.launcher import NODES, node_command
@@ -135,6 +135,54 @@ def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path) -> None
     assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref for its start reference
     assert "refusing channel 'mds-ref'" in mux.stdout + mux.stderr
     assert os.stat(ach.shm_path(mds.MDS_CHAN_DAEMON_INPUT_NAME)).st_uid == NOBODY, "the file was left alone"
+
+
+def _damage(how: str) -> None:
+    path = Path(ach.shm_path(mds.MDS_CHAN_STATE_NAME))
+    if how == "corrupt":  # a writer died inside a put: the dirty flag stays set
+        m = repair._Mapped(mds.MDS_CHAN_STATE_NAME)
+        m.dirty = 1
+        m.close()
+    elif how == "truncated":
+        os.truncate(path, 20000)
+    elif how == "not an Ach file":
+        path.write_bytes(b"\0" * 100)
+    elif how == "wrong size":
+        path.unlink()
+        ach.create(mds.MDS_CHAN_STATE_NAME, 16, 512)
+
+
+@pytest.mark.parametrize(("how", "expected"), [
+    ("corrupt", "mds-state: corrupt: a writer died inside a put .*; repair it in place: mds-ach repair mds-state$"),
+    ("truncated", "mds-state: broken: .*truncated.*; mds-ach repair mds-state re-creates it; then restart the nodes "
+                  "that use it$"),
+    ("not an Ach file", "mds-state: broken: ACH_BAD_SHM_FILE.*; mds-ach repair mds-state re-creates it"),
+    ("wrong size", r"mds-state: exists as 16 x 512 B, expected 10 x 3000 B; remove it \(mds-ach rm mds-state\)"),
+], ids=["corrupt", "truncated", "not-ach", "wrong-size"])
+def test_status_reports_a_damaged_state_channel_with_the_fix(clean_shm: None, tmp_path: Path, how: str,
+                                                             expected: str) -> None:
+    env = system_env(tmp_path)
+    assert mds_ach("make", "-q", env=env).returncode == 0
+    _damage(how)
+    proc = mds_ach("status", "--window", "0.2", env=env)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert re.search(r"^channel\s+" + expected, proc.stdout, re.M), proc.stdout
+    assert re.search(r"^state\s+unreadable", proc.stdout, re.M), proc.stdout
+    assert re.search(r"^\s+daemon\s+stopped$", proc.stdout, re.M), "the rest of the report is still there"
+
+
+def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: Path) -> None:
+    env = system_env(tmp_path)
+    assert mds_ach("make", "-q", env=env).returncode == 0
+    proc = mds_ach("status", "--window", "0.1", env=env)
+    assert proc.returncode == 3 and re.search(r"^channels\s+ok \(14\)$", proc.stdout, re.M), proc.stdout
+    ach.unlink(mds.MDS_CHAN_BOARD_CMD_NAME)
+    _plant((mds.MDS_CHAN_BOARD_CMD_NAME,))
+    proc = mds_ach("status", "--window", "0.1", env=env)
+    assert proc.returncode == 1
+    assert re.search(rf"^channel\s+mds-cmd: unsafe: /dev/shm/achshm-mds-cmd is owned by uid {NOBODY} .*"
+                     r"mds-ach repair --recreate mds-cmd", proc.stdout, re.M), proc.stdout
 
 
 @pytest.mark.slow
