@@ -441,6 +441,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         reports = scan(args.names or None, args.timeout, fix=not args.check, recreate=args.recreate)
     except ach.AchException as exc:
+        if exc.status == ach.ACH_EACCES:  # e.g. replacing another user's file in the sticky /dev/shm
+            print(f"mds-ach repair: {exc}; run it as root (or as the file's owner)", file=sys.stderr)
+            return 1
         print(f"mds-ach repair: {exc}", file=sys.stderr)
         return 2
     if not reports:
