@@ -44,6 +44,9 @@ MDS_CHAN_REF_SMOOTH_NAME = "mds-ref-smooth"  # filter -> collision gate
 MDS_CHAN_IK_STATE_NAME = "mds-ik-state"  # ik node status
 MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"  # mux ownership / ages
 MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"  # loop rate, overruns, bus load, faults
+# What the daemon executes (the collision gate's output). The one name to change when it is renamed: only the
+# stack's own user may write it (mds_ach.channel_access), operators write the controller inputs above it.
+MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_NAME
 
 LEGACY_CHANNELS: tuple[str, ...] = (
     MDS_CHAN_REF_NAME,

@@ -12,7 +12,10 @@ our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` 
   connection with the channel's newest frame (achd flushes it), so a reconnect never loses the newest
   frame and a late client gets ``mds-param`` at once;
 * queues are bounded and the newest frame wins: the channel ring is the only queue, read newest-first
-  with get-last, and the socket send buffer is kept small.
+  with get-last, and the socket send buffer is kept small;
+* no peer can lock others out: each remote address may hold a few connections (``max_per_peer``), loopback
+  peers (the robot's own tools, every operator coming through an SSH tunnel) have a pool of their own that
+  remote peers cannot use, and a connection that moves no data for ``idle_timeout_s`` is closed.
 
 Usage as a tool (same verbs and short options as achd)::
 
@@ -25,6 +28,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import fnmatch
+import ipaddress
 import logging
 import math
 import os
@@ -53,6 +57,15 @@ REFUSED_RETRY_S = 2.0
 """Back-off after the server refused a request (missing channel, not allowed): slower than a drop."""
 REF_ABS_MAX = 2 * math.pi
 """No joint of the MDS turns more than a full turn: anything larger in a reference is garbage."""
+MAX_CLIENTS = 32
+"""Connections from remote (non-loopback) peers together."""
+MAX_PER_PEER = 8
+"""Connections from one remote address: ``mds-ach remote`` opens at most 5, a second tool fits too."""
+MAX_LOCAL_CLIENTS = 32
+"""Connections from loopback (local tools, SSH-tunnelled operators): a pool remote peers cannot exhaust."""
+IDLE_TIMEOUT_S = 300.0
+"""A served connection that sends and receives no frame for this long is closed (the client reconnects if it
+still wants the channel). Long enough that a quiet operator link is rarely rebuilt."""
 
 # Channels a client may write through our server unless told otherwise: the pipeline's inputs, so a
 # remote reference still passes the mux, filter and collision gate. Never mds-ref or mds-cmd.
@@ -161,6 +174,10 @@ class ConnectionLostError(Exception):
     """The peer went away (EOF, reset, keepalive or user timeout)."""
 
 
+class IdleConnectionError(ConnectionLostError):
+    """A served connection moved no frame for the server's idle timeout and was closed."""
+
+
 class RemoteRefusedError(Exception):
     """The server answered the request with a non-OK status."""
 
@@ -198,6 +215,8 @@ class _Source:
         self.stats = stats
         self.buf = bytearray(max(1, _geometry(chan)[1]))
         self.newest: bytes | None = None
+        self.sent: bytes | None = None  # the last frame that went out, and when (monotonic)
+        self.sent_at = -math.inf
 
     def next(self, timeout: float, last: bool | None = None, wait: bool = True) -> bytes | None:
         """The next frame to send (the newest with get-last), or None if none came within ``timeout``."""
@@ -384,18 +403,38 @@ def _send(conn: _Conn, payload: bytes, stats: LinkStats) -> None:
     stats.sent += 1
 
 
+class _IdleWatch:
+    """Raises :class:`ConnectionLostError` once a connection moved no frame for ``timeout`` s (None: never)."""
+
+    def __init__(self, timeout: float | None) -> None:
+        self.timeout = timeout
+        self.last = time.monotonic()
+
+    def active(self) -> None:
+        self.last = time.monotonic()
+
+    def check(self) -> None:
+        if self.timeout is not None and time.monotonic() - self.last > self.timeout:
+            raise IdleConnectionError(f"idle: no frame sent or received for {self.timeout:g} s")
+
+
 def _run_sender(
-    conn: _Conn, source: _Source, stats: LinkStats, stop: threading.Event, period_ns: int, first: bytes | None
+    conn: _Conn, source: _Source, stats: LinkStats, stop: threading.Event, period_ns: int, first: bytes | None,
+    idle_timeout: float | None = None,
 ) -> None:
-    """Send each new frame of ``source`` until stopped or the connection is lost."""
+    """Send each new frame of ``source`` until stopped, the connection is lost or it was idle for
+    ``idle_timeout`` s."""
     period = period_ns / 1e9
     last_sent = 0.0
     watch = _ChannelWatch(source.chan)
+    idle = _IdleWatch(idle_timeout)
     if first is not None:
         _send(conn, first, stats)
-        last_sent = time.monotonic()
+        source.sent, last_sent = first, time.monotonic()
+        source.sent_at = last_sent
     while not stop.is_set():
         watch.check()
+        idle.check()
         if _peer_closed(conn):
             raise ConnectionLostError("peer closed the connection")
         if period and last_sent:
@@ -407,20 +446,26 @@ def _run_sender(
         if frame is None:
             continue
         _send(conn, frame, stats)
-        last_sent = time.monotonic()
+        source.sent, last_sent = frame, time.monotonic()
+        source.sent_at = last_sent
+        idle.active()
 
 
-def _run_receiver(conn: _Conn, sink: _Sink, stats: LinkStats, stop: threading.Event, max_size: int) -> None:
-    """Write each frame that arrives into ``sink`` until stopped or the connection is lost."""
+def _run_receiver(conn: _Conn, sink: _Sink, stats: LinkStats, stop: threading.Event, max_size: int,
+                  idle_timeout: float | None = None) -> None:
+    """Write each frame that arrives into ``sink`` until stopped, the connection is lost or nothing arrived for
+    ``idle_timeout`` s."""
     decoder = ap.FrameDecoder(max_size)
     oversize_seen = 0
     watch = _ChannelWatch(sink.chan)
+    idle = _IdleWatch(idle_timeout)
     if conn.udp is None and conn.leftover:
         for frame in decoder.feed(conn.leftover):
             sink.put(frame)
     socks = [conn.tcp] + ([conn.udp] if conn.udp is not None else [])
     while not stop.is_set():
         watch.check()
+        idle.check()
         readable, _, _ = select.select(socks, [], [], POLL_S)
         if conn.tcp in readable:
             try:
@@ -429,6 +474,7 @@ def _run_receiver(conn: _Conn, sink: _Sink, stats: LinkStats, stop: threading.Ev
                 raise ConnectionLostError(f"receive failed: {exc}") from exc
             if not data:
                 raise ConnectionLostError("peer closed the connection")
+            idle.active()
             if conn.udp is None:
                 try:
                     frames = decoder.feed(data)
@@ -438,24 +484,28 @@ def _run_receiver(conn: _Conn, sink: _Sink, stats: LinkStats, stop: threading.Ev
                 oversize_seen = decoder.oversize
                 for frame in frames:
                     sink.put(frame)
-        if conn.udp is not None and conn.udp in readable:
-            _drain_udp(conn, sink, stats)
+        if conn.udp is not None and conn.udp in readable and _drain_udp(conn, sink, stats):
+            idle.active()
 
 
-def _drain_udp(conn: _Conn, sink: _Sink, stats: LinkStats) -> None:
-    """Every queued datagram from the announced peer; others are counted as strays (achd ignores them)."""
+def _drain_udp(conn: _Conn, sink: _Sink, stats: LinkStats) -> bool:
+    """Every queued datagram from the announced peer; others are counted as strays (achd ignores them).
+    True if one came from the peer."""
+    got = False
     for _ in range(1000):
         try:
             payload, addr = conn.udp.recvfrom(65536)
         except BlockingIOError:
-            return
+            return got
         except OSError as exc:  # ICMP errors surface here; not fatal for a datagram socket
             stats.last_error = f"udp receive: {exc}"
-            return
+            return got
         if (addr[0], addr[1]) != conn.udp_peer:
             stats.stray_datagrams += 1
             continue
+        got = True
         sink.put(payload)
+    return got
 
 
 # --------------------------------------------------------------------------------------------------
@@ -518,6 +568,7 @@ class Link:
         self._chan = None
         self._opened_once = False
         self._source: _Source | None = None
+        self._lost_at = -math.inf  # monotonic time the last connection ended
         self.udp_port: int | None = None
         """Our datagram port on the current UDP connection (what the peer must send from/to)."""
 
@@ -567,6 +618,8 @@ class Link:
                     else:
                         log.debug("%s: connect failed: %s", self.name, self.stats.last_error)
                 finally:
+                    if self.connected.is_set():  # an established connection ended (not a failed attempt)
+                        self._lost_at = time.monotonic()
                     self.connected.clear()
                     if conn is not None:
                         conn.close()
@@ -635,11 +688,20 @@ class Link:
         if self.mode == "push":
             self._source = _Source(chan, self.rule, self.get_last, self.stats)
 
+    def _delivered(self) -> bool:
+        """Did the newest frame certainly reach the server before the old connection ended? Over TCP, when
+        it was sent and the connection then lived on for more than ``dead_after_s`` (``TCP_USER_TIMEOUT``
+        would have killed it had the data stayed unacknowledged). Re-sending it then would only replay an old
+        reference over newer ones (e.g. after the server closed a quiet connection as idle)."""
+        source = self._source
+        return (self.transport == "tcp" and source is not None and source.newest is not None
+                and source.sent == source.newest and self._lost_at - source.sent_at > self.dead_after_s)
+
     def _stream(self, conn: _Conn) -> None:
         if self.mode == "push":
             assert self._source is not None
             first = None
-            if self.resend_on_reconnect and self.stats.connects > 1:
+            if self.resend_on_reconnect and self.stats.connects > 1 and not self._delivered():
                 first = self._source.newest  # TCP may have dropped it with the old connection
             _run_sender(conn, self._source, self.stats, self._stop, self.period_ns, first)
         else:
@@ -663,11 +725,27 @@ class AccessPolicy:
         return any(fnmatch.fnmatchcase(channel, p) for p in patterns)
 
 
+def is_local_peer(host: str) -> bool:
+    """Loopback (127.0.0.0/8, ::1, or IPv4-mapped loopback): this machine's tools and SSH-tunnelled operators."""
+    try:
+        address = ipaddress.ip_address(host.split("%", 1)[0])
+    except ValueError:
+        return False
+    mapped = getattr(address, "ipv4_mapped", None)
+    return address.is_loopback or (mapped is not None and mapped.is_loopback)
+
+
 class Server:
     """``achd serve`` as a listening TCP server: one thread per accepted connection.
 
     Binds loopback unless ``binds`` says otherwise; a connection's request decides the channel,
     transport and direction, subject to ``policy``.
+
+    Admission, so that no peer can lock out another or the operator: a remote address holds at most
+    ``max_per_peer`` connections and all remote peers together ``max_clients``; loopback peers (local tools, and
+    operators coming through an SSH tunnel) have their own ``max_local_clients``, which remote peers cannot
+    use. A connection that sends and receives no frame for ``idle_timeout_s`` (None: never) is closed, one
+    that does not complete its request within ``HEADER_TIMEOUT_S`` too. Refusals answer ``ACH_EAGAIN``.
     """
 
     def __init__(
@@ -678,22 +756,38 @@ class Server:
         policy: AccessPolicy | None = None,
         send_latest_on_connect: bool = True,
         dead_after_s: float = 5.0,
-        max_clients: int = 32,
+        max_clients: int = MAX_CLIENTS,
+        max_per_peer: int = MAX_PER_PEER,
+        max_local_clients: int = MAX_LOCAL_CLIENTS,
+        idle_timeout_s: float | None = IDLE_TIMEOUT_S,
         max_frame: int = 16 * 1024 * 1024,
     ) -> None:
+        for what, value in (("max_clients", max_clients), ("max_per_peer", max_per_peer),
+                            ("max_local_clients", max_local_clients)):
+            if value < 1:
+                raise ValueError(f"{what} must be at least 1, got {value}")
+        if idle_timeout_s is not None and not idle_timeout_s > 0:
+            raise ValueError(f"idle timeout must be > 0 s, got {idle_timeout_s}")
         self.binds = tuple(binds)
         self.port = port
         self.policy = policy or AccessPolicy()
         self.send_latest_on_connect = send_latest_on_connect
         self.dead_after_s = dead_after_s
         self.max_clients = max_clients
+        self.max_per_peer = max_per_peer
+        self.max_local_clients = max_local_clients
+        self.idle_timeout_s = idle_timeout_s
         self.max_frame = max_frame
         self.stats: dict[str, LinkStats] = {}
         self.refused = 0
+        self.refused_busy = 0  # connections refused by the admission limits
+        self.idle_closed = 0  # connections closed for being idle
         self._listeners: list[socket.socket] = []
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._clients = threading.BoundedSemaphore(max_clients)
+        self._per_peer: dict[str, int] = {}  # open connections per remote address
+        self._remote = 0
+        self._local = 0
         self._lock = threading.Lock()
 
     @property
@@ -739,15 +833,52 @@ class Server:
                     sock, peer = listener.accept()
                 except OSError:
                     continue
-                if not self._clients.acquire(blocking=False):
-                    log.warning("refusing %s: %d clients already", peer, self.max_clients)
-                    _refuse(sock, ap.ACH_EAGAIN, "too many clients")
+                busy = self._admit(peer[0])
+                if busy:
+                    self.refused_busy += 1
+                    if self.refused_busy == 1 or self.refused_busy % 100 == 0:  # a flood must not flood the log
+                        log.warning("refusing %s (#%d): %s", peer[0], self.refused_busy, busy)
+                    _refuse(sock, ap.ACH_EAGAIN, busy)
                     continue
                 thread = threading.Thread(target=self._serve_one, args=(sock, peer), daemon=True)
                 with self._lock:
                     self._threads = [t for t in self._threads if t.is_alive()]
                     self._threads.append(thread)
                 thread.start()
+
+    def _admit(self, host: str) -> str | None:
+        """Count a new connection from ``host`` in, or say why it is refused (its pool or its share is full)."""
+        with self._lock:
+            if is_local_peer(host):
+                if self._local >= self.max_local_clients:
+                    return f"too many local connections ({self.max_local_clients})"
+                self._local += 1
+                return None
+            mine = self._per_peer.get(host, 0)
+            if mine >= self.max_per_peer:
+                return f"too many connections from {host} ({self.max_per_peer}); close some first"
+            if self._remote >= self.max_clients:
+                return f"too many remote clients ({self.max_clients})"
+            self._per_peer[host] = mine + 1
+            self._remote += 1
+            return None
+
+    def _release(self, host: str) -> None:
+        with self._lock:
+            if is_local_peer(host):
+                self._local -= 1
+                return
+            self._remote -= 1
+            left = self._per_peer.get(host, 1) - 1
+            if left > 0:
+                self._per_peer[host] = left
+            else:
+                self._per_peer.pop(host, None)
+
+    def connections(self) -> dict[str, int]:
+        """Open connections: ``local``, ``remote`` and one entry per remote address."""
+        with self._lock:
+            return {"local": self._local, "remote": self._remote, **self._per_peer}
 
     def _serve_one(self, sock: socket.socket, peer: tuple) -> None:
         conn = _Conn(sock)
@@ -801,11 +932,12 @@ class Server:
                     first = source.next(0.0, last=True, wait=False)
                 else:
                     chan.flush()
-                _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first)
+                _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first, self.idle_timeout_s)
             else:
                 chan.flush()
-                _run_receiver(conn, _Sink(chan, rule, stats), stats, self._stop, self.max_frame)
+                _run_receiver(conn, _Sink(chan, rule, stats), stats, self._stop, self.max_frame, self.idle_timeout_s)
         except (OSError, ConnectionLostError) as exc:
+            self.idle_closed += isinstance(exc, IdleConnectionError)
             log.info("%s: finished: %s", who, exc)
         except Exception:  # one broken connection must never take the server down
             log.exception("%s: connection failed", who)
@@ -813,7 +945,7 @@ class Server:
             conn.close()
             if chan is not None:
                 chan.close()
-            self._clients.release()
+            self._release(peer[0])
 
 
 def _refuse(sock: socket.socket, status: int, message: str) -> None:
@@ -840,6 +972,26 @@ def install_stop_signals(stop: Callable[[], None]) -> None:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+
+
+def add_server_limit_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """The admission and idle options of a server (``achd serve``, ``mds-ach remote serve``)."""
+    p.add_argument("--max-clients", type=int, default=MAX_CLIENTS,
+                   help=f"{prefix}connections from remote peers together (default {MAX_CLIENTS})")
+    p.add_argument("--max-per-peer", type=int, default=MAX_PER_PEER,
+                   help=f"{prefix}connections from one remote address (default {MAX_PER_PEER})")
+    p.add_argument("--max-local", type=int, default=MAX_LOCAL_CLIENTS,
+                   help=f"{prefix}connections from loopback: local tools and SSH-tunnelled operators, a pool "
+                        f"remote peers cannot use (default {MAX_LOCAL_CLIENTS})")
+    p.add_argument("--idle-timeout", type=float, default=IDLE_TIMEOUT_S, metavar="S",
+                   help=f"{prefix}close a connection that sends and receives no frame for S seconds "
+                        f"(default {IDLE_TIMEOUT_S:g}; 0: never)")
+
+
+def server_limits(args: argparse.Namespace) -> dict[str, object]:
+    """``Server`` keyword arguments from ``add_server_limit_arguments`` options."""
+    return {"max_clients": args.max_clients, "max_per_peer": args.max_per_peer,
+            "max_local_clients": args.max_local, "idle_timeout_s": args.idle_timeout or None}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -873,6 +1025,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"serve: channel pattern clients may push into (default {', '.join(SAFE_WRITABLE)})",
     )
     ap_.add_argument("--flush-on-connect", action="store_true", help="serve: like achd, never send old frames")
+    add_server_limit_arguments(ap_, "serve: ")
     ap_.add_argument("-v", "--verbose", action="store_true", help="log every connection")
     return ap_
 
@@ -892,8 +1045,11 @@ def main(argv: list[str] | None = None) -> int:
         try:
             server = Server(
                 args.bind or ("127.0.0.1",), args.port, policy=policy,
-                send_latest_on_connect=not args.flush_on_connect,
+                send_latest_on_connect=not args.flush_on_connect, **server_limits(args),
             ).start()
+        except ValueError as exc:
+            print(f"achd: {exc}", file=sys.stderr)
+            return 2
         except OSError as exc:
             print(f"achd: {exc.strerror or exc}", file=sys.stderr)
             return 1

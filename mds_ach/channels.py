@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 import mds_ach as mds
-from mds_ach import ach
+from mds_ach import ach, channel_access
 
 T = TypeVar("T", bound=ctypes.Structure)
 
@@ -33,7 +33,14 @@ class StructChannel(Generic[T]):
         self.name = name
         self.ctype = ctype
         self.size = ctypes.sizeof(ctype)
-        self.channel = ach.Channel(name, frame_count, frame_size, create=create)
+        self.channel = ach.Channel(name, frame_count, frame_size, create=create,
+                                   mode=channel_access.channel_mode(name))
+        if channel_access.enforced():  # a node of the stack: never use a file another user planted
+            try:
+                channel_access.require_trusted(self.channel)
+            except BaseException:
+                self.channel.close()
+                raise
         if self.size > self.channel.data_size:
             data_size = self.channel.data_size
             self.channel.close()
@@ -117,7 +124,13 @@ class ChannelReport:
         return self.action != "error"
 
 
-def _check_existing(name: str, frame_count: int, frame_size: int) -> ChannelReport:
+def check_existing(name: str, frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_size: int = mds.CHANNEL_FRAME_SIZE,
+                   mode: int = channel_access.CHANNEL_MODE, gid: int | None = None) -> ChannelReport:
+    """Is the existing channel ``name`` one the stack may use: trusted (owner, mode, group), an Ach file, of the
+    expected geometry? The report's detail says what is wrong and what to do."""
+    why = channel_access.path_problem(name, mode, gid)
+    if why is not None:
+        return ChannelReport(name, "error", f"{why}; {channel_access.recreate_hint(name)}")
     try:
         with ach.Channel(name, create=False) as ch:
             count, size = ch.frame_count, ch.frame_size
@@ -131,30 +144,32 @@ def _check_existing(name: str, frame_count: int, frame_size: int) -> ChannelRepo
 
 def make_channels(
     names: tuple[str, ...] | list[str] = mds.ALL_CHANNELS,
-    mode: int = 0o660,
+    mode: int = channel_access.CHANNEL_MODE,
     group: str | int | None = None,
     frame_count: int = mds.CHANNEL_FRAME_COUNT,
     frame_size: int = mds.CHANNEL_FRAME_SIZE,
 ) -> list[ChannelReport]:
     """Create every channel (10 x 3000 B by default) with ``mode``; existing ones are validated, never clobbered.
 
-    ``group`` (name or gid) is applied to the channels created here, so members of that group can run the
-    clients. Returns one report per channel; see ``ChannelReport.ok``.
+    ``mode`` may only restrict ``CHANNEL_MODE`` (0660); the daemon's input gets it without group write
+    (``channel_access.channel_mode``). ``group`` (name or gid) is given to the channels created here, so members
+    of that group can run the clients. An existing channel is accepted only when the stack may trust it (owner,
+    mode, group: ``channel_access``). Returns one report per channel; see ``ChannelReport.ok``.
     """
-    if mode & 0o002:
-        raise ValueError(f"mode {mode:#o} is world-writable; Ach channels must not be (use a group instead)")
+    channel_access.check_configured_mode(mode)
     gid = _resolve_group(group)
     reports = []
     for name in names:
+        chan_mode = channel_access.channel_mode(name, mode)
         try:
-            ach.create(name, frame_count, frame_size, mode=mode)
+            ach.create(name, frame_count, frame_size, mode=chan_mode)
         except ach.AchException as exc:
             if exc.status == ach.ACH_EEXIST:
-                reports.append(_check_existing(name, frame_count, frame_size))
+                reports.append(check_existing(name, frame_count, frame_size, mode, gid))
             else:
                 reports.append(ChannelReport(name, "error", exc.reason))
             continue
-        detail = f"{frame_count} x {frame_size} B, mode {mode:#o}"
+        detail = f"{frame_count} x {frame_size} B, mode {chan_mode:#o}"
         if gid is not None:
             try:
                 os.chown(ach.shm_path(name), -1, gid)

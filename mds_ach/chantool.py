@@ -28,12 +28,17 @@ def _err(verb: str, message: str) -> None:
 
 def add_make_arguments(p: argparse.ArgumentParser) -> None:
     p.description = (f"Create every MDS channel ({', '.join(mds.ALL_CHANNELS)}) with {mds.CHANNEL_FRAME_COUNT} "
-                     f"frames x {mds.CHANNEL_FRAME_SIZE} B. Channels that already exist are checked, never "
-                     "clobbered. Files are owner/group read-write (0660), never world-writable.")
+                     f"frames x {mds.CHANNEL_FRAME_SIZE} B, mode 0660 (the stack's user and the channels' group "
+                     f"read-write), {mds.MDS_CHAN_DAEMON_INPUT_NAME} 0640 (only the stack writes what the daemon "
+                     "executes). Channels that already exist are checked, never clobbered: one owned by another "
+                     "user (not you, not root), with a looser mode or another group than configured is refused "
+                     "(exit 1; 'mds-ach repair --recreate NAME' replaces it). See docs/operator.md, 'Users and "
+                     "permissions'.")
     p.add_argument("--group", metavar="GROUP", help="give the new channels to this group (name or gid) so its "
-                                                    "members can run clients without root")
+                                                    "members (operators) can run clients; existing channels must "
+                                                    "belong to it")
     p.add_argument("--mode", type=lambda s: int(s, 8), default=0o660, metavar="OCTAL",
-                   help="file mode of new channels (default 0660; world-writable modes are refused)")
+                   help="file mode of new channels (default 0660; it may only restrict 0660, e.g. 0600)")
     p.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
 
 

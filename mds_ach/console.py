@@ -2,7 +2,9 @@
 
 Commands keep the original's names and output formats; motion goes through the safety pipeline: ``goto``
 read-modify-writes ``mds-ref-filter`` (the mux's default controller input, then filter and collision gate),
-``ik`` asks the IK node on ``mds-ik``. Bad input prints what was wrong plus the usage and never ends the
+``ik`` asks the IK node on ``mds-ik``. A motion command is reported applied only once the mux acknowledged it
+(``mds-mux-state``) and its output (``mds-ref-mux``) has the targets; with the mux down nothing is sent and the
+console says "not applied: mux not running". Bad input prints what was wrong plus the usage and never ends the
 console. ``-c "cmd"`` (repeatable) runs commands non-interactively; the exit status says whether they worked.
 
 Only numpy forward kinematics is used (``get fk``), so the console starts without torch.
@@ -40,6 +42,10 @@ IK_TIMEOUT = 10.0  # s for the IK node's answer
 IK_MOTION_TIMEOUT = 20.0  # s for the arm to arrive (ik ... wait)
 STATE_WAIT = 1.0  # s to wait for a first state frame
 RELEASE_TIMEOUT = 10.0  # s to wait for a higher-priority mux controller to release a joint
+MUX_TIMEOUT = 1.0  # s for a new mds-mux-state frame (the mux publishes at 10 Hz, config/mux.yaml state_rate)
+APPLIED_TOLERANCE = 1e-9  # rad: the mux copies references, it does not compute them
+NOT_RUNNING = (f"not applied: mux not running (no new frame on {mds.MDS_CHAN_MUX_STATE_NAME} within {MUX_TIMEOUT:g} s)"
+               "; start it: mds-ach start --only mux")
 
 USAGE = f"""\
 commands (joint names: short or long, e.g. LSP or LeftShoulderExt, any case):
@@ -254,12 +260,12 @@ class Console:
             chan.put(ref)
 
     @staticmethod
-    def _mux_holders(st: MDS_MUX_STATE, addresses: list[int]) -> dict[int, str]:
-        """Joints of ``addresses`` owned by a higher-priority mux controller than ours (the mds-ref-filter one)."""
-        from mds_ach.msgs import get_name
-
-        mine = _default_controller_name()
-        names = [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
+    def _mux_holders(st: MDS_MUX_STATE, addresses: list[int],
+                     channel: str = mds.MDS_CHAN_REF_FILTER_NAME) -> dict[int, str]:
+        """Joints of ``addresses`` owned by a higher-priority mux controller than ours (the one reading
+        ``channel``)."""
+        mine = _controller_for(channel)
+        names = _mux_names(st)
         if mine not in names:
             return {}
         my_priority = st.priority[names.index(mine)]
@@ -268,13 +274,30 @@ class Console:
                 and st.priority[st.owner[a]] > my_priority}
 
     @staticmethod
-    def _mux_state(newer_than: float, chan: Latest) -> MDS_MUX_STATE | None:
-        """The first mux state published after ``newer_than`` (CLOCK_MONOTONIC); None without a live mux."""
-        deadline = time.monotonic() + 0.5  # the mux publishes at 10 Hz
+    def _mux_state(newer_than: float, chan: Latest,
+                   accept: Callable[[MDS_MUX_STATE], bool] = lambda st: True) -> MDS_MUX_STATE | None:
+        """The first mux state published after ``newer_than`` (CLOCK_MONOTONIC) that ``accept`` takes, waiting up
+        to ``MUX_TIMEOUT`` s; None without a live mux (its last frame stays in the channel when it dies)."""
+        deadline = time.monotonic() + MUX_TIMEOUT
         st = chan.read()
-        while st is not None and st.time <= newer_than and time.monotonic() < deadline:
-            st = chan.wait_new(0.1) or st
-        return st if st is not None and st.time > newer_than else None
+        while True:
+            if st is not None and st.time > newer_than and accept(st):
+                return st
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            st = chan.wait_new(min(0.1, remaining)) or st
+
+    def _require_mux(self) -> None:
+        """CommandError unless the mux published a new state just now: a command it cannot take is not sent."""
+        from mds_ach.mux import MDS_MUX_STATE
+
+        chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        try:
+            if self._mux_state(time.monotonic(), chan) is None:
+                raise CommandError(NOT_RUNNING + "; nothing sent", usage=False)
+        finally:
+            chan.close()
 
     def _wait_until_free(self, addresses: list[int]) -> None:
         """Wait (up to ``RELEASE_TIMEOUT`` s) while a higher-priority mux controller owns one of the joints.
@@ -289,9 +312,11 @@ class Console:
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
             st = self._mux_state(time.monotonic(), chan)
+            if st is None:  # nothing would take the command: do not leave it in the channel either
+                raise CommandError(NOT_RUNNING + "; nothing sent", usage=False)
             deadline = time.monotonic() + RELEASE_TIMEOUT
             said = False
-            while st is not None:
+            while True:
                 held = self._mux_holders(st, addresses)
                 if not held:
                     return
@@ -307,22 +332,43 @@ class Console:
         finally:
             chan.close()
 
-    def _check_applied(self, addresses: list[int], sent_at: float) -> None:
-        """After a put: refuse to report success when the mux did not take the joints (another controller
-        grabbed them in between)."""
+    def _confirm_applied(self, targets: dict[int, float], sent_at: float,
+                         channel: str = mds.MDS_CHAN_REF_FILTER_NAME) -> None:
+        """Report success only once the command reached the pipeline: the mux acknowledged a frame from
+        ``channel``'s controller that arrived after ``sent_at`` (in ``mds-mux-state``), no higher-priority
+        controller holds the joints, and the mux output (``mds-ref-mux``) has every target. CommandError
+        ("not applied: ...") otherwise: a dead mux, or one that ignored the frame, moves nothing."""
         from mds_ach.mux import MDS_MUX_STATE
 
+        mine = _controller_for(channel)
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        out = Latest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
         try:
-            st = self._mux_state(sent_at, chan)
+            st = self._mux_state(sent_at, chan, lambda st: _took_frame_since(st, mine, sent_at))
             if st is None:
-                return
-            held = self._mux_holders(st, addresses)
+                latest = chan.read()
+                if latest is not None and latest.time > sent_at and mine not in _mux_names(latest):
+                    raise CommandError(f"not applied: the mux has no controller reading {channel} "
+                                       "(config/mux.yaml)", usage=False)
+                raise CommandError(NOT_RUNNING, usage=False)
+            held = self._mux_holders(st, list(targets), channel)
+            output = out.read()
         finally:
             chan.close()
+            out.close()
         if held:
             text = ", ".join(f"{mds.BY_ADDRESS[a].short} (held by '{n}')" for a, n in held.items())
-            raise CommandError(f"not applied: {text} took the joint first; send the goto again once it is free",
+            raise CommandError(f"not applied: {text} took the joint first; send the command again once it is free",
+                               usage=False)
+        if output is None:
+            raise CommandError(f"not applied: nothing on {mds.MDS_CHAN_REF_MUX_NAME} (is the mux running?)",
+                               usage=False)
+        off = {a: v for a, v in targets.items() if not abs(output.joint[a].ref - v) <= APPLIED_TOLERANCE}
+        if off:
+            text = ", ".join(f"{mds.BY_ADDRESS[a].short} at {output.joint[a].ref:.5f} (target {v:.5f})"
+                             for a, v in off.items())
+            raise CommandError(f"not applied: the mux output ({mds.MDS_CHAN_REF_MUX_NAME}) keeps {text}; the mux "
+                               f"takes only changes from '{mine}': send another value first, then this one",
                                usage=False)
 
     def _wait_arrival(self, targets: dict[int, float], timeout: float) -> bool:
@@ -383,7 +429,7 @@ class Console:
         self._wait_until_free([cmd.joint.address])
         sent_at = time.monotonic()
         self._put_refs({cmd.joint.address: cmd.value}, state)
-        self._check_applied([cmd.joint.address], sent_at)
+        self._confirm_applied({cmd.joint.address: cmd.value}, sent_at)
         self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
         if cmd.wait:
             if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT):
@@ -399,7 +445,7 @@ class Console:
         self._wait_until_free(list(targets))
         sent_at = time.monotonic()
         self._put_refs(targets, state)
-        self._check_applied(list(targets), sent_at)
+        self._confirm_applied(targets, sent_at)
         self.out(f"{len(targets)} enabled joints -> 0 rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
 
     def get(self, joint: Joint) -> None:
@@ -421,7 +467,9 @@ class Console:
         from mds_ach.ik_client import IkClient, IkTimeout
 
         self._state()  # a clear message when the system is not running
+        self._require_mux()
         values = list(cmd.values) + [0.0] * (6 - cmd.dof)
+        sent_at = time.monotonic()
         try:
             with IkClient() as client:
                 reply = client.request(cmd.arm, cmd.dof, values, timeout=IK_TIMEOUT)
@@ -434,8 +482,9 @@ class Console:
                  f"({reply.time * 1000:.1f} ms)")
         for line in format_fk(cmd.arm, *fk_pose(reply.q, cmd.arm)):
             self.out(line)
+        targets = {BY_SHORT[s].address: float(v) for s, v in zip(ARMS[cmd.arm][1], reply.q, strict=True)}
+        self._confirm_applied(targets, sent_at, mds.MDS_CHAN_REF_IK_NAME)  # the IK node's output, a mux input
         if cmd.wait:
-            targets = {BY_SHORT[s].address: float(v) for s, v in zip(ARMS[cmd.arm][1], reply.q, strict=True)}
             if not self._wait_arrival(targets, IK_MOTION_TIMEOUT):
                 raise CommandError(f"the {cmd.arm} arm did not arrive within {IK_MOTION_TIMEOUT:g} s: "
                                    + self._not_arrived(targets), usage=False)
@@ -453,18 +502,38 @@ class Console:
             return False
 
 
-@lru_cache(maxsize=1)
-def _default_controller_name() -> str:
-    """The mux controller fed by mds-ref-filter (config/mux.yaml), 'default' unless configured otherwise."""
+_DEFAULT_CONTROLLERS = {mds.MDS_CHAN_REF_FILTER_NAME: "default", mds.MDS_CHAN_REF_IK_NAME: "ik"}
+
+
+@lru_cache(maxsize=4)
+def _controller_for(channel: str) -> str:
+    """The mux controller fed by ``channel`` (config/mux.yaml): 'default' for mds-ref-filter, 'ik' for
+    mds-ref-ik unless configured otherwise."""
     try:
         from mds_ach.mux import load_config
 
         for c in load_config()["controllers"]:
-            if c.channel == mds.MDS_CHAN_REF_FILTER_NAME:
+            if c.channel == channel:
                 return c.name
     except (ValueError, OSError):
         pass
-    return "default"
+    return _DEFAULT_CONTROLLERS.get(channel, channel)
+
+
+def _mux_names(st: MDS_MUX_STATE) -> list[str]:
+    from mds_ach.msgs import get_name
+
+    return [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
+
+
+def _took_frame_since(st: MDS_MUX_STATE, controller: str, since: float) -> bool:
+    """Did the mux receive a frame from ``controller`` at or after ``since`` (CLOCK_MONOTONIC)?
+    ``age`` is the time from that frame's arrival to ``st.time``, so the arrival is ``st.time - age``."""
+    names = _mux_names(st)
+    if controller not in names:
+        return False
+    i = names.index(controller)
+    return st.age[i] >= 0 and st.time - st.age[i] >= since
 
 
 def _default_out(text: str) -> None:

@@ -312,6 +312,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         timer.daemon = True
         timer.start()
     if args.no_ros:
+        from mds_ach import channel_access
+
+        channel_access.enforce_in_this_process()  # refuse channel files another user planted (run_node does too)
         return _run_plain(args)
     from mds_ach.pipeline import run_node
 

@@ -147,7 +147,7 @@ class DaemonChannels:
 
     @classmethod
     def open(cls) -> DaemonChannels:
-        from mds_ach import ach
+        from mds_ach import ach, channel_access
         from mds_ach.channels import StructChannel
 
         names = {"ref": (mds.MDS_CHAN_REF_NAME, MDS_REF), "state": (mds.MDS_CHAN_STATE_NAME, MDS_STATE),
@@ -159,6 +159,8 @@ class DaemonChannels:
             for key, (name, ctype) in names.items():
                 opened[key] = StructChannel(name, ctype)
             opened["cmd"] = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+            if channel_access.enforced():  # as StructChannel does for the others
+                channel_access.require_trusted(opened["cmd"])
         except Exception:
             for ch in opened.values():
                 ch.close()

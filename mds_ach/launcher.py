@@ -321,18 +321,26 @@ def wait_ready(procs: dict[str, subprocess.Popen], checks: dict[str, _Heartbeat]
 
 def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[str] = NODES,
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
-           out: Printer = _out) -> dict[str, subprocess.Popen]:
-    """Create the channels, start ``names`` (those not already running) and wait until ``mds-state`` is live
-    and each started node is up (see ``READY_CHANNELS``).
+           out: Printer = _out, group: str | None = None) -> dict[str, subprocess.Popen]:
+    """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
+    until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``).
+
+    Existing channels must be ones the stack may trust (``channel_access``: owner, mode, group); otherwise
+    nothing is started.
 
     On failure every node started here is stopped again and LaunchError is raised (the system is left as
     it was found)."""
     from mds_ach.channels import make_channels
 
     rt = rt or runtime_dir()
-    bad = [r for r in make_channels() if not r.ok]
+    try:
+        reports = make_channels(group=group)
+    except ValueError as exc:  # unknown group
+        raise LaunchError("", str(exc)) from None
+    bad = [r for r in reports if not r.ok]
     if bad:
-        raise LaunchError("", "cannot create the channels:\n" + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
+        raise LaunchError("", "refusing to start, channel problems:\n"
+                          + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
     already = running_nodes(rt)
     env = child_env()
     procs: dict[str, subprocess.Popen] = {}
@@ -435,8 +443,9 @@ def send_command(cmd: int, address: int = 0, value: float = 0.0) -> int:
     return seq
 
 
-def state_rate(window: float = 1.0) -> float | None:
-    """New ``mds-state`` frames per second over ``window`` s (None when the channel does not exist)."""
+def state_rate(window: float = 1.0) -> tuple[float, int] | None:
+    """New ``mds-state`` frames per second over ``window`` s, and how many frames of the wrong size arrived
+    (None when the channel does not exist). Raises ``ach.AchException``/``ValueError`` for a damaged channel."""
     from mds_ach import ach
     from mds_ach.channels import StructChannel
 
@@ -453,12 +462,35 @@ def state_rate(window: float = 1.0) -> float | None:
                 first = now if first is None else first
                 last = now
         if frames >= 2 and first is not None and last is not None and last > first:
-            return (frames - 1) / (last - first)
-        return float(frames) / window
+            return (frames - 1) / (last - first), chan.bad_frames
+        return float(frames) / window, chan.bad_frames
 
 
-def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str], bool]:
-    """Lines for ``mds-ach status`` and whether every node runs."""
+def channel_problems(names: Sequence[str] = mds.ALL_CHANNELS) -> dict[str, str]:
+    """channel -> what is wrong with it and what to do, for every MDS channel the system cannot use: missing
+    (while others exist), owned by another user or too open, not an Ach file, truncated, corrupt, locked, or of
+    the wrong size."""
+    from mds_ach import ach, repair
+    from mds_ach.channels import check_existing
+
+    if not any(os.path.lexists(ach.shm_path(n)) for n in names):
+        return {}  # nothing made yet: the node lines already say that nothing runs
+    problems = {}
+    for name in names:
+        health = repair.check(name)
+        if not health.ok:
+            problems[name] = f"{health.state}: {health.detail}; {health.hint()}"
+            continue
+        made = check_existing(name)
+        if not made.ok:
+            problems[name] = made.detail
+    return problems
+
+
+def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str], int]:
+    """Lines for ``mds-ach status`` and its exit status: 0 all well, 1 a channel is damaged or not to be
+    trusted, 3 a node is not running. Never raises for a damaged channel: it is reported with the repair hint."""
+    from mds_ach import ach
     from mds_ach.daemon_status import MDS_DAEMON_STATUS
     from mds_ach.monitor import Latest, collision_summary, daemon_line
     from mds_ach.robot_choice import effective_robot
@@ -473,12 +505,25 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
         lines.append(f"  {name:<10} {state}")
     robot, where = effective_robot()
     lines.append(f"robot      {robot} ({where})")
-    rate = state_rate(window)
-    if rate is None:
-        lines.append(f"state      no {mds.MDS_CHAN_STATE_NAME} channel")
+    problems = channel_problems()
+    lines += [f"channel    {name}: {text}" for name, text in problems.items()]
+    if not problems and any(ach.exists(n) for n in mds.ALL_CHANNELS):
+        lines.append(f"channels   ok ({len(mds.ALL_CHANNELS)})")
+    try:
+        measured = None if mds.MDS_CHAN_STATE_NAME in problems else state_rate(window)
+    except (ach.AchException, ValueError) as exc:
+        lines.append(f"state      unreadable: {exc}")
     else:
-        lines.append(f"state      {rate:.1f} frames/s on {mds.MDS_CHAN_STATE_NAME}" + ("" if rate > 0 else
-                                                                                         "  (not live)"))
+        if mds.MDS_CHAN_STATE_NAME in problems:
+            lines.append(f"state      unreadable (channel {mds.MDS_CHAN_STATE_NAME} above)")
+        elif measured is None:
+            lines.append(f"state      no {mds.MDS_CHAN_STATE_NAME} channel")
+        else:
+            rate, bad = measured
+            lines.append(f"state      {rate:.1f} frames/s on {mds.MDS_CHAN_STATE_NAME}" + ("" if rate > 0 else
+                                                                                             "  (not live)")
+                         + (f"  {bad} frame(s) of the wrong size ignored (not {ctypes.sizeof(mds.MDS_STATE)} B: "
+                            "a writer built against another mds.h?)" if bad else ""))
     daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
     try:
@@ -490,7 +535,7 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     finally:
         daemon.close()
         collide.close()
-    return lines, len(running) == len(NODES)
+    return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
 
 
 # --------------------------------------------------------------------------------------------- foreground run
@@ -515,7 +560,7 @@ def _activate_hint() -> str:
     return f", after `source {activate}`" if activate.is_file() else ""
 
 
-def run_foreground(nocan: bool, timeout: float, out: Printer = _out) -> int:
+def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None) -> int:
     """``mds-ach run``: start everything, print what to do next, supervise until Ctrl-C/SIGTERM, stop cleanly.
 
     A node that dies takes the whole system down (with its log tail): a half-running pipeline would hold the
@@ -535,7 +580,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out) -> int:
             return 1
         out(f"starting MDS-Ach{' on the simulated robot (nocan)' if nocan else ''} ...")
         try:
-            procs = launch(nocan, timeout, rt=rt, abort=lambda: bool(stop_requested), out=out)
+            procs = launch(nocan, timeout, rt=rt, abort=lambda: bool(stop_requested), out=out, group=group)
         except LaunchError as exc:
             if stop_requested:
                 out("interrupted; everything stopped")
@@ -571,6 +616,9 @@ def _add_nocan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nocan", dest="nocan_flag", action="store_true", help="same as the 'nocan' word")
     p.add_argument("--timeout", type=float, default=DEFAULT_START_TIMEOUT,
                    help=f"seconds to wait for the state channel to go live (default {DEFAULT_START_TIMEOUT:g})")
+    p.add_argument("--group", metavar="GROUP",
+                   help="give channels created now to this group (the operators'), like 'mds-ach make --group'; "
+                        "existing channels must belong to it")
 
 
 def add_start_arguments(p: argparse.ArgumentParser) -> None:
@@ -593,7 +641,7 @@ def run_start(args: argparse.Namespace) -> int:
         return 1
     _out(f"starting MDS-Ach{' (nocan: simulated bus)' if nocan else ''}; runtime dir {rt}")
     try:
-        launch(nocan, args.timeout, names, rt)
+        launch(nocan, args.timeout, names, rt, group=args.group)
     except LaunchError as exc:
         _err(f"mds-ach start: {exc}")
         return 1
@@ -611,7 +659,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_run(args: argparse.Namespace) -> int:
-    return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout)
+    return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group)
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:
@@ -656,15 +704,17 @@ def run_killall(args: argparse.Namespace) -> int:
 
 
 def add_status_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("Which nodes run, the state rate, the daemon's loop rate and bus load, and the collision "
-                     "state. Exit status 0 when every node runs, 3 otherwise.")
+    p.description = ("Which nodes run, the health of every MDS channel (with the command that repairs a damaged "
+                     "one), the state rate, the daemon's loop rate and bus load, and the collision state. Exit "
+                     "status 0 when every node runs and every channel is sound, 1 when a channel is damaged or "
+                     "not to be trusted, 3 when a node is not running.")
     p.add_argument("--window", type=float, default=1.0, help="seconds to measure the state rate (default 1)")
 
 
 def run_status(args: argparse.Namespace) -> int:
-    lines, all_running = status_report(window=args.window)
+    lines, status = status_report(window=args.window)
     _out("\n".join(lines))
-    return 0 if all_running else 3
+    return status
 
 
 def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:

@@ -261,7 +261,10 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
     argv = list(sys.argv if argv is None else argv)
     from rclpy.utilities import remove_ros_args
 
+    from mds_ach import channel_access
+
     args = parser.parse_args(remove_ros_args(argv)[1:])
+    channel_access.enforce_in_this_process()  # a node: refuse channel files another user planted
     stop = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:

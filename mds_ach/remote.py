@@ -448,7 +448,11 @@ def run_serve(args: argparse.Namespace, stop: threading.Event) -> int:
     if risky:
         log.warning("clients may write %s: that bypasses the mux, filter and collision gate", ", ".join(risky))
     try:
-        server = achd.Server(binds, args.port, policy=policy, dead_after_s=args.dead_after).start()
+        server = achd.Server(binds, args.port, policy=policy, dead_after_s=args.dead_after,
+                             **achd.server_limits(args)).start()
+    except ValueError as exc:
+        print(f"mds-ach remote serve: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"mds-ach remote serve: {exc.strerror or exc}", file=sys.stderr)
         return 1
@@ -508,6 +512,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-read", action="append", metavar="CHAN",
                    help="serve: channels clients may read (default the state channels)")
     p.add_argument("--background", action="store_true", help="serve: run in the background")
+    achd.add_server_limit_arguments(p, "serve: ")
 
 
 def _check(args: argparse.Namespace) -> str | None:
@@ -595,7 +600,8 @@ def _common_argv(args: argparse.Namespace) -> list[str]:
 
 
 def _serve_argv(args: argparse.Namespace) -> list[str]:
-    argv = ["serve", *_common_argv(args)]
+    argv = ["serve", *_common_argv(args), "--max-clients", str(args.max_clients), "--max-per-peer",
+            str(args.max_per_peer), "--max-local", str(args.max_local), "--idle-timeout", str(args.idle_timeout)]
     for flag, values in (("--bind", args.bind), ("--allow-write", args.allow_write), ("--allow-read", args.allow_read)):
         for v in values or ():
             argv += [flag, v]

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import mds_ach as mds
-from mds_ach import ach
+from mds_ach import ach, channel_access
 
 LOCK_TIMEOUT = 1.0  # s: a healthy put or get holds the lock for microseconds
 
@@ -55,6 +55,7 @@ MISSING = "missing"
 CORRUPT = "corrupt"  # dirty: a writer died mid-put; repairable in place
 BROKEN = "broken"  # header, guards or mutex damaged; must be re-created
 LOCKED = "locked"  # a live process holds the lock and does not let go
+UNSAFE = "unsafe"  # owner, mode or type the stack must not trust (channel_access); must be re-created
 
 
 @dataclass
@@ -73,14 +74,26 @@ class Report:
     def ok(self) -> bool:
         return self.state == OK
 
+    def hint(self) -> str:
+        """What to do about a channel that is not ok (empty when it is)."""
+        return {
+            MISSING: "mds-ach make (or start) creates it",
+            CORRUPT: f"repair it in place: mds-ach repair {self.name}",
+            BROKEN: f"mds-ach repair {self.name} re-creates it; then restart the nodes that use it",
+            LOCKED: "resume (kill -CONT) or kill that process, then mds-ach repair (docs/reliability.md)",
+            UNSAFE: channel_access.recreate_hint(self.name),
+        }.get(self.state, "")
+
     def line(self) -> str:
         """One line for the command line: name, state, what was done."""
         text = f"{self.name:<20} {self.state:<8} {self.detail}"
+        if self.state == UNSAFE:
+            text += f"; {self.hint()}"
         if self.action == "repaired":
             text += (f" -> repaired in place (kept {self.kept} frame(s), dropped {self.dropped}); "
                      "open handles work again")
         elif self.action == "re-created":
-            text += " -> re-created empty with the same size and mode"
+            text += " -> re-created empty with the channel's size and a safe mode (docs/operator.md)"
             if self.users:
                 text += f"; restart the processes that still map the old file: pids {' '.join(map(str, self.users))}"
         return text
@@ -304,6 +317,9 @@ def _rebuild(m: _Mapped) -> tuple[int, int]:
 
 def _examine(name: str, timeout: float, fix: bool) -> Report:
     """Check one channel; with ``fix`` repair a dirty one in place while holding its lock."""
+    unsafe = channel_access.path_problem(name)
+    if unsafe is not None:  # never lock or rewrite a file another user controls
+        return Report(name, UNSAFE, unsafe)
     try:
         m = _Mapped(name)
     except FileNotFoundError:
@@ -344,7 +360,7 @@ def repair(name: str, timeout: float = LOCK_TIMEOUT, recreate: bool = False) -> 
     are left alone unless ``recreate`` is given; a channel locked by a live process is only reported."""
     ach.validate_name(name)
     report = _examine(name, timeout, fix=not recreate)
-    if report.state == BROKEN or (recreate and report.state in (OK, CORRUPT)):
+    if report.state == BROKEN or (recreate and report.state in (OK, CORRUPT, UNSAFE)):
         return _recreate(name, report)
     return report
 
@@ -366,13 +382,22 @@ def _geometry(name: str) -> tuple[int, int, int, int, int]:
 
 
 def _recreate(name: str, report: Report) -> Report:
-    count, size, mode, uid, gid = _geometry(name)
+    """Replace the file with an empty channel: same geometry, mode (never looser than the channel's, see
+    ``channel_access``), owner and group; an untrusted file's geometry, owner and group are not kept (MDS
+    sizes, the new file belongs to us)."""
+    if report.state == UNSAFE:
+        count, size = mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE
+        mode, owner = channel_access.channel_mode(name), None
+    else:
+        count, size, mode, uid, gid = _geometry(name)
+        mode, owner = channel_access.channel_mode(name, mode & channel_access.CHANNEL_MODE), (uid, gid)
     holders = users(name)
     ach.create(name, count, size, mode=mode, truncate=True)  # atomic replace; old mappings keep the old memory
-    try:
-        os.chown(ach.shm_path(name), uid, gid)
-    except OSError:
-        pass  # not ours to give away: the new file belongs to us
+    if owner is not None:
+        try:
+            os.chown(ach.shm_path(name), *owner)
+        except OSError:
+            pass  # not ours to give away: the new file belongs to us
     return Report(name, OK, report.detail or report.state, "re-created", users=holders)
 
 
@@ -416,6 +441,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         reports = scan(args.names or None, args.timeout, fix=not args.check, recreate=args.recreate)
     except ach.AchException as exc:
+        if exc.status == ach.ACH_EACCES:  # e.g. replacing another user's file in the sticky /dev/shm
+            print(f"mds-ach repair: {exc}; run it as root (or as the file's owner)", file=sys.stderr)
+            return 1
         print(f"mds-ach repair: {exc}", file=sys.stderr)
         return 2
     if not reports:

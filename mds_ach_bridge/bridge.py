@@ -73,7 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
 
+    from mds_ach import channel_access
     from mds_ach_bridge.node import BridgeNode
+
+    channel_access.enforce_in_this_process()  # a node of the stack: refuse channel files another user planted
 
     # The state thread must get the GIL back quickly when a frame arrives while a callback runs
     # (the default switch interval is 5 ms, longer than the whole latency budget).

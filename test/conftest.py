@@ -77,3 +77,28 @@ def ach_impl(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) ->
     elif not ach.FAST_AVAILABLE:
         pytest.skip("mds_ach._achfast is not built here (no C compiler); test_ach_fast.py reports why")
     return request.param
+
+
+NOBODY = 65534  # uid and gid of user nobody / group nogroup
+
+
+def run_as(uid: int, gid: int, func: Callable[[], int], groups: tuple[int, ...] = ()) -> int:
+    """Run ``func`` in a forked child as another user (we are root in the test namespace); its return value,
+    or 1 after printing the traceback, is the exit status returned here. A fork, not a new interpreter:
+    the venv's Python lives under /root, which other users cannot execute."""
+    import traceback
+
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            os.setgroups(list(groups))
+            os.setgid(gid)
+            os.setuid(uid)
+            code = int(func())
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status)

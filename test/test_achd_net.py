@@ -14,6 +14,7 @@ import ctypes
 import json
 import math
 import os
+import select
 import socket
 import subprocess
 from pathlib import Path
@@ -248,6 +249,144 @@ def test_period_limits_rate_and_newest_wins(server):
     finally:
         link.stop()
         link.join(5)
+
+
+# --------------------------------------------------------------------------------------------------
+# Admission limits and idle connections (addresses on this namespace's loopback device)
+# --------------------------------------------------------------------------------------------------
+
+SERVER_IP, ATTACKER_IP, OTHER_IP = "10.78.0.1", "10.78.0.2", "10.78.0.3"  # not loopback addresses
+
+
+@pytest.fixture
+def lan_addresses(clean_shm):
+    """Three non-loopback addresses on ``lo`` (private namespace), so one test process can be several peers."""
+    _need_netns()
+    for address in (SERVER_IP, ATTACKER_IP, OTHER_IP):
+        subprocess.run(["ip", "addr", "add", f"{address}/32", "dev", "lo"], check=True, capture_output=True)
+    yield
+    for address in (SERVER_IP, ATTACKER_IP, OTHER_IP):
+        subprocess.run(["ip", "addr", "del", f"{address}/32", "dev", "lo"], capture_output=True)
+
+
+def _session_from(source: str, host: str, port: int, request: bytes) -> tuple[socket.socket, ap.Headers]:
+    """A bare client connecting from ``source``: send ``request``, read the response headers."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.settimeout(5)
+    sock.bind((source, 0))
+    sock.connect((host, port))
+    sock.sendall(request)
+    headers, _ = achd._read_headers(sock, 5.0)
+    return sock, headers
+
+
+def _closed_by_server(sock: socket.socket) -> bool:
+    readable, _, _ = select.select([sock], [], [], 0)
+    return bool(readable) and sock.recv(4096) == b""
+
+
+def test_idle_connections_from_one_peer_lock_out_neither_another_peer_nor_the_operator(lan_addresses):
+    for name in ("test-idle", "mds-ref-filter", "test-state"):
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("0.0.0.0",), 0, policy=achd.AccessPolicy(writable=("mds-ref-filter",))).start()
+    port = srv.ports[0]
+    held, refused = [], 0
+    operator = achd.Link("pull", "127.0.0.1", "test-state", remote_channel="test-idle", port=port)
+    try:
+        for _ in range(1000):  # each asks to pull a channel nobody writes, then sits idle
+            sock, headers = _session_from(ATTACKER_IP, SERVER_IP, port, ap.encode_request("test-idle", "tcp", "push"))
+            if headers.status == ap.ACH_OK:
+                held.append(sock)
+                continue
+            assert headers.status == ap.ACH_EAGAIN and f"too many connections from {ATTACKER_IP}" in headers.message
+            refused += 1
+            sock.close()
+        assert (len(held), refused) == (achd.MAX_PER_PEER, 1000 - achd.MAX_PER_PEER)
+        # another peer still gets in, and its reference is written
+        other, headers = _session_from(OTHER_IP, SERVER_IP, port, ap.encode_request("mds-ref-filter", "tcp", "pull"))
+        assert headers.status == ap.ACH_OK, headers.message
+        other.sendall(ap.encode_frame(bytes(_ref(-0.25))))
+        wait_for(lambda: [msgs.MDS_REF.from_bytes(f).joint[mds.LSP].ref for f in _frames("mds-ref-filter")]
+                 == [-0.25], 5, what="the other peer's reference written")
+        # and so does the operator on loopback (local tools, SSH tunnels)
+        operator.start()
+        assert operator.connected.wait(5), operator.stats.last_error
+        assert srv.connections() == {"local": 1, "remote": achd.MAX_PER_PEER + 1, ATTACKER_IP: achd.MAX_PER_PEER,
+                                     OTHER_IP: 1}
+        other.close()
+    finally:
+        operator.stop()
+        operator.join(5)
+        for sock in held:
+            sock.close()
+        srv.stop()
+        srv.join()
+
+
+def test_idle_connections_are_closed_and_busy_ones_kept(lan_addresses):
+    for name in ("test-idle", "mds-ref-filter"):
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("0.0.0.0",), 0, policy=achd.AccessPolicy(writable=("mds-ref-filter",)),
+                      idle_timeout_s=1.0).start()
+    port = srv.ports[0]
+    idle = [_session_from(ATTACKER_IP, SERVER_IP, port, ap.encode_request("test-idle", "tcp", "push"))[0]
+            for _ in range(achd.MAX_PER_PEER)]
+    busy, headers = _session_from(OTHER_IP, SERVER_IP, port, ap.encode_request("mds-ref-filter", "tcp", "pull"))
+    assert headers.status == ap.ACH_OK
+    try:
+        value = 0.0
+
+        def idle_closed_while_busy() -> bool:
+            nonlocal value
+            value += 0.01  # the busy peer keeps sending while we wait
+            busy.sendall(ap.encode_frame(bytes(_ref(value))))
+            return srv.idle_closed == achd.MAX_PER_PEER
+
+        wait_for(idle_closed_while_busy, 10, interval=0.2, what="the idle connections closed by the server")
+        wait_for(lambda: all(_closed_by_server(s) for s in idle), 5, what="EOF on every idle connection")
+        assert srv.connections() == {"local": 0, "remote": 1, OTHER_IP: 1}, "the busy connection stays"
+        busy.sendall(ap.encode_frame(bytes(_ref(-0.5))))
+        wait_for(lambda: msgs.MDS_REF.from_bytes(_frames("mds-ref-filter")[-1]).joint[mds.LSP].ref == -0.5, 5,
+                 what="the busy peer's newest reference")
+        again, headers = _session_from(ATTACKER_IP, SERVER_IP, port, ap.encode_request("test-idle", "tcp", "push"))
+        assert headers.status == ap.ACH_OK, "closed idle connections free their slots"
+        again.close()
+    finally:
+        busy.close()
+        for sock in idle:
+            sock.close()
+        srv.stop()
+        srv.join()
+
+
+def test_an_idle_close_does_not_replay_an_old_reference(clean_shm):
+    """The server closes a quiet pushing link as idle; the client reconnects and must not re-send its last
+    frame (certainly delivered long ago) over a newer one written on the robot meanwhile."""
+    _need_netns()
+    for name in ("test-src", "test-dst"):
+        ach.create(name, 10, 64)
+    srv = achd.Server(("127.0.0.1",), 0, policy=achd.AccessPolicy(writable=("test-dst",)), idle_timeout_s=2.0).start()
+    link = achd.Link("push", "127.0.0.1", "test-src", remote_channel="test-dst", port=srv.ports[0],
+                     dead_after_s=1.0).start()
+    src, dst = ach.Channel("test-src"), ach.Channel("test-dst")
+    try:
+        assert link.connected.wait(5)
+        src.put(b"operator-old")
+        wait_for(lambda: _frames("test-dst")[-1:] == [b"operator-old"], 5, what="the operator's frame")
+        dst.put(b"robot-newer")  # e.g. the robot's own console, on the same mux input
+        wait_for(lambda: srv.idle_closed >= 1 and link.stats.connects >= 2 and link.connected.is_set(), 15,
+                 what="idle close and reconnect")
+        src.put(b"operator-next")
+        wait_for(lambda: _frames("test-dst")[-1:] == [b"operator-next"], 5, what="the next frame")
+        frames = _frames("test-dst")
+        assert frames[frames.index(b"robot-newer"):] == [b"robot-newer", b"operator-next"], frames
+    finally:
+        link.stop()
+        link.join(5)
+        srv.stop()
+        srv.join()
+        src.close()
+        dst.close()
 
 
 # --------------------------------------------------------------------------------------------------

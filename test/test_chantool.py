@@ -12,10 +12,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import VENV_BIN
+from conftest import NOBODY, VENV_BIN, run_as
 
 import mds_ach as mds
-from mds_ach import ach, cli
+from mds_ach import ach, channel_access, cli
 from mds_ach.channels import make_channels, remove_channels
 from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE, set_name
 
@@ -48,7 +48,7 @@ def test_make_creates_every_channel(run) -> None:
     rc, out, err = run("make")
     assert (rc, err) == (0, "")
     for name in mds.ALL_CHANNELS:
-        assert mode_of(name) == 0o660
+        assert mode_of(name) == (0o640 if name == mds.MDS_CHAN_DAEMON_INPUT_NAME else 0o660)
         with ach.Channel(name, create=False) as ch:
             assert (ch.frame_count, ch.frame_size) == (10, 3000)
         assert f"{name} " in out
@@ -67,7 +67,7 @@ def test_make_keeps_existing_channels(run) -> None:
 
 
 def test_make_reports_wrong_geometry(run) -> None:
-    ach.create(mds.MDS_CHAN_REF_NAME, 16, 512)
+    ach.create(mds.MDS_CHAN_REF_NAME, 16, 512, mode=0o640)
     rc, out, err = run("make")
     assert rc == 1
     assert "mds-ref" in err and "16 x 512" in err and "mds-ach rm mds-ref" in err
@@ -78,6 +78,7 @@ def test_make_reports_wrong_geometry(run) -> None:
 
 def test_make_reports_non_ach_file(run) -> None:
     Path(ach.shm_path(mds.MDS_CHAN_IK_NAME)).write_bytes(b"not a channel")
+    os.chmod(ach.shm_path(mds.MDS_CHAN_IK_NAME), 0o660)  # ours, not too open: only its content is wrong
     rc, _, err = run("make")
     assert rc == 1
     assert "mds-ik" in err and "ACH_BAD_SHM_FILE" in err
@@ -105,6 +106,67 @@ def test_make_refuses_world_writable_and_unknown_group(run) -> None:
     assert rc == 1 and "no such group" in err
     assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
     assert run("make", "--mode", "8")[0] == 2  # not octal: usage error
+
+
+def plant_channels(mode: int = 0o666, names: tuple[str, ...] = mds.ALL_CHANNELS) -> None:
+    """What the adversarial run did: user nobody creates the stack's channels first, world-writable."""
+    def plant() -> int:
+        for name in names:
+            ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=mode)
+        return 0
+
+    assert run_as(NOBODY, NOBODY, plant) == 0
+    assert all(os.stat(ach.shm_path(n)).st_uid == NOBODY for n in names)
+
+
+def test_make_and_repair_refuse_channels_another_user_planted(run) -> None:
+    plant_channels()
+    rc, out, err = run("make")
+    assert rc == 1
+    for name in mds.ALL_CHANNELS:
+        assert f"channel '{name}': /dev/shm/achshm-{name} is owned by uid {NOBODY} (nobody), not by the stack's " \
+               f"user (uid 0 (root)) or root" in err
+        assert f"mds-ach repair --recreate {name} (as root if another user owns the file" in err
+    rc, out, err = run("repair", "--check")
+    assert rc == 1 and "ok " not in out
+    assert all(f"{name:<20} unsafe" in err for name in mds.ALL_CHANNELS), err
+    rc, out, err = run("repair", "--recreate", *mds.ALL_CHANNELS)
+    assert rc == 0, err
+    for name in mds.ALL_CHANNELS:
+        st = os.stat(ach.shm_path(name))
+        assert (st.st_uid, st.st_mode & 0o777) == (0, channel_access.channel_mode(name)), name
+    assert run("make")[0] == 0 and run("repair", "--check")[0] == 0
+
+
+def test_make_refuses_an_open_mode_even_from_a_trusted_owner(run) -> None:
+    ach.create(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o660)
+    ach.create(mds.MDS_CHAN_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o664)
+    rc, _, err = run("make")
+    assert rc == 1
+    assert "achshm-mds-ref has mode 0660, which allows more than 0640 (extra bits 0020): only the stack may " \
+           "write the daemon's input" in err
+    assert "achshm-mds-state has mode 0664, which allows more than 0660 (extra bits 0004)" in err
+    rc, _, err = run("make", "--group", other_group().gr_name)
+    assert rc == 1 and f"not to the configured group {other_group().gr_gid}" in err
+
+
+def test_operators_can_write_controller_inputs_but_not_the_daemon_input(run) -> None:
+    assert run("make", "-q")[0] == 0
+    group = os.stat(ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME)).st_gid
+
+    def operator() -> int:  # a member of the channels' group, not the stack's user
+        for name in (mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_CHAN_IK_NAME, mds.MDS_CHAN_BOARD_CMD_NAME,
+                     mds.MDS_CHAN_STATE_NAME):
+            ach.Channel(name, create=False).close()
+        try:
+            ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, create=False)
+        except ach.AchException as exc:
+            return 0 if exc.status == ach.ACH_EACCES else 3
+        return 4  # opened (read-write) the daemon's input
+
+    assert run_as(NOBODY, NOBODY, operator, groups=(group,)) == 0
+    assert run_as(NOBODY, NOBODY, lambda: 0 if not os.access(ach.shm_path(mds.MDS_CHAN_STATE_NAME), os.W_OK) else 5) \
+        == 0, "other users get nothing"
 
 
 def test_make_channels_api(clean_shm: None) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -13,14 +14,14 @@ from unittest import mock
 
 import numpy as np
 import pytest
-from conftest import VENV_BIN, remove_mds_channels
+from conftest import VENV_BIN, remove_mds_channels, wait_for
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mds_system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, running_system
+from mds_system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, mds_ach, running_system
 from pty_session import PtySession
 
 import mds_ach as mds
-from mds_ach import console
+from mds_ach import ach, console
 from mds_ach.console import CommandError, Get, GetFk, Goto, Ik, Simple, parse
 
 # --------------------------------------------------------------------------------------------- parser
@@ -133,6 +134,53 @@ def test_console_never_crashes_on_random_lines(fake_system: None, line: str) -> 
     assert ok in (True, False)
     if not ok:
         assert out and out[0].strip(), "a failure must say what was wrong"
+
+
+def test_goto_is_reported_applied_only_when_the_mux_output_has_it(fake_system: None) -> None:
+    """The mux takes only changes: a goto to the value mds-ref-filter already holds, after another controller
+    moved the joint, changes nothing, and the console must say so instead of reporting success."""
+    import threading
+
+    from mds_ach.channels import StructChannel
+    from mds_ach.mux import MuxRunner, load_config
+    from mds_ach.pipeline import make_ref, ref_arrays
+
+    cfg = load_config()
+    logs: list[str] = []
+    runner = MuxRunner(cfg["controllers"], cfg["state_rate"], log=lambda level, msg: logs.append(msg))
+    thread = threading.Thread(target=runner.run, daemon=True)
+    thread.start()
+    out: list[str] = []
+    con = console.Console(out=out.append, err=out.append, progress=lambda: None)
+    try:
+        assert runner.ready.wait(10), logs
+        lsp = mds.BY_SHORT["LSP"].address
+        assert con.run_line("goto LSP -0.3"), out
+        assert out[-1] == "LSP -> -0.30000 rad (sent to mds-ref-filter)"
+        with StructChannel(mds.MDS_CHAN_REF_IK_NAME, mds.MDS_REF) as ik:  # the IK controller moves LSP
+            ref, mode = ref_arrays(_newest_mux_output())
+            ref[lsp] = -0.1
+            ik.put(make_ref(ref, mode))
+        wait_for(lambda: _newest_mux_output().joint[lsp].ref == -0.1, 5, what="the IK frame applied")
+        ik_index = [c.name for c in cfg["controllers"]].index("ik")
+        wait_for(lambda: runner.core.stale(ik_index, time.monotonic()) and runner.core.owner[lsp] != ik_index, 10,
+                 what="the IK controller stale, LSP released")
+        out.clear()
+        assert not con.run_line("goto LSP -0.3")
+        assert "not applied: the mux output (mds-ref-mux) keeps LSP at -0.10000 (target -0.30000)" in out[0], out
+        assert con.run_line("goto LSP -0.29"), out  # a change is taken again
+    finally:
+        con.close()
+        runner.stop()
+        thread.join(5)
+
+
+def _newest_mux_output() -> mds.MDS_REF:
+    from mds_system import newest
+
+    frame = newest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
+    assert frame is not None
+    return frame
 
 
 def test_without_a_system_commands_fail_with_a_clear_message() -> None:
@@ -305,6 +353,41 @@ def test_console_reads_commands_from_a_pipe(system: dict[str, str]) -> None:
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "6DOF FK - for  left  arm" in proc.stdout and "LEP  State =" in proc.stdout
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rfind(")") + 2] != "Z"
+
+
+@pytest.mark.slow
+def test_commands_are_not_applied_while_the_mux_is_down(system: dict[str, str]) -> None:
+    """The adversarial run: 80 console commands "succeeded" with the mux dead, and not one MOVETO was sent."""
+    mux_pid = int((Path(system["MDS_ACH_RUNTIME_DIR"]) / "mux.pid").read_text())
+    with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan:
+        sent_before = chan.last_seq
+    before = [joint_ref(s) for s in ("LSP", "LEP", "RSP")]
+    os.kill(mux_pid, signal.SIGKILL)
+    try:
+        wait_for(lambda: not _alive(mux_pid), 10, what="mux gone")
+        for command in ("goto LSP -0.2", "ik left 3 0.3 0.2 0.0", "goto LSP -0.2 wait"):
+            proc = run_console(system, command, timeout=90)
+            assert proc.returncode == 1, f"{command}: {proc.stdout} {proc.stderr}"
+            assert "not applied: mux not running (no new frame on mds-mux-state within 1 s); start it: " \
+                   "mds-ach start --only mux; nothing sent" in proc.stderr, proc.stderr
+            assert "->" not in proc.stdout and "solved" not in proc.stdout, proc.stdout
+        with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan:
+            assert chan.last_seq == sent_before, "nothing was written for the mux to find later"
+        assert [joint_ref(s) for s in ("LSP", "LEP", "RSP")] == before, "nothing moved"
+    finally:
+        restart = mds_ach("start", "--only", "mux", "--timeout", "120", env=system, timeout=200)
+        assert restart.returncode == 0, restart.stdout + restart.stderr
+    proc = run_console(system, "goto LSP -0.2 wait")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "LSP -> -0.20000 rad (sent to mds-ref-filter)" in proc.stdout and abs(joint_pos("LSP") + 0.2) < 0.011
 
 
 def test_console_does_not_import_torch(fake_system: None) -> None:

@@ -36,7 +36,7 @@ import pytest
 from conftest import VENV_BIN, in_netns, remove_mds_channels, wait_for
 
 import mds_ach as mds
-from mds_ach import ach, canio, config, mcb, repair
+from mds_ach import ach, canio, channel_access, config, mcb, repair
 from mds_ach import daemon_status as ds
 from mds_ach.channels import StructChannel
 from mds_ach.daemon_loop import DaemonChannels, DaemonLoop
@@ -253,8 +253,8 @@ def without_sync(name: str) -> bytes:
 
 def test_repair_leaves_healthy_channels_byte_identical(clean_shm: None) -> None:
     names = list(mds.ALL_CHANNELS)
-    for name in names:
-        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    for name in names:  # as 'mds-ach make' does (mds-ref 0640: a looser one is reported unsafe)
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=channel_access.channel_mode(name))
     with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as st, \
             ach.Channel(mds.MDS_CHAN_REF_NAME, create=False) as ref:
         for k in range(13):

@@ -11,11 +11,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import REPO, VENV_BIN, in_netns, remove_mds_channels, wait_for
+from conftest import NOBODY, REPO, VENV_BIN, in_netns, remove_mds_channels, run_as, wait_for
 from mds_system import mds_ach, newest, running_system, system_env
 
 import mds_ach as mds
-from mds_ach import ach
+from mds_ach import ach, repair
 from mds_ach.config import load
 from mds_ach.daemon_status import MDS_DAEMON_STATUS
 from mds_ach.launcher import NODES, node_command
@@ -98,6 +98,91 @@ def test_resetbus_without_a_system_fails_clearly(clean_shm: None, tmp_path: Path
     proc = mds_ach("resetbus", env=system_env(tmp_path))
     assert proc.returncode == 1 and "is the system started?" in proc.stderr
     assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)
+
+
+def _plant(names: tuple[str, ...] = mds.ALL_CHANNELS) -> None:
+    """User nobody creates channels of the stack before it starts, world-writable (the adversarial run)."""
+    def plant() -> int:
+        for name in names:
+            ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o666)
+        return 0
+
+    assert run_as(NOBODY, NOBODY, plant) == 0
+
+
+def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: Path) -> None:
+    _plant()
+    proc = mds_ach("start", "nocan", env=system_env(tmp_path), timeout=120)
+    assert proc.returncode == 1
+    assert "refusing to start, channel problems:" in proc.stderr
+    for name in mds.ALL_CHANNELS:
+        assert f"{name}: /dev/shm/achshm-{name} is owned by uid {NOBODY} (nobody)" in proc.stderr
+        assert f"mds-ach repair --recreate {name}" in proc.stderr
+    assert "started" not in proc.stdout, "no node was started"
+    assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
+
+
+def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path) -> None:
+    """Started by hand (not through 'mds-ach start', which checks first), a node still refuses the file."""
+    _plant((mds.MDS_CHAN_DAEMON_INPUT_NAME,))
+    env = system_env(tmp_path)
+    daemon = subprocess.run([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--duration", "30"], env=env,
+                            capture_output=True, text=True, timeout=120)
+    assert daemon.returncode == 2, daemon.stderr
+    assert f"refusing channel 'mds-ref': /dev/shm/achshm-mds-ref is owned by uid {NOBODY}" in daemon.stderr
+    assert "mds-ach repair --recreate mds-ref" in daemon.stderr
+    mux = subprocess.run([str(VENV_BIN / "mux")], env=env, capture_output=True, text=True, timeout=120)
+    assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref for its start reference
+    assert "refusing channel 'mds-ref'" in mux.stdout + mux.stderr
+    assert os.stat(ach.shm_path(mds.MDS_CHAN_DAEMON_INPUT_NAME)).st_uid == NOBODY, "the file was left alone"
+
+
+def _damage(how: str) -> None:
+    path = Path(ach.shm_path(mds.MDS_CHAN_STATE_NAME))
+    if how == "corrupt":  # a writer died inside a put: the dirty flag stays set
+        m = repair._Mapped(mds.MDS_CHAN_STATE_NAME)
+        m.dirty = 1
+        m.close()
+    elif how == "truncated":
+        os.truncate(path, 20000)
+    elif how == "not an Ach file":
+        path.write_bytes(b"\0" * 100)
+    elif how == "wrong size":
+        path.unlink()
+        ach.create(mds.MDS_CHAN_STATE_NAME, 16, 512)
+
+
+@pytest.mark.parametrize(("how", "expected"), [
+    ("corrupt", "mds-state: corrupt: a writer died inside a put .*; repair it in place: mds-ach repair mds-state$"),
+    ("truncated", "mds-state: broken: .*truncated.*; mds-ach repair mds-state re-creates it; then restart the nodes "
+                  "that use it$"),
+    ("not an Ach file", "mds-state: broken: ACH_BAD_SHM_FILE.*; mds-ach repair mds-state re-creates it"),
+    ("wrong size", r"mds-state: exists as 16 x 512 B, expected 10 x 3000 B; remove it \(mds-ach rm mds-state\)"),
+], ids=["corrupt", "truncated", "not-ach", "wrong-size"])
+def test_status_reports_a_damaged_state_channel_with_the_fix(clean_shm: None, tmp_path: Path, how: str,
+                                                             expected: str) -> None:
+    env = system_env(tmp_path)
+    assert mds_ach("make", "-q", env=env).returncode == 0
+    _damage(how)
+    proc = mds_ach("status", "--window", "0.2", env=env)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert re.search(r"^channel\s+" + expected, proc.stdout, re.M), proc.stdout
+    assert re.search(r"^state\s+unreadable", proc.stdout, re.M), proc.stdout
+    assert re.search(r"^\s+daemon\s+stopped$", proc.stdout, re.M), "the rest of the report is still there"
+
+
+def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: Path) -> None:
+    env = system_env(tmp_path)
+    assert mds_ach("make", "-q", env=env).returncode == 0
+    proc = mds_ach("status", "--window", "0.1", env=env)
+    assert proc.returncode == 3 and re.search(r"^channels\s+ok \(14\)$", proc.stdout, re.M), proc.stdout
+    ach.unlink(mds.MDS_CHAN_BOARD_CMD_NAME)
+    _plant((mds.MDS_CHAN_BOARD_CMD_NAME,))
+    proc = mds_ach("status", "--window", "0.1", env=env)
+    assert proc.returncode == 1
+    assert re.search(rf"^channel\s+mds-cmd: unsafe: /dev/shm/achshm-mds-cmd is owned by uid {NOBODY} .*"
+                     r"mds-ach repair --recreate mds-cmd", proc.stdout, re.M), proc.stdout
 
 
 @pytest.mark.slow
@@ -196,6 +281,22 @@ def test_read_once_against_the_running_system(system: dict[str, str]) -> None:
     assert {r[0] for r in rows} >= {"LSP", "LEP", "RSP", "WST", "NKY"}
     assert all(r[3] == "yes" for r in rows), "every enabled simulated node answers"
     assert all(abs(float(r[1]) - float(r[2])) < 0.01 for r in rows), "at rest the joints sit at their reference"
+
+
+@pytest.mark.slow
+def test_an_operator_cannot_open_the_daemon_input_of_a_running_system(system: dict[str, str]) -> None:
+    group = os.stat(ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME)).st_gid
+
+    def operator() -> int:  # in the channels' group: may command through the pipeline, not around it
+        ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False).close()
+        try:
+            ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, create=False)
+        except ach.AchException as exc:
+            return 0 if exc.status == ach.ACH_EACCES else 3
+        return 4
+
+    assert run_as(NOBODY, NOBODY, operator, groups=(group,)) == 0
+    assert os.stat(ach.shm_path(mds.MDS_CHAN_DAEMON_INPUT_NAME)).st_mode & 0o777 == 0o640
 
 
 @pytest.mark.slow

@@ -1,0 +1,136 @@
+"""Which channel files the stack trusts, and the mode each MDS channel gets (who may write it).
+
+Why: ``/dev/shm`` is world-writable (mode 1777). Any local user can create ``/dev/shm/achshm-mds-ref`` before
+the stack starts, mode 0666, and a stack that merely opens "an existing channel of the right size" would then
+execute references that user writes, obey its ``mds-cmd`` commands, and die when it truncates ``mds-state``.
+So the stack (``mds-ach make``/``start``, the daemon and the pipeline nodes) accepts a channel file only when
+
+* it is a regular file owned by the stack's user (the user running the stack: ``os.geteuid()``) or root.
+  Only the owner can change a file's mode or group, and the sticky bit of ``/dev/shm`` stops everybody else
+  from removing or replacing it;
+* its permission bits give nobody more than the channel's mode: ``CHANNEL_MODE`` (0660: the stack's user and
+  the channels' group, i.e. the operators, read and write) except ``STACK_ONLY`` channels, the daemon's input,
+  which get 0640: only the stack's user writes what the daemon executes. Ach readers open a channel read-write
+  (they take its mutex), so group members cannot open a 0640 channel at all;
+* when a group is configured (``mds-ach make --group``), it belongs to that group.
+
+A refused file is re-created by ``mds-ach repair --recreate NAME`` (as root when another user owns it: the
+sticky bit keeps the stack's user from removing it). Operator clients (console, read, examples) do not check
+ownership: they run as other users, and the stack, not the client, is the safety boundary.
+"""
+
+from __future__ import annotations
+
+import os
+import pwd
+import stat
+
+import mds_ach as mds
+from mds_ach import ach
+
+CHANNEL_MODE = 0o660
+"""Owner and group read-write: the stack's user runs the nodes, the channels' group the operator clients."""
+DAEMON_INPUT = mds.MDS_CHAN_DAEMON_INPUT_NAME
+STACK_ONLY: frozenset[str] = frozenset({DAEMON_INPUT})
+"""Channels only the stack's own processes may write: group write is removed from their mode."""
+
+_enforced = False
+
+
+class UntrustedChannelError(ValueError):
+    """A channel file the stack must not use (wrong owner, mode or group); the message says how to fix it."""
+
+
+def recreate_hint(name: str) -> str:
+    return (f"re-create it: mds-ach repair --recreate {name} (as root if another user owns the file: "
+            "/dev/shm's sticky bit keeps you from removing it)")
+
+
+def channel_mode(name: str, mode: int = CHANNEL_MODE) -> int:
+    """The mode channel ``name`` is created with when ``mode`` is configured: no group/other write on
+    ``STACK_ONLY`` channels (0660 -> 0640)."""
+    return mode & ~0o022 if name in STACK_ONLY else mode
+
+
+def check_configured_mode(mode: int) -> None:
+    """Refuse a configured mode that gives more than ``CHANNEL_MODE`` (it may only restrict it, e.g. 0600)."""
+    extra = mode & ~CHANNEL_MODE
+    if extra:
+        what = "world-writable" if extra & 0o002 else "beyond owner and group read-write"
+        raise ValueError(f"mode {mode:04o} is {what} (bits {extra:04o}); Ach channels get at most "
+                         f"{CHANNEL_MODE:04o}: give operators access with a group (--group) instead")
+
+
+def trusted_owners() -> set[int]:
+    """The stack's user (whoever runs this process) and root."""
+    return {os.geteuid(), 0}
+
+
+def _user(uid: int) -> str:
+    try:
+        return f"uid {uid} ({pwd.getpwuid(uid).pw_name})"
+    except KeyError:
+        return f"uid {uid}"
+
+
+def problem(name: str, st: os.stat_result, mode: int = CHANNEL_MODE, gid: int | None = None) -> str | None:
+    """Why the stack must not use channel ``name`` whose file has status ``st``, or None when it may.
+
+    ``mode`` is the configured channel mode (``channel_mode`` narrows it for ``STACK_ONLY`` channels), ``gid``
+    the configured group (None: any group of the owner's choosing).
+    """
+    if not stat.S_ISREG(st.st_mode):
+        return f"{ach.shm_path(name)} is not a regular file"
+    owners = trusted_owners()
+    if st.st_uid not in owners:
+        me = _user(os.geteuid())
+        return (f"{ach.shm_path(name)} is owned by {_user(st.st_uid)}, not by the stack's user ({me}) or root: "
+                "another user created it and can write or truncate it")
+    allowed = channel_mode(name, mode)
+    extra = st.st_mode & 0o777 & ~allowed
+    if extra:
+        return (f"{ach.shm_path(name)} has mode {st.st_mode & 0o777:04o}, which allows more than {allowed:04o} "
+                f"(extra bits {extra:04o})" + (": only the stack may write the daemon's input" if
+                                             name in STACK_ONLY and extra & 0o020 else ""))
+    if gid is not None and st.st_gid != gid:
+        return f"{ach.shm_path(name)} belongs to group {st.st_gid}, not to the configured group {gid}"
+    return None
+
+
+def path_problem(name: str, mode: int = CHANNEL_MODE, gid: int | None = None) -> str | None:
+    """``problem`` for the file at the channel's path (not following a symlink); None if it does not exist."""
+    try:
+        st = os.lstat(ach.shm_path(name))
+    except FileNotFoundError:
+        return None
+    return problem(name, st, mode, gid)
+
+
+def require_trusted(chan: ach.Channel) -> None:
+    """Raise ``UntrustedChannelError`` unless the file behind the open handle ``chan`` is one the stack may use.
+
+    Checks the open file (fstat), and that the path still names that same file (not a symlink to it)."""
+    st = os.fstat(chan.fileno())
+    why = problem(chan.name, st)
+    if why is None:
+        try:
+            at_path = os.lstat(ach.shm_path(chan.name))
+        except FileNotFoundError:
+            at_path = None
+        if at_path is None or (at_path.st_dev, at_path.st_ino) != (st.st_dev, st.st_ino):
+            why = f"{ach.shm_path(chan.name)} was replaced or removed while it was being opened"
+    if why is not None:
+        raise UntrustedChannelError(f"refusing channel '{chan.name}': {why}; {recreate_hint(chan.name)}")
+
+
+def enforce_in_this_process() -> None:
+    """Declare this process part of the stack: from now on ``StructChannel`` refuses untrusted channel files.
+
+    Called once at start by every node's ``main`` (``pipeline.run_node``, the daemon, the bridge); clients never
+    call it."""
+    global _enforced
+    _enforced = True
+
+
+def enforced() -> bool:
+    return _enforced
