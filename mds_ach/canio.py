@@ -122,6 +122,11 @@ class LogReadError(ValueError):
     """A log that cannot be read; the message names the file and what is wrong."""
 
 
+class TornLogError(LogReadError):
+    """Raised after the last complete frame when only the file's final line is incomplete: what a recorder killed
+    mid-write (a SIGKILLed daemon) leaves. Every frame before it was delivered."""
+
+
 # A frame line of the original MDS-Ach daemon's text dump (shared/mds-reference/can/logs): time stamp in ms with
 # a C 'l' suffix, node, the vendor parser's text, the 8 bytes printed data[7] -> data[0], the CAN ID in hex.
 _DUMP_LINE = re.compile(r"^(\d+)l\t.*\t\[((?: [0-9a-fA-F]{2}){8}) \]\t([0-9a-fA-F]+)\s*$")
@@ -169,9 +174,21 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
             count += 1
             yield msg
     except Exception as exc:
+        rest = _unread(reader)
+        if rest is not None and not rest.strip():
+            raise TornLogError(f"{path}: the last line is incomplete after frame {count} (a recorder stopped "
+                               "mid-write?)") from None
         raise LogReadError(f"{path}: damaged after frame {count}: {type(exc).__name__}: {exc}") from None
     finally:
         reader.stop()
+
+
+def _unread(reader: can.io.generic.MessageReader) -> str | bytes | None:
+    """What follows the line a text reader failed on (None when that cannot be known)."""
+    try:
+        return reader.file.read()
+    except Exception:  # binary readers, closed or unseekable files
+        return None
 
 
 def _read_mds_dump(path: Path) -> Iterator[can.Message]:

@@ -36,12 +36,13 @@ import math
 import statistics
 import sys
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
 
 from mds_ach import canio, mcb, motion
@@ -131,9 +132,19 @@ class Report:
 
 def infer_period(path: str | Path) -> tuple[float | None, int]:
     """(median interval of the broadcast position queries, number of queries); None below two queries."""
-    times = [m.timestamp for m in canio.read_log(path) if _is_position_query(m)]
+    times = [m.timestamp for m in _read(path) if _is_position_query(m)]
     intervals = [b - a for a, b in zip(times, times[1:], strict=False) if b > a]
     return (statistics.median(intervals) if intervals else None), len(times)
+
+
+def _read(path: str | Path, torn: list[str] | None = None) -> Iterator[can.Message]:
+    """``canio.read_log``, except that an incomplete last line (a recorder killed mid-write) ends the log, noted
+    in ``torn``, instead of failing it."""
+    try:
+        yield from canio.read_log(path)
+    except canio.TornLogError as exc:
+        if torn is not None:
+            torn.append(str(exc))
 
 
 def _is_position_query(msg: Any) -> bool:
@@ -379,7 +390,8 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
                 max(STALE_PERIODS * report.period, MIN_STALE)
         auditor: _Auditor | None = None
         t = 0.0
-        for msg in canio.read_log(path):
+        torn: list[str] = []
+        for msg in _read(path, torn):
             t = msg.timestamp
             if auditor is None:
                 report.start_stamp = t
@@ -391,6 +403,8 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
             return report
         auditor.finish(t)
         report.duration = t - report.start_stamp
+        if torn:
+            report.warning = f"{torn[0]}: the frames before it are audited"
     except (canio.LogReadError, OSError) as exc:
         report.error = str(exc)
         return report
@@ -450,6 +464,8 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
                        "is not checked")
         if r.poses_checked:
             out.append(f"  commanded poses checked for collisions: {r.poses_checked}")
+    if r.warning:
+        out.append(f"  warning: {r.warning}")
     if r.error:
         out.append(f"  NOT AUDITED: {r.error}")
     counts = r.counts()

@@ -271,8 +271,8 @@ def test_without_a_period_the_motion_is_not_audited(tmp_path: Path) -> None:
     ("junk.asc", b"hello\nworld\n", "no CAN frames"),
     ("empty.log", b"", "no CAN frames"),
     ("capture.pcap", b"\xd4\xc3\xb2\xa1" + bytes(20), "unknown log format"),
-    ("torn.csv", b"timestamp,arbitration_id,extended,remote,error,dlc,data\n1.0,0x4c,0,0,0,8,AAIDBAUGBwg=\n2.0,0x4",
-     "damaged after frame 1"),
+    ("torn.csv", b"timestamp,arbitration_id,extended,remote,error,dlc,data\n1.0,0x4c,0,0,0,8,AAIDBAUGBwg=\n2.0,0x4\n"
+                 b"3.0,0x4c,0,0,0,8,AAIDBAUGBwg=\n", "damaged after frame 1"),
 ])
 def test_unreadable_logs_exit_2_naming_the_file(tmp_path: Path, name: str, content: bytes, message: str) -> None:
     path = tmp_path / name
@@ -286,6 +286,19 @@ def test_unreadable_logs_exit_2_naming_the_file(tmp_path: Path, name: str, conte
     assert out.returncode == 2
     assert "fine.asc" in out.stdout and "violations: none" in out.stdout and "missing.asc" in out.stdout
     assert f"2 file(s) not (completely) audited: {name}, missing.asc" in out.stdout
+
+
+def test_a_log_cut_off_mid_line_is_audited_up_to_there(tmp_path: Path) -> None:
+    """A daemon SIGKILLed while its recorder writes leaves a torn last line: a warning, not an unreadable log."""
+    data = violating_log().write(tmp_path / "bad.log").read_bytes()
+    (tmp_path / "cut.log").write_bytes(data[:data.rindex(b"\n", 0, -1) + 6])  # "(1764" of the last line
+    r = audit(tmp_path / "cut.log")
+    assert not r.error and "last line is incomplete" in r.warning and found(r) == EXPECTED
+    lines = data.decode().splitlines()
+    lines[len(lines) // 2] = "(garbage"
+    (tmp_path / "middle.log").write_text("\n".join(lines) + "\n")
+    r = audit(tmp_path / "middle.log")
+    assert "damaged after frame" in r.error
 
 
 def test_bad_options_exit_2(tmp_path: Path) -> None:
