@@ -10,20 +10,23 @@ upstream. Findings, each with the joint, the log time and the value against its 
   the table, or broadcast to every node;
 * ``speed``, ``acceleration``: :func:`mds_ach.motion.check` on every target, per joint, exactly the definition
   the daemon's limiter enforces;
-* ``collision`` (``--collisions``): the commanded pose (every joint's latest target) after a batch of targets
-  collides, with the collision gate's model and world file.
+* ``collision`` (``--collisions``): the commanded pose after a batch of targets collides, with the collision
+  gate's model and world file. A joint's entry is its latest target; before its first one, and after a HOME,
+  RESET, ZERO_ENCODER or ENABLE (the node holds wherever that leaves it), its measured position. The homing
+  search itself is not a target and is not checked.
 
 Tracks. A joint's sequence of targets is checked against the track of its previous target. A re-seed starts a
 track at the measured position, at rest (:meth:`mds_ach.motion.Track.reseed`): at the joint's first valid
-position reply, at the first valid reply after a HOME, RESET, ZERO_ENCODER or encoder SET to it (its count
-restarts), and when its valid replies resume after a gap longer than the stale window (3.5 periods, the daemon's
-``stale_after``). The daemon may re-seed at a slightly different moment than the log shows, so from a re-seed
-until the joint's next target every valid reply is a candidate start as well, and the next step passes if it is
-within bounds from any candidate: the last sent target, the first reply, or the latest one. Candidates that pass
-all stay in play (each is a history the daemon could have had); when none passes, the step is a violation, and
-the track restarts at that target at rest (a jump is reported once, not again as the stop after it). A
-reply is valid when it is finite and within the joint's range plus 0.1 rad (anything else is implausible and
-ignored, as the daemon ignores it).
+position reply, at the first valid reply after a HOME, RESET, ZERO_ENCODER, ENABLE or encoder SET to it (its
+count restarts, or it holds where it is), and when its valid replies resume after a gap longer than the stale
+window (3.5 periods, the daemon's ``stale_after``). The daemon may re-seed at a slightly different moment than
+the log shows, so from a re- seed until the joint's next target every valid reply is a candidate start as well,
+and the next step passes if it is within bounds from any candidate: the last sent target, the first reply, or the
+latest one. Candidates that pass all stay in play (each is a history the daemon could have had); when none
+passes, the step is a violation (against the candidate it breaks least) and the sequence goes on from that
+candidate, so every offending step is reported once: a jump and the stop right after it are two. A reply is valid
+when it is finite and within the joint's range plus 0.1 rad (anything else is implausible and ignored, as the
+daemon ignores it).
 
 The daemon period (for ``max_interval`` = 1.5 periods and the stale window) is the median interval of the
 broadcast position query, which the daemon sends once per cycle, or ``--rate``.
@@ -55,8 +58,9 @@ STALE_PERIODS = 3.5  # the daemon's stale_after (mds_ach.daemon_loop): 3.5 perio
 MIN_STALE = 0.02
 REPLY_MARGIN = 0.1  # rad beyond the joint's range: a position reply further out is implausible
 COUNT_TOLERANCE = 0.5  # counts: float32 rounding of a target at a limit is far below one encoder count
-# Commands after which a node's count restarts (or it moves by itself): the next valid reply re-seeds.
-_RESEED_COMMANDS = {Command.RESET: "RESET", Command.ZERO_ENCODER: "ZERO_ENCODER"}
+# Commands after which a node's count restarts or it holds where it is: the next valid reply re-seeds (HOME, a
+# SET of TRAJECTORY_MODE, and encoder SETs are handled with the SETs).
+_RESEED_COMMANDS = (Command.RESET, Command.ZERO_ENCODER, Command.ENABLE)
 
 
 @dataclass(frozen=True)
@@ -164,6 +168,7 @@ class _JointAudit:
     seeds: list[motion.Track] = field(default_factory=list)  # since a re-seed, until the next target: first, latest
     last_reply: float = -math.inf
     reseed_due: bool = False  # a command restarted the count: the next valid reply re-seeds
+    holding: bool = True  # no target since the start or a setup command: the node holds where it is
 
 
 class _Auditor:
@@ -220,8 +225,8 @@ class _Auditor:
             self.r.replies_ignored += 1
             return
         self.r.replies_valid += 1
-        if self.model is not None and not ja.sent:
-            self._set_pose(address, q)  # not commanded yet: the joint is commanded to stay where it is
+        if self.model is not None and ja.holding:
+            self._set_pose(address, q)  # no target to it (yet, or since HOME...): it is commanded to stay there
         first = ja.last_reply == -math.inf
         if first or ja.reseed_due or t - ja.last_reply > self.stale:  # after HOME/RESET/ZERO, after a gap
             ja.reseed_due = False
@@ -260,7 +265,7 @@ class _Auditor:
     def _reseed_due(self, dest: int) -> None:
         for a in (self.joints if dest == mcb.BROADCAST_SID else [dest]):
             if a in self.joints:
-                self.joints[a].reseed_due = True
+                self.joints[a].reseed_due = self.joints[a].holding = True
 
     def _moves(self, t: float, dest: int, what: str) -> bool:
         """Is ``dest`` an enabled joint? Else an ``address`` finding for this motion frame."""
@@ -293,6 +298,7 @@ class _Auditor:
                                                     f"[{cfg.lower:.4f}, {cfg.upper:.4f}]")
         if self.bounds is not None:
             self._motion(t, ja, q)
+        ja.holding = False
         if self.model is not None:
             self._set_pose(dest, q)
             self.pose_dirty = True
@@ -314,9 +320,7 @@ class _Auditor:
                 self._find(v.kind, t, ja.cfg.short, v.value, v.bound,
                            f"{v.value:.3f} {unit} > {v.bound:g}: {track.q:.4f} -> {q:.4f} rad in "
                            f"{h * 1e3:.1f} ms (previous velocity {track.previous_velocity(t, self.bounds):.3f} rad/s)")
-            # Judge what follows from this target at rest: one jump is reported once, not again as the stop after it.
-            ja.sent = [motion.Track(q, 0.0, t)]
-            return
+            passing = [track]  # the sequence goes on from there: each offending step is reported once
         tracks: list[motion.Track] = []
         for track in passing:
             track.advance(q, t, self.bounds)
