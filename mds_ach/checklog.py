@@ -104,6 +104,7 @@ class FileReport:
     other_frames: int = 0  # extended IDs, wrong lengths
     reseeds: int = 0
     unseeded_targets: int = 0  # targets of a joint with no known position and no earlier target
+    silent_targets: int = 0  # targets to a joint silent for longer than the stale window (they may not arrive)
     poses_checked: int = 0
     findings: list[Finding] = field(default_factory=list)
 
@@ -292,6 +293,8 @@ class _Auditor:
             return
         cfg = ja.cfg
         q = cfg.to_joint(counts)
+        if math.isfinite(ja.last_reply) and t - ja.last_reply > self.stale:
+            self.r.silent_targets += 1
         if not ja.lo_counts - COUNT_TOLERANCE <= counts <= ja.hi_counts + COUNT_TOLERANCE:
             bound = cfg.upper if q > cfg.upper else cfg.lower
             self._find("limit", t, label, q, bound, f"target {q:.4f} rad ({counts:.1f} counts) outside "
@@ -463,6 +466,10 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
                    f"ignored (non-finite or beyond the range + {REPLY_MARGIN} rad), {r.replies_unknown} from nodes "
                    f"not in the table; other replies {r.other_replies}; "
                    f"error frames {r.error_frames}; re-seeds {r.reseeds}")
+        if r.silent_targets:
+            out.append(f"  {r.silent_targets} target(s) went to a joint silent for longer than the stale window: "
+                       "they may never have arrived (not a violation; the step from the last target is what is "
+                       "checked)")
         if r.unseeded_targets:
             out.append(f"  {r.unseeded_targets} target(s) came before any position of their joint: their first step "
                        "is not checked")

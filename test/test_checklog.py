@@ -161,7 +161,8 @@ def violating_log() -> LogBuilder:
     return b
 
 
-EXPECTED = {("speed", "LSP", 2.0), ("acceleration", "LSP", 2.0), ("acceleration", "LEP", 3.0),
+EXPECTED = {("speed", "LSP", 2.0), ("acceleration", "LSP", 2.0), ("acceleration", "LSP", 2.1),  # jump, stop
+            ("acceleration", "LEP", 3.0),
             ("non-finite", "RSP", 4.0), ("limit", "REP", 5.0), ("address", "0x70", 6.0), ("address", "LYY", 6.0),
             ("address", "0x11", 6.0)}
 
@@ -192,8 +193,8 @@ def test_the_report_and_exit_status(tmp_path: Path) -> None:
     out = cli(good, bad)
     assert out.returncode == 1, out.stdout + out.stderr
     text = out.stdout
-    assert "violations: none" in text and "8 violation(s) in 2 file(s)" in text
-    assert "speed 1 (LSP 1); acceleration 2 (LEP 1 LSP 1)" in text
+    assert "violations: none" in text and "9 violation(s) in 2 file(s)" in text
+    assert "speed 1 (LSP 1); acceleration 3 (LEP 1 LSP 2)" in text
     assert "t=    1.9991 s  speed        LSP    5.000 rad/s > 2: -0.4500 -> 0.0500 rad in 100.0 ms" in text
     assert "period 100.00 ms inferred from" in text
     assert cli("--max", "2", bad).stdout.count("t=") == 2
@@ -230,6 +231,16 @@ def test_a_re_seed_lets_the_next_step_start_from_the_measured_position(tmp_path:
     # The same replies without the gap or the HOME are a joint that moved by itself: the step is a jump.
     r = audit(_standing().write(tmp_path / "no-reseed.asc"))
     assert found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
+
+
+def test_targets_to_a_silent_joint_are_counted(tmp_path: Path) -> None:
+    b = LogBuilder(0.1)
+    b.ramp({"LSP": -0.45}, 1.0)
+    b.silent.add("LSP")
+    b.ramp({"LSP": -0.2}, 1.0)  # 10 targets; the first 3 within the stale window of the last reply
+    r = audit(b.write(tmp_path / "silent.asc"))
+    assert r.ok and r.silent_targets == 7
+    assert "7 target(s) went to a joint silent" in checklog.format_report(checklog.Report([r]), TABLE)
 
 
 def test_implausible_replies_are_ignored_and_never_re_seed(tmp_path: Path) -> None:
