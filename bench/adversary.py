@@ -337,7 +337,10 @@ def main(argv: list[str] | None = None) -> int:
     rt = Path(tempfile.mkdtemp(prefix="mds-adversary-"))
     os.environ["MDS_ACH_RUNTIME_DIR"] = str(rt)
     os.environ.setdefault("MDS_ACH_CONFIG_DIR", str(rt / "config"))
-    result = run(seed, args.minutes * 60.0, rt, args.rate)
+    try:
+        result = run(seed, args.minutes * 60.0, rt, args.rate)
+    finally:
+        cli("killall")  # the channels too: the next run starts clean
     report = audit(result)
     print("\nactions: " + ", ".join(f"{k} {n}" for k, n in sorted(result.counts.items())))
     print(checklog.format_report(report, TABLE, max_listed=50))

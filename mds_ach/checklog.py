@@ -51,6 +51,7 @@ import numpy as np
 from mds_ach import canio, mcb, motion
 from mds_ach.config import ConfigError, JointConfig, JointTable
 from mds_ach.mcb import Command, StateArg, TrajectoryMode
+from mds_ach.msgs import MDS_JOINT_COUNT
 
 KINDS = ("non-finite", "limit", "address", "speed", "acceleration", "collision")
 MOTION_KINDS = ("speed", "acceleration")
@@ -186,7 +187,9 @@ class _Auditor:
             a, b = j.to_counts(j.lower), j.to_counts(j.upper)
             self.joints[j.address] = _JointAudit(j, min(a, b), max(a, b))
         self.model = model
-        self.pose = np.array([j.home if (j := table.get(a)) else 0.0 for a in range(100)])
+        self.pose = np.zeros(MDS_JOINT_COUNT)  # by address, like mds-ref: the commanded pose for --collisions
+        for j in table:
+            self.pose[j.address] = j.home
         self.pose_dirty = False
         self.colliding: tuple[float, set[str], int, set[str]] | None = None  # start, pairs, batches, arms
 
@@ -334,8 +337,7 @@ class _Auditor:
     # ----- commanded pose (--collisions)
 
     def _set_pose(self, address: int, q: float) -> None:
-        if address < len(self.pose):
-            self.pose[address] = q
+        self.pose[address] = q  # addresses of the table are < MDS_JOINT_COUNT (config.validate)
 
     def end_batch(self, t: float) -> None:
         """After the targets of one cycle (the next position query, or the end of the log): check the pose."""
