@@ -318,6 +318,8 @@ def test_bad_options_exit_2(tmp_path: Path) -> None:
     assert out.returncode == 2 and "unknown robot" in out.stderr
     listed = subprocess.run([str(VENV_BIN / "mds-ach"), "--help"], capture_output=True, text=True, timeout=60)
     assert "check-log" in listed.stdout
+    helped = cli("--help")
+    assert helped.returncode == 0 and helped.stdout.startswith("usage: mds-ach check-log")
 
 
 # --------------------------------------------------------------------------------------------- real captures
