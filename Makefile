@@ -15,7 +15,7 @@ help:
 	@echo "make run    set up if needed, then start the whole system on the simulated robot (Ctrl-C stops it)"
 	@echo "make test   set up if needed, then run all tests (inside a private network namespace)"
 	@echo "make bench  run every benchmark and print one table with baselines and ratios"
-	@echo "make soak   multi-minute soak test (not part of make test)"
+	@echo "make soak   multi-minute soak, then the adversarial safety scenario (not part of make test)"
 	@echo "make lint   ruff"
 
 all: setup
@@ -47,8 +47,12 @@ test: sysdeps $(STAMP)
 bench: $(STAMP)
 	tools/netns-run $(PY) -m bench
 
+# The soak, then the adversarial safety scenario (bench/adversary.py) for SOAK_ADVERSARY_MINUTES; both reports
+# are printed, the target fails if either fails.
+SOAK_ADVERSARY_MINUTES ?= 10
 soak: $(STAMP)
-	tools/netns-run $(PY) -m bench.soak
+	rc=0; tools/netns-run $(PY) -m bench.soak || rc=1; \
+	tools/netns-run $(PY) -m bench.adversary --minutes $(SOAK_ADVERSARY_MINUTES) || rc=1; exit $$rc
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

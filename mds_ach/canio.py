@@ -1,5 +1,5 @@
 """The daemon's CAN access: bus creation from python-can's standard configuration, the simulated bus,
-traffic recording with python-can's log writers, replay of a recorded log, and frame/bit accounting.
+traffic recording with python-can's log writers, reading and replaying a recorded log, and frame/bit accounting.
 
 Bus selection follows python-can (``can.util.load_config``): explicit ``--interface/--channel/--bitrate``
 win, then ``$CAN_INTERFACE``/``$CAN_CHANNEL``/``$CAN_BITRATE``, then ``~/.canrc``/``/etc/can.conf`` (or the
@@ -8,11 +8,13 @@ file given with ``--can-config``). So socketcan, kvaser, pcan, slcan, ... work w
 
 from __future__ import annotations
 
+import gzip
 import logging
 import queue
+import re
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,11 @@ log = logging.getLogger(__name__)
 
 DEFAULT_BITRATE = 1_000_000  # the MDS bus
 LOG_SUFFIXES = (".asc", ".blf", ".csv", ".log", ".trc", ".txt", ".mf4")
+
+
+# Suffixes can.LogReader reads (each also gzip-compressed, e.g. run.asc.gz).
+READ_SUFFIXES = (".asc", ".blf", ".csv", ".db", ".log", ".mf4", ".trc")
+MDS_DUMP = "MDS-Ach text dump"
 
 
 class BusConfigError(ValueError):
@@ -111,6 +118,106 @@ class Recorder:
         self._writer.stop()
 
 
+class LogReadError(ValueError):
+    """A log that cannot be read; the message names the file and what is wrong."""
+
+
+class TornLogError(LogReadError):
+    """Raised after the last complete frame when only the file's final line is incomplete: what a recorder killed
+    mid-write (a SIGKILLed daemon) leaves. Every frame before it was delivered."""
+
+
+# A frame line of the original MDS-Ach daemon's text dump (shared/mds-reference/can/logs): time stamp in ms with
+# a C 'l' suffix, node, the vendor parser's text, the 8 bytes printed data[7] -> data[0], the CAN ID in hex.
+_DUMP_LINE = re.compile(r"^(\d+)l\t.*\t\[((?: [0-9a-fA-F]{2}){8}) \]\t([0-9a-fA-F]+)\s*$")
+
+
+def log_format(path: str | Path) -> str:
+    """How ``read_log`` reads ``path``: ``MDS_DUMP`` when the text looks like the original daemon's dump, else the
+    python-can reader its suffix selects; LogReadError for anything else."""
+    path = Path(path)
+    suffixes = [s.lower() for s in path.suffixes]
+    if suffixes[-1:] == [".gz"]:
+        suffixes = suffixes[:-1]
+    suffix = suffixes[-1] if suffixes else ""
+    if suffix not in (".blf", ".db", ".mf4"):  # binary formats are never dumps
+        try:
+            opener = gzip.open if path.suffix.lower() == ".gz" else open
+            with opener(path, "rt", errors="replace") as f:
+                head = [f.readline() for _ in range(40)]
+        except OSError as exc:
+            raise LogReadError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        if any(_DUMP_LINE.match(line) for line in head):
+            return MDS_DUMP
+    if suffix in READ_SUFFIXES:
+        return f"python-can {suffix}"
+    raise LogReadError(f"{path}: unknown log format (suffix {suffix or 'none'!r}); python-can reads "
+                       f"{' '.join(READ_SUFFIXES)} (candump -l writes .log), and the original MDS-Ach text dumps "
+                       "are recognised by their content")
+
+
+def read_log(path: str | Path) -> Iterator[can.Message]:
+    """Every frame of a recorded log, in file order: python-can formats by suffix, or an original MDS-Ach text
+    dump (``log_format``). Raises LogReadError (naming the file) for an unknown format or a damaged file."""
+    path = Path(path)
+    fmt = log_format(path)
+    if fmt == MDS_DUMP:
+        yield from _read_mds_dump(path)
+        return
+    try:
+        reader = can.LogReader(str(path))
+    except Exception as exc:  # python-can raises many kinds for a damaged header
+        raise LogReadError(f"{path}: not a readable {fmt} log: {exc}") from None
+    count = 0
+    try:
+        for msg in reader:
+            count += 1
+            yield msg
+    except Exception as exc:
+        rest = _unread(reader)
+        if rest is not None and not rest.strip():
+            raise TornLogError(f"{path}: the last line is incomplete after frame {count} (a recorder stopped "
+                               "mid-write?)") from None
+        raise LogReadError(f"{path}: damaged after frame {count}: {type(exc).__name__}: {exc}") from None
+    finally:
+        reader.stop()
+
+
+def _unread(reader: can.io.generic.MessageReader) -> str | bytes | None:
+    """What follows the line a text reader failed on (None when that cannot be known)."""
+    try:
+        return reader.file.read()
+    except Exception:  # binary readers, closed or unseekable files
+        return None
+
+
+def _read_mds_dump(path: Path) -> Iterator[can.Message]:
+    """The original daemon's dump: ms time stamps; the first frame is stamped 0 (no stamp was taken before the
+    loop started), so an undated frame gets the time of the next dated one (a query and its replies are
+    milliseconds apart). Header and blank lines are skipped; other lines are an error."""
+    undated: list[can.Message] = []
+    with open(path, errors="replace") as f:
+        for lineno, line in enumerate(f, 1):
+            if not line.strip() or "\t" not in line:
+                continue  # "T = 0.010 sec", "Start MDS Loop", blank lines
+            m = _DUMP_LINE.match(line)
+            if m is None:
+                raise LogReadError(f"{path}:{lineno}: not a frame line of an MDS-Ach dump: {line.strip()[:80]!r}")
+            stamp, printed, can_id = m.groups()
+            data = bytes(reversed(bytes.fromhex(printed.replace(" ", ""))))
+            msg = can.Message(timestamp=int(stamp) / 1000.0, arbitration_id=int(can_id, 16), data=data,
+                              is_extended_id=False, check=False)
+            if int(stamp) == 0:
+                undated.append(msg)
+                continue
+            for early in undated:
+                early.timestamp = msg.timestamp
+                yield early
+            undated.clear()
+            yield msg
+    yield from undated
+
+
 class ReplayBus(can.BusABC):
     """Feeds the node -> host frames of a recorded log back, paced like the recording.
 
@@ -125,7 +232,7 @@ class ReplayBus(can.BusABC):
         self.path = Path(path)
         self.speed = speed
         self.loop = loop
-        self.frames = [m for m in can.LogReader(str(self.path)) if self._from_nodes(m)]
+        self.frames = [m for m in read_log(self.path) if self._from_nodes(m)]
         if not self.frames:
             raise can.CanInitializationError(f"{self.path}: no node -> host frames to replay")
         self._i = 0

@@ -38,6 +38,8 @@ VERBS: dict[str, Verb] = {
                  "mds_ach.chantool:add_dump_arguments", "mds_ach.chantool:run_dump"),
     "repair": Verb("check the channels; repair corrupt ones in place (a writer killed inside a put)",
                    "mds_ach.repair:add_arguments", "mds_ach.repair:run"),
+    "check-log": Verb("audit a CAN log: targets finite, in limits, to enabled joints, within speed/acceleration",
+                      "mds_ach.checklog:add_arguments", "mds_ach.checklog:run"),
     # operator verbs (mds_ach.launcher, console, read)
     "start": Verb("start every node as its own process ('start nocan': simulated bus); returns when state is live",
                   "mds_ach.launcher:add_start_arguments", "mds_ach.launcher:run_start"),

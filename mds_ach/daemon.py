@@ -77,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--sim-pose", metavar="J=RAD,...", default="",
                      help="where the simulated joints start, e.g. LEP=-1.0,RSR=-0.5 (default: home pose)")
     sim.add_argument("--sim-ideal", action="store_true", help="no wire time: replies arrive at once")
+    sim.add_argument("--sim-faults", metavar="SOCKET",
+                     help="test-only: take fault-injection requests (offline node, bogus position replies, bus-off) "
+                          "on this Unix socket (mds_ach.simbus.FaultControl)")
     ap.add_argument("--no-ros", action="store_true", help="run without rclpy (no /diagnostics, no service)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds (tests, benchmarks)")
     ap.add_argument("-d", "--debug", action="store_true", help="debug logging")
@@ -109,9 +112,12 @@ class Daemon:
     io: object
     channels: object
     network: object | None = None
+    faults: object | None = None  # simbus.FaultControl (--sim-faults)
 
     def close(self) -> None:
         self.loop.stop()
+        if self.faults is not None:
+            self.faults.close()
         self.io.close()
         self.channels.close()
 
@@ -122,6 +128,8 @@ def build(args: argparse.Namespace) -> Daemon:
     from mds_ach.daemon_loop import DaemonChannels, DaemonLoop
 
     table = config.load(args.robot, args.config)
+    if args.sim_faults and not args.nocan:
+        raise ValueError("--sim-faults needs --nocan: faults are injected into the simulated bus only")
     network = None
     if args.nocan:
         from mds_ach.simbus import SimNetwork
@@ -152,8 +160,14 @@ def build(args: argparse.Namespace) -> Daemon:
         raise
     log.info("robot %s (%s), %s, %.4g Hz, filter L %.2f", table.robot, ", ".join(table.sources), io.description,
              args.rate, loop.L)
+    faults = None
+    if args.sim_faults:
+        from mds_ach.simbus import FaultControl
+
+        faults = FaultControl(args.sim_faults, network)
+        log.warning("test-only fault injection on %s", args.sim_faults)
     loop.start()
-    return Daemon(loop, io, channels, network)
+    return Daemon(loop, io, channels, network, faults)
 
 
 def parse_command(text: str) -> tuple[int, int]:

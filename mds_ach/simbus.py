@@ -19,19 +19,26 @@ Node behaviour, from the captures and the vendor header (inferences marked):
   joint to the middle of its ROM and zeroes the count there; a disabled node does not move.
 
 Fault injection: :meth:`SimNetwork.drop_replies`, :meth:`delay_replies`, :meth:`set_offline`,
-:meth:`inject_error_frame`, :meth:`bus_off`, :meth:`inject_frame`.
+:meth:`offset_positions`, :meth:`inject_error_frame`, :meth:`bus_off`, :meth:`inject_frame`; from another process
+through :class:`FaultControl` (``daemon --nocan --sim-faults PATH``, test-only).
 """
 
 from __future__ import annotations
 
 import heapq
+import json
+import logging
 import math
+import os
 import random
+import socket
 import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -40,6 +47,7 @@ from mds_ach import mcb
 from mds_ach.mcb import Command, ErrorCode, StateArg, TrajectoryMode
 
 _WORD = struct.Struct("<IHBB")  # value word, address, argument, command (see mds_ach.mcb)
+log = logging.getLogger(__name__)
 
 # Linux <linux/can/error.h> error-frame classes (arbitration_id bits) and controller status (data[1]).
 CAN_ERR_TX_TIMEOUT = 0x001
@@ -105,6 +113,8 @@ class _NodeFaults:
     drop_count: int = 0  # drop this many of the next replies (-1: all)
     drop_probability: float = 0.0
     delay: float = 0.0
+    position_offset: float = 0.0  # counts added to ACTUAL_POSITION replies (a bogus reading)
+    offset_replies: int = 0  # that many of the next position replies (-1: until cleared with 0)
 
 
 class SimNetwork:
@@ -215,6 +225,13 @@ class SimNetwork:
         with self._lock:
             for a in [address] if address is not None else self.addresses:
                 self.faults[a].delay = delay
+
+    def offset_positions(self, address: int, counts: float, replies: int = 1) -> None:
+        """Bogus readings: the node's next ``replies`` ACTUAL_POSITION replies (-1: all until cleared with 0) are
+        off by ``counts``; the node itself does not move."""
+        with self._lock:
+            self.faults[address].position_offset = float(counts)
+            self.faults[address].offset_replies = replies
 
     def inject_frame(self, arbitration_id: int, data: bytes, *, is_extended_id: bool = False,
                      dlc: int | None = None) -> None:
@@ -365,6 +382,11 @@ class SimNetwork:
         self.frames_by_address[address] = self.frames_by_address.get(address, 0) + 1
         if cmd == Command.QUERY_STATE:
             value = self._read(i, arg)
+            f = self.faults[address]
+            if arg == StateArg.ACTUAL_POSITION and f.offset_replies != 0:
+                value += f.position_offset
+                if f.offset_replies > 0:
+                    f.offset_replies -= 1
             if value is not None:
                 self._reply(address, mcb.encode_state_reply(address, arg, value), ready)
             return
@@ -528,3 +550,103 @@ class SimBus(can.BusABC):
 
     def shutdown(self) -> None:
         super().shutdown()
+
+
+class FaultControl:
+    """Test-only remote control of a running simulated bus: fault injection from another process.
+
+    A Unix stream socket (mode 0600, replaced if it exists) takes one JSON request per connection, e.g.
+    ``{"op": "offline", "address": 76, "on": true}``, and answers ``ok`` (or ``ok <value>``) or ``error: ...``.
+    Operations: ``offline`` (address, on), ``bogus_positions`` (address, counts, replies), ``drop_replies``
+    (address, count), ``delay_replies`` (address, delay), ``error_frame`` (error_class, status), ``bus_off``,
+    ``position`` (address: the node's encoder reading). It exists only inside ``daemon --nocan --sim-faults
+    PATH``: on a real bus there is nothing to inject into.
+    """
+
+    def __init__(self, path: str | Path, network: SimNetwork) -> None:
+        self.path = Path(path)
+        self.network = network
+        if self.path.is_socket():
+            self.path.unlink()
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)
+        try:
+            self._sock.bind(str(self.path))
+        finally:
+            os.umask(old)
+        self._sock.listen(4)
+        self._thread = threading.Thread(target=self._serve, name="sim-faults", daemon=True)
+        self._thread.start()
+
+    def apply(self, request: dict[str, Any]) -> str:
+        """Carry out one request; the answer text ('ok ...'), ValueError/KeyError/TypeError for a bad one."""
+        net, op = self.network, request.get("op")
+        args = {k: v for k, v in request.items() if k != "op"}
+        if op == "offline":
+            net.set_offline(int(args["address"]), bool(args.get("on", True)))
+        elif op == "bogus_positions":
+            net.offset_positions(int(args["address"]), float(args["counts"]), int(args.get("replies", 1)))
+        elif op == "drop_replies":
+            net.drop_replies(int(args["address"]), int(args.get("count", -1)))
+        elif op == "delay_replies":
+            net.delay_replies(int(args["address"]), float(args["delay"]))
+        elif op == "error_frame":
+            net.inject_error_frame(int(args.get("error_class", CAN_ERR_PROT | CAN_ERR_BUSERROR)),
+                                   int(args.get("status", 0)))
+        elif op == "bus_off":
+            net.bus_off()
+        elif op == "position":
+            return f"ok {net.position(int(args['address'])):.6f}"
+        else:
+            raise ValueError(f"unknown op {op!r}")
+        return "ok"
+
+    def _serve(self) -> None:
+        while True:
+            try:
+                conn, _ = self._sock.accept()
+            except OSError:
+                return  # closed
+            with conn:
+                try:
+                    conn.settimeout(5.0)
+                    data = b""
+                    while not data.endswith(b"\n") and len(data) < 4096:
+                        chunk = conn.recv(4096)
+                        if not chunk:
+                            break
+                        data += chunk
+                    try:
+                        answer = self.apply(json.loads(data))
+                    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                        answer = f"error: {type(exc).__name__}: {exc}"
+                    log.warning("sim-faults: %s -> %s", data.decode(errors="replace").strip(), answer)
+                    conn.sendall(answer.encode() + b"\n")
+                except OSError as exc:
+                    log.warning("sim-faults: %s", exc)
+
+    def close(self) -> None:
+        self._sock.close()
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass
+
+
+def send_fault(path: str | Path, op: str, timeout: float = 10.0, **args: Any) -> str:
+    """Ask a running ``daemon --nocan --sim-faults PATH`` to inject a fault; returns its answer ('ok ...'),
+    RuntimeError if it refused."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout)
+        sock.connect(str(path))
+        sock.sendall(json.dumps({"op": op, **args}).encode() + b"\n")
+        answer = b""
+        while not answer.endswith(b"\n"):
+            chunk = sock.recv(4096)
+            if not chunk:
+                break
+            answer += chunk
+    text = answer.decode().strip()
+    if not text.startswith("ok"):
+        raise RuntimeError(f"sim-faults {path}: {op} {args}: {text or 'no answer'}")
+    return text
