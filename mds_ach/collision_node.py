@@ -432,13 +432,15 @@ class Gate:
         arms = {"left", "right"} & renewed
         hit: set[int] = set()
         held: set[int] = set()
+        touching: set[str] = set()
         for _, k in involved:
             for group, part in ((k.group_a, k.part_a), (k.group_b, k.part_b)):
+                touching.add(group)
                 if part >= 0:
                     hit.add(part)
                     if group in arms:
                         held.add(part)
-        for arm in arms:  # an arm held for a primitive without a legacy part: flag the whole arm
+        for arm in arms & touching:  # held for a primitive without a legacy part: flag the whole arm
             if not held & set(ARM_PARTS[arm]):
                 held |= set(ARM_PARTS[arm])
         for p, st in enumerate(self.parts):

@@ -32,6 +32,12 @@ for _name, _value in {"RSP": -0.445, "RSR": -1.18, "REP": -1.25, "RSY": 0.15, "L
 TABLE = {"objects": [{"name": "table", "shape": "box", "size": [0.6, 1.4, 0.04], "xyz": [0.6, 0.0, -0.42]}]}
 TABLE_TOP = -0.40
 DT = 0.025
+MODEL_ADDR = np.array(sorted(set(L) | set(R) | {mds.WST, mds.NKY, mds.NKP1, mds.NKP2, mds.NKR}))
+LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
+              mds.COLLIDE_L_WRIST)
+RIGHT_PARTS = (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
+               mds.COLLIDE_R_WRIST)
+FILTER_SPEED = 1.57  # rad/s, the filter's default velocity limit (config/filter.yaml)
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +48,10 @@ def model():
 @pytest.fixture(scope="module")
 def table_model():
     return load_model(world=TABLE)
+
+
+def flags(report: mds.MDS_COLLIDE, parts: tuple[int, ...]) -> bool:
+    return any(report.joint[p].isCollide for p in parts)
 
 
 def make_gate(model, ref=HOME, **cfg) -> Gate:
@@ -147,6 +157,8 @@ def test_waist_turn_into_an_obstacle_holds_everything(model) -> None:
     target[mds.LF1] = 0.2  # an unmodelled finger joint still goes through
     decisions = drive(gate, target, 2.0)
     assert any(d.held == ("all",) for d in decisions)
+    report = gate.report(gate.last_time)  # flagged: the arm in contact; frozen but not flagged: the rest
+    assert report.isCollide == 1 and flags(report, LEFT_PARTS) and not flags(report, RIGHT_PARTS)
     assert 0 < gate.ref[mds.WST] < 0.38
     assert not m.check(m.q_from_ref(gate.ref)).collides
     assert gate.ref[mds.LF1] == pytest.approx(0.2)
@@ -238,16 +250,6 @@ def test_report_hysteresis_on_wall_time(model) -> None:
 
 # --------------------------------------------------------------------------------------------- measured pose, release
 
-MODEL_ADDR = np.array(sorted(set(L) | set(R) | {mds.WST, mds.NKY, mds.NKP1, mds.NKP2, mds.NKR}))
-LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
-              mds.COLLIDE_L_WRIST)
-RIGHT_PARTS = (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
-               mds.COLLIDE_R_WRIST)
-FILTER_SPEED = 1.57  # rad/s, the filter's default velocity limit (config/filter.yaml)
-
-
-def flags(report: mds.MDS_COLLIDE, parts: tuple[int, ...]) -> bool:
-    return any(report.joint[p].isCollide for p in parts)
 
 
 def test_the_measured_pose_of_a_compliant_arm_holds_the_other_arm(model) -> None:
