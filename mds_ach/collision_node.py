@@ -625,6 +625,10 @@ class GateRunner:
         finally:
             for ch in (inp, out, collide, state_ch):
                 ch.close()
+            if self.check_times:
+                ms = np.array(self.check_times) * 1e3
+                self.log("info", f"{self.processed} references gated; decision time median {np.median(ms):.2f} ms, "
+                                 f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.2f} ms")
 
     def _apply_overrides(self, gate: Gate, now: float, last_log: float) -> float:
         with self._lock:
