@@ -147,6 +147,7 @@ class Observed:
 
     @classmethod
     def from_state(cls, state: MDS_STATE) -> Observed:
+        """Stale joints (``active`` 0) count as unknown: the gate then takes them where they are commanded."""
         pos = np.array([state.joint[a].pos if state.joint[a].active else math.nan
                         for a in range(MDS_JOINT_COUNT)], dtype=float)
         return cls(pos, float(state.time), float(state.collide.time))
