@@ -64,7 +64,9 @@ class Contact:
     group_b: str
     part_a: int
     part_b: int
-    centre_distance: float = 0.0  # between the two primitives' centres (m), to tell "closer" from "apart"
+    # Signed distance (m) between the two *un-inflated* shapes: > 0 a gap (still inside the margin), < 0 the
+    # overlap depth. Tells "moving out of contact" from "pushing further in" (the gate's escape rule).
+    clearance: float = 0.0
 
     @property
     def arms(self) -> set[str]:
@@ -275,13 +277,18 @@ class TreeFK:
         return self._owner[link]
 
     def joint_frames(self, q: np.ndarray) -> np.ndarray:
-        s = np.sin(q)[:, None, None]
-        c1 = 1.0 - np.cos(q)[:, None, None]
+        """(n + 1, 4, 4) for one configuration, or (K, n + 1, 4, 4) for a batch ``q`` of shape (K, n): the gate
+        checks several configurations per reference, and one batched pass costs about as much as one."""
+        q = np.asarray(q, dtype=float)
+        if q.ndim == 1:
+            return self.joint_frames(q[None])[0]
+        s = np.sin(q)[..., None, None]
+        c1 = 1.0 - np.cos(q)[..., None, None]
         local = self._A0 + s * self._A1 + c1 * self._A2
-        T = np.empty((len(q) + 1, 4, 4))
-        T[-1] = np.eye(4)
+        T = np.empty((q.shape[0], q.shape[1] + 1, 4, 4))
+        T[:, -1] = np.eye(4)
         for idx, par in self._levels:
-            T[idx] = T[par] @ local[idx]
+            T[:, idx] = T[:, par] @ local[:, idx]
         return T
 
     def link_pose(self, link: str, q: np.ndarray) -> np.ndarray:
@@ -378,6 +385,7 @@ class CollisionModel:
         self._J = np.array([p[1] for p in pairs], dtype=int)
         self._rsum = self._radius[self._I] + self._radius[self._J]
         self._request = fcl.CollisionRequest()
+        self._signed = fcl.DistanceRequest(enable_signed_distance=True)
         self._fcl = fcl
 
     # ----- construction helpers
@@ -450,25 +458,28 @@ class CollisionModel:
         return np.asarray(ref, dtype=float)[self.addresses]
 
     def primitive_poses(self, q: np.ndarray) -> np.ndarray:
-        """(P, 4, 4) poses of all primitives in the base frame."""
+        """(P, 4, 4) poses of all primitives in the base frame; (K, P, 4, 4) for a batch of K configurations."""
         T = self.tree.joint_frames(np.asarray(q, dtype=float))
-        return T[self._owner] @ self._offset
+        return T[..., self._owner, :, :] @ self._offset
 
     def check(self, q: np.ndarray) -> CheckResult:
         """Predicted collisions (clearance below ``margin``) for one configuration."""
-        poses = self.primitive_poses(q)
-        centres = poses[:, :3, 3]
-        gap = np.linalg.norm(centres[self._I] - centres[self._J], axis=1) - self._rsum
-        return self._narrow(poses, np.flatnonzero(gap < 0.0))
+        return self.check_many(np.asarray(q, dtype=float)[None])[0]
+
+    def check_many(self, qs: np.ndarray) -> list[CheckResult]:
+        """``check`` for each row of ``qs`` (K, 17), with one batched FK and broad phase."""
+        poses = self.primitive_poses(np.atleast_2d(np.asarray(qs, dtype=float)))
+        centres = poses[..., :3, 3]
+        gap = np.linalg.norm(centres[:, self._I] - centres[:, self._J], axis=2) - self._rsum
+        return [self._narrow(p, np.flatnonzero(g < 0.0)) for p, g in zip(poses, gap, strict=True)]
 
     def check_exhaustive(self, q: np.ndarray) -> CheckResult:
         """Same answer as ``check`` without the broad phase: fcl on every pair (for tests and as a baseline)."""
         return self._narrow(self.primitive_poses(q), range(len(self.pairs)))
 
     def _narrow(self, poses: np.ndarray, candidates: Iterable[int]) -> CheckResult:
-        fcl, objs, prims = self._fcl, self._objects, self.primitives
+        fcl, objs, raw, prims = self._fcl, self._objects, self._raw_objects, self.primitives
         placed = np.zeros(len(prims), dtype=bool)
-        centres = poses[:, :3, 3]
         contacts = []
         for k in candidates:
             i, j = int(self._I[k]), int(self._J[k])
@@ -478,9 +489,13 @@ class CollisionModel:
                     objs[m].setTranslation(poses[m, :3, 3])
                     placed[m] = True
             if fcl.collide(objs[i], objs[j], self._request, fcl.CollisionResult()) > 0:
+                for m in (i, j):
+                    if self._moving[m]:
+                        raw[m].setRotation(poses[m, :3, :3])
+                        raw[m].setTranslation(poses[m, :3, 3])
+                clearance = float(fcl.distance(raw[i], raw[j], self._signed, fcl.DistanceResult()))
                 a, b = prims[i], prims[j]
-                gap = float(np.linalg.norm(centres[i] - centres[j]))
-                contacts.append(Contact(a.name, b.name, a.group, b.group, a.part, b.part, gap))
+                contacts.append(Contact(a.name, b.name, a.group, b.group, a.part, b.part, clearance))
         return CheckResult(tuple(contacts))
 
     def distances(self, q: np.ndarray) -> dict[tuple[str, str], float]:

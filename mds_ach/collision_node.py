@@ -6,41 +6,58 @@ Every reference is checked before it can reach the daemon, in this order:
    ref modes (not 0..3) are never passed on: those joints keep their last sent value and mode, and the
    refusal is logged (throttled).
 2. **Speed bound.** No joint moves faster than ``max_velocity`` between two outputs (wall time; a pause
-   credits at most ``max_dt``; the first reference after start moves nothing). The filter node is the
-   smoother; this bound only keeps a restarted gate, a pass-through filter or an arm released from a hold
-   from jumping.
-3. **Collision check** (``mds_ach.collision``: self-collision and world objects, clearance ``margin``).
-   On a predicted collision the joints of the affected arm(s) keep their most recent safe value while the
-   rest of the reference goes through; if that mix still collides (e.g. the waist or neck caused it), every
-   modelled joint is held. The gate resumes as soon as the commanded reference is safe again. If the robot
-   is already in collision (started there, or after an override), only moves out of it pass: no new colliding
-   pair, and the colliding parts not brought closer together overall.
+   credits at most ``max_dt``; the first reference after start moves nothing). Joints that were held come
+   back at ``release_velocity`` (the filter's speed) until they have caught up with the input.
+3. **Collision check** of what the robot will really do (``mds_ach.collision``: self-collision and world
+   objects, clearance ``margin``). The robot is somewhere between where it is (``mds-state`` ``pos`` of fresh
+   joints) and where it is sent (the reference); in mode 2 the daemon's target *is* the measured position,
+   in mode 3 a blend. So every combination of {reference, measured pose} of the three units left arm, right
+   arm and body (waist + neck) is checked: up to 8 configurations in one batched check (a unit measured
+   within 1e-4 rad of its reference counts once; without a recent ``mds-state``, the reference alone).
+   A reference is *blocked* when, in some configuration, it adds a colliding pair or lowers the total
+   clearance of the colliding pairs (signed distance of the un-inflated shapes) below what the previous
+   output had there, with the same measured pose. The arm(s) whose reference moved into the contact are held
+   at their previous output while the rest goes through; if the waist or neck moved it, every modelled joint
+   is held. So an arm in contact, measured or commanded, can always be moved out of it (such a move is
+   reported as *escaping*), never further in. An arm in contact whose input does not ask it to move is held
+   too.
+
+**Holding and releasing agree with ``mds-collide``.** The daemon withholds the targets of an arm whose parts
+``mds-collide`` flags (``daemon_loop._collision_held``). So the gate flags exactly the arms it holds, keeps an
+arm held for ``release_time`` after the last blocked reference (the legacy hysteresis, now on the hold itself,
+not only on the report), then clears the flag and keeps publishing the held reference until the daemon has
+taken a report without the flag (``mds-state`` echoes ``mds-collide`` in ``state.collide``; ``release_wait``
+bounds the wait), and only then moves the arm on, at ``release_velocity``. The daemon therefore never sees an
+arm's reference move while it withholds that arm, and never sends accumulated distance in one frame.
 
 Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``/mds/collision``
-(std_msgs/String, JSON with pairs, parts, held arms, refusals and the override state).
-Legacy part fields: ``isCollide`` 1 while a contact is predicted and for ``release_time`` s after (wall
-time); ``collision`` counts the checks of the current episode (saturating at ``counter_max``, 0 when clear);
-``time`` = CLOCK_MONOTONIC of the last predicted contact; ``time_dt`` = duration of the episode.
-Top level: ``isCollide`` 1 = a predicted collision was blocked, **2 = it was passed by the expert override**;
-``time`` = CLOCK_MONOTONIC of the report, ``time_dt`` = time since the previous report.
+(std_msgs/String, JSON with predicted pairs, current contacts, parts, held/releasing/escaping arms, refusals
+and the override state). Top-level ``isCollide``: **1** = the gate holds an arm: the flagged parts are those
+of the held arms, and the daemon holds exactly those arms; **2** = a predicted collision was passed by the
+expert override; **3** = in contact (measured or commanded) but nothing held: only moves out of it are passed,
+the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part: ``isCollide``
+as above; ``collision`` counts the checks of the current episode (saturating at ``counter_max``, 0 when clear);
+``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration of the episode. ``time`` = CLOCK_MONOTONIC
+of the report (the stamp the daemon echoes), ``time_dt`` = time since the previous report.
 
 **Expert override** (never the default, never silent): publish the number of seconds on
 ``/mds/collision/override`` (std_msgs/Float64), e.g.
 ``ros2 topic pub --once /mds/collision/override std_msgs/msg/Float64 "{data: 3.0}"``. For that long (at most
 ``override_max``, config) predicted collisions are reported but not blocked; validation and the speed bound
-still apply. It expires by itself; 0 or a negative value ends it at once. Start, every second while active,
-and end are logged at WARN/ERROR level; mds-collide shows ``isCollide = 2`` while it passes a collision and
-``/mds/collision`` carries ``override_remaining``.
+still apply, and held arms are released as above. It expires by itself; 0 or a negative value ends it at once.
+Start, every second while active, and end are logged at WARN/ERROR level; mds-collide shows ``isCollide = 2``
+while it passes a collision and ``/mds/collision`` carries ``override_remaining``.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,8 +65,9 @@ from typing import Any
 import numpy as np
 
 import mds_ach as mds
-from mds_ach.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
-from mds_ach.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT
+from mds_ach import filters
+from mds_ach.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
+from mds_ach.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
 from mds_ach.pipeline import KNOWN_ADDRESSES, cancel_wait, labels
 
 ARM_ADDRESSES: dict[str, np.ndarray] = {
@@ -59,25 +77,47 @@ ARM_ADDRESSES: dict[str, np.ndarray] = {
 MODEL_ADDRESSES = np.array([BY_SHORT[n].address for n in MODEL_JOINTS])
 COLLIDE_BLOCKED = 1
 COLLIDE_OVERRIDDEN = 2
+COLLIDE_CONTACT = 3
+
+# Units the gate holds independently: each arm, and the body (waist + neck), whose motion moves both arms.
+UNITS: tuple[str, ...] = ("left", "right", "body")
+UNIT_ADDRESSES: dict[str, np.ndarray] = {
+    **ARM_ADDRESSES, "body": np.array([BY_SHORT[n].address for n in TORSO + NECK])}
+_UNIT_Q = {u: np.array([list(MODEL_ADDRESSES).index(a) for a in UNIT_ADDRESSES[u]]) for u in UNITS}  # in q
+_UNIT_OF_GROUP = {"left": "left", "right": "right", "body": "body", "head": "body"}  # 'world' moves with nothing
+ARM_PARTS: dict[str, tuple[int, ...]] = {
+    "left": (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
+             mds.COLLIDE_L_WRIST),
+    "right": (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
+              mds.COLLIDE_R_WRIST),
+}
+SAME_POSE = 1e-4  # rad: a unit measured this close to its reference is checked once (0.06 mm at the hand)
+CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than this are "brought closer"
+
+Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
+FREE, HELD, RELEASING = "free", "held", "releasing"
 
 
 @dataclass(frozen=True)
 class GateConfig:
     max_velocity: float | None = 2.0  # rad/s, None = no bound
     max_dt: float = 0.05  # s, longest interval the speed bound credits (>= 2 filter periods)
-    release_time: float = 0.1  # s, reporting hysteresis
+    release_time: float = 0.1  # s, hysteresis of a hold (and of its report)
     counter_max: int = 240
     override_max: float = 10.0  # s
     report_rate: float = 10.0  # Hz
+    release_velocity: float | None = None  # rad/s of a released joint; None = filters.DEFAULT_MAX_VELOCITY
+    state_timeout: float = 0.5  # s: an older mds-state gives no measured pose
+    release_wait: float = 1.0  # s: longest wait for the daemon to echo a cleared report
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], where: str = "collision config") -> GateConfig:
-        def num(key: str, default: float, positive: bool = True, allow_none: bool = False) -> float | None:
+        def num(key: str, default: float | None, positive: bool = True, allow_none: bool = False) -> float | None:
             value = data.get(key, default)
             if value is None and allow_none:
                 return None
             try:
-                value = float(value)
+                value = float(value)  # type: ignore[arg-type]
             except (TypeError, ValueError):
                 raise ValueError(f"{where}: {key} must be a number, got {data.get(key)!r}") from None
             if not math.isfinite(value) or (positive and value <= 0):
@@ -91,7 +131,26 @@ class GateConfig:
             counter_max=int(num("counter_max", 240)),  # type: ignore[arg-type]
             override_max=num("override_max", 10.0),  # type: ignore[arg-type]
             report_rate=num("report_rate", 10.0),  # type: ignore[arg-type]
+            release_velocity=num("release_velocity", None, allow_none=True),
+            state_timeout=num("state_timeout", 0.5),  # type: ignore[arg-type]
+            release_wait=num("release_wait", 1.0),  # type: ignore[arg-type]
         )
+
+
+@dataclass(frozen=True)
+class Observed:
+    """What the daemon reports back on ``mds-state``: the measured pose and the ``mds-collide`` it acted on."""
+
+    pos: np.ndarray  # (100) measured position, NaN where the joint is not fresh (state.joint[].active == 0)
+    time: float  # state.time (CLOCK_MONOTONIC)
+    collide_time: float  # state.collide.time: the stamp of the newest gate report the daemon has taken
+
+    @classmethod
+    def from_state(cls, state: MDS_STATE) -> Observed:
+        """Stale joints (``active`` 0) count as unknown: the gate then takes them where they are commanded."""
+        pos = np.array([state.joint[a].pos if state.joint[a].active else math.nan
+                        for a in range(MDS_JOINT_COUNT)], dtype=float)
+        return cls(pos, float(state.time), float(state.collide.time))
 
 
 @dataclass
@@ -100,17 +159,43 @@ class Decision:
 
     ref: np.ndarray
     mode: np.ndarray
-    result: Any  # CheckResult of the commanded (validated, speed-bounded) reference
-    held: tuple[str, ...] = ()  # 'left', 'right' or 'all'
+    result: Any  # CheckResult: predicted collisions of the (validated, speed-bounded) input, every configuration
+    held: tuple[str, ...] = ()  # 'left', 'right' or 'all': flagged on mds-collide, reference frozen
     refused: tuple[int, ...] = ()  # addresses refused by validation
     overridden: bool = False  # a predicted collision passed because of the expert override
+    releasing: tuple[str, ...] = ()  # units no longer flagged, frozen until the daemon has taken the clear report
+    escaping: tuple[str, ...] = ()  # arms in contact whose reference moves them out of it (passed)
+    contacts: Any = None  # CheckResult: contacts of the output (with the measured pose) -- in contact now
+    measured: bool = False  # the measured pose was part of the check
 
 
 @dataclass
 class _PartState:
-    last: float = -math.inf
+    last: float = -math.inf  # last contact (held or not)
+    held: float = -math.inf  # last time its arm was held for a contact of this part
     start: float = -math.inf
     count: int = 0
+
+
+@dataclass
+class _Unit:
+    state: str = FREE
+    held_at: float = -math.inf  # last (re)hold: held while now - held_at <= release_time
+    released_at: float = -math.inf
+    stamp: float | None = None  # time of the first report without the hold (what the daemon must echo)
+
+
+def _merge(results: Iterable[Any]) -> Any:
+    """One CheckResult with every pair of ``results`` once (the smallest clearance)."""
+    from mds_ach.collision import CheckResult
+
+    best: dict[tuple[str, str], Any] = {}
+    for r in results:
+        for c in r.contacts:
+            old = best.get((c.a, c.b))
+            if old is None or c.clearance < old.clearance:
+                best[(c.a, c.b)] = c
+    return CheckResult(tuple(best[k] for k in sorted(best)))
 
 
 @dataclass
@@ -130,12 +215,16 @@ class Gate:
         self.mode = np.array(self.mode, dtype=np.int16)
         self.last_time = self.now
         self._first = True
-        self.current = self.model.check(self.model.q_from_ref(self.ref))  # the output's own state
+        self.current = self.model.check(self.model.q_from_ref(self.ref))  # contacts of the output
         self.override_until = -math.inf
         self.parts = [_PartState() for _ in range(MDS_COLLIDE_JNT_NUM)]
+        self.units = {u: _Unit() for u in UNITS}
+        self.release_velocity = self.config.release_velocity or filters.DEFAULT_MAX_VELOCITY
+        self._ramp = np.zeros(MDS_JOINT_COUNT, dtype=bool)  # released joints still catching up with the input
+        self._cache: dict[bytes, Any] = {}  # configuration -> CheckResult (a pure function of it), see _check
         self.last_report = self.now
-        self.last_flag = 0
-        self._flag_time = -math.inf
+        self._override_time = -math.inf
+        self._contact_time = -math.inf
         self._known = np.zeros(MDS_JOINT_COUNT, dtype=bool)
         self._known[list(KNOWN_ADDRESSES)] = True
 
@@ -153,21 +242,112 @@ class Gate:
     def override_remaining(self, now: float) -> float:
         return max(0.0, self.override_until - now)
 
+    # ----- holds
+
+    def held(self, now: float) -> tuple[str, ...]:
+        """Units flagged as held at ``now`` (hysteresis ``release_time``), as reported: 'all' or the arms."""
+        units = {u for u, s in self.units.items() if now - s.held_at <= self.config.release_time}
+        return ("all",) if units == set(UNITS) else tuple(sorted(units - {"body"}))
+
+    def _update_units(self, observed: Observed | None, now: float) -> None:
+        """HELD -> RELEASING once ``release_time`` passed without a new hold; RELEASING -> FREE once the daemon
+        echoed a report stamped at or after the release (or ``release_wait`` passed, or nothing echoes)."""
+        for u in self.units.values():
+            if u.state == HELD and now - u.held_at > self.config.release_time:
+                u.state, u.released_at, u.stamp = RELEASING, now, None
+            if u.state == RELEASING and (
+                    observed is None
+                    or (u.stamp is not None and observed.collide_time >= u.stamp)
+                    or now - u.released_at > self.config.release_wait):
+                u.state = FREE
+
+    def _hold(self, units: Iterable[str], now: float) -> None:
+        for name in units:
+            u = self.units[name]
+            u.state, u.held_at = HELD, now
+
+    # ----- configurations
+
+    def _configs(self, x: np.ndarray, pos: np.ndarray | None,
+                 choices: Iterable[Choice] | None = None) -> dict[Choice, np.ndarray]:
+        """Model joint vectors of output ``x`` combined per unit with the measured pose ``pos`` (NaN: not known,
+        taken at its reference). Without ``choices``: every distinct combination."""
+        q_ref = self.model.q_from_ref(x)
+        if pos is None:
+            return {(False, False, False): q_ref}
+        q_pos = self.model.q_from_ref(np.where(np.isnan(pos), x, pos))
+        if choices is None:
+            options = [(False, True) if np.abs(q_pos[_UNIT_Q[u]] - q_ref[_UNIT_Q[u]]).max() > SAME_POSE else (False,)
+                       for u in UNITS]
+            choices = itertools.product(*options)
+        out = {}
+        for c in choices:
+            q = q_ref.copy()
+            for u, measured in zip(UNITS, c, strict=True):
+                if measured:
+                    q[_UNIT_Q[u]] = q_pos[_UNIT_Q[u]]
+            out[c] = q
+        return out
+
+    def _analyze(self, x: np.ndarray, pos: np.ndarray | None) -> tuple[dict[Choice, Any], list[tuple[Choice, Any]]]:
+        """Check output candidate ``x`` in every configuration. Compared with the previous output in the same
+        configuration (same measured pose), a new colliding pair blocks, and so do the pairs that came closer
+        when the colliding pairs' total clearance dropped: a move out of contact may trade a little of one pair
+        for more of the others (the straight way home from an interlock often does), never the total."""
+        cfg = self._configs(x, pos)
+        res = dict(zip(cfg, self._check(list(cfg.values())), strict=True))
+        hit = [c for c, r in res.items() if r.collides]
+        if not hit:
+            return res, []
+        base = self._configs(self.ref, pos, hit)
+        changed = [c for c in hit if not np.array_equal(cfg[c], base[c])]
+        before = dict(zip(changed, self._check([base[c] for c in changed]), strict=True))
+        blocking = []
+        for c in changed:
+            old = {(k.a, k.b): k.clearance for k in before[c].contacts}
+            new = [k for k in res[c].contacts if (k.a, k.b) not in old]
+            kept = [k for k in res[c].contacts if (k.a, k.b) in old]
+            closer = sum(k.clearance - old[(k.a, k.b)] for k in kept) < -CLOSER
+            blocking += [(c, k) for k in new]
+            if closer:
+                blocking += [(c, k) for k in kept if k.clearance < old[(k.a, k.b)]]
+        return res, blocking
+
+    def _check(self, qs: list[np.ndarray]) -> list[Any]:
+        """``model.check_many``, remembering the answers of recent frames: the previous output's configurations
+        (the baseline of every comparison) were checked in the previous frame, and a held arm's configurations
+        repeat frame after frame."""
+        keys = [q.tobytes() for q in qs]
+        todo = {k: q for k, q in zip(keys, qs, strict=True) if k not in self._cache}
+        if todo:
+            self._cache.update(zip(todo, self.model.check_many(np.array(list(todo.values()))), strict=True))
+        return [self._cache[k] for k in keys]
+
+    def _movers(self, blocking: list[tuple[Choice, Any]], x: np.ndarray) -> set[str]:
+        """Units whose reference moved into the blocking contacts; every unit if the body (waist, neck) did."""
+        moved = {u: not np.array_equal(x[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]]) for u in UNITS}
+        out: set[str] = set()
+        for choice, contact in blocking:
+            for group in (contact.group_a, contact.group_b):
+                unit = _UNIT_OF_GROUP.get(group)
+                if unit is None:
+                    continue
+                if unit != "body" and not choice[UNITS.index(unit)] and moved[unit]:
+                    out.add(unit)
+                if not choice[2] and moved["body"]:
+                    out.add("body")
+        return set(UNITS) if "body" in out or not out else out
+
+    def _freeze(self, cand: np.ndarray, cand_mode: np.ndarray, units: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
+        out, out_mode = cand.copy(), cand_mode.copy()
+        for u in units:
+            idx = UNIT_ADDRESSES[u]
+            out[idx], out_mode[idx] = self.ref[idx], self.mode[idx]
+        return out, out_mode
+
     # ----- the decision
 
-    def _acceptable(self, result: Any) -> bool:
-        """Collision-free, or - when the output is already in collision - a move out of it: no new colliding
-        pair, and the pairs still colliding are not brought closer together overall (sum of the distances
-        between their primitives' centres)."""
-        if not result.collides:
-            return True
-        if not self.current.collides or not result.pairs <= self.current.pairs:
-            return False
-        now = {(c.a, c.b): c.centre_distance for c in self.current.contacts}
-        before = sum(now[(c.a, c.b)] for c in result.contacts)
-        return sum(c.centre_distance for c in result.contacts) >= before - 1e-9
-
-    def process(self, ref: np.ndarray, mode: np.ndarray, now: float) -> Decision:
+    def process(self, ref: np.ndarray, mode: np.ndarray, now: float, observed: Observed | None = None) -> Decision:
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         cand = ref.copy()
@@ -176,85 +356,150 @@ class Gate:
         cand[bad] = self.ref[bad]
         cand_mode[bad] = self.mode[bad]
         refused = tuple(int(a) for a in np.flatnonzero(bad & self._known))
+        # The first reference after start gets no credit: whatever the input says, the output starts from where
+        # the daemon is (a restarted gate must not step).
+        dt = 0.0 if self._first else min(max(now - self.last_time, 0.0), self.config.max_dt)
         if self.config.max_velocity is not None:
-            # The first reference after start gets no credit: whatever the input says, the output starts
-            # from where the daemon is (a restarted gate must not step).
-            dt = 0.0 if self._first else min(max(now - self.last_time, 0.0), self.config.max_dt)
             step = self.config.max_velocity * dt
             cand = self.ref + np.clip(cand - self.ref, -step, step)
-        q = self.model.q_from_ref
-        result = self.model.check(q(cand))
-        held: tuple[str, ...] = ()
-        out, out_mode, out_result = cand, cand_mode, result
-        overridden = False
-        if not self._acceptable(result):
-            if self.override_remaining(now) > 0:
-                overridden = True
-            else:
-                arms = tuple(sorted(result.arms))
-                mixed, mixed_mode = cand.copy(), cand_mode.copy()
-                for arm in arms:
-                    idx = ARM_ADDRESSES[arm]
-                    mixed[idx] = self.ref[idx]
-                    mixed_mode[idx] = self.mode[idx]
-                mixed_result = self.model.check(q(mixed)) if arms else result
-                if arms and self._acceptable(mixed_result):
-                    out, out_mode, out_result, held = mixed, mixed_mode, mixed_result, arms
-                else:
-                    out, out_mode = cand.copy(), cand_mode.copy()
-                    out[MODEL_ADDRESSES] = self.ref[MODEL_ADDRESSES]
-                    out_mode[MODEL_ADDRESSES] = self.mode[MODEL_ADDRESSES]
-                    out_result, held = self.current, ("all",)
-        self._track(result, now, overridden)
-        self.ref, self.mode, self.current, self.last_time = out, out_mode, out_result, now
+        # Joints released from a hold come back at the release speed until they have caught up.
+        step = self.release_velocity * dt
+        lag = cand - self.ref
+        cand[self._ramp] = self.ref[self._ramp] + np.clip(lag[self._ramp], -step, step)
+        self._ramp &= np.abs(lag) > step
+
+        overriding = self.override_remaining(now) > 0
+        if overriding:  # nothing is held: clear the flags at once, release through the daemon echo as usual
+            for u in self.units.values():
+                u.held_at = -math.inf
+            for p in self.parts:
+                p.held = -math.inf
+        pos = None
+        if observed is not None and now - observed.time <= self.config.state_timeout:
+            pos = observed.pos
+        self._update_units(observed, now)
+
+        if len(self._cache) > 512:
+            self._cache.clear()
+        res, blocking = self._analyze(cand, pos)
+        result = _merge(res.values())
+        frozen = {n for n, u in self.units.items() if u.state != FREE}
+        out, out_mode, res_out, blocked = cand, cand_mode, res, set()
+        overridden = bool(blocking) and overriding
+        seen = list(blocking)  # contacts that decide holds and flags
+        if overridden and frozen:  # released by the override: still waiting for the daemon's echo
+            out, out_mode = self._freeze(cand, cand_mode, frozen)
+            res_out = self._analyze(out, pos)[0]
+        elif not overridden:
+            blocked = self._movers(blocking, cand) if blocking else set()
+            held = frozen | blocked
+            if held:
+                out, out_mode = self._freeze(cand, cand_mode, held)
+                res_out, more = self._analyze(out, pos)
+                while more:  # the rest of the input runs into a frozen unit: hold those units too
+                    extra = (self._movers(more, out) - held) or set(UNITS) - held
+                    if not extra:
+                        break
+                    seen += more
+                    held |= extra
+                    blocked |= extra
+                    out, out_mode = self._freeze(cand, cand_mode, held)
+                    res_out, more = self._analyze(out, pos)
+        contacts = _merge(res_out.values())
+        # An arm in contact whose input does not ask it to move stays held (and flagged); one that moves passes.
+        involved = [(c, k) for c, r in res_out.items() for k in r.contacts] + seen
+        static = {u for u in ("left", "right")
+                  if np.array_equal(cand[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]])}
+        touching = {_UNIT_OF_GROUP.get(g) for _, k in involved for g in (k.group_a, k.group_b)}
+        renewed = set() if overridden else blocked | (static & touching)
+        if renewed - blocked:
+            out, out_mode = self._freeze(out, out_mode, renewed - blocked)  # the mode stays too
+        self._hold(renewed, now)
+        for n, u in self.units.items():
+            if u.state != FREE:
+                self._ramp[UNIT_ADDRESSES[n]] = True
+        escaping = tuple(sorted(u for u in ("left", "right") if u in touching and self.units[u].state == FREE))
+        self._track(involved, renewed, now, overridden)
+        self.ref, self.mode, self.current, self.last_time = out, out_mode, contacts, now
         self._first = False
-        return Decision(out.copy(), out_mode.copy(), result, held, refused, overridden)
+        releasing = tuple(n for n, u in self.units.items() if u.state == RELEASING)
+        return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
+                        escaping, contacts, pos is not None)
 
     # ----- reporting
 
-    def _track(self, result: Any, now: float, overridden: bool) -> None:
-        hit = result.parts
+    def _track(self, involved: list[tuple[Choice, Any]], renewed: set[str], now: float, overridden: bool) -> None:
+        """Part states: contact times, and hold times for the parts of the arms held now."""
+        arms = {"left", "right"} & renewed
+        hit: set[int] = set()
+        held: set[int] = set()
+        touching: set[str] = set()
+        for _, k in involved:
+            for group, part in ((k.group_a, k.part_a), (k.group_b, k.part_b)):
+                touching.add(group)
+                if part >= 0:
+                    hit.add(part)
+                    if group in arms:
+                        held.add(part)
+        for arm in arms & touching:  # held for a primitive without a legacy part: flag the whole arm
+            if not held & set(ARM_PARTS[arm]):
+                held |= set(ARM_PARTS[arm])
         for p, st in enumerate(self.parts):
-            if p in hit:
+            if p in hit or p in held:
                 if now - st.last > self.config.release_time:
                     st.start, st.count = now, 0
                 st.last = now
                 st.count = min(st.count + 1, self.config.counter_max)
             elif now - st.last > self.config.release_time:
                 st.count = 0
-        if result.collides:
-            self.last_flag = COLLIDE_OVERRIDDEN if overridden else COLLIDE_BLOCKED
-            self._flag_time = now
+            if p in held:
+                st.held = now
+        if involved:
+            self._contact_time = now
+            if overridden:
+                self._override_time = now
 
     def report(self, now: float) -> MDS_COLLIDE:
-        """The legacy ``mds-collide`` frame for ``now`` (hysteresis on wall time)."""
+        """The legacy ``mds-collide`` frame for ``now`` (hysteresis on wall time); see the module doc."""
+        rt = self.config.release_time
         c = MDS_COLLIDE()
-        any_part = False
+        holding = bool(self.held(now))
+        if holding:
+            c.isCollide = COLLIDE_BLOCKED
+        elif now - self._override_time <= rt:
+            c.isCollide = COLLIDE_OVERRIDDEN
+        elif now - self._contact_time <= rt:
+            c.isCollide = COLLIDE_CONTACT
         for p, st in enumerate(self.parts):
-            active = now - st.last <= self.config.release_time
+            active = now - st.last <= rt
             j = c.joint[p]
             j.collision = st.count if active else 0
-            j.isCollide = int(active)
+            j.isCollide = int(now - st.held <= rt if holding else active and c.isCollide != 0)
             j.time = st.last if math.isfinite(st.last) else 0.0
             j.time_dt = now - st.start if active else 0.0
-            any_part |= active
-        flag_active = now - self._flag_time <= self.config.release_time
-        c.isCollide = self.last_flag if (flag_active or any_part) and self.last_flag else 0
         c.time = now
         c.time_dt = now - self.last_report
         self.last_report = now
+        for u in self.units.values():
+            if u.state == RELEASING and u.stamp is None:
+                u.stamp = now  # the first report without its hold: once the daemon echoes it, the unit moves
         return c
 
 
 def decision_to_dict(d: Decision | None, gate: Gate, now: float) -> dict[str, Any]:
     """The JSON document of /mds/collision."""
     res = d.result if d is not None else gate.current
+    now_contacts = d.contacts if d is not None else gate.current
     return {
         "time": now,
         "collision": bool(res.collides),
         "pairs": sorted([c.a, c.b] for c in res.contacts),
         "parts": [mds.COLLIDE_PART_NAMES[p] for p in sorted(res.parts)],
-        "held": list(d.held) if d is not None else [],
+        "contact": sorted([c.a, c.b] for c in now_contacts.contacts),
+        "held": list(gate.held(now)),
+        "releasing": list(d.releasing) if d is not None else [],
+        "escaping": list(d.escaping) if d is not None else [],
+        "measured": bool(d.measured) if d is not None else False,
         "refused": [labels([a]) for a in d.refused] if d is not None else [],
         "overridden": bool(d.overridden) if d is not None else False,
         "override_remaining": round(gate.override_remaining(now), 3),
@@ -289,7 +534,8 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
 
 
 class GateRunner:
-    """Channels around ``Gate``: wait for ``mds-ref-smooth``, decide, put ``mds-ref`` and ``mds-collide``."""
+    """Channels around ``Gate``: wait for ``mds-ref-smooth``, decide with the newest ``mds-state`` (measured pose,
+    echoed ``mds-collide``), put ``mds-ref`` and ``mds-collide``."""
 
     def __init__(self, model: Any, config: GateConfig, lower: np.ndarray, upper: np.ndarray,
                  log: Callable[[str, str], None] | None = None,
@@ -332,6 +578,8 @@ class GateRunner:
         self._inp = inp = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
         out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
         collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
+        state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+        observed: Observed | None = None
         inp.latest()  # a frame already waiting is an old command: act only on frames that arrive from now on
         self.gate = gate
         report_period = 1.0 / self.config.report_rate
@@ -351,10 +599,13 @@ class GateRunner:
                 frame = guard.call(inp.name, inp.wait, timeout=report_period)  # broken input: hold, report
                 now = time.monotonic()
                 override_log = self._apply_overrides(gate, now, override_log)
+                state = guard.call(state_ch.name, state_ch.latest)  # a broken state: keep the last one
+                if state is not None:
+                    observed = Observed.from_state(state)
                 decision = None
                 if frame is not None:
                     t0 = time.perf_counter()
-                    decision = gate.process(*ref_arrays(frame), now)
+                    decision = gate.process(*ref_arrays(frame), now, observed)
                     self.check_times.append(time.perf_counter() - t0)
                     if len(self.check_times) > 10000:
                         del self.check_times[:5000]
@@ -373,9 +624,12 @@ class GateRunner:
                     if self.on_report is not None:
                         self.on_report(decision, gate, now)
         finally:
-            inp.close()
-            out.close()
-            collide.close()
+            for ch in (inp, out, collide, state_ch):
+                ch.close()
+            if self.check_times:
+                ms = np.array(self.check_times) * 1e3
+                self.log("info", f"{self.processed} references gated; decision time median {np.median(ms):.2f} ms, "
+                                 f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.2f} ms")
 
     def _apply_overrides(self, gate: Gate, now: float, last_log: float) -> float:
         with self._lock:
@@ -427,7 +681,17 @@ def build_gate_parts(config_path: str | None = None, world: str | None = None, u
         cfg["margin"] = margin
     model = load_model(urdf, cfg, world)
     lower, upper = joint_limits(model)
+    if cfg.get("release_velocity") is None:
+        cfg["release_velocity"] = filter_speed()
     return model, GateConfig.from_mapping(cfg), lower, upper
+
+
+def filter_speed(path: str | Path | None = None) -> float:
+    """The slowest ``max_velocity`` of any modelled joint in the filter's config (config/filter.yaml): how fast a
+    released joint comes back, so that it never outruns what the filter itself would have commanded."""
+    from mds_ach import filter_node
+
+    return float(filter_node.load_config(path).max_velocity[MODEL_ADDRESSES].min())
 
 
 def _make_node(args: argparse.Namespace) -> Any:

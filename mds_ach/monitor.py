@@ -141,11 +141,17 @@ def collision_parts(collide: mds.MDS_COLLIDE) -> list[str]:
 
 
 def collision_summary(collide: mds.MDS_COLLIDE | None) -> str:
+    """One line per ``isCollide`` value of the gate (mds_ach.collision_node): 1 held, 2 expert override, 3 in
+    contact while moving out of it."""
     if collide is None:
         return f"unknown (nothing on {mds.MDS_CHAN_COLLIDE_NAME})"
-    parts = collision_parts(collide)
+    parts = " ".join(collision_parts(collide))
+    if collide.isCollide == 2:
+        return "EXPERT OVERRIDE passes a predicted collision: " + (parts or "-")
+    if collide.isCollide == 3:
+        return "CONTACT, only moves out of it pass (nothing held): " + (parts or "-")
     if collide.isCollide or parts:
-        return "BLOCKED: " + (" ".join(parts) if parts else "collision predicted")
+        return "BLOCKED: " + (parts or "collision predicted")
     return "clear"
 
 

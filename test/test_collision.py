@@ -133,6 +133,31 @@ def test_broad_phase_never_drops_a_collision(model: collision.CollisionModel) ->
     assert 40 < colliding < 400  # the sample exercises both outcomes
 
 
+def test_batched_check_answers_like_single_checks(model: collision.CollisionModel) -> None:
+    """``check_many`` (one batched FK and broad phase for the gate's several configurations per reference) gives
+    each configuration exactly the answer of ``check``, clearances included."""
+    configs = random_configs(model, 200, seed=7)
+    batched = model.check_many(configs)
+    assert len(batched) == len(configs) and sum(r.collides for r in batched) > 20
+    for q, many in zip(configs, batched, strict=True):
+        assert many == model.check(q)
+
+
+def test_contact_clearance_is_the_signed_distance_of_the_shapes() -> None:
+    """A world ball at a known gap from the left hand sphere: a contact's clearance is the gap between the real
+    (un-inflated) surfaces, negative when they overlap (how far one is pushed into the other)."""
+    base = collision.load_model(world={})
+    q = q_of(**HOME)
+    hand = base.primitive_poses(q)[index(base, "left_hand_link"), :3, 3]
+    torso = base.tree.link_pose("torso", np.zeros(len(MODEL_JOINTS)))
+    for gap in (0.015, 0.0, -0.03):
+        local = np.linalg.inv(torso) @ np.append(hand + np.array([0.0, 0.0, 0.15 + gap]), 1.0)
+        m = collision.load_model(world={"objects": [{"name": "ball", "shape": "sphere", "radius": 0.05,
+                                                     "xyz": local[:3].tolist()}]})
+        (contact,) = [c for c in m.check(q).contacts if {c.a, c.b} == {"left_hand_link", "world:ball"}]
+        assert contact.clearance == pytest.approx(gap, abs=1e-6)
+
+
 def test_known_colliding_pair_is_always_reported(model: collision.CollisionModel) -> None:
     """Hand spheres (r 0.1 each): reported exactly when the centres are closer than 0.2 m + margin.
 

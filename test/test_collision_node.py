@@ -32,6 +32,12 @@ for _name, _value in {"RSP": -0.445, "RSR": -1.18, "REP": -1.25, "RSY": 0.15, "L
 TABLE = {"objects": [{"name": "table", "shape": "box", "size": [0.6, 1.4, 0.04], "xyz": [0.6, 0.0, -0.42]}]}
 TABLE_TOP = -0.40
 DT = 0.025
+MODEL_ADDR = np.array(sorted(set(L) | set(R) | {mds.WST, mds.NKY, mds.NKP1, mds.NKP2, mds.NKR}))
+LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
+              mds.COLLIDE_L_WRIST)
+RIGHT_PARTS = (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
+               mds.COLLIDE_R_WRIST)
+FILTER_SPEED = 1.57  # rad/s, the filter's default velocity limit (config/filter.yaml)
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +48,10 @@ def model():
 @pytest.fixture(scope="module")
 def table_model():
     return load_model(world=TABLE)
+
+
+def flags(report: mds.MDS_COLLIDE, parts: tuple[int, ...]) -> bool:
+    return any(report.joint[p].isCollide for p in parts)
 
 
 def make_gate(model, ref=HOME, **cfg) -> Gate:
@@ -147,6 +157,8 @@ def test_waist_turn_into_an_obstacle_holds_everything(model) -> None:
     target[mds.LF1] = 0.2  # an unmodelled finger joint still goes through
     decisions = drive(gate, target, 2.0)
     assert any(d.held == ("all",) for d in decisions)
+    report = gate.report(gate.last_time)  # flagged: the arm in contact; frozen but not flagged: the rest
+    assert report.isCollide == 1 and flags(report, LEFT_PARTS) and not flags(report, RIGHT_PARTS)
     assert 0 < gate.ref[mds.WST] < 0.38
     assert not m.check(m.q_from_ref(gate.ref)).collides
     assert gate.ref[mds.LF1] == pytest.approx(0.2)
@@ -197,6 +209,9 @@ def test_expert_override_is_explicit_reported_and_expires(model) -> None:
     d = gate.process(target, ZERO_MODE, now + 0.025)
     assert d.overridden and not d.held and d.result.collides
     assert gate.report(now + 0.025).isCollide == 2  # visible on mds-collide
+    from mds_ach.monitor import collision_summary
+
+    assert collision_summary(gate.report(now + 0.025)).startswith("EXPERT OVERRIDE")
     assert decision_to_dict(d, gate, now + 0.025)["override_remaining"] == pytest.approx(0.975)
     assert np.abs(d.ref - held_at).max() > 0  # it moved into the predicted collision
     # expired: back to blocking; the robot is now in collision, so only moves that add no new pair pass
@@ -231,6 +246,179 @@ def test_report_hysteresis_on_wall_time(model) -> None:
     c = gate.report(last + 0.15)
     assert c.joint[mds.COLLIDE_L_HAND].isCollide == 0 and c.isCollide == 0
     assert c.time == last + 0.15 and c.time_dt == pytest.approx(0.1)
+
+
+# --------------------------------------------------------------------------------------------- measured pose, release
+
+
+
+def test_the_measured_pose_of_a_compliant_arm_holds_the_other_arm(model) -> None:
+    """Mode 2: the left arm's reference went home but the arm stays where it is (the daemon's target follows the
+    encoder). The right hand sent to where the left hand physically is must stop short of it, reported."""
+    from mds_ach.collision_node import Observed
+
+    point = [0.40, 0.05, -0.10]
+    left_there = solve("left", point)
+    gate = make_gate(model)
+    target = HOME.copy()
+    target[R] = solve("right", point)
+    assert not model.check(model.q_from_ref(target)).collides  # the references alone never meet
+    core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
+    core.set_target(target, ZERO_MODE)
+    now = 0.0
+    for _ in range(int(3.0 / DT)):
+        now += DT
+        pos = gate.ref.copy()  # the right arm is where it is commanded, the left one stays
+        pos[L] = left_there
+        d = gate.process(core.step(), core.mode, now, Observed(pos, now, now))
+        robot = pos.copy()
+        robot[R] = d.ref[R]
+        assert not model.check(model.q_from_ref(robot)).collides  # where the right arm goes never touches
+    assert "right" in d.held and np.abs(d.ref[R] - target[R]).max() > 0.05
+    report = gate.report(now)
+    assert report.isCollide == 1 and report.joint[mds.COLLIDE_L_HAND].isCollide and \
+        report.joint[mds.COLLIDE_R_HAND].isCollide
+    doc = decision_to_dict(d, gate, now)
+    assert doc["measured"] and "right" in doc["held"] and ["left_hand_link", "right_hand_link"] in doc["pairs"]
+
+
+def test_a_flagged_arm_never_moves_and_a_released_one_comes_back_at_the_filter_speed(model) -> None:
+    """mds-collide and mds-ref agree: while an arm's parts are flagged (the daemon withholds that arm's targets)
+    its reference does not change, and when it is released it moves on from the held reference no faster than
+    the filter, so the daemon never has a missed distance to send at once. Hands to one point stop apart; then
+    the right one goes home and the left one, released, comes on to the point."""
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
+    core.set_target(target, ZERO_MODE)
+    now, prev = 0.0, gate.process(HOME, ZERO_MODE, 0.0).ref  # the first frame after start: no speed credit
+    released = False
+    for k in range(int(9.0 / DT)):
+        if k == int(3.0 / DT):
+            assert flags(gate.report(now), LEFT_PARTS) and flags(gate.report(now), RIGHT_PARTS)  # both held
+            target[R] = HOME[R]
+            core.set_target(target, ZERO_MODE)
+        now += DT
+        d = gate.process(core.step(), core.mode, now)
+        report = gate.report(now)
+        for idx, parts in ((L, LEFT_PARTS), (R, RIGHT_PARTS)):
+            if report.isCollide == 1 and flags(report, parts):
+                assert np.array_equal(d.ref[idx], prev[idx]), f"flagged at {now:.3f} s but moved"
+        step = np.abs(d.ref - prev)[MODEL_ADDR].max()
+        assert step <= FILTER_SPEED * DT + 1e-9, f"step {step:.4f} rad at {now:.3f} s"
+        released |= k > int(3.0 / DT) and not d.held and step > 0
+        prev = d.ref
+    assert released
+    np.testing.assert_allclose(gate.ref[L], target[L], atol=1e-12)
+    np.testing.assert_allclose(gate.ref[R], HOME[R], atol=1e-12)
+
+
+@pytest.mark.parametrize("echo", [True, False])
+def test_a_released_arm_waits_until_the_daemon_took_the_cleared_flag(model, echo: bool) -> None:
+    """After a hold the flag is cleared first; the arm's reference stays put until mds-state shows that the daemon
+    took a report without the flag (its 10 Hz cycle copies mds-collide into state.collide), or release_wait."""
+    from mds_ach.collision_node import Observed
+
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
+    core.set_target(target, ZERO_MODE)
+    now, taken, cleared, moved, taken_at_move = 0.0, -1.0, None, None, None
+    for k in range(int(8.0 / DT)):
+        if k == int(3.0 / DT):
+            target[R] = HOME[R]  # the right arm backs off; the left one is released once it is out of the way
+            core.set_target(target, ZERO_MODE)
+        now += DT
+        before = gate.ref[L].copy()
+        d = gate.process(core.step(), core.mode, now, Observed(gate.ref.copy(), now, taken))
+        report = gate.report(now)
+        if k > int(3.0 / DT) and cleared is None and not flags(report, LEFT_PARTS):
+            cleared = report.time
+        if cleared is not None and moved is None and not np.array_equal(d.ref[L], before):
+            moved, taken_at_move = now, taken
+        if echo and k % 4 == 0:
+            taken = report.time  # the daemon's cycle took this report and echoes it in the next mds-state
+    assert cleared is not None and moved is not None
+    if echo:
+        assert taken_at_move >= cleared and moved - cleared <= 0.1 + 2 * DT
+    else:
+        assert moved - cleared >= gate.config.release_wait - DT
+    assert np.abs(gate.ref[L] - target[L]).max() < 1e-9  # and then it goes on to its target
+
+
+def test_arms_in_measured_contact_are_held_and_can_be_moved_apart(model) -> None:
+    """Both arms pushed into contact (e.g. compliant arms moved by hand): reported and held while their references
+    stand still; a reference that brings them closer is refused, one that moves an arm away passes (escaping)."""
+    from mds_ach.collision_node import Observed
+
+    pos = HOME.copy()
+    pos[L], pos[R] = solve("left", [0.40, 0.02, -0.1]), solve("right", [0.40, -0.02, -0.1])
+    assert model.check(model.q_from_ref(pos)).collides
+    gate = make_gate(model)
+    now = 0.0
+
+    def step(ref: np.ndarray) -> tuple:
+        nonlocal now
+        now += DT
+        d = gate.process(ref, ZERO_MODE, now, Observed(pos, now, now))
+        return d, gate.report(now)
+
+    d, report = step(HOME)
+    assert set(d.held) == {"left", "right"} and report.isCollide == 1
+    assert flags(report, LEFT_PARTS) and flags(report, RIGHT_PARTS)
+    assert ["left_hand_link", "right_hand_link"] in decision_to_dict(d, gate, now)["contact"]
+    closer = HOME.copy()
+    closer[R] = solve("right", [0.40, 0.02, -0.1])  # onto the left hand
+    for _ in range(int(2.0 / DT)):
+        d, report = step(closer)
+        towards = pos.copy()
+        towards[R] = d.ref[R]  # where the right arm is sent, the left one where it is
+        assert not model.check(model.q_from_ref(towards)).collides
+    assert "right" in d.held and np.abs(d.ref[R] - closer[R]).max() > 0.05  # stopped short of the left hand
+    away = HOME.copy()
+    away[R] = solve("right", [0.25, -0.45, -0.25])
+    escaping = 0
+    for _ in range(int(3.0 / DT)):
+        d, report = step(away)
+        if "right" in d.escaping:  # passed while in contact: flagged for the left arm only, so the daemon sends it
+            escaping += 1
+            assert d.held == ("left",) and report.isCollide == 1
+            assert flags(report, LEFT_PARTS) and not flags(report, RIGHT_PARTS)
+    assert escaping > 10
+    np.testing.assert_allclose(d.ref[R], away[R], atol=1e-12)  # the right arm's reference moved out
+    pos[R] = away[R]  # ... and the arm followed it: out of contact, nothing is held any more
+    for _ in range(10):
+        d, report = step(away)
+    assert not d.held and not d.contacts.collides and report.isCollide == 0
+
+
+def test_moving_out_of_a_contact_is_reported_as_contact_not_as_a_hold(model) -> None:
+    """isCollide = 3 while the arms are in contact but only moves out of it pass and nothing is held (the daemon
+    holds nothing then); operators see it as CONTACT, a hold as BLOCKED."""
+    from mds_ach.monitor import collision_summary
+
+    inside = HOME.copy()
+    inside[L], inside[R] = solve("left", [0.40, 0.02, -0.1]), solve("right", [0.40, -0.02, -0.1])
+    gate = make_gate(model, ref=inside)
+    core = FilterCore(parse_config({"rate": 1 / DT}), inside, ZERO_MODE)
+    core.set_target(HOME, ZERO_MODE)
+    codes, escaping = [], 0
+    now = 0.0
+    for _ in range(int(4.0 / DT)):
+        now += DT
+        d = gate.process(core.step(), core.mode, now)
+        report = gate.report(now)
+        codes.append(report.isCollide)
+        if report.isCollide == 3:
+            assert not d.held and collision_summary(report).startswith("CONTACT")
+            escaping += set(d.escaping) == {"left", "right"} and "L_HAND" in collision_summary(report)
+        elif report.isCollide == 1:
+            assert collision_summary(report).startswith("BLOCKED")
+    assert codes[0] == 1 and escaping > 0 and codes[-1] == 0
 
 
 # --------------------------------------------------------------------------------------------- channels

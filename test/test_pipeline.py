@@ -4,7 +4,10 @@ its own process started by its console script (= `ros2 run mds_ach <exe>`).
 * an IK request moves the simulated hand to the target smoothly, without collisions, within the expected time;
 * killing the filter or the collision gate freezes the robot at its last reference (zero-order hold at the
   daemon); killing the mux lets the filter finish the last mux reference and then holds;
-* restarting the node resumes without a jump.
+* restarting the node resumes without a jump;
+* the collision gate checks where the joints really are (a compliant arm's measured pose, not its reference),
+  and an arm released from a hold never makes the daemon send the distance it missed in one step (checked on
+  the daemon's own CAN log).
 
 "Smooth / no jump": between two consecutive mds-state frames no joint reference moves faster than the
 gate's speed bound allows; "frozen": the daemon's reference does not change at all.
@@ -26,12 +29,17 @@ from mds_ach import ach
 from mds_ach.channels import StructChannel
 from mds_ach.collision import load_model
 from mds_ach.ik_msgs import IK_SOLVED, MDS_IK_STATUS
-from mds_ach.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS
+from mds_ach.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
 from mds_ach.kinematics import arm_kinematics
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 LEFT = np.array([BY_SHORT[n].address for n in LEFT_ARM])
+RIGHT = np.array([BY_SHORT[n].address for n in RIGHT_ARM])
+LEFT_PARTS = {mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
+              mds.COLLIDE_L_WRIST}
+RIGHT_PARTS = {mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
+               mds.COLLIDE_R_WRIST}
 MODEL = np.array([BY_SHORT[n].address for n in MODEL_JOINTS])
 FILTER_SPEED = 1.57  # rad/s, config/filter.yaml default
 GATE_SPEED = 2.0  # rad/s, config/collision.yaml max_velocity
@@ -51,6 +59,8 @@ class System:
         self.ik_state = StructChannel(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS)
         self.model = load_model()
         self.collide_flags: list[int] = []
+        self.last_state: mds.MDS_STATE | None = None
+        self.commands: StructChannel | None = None
         self.trace: list[tuple[float, np.ndarray, np.ndarray]] = []  # (state.time, ref[100], pos[100])
         self.seq = 0
 
@@ -120,7 +130,16 @@ class System:
             self.collide_flags.append(int(c.isCollide))
         assert not self.model.check(self.model.q_from_ref(ref)).collides, "the daemon commands a collision"
         self.trace.append((st.time, ref, pos))
+        self.last_state = st
         return st.time, ref, pos
+
+    def command(self, ref: np.ndarray, mode: np.ndarray) -> None:
+        """A whole frame on mds-ref-filter (the mux's default controller, like console goto)."""
+        from mds_ach.pipeline import make_ref
+
+        if self.commands is None:
+            self.commands = StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF)
+        self.commands.put(make_ref(ref, mode))
 
     def follow(self, until, timeout: float) -> np.ndarray:
         """Read state frames until ``until(ref, pos)``; returns the last ref. Fails after ``timeout`` s."""
@@ -149,8 +168,9 @@ class System:
             assert time.monotonic() < deadline, f"no IK answer:\n{self.log_text('ik')}"
 
     def close(self) -> None:
-        for ch in (self.state, self.collide, self.ik_req, self.ik_state):
-            ch.close()
+        for ch in (self.state, self.collide, self.ik_req, self.ik_state, self.commands):
+            if ch is not None:
+                ch.close()
 
 
 SAMPLING_SLACK = 0.05  # s: the daemon samples mds-ref at a slightly different point of each cycle than it stamps
@@ -244,3 +264,153 @@ def test_ik_moves_the_hand_smoothly_and_nodes_can_die_and_come_back(system: Syst
     s.follow(lambda ref, pos: np.abs(ref[LEFT] - q).max() < 1e-9, timeout=15)
     assert_smooth(s.trace, "mux killed and restarted")
     assert not any(s.collide_flags)
+
+
+# --------------------------------------------------------------------------------------------- collision gate
+
+
+def arm_solution(arm: str, point: list[float], seed: np.ndarray) -> np.ndarray:
+    """Joint values that put ``arm``'s tool point at ``point`` (robot frame)."""
+    from mds_ach import ik
+
+    res = ik.solve(point, "p-x p-y p-z", arm, seed)
+    assert res.success, res.message
+    return res.q
+
+
+def flagged(collide: mds.MDS_COLLIDE) -> set[int]:
+    return {p for p in range(mds.MDS_COLLIDE_JNT_NUM) if collide.joint[p].isCollide}
+
+
+@pytest.fixture
+def gate_system(clean_shm: None, tmp_path: Path):
+    """daemon --nocan (recording its CAN traffic), mux, filter and collision gate; no IK."""
+    assert in_netns(), "run through tools/netns-run"
+    s = System(tmp_path)
+    s.can_log = tmp_path / "can.asc"
+    try:
+        s.start("daemon", "--nocan", "--can-log", str(s.can_log))
+        for name in ("collision", "filter", "mux"):
+            s.start(name)
+        yield s
+    finally:
+        codes = s.stop_all()
+        s.close()
+    bad = {n: c for n, c in codes.items() if c != 0}
+    assert not bad, f"unclean exits {bad}:\n" + "\n".join(s.log_text(n)[-3000:] for n in bad)
+
+
+def test_gate_checks_the_measured_pose_of_a_compliant_arm(gate_system: System) -> None:
+    """Left arm in mode 2 (compliant: the daemon's target follows the encoder) with its reference sent home, so it
+    stays where it is; the right hand is then sent to where the left hand physically is. The gate must hold the
+    right arm short of the left one (measured poses never in contact) and say so on mds-collide within a few
+    state frames: isCollide = 1 with parts of both arms flagged."""
+    s = gate_system
+    _, home, _ = s.frame()
+    point = [0.40, 0.05, -0.10]
+    ref, mode = home.copy(), np.zeros(mds.MDS_JOINT_COUNT, dtype=np.int16)
+    ref[LEFT] = arm_solution("left", point, home[LEFT])
+    s.command(ref, mode)
+    s.follow(lambda r, p: np.abs(p[LEFT] - ref[LEFT]).max() < 0.01, timeout=15)
+    left_there = s.frame()[2][LEFT]
+
+    ref[LEFT], mode[LEFT] = home[LEFT], mds.MDS_REF_MODE_COMPLIANT
+    s.command(ref, mode)
+
+    def accepted_home(r: np.ndarray, p: np.ndarray) -> bool:
+        st = s.last_state
+        return np.abs(np.array([st.joint[a].ref_r for a in LEFT]) - home[LEFT]).max() < 1e-9
+
+    s.follow(accepted_home, timeout=15)  # the left reference is home, the arm has not moved
+    assert np.abs(s.frame()[2][LEFT] - left_there).max() < 0.01
+
+    target = arm_solution("right", point, home[RIGHT])
+    ref[RIGHT] = target
+    s.command(ref, mode)
+    seen: list[tuple[np.ndarray, int, set[int]]] = []
+    end = time.monotonic() + 6.0
+    while time.monotonic() < end:
+        _, r, p = s.frame()
+        contact = s.model.check(s.model.q_from_ref(p))
+        assert not contact.collides, f"measured poses in contact: {sorted(contact.pairs)}"
+        seen.append((r[RIGHT], int(s.last_state.collide.isCollide), flagged(s.last_state.collide)))
+    held = [k for k in range(1, len(seen))
+            if np.array_equal(seen[k][0], seen[k - 1][0]) and np.abs(seen[k][0] - target).max() > 0.05]
+    assert len(held) >= 20, "the right arm was not held short of the left one"
+    assert held[-1] == len(seen) - 1
+    late = [k for k in held[3:] if not (seen[k][1] == 1 and seen[k][2] & LEFT_PARTS and seen[k][2] & RIGHT_PARTS)]
+    assert not late, f"held but not reported on mds-collide: {[seen[k][1:] for k in late[:3]]}"
+
+
+def moveto_steps(log: Path) -> dict[int, list[tuple[float, float]]]:
+    """Per joint address: (credit s, |target change| rad) of every MOVETO after the joint's first in a CAN log
+    (decoded with mds_ach.mcb, converted with the joint table). The credit is the time since the joint's previous
+    MOVETO, but at most since the daemon's previous cycle (its broadcast position query): a joint that was held
+    stood still at its last target, so a hold earns no credit, while a late daemon cycle does."""
+    import can
+
+    from mds_ach import config, mcb
+    from mds_ach.mcb import Command, StateArg
+
+    table = config.load()
+    last: dict[int, tuple[float, float]] = {}
+    query = -np.inf
+    out: dict[int, list[tuple[float, float]]] = {}
+    for msg in can.LogReader(str(log)):
+        if msg.is_error_frame or msg.arbitration_id == mcb.HOST_SID or len(msg.data) != mcb.DLC:
+            continue
+        if msg.arbitration_id == mcb.BROADCAST_SID:
+            query = msg.timestamp  # one per daemon cycle, after that cycle's MOVETOs
+            continue
+        f = mcb.decode(msg.arbitration_id, bytes(msg.data))
+        if f.command != Command.SET or f.argument != StateArg.MOVETO_TARGET:
+            continue
+        q = table[f.arbitration_id].to_joint(f.value)
+        if f.arbitration_id in last:
+            t0, q0 = last[f.arbitration_id]
+            credit = min(msg.timestamp - t0, msg.timestamp - query)
+            out.setdefault(f.arbitration_id, []).append((credit, abs(q - q0)))
+        last[f.arbitration_id] = (msg.timestamp, q)
+    return out
+
+
+def test_gate_release_never_steps_the_motors(gate_system: System) -> None:
+    """Both hands to the same point stop apart (held); then the right arm goes home and the left one, released,
+    comes on to the point. On the daemon's CAN log no MOVETO target differs from the joint's previous one by more
+    than the filter's speed allows since the daemon's previous cycle (+ SAMPLING_SLACK for the filter's 25 ms
+    frames): a release never sends the distance the arm missed while it was held."""
+    from mds_ach import filter_node
+    from mds_ach.pipeline import joint_label
+
+    s = gate_system
+    _, home, _ = s.frame()
+    point = [0.40, 0.0, -0.10]
+    ref, mode = home.copy(), np.zeros(mds.MDS_JOINT_COUNT, dtype=np.int16)
+    ref[LEFT] = arm_solution("left", point, home[LEFT])
+    ref[RIGHT] = arm_solution("right", point, home[RIGHT])
+    s.command(ref, mode)
+
+    def both_held(r: np.ndarray, p: np.ndarray) -> bool:
+        c = s.last_state.collide
+        return c.isCollide == 1 and bool(flagged(c) & LEFT_PARTS) and bool(flagged(c) & RIGHT_PARTS)
+
+    held = s.follow(both_held, timeout=15)
+    end = time.monotonic() + 1.0  # the filter's reference runs on into the collision meanwhile
+    while time.monotonic() < end:
+        s.frame()
+    left_held = s.frame()[1][LEFT]
+    assert np.abs(left_held - held[LEFT]).max() < 0.01 and np.abs(left_held - ref[LEFT]).max() > 0.1
+
+    ref[RIGHT] = home[RIGHT]
+    s.command(ref, mode)
+    s.follow(lambda r, p: np.abs(r[LEFT] - ref[LEFT]).max() < 1e-9 and np.abs(r[RIGHT] - home[RIGHT]).max() < 1e-9,
+             timeout=20)
+    codes = s.stop_all()  # flushes the CAN log
+    assert not any(codes.values()), codes
+
+    speed = float(filter_node.load_config().max_velocity[MODEL].min())  # config/filter.yaml: 1.57 rad/s
+    steps = moveto_steps(s.can_log)
+    assert len({int(a) for a in LEFT} & set(steps)) >= 3, "no motion of the left arm was logged"
+    too_big = [(joint_label(a), round(credit, 3), round(step, 3)) for a, rows in steps.items() if a in MODEL
+               for credit, step in rows if step > speed * (credit + SAMPLING_SLACK)]
+    assert not too_big, f"MOVETO steps beyond {speed} rad/s (joint, credit s, step rad): {too_big[:8]}"
