@@ -210,6 +210,11 @@ class Gate:
         self._first = False
         return Decision(out.copy(), out_mode.copy(), result, held, refused, overridden)
 
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints' output where they are (``pipeline.ReseedWatch``: after HOME, reset, resetbus)."""
+        self.ref[addresses] = positions
+        self.current = self.model.check(self.model.q_from_ref(self.ref))
+
     # ----- reporting
 
     def _track(self, result: Any, now: float, overridden: bool) -> None:
@@ -322,7 +327,7 @@ class GateRunner:
 
     def run(self) -> None:
         from mds_ach.channels import StructChannel
-        from mds_ach.pipeline import ChannelGuard, make_ref, ref_arrays, wait_current_reference
+        from mds_ach.pipeline import ChannelGuard, ReseedWatch, make_ref, ref_arrays, wait_current_reference
 
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
@@ -338,6 +343,7 @@ class GateRunner:
         override_log = 0.0
         last_refusal_log = last_override_log = -math.inf
         guard = ChannelGuard(self.log, self._stop)
+        watch = ReseedWatch(self.log, self._stop)
         try:
             msg = f"started from {source}; margin {self.model.margin:g} m, {len(self.model.pairs)} pairs"
             if gate.current.collides:
@@ -351,6 +357,10 @@ class GateRunner:
                 frame = guard.call(inp.name, inp.wait, timeout=report_period)  # broken input: hold, report
                 now = time.monotonic()
                 override_log = self._apply_overrides(gate, now, override_log)
+                found = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
+                if found is not None:
+                    gate.reseed(*found)
+                    self.log("info", f"re-seeded {labels(found[0])} where the joints are")
                 decision = None
                 if frame is not None:
                     t0 = time.perf_counter()
@@ -376,6 +386,7 @@ class GateRunner:
             inp.close()
             out.close()
             collide.close()
+            watch.close()
 
     def _apply_overrides(self, gate: Gate, now: float, last_log: float) -> float:
         with self._lock:

@@ -163,6 +163,11 @@ class FilterCore:
             return f"ignored non-finite targets for {labels(np.flatnonzero(~ok))}"
         return None
 
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints where they are, at rest (``pipeline.ReseedWatch``): output and target."""
+        self.out[addresses] = self.target[addresses] = positions
+        self.vel[addresses] = 0.0
+
     def step(self, measured: np.ndarray | None = None) -> np.ndarray:
         """Advance one tick. ``measured``: mds-state joint[].pos for the enc_filter joints (None = unknown)."""
         p, out, tgt = self.p, self.out, self.target
@@ -222,7 +227,7 @@ class FilterRunner:
 
     def run(self) -> None:
         from mds_ach.channels import StructChannel
-        from mds_ach.pipeline import ChannelGuard, Periodic, state_positions, wait_current_reference
+        from mds_ach.pipeline import ChannelGuard, Periodic, ReseedWatch, state_positions, wait_current_reference
 
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
@@ -237,6 +242,7 @@ class FilterRunner:
         warned_state = False
         self.core = core
         guard = ChannelGuard(self.log, self._stop)
+        watch = ReseedWatch(self.log, self._stop)
         try:
             self.log("info", f"started from {source} at {self.params.rate:g} Hz ({self.params.describe()})")
             timer = Periodic(self.params.dt)
@@ -247,6 +253,11 @@ class FilterRunner:
                     problem = core.set_target(*ref_arrays(frame))
                     if problem:
                         self.log("warn", problem)
+                found = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins
+                if found is not None:
+                    core.reseed(*found)
+                    self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or "
+                                     f"resetbus)")
                 if needs_state:
                     st = guard.call(state_ch.name, state_ch.latest)
                     if st is not None:
@@ -263,6 +274,7 @@ class FilterRunner:
             inp.close()
             out.close()
             state_ch.close()
+            watch.close()
 
 
 # --------------------------------------------------------------------------------------------- ROS node
