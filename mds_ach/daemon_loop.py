@@ -487,12 +487,17 @@ class DaemonLoop:
         log.warning(f"{self.ch.ref.name} readable again: ramping to its reference within the motion bounds")
 
     def _stalled(self, gap: float) -> None:
-        """This loop did not run for ``gap`` s (a suspended process, a starved CPU): say so. The joints were not
-        sent anything meanwhile, so the limiter starts every target from rest where it was."""
+        """This loop did not run for ``gap`` s (a suspended process, a starved CPU): say so (every stall of 0.5 s
+        or more, shorter ones at most every 5 s). The joints were not sent anything meanwhile, so the limiter
+        starts every target from rest where it was."""
         self.status.stalls += 1
         self.status.stall_max = max(self.status.stall_max, gap)
-        log.warning("control loop stalled: %.3f s between two cycles (period %.3f s); targets ramp from where "
-                    "they were", gap, self.period)
+        text = (f"control loop stalled: {gap:.3f} s between two cycles (period {self.period:.3f} s, "
+                f"{self.status.stalls} stalls so far); targets ramp from where they were")
+        if gap >= 0.5:
+            log.warning(text)
+        else:
+            self._warn_rate("stall", text)
 
     def _put(self, channel, frame) -> None:
         try:
@@ -705,7 +710,7 @@ class DaemonLoop:
         # The original daemon's sequence (mcb.encode_position_sequence), three of its frames precomputed.
         moveto = mcb.encode_moveto(a, c32)
         for frame in (accel, moveto, mode, period):
-            if not self.io.send(frame):
+            if not self.io.send(frame, at=t):
                 return  # counted as a tx error; the target goes out again next cycle
             if frame is moveto:  # it is on the bus (and in the log): this is what the node was told
                 sent = jr.cfg.to_joint(c32)
