@@ -6,7 +6,8 @@ schedule and publishes every tick, so the collision gate sees a steady stream. P
 
 * ``velocity_limit`` (default): constant-speed ramp, 1.57 rad/s, snapping onto the target within one step,
   what the original deployment ran (``src/mds-filter.c``). Optional ``max_accel`` (rad/s^2) adds an
-  acceleration limit that also brakes onto the target.
+  acceleration limit that also brakes onto the target; config/filter.yaml sets 4 rad/s^2, below the daemon's
+  last-line bounds (``mds_ach.motion``), so smoothed references reach the robot unchanged.
 * ``ema``: the paper's first-order filter theta_n = (theta_{n-1} (L - 1) + theta_des) / L with L from
   ``settle_time``/``settle_fraction`` at this rate (default: 95 % of a step within 4.0 s).
 * ``enc_filter``: the same update started from the measured position (``mds-state`` joint[].pos) each tick,
@@ -284,7 +285,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="filter",
         description="Reference smoother: reads mds-ref-mux, writes mds-ref-smooth at a fixed rate with a "
-                    "per-joint mode (velocity_limit 1.57 rad/s by default, ema, enc_filter, pass; "
+                    "per-joint mode (velocity_limit 1.57 rad/s, 4 rad/s^2 by default, ema, enc_filter, pass; "
                     "config/filter.yaml). Starts from the current reference: no jump when started late.",
         epilog="Example: ros2 run mds_ach filter --rate 50",
     )
