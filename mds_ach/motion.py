@@ -95,8 +95,8 @@ def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin
     target at rest): the limiter closes the gap relative to that motion, so a reference that moves within the
     bounds is followed exactly instead of trailing it by the braking distance. Braking assumes the target keeps
     that speed: a target that stops (or jumps back) more abruptly than the bounds allow is passed by at most
-    ``v^2 / (2 a)`` (never a jump), but never beyond ``lower``/``upper``, for which the limiter always brakes in
-    time (with steps of at most the interval it plans with).
+    ``v^2 / (2 a)`` (never a jump), but not beyond ``lower``/``upper``: the limiter brakes for those like for a
+    target at rest (exactly so while the steps are regular; the caller clamps as a last resort).
     """
     h = bounds.interval(now - track.t)
     if h <= 0:
