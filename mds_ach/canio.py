@@ -288,6 +288,8 @@ class CanIO:
 
     def __post_init__(self) -> None:
         self.bus: can.BusABC | None = None
+        # Wall time minus CLOCK_MONOTONIC, fixed once: sent frames stamped with a monotonic time keep its spacing.
+        self._wall_offset = time.time() - time.monotonic()
         self.open()
 
     def open(self) -> None:
@@ -320,8 +322,14 @@ class CanIO:
         except NotImplementedError:
             return can.BusState.ACTIVE
 
-    def send(self, raw: mcb.RawFrame) -> bool:
-        """Send one MCB frame; False (and counted) when the interface refuses it."""
+    def send(self, raw: mcb.RawFrame, at: float | None = None) -> bool:
+        """Send one MCB frame; False (and counted) when the interface refuses it.
+
+        ``at``: the CLOCK_MONOTONIC time the sender computed the frame for; the log records that (as wall time)
+        instead of when the call returned. The daemon's targets are limited for the time it reads right before
+        sending, so the log shows exactly the spacing they were planned with: scheduling jitter between that
+        reading and the send is not recorded as a change of speed or acceleration.
+        """
         msg = can.Message(arbitration_id=raw.arbitration_id, data=raw.data, is_extended_id=False, is_rx=False)
         try:
             if self.bus is None:
@@ -334,7 +342,7 @@ class CanIO:
         self.counters.tx_frames += 1
         self.counters.bits += mcb.FRAME_BITS
         if self.recorder is not None:
-            msg.timestamp = time.time()
+            msg.timestamp = time.time() if at is None else at + self._wall_offset
             self.recorder(msg)
         return True
 

@@ -426,6 +426,11 @@ class Gate:
         return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
                         escaping, contacts, pos is not None)
 
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints' output where they are (``pipeline.ReseedWatch``: after HOME, reset, resetbus)."""
+        self.ref[addresses] = positions
+        self.current = self.model.check(self.model.q_from_ref(self.ref))
+
     # ----- reporting
 
     def _track(self, involved: list[tuple[Choice, Any]], renewed: set[str], now: float, overridden: bool) -> None:
@@ -568,7 +573,7 @@ class GateRunner:
 
     def run(self) -> None:
         from mds_ach.channels import StructChannel
-        from mds_ach.pipeline import ChannelGuard, make_ref, ref_arrays, wait_current_reference
+        from mds_ach.pipeline import ChannelGuard, ReseedWatch, make_ref, ref_arrays, wait_current_reference
 
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
@@ -586,6 +591,7 @@ class GateRunner:
         override_log = 0.0
         last_refusal_log = last_override_log = -math.inf
         guard = ChannelGuard(self.log, self._stop)
+        watch = ReseedWatch(self.log, self._stop)
         try:
             msg = f"started from {source}; margin {self.model.margin:g} m, {len(self.model.pairs)} pairs"
             if gate.current.collides:
@@ -602,6 +608,10 @@ class GateRunner:
                 state = guard.call(state_ch.name, state_ch.latest)  # a broken state: keep the last one
                 if state is not None:
                     observed = Observed.from_state(state)
+                found = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
+                if found is not None:
+                    gate.reseed(*found)
+                    self.log("info", f"re-seeded {labels(found[0])} where the joints are")
                 decision = None
                 if frame is not None:
                     t0 = time.perf_counter()
@@ -624,7 +634,7 @@ class GateRunner:
                     if self.on_report is not None:
                         self.on_report(decision, gate, now)
         finally:
-            for ch in (inp, out, collide, state_ch):
+            for ch in (inp, out, collide, state_ch, watch):
                 ch.close()
             if self.check_times:
                 ms = np.array(self.check_times) * 1e3

@@ -187,10 +187,14 @@ def parse_command(text: str) -> tuple[int, int]:
         raise ValueError(exc.args[0]) from None
 
 
-def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list[str], new_channel_errors: int = 0):
-    """The daemon's DiagnosticStatus (OK / WARN above 60 % bus load, stale joints, late loop, channel errors
-    since the last report / ERROR bus-off or loop stopped)."""
+def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list[str], new_channel_errors: int = 0,
+                      bad_reply_names: Sequence[str] = (), new_stalls: int = 0):
+    """The daemon's DiagnosticStatus (OK / WARN above 60 % bus load, stale joints, joints with implausible position
+    replies, late loop, stalls or channel errors since the last report / ERROR bus-off or loop stopped). Targets
+    the daemon had to limit are reported as values (per joint), not as a problem: the limiter did its job."""
     from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    from mds_ach.joints import BY_ADDRESS
 
     level, problems = DiagnosticStatus.OK, []
     if st.bus_load_avg > BUS_LOAD_WARN:
@@ -199,6 +203,12 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
     if st.stale_count:
         level = DiagnosticStatus.WARN
         problems.append(f"{st.stale_count} stale joint(s): {' '.join(stale_names)}")
+    if bad_reply_names:
+        level = DiagnosticStatus.WARN
+        problems.append(f"implausible position replies (position not trusted): {' '.join(bad_reply_names)}")
+    if new_stalls:
+        level = DiagnosticStatus.WARN
+        problems.append(f"control loop stalled {new_stalls} time(s) (longest {st.stall_max:.2f} s)")
     if new_channel_errors:
         level = DiagnosticStatus.WARN
         problems.append(f"{new_channel_errors} Ach channel error(s): see the log, `mds-ach repair`")
@@ -230,6 +240,11 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
         "refs_clamped": str(st.refs_clamped), "collision_holds": str(st.collision_holds),
         "channel_errors": str(st.channel_errors),
         "stale_joints": " ".join(stale_names), "replies": f"{st.replies_received}/{st.replies_expected}",
+        "max_velocity_rad_s": f"{st.max_velocity:g}", "max_acceleration_rad_s2": f"{st.max_acceleration:g}",
+        "targets_limited": str(st.targets_limited), "limited_joints": " ".join(
+            f"{BY_ADDRESS[a].short}:{st.joint_limited[a]}" for a in BY_ADDRESS if st.joint_limited[a]),
+        "bad_replies": str(st.bad_replies), "bad_reply_joints": " ".join(bad_reply_names),
+        "stalls": str(st.stalls), "stall_max_s": f"{st.stall_max:.3f}",
     }
     return DiagnosticStatus(level=level, name="mds_daemon: control loop", hardware_id="mds",
                             message="; ".join(problems) or "OK",
@@ -255,6 +270,7 @@ def _make_node(args: argparse.Namespace):
             args.robot, args.rate, args.nocan = robot or None, float(rate), bool(nocan)
             self.daemon = build(args)
             self._channel_errors = 0
+            self._stalls = 0
             self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.create_timer(1.0, self._diagnostics)
             self.create_service(AddDiagnostics, "~/command", self._command)
@@ -268,10 +284,12 @@ def _make_node(args: argparse.Namespace):
                 raise SystemExit(1)
             stale = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_STALE
                      and st.joint_flags[a] & ds.JOINT_ENABLED]
+            bad = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_BAD_REPLY]
             msg = DiagnosticArray()
             msg.header.stamp = self.get_clock().now().to_msg()
             new_errors, self._channel_errors = st.channel_errors - self._channel_errors, st.channel_errors
-            msg.status = [diagnostic_status(st, self.daemon.loop.running, stale, new_errors)]
+            new_stalls, self._stalls = st.stalls - self._stalls, st.stalls
+            msg.status = [diagnostic_status(st, self.daemon.loop.running, stale, new_errors, bad, new_stalls)]
             self.diag_pub.publish(msg)
 
         def _command(self, request, response):

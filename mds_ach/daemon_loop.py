@@ -6,19 +6,39 @@ One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread
 2. newest ``mds-collide`` (copied into ``state.collide``) and newest ``mds-ref`` -- nothing new means the
    previous reference holds (zero-order hold); NaN/Inf or an unknown mode refuses that joint's value;
 3. per joint: clamp to the joint limits, then the legacy mode (0 first-order filter with L giving 95 % of a
-   step in 4.0 s at the loop rate, 1 pass-through, 2 compliant (follow the encoder), 3 encoder filter);
-4. for enabled joints whose target (float32 counts) changed, unless ``mds-collide`` says a collision is
-   predicted for that arm (``_collision_held``): the 4-frame SET sequence (acceleration, MOVETO target,
-   trajectory mode, period);
+   step in 4.0 s at the loop rate, 1 pass-through, 2 compliant (follow the encoder), 3 encoder filter): the
+   joint's *goal*;
+4. for enabled joints, unless ``mds-collide`` says a collision is predicted for that arm (``_collision_held``):
+   the goal through ``motion.limit`` at the moment the joint's frames go out, then, if the target (float32
+   counts) changed, the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
 5. one broadcast ACTUAL_POSITION query; replies decoded in binary until every live node answered or the
    reply window closes; a node silent for ``stale_after`` is stale (``state.active`` 0, flagged in
-   ``mds-daemon-status``), never reported as fresh;
+   ``mds-daemon-status``), never reported as fresh; an implausible reply is never taken as a position;
 6. ``mds-state`` (legacy layout, CLOCK_MONOTONIC time) and ``mds-daemon-status``.
 
-``state.joint[a].active`` is 1 while the joint's position is fresh, ``pos`` is NaN until a first reading
-arrived, ``vel`` is the finite difference of fresh readings, ``cur`` the last CURRENT reply (raw units).
+**The motion bounds hold on every path.** Each joint keeps a ``motion.Track`` of the last target it was sent
+(the float32 counts converted back to rad, i.e. what a CAN log shows) and every new target is limited from it
+(speed, acceleration, braking for the joint limits; ``mds_ach.motion``). Whatever made the goal jump -- a mode
+change, a stall of this loop, a collision hold released, bus-off, a restart, an upstream node that moved on --
+the joint ramps. A joint that is not sent to keeps its track (by the definition its velocity becomes 0).
+The track is *re-seeded* at the measured position, at rest, when the daemon starts, after HOME, RESET,
+ZERO_ENCODER and ENABLE, and when a silent node answers again: until the next MOVETO it follows the joint's
+trusted replies, and that MOVETO states exactly where the joint is (a zero step), so the daemon and any
+observer of the log (``mds-ach check-log``) restart from the same point. A joint whose position the daemon
+never knew is not commanded. Targets that had to be limited are flagged (``JOINT_LIMITED``) and counted.
+
+**Position replies are validated**: one outside the joint's range (plus a margin) or implying a speed beyond
+``REPLY_SPEED_FACTOR`` times the velocity bound is refused (``JOINT_BAD_REPLY``, counted); ``pos`` keeps the
+last good value and the joint counts as not fresh until ``REPLIES_TO_TRUST`` consistent replies in a row. A
+joint in mode 2 or 3 without a trusted, fresh position holds its last target.
+
+``state.joint[a].active`` is 1 while the joint's position is fresh and trusted, ``pos`` is NaN until a first
+reading arrived, ``vel`` is the finite difference of fresh readings, ``cur`` the last CURRENT reply (raw units),
+``ref`` the target the joint is commanded to, ``ref_c_send`` the last one sent (float32 counts, as on the bus).
 Setup commands (enable, reset, zero encoder, home) never move a joint by themselves except HOME: afterwards
-the joint holds where it is until its reference on ``mds-ref`` changes.
+the joint holds where it is until its reference on ``mds-ref`` changes, and once its position is known the
+daemon asks the pipeline to restart the joint's reference there (``joint_reseed`` in ``mds-daemon-status``;
+``resetbus`` does the same for every joint).
 """
 
 from __future__ import annotations
@@ -39,7 +59,7 @@ import numpy as np
 
 import mds_ach as mds
 from mds_ach import daemon_status as ds
-from mds_ach import filters, mcb
+from mds_ach import filters, mcb, motion
 from mds_ach.canio import CanIO
 from mds_ach.config import JointConfig, JointTable
 from mds_ach.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
@@ -73,10 +93,16 @@ TIMER_ABSTIME = 1
 PR_SET_TIMERSLACK = 29
 
 
-# rad/s: how fast a (re)started daemon moves its commanded reference towards a distant running reference.
-# Below the filter's 1.57 rad/s so that, with state stamps jittering by up to the reply window, no observer
-# sees more than the collision gate's 2 rad/s speed bound.
-CATCHUP_VELOCITY = 1.0
+STALL_PERIODS = 2.0  # a cycle that starts more than this many periods after the previous one: the loop stalled
+# Position replies: a reply further than REPLY_RANGE_MARGIN of the joint's range (at least REPLY_RANGE_MIN) beyond
+# its limits, or implying more than REPLY_SPEED_FACTOR times the velocity bound since the last good reply (plus
+# REPLY_SLACK for encoder noise and time-stamp jitter), cannot be right: no node moves its joint like that.
+REPLY_RANGE_MARGIN = 0.05
+REPLY_RANGE_MIN = 0.1  # rad
+REPLY_SPEED_FACTOR = 4.0
+REPLY_SLACK = 0.05  # rad
+REPLIES_TO_TRUST = 3  # consistent replies in a row before a joint's position is trusted again
+LIMIT_TOLERANCE = 1e-9  # rad: a target further than this from the goal counts as limited
 
 _LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
                mds.COLLIDE_L_WRIST)
@@ -181,21 +207,30 @@ class JointRuntime:
 
     cfg: JointConfig
     ref_r: float  # last accepted reference from mds-ref (joint rad)
-    ref: float  # filtered / moded reference (what is commanded)
+    goal: float  # the reference after the joint's mode (clamped): what the limiter steers towards
+    track: motion.Track  # the last target sent (float32 counts, as the log shows it): the limiter's state
+    ref: float  # the target commanded now (full precision; state.ref)
     mode: int = mds.MDS_REF_MODE_REF
     enabled: bool = True  # commands are sent (config enabled and not disabled at run time)
-    pos: float = math.nan
+    pos: float = math.nan  # the last trusted position
     vel: float = 0.0
     cur: float = 0.0
     ref_c: float = 0.0
-    last_reply: float = -math.inf  # monotonic time of the last position reply
+    last_reply: float = -math.inf  # monotonic time of the last trusted position reply
+    last_heard: float = -math.inf  # ... of the last position reply of any kind (staleness)
+    trusted: bool = True  # False after an implausible reply, until REPLIES_TO_TRUST consistent ones
+    suspect: tuple[float, float] | None = None  # (q, t) of the last in-range reply while not trusted
+    consistent: int = 0  # consistent replies in a row while not trusted
+    reseed: bool = True  # the track follows trusted replies until a MOVETO states that position
+    pipeline_reseed: bool = False  # ask the pipeline to restart the joint's reference where it is, once known
+    goal_prev: float = math.nan  # the goal when the previous target was computed, and when: the goal's velocity
+    goal_t: float = -math.inf
     sent_counts: float | None = None  # float32 counts of the last MOVETO that went out completely
     ref_c_send: float = math.nan
     ack_due: float = math.inf  # MOVETO ACK expected before this time
     hold: float | None = None  # after a setup command: hold until ref_r differs from this
     flags: int = 0
     homing_since: float | None = None
-    catching_up: bool = False  # after start-up: the commanded reference approaches the first one at a capped speed
 
 
 @dataclass
@@ -255,7 +290,6 @@ class DaemonLoop:
         nocan: bool = False,
         rt_priority: int = 0,
         clock: Callable[[], float] = time.monotonic,
-        catchup_velocity: float = CATCHUP_VELOCITY,
     ) -> None:
         if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
             raise ValueError(f"loop rate must be in (0, 1000] Hz, got {rate_hz}")
@@ -268,16 +302,15 @@ class DaemonLoop:
         self.stale_after = max(3.5 * self.period, 0.02) if stale_after is None else stale_after
         self.ack_timeout = max(2.5 * self.period, 0.05)
         self.L = filters.filter_length(rate_hz) if filter_length is None else filter_length
-        if not catchup_velocity > 0:
-            raise ValueError(f"catch-up velocity must be > 0 rad/s, got {catchup_velocity}")
-        self.catchup_velocity = catchup_velocity  # rad/s towards the first reference after start-up (inf: off)
-        self._last_update = -math.inf
+        self.bounds = table.motion_bounds(self.period)
         self.collide_gate = collide_gate
         self.nocan = nocan
         self.rt_priority = rt_priority
         self.clock = clock
         self.joints: dict[int, JointRuntime] = {
-            j.address: JointRuntime(j, ref_r=j.home, ref=j.home, enabled=j.enabled) for j in table
+            j.address: JointRuntime(j, ref_r=j.home, goal=j.home, track=motion.Track(j.home), ref=j.home,
+                                    enabled=j.enabled)
+            for j in table
         }
         self._fixed_frames = {
             j.address: (mcb.encode_set_acceleration(j.address, table.accel_counts(j)),
@@ -289,6 +322,8 @@ class DaemonLoop:
         self.status = ds.MDS_DAEMON_STATUS(version=ds.DAEMON_STATUS_VERSION, pid=os.getpid())
         self.status.rate_hz, self.status.bitrate, self.status.nocan = rate_hz, io.bitrate, int(nocan)
         self.status.stale_after, self.status.filter_length = self.stale_after, self.L
+        self.status.max_velocity, self.status.max_acceleration = self.bounds.max_velocity, self.bounds.max_acceleration
+        self.status.max_interval = self.bounds.max_interval
         self.stats = Stats(max(50, min(2000, int(rate_hz * 10))))
         self.commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
         self._cmd_buf = bytearray(max(ctypes.sizeof(MDS_CMD), channels.cmd.data_size))
@@ -312,9 +347,9 @@ class DaemonLoop:
     def start_up(self, listen: float = 0.5, queries: int = 3) -> int:
         """Publish ``mds-param``, read where the robot is and start the reference there (no step).
 
-        Joints that answer start at their measured position, the others at the configured home pose; no
-        motion frame is sent until a reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped.
-        Returns how many joints answered.
+        Joints that answer start at their measured position (their tracks are re-seeded there); the others
+        show the configured home pose and get no target until they answer. No motion frame is sent until a
+        reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped. Returns how many joints answered.
         """
         self._put(self.ch.param, self.table.to_param())
         for ch in (self.ch.ref, self.ch.cmd):
@@ -334,13 +369,10 @@ class DaemonLoop:
             if all(math.isfinite(jr.pos) for jr in self.joints.values()):
                 break
         answered = 0
-        self._last_update = self.clock()
         for jr in self.joints.values():
-            jr.catching_up = True  # a (re)started daemon never jumps to a reference the pipeline kept sending
             if math.isfinite(jr.pos):
-                jr.ref_r = jr.ref = jr.pos
+                jr.ref_r = jr.goal = jr.pos  # hold here until mds-ref says otherwise
                 answered += 1
-            jr.sent_counts = f32(jr.cfg.to_counts(jr.ref))  # the node already holds this: nothing to send
             jr.ref_c_send = jr.ref
         self._fill_state(self.clock())
         self.state.time = time.monotonic()
@@ -411,6 +443,8 @@ class DaemonLoop:
         deadline = start if deadline is None else deadline
         cpu0 = time.thread_time()
         self.io.counters.take_bits()  # bus load counts the frames sent and received during this cycle
+        if self._last_start is not None and start - self._last_start > STALL_PERIODS * self.period:
+            self._stalled(start - self._last_start)
         self._read_commands()
         self._run_commands(start)
         collide = self._latest(self.ch.collide)
@@ -428,8 +462,8 @@ class DaemonLoop:
             self._accept_ref(ref)
         self._drain(start)  # late replies and ACKs of the previous cycle
         self._check_acks(start)
-        self._update_refs(start)
-        self._send_targets(start)
+        self._update_goals(start)
+        self._send_targets()
         self._query(start)
         now = self.clock()
         self._fill_state(now)
@@ -450,13 +484,22 @@ class DaemonLoop:
 
     def _resume_ref(self) -> None:
         """The reference input is readable again after an outage (e.g. repaired after a writer died mid-put).
-        Upstream kept moving while the daemon held its last reference, so approach the new one like after a
-        restart: at most CATCHUP_VELOCITY, never a step."""
+        Upstream kept moving while the daemon held: the limiter ramps every joint to the new reference."""
         self._ref_unreadable = False
-        for jr in self.joints.values():
-            jr.catching_up = True
-        log.warning(f"{self.ch.ref.name} readable again: approaching its reference at <= "
-                    f"{self.catchup_velocity:g} rad/s")
+        log.warning(f"{self.ch.ref.name} readable again: ramping to its reference within the motion bounds")
+
+    def _stalled(self, gap: float) -> None:
+        """This loop did not run for ``gap`` s (a suspended process, a starved CPU): say so (every stall of 0.5 s
+        or more, shorter ones at most every 5 s). The joints were not sent anything meanwhile, so the limiter
+        starts every target from rest where it was."""
+        self.status.stalls += 1
+        self.status.stall_max = max(self.status.stall_max, gap)
+        text = (f"control loop stalled: {gap:.3f} s between two cycles (period {self.period:.3f} s, "
+                f"{self.status.stalls} stalls so far); targets ramp from where they were")
+        if gap >= 0.5:
+            log.warning(text)
+        else:
+            self._warn_rate("stall", text)
 
     def _put(self, channel, frame) -> None:
         try:
@@ -509,7 +552,10 @@ class DaemonLoop:
             self.status.bus_resets += 1
             self.bus_state = ds.BUS_STATE_ACTIVE
             for jr in self.joints.values():
-                jr.sent_counts = None  # frames may have been lost while the bus was down: send targets again
+                # Frames may have been lost while the bus was down: send the current (limited) target again,
+                # and let the pipeline restart where the joints stand instead of where it got to meanwhile.
+                jr.sent_counts = None
+                jr.pipeline_reseed = jr.enabled
             return ds.CMD_OK, f"CAN bus re-opened ({self.io.description})"
         if cmd.code not in COMMAND_NAMES:
             return ds.CMD_REFUSED, f"unknown command code {cmd.code}"
@@ -532,11 +578,15 @@ class DaemonLoop:
             else:
                 jr.enabled = True
                 # Hold where the joint is until its reference changes (see module doc); HOME moves it itself.
+                # The next target starts from where the joint is then, and so does the pipeline's reference.
                 jr.hold = jr.ref_r
                 jr.sent_counts = None
                 jr.ack_due = math.inf
+                jr.reseed = jr.pipeline_reseed = True
                 if cmd.code in (mds.MDS_CMD_RESET, mds.MDS_CMD_ZERO_ENCODER, mds.MDS_CMD_HOME):
-                    jr.pos, jr.last_reply = math.nan, -math.inf  # the count restarts: old readings are void
+                    # The count restarts: old readings are void.
+                    jr.pos, jr.last_reply, jr.last_heard = math.nan, -math.inf, -math.inf
+                    jr.trusted, jr.suspect, jr.consistent = True, None, 0
                 jr.homing_since = now if cmd.code == mds.MDS_CMD_HOME else None
         names = ", ".join(jr.cfg.short for jr in targets)
         if failed:
@@ -563,42 +613,33 @@ class DaemonLoop:
                                               f"[{jr.cfg.lower:.4f}, {jr.cfg.upper:.4f}]: clamped")
             jr.ref_r, jr.mode = value, mode
 
-    def _update_refs(self, now: float) -> None:
-        # Time since the previous update (at most one period): the catch-up ramp is a speed, and the first cycle
-        # after start-up (or after a late cycle) can come early: its step is scaled down with it.
-        dt = min(max(now - self._last_update, 0.0), self.period)
-        self._last_update = now
+    def _update_goals(self, now: float) -> None:
+        """Each joint's goal: its reference clamped to the limits, through its mode. A joint in mode 2 or 3
+        without a trusted, fresh position holds its last target."""
         for jr in self.joints.values():
             cfg = jr.cfg
-            jr.flags &= ~(ds.JOINT_CLAMPED | ds.JOINT_MOVING)
+            jr.flags &= ~(ds.JOINT_CLAMPED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
             if not cfg.within_limits(jr.ref_r):
                 jr.flags |= ds.JOINT_CLAMPED
-            desired = cfg.clamp(jr.ref_r)
-            fresh = now - jr.last_reply <= self.stale_after
             if jr.hold is not None:
                 if jr.ref_r == jr.hold:
-                    if fresh:
-                        jr.ref = jr.pos  # report what the joint does: it stays where it is
                     continue
                 jr.hold = None
+            desired = cfg.clamp(jr.ref_r)
+            known = self._known(jr, now)
             if jr.mode == mds.MDS_REF_MODE_REF:
-                new = desired
+                goal = desired
             elif jr.mode == mds.MDS_REF_MODE_REF_FILTER:
-                new = filters.ema_step(jr.ref, desired, self.L)
+                goal = filters.ema_step(jr.goal, desired, self.L)
             elif jr.mode == mds.MDS_REF_MODE_COMPLIANT:
-                new = jr.pos if fresh else jr.ref
+                goal = jr.pos if known else jr.track.q
             else:  # MDS_REF_MODE_ENC_FILTER
-                new = filters.enc_filter_step(jr.pos, desired, self.L) if fresh else \
-                    filters.ema_step(jr.ref, desired, self.L)
-            if jr.catching_up and math.isfinite(self.catchup_velocity):
-                # Until the commanded reference first reaches the requested one after start-up, move towards it
-                # no faster than CATCHUP_VELOCITY: a restarted daemon must not step to whatever the
-                # pipeline kept commanding while it was down.
-                if abs(new - jr.ref) <= self.catchup_velocity * dt:
-                    jr.catching_up = False  # no jump pending: from now on the modes apply as they are
-                else:
-                    new = filters.velocity_limit_step(jr.ref, new, self.catchup_velocity, dt)
-            jr.ref = cfg.clamp(new)
+                goal = filters.enc_filter_step(jr.pos, desired, self.L) if known else jr.track.q
+            jr.goal = cfg.clamp(goal)
+
+    def _known(self, jr: JointRuntime, now: float) -> bool:
+        """Is the joint's position trusted and fresh (``state.active``)?"""
+        return jr.trusted and math.isfinite(jr.pos) and now - jr.last_reply <= self.stale_after
 
     def _collision_held(self) -> frozenset[int] | None:
         """Joints not to command while ``mds-collide`` reports a predicted collision (``isCollide == 1``).
@@ -618,7 +659,7 @@ class DaemonLoop:
             held.update(_RIGHT_ARM_ADDRESSES)
         return frozenset(held) if held else None
 
-    def _send_targets(self, now: float) -> None:
+    def _send_targets(self) -> None:
         held = self._collision_held()
         if held is None or held:
             self.status.collision_holds += 1
@@ -629,19 +670,58 @@ class DaemonLoop:
         for a, jr in self.joints.items():
             if not jr.enabled or jr.hold is not None or jr.homing_since is not None or a in held:
                 continue
-            counts = jr.cfg.to_counts(jr.ref)
-            c32 = f32(counts)
-            if c32 == jr.sent_counts:
-                continue
-            accel, mode, period = self._fixed_frames[a]
-            # The original daemon's sequence (mcb.encode_position_sequence), three of its frames precomputed.
-            frames = (accel, mcb.encode_moveto(a, counts), mode, period)
-            if all(self.io.send(f) for f in frames):
-                jr.sent_counts = c32
-                jr.ref_c_send = jr.ref
-                jr.ack_due = now + self.ack_timeout
+            t = self.clock()  # the limiter counts the time up to these very frames
+            if t - jr.last_heard > self.stale_after:
+                continue  # a silent node gets nothing: when it answers again, it restarts from where it is
+            if jr.reseed:
+                if not self._known(jr, t):
+                    continue  # never command a joint from a position the daemon does not know
+                # The first target after a re-seed states where the joint is (a zero step), and only once the goal
+                # is elsewhere; the modes (mode 0's filter too) and the ramp start from there with the next cycle.
+                q = jr.cfg.clamp(jr.track.q)
+                if f32(jr.cfg.to_counts(q)) == f32(jr.cfg.to_counts(jr.goal)):
+                    continue
+                jr.goal = jr.goal_prev = q
+                jr.goal_t = t
+            else:
+                q = self._limited(jr, t)
+            self._send(a, jr, q, t)
+
+    def _limited(self, jr: JointRuntime, t: float) -> float:
+        """The joint's goal through the motion bounds from its track, at time ``t``; counted when it differs."""
+        cfg = jr.cfg
+        dt = t - jr.goal_t
+        goal_velocity = (jr.goal - jr.goal_prev) / dt if 0 < dt <= self.bounds.max_interval else 0.0
+        jr.goal_prev, jr.goal_t = jr.goal, t
+        q = motion.limit(jr.track, jr.goal, t, self.bounds, desired_velocity=goal_velocity, lower=cfg.lower,
+                         upper=cfg.upper)
+        q = cfg.clamp(q)  # never needed with regular cycles: the limiter brakes for the limits itself
+        if abs(q - jr.goal) > LIMIT_TOLERANCE:
+            jr.flags |= ds.JOINT_LIMITED
+            self.status.targets_limited += 1
+            self.status.joint_limited[cfg.address] += 1
+        return q
+
+    def _send(self, a: int, jr: JointRuntime, q: float, t: float) -> None:
+        """The 4-frame SET sequence for target ``q`` if its float32 counts changed (or a re-send is due)."""
+        jr.ref = q
+        c32 = f32(jr.cfg.to_counts(q))
+        if c32 == jr.sent_counts and not jr.reseed:
+            return
+        accel, mode, period = self._fixed_frames[a]
+        # The original daemon's sequence (mcb.encode_position_sequence), three of its frames precomputed.
+        moveto = mcb.encode_moveto(a, c32)
+        for frame in (accel, moveto, mode, period):
+            if not self.io.send(frame, at=t):
+                return  # counted as a tx error; the target goes out again next cycle
+            if frame is moveto:  # it is on the bus (and in the log): this is what the node was told
+                sent = jr.cfg.to_joint(c32)
+                jr.track.advance(sent, t, self.bounds)
+                jr.reseed = False
+                jr.ref_c_send = sent
+                jr.ack_due = t + self.ack_timeout
                 jr.flags |= ds.JOINT_MOVING
-            # else: counted as tx errors; the target goes out again next cycle
+        jr.sent_counts = c32
 
     def _check_acks(self, now: float) -> None:
         for jr in self.joints.values():
@@ -653,7 +733,7 @@ class DaemonLoop:
     def _query(self, start: float) -> None:
         # Stale joints are not waited for (their replies are still taken when they come); when every joint
         # is silent the whole window is used, in case the robot just came back.
-        expected = {a for a, jr in self.joints.items() if start - jr.last_reply <= self.stale_after}
+        expected = {a for a, jr in self.joints.items() if start - jr.last_heard <= self.stale_after}
         expected = expected or set(self.joints)
         self.status.replies_expected = len(expected)
         self._answered = set()
@@ -704,13 +784,8 @@ class DaemonLoop:
             if not math.isfinite(counts):
                 self.status.malformed_frames += 1
                 return
-            q = jr.cfg.to_joint(counts)
-            if math.isfinite(jr.pos) and now > jr.last_reply and now - jr.last_reply <= self.stale_after:
-                jr.vel = (q - jr.pos) / (now - jr.last_reply)
-            else:
-                jr.vel = 0.0
-            jr.pos, jr.last_reply = q, now
             self._answered.add(address)
+            self._position_reply(jr, jr.cfg.to_joint(counts), now)
             return
         data = msg.data
         if data[7] == Response.ACK:  # fast path: the 4 ACKs of every SET sequence
@@ -734,6 +809,56 @@ class DaemonLoop:
                 return  # the node finished its move: normal
             self.status.node_errors += 1
             self._warn_rate(f"node-{frame.address}", f"{jr.cfg.short}: {frame}")
+
+    def _position_reply(self, jr: JointRuntime, q: float, now: float) -> None:
+        """Take a position reply as the joint's position only if it is plausible (see REPLY_*): in range and
+        consistent with the last good reply. After an implausible one, REPLIES_TO_TRUST in-range replies in a
+        row, each consistent with the one before, make the position trusted again. Replies after a silence
+        longer than ``stale_after`` re-seed the track (a node back online)."""
+        resumed = now - jr.last_heard > self.stale_after
+        jr.last_heard = now
+        cfg = jr.cfg
+        margin = max(REPLY_RANGE_MARGIN * (cfg.upper - cfg.lower), REPLY_RANGE_MIN)
+        in_range = cfg.lower - margin <= q <= cfg.upper + margin
+
+        def near(q0: float, t0: float) -> bool:
+            return abs(q - q0) <= REPLY_SPEED_FACTOR * self.bounds.max_velocity * max(now - t0, 0.0) + REPLY_SLACK
+
+        good = in_range and (not math.isfinite(jr.pos) or near(jr.pos, jr.last_reply))
+        if jr.trusted and not good:
+            self._bad_reply(jr, q, in_range)
+            jr.trusted, jr.suspect, jr.consistent = False, (q, now) if in_range else None, int(in_range)
+            return
+        if not jr.trusted:
+            chain = in_range and jr.suspect is not None and near(*jr.suspect)
+            if not (good or chain):
+                self._bad_reply(jr, q, in_range)
+            jr.suspect, jr.consistent = (q, now) if in_range else None, jr.consistent + 1 if chain else int(in_range)
+            if jr.consistent < REPLIES_TO_TRUST:
+                return
+            jr.trusted, jr.vel = True, 0.0
+            log.info("%s: %d consistent position replies (%.4f rad): position trusted again", cfg.short,
+                     REPLIES_TO_TRUST, q)
+        elif math.isfinite(jr.pos) and now > jr.last_reply and now - jr.last_reply <= self.stale_after:
+            jr.vel = (q - jr.pos) / (now - jr.last_reply)
+        else:
+            jr.vel = 0.0
+        jr.pos, jr.last_reply = q, now
+        if resumed:
+            jr.reseed = True  # a node back after a silence: where it is now, not what it was told before
+        if jr.reseed:
+            jr.track.reseed(q, now)
+            jr.ref, jr.goal, jr.goal_t = q, cfg.clamp(q), -math.inf
+
+    def _bad_reply(self, jr: JointRuntime, q: float, in_range: bool) -> None:
+        """Count an implausible reply; warn (rate-limited) when it costs the joint its trusted position."""
+        self.status.bad_replies += 1
+        self.status.joint_bad_replies[jr.cfg.address] += 1
+        if jr.trusted:
+            why = "outside its range" if not in_range else "an impossible jump"
+            self._warn_rate(f"bad-reply-{jr.cfg.address}",
+                            f"{jr.cfg.short}: position reply {q:.4f} rad is {why} (last good {jr.pos:.4f} rad): "
+                            f"ignored; not trusted until {REPLIES_TO_TRUST} consistent replies (mode 2/3 holds)")
 
     def _unknown(self, address: int) -> None:
         self.status.unknown_node_frames += 1
@@ -767,20 +892,26 @@ class DaemonLoop:
         stale = 0
         for a, jr in self.joints.items():
             s = self.state.joint[a]
-            fresh = now - jr.last_reply <= self.stale_after
+            fresh = self._known(jr, now)
+            heard = now - jr.last_heard <= self.stale_after
             if jr.homing_since is not None and now - jr.homing_since > 1.0:
                 counts_per_cycle = abs(jr.vel) * self.period * jr.cfg.cpr / (2 * math.pi)
                 if (fresh and counts_per_cycle < 2.0) or now - jr.homing_since > HOMING_TIMEOUT:
                     jr.homing_since = None  # settled: hold there (jr.hold) until the reference changes
+            if jr.pipeline_reseed and fresh and jr.homing_since is None:
+                jr.pipeline_reseed = False
+                self.status.joint_reseed[a] += 1  # the pipeline restarts this joint at s.pos below
+                log.info("%s: the pipeline's reference restarts where the joint is (%.4f rad)", jr.cfg.short, jr.pos)
             s.ref_r, s.ref, s.ref_c_send, s.ref_c = jr.ref_r, jr.ref, jr.ref_c_send, jr.ref_c
             s.pos, s.vel, s.cur = jr.pos, (jr.vel if fresh else 0.0), jr.cur
             s.enabled, s.active = int(jr.enabled), int(fresh)
-            flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING)
+            flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
             flags |= ds.JOINT_CONFIGURED | (ds.JOINT_ENABLED if jr.enabled else 0)
-            flags |= ds.JOINT_FRESH if fresh else ds.JOINT_STALE
+            flags |= ds.JOINT_FRESH if fresh else 0 if heard else ds.JOINT_STALE
+            flags |= 0 if jr.trusted else ds.JOINT_BAD_REPLY
             self.status.joint_flags[a] = flags
-            self.status.joint_age[a] = now - jr.last_reply if math.isfinite(jr.last_reply) else -1.0
-            if not fresh and jr.enabled:
+            self.status.joint_age[a] = now - jr.last_heard if math.isfinite(jr.last_heard) else -1.0
+            if not heard and jr.enabled:
                 stale += 1
         self.status.stale_count = stale
 

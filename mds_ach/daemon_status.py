@@ -3,6 +3,10 @@
 Published once per cycle next to ``mds-state`` so monitors (``read``, ``mds-ach status``) can tell a
 healthy loop from a late one, a quiet node from a live one, and a loaded bus from a faulty one without
 ROS. Packed little-endian like every MDS struct; per-joint arrays are indexed by CAN address.
+
+Version 2 adds what the daemon did to keep every sent target inside the motion bounds (``mds_ach.motion``):
+targets it had to limit, position replies it refused, its own stalls, and ``joint_reseed``, the counters the
+pipeline nodes (mux, filter, collision gate) watch to restart a joint's reference where the joint is.
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ import ctypes
 
 from mds_ach.msgs import MDS_JOINT_COUNT, _Packed
 
-DAEMON_STATUS_VERSION = 1
+DAEMON_STATUS_VERSION = 2
 
 BUS_STATE_ACTIVE = 0  # error-active: all fine
 BUS_STATE_PASSIVE = 1  # error-passive / warning level: frames get through, errors seen
@@ -26,6 +30,8 @@ JOINT_STALE = 0x08  # no answer for longer than the staleness limit (or never)
 JOINT_CLAMPED = 0x10  # the last reference was outside the joint limits and was clamped
 JOINT_REFUSED = 0x20  # the last reference was NaN/Inf and was refused (previous one held)
 JOINT_MOVING = 0x40  # a new target was sent this cycle
+JOINT_LIMITED = 0x80  # this cycle's target was limited to the motion bounds (it differs from the reference)
+JOINT_BAD_REPLY = 0x100  # position replies are implausible (out of range, impossible jump): pos holds the last good
 
 # Command results (``cmd_result``), echoed with ``cmd_seq`` of the last mds-cmd / service command handled.
 CMD_OK = 0
@@ -80,16 +86,31 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         ("filter_length", ctypes.c_double),  # L of the mode-0 filter at this rate
         ("cmd_seq", ctypes.c_uint32),
         ("cmd_result", ctypes.c_uint8),
-        ("joint_flags", ctypes.c_uint8 * MDS_JOINT_COUNT),
+        ("joint_flags", ctypes.c_uint16 * MDS_JOINT_COUNT),  # JOINT_* bits (uint8 in version 1)
         ("joint_age", ctypes.c_float * MDS_JOINT_COUNT),  # s since the last position reply; -1 never
         ("channel_errors", ctypes.c_uint32),  # Ach channel reads/writes that failed (e.g. a corrupt mds-ref)
+        # --- version 2: the motion bounds and what it took to keep them
+        ("max_velocity", ctypes.c_double),  # rad/s, bound on every sent target (joint table `motion:`)
+        ("max_acceleration", ctypes.c_double),  # rad/s^2
+        ("max_interval", ctypes.c_double),  # s, the longest interval a step may count on (1.5 periods)
+        ("stalls", ctypes.c_uint32),  # cycles that started more than 2 periods after the previous one
+        ("stall_max", ctypes.c_double),  # s, the longest gap between two cycle starts
+        ("targets_limited", ctypes.c_uint32),  # targets the daemon had to limit (all joints)
+        ("bad_replies", ctypes.c_uint32),  # position replies refused as implausible (all joints)
+        ("joint_limited", ctypes.c_uint32 * MDS_JOINT_COUNT),  # per joint
+        ("joint_bad_replies", ctypes.c_uint32 * MDS_JOINT_COUNT),  # per joint
+        # Incremented when the joint's reference must restart where the joint is (after HOME, RESET, ZERO_ENCODER,
+        # ENABLE, resetbus), once its position is known: the pipeline nodes then set their output for the joint to
+        # mds-state joint[].pos of that cycle (mds_ach.pipeline.ReseedWatch).
+        ("joint_reseed", ctypes.c_uint32 * MDS_JOINT_COUNT),
     ]
 
 
 def flags_text(flags: int) -> str:
     """Short human form of a joint's flags, e.g. 'en fresh'."""
     names = ((JOINT_ENABLED, "en"), (JOINT_FRESH, "fresh"), (JOINT_STALE, "STALE"), (JOINT_CLAMPED, "clamped"),
-             (JOINT_REFUSED, "REFUSED"), (JOINT_MOVING, "moving"))
+             (JOINT_REFUSED, "REFUSED"), (JOINT_MOVING, "moving"), (JOINT_LIMITED, "limited"),
+             (JOINT_BAD_REPLY, "BAD-REPLY"))
     return " ".join(n for bit, n in names if flags & bit) or "-"
 
 
@@ -99,7 +120,8 @@ def summary_line(st: MDS_DAEMON_STATUS) -> str:
     for name, value in (("tx-err", st.tx_errors), ("err-frames", st.error_frames), ("bus-off", st.bus_off_count),
                         ("unknown", st.unknown_node_frames), ("malformed", st.malformed_frames),
                         ("refused", st.refs_refused), ("clamped", st.refs_clamped), ("no-ack", st.acks_missing),
-                        ("channel-err", st.channel_errors)):
+                        ("channel-err", st.channel_errors), ("limited", st.targets_limited),
+                        ("bad-reply", st.bad_replies), ("stalls", st.stalls)):
         if value:
             faults.append(f"{name} {value}")
     return (f"{st.measured_rate_hz:.1f}/{st.rate_hz:g} Hz, period err p99 {st.period_error_p99 * 1e3:.2f} ms, "

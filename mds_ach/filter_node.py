@@ -6,7 +6,8 @@ schedule and publishes every tick, so the collision gate sees a steady stream. P
 
 * ``velocity_limit`` (default): constant-speed ramp, 1.57 rad/s, snapping onto the target within one step,
   what the original deployment ran (``src/mds-filter.c``). Optional ``max_accel`` (rad/s^2) adds an
-  acceleration limit that also brakes onto the target.
+  acceleration limit that also brakes onto the target; config/filter.yaml sets 4 rad/s^2, below the daemon's
+  last-line bounds (``mds_ach.motion``), so smoothed references reach the robot unchanged.
 * ``ema``: the paper's first-order filter theta_n = (theta_{n-1} (L - 1) + theta_des) / L with L from
   ``settle_time``/``settle_fraction`` at this rate (default: 95 % of a step within 4.0 s).
 * ``enc_filter``: the same update started from the measured position (``mds-state`` joint[].pos) each tick,
@@ -163,6 +164,11 @@ class FilterCore:
             return f"ignored non-finite targets for {labels(np.flatnonzero(~ok))}"
         return None
 
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints where they are, at rest (``pipeline.ReseedWatch``): output and target."""
+        self.out[addresses] = self.target[addresses] = positions
+        self.vel[addresses] = 0.0
+
     def step(self, measured: np.ndarray | None = None) -> np.ndarray:
         """Advance one tick. ``measured``: mds-state joint[].pos for the enc_filter joints (None = unknown)."""
         p, out, tgt = self.p, self.out, self.target
@@ -222,7 +228,7 @@ class FilterRunner:
 
     def run(self) -> None:
         from mds_ach.channels import StructChannel
-        from mds_ach.pipeline import ChannelGuard, Periodic, state_positions, wait_current_reference
+        from mds_ach.pipeline import ChannelGuard, Periodic, ReseedWatch, state_positions, wait_current_reference
 
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
@@ -237,6 +243,7 @@ class FilterRunner:
         warned_state = False
         self.core = core
         guard = ChannelGuard(self.log, self._stop)
+        watch = ReseedWatch(self.log, self._stop)
         try:
             self.log("info", f"started from {source} at {self.params.rate:g} Hz ({self.params.describe()})")
             timer = Periodic(self.params.dt)
@@ -247,6 +254,11 @@ class FilterRunner:
                     problem = core.set_target(*ref_arrays(frame))
                     if problem:
                         self.log("warn", problem)
+                found = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins
+                if found is not None:
+                    core.reseed(*found)
+                    self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or "
+                                     f"resetbus)")
                 if needs_state:
                     st = guard.call(state_ch.name, state_ch.latest)
                     if st is not None:
@@ -263,6 +275,7 @@ class FilterRunner:
             inp.close()
             out.close()
             state_ch.close()
+            watch.close()
 
 
 # --------------------------------------------------------------------------------------------- ROS node
@@ -272,7 +285,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="filter",
         description="Reference smoother: reads mds-ref-mux, writes mds-ref-smooth at a fixed rate with a "
-                    "per-joint mode (velocity_limit 1.57 rad/s by default, ema, enc_filter, pass; "
+                    "per-joint mode (velocity_limit 1.57 rad/s, 4 rad/s^2 by default, ema, enc_filter, pass; "
                     "config/filter.yaml). Starts from the current reference: no jump when started late.",
         epilog="Example: ros2 run mds_ach filter --rate 50",
     )

@@ -184,9 +184,9 @@ def daemon_line(status: ctypes.Structure | None, age: float | None) -> str:
 
 
 def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
-    """'yes' when the daemon heard the joint's node recently, 'STALE' when not, '-' for joints it does not poll,
-    '?' without daemon status."""
-    from mds_ach.daemon_status import JOINT_ENABLED, JOINT_FRESH, JOINT_STALE
+    """'yes' when the daemon heard the joint's node recently, 'STALE' when not, 'BAD' when the node answers with
+    implausible positions (not trusted), '-' for joints it does not poll, '?' without daemon status."""
+    from mds_ach.daemon_status import JOINT_BAD_REPLY, JOINT_ENABLED, JOINT_FRESH, JOINT_STALE
 
     if status is None:
         return "?"
@@ -195,4 +195,6 @@ def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
         return "yes"
     if flags & JOINT_STALE:
         return "STALE"
+    if flags & JOINT_BAD_REPLY:
+        return "BAD"
     return "-" if not flags & JOINT_ENABLED else "?"

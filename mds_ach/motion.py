@@ -75,28 +75,40 @@ class Track:
         self.q, self.t = q, now
 
 
-def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin: float = LIMIT_MARGIN) -> float:
+def _stop_speed(distance: float, h: float, a_max: float) -> float:
+    """The largest speed from which braking by ``a_max * h`` per step of ``h`` still stops within ``distance``.
+
+    Within one step's reach (``distance <= a_max h^2``) arrive this step and stop the next; beyond it the root of
+    ``v h + v^2 / (2 a_max) = distance`` (travel this step, then brake).
+    """
+    distance = max(distance, 0.0)
+    if distance <= a_max * h * h:
+        return distance / h
+    return a_max * (math.sqrt(h * h + 2.0 * distance / a_max) - h)
+
+
+def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin: float = LIMIT_MARGIN, *,
+          desired_velocity: float = 0.0, lower: float = -math.inf, upper: float = math.inf) -> float:
     """The target to send at ``now``: as close to ``desired`` as the bounds allow, braking in time.
 
-    Velocity-limited, acceleration-limited, and decelerating early enough to stop at ``desired`` when it
-    stays put; if ``desired`` jumps back the joint may pass it by a small, bounded amount (never a jump).
+    Velocity-limited and acceleration-limited. ``desired_velocity`` is how fast ``desired`` itself moves (0: a
+    target at rest): the limiter closes the gap relative to that motion, so a reference that moves within the
+    bounds is followed exactly instead of trailing it by the braking distance. Braking assumes the target keeps
+    that speed: a target that stops (or jumps back) more abruptly than the bounds allow is passed by at most
+    ``v^2 / (2 a)`` (never a jump), but not beyond ``lower``/``upper``: the limiter brakes for those like for a
+    target at rest (exactly so while the steps are regular; the caller clamps as a last resort).
     """
     h = bounds.interval(now - track.t)
     if h <= 0:
         return track.q
     v_max, a_max = margin * bounds.max_velocity, margin * bounds.max_acceleration
     v0 = track.previous_velocity(now, bounds)
-    d = desired - track.q
-    if abs(d) <= a_max * h * h:
-        goal = d / h  # arrive this step and stop the next within the bound
-    else:
-        # Largest speed from which braking by a_max*h per step still stops within |d|:
-        # v*h + v^2/(2*a_max) = |d|.
-        goal = math.copysign(min(v_max, a_max * (math.sqrt(h * h + 2.0 * abs(d) / a_max) - h)), d)
-    lo, hi = max(-v_max, v0 - a_max * h), min(v_max, v0 + a_max * h)
-    if lo > hi:  # only if the track came from elsewhere faster than v_max: brake as hard as allowed
-        lo = hi = lo if v0 > 0 else hi
-    v = min(max(goal, lo), hi)
+    v_goal = min(max(desired_velocity, -v_max), v_max) if math.isfinite(desired_velocity) else 0.0
+    gap = desired - track.q - v_goal * h  # what is left to close after moving along with the target
+    v = v_goal + math.copysign(_stop_speed(abs(gap), h, a_max), gap)
+    v = min(max(v, -v_max, -_stop_speed(track.q - lower, h, a_max)), v_max, _stop_speed(upper - track.q, h, a_max))
+    # The acceleration bound wins: if the track came in faster than allowed, brake as hard as allowed.
+    v = min(max(v, v0 - a_max * h), v0 + a_max * h)
     return track.q + v * h
 
 

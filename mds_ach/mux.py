@@ -45,6 +45,7 @@ from mds_ach.msgs import MDS_JOINT_COUNT, Name30, get_name
 from mds_ach.pipeline import (
     KNOWN_ADDRESSES,
     ChannelGuard,
+    ReseedWatch,
     cancel_wait,
     joint_label,
     labels,
@@ -226,6 +227,10 @@ class MuxCore:
         self.mode[may] = mode[may]
         return bool(changed.any()), None
 
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints' output where they are (``pipeline.ReseedWatch``); ownership is unchanged."""
+        self.ref[addresses] = positions
+
     def release_stale(self, now: float) -> bool:
         """Release the joints of stale controllers (values stay). True if any ownership changed."""
         changed = False
@@ -308,6 +313,7 @@ class MuxRunner:
         ref, mode, source = found
         out = StructChannel(self.output_name, mds.MDS_REF)
         state_ch = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        watch = ReseedWatch(self.log, self._stop)
         core = MuxCore(self.controllers, ref, mode)
         try:
             for i, c in enumerate(self.controllers):
@@ -330,7 +336,7 @@ class MuxRunner:
                 t.start()
                 self._threads.append(t)
             self.ready.set()
-            self._loop(core, out, state_ch)
+            self._loop(core, out, state_ch, watch)
         finally:
             self._stop.set()
             for ch in self._inputs:
@@ -341,6 +347,7 @@ class MuxRunner:
                 ch.close()
             out.close()
             state_ch.close()
+            watch.close()
 
     def _reader(self, index: int) -> None:
         """Block on one input channel; hand every new frame to the mux thread with its arrival time."""
@@ -353,7 +360,7 @@ class MuxRunner:
             if frame is not None:
                 self._queue.put((index, frame, time.monotonic()))
 
-    def _loop(self, core: MuxCore, out: Any, state_ch: Any) -> None:
+    def _loop(self, core: MuxCore, out: Any, state_ch: Any, watch: ReseedWatch) -> None:
         seq = 0
         next_state = time.monotonic()
         while not self._stop.is_set():
@@ -361,8 +368,9 @@ class MuxRunner:
             try:
                 index, frame, t = self._queue.get(timeout=timeout)
             except queue.Empty:
-                pass
+                self._reseed(core, out, watch)
             else:
+                self._reseed(core, out, watch)  # before the frame: a command after HOME starts at the joint
                 changed, problem = core.update(index, *ref_arrays(frame), t)
                 if problem:
                     self.log("error", problem)
@@ -380,6 +388,15 @@ class MuxRunner:
                 if self.on_state is not None:
                     self.on_state(st)
                 next_state = now + self.state_period
+
+    def _reseed(self, core: MuxCore, out: Any, watch: ReseedWatch) -> None:
+        """Restart the joints the daemon asks for (HOME, reset, resetbus) where they are, and publish that."""
+        found = watch.poll()
+        if found is not None:
+            core.reseed(*found)
+            out.put(make_ref(core.ref, core.mode))
+            self.published += 1
+            self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or resetbus)")
 
 
 # --------------------------------------------------------------------------------------------- ROS node

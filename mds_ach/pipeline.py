@@ -164,6 +164,56 @@ def wait_current_reference(stop: threading.Event, log: Callable[[str], None],
     return None
 
 
+class ReseedWatch:
+    """Which joints the daemon asks the pipeline to restart where they are, and where that is.
+
+    After HOME, RESET, ZERO_ENCODER, ENABLE or ``resetbus`` a joint is somewhere else than the pipeline's
+    reference for it (HOME moved it, a reset restarted its count, the bus was down while the reference moved).
+    Once its position is known the daemon increments ``joint_reseed[address]`` in ``mds-daemon-status``; the mux,
+    the filter and the collision gate ``poll()`` this and set their output for those joints to the measured
+    position (``mds-state`` pos), so the next command starts from the joint instead of from a stale reference.
+    A daemon seen for the first time (or restarted) only sets the baseline. A broken channel reads as nothing
+    new (``ChannelGuard`` says so in the node's log).
+    """
+
+    def __init__(self, log: Callable[[str, str], None], stop: threading.Event) -> None:
+        from mds_ach import daemon_status
+        from mds_ach.channels import StructChannel
+
+        self._guard = ChannelGuard(log, stop)
+        self._status = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, daemon_status.MDS_DAEMON_STATUS)
+        self._state = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        self._last_state: mds.MDS_STATE | None = None
+        self._seen: np.ndarray | None = None
+        self._daemon: tuple[int, float] | None = None
+
+    def poll(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(addresses, measured positions) to re-seed now, or None. Never blocks."""
+        st = self._guard.call(self._status.name, self._status.latest)
+        if st is None:
+            return None
+        counts = np.frombuffer(bytes(st.joint_reseed), dtype="<u4").copy()
+        daemon = (st.pid, st.start_time)
+        if self._seen is None or daemon != self._daemon:
+            self._seen, self._daemon = counts, daemon
+            return None
+        changed = np.flatnonzero(counts != self._seen)
+        self._seen = counts
+        if not changed.size:
+            return None
+        state = self._guard.call(self._state.name, self._state.latest) or self._last_state  # published first
+        self._last_state = state
+        if state is None:
+            return None
+        pos = state_positions(state)[changed]
+        ok = np.isfinite(pos)
+        return (changed[ok], pos[ok]) if ok.any() else None
+
+    def close(self) -> None:
+        self._status.close()
+        self._state.close()
+
+
 def cancel_wait(channel: Any) -> None:
     """Wake a thread blocked in ``channel.wait()``; a channel that is already closed needs no waking."""
     from mds_ach import ach

@@ -21,12 +21,13 @@ from pathlib import Path
 import can
 import pytest
 from conftest import VENV_BIN, wait_for
+from motion_audit import Audit, MemoryLog, audit
 
 import mds_ach as mds
 from mds_ach import canio, config, daemon, mcb
 from mds_ach import daemon_status as ds
 from mds_ach.channels import StructChannel
-from mds_ach.daemon_loop import CATCHUP_VELOCITY, DaemonChannels, DaemonLoop, sleep_until
+from mds_ach.daemon_loop import DaemonChannels, DaemonLoop, sleep_until
 from mds_ach.filters import filter_length
 from mds_ach.mcb import Command, StateArg
 from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
@@ -49,6 +50,7 @@ class Rig:
     status_in: StructChannel
     collide_out: StructChannel
     cmd_out: StructChannel
+    log: MemoryLog
     last_state: MDS_STATE | None = None
 
     def step(self, n: int = 1) -> MDS_STATE:
@@ -88,19 +90,28 @@ class Rig:
     def command(self, code: int, address: int = 0, seq: int = 1) -> None:
         self.cmd_out.put(MDS_CMD(seq=seq, cmd=code, address=address))
 
+    def audit(self, first_reply: bool = False) -> Audit:
+        """Every MOVETO so far against the motion bounds (motion_audit)."""
+        return audit(self.log.frames, TABLE, self.loop.bounds, self.loop.stale_after, first_reply)
+
+    def targets(self, short: str) -> list[float]:
+        """The MOVETO targets the joint was sent (rad)."""
+        return [q for _, q in self.audit().targets[short]]
+
 
 def make_rig(rate: float = 10.0, pose: dict[str, float] | None = None, bitrate: int | None = 1_000_000,
              **loop_kwargs) -> Rig:
     clock = ManualClock()
     net = SimNetwork.from_table(TABLE, pose=pose, clock=clock, bitrate=bitrate)
     io = canio.make_canio(nocan=True, network=net)
+    io.recorder = MemoryLog(clock)  # every frame, stamped with the simulated time, for the motion audit
     channels = DaemonChannels.open()
     loop = DaemonLoop(TABLE, io, channels, rate_hz=rate, nocan=True, clock=clock, **loop_kwargs)
     rig = Rig(clock, net, io, channels, loop, StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF),
               StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE),
               StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS),
               StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE),
-              StructChannel(mds.MDS_CHAN_BOARD_CMD_NAME, MDS_CMD))
+              StructChannel(mds.MDS_CHAN_BOARD_CMD_NAME, MDS_CMD), io.recorder)
     return rig
 
 
@@ -114,13 +125,25 @@ def close_rig(rig: Rig) -> None:
 
 @pytest.fixture
 def rig(clean_shm) -> Iterator[Rig]:
-    # The start-up catch-up ramp is off here so that the per-cycle semantics are visible;
-    # test_restart_ramps_to_the_running_reference covers it.
-    r = make_rig(pose={"LEP": -1.0, "RSR": -0.6, "NKY": 0.1}, catchup_velocity=math.inf)
+    r = make_rig(pose={"LEP": -1.0, "RSR": -0.6, "NKY": 0.1})
     r.loop.start_up()
     r.state()
     yield r
-    close_rig(r)
+    try:
+        assert r.audit().violations == []  # whatever a test did, every target obeyed the motion bounds
+    finally:
+        close_rig(r)
+
+
+def ramp_done(rig: Rig, short: str, target: float, max_cycles: int = 60) -> list[MDS_STATE]:
+    """Step until the joint's commanded reference reached ``target``; the states on the way."""
+    a = TABLE[short].address
+    states = []
+    for _ in range(max_cycles):
+        states.append(MDS_STATE.from_buffer_copy(rig.step()))
+        if abs(states[-1].joint[a].ref - target) < 1e-6:
+            return states
+    raise AssertionError(f"{short} did not reach {target} in {max_cycles} cycles: ref {states[-1].joint[a].ref}")
 
 
 def status_of(rig: Rig) -> ds.MDS_DAEMON_STATUS:
@@ -172,13 +195,17 @@ def test_reference_reaches_the_joint_and_shows_in_state(rig: Rig) -> None:
     rig.put_ref(LEP=-0.6, RSP=0.2)
     st = rig.step()
     lep, rsp = TABLE["LEP"], TABLE["RSP"]
-    assert st.joint[lep.address].ref_r == -0.6 and st.joint[lep.address].ref == -0.6
-    assert st.joint[lep.address].ref_c_send == -0.6
+    assert st.joint[lep.address].ref_r == -0.6
+    # The first target after start-up states where the joint is (the re-seed); the ramp starts with the next.
+    assert st.joint[lep.address].ref == st.joint[lep.address].ref_c_send == pytest.approx(-1.0, abs=1e-6)
     sets = [f for f in rig.frames_to(lep.address) if f.command is Command.SET]
     assert [f.argument for f in sets] == [StateArg.TRAJECTORY_ACCELERATION, StateArg.MOVETO_TARGET,
                                           StateArg.TRAJECTORY_MODE, StateArg.TRAJECTORY_PERIOD]
-    assert sets[1].value == pytest.approx(lep.to_counts(-0.6), rel=1e-6)
+    assert lep.to_joint(sets[1].value) == pytest.approx(-1.0, abs=1e-6)
     assert sets[0].value == pytest.approx(TABLE.accel_counts(lep), rel=1e-6)
+    ramp_done(rig, "LEP", -0.6)
+    assert rig.targets("LEP")[-1] == pytest.approx(-0.6, abs=1e-6)
+    assert st.joint[lep.address].ref_c_send == pytest.approx(-1.0, abs=1e-6)
     st = rig.step(30)  # 3 s: a 0.4 rad move at 80 deg/s^2 takes ~1.35 s
     assert st.joint[lep.address].pos == pytest.approx(-0.6, abs=1e-5)
     assert st.joint[rsp.address].pos == pytest.approx(0.2, abs=1e-5)
@@ -189,27 +216,28 @@ def test_reference_reaches_the_joint_and_shows_in_state(rig: Rig) -> None:
 
 def test_zero_order_hold(rig: Rig) -> None:
     rig.put_ref(LSP=0.3)
-    rig.step()
+    ramp_done(rig, "LSP", 0.3)
     n_frames = len(rig.frames_to(0x5F))
     st = rig.step(10)  # no new mds-ref frames: the last reference holds, nothing is re-sent
-    assert st.joint[0x5F].ref_r == st.joint[0x5F].ref == 0.3
-    assert len(rig.frames_to(0x5F)) == n_frames == 4
+    assert st.joint[0x5F].ref_r == 0.3 and st.joint[0x5F].ref == pytest.approx(0.3, abs=1e-6)
+    assert len(rig.frames_to(0x5F)) == n_frames
     rig.put_ref(LSP=0.3)  # a new frame with the same value: still nothing to send
     rig.step(2)
-    assert len(rig.frames_to(0x5F)) == 4
-    rig.put_ref(LSP=0.31)
-    rig.step()
-    assert len(rig.frames_to(0x5F)) == 8
+    assert len(rig.frames_to(0x5F)) == n_frames
+    rig.put_ref(LSP=0.31)  # within one cycle's reach: one target
+    rig.step(3)
+    assert len(rig.frames_to(0x5F)) == n_frames + 4
 
 
 def test_limits_clamp_and_report(rig: Rig) -> None:
     lep = TABLE["LEP"]
     rig.put_ref(LEP=0.5)  # beyond the elbow's upper limit (about -0.0153)
-    st = rig.step()
+    st = ramp_done(rig, "LEP", lep.upper)[-1]
     s = st.joint[lep.address]
-    assert s.ref_r == 0.5 and s.ref == pytest.approx(lep.upper)
+    assert s.ref_r == 0.5 and s.ref == pytest.approx(lep.upper, abs=1e-6)
     moveto = [f for f in rig.frames_to(lep.address) if f.argument is StateArg.MOVETO_TARGET][-1]
     assert lep.to_joint(moveto.value) == pytest.approx(lep.upper, abs=1e-6)
+    assert max(rig.targets("LEP")) <= lep.upper + 1e-6  # float32 counts
     status = status_of(rig)
     assert status.refs_clamped == 1 and status.joint_flags[lep.address] & ds.JOINT_CLAMPED
     rig.step(40)
@@ -220,17 +248,16 @@ def test_limits_clamp_and_report(rig: Rig) -> None:
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_reference_is_refused(rig: Rig, bad: float) -> None:
     rig.put_ref(LSY=0.2)
-    rig.step()
+    ramp_done(rig, "LSY", 0.2)
     rig.put_ref(LSY=bad, LSP=0.1)  # the bad joint is refused, the others in the frame still apply
-    st = rig.step()
-    assert st.joint[0x4D].ref_r == 0.2 and st.joint[0x4D].ref == 0.2
-    assert st.joint[0x5F].ref == 0.1
+    st = ramp_done(rig, "LSP", 0.1)[-1]
+    assert st.joint[0x4D].ref_r == 0.2 and st.joint[0x4D].ref == pytest.approx(0.2)
     status = status_of(rig)
     assert status.refs_refused == 1 and status.joint_flags[0x4D] & ds.JOINT_REFUSED
     assert all(math.isfinite(f.value) for f in rig.frames_to(0x4D) if isinstance(f.value, float))
-    rig.put_ref(LSY=0.25)
+    rig.put_ref(LSY=0.25)  # within one cycle's reach
     st = rig.step()
-    assert st.joint[0x4D].ref == 0.25 and not status_of(rig).joint_flags[0x4D] & ds.JOINT_REFUSED
+    assert st.joint[0x4D].ref == pytest.approx(0.25) and not status_of(rig).joint_flags[0x4D] & ds.JOINT_REFUSED
 
 
 def test_unknown_mode_is_refused(rig: Rig) -> None:
@@ -262,6 +289,10 @@ def test_disabled_joints_get_no_frames(rig: Rig) -> None:
 
 @pytest.mark.parametrize("rate", [10.0, 50.0])
 def test_mode_0_filter_reaches_95_percent_in_4_seconds(clean_shm, rate: float) -> None:
+    """The first-order filter from where the joint is. The first target after start-up states that position
+    (the re-seed), the filter runs from the next cycle. At 10 Hz it is within the motion bounds and goes out
+    exactly; at 50 Hz its first steps accelerate harder than the bound allows and are limited, which costs a
+    few cycles, never more."""
     r = make_rig(rate=rate, bitrate=None)
     try:
         r.loop.start_up()
@@ -270,14 +301,22 @@ def test_mode_0_filter_reaches_95_percent_in_4_seconds(clean_shm, rate: float) -
         start = r.loop.state.joint[lsr.address].ref
         target = start + 0.8
         r.put_ref(mode=mds.MDS_REF_MODE_REF_FILTER, LSR=target)
+        assert r.step().joint[lsr.address].ref == pytest.approx(start, abs=1e-6)  # the re-seed's zero step
         n = round(rate * 4.0)
-        refs = [r.step().joint[lsr.address].ref for _ in range(n)]
+        refs = [r.step().joint[lsr.address].ref for _ in range(n + 3)]
         fraction = [(q - start) / (target - start) for q in refs]
         L = filter_length(rate)
         assert r.loop.L == pytest.approx(L)
-        assert fraction[0] == pytest.approx(1 / L)  # theta_1 = (theta_0 (L-1) + theta_des) / L
-        assert fraction[n - 2] < 0.95 <= fraction[n - 1] + 1e-9
         assert all(b > a for a, b in zip(fraction, fraction[1:], strict=False))
+        limited = status_of(r).joint_limited[lsr.address]
+        if rate == 10.0:
+            assert fraction[0] == pytest.approx(1 / L)  # theta_1 = (theta_0 (L-1) + theta_des) / L
+            assert fraction[n - 2] < 0.95 <= fraction[n - 1] + 1e-6  # (float32 counts on the wire)
+            assert limited == 0
+        else:
+            assert fraction[0] < 1 / L and 0 < limited < 10
+            assert fraction[n - 2] < 0.95 <= fraction[n + 2]
+        assert r.audit().violations == []
         if rate == 10.0:
             r.step(int(rate * 10))
             assert r.measured("LSR") == pytest.approx(target, abs=1e-3)  # the robot follows the filtered ref
@@ -301,6 +340,7 @@ def test_mode_3_encoder_filter(rig: Rig) -> None:
     pos = rig.state().joint[rsr.address].pos
     target = pos + 0.4
     rig.put_ref(mode=mds.MDS_REF_MODE_ENC_FILTER, RSR=target)
+    assert rig.step().joint[rsr.address].ref == pytest.approx(pos)  # the first target states where it is
     st = rig.step()
     L = rig.loop.L
     # theta = (theta_enc (L-1) + theta_des) / L, from the encoder reading of this cycle's start
@@ -386,11 +426,14 @@ def test_bus_off_and_reset_bus_command(rig: Rig) -> None:
     status = status_of(rig)
     assert status.bus_state == ds.BUS_STATE_ACTIVE and status.bus_resets == 1
     assert (status.cmd_seq, status.cmd_result) == (9, ds.CMD_OK)
-    # The held target goes out after the reset.
-    moveto = [f for f in rig.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET]
-    assert moveto and TABLE["LEP"].to_joint(moveto[-1].value) == pytest.approx(-0.7, abs=1e-6)
+    # The joints answer again after a silence: the first target states where LEP is, then it ramps to its reference.
+    assert rig.targets("LEP")[0] == pytest.approx(-1.0, abs=1e-6)
+    ramp_done(rig, "LEP", -0.7)
     rig.step(20)
     assert rig.state().joint[0x4C].pos == pytest.approx(-0.7, abs=1e-5)
+    # ... and the pipeline is told to restart every enabled joint where it stands (nothing moved meanwhile).
+    reseeds = status_of(rig).joint_reseed
+    assert all(reseeds[j.address] == 1 for j in TABLE.enabled)
 
 
 def test_corrupt_input_channel_holds_the_reference(rig: Rig) -> None:
@@ -401,24 +444,29 @@ def test_corrupt_input_channel_holds_the_reference(rig: Rig) -> None:
     rig.step()
     with ach.Channel(mds.MDS_CHAN_REF_NAME, create=False) as raw:
         raw._i32[raw._i_dirty] = 1  # what a writer that died between 'dirty' and 'clean' leaves behind
-    states = [rig.step() for _ in range(5)]
-    assert all(st.joint[0x4C].ref == -0.8 for st in states)
+    states = [MDS_STATE.from_buffer_copy(rig.step()) for _ in range(5)]
+    assert all(st.joint[0x4C].ref_r == -0.8 for st in states)  # the last reference holds: LEP completes it
+    assert states[-1].joint[0x4C].ref == pytest.approx(-0.8, abs=1e-6)
     status = status_of(rig)
     assert status.channel_errors == 5 and status.cycle == rig.loop.cycle_count
     assert "channel-err 5" in ds.summary_line(status)
 
 
 def test_missing_acks_resend_the_target(clean_shm) -> None:
-    r = make_rig(bitrate=None, catchup_velocity=math.inf)
+    r = make_rig(bitrate=None)
     try:
         r.loop.start_up()
         r.state()
+        start = r.state().joint[0x4C].pos
+        r.put_ref(LEP=start + 0.05)
+        r.step(5)
+        sent = len([f for f in r.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET])
         r.net.drop_replies(0x4C, count=4)  # the 4 ACKs of the next sequence
-        r.put_ref(LEP=-0.8)
+        r.put_ref(LEP=start + 0.06)  # within one cycle's reach: one target
         r.step(5)
         status = status_of(r)
         assert status.acks_missing == 1
-        movetos = [f for f in r.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET]
+        movetos = [f for f in r.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET][sent:]
         assert len(movetos) == 2 and movetos[0].raw == movetos[1].raw
     finally:
         close_rig(r)
@@ -436,15 +484,13 @@ def test_collision_gate_holds_and_releases(rig: Rig) -> None:
     assert st.joint[0x4C].ref_c_send == pytest.approx(-1.0, abs=1e-6)  # not sent
     assert status_of(rig).collision_holds == 3
     rig.collide_out.put(MDS_COLLIDE())
-    st = rig.step()
-    assert st.joint[0x4C].ref_c_send == -0.5
-    assert [f for f in rig.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET]
-
+    ramp_done(rig, "LEP", -0.5)  # released: it ramps from where it was held
+    assert rig.state().joint[0x4C].ref_c_send == pytest.approx(-0.5, abs=1e-6)
 
 
 def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
-    """A daemon (re)started while the pipeline keeps commanding a distant reference approaches it at the
-    catch-up speed (daemon_loop.CATCHUP_VELOCITY), never in one step; afterwards references pass through again."""
+    """A daemon (re)started while the pipeline keeps commanding a distant reference ramps to it within the
+    motion bounds, never in one step, and so does every later step of the reference."""
     r = make_rig(pose={"LEP": -1.0})
     try:
         r.loop.start_up()
@@ -452,18 +498,21 @@ def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
         r.put_ref(LEP=-0.2)
         refs = [r.step().joint[0x4C].ref for _ in range(12)]
         steps = [abs(b - a) for a, b in zip([-1.0] + refs, refs, strict=False)]
-        assert max(steps) <= CATCHUP_VELOCITY * 0.1 + 1e-9  # at 10 Hz
-        assert min(steps[:5]) > 0  # it does move towards the reference
-        assert refs[-1] == pytest.approx(-0.2)
+        v_max = 0.9 * TABLE.max_velocity  # motion.LIMIT_MARGIN
+        assert max(steps) <= v_max * 0.1 + 1e-6  # at 10 Hz
+        assert min(steps[1:5]) > 0  # it does move towards the reference (after the re-seed's zero step)
+        assert refs[-1] == pytest.approx(-0.2, abs=1e-6)
         r.put_ref(LEP=-0.5)
-        assert r.step().joint[0x4C].ref == pytest.approx(-0.5)  # caught up: pass-through again
+        refs = [r.step().joint[0x4C].ref for _ in range(8)]
+        assert refs[-1] == pytest.approx(-0.5, abs=1e-6) and abs(refs[0] - -0.2) <= v_max * 0.1
+        assert r.audit().violations == [] and status_of(r).joint_limited[0x4C] > 0
     finally:
         close_rig(r)
 
 
 def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clean_shm) -> None:
     """mds-ref left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
-    `mds-ach repair` the first new reference is approached at the catch-up speed, like after a restart."""
+    `mds-ach repair` the first new reference is approached within the motion bounds, like after a restart."""
     from mds_ach import ach, repair
 
     rig = make_rig(pose={"LEP": -1.0})
@@ -473,7 +522,7 @@ def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clea
         rig.put_ref(LEP=-1.0)
         rig.step(2)
         rig.put_ref(LEP=-0.95)
-        assert rig.step().joint[0x4C].ref == pytest.approx(-0.95)  # normally a reference passes through at once
+        assert rig.step(2).joint[0x4C].ref == pytest.approx(-0.95)  # a small step: the re-seed's, then the target
         with ach.Channel(mds.MDS_CHAN_REF_NAME, fast=False) as raw:
             raw._i32[raw._i_dirty] = 1  # what a writer killed inside its put leaves behind
         assert rig.step(3).joint[0x4C].ref == pytest.approx(-0.95)  # unreadable input: hold
@@ -482,9 +531,8 @@ def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clea
         rig.put_ref(LEP=-0.2)  # where upstream got to in the meantime
         refs = [rig.step().joint[0x4C].ref for _ in range(10)]
         steps = [abs(b - a) for a, b in zip([-0.95] + refs, refs, strict=False)]
-        assert max(steps) <= CATCHUP_VELOCITY * 0.1 + 1e-9 and refs[-1] == pytest.approx(-0.2)
-        rig.put_ref(LEP=-0.5)
-        assert rig.step().joint[0x4C].ref == pytest.approx(-0.5)  # caught up: pass-through again
+        assert max(steps) <= 0.9 * TABLE.max_velocity * 0.1 + 1e-6 and refs[-1] == pytest.approx(-0.2, abs=1e-6)
+        assert rig.audit().violations == []
     finally:
         close_rig(rig)
 
@@ -520,6 +568,190 @@ def test_collision_override_report_holds_nothing(rig: Rig) -> None:
     rig.put_ref(LEP=-0.5)
     rig.step(3)
     assert [f for f in rig.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET]
+
+# --- the motion bounds on every path (every MOVETO passes the audit of motion_audit) ---------------------------
+
+
+def assert_bounded(rig: Rig, both_reseed_rules: bool = True) -> Audit:
+    """Every MOVETO so far obeys the motion bounds, whichever reply a re-seed restarts from (motion_audit)."""
+    result = rig.audit()
+    assert result.violations == [], result.violations
+    if both_reseed_rules:
+        assert rig.audit(first_reply=True).violations == []
+    return result
+
+
+def drive(rig: Rig, cycles: int, mode: int = mds.MDS_REF_MODE_REF, **speeds: float) -> None:
+    """``cycles`` cycles, each after a new mds-ref frame moving the given joints at the given speeds (rad/s)."""
+    a = {short: TABLE[short].address for short in speeds}
+    refs = {short: rig.loop.state.joint[a[short]].ref_r for short in speeds}
+    for _ in range(cycles):
+        refs = {short: TABLE[short].clamp(q + speeds[short] * rig.loop.period) for short, q in refs.items()}
+        rig.put_ref(mode=mode, **refs)
+        rig.step()
+
+
+@pytest.mark.parametrize("mode", [mds.MDS_REF_MODE_COMPLIANT, mds.MDS_REF_MODE_ENC_FILTER])
+def test_switching_back_to_pass_through_ramps_to_a_reference_that_moved_on(rig: Rig, mode: int) -> None:
+    """In mode 2 the joint follows itself, in mode 3 it trails its reference; the reference moves on meanwhile.
+    Back in mode 1 the joint ramps to the reference (flagged and counted as limited), it never steps there."""
+    lsp = TABLE["LSP"]
+    start = rig.state().joint[lsp.address].pos
+    drive(rig, 20, mode=mode, LSP=0.5)  # the reference runs 1 rad ahead
+    reference = rig.loop.state.joint[lsp.address].ref_r
+    assert reference - rig.loop.state.joint[lsp.address].ref > 0.5
+    rig.put_ref(LSP=reference)  # mode 1
+    states = ramp_done(rig, "LSP", reference)
+    assert len(states) > 3  # 0.5+ rad at <= 1.8 rad/s
+    status = status_of(rig)
+    assert status.joint_limited[lsp.address] > 0 and status.targets_limited >= status.joint_limited[lsp.address]
+    if mode == mds.MDS_REF_MODE_COMPLIANT:
+        assert rig.targets("LSP")[0] == pytest.approx(start, abs=1e-6)  # it had stood still
+    assert_bounded(rig)
+
+
+@pytest.mark.parametrize("mode", [mds.MDS_REF_MODE_COMPLIANT, mds.MDS_REF_MODE_ENC_FILTER])
+@pytest.mark.parametrize("bogus", ["out of range", "impossible jump"])
+def test_a_bogus_position_reply_is_never_a_position(rig: Rig, mode: int, bogus: str) -> None:
+    """One corrupt reply (+5 rad, or a jump to the far limit within one cycle) must not drag a joint in mode 2
+    or 3 with it: it is refused, flagged and counted; mds-state keeps the last good position (not active); the
+    joint holds; three consistent replies later the position is trusted again."""
+    lsp = TABLE["LSP"]
+    pos = rig.state().joint[lsp.address].pos
+    rig.put_ref(mode=mode, LSP=pos)
+    rig.step(3)
+    q = pos + 5.0 if bogus == "out of range" else lsp.upper - 0.01
+    rig.net.inject_frame(mcb.HOST_SID, bytes(mcb.encode_state_reply(lsp.address, StateArg.ACTUAL_POSITION,
+                                                                    lsp.to_counts(q)).data))
+    st = rig.step()
+    s, status = st.joint[lsp.address], status_of(rig)
+    assert s.pos == pytest.approx(pos) and s.active == 0 and s.vel == 0.0
+    assert status.joint_flags[lsp.address] & ds.JOINT_BAD_REPLY and not status.joint_flags[lsp.address] & ds.JOINT_FRESH
+    assert status.bad_replies == 1 and status.joint_bad_replies[lsp.address] == 1 and "bad-reply 1" in \
+        ds.summary_line(status)
+    assert s.ref == pytest.approx(pos, abs=1e-6)
+    rig.step(3)
+    st, status = rig.state(), status_of(rig)
+    assert st.joint[lsp.address].active == 1 and not status.joint_flags[lsp.address] & ds.JOINT_BAD_REPLY
+    assert status.bad_replies == 1
+    assert all(abs(t - pos) < 1e-6 for t in rig.targets("LSP"))  # nothing but "stay where you are"
+    assert rig.measured("LSP") == pytest.approx(pos, abs=1e-6)
+    assert_bounded(rig)
+
+
+def test_a_node_back_online_ramps_from_where_it_is(rig: Rig) -> None:
+    """A node offline for 5 s while its reference moved 0.5 rad: the targets sent meanwhile never arrived, so
+    when it answers again the first target states where the joint is, and it ramps to its reference."""
+    lep = TABLE["LEP"]
+    rig.net.set_offline(lep.address)
+    drive(rig, 50, LEP=0.1)
+    reference = rig.loop.state.joint[lep.address].ref_r
+    assert reference == pytest.approx(-0.5)
+    assert status_of(rig).joint_flags[lep.address] & ds.JOINT_STALE
+    sent = len(rig.targets("LEP"))
+    rig.net.set_offline(lep.address, False)
+    ramp_done(rig, "LEP", reference)
+    targets = rig.targets("LEP")[sent:]
+    assert targets[0] == pytest.approx(-1.0, abs=1e-6)  # where it stood, not where its targets had got to
+    assert max(abs(b - a) for a, b in zip(targets, targets[1:], strict=False)) <= 0.9 * TABLE.max_velocity * 0.1
+    rig.step(10)
+    assert rig.measured("LEP") == pytest.approx(reference, abs=1e-4)
+    assert_bounded(rig)
+
+
+def test_a_collision_hold_released_ramps(rig: Rig) -> None:
+    """While mds-collide flags the left arm its targets are withheld and its reference moves on; released, the
+    arm ramps to the reference instead of receiving the accumulated distance in one frame."""
+    lep = TABLE["LEP"]
+    drive(rig, 5, LEP=0.3)  # moving when the hold starts
+    collide = MDS_COLLIDE()
+    collide.isCollide = 1
+    collide.joint[mds.COLLIDE_L_FOREARM].isCollide = 1
+    rig.collide_out.put(collide)
+    held = len(rig.targets("LEP"))
+    drive(rig, 20, LEP=0.3)  # 0.6 rad while held
+    assert len(rig.targets("LEP")) == held
+    rig.collide_out.put(MDS_COLLIDE())
+    reference = rig.loop.state.joint[lep.address].ref_r
+    ramp_done(rig, "LEP", reference)
+    steps = rig.audit().steps("LEP")
+    assert max(steps) <= 0.9 * TABLE.max_velocity * 0.1 + 1e-6
+    assert status_of(rig).joint_limited[lep.address] > 0
+    assert_bounded(rig)
+
+
+def test_home_then_a_small_goto_ramps_from_home(rig: Rig) -> None:
+    """After HOME the joint is at its home position while the reference still says where it was before: a
+    small goto from that old reference ramps from home (and the pipeline is told to restart at home)."""
+    lep = TABLE["LEP"]
+    rig.command(mds.MDS_CMD_HOME, lep.address, seq=4)
+    rig.step(40)
+    st = rig.state()
+    assert st.joint[lep.address].pos == pytest.approx(lep.home) and st.joint[lep.address].ref == pytest.approx(lep.home)
+    assert status_of(rig).joint_reseed[lep.address] == 1  # once, with mds-state pos at home
+    rig.put_ref(LEP=-0.95)  # 0.05 rad from the reference before HOME (-1.0), 0.3 rad from home
+    ramp_done(rig, "LEP", -0.95)
+    targets = rig.targets("LEP")
+    assert targets[0] == pytest.approx(lep.home, abs=1e-6)
+    assert max(rig.audit().steps("LEP")) <= 0.9 * TABLE.max_velocity * 0.1 + 1e-6
+    # HOME moves the joint by itself: only the reply just before the next target knows where it went.
+    assert_bounded(rig, both_reseed_rules=False)
+
+
+def test_bus_off_and_resetbus_during_motion_ramps(rig: Rig) -> None:
+    """Bus-off while the reference moves: nothing gets through. After `resetbus` the joints answer again and
+    ramp from where they stand; the stale target of the moment is never re-sent."""
+    lep = TABLE["LEP"]
+    drive(rig, 5, LEP=0.3)
+    rig.net.bus_off()
+    drive(rig, 15, LEP=0.3)  # 0.45 rad while the bus is off
+    stood = rig.measured("LEP")
+    sent = len(rig.targets("LEP"))
+    rig.command(mds.MDS_CMD_RESET_BUS, seq=6)
+    drive(rig, 5, LEP=0.3)
+    reference = rig.loop.state.joint[lep.address].ref_r
+    ramp_done(rig, "LEP", reference)
+    targets = rig.targets("LEP")[sent:]
+    assert targets[0] == pytest.approx(stood, abs=1e-6)
+    assert reference - stood > 0.5
+    reseeds = status_of(rig).joint_reseed
+    assert reseeds[lep.address] == 1 and reseeds[TABLE["RSP"].address] == 1
+    assert_bounded(rig)
+
+
+def test_a_large_step_in_pass_through_is_acceleration_limited(clean_shm) -> None:
+    """A 2.5 rad step in mode 1 becomes a ramp: at most 0.9 x 2 rad/s and 0.9 x 8 rad/s^2, and it arrives in
+    about the time those bounds allow."""
+    r = make_rig(pose={"LSR": 0.0})
+    try:
+        r.loop.start_up()
+        r.state()
+        r.put_ref(LSR=0.02)  # a first small move
+        ramp_done(r, "LSR", 0.02)
+        r.put_ref(LSR=2.5)
+        states = ramp_done(r, "LSR", 2.5)
+        assert 14 <= len(states) <= 20  # 2.5 / 1.8 s + accelerating and braking
+        assert max(r.audit().steps("LSR")) <= 0.9 * TABLE.max_velocity * 0.1 + 1e-6  # acceleration: the audit
+        st = status_of(r)
+        lsr = TABLE["LSR"].address
+        assert st.joint_limited[lsr] > 5 and st.targets_limited >= st.joint_limited[lsr]
+        assert_bounded(r)
+    finally:
+        close_rig(r)
+
+
+def test_a_stalled_loop_is_reported_and_ramps(rig: Rig) -> None:
+    """The loop does not run for 3 s (here: the clock jumps) while the reference moves on: the stall is counted
+    and its length reported, and the joint ramps from rest where it was."""
+    drive(rig, 5, LSP=0.4)
+    ref = rig.loop.state.joint[TABLE["LSP"].address].ref_r + 1.2  # where upstream got to meanwhile
+    rig.clock.advance(3.0)
+    rig.put_ref(LSP=ref)
+    ramp_done(rig, "LSP", ref)
+    status = status_of(rig)
+    assert status.stalls == 1 and status.stall_max == pytest.approx(3.1) and "stalls 1" in ds.summary_line(status)
+    assert_bounded(rig)
+
 
 # --- setup commands ---------------------------------------------------------------------------------------
 
@@ -749,6 +981,60 @@ def test_no_ros_mode_stops_on_sigterm(clean_shm) -> None:
     assert proc.returncode == 0, out
 
 
+@pytest.mark.slow
+def test_a_stopped_daemon_process_ramps_when_it_continues(clean_shm, tmp_path: Path) -> None:
+    """SIGSTOP the real daemon for 3 s while a client keeps moving LSP's reference: when it continues, the stall
+    is reported (log line, mds-daemon-status) and every MOVETO in its CAN log obeys the motion bounds -- the
+    first one after the stall too, which used to carry the whole distance the reference moved meanwhile."""
+    import threading
+
+    from motion_audit import read_log
+
+    can_log = tmp_path / "can.asc"
+    proc = subprocess.Popen([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--can-log", str(can_log),
+                             "--sim-pose", "LSP=-0.45"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+    status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
+    ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+    stop = threading.Event()
+    try:
+        first = wait_for(lambda: state_in.latest(), 30.0, what="mds-state from the daemon")
+        ref = MDS_REF()
+        for j in TABLE:
+            ref.joint[j.address].ref, ref.joint[j.address].mode = first.joint[j.address].ref, mds.MDS_REF_MODE_REF
+
+        def client() -> None:  # LSP back and forth at 0.5 rad/s between -0.45 and 0.55, 20 frames/s
+            t0 = time.monotonic()
+            while not stop.wait(0.05):
+                phase = (0.5 * (time.monotonic() - t0)) % 2.0
+                ref.joint[0x5F].ref = -0.45 + (phase if phase < 1.0 else 2.0 - phase)
+                ref_out.put(ref)
+
+        writer = threading.Thread(target=client, daemon=True)
+        writer.start()
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGSTOP)
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(1.5)
+        status = wait_for(lambda: status_in.latest(), 10.0, what="mds-daemon-status")
+    finally:
+        stop.set()
+        proc.send_signal(signal.SIGCONT)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+        for ch in (state_in, status_in, ref_out):
+            ch.close()
+    assert proc.returncode == 0, out
+    loop_bounds, stale_after = TABLE.motion_bounds(0.1), 3.5 * 0.1  # the defaults at 10 Hz
+    result = audit(read_log(str(can_log)), TABLE, loop_bounds, stale_after)
+    assert len(result.targets["LSP"]) > 20, "LSP was hardly commanded"
+    assert result.violations == [], result.violations
+    assert audit(read_log(str(can_log)), TABLE, loop_bounds, stale_after, first_reply=True).violations == []
+    assert "control loop stalled: 3." in out, out
+    assert status.stalls >= 1 and status.stall_max >= 2.9
+
+
 def test_status_struct_layout() -> None:
     assert ctypes.sizeof(ds.MDS_DAEMON_STATUS) <= mds.CHANNEL_FRAME_SIZE
     st = ds.MDS_DAEMON_STATUS(rate_hz=10, measured_rate_hz=9.5, bus_load_avg=23.0, stale_count=1, tx_errors=2)
@@ -778,3 +1064,11 @@ def test_diagnostics_levels() -> None:
         DiagnosticStatus.OK
     values = {kv.key for kv in off.values}
     assert {"period_error_p99_ms", "overruns", "bus_load_percent", "cpu_per_cycle_ms", "stale_joints"} <= values
+    bad = daemon.diagnostic_status(ds.MDS_DAEMON_STATUS(rate_hz=10, bad_replies=1), True, [], 0, ["LSP"])
+    assert bad.level == DiagnosticStatus.WARN and "implausible position replies" in bad.message and "LSP" in bad.message
+    st = ds.MDS_DAEMON_STATUS(rate_hz=10, stalls=2, stall_max=3.1, targets_limited=7)
+    st.joint_limited[0x5F] = 7
+    stalled = daemon.diagnostic_status(st, True, [], 0, [], 1)
+    assert stalled.level == DiagnosticStatus.WARN and "stalled 1 time(s) (longest 3.10 s)" in stalled.message
+    assert {kv.key: kv.value for kv in stalled.values}["limited_joints"] == "LSP:7"
+    assert daemon.diagnostic_status(st, True, [], 0, [], 0).level == DiagnosticStatus.OK  # limiting is no fault

@@ -7,11 +7,12 @@
    returned), open handles work again, and the other channels are not touched.
 2. **CAN faults** on the daemon loop (simulated clock and bus) while the arms move: a silent node, error frames,
    bus-off, garbled frames. Each is flagged in ``mds-daemon-status``, recovers, and every MOVETO that reaches the
-   bus is inside the joint's limits.
+   bus is inside the joint's limits and obeys the motion bounds (``motion_audit``).
 3. **The running system** (daemon --nocan, mux, filter, collision gate, IK, bridge; each its own process):
    SIGKILL each node while the arms move. The daemon holds the last safe reference, the state stream goes on,
    and restarting the node resumes the motion without a jump. A writer killed inside a put on a pipeline
-   channel is reported and repaired with ``mds-ach repair`` while everything keeps running.
+   channel is reported and repaired with ``mds-ach repair`` while everything keeps running. Every daemon's CAN
+   log obeys the motion bounds.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import VENV_BIN, in_netns, remove_mds_channels, wait_for
+from motion_audit import MemoryLog, audit, read_log
 
 import mds_ach as mds
 from mds_ach import ach, canio, channel_access, config, mcb, repair
@@ -374,6 +376,7 @@ class CanRig:
         clock = ManualClock()
         net = SimNetwork.from_table(TABLE, pose={"LEP": -1.0, "REP": -1.0, "LSP": -0.3, "RSP": -0.3}, clock=clock)
         io = canio.make_canio(nocan=True, network=net)
+        io.recorder = MemoryLog(clock)
         channels = DaemonChannels.open()
         loop = DaemonLoop(TABLE, io, channels, rate_hz=rate, nocan=True, clock=clock)
         rig = cls(clock, net, io, channels, loop, StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF),
@@ -449,6 +452,8 @@ def can_rig(clean_shm: None) -> Iterator[CanRig]:
     try:
         assert unsafe_commands(rig.net.commands) == []
         assert all(math.isfinite(s.joint[TABLE[n].address].ref) for s in rig.states for n in MOVING)
+        bounded = audit(rig.io.recorder.frames, TABLE, rig.loop.bounds, rig.loop.stale_after)
+        assert bounded.violations == [], bounded.violations
     finally:
         rig.close()
 
@@ -878,6 +883,10 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
         # (a SIGKILLed daemon loses the tail of its log; the last one is stopped cleanly)
         assert any(f.argument == StateArg.MOVETO_TARGET for _, f in sent), "no motion was logged"
         assert unsafe_commands(sent) == []
+        for path in s.can_logs:  # every daemon run on its own: each restarts from the joints' first replies
+            bounded = audit(read_log(str(path)), TABLE, TABLE.motion_bounds(mds.MDS_LOOP_PERIOD),
+                            3.5 * mds.MDS_LOOP_PERIOD)
+            assert bounded.violations == [], f"{path.name}: {bounded.violations}"
     finally:
         s.stop()
         mp.undo()

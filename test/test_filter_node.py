@@ -35,7 +35,7 @@ def test_default_config_is_the_deployed_velocity_limiter() -> None:
     assert p.rate == 40.0
     assert np.all(p.mode == VEL)
     assert np.all(p.max_velocity == 1.57)
-    assert np.all(np.isinf(p.max_accel))
+    assert np.all(p.max_accel == 4.0)  # below the daemon's 0.9 x 8 rad/s^2 (config/joints.yaml motion:)
     assert p.length[mds.LSP] == pytest.approx(filters.filter_length(40.0, 4.0, 0.95))
 
 

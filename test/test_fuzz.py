@@ -10,8 +10,10 @@
   validation functions.
 
 "Nothing unsafe": every MOVETO the simulated bus received is inside its joint's limits in counts and addressed to
-an enabled joint (``test_faults.unsafe_commands``). Examples are few and fixed and there is no deadline, so CI stays
-fast and repeatable; set ``MDS_FUZZ_EXAMPLES=2000`` for a deep run with fresh random examples.
+an enabled joint (``test_faults.unsafe_commands``), and every MOVETO of the daemon rig obeys the motion bounds
+(``motion_audit``: random mode switches, setup commands and position replies included). Examples are few and
+fixed and there is no deadline, so CI stays fast and repeatable; set ``MDS_FUZZ_EXAMPLES=2000`` for a deep run
+with fresh random examples.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import pytest
 from conftest import remove_mds_channels
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from motion_audit import audit
 from test_faults import TABLE, CanRig, unsafe_commands
 
 import mds_ach as mds
@@ -101,6 +104,8 @@ def fresh() -> Iterator[None]:
 
 def assert_state_safe(rig: CanRig) -> None:
     assert unsafe_commands(rig.net.commands) == []
+    bounded = audit(rig.io.recorder.frames, TABLE, rig.loop.bounds, rig.loop.stale_after)
+    assert bounded.violations == [], bounded.violations  # any mode switch, command or reply: within the bounds
     for a in ENABLED:
         j = TABLE.get(a)
         ref = rig.loop.state.joint[a].ref

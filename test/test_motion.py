@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -52,3 +53,48 @@ def test_check_reports_a_jump() -> None:
     assert kinds == {"speed", "acceleration"}
     assert check(Track(0.0, 0.0, 0.0), 0.02, 0.1, BOUNDS) == []
     assert math.isinf(BOUNDS.interval(math.inf)) is False
+
+
+def _trapezoid(distance: float, v: float, a: float, t: float) -> float:
+    """Position at ``t`` of a rest-to-rest move over ``distance`` with speed ``v`` and acceleration ``a``."""
+    t_acc = v / a
+    t_cruise = distance / v - t_acc
+    if t < t_acc:
+        return 0.5 * a * t * t
+    if t < t_acc + t_cruise:
+        return 0.5 * a * t_acc ** 2 + v * (t - t_acc)
+    t_end = 2 * t_acc + t_cruise
+    return distance - 0.5 * a * max(t_end - t, 0.0) ** 2
+
+
+def test_a_reference_moving_within_the_bounds_is_followed_exactly() -> None:
+    """What the filter sends (1.57 rad/s, 4 rad/s^2) passes the limiter unchanged: no lag, nothing limited. A
+    limiter that assumed every target stands still would trail it by its braking distance (0.3 rad)."""
+    track, h = Track(0.0, 0.0, 0.0), 0.1
+    previous = 0.0
+    for k in range(1, 40):
+        now = k * h
+        desired = _trapezoid(2.0, 1.57, 4.0, now)
+        q = limit(track, desired, now, BOUNDS, desired_velocity=(desired - previous) / h)
+        assert q == pytest.approx(desired, abs=1e-9), (now, q, desired)
+        assert check(track, q, now, BOUNDS) == []
+        track.advance(q, now, BOUNDS)
+        previous = desired
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.floats(-3.0, 3.0), st.floats(-50.0, 50.0)), min_size=1, max_size=100),
+       st.floats(0.01, 0.2))
+def test_targets_stay_in_bounds_and_inside_the_walls_whatever_the_target_velocity(
+        steps: list[tuple[float, float]], h: float) -> None:
+    """Any claimed target velocity, any target in the joint range: the bounds hold and the limiter never leaves
+    [lower, upper] (it brakes for the limits as for a target at rest)."""
+    lower, upper = -1.0, 1.5
+    track, now = Track(0.0, 0.0, 0.0), 0.0
+    for want, velocity in steps:
+        now += h
+        q = limit(track, min(max(want, lower), upper), now, BOUNDS, desired_velocity=velocity, lower=lower,
+                  upper=upper)
+        assert check(track, q, now, BOUNDS) == [], (track, q, now)
+        assert lower - 1e-9 <= q <= upper + 1e-9, (track, q)
+        track.advance(q, now, BOUNDS)

@@ -10,7 +10,8 @@ its own process started by its console script (= `ros2 run mds_ach <exe>`).
   the daemon's own CAN log).
 
 "Smooth / no jump": between two consecutive mds-state frames no joint reference moves faster than the
-gate's speed bound allows; "frozen": the daemon's reference does not change at all.
+gate's speed bound allows; "frozen": the daemon's reference does not change at all. Whatever a test did, every
+MOVETO in the daemon's CAN log obeys the motion bounds (``motion_audit``).
 """
 
 from __future__ import annotations
@@ -22,10 +23,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import VENV_BIN, in_netns
+from conftest import VENV_BIN, in_netns, wait_for
+from motion_audit import audit, read_log
 
 import mds_ach as mds
-from mds_ach import ach
+from mds_ach import ach, config
+from mds_ach import daemon_status as ds
 from mds_ach.channels import StructChannel
 from mds_ach.collision import load_model
 from mds_ach.ik_msgs import IK_SOLVED, MDS_IK_STATUS
@@ -198,8 +201,9 @@ def assert_frozen(system: System, seconds: float, what: str) -> np.ndarray:
 def system(clean_shm: None, tmp_path: Path):
     assert in_netns(), "run through tools/netns-run"
     s = System(tmp_path)
+    can_log = tmp_path / "can.asc"
     try:
-        s.start("daemon", "--nocan")
+        s.start("daemon", "--nocan", "--can-log", str(can_log))
         for name in ("collision", "filter", "mux", "ik"):  # any order works; this one is the least obvious
             s.start(name)
         yield s
@@ -208,6 +212,9 @@ def system(clean_shm: None, tmp_path: Path):
         s.close()
     bad = {n: c for n, c in codes.items() if c != 0}
     assert not bad, f"unclean exits {bad}:\n" + "\n".join(s.log_text(n)[-3000:] for n in bad)
+    table = config.load()
+    result = audit(read_log(str(can_log)), table, table.motion_bounds(mds.MDS_LOOP_PERIOD), 3.5 * mds.MDS_LOOP_PERIOD)
+    assert result.violations == [], result.violations
 
 
 def test_ik_moves_the_hand_smoothly_and_nodes_can_die_and_come_back(system: System) -> None:
@@ -414,3 +421,37 @@ def test_gate_release_never_steps_the_motors(gate_system: System) -> None:
     too_big = [(joint_label(a), round(credit, 3), round(step, 3)) for a, rows in steps.items() if a in MODEL
                for credit, step in rows if step > speed * (credit + SAMPLING_SLACK)]
     assert not too_big, f"MOVETO steps beyond {speed} rad/s (joint, credit s, step rad): {too_big[:8]}"
+
+
+def goto(**targets: float) -> None:
+    """What `mds-ach console` goto does: read-modify-write of mds-ref-filter (the mux's legacy input)."""
+    with StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF) as ch:
+        frame = ch.latest()
+        assert frame is not None, "the mux did not seed mds-ref-filter"
+        for short, value in targets.items():
+            frame.joint[BY_SHORT[short].address].ref = value
+        ch.put(frame)
+
+
+def test_home_then_a_small_goto_starts_from_home(system: System) -> None:
+    """HOME through mds-cmd while the pipeline's reference for LEP is elsewhere: once LEP is homed every stage
+    restarts it at home (mds-daemon-status joint_reseed), so a small goto from home moves it from home to the
+    goal, never back via the old reference (which used to make the daemon step 0.4 rad)."""
+    s = system
+    lep = BY_SHORT["LEP"].address
+    home = config.load()["LEP"].home
+    goto(LEP=-0.6)
+    s.follow(lambda ref, pos: abs(pos[lep] - -0.6) < 1e-3, timeout=20)
+    with StructChannel(mds.MDS_CHAN_BOARD_CMD_NAME, mds.MDS_CMD) as cmd:
+        cmd.put(mds.MDS_CMD(seq=1, cmd=mds.MDS_CMD_HOME, address=lep))
+    s.follow(lambda ref, pos: abs(pos[lep] - home) < 1e-6 and abs(ref[lep] - home) < 1e-6, timeout=30)
+    with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS) as status, \
+            StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF) as daemon_input:
+        wait_for(lambda: (st := status.latest()) is not None and st.joint_reseed[lep] == 1, 10, what="the re-seed")
+        wait_for(lambda: (f := daemon_input.latest()) is not None and abs(f.joint[lep].ref - home) < 1e-9, 10,
+                 what="mds-ref re-seeded at home")
+    s.trace.clear()
+    goto(LEP=home + 0.05)
+    s.follow(lambda ref, pos: abs(pos[lep] - (home + 0.05)) < 1e-4, timeout=20)
+    refs = [ref[lep] for _, ref, _ in s.trace]
+    assert all(home - 1e-6 <= q <= home + 0.05 + 1e-6 for q in refs), f"LEP went elsewhere: {min(refs)}..{max(refs)}"
