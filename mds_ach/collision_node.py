@@ -619,6 +619,9 @@ class GateRunner:
                     self.check_times.append(time.perf_counter() - t0)
                     if len(self.check_times) > 10000:
                         del self.check_times[:5000]
+                    # The report before the reference: the daemon reads the reference first, then the report, so
+                    # whenever it sees a held reference it also sees the hold.
+                    guard.call(collide.name, collide.put, gate.report(now))
                     guard.call(out.name, out.put, make_ref(decision.ref, decision.mode))
                     self.processed += 1
                     if decision.refused and now - last_refusal_log > 1.0:
@@ -629,10 +632,12 @@ class GateRunner:
                         self.log("error", f"EXPERT OVERRIDE passed a predicted collision: "
                                           f"{sorted(decision.result.pairs)}")
                         last_override_log = now
-                if frame is not None or now - gate.last_report >= report_period:
+                reported = frame is not None
+                if not reported and now - gate.last_report >= report_period:
                     guard.call(collide.name, collide.put, gate.report(now))
-                    if self.on_report is not None:
-                        self.on_report(decision, gate, now)
+                    reported = True
+                if reported and self.on_report is not None:
+                    self.on_report(decision, gate, now)
         finally:
             for ch in (inp, out, collide, state_ch, watch):
                 ch.close()

@@ -447,11 +447,14 @@ class DaemonLoop:
             self._stalled(start - self._last_start)
         self._read_commands()
         self._run_commands(start)
+        # The reference first, then the collision report: the gate publishes a hold's report before the held
+        # reference, so a held reference read here always comes with its hold (the arm is withheld, never braked
+        # past the point where the gate stopped it).
+        ref = self._latest(self.ch.ref)  # a corrupt or silent channel means no new reference: hold
         collide = self._latest(self.ch.collide)
         if collide is not None:
             self.collide = collide
             ctypes.memmove(ctypes.addressof(self.state.collide), ctypes.addressof(collide), ctypes.sizeof(collide))
-        ref = self._latest(self.ch.ref)  # a corrupt or silent channel means no new reference: hold
         if self.ch.ref.bad_frames:
             self._warn_once("ref-size", f"mds-ref: frames of the wrong size ignored (MDS_REF is "
                                         f"{ctypes.sizeof(MDS_REF)} bytes)")
