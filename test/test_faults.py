@@ -107,10 +107,10 @@ print("finished", flush=True)
 # Points inside ach.Channel._write_locked (the line about to run when the writer dies) and the frames a repair
 # keeps. The writer has put frames 1..6 into 4 slots (3..6 live) and dies putting frame 7, which evicts frame 3.
 PUT_STAGES: dict[str, tuple[str, list[int]]] = {
-    "dirty set": ("cnt = self._cnt", [3, 4, 5, 6]),
+    "dirty set": ("ix = self._ix", [3, 4, 5, 6]),
     "evicting the oldest frame": ("data_free += q[e]", [3, 4, 5, 6]),
     "copying the data": ("self._mv[start:start + n] = src", [4, 5, 6]),
-    "data copied": ("seq = q[self._q_last] + 1", [4, 5, 6]),
+    "data copied": ("seq = last + 1", [4, 5, 6]),
     "last_seq bumped": ("q[e] = n", [4, 5, 6]),
     "index entry half written": ("q[e + 2] = seq", [4, 5, 6]),
     "entry written, heads not moved": ("q[_Q_DATA_HEAD] = (data_head + n) % dsize", [4, 5, 6, 7]),
