@@ -11,7 +11,7 @@ import ctypes
 
 from mds_ach.msgs import MDS_JOINT_COUNT, _Packed
 
-DAEMON_STATUS_VERSION = 1
+DAEMON_STATUS_VERSION = 2  # 2: lock_timeouts
 
 BUS_STATE_ACTIVE = 0  # error-active: all fine
 BUS_STATE_PASSIVE = 1  # error-passive / warning level: frames get through, errors seen
@@ -83,6 +83,7 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         ("joint_flags", ctypes.c_uint8 * MDS_JOINT_COUNT),
         ("joint_age", ctypes.c_float * MDS_JOINT_COUNT),  # s since the last position reply; -1 never
         ("channel_errors", ctypes.c_uint32),  # Ach channel reads/writes that failed (e.g. a corrupt mds-ref)
+        ("lock_timeouts", ctypes.c_uint32),  # channel reads/writes skipped: the lock was held longer than allowed
     ]
 
 
@@ -99,7 +100,7 @@ def summary_line(st: MDS_DAEMON_STATUS) -> str:
     for name, value in (("tx-err", st.tx_errors), ("err-frames", st.error_frames), ("bus-off", st.bus_off_count),
                         ("unknown", st.unknown_node_frames), ("malformed", st.malformed_frames),
                         ("refused", st.refs_refused), ("clamped", st.refs_clamped), ("no-ack", st.acks_missing),
-                        ("channel-err", st.channel_errors)):
+                        ("channel-err", st.channel_errors), ("lock-timeouts", st.lock_timeouts)):
         if value:
             faults.append(f"{name} {value}")
     return (f"{st.measured_rate_hz:.1f}/{st.rate_hz:g} Hz, period err p99 {st.period_error_p99 * 1e3:.2f} ms, "
