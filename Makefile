@@ -30,7 +30,8 @@ $(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml m
 	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	PYTHONWARNINGS=ignore $(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	@$(PY) -c 'from mds_ach import ach; print("mds_ach.ach:", "C fast path" if ach.FAST_AVAILABLE else \
-		"pure Python (no C compiler or Python headers: slower; see README)")'
+		"pure Python (no C compiler or Python headers: slower; see README)", \
+		"+ SIGBUS guard" if ach.GUARD_AVAILABLE else "(no SIGBUS guard: a truncated channel kills its users)")'
 	@touch $@
 
 run: $(STAMP)

@@ -33,12 +33,15 @@ def _can_build() -> bool:
 
 
 def test_fast_path_is_built_where_it_can_be() -> None:
-    """With a C compiler and Python headers, `make setup` builds the extension; a silent fallback would hide a
-    10x slower hot path."""
+    """With a C compiler and Python headers, `make setup` builds the extensions; a silent fallback would hide a
+    10x slower hot path, or leave channel mappings unguarded."""
     if not _can_build():
         pytest.skip("no C compiler or Python headers here: the pure-Python path is the only one")
     assert ach.FAST_AVAILABLE, "mds_ach._achfast is not importable: run `make setup` (pip install -e .)"
     assert os.environ.get("MDS_ACH_PURE_PYTHON", "") in ("", "0")
+    # the SIGBUS guard for channel mappings (a truncated channel file must not kill the process) is built with it
+    assert ach.GUARD_AVAILABLE, "mds_ach._shmguard is not importable: run `make setup` (pip install -e .)"
+    assert ach._achfast.LOCK_TIMED_OUT == ach._LOCK_TIMED_OUT
 
 
 needs_fast = pytest.mark.skipif(not ach.FAST_AVAILABLE, reason="mds_ach._achfast not built")
