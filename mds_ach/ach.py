@@ -1119,6 +1119,9 @@ class Channel:
         while True:
             if self._cancel or self._closed:
                 return ACH_CANCELED
+            if self._lost.value:  # the file was truncated while we waited: nothing will ever come
+                self._mutex_unlock(self._mutex)
+                return ACH_CORRUPT
             last = q[ql]
             if self._seq != last:
                 return ACH_OK
