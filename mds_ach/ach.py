@@ -1045,7 +1045,10 @@ class Channel:
             return AchException(ACH_LOCKED, f"lock held by another process (thread {owner}) for > {lock_ns / 1e6:g} "
                                             "ms; the call gave up without touching the channel", channel=self.name)
         if status == ACH_CORRUPT and not detail and not self._closed:
-            detail = self._corrupt_detail()
+            try:
+                detail = self._corrupt_detail()
+            except (ValueError, AchException):  # closed by another thread meanwhile: the status says enough
+                detail = ""
         return AchException(status, detail, channel=self.name, frame_size=size)
 
     # -- locking -----------------------------------------------------------------------------------
