@@ -655,11 +655,12 @@ class MappingGuard:
     ``lost`` turns true when the file vanished under the mapping (truncated: the guard grows it back, so the
     vanished part reads as zeros) or a page of it could not be allocated (private zeros from there on); every
     mapping of a truncated file in this process is marked. ``release()`` before unmapping: a lost mapping must
-    stay mapped (a robust-mutex list may point into it), so it is kept, and ``release`` says so. Without the
-    compiled guard nothing is guarded and ``lost`` stays false.
+    stay mapped (a robust-mutex list may point into it) and its file open (the guard still watches it through
+    that descriptor), so both are kept, and ``release`` says so. Without the compiled guard nothing is guarded
+    and ``lost`` stays false.
     """
 
-    _kept: list[mmap.mmap] = []  # lost mappings, never unmapped
+    _kept: list[tuple[mmap.mmap, int]] = []  # lost mappings and their files, never unmapped or closed
 
     def __init__(self, mm: mmap.mmap, fd: int) -> None:
         self._slot = -1
@@ -699,12 +700,13 @@ class MappingGuard:
         return (f"{what}; this handle stays unusable: run `mds-ach repair {name}` (it re-creates the channel), "
                 "then re-open the channel (restart this node)")
 
-    def release(self, mm: mmap.mmap) -> bool:
-        """Stop guarding before ``mm`` is unmapped. False when the mapping is lost: it is kept, do not close it."""
+    def release(self, mm: mmap.mmap, fd: int) -> bool:
+        """Stop guarding before ``mm`` is unmapped and ``fd`` closed. False when the mapping is lost: both are
+        kept, close neither."""
         if self._slot < 0:
             return True
         if self.lost:
-            MappingGuard._kept.append(mm)
+            MappingGuard._kept.append((mm, fd))
             return False
         _shmguard.forget(self._slot)
         self._slot = -1
@@ -813,9 +815,9 @@ class Channel:
             if guard.lost:
                 raise AchException(ACH_CORRUPT, guard.reason(self.name, size))
         except AchException as exc:
-            if guard.release(mm):
+            if guard.release(mm, fd):
                 mm.close()
-            os.close(fd)
+                os.close(fd)
             exc.channel = self.name
             raise
         self._layout = layout
@@ -899,9 +901,9 @@ class Channel:
         self._i32.release()
         self._mv.release()
         del self._anchor
-        if self._guard.release(self._mm):  # a lost mapping stays mapped (MappingGuard)
+        if self._guard.release(self._mm, self._fd):  # a lost mapping stays mapped (MappingGuard)
             self._mm.close()
-        os.close(self._fd)
+            os.close(self._fd)
 
     def __enter__(self) -> Channel:
         return self

@@ -207,9 +207,9 @@ class _Mapped:
 
     def close(self) -> None:
         del self._anchor
-        if self.guard.release(self.mm):
+        if self.guard.release(self.mm, self.fd):  # a lost mapping stays (ach.MappingGuard)
             self.mm.close()
-        os.close(self.fd)
+            os.close(self.fd)
 
 
 def _structure_problem(m: _Mapped) -> str | None:
