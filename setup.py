@@ -31,8 +31,11 @@ setup(
         ("include", glob("include/*.h")),
     ],
     package_data={"mds_ach": ["data/*", "web/*"]},
-    # The C fast path of mds_ach.ach; optional: without a compiler the pure-Python code is used.
+    # The C fast path of mds_ach.ach, and the SIGBUS guard for mapped channel files (a truncated channel must not
+    # kill its users); both optional: without a compiler the pure-Python code is used, unguarded.
     ext_modules=[Extension("mds_ach._achfast", ["mds_ach/_achfast.c"], extra_compile_args=["-O2", "-Wall"],
+                           optional=True),
+                 Extension("mds_ach._shmguard", ["mds_ach/_shmguard.c"], extra_compile_args=["-O2", "-Wall"],
                            optional=True)],
     include_package_data=True,
     install_requires=["setuptools"],

@@ -51,6 +51,7 @@
 #define MDS_CHAN_IK_STATE_NAME "mds-ik-state"
 #define MDS_CHAN_MUX_STATE_NAME "mds-mux-state"
 #define MDS_CHAN_DAEMON_STATUS_NAME "mds-daemon-status"
+#define MDS_CHAN_DAEMON_INPUT_NAME "mds-ref"
 
 /* Arm index of mds_ik_t.arm[] and mds_ik_t.move. */
 typedef enum mds_arm {
@@ -402,8 +403,9 @@ typedef struct MDS_PACKED mds_daemon_status {
     uint32_t joint_limited[MDS_JOINT_COUNT];             /* @883 */
     uint32_t joint_bad_replies[MDS_JOINT_COUNT];         /* @1283 */
     uint32_t joint_reseed[MDS_JOINT_COUNT];              /* @1683 */
+    uint32_t lock_timeouts;                              /* @2083 */
 } mds_daemon_status_t;
-MDS_STATIC_ASSERT(sizeof(mds_daemon_status_t) == 2083, "mds_daemon_status_t must be 2083 bytes");
+MDS_STATIC_ASSERT(sizeof(mds_daemon_status_t) == 2087, "mds_daemon_status_t must be 2087 bytes");
 
 /* ---- legacy bare macros of the original mds.h: RIGHT/LEFT and the 13 arm and torso joints by
    short and long name (#define LSP 0x005f). They are common words, so define

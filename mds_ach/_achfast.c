@@ -12,6 +12,13 @@
  * with ACH_CLOSED instead of touching freed memory. The Handle also holds the reader state (seq_num,
  * next_index), updated under the channel mutex as libach does, so threads sharing a handle stay consistent.
  * Waits release the GIL and last at most one slice given by the caller, which checks cancel/close/signals.
+ *
+ * Nothing read from the file is trusted: another process can scribble over it. The geometry (len, index_cnt,
+ * data_size) is validated by Python at open and handed in; every put and get compares it with the header again and
+ * bounds-checks the ring counters and each index entry it uses before using them, so a damaged header reads as
+ * ACH_CORRUPT and never leads to an access outside the mapping. A file truncated under the mapping is handled by
+ * mds_ach._shmguard (SIGBUS); its per-mapping "lost" flag, whose address is handed in, turns the call that met
+ * the truncation into ACH_CORRUPT. Locking is bounded when the caller asks for it (lock_ns >= 0).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -29,7 +36,8 @@
 /* status codes (enum ach_status) and options, as in ach.py */
 enum {
     ACH_OK = 0, ACH_OVERFLOW = 1, ACH_FAILED_SYSCALL = 4, ACH_STALE_FRAMES = 5, ACH_MISSED_FRAME = 6,
-    ACH_TIMEOUT = 7, ACH_CLOSED = 10, ACH_BUG = 11, ACH_EINVAL = 12, ACH_CORRUPT = 13
+    ACH_TIMEOUT = 7, ACH_CLOSED = 10, ACH_BUG = 11, ACH_EINVAL = 12, ACH_CORRUPT = 13,
+    LOCK_TIMED_OUT = -1 /* not libach's: the mutex was not acquired within lock_ns (ach.py reports ACH_LOCKED) */
 };
 enum { ACH_O_WAIT = 1, ACH_O_LAST = 2, ACH_O_COPY = 4 };
 /* how a get's futex wait ended: not at all (a frame was there), woken (FUTEX_WAKE, or the word had changed),
@@ -41,8 +49,10 @@ enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_TIMED_OUT = 2 };
 #define GUARD_HEADER 0x1A2A3A4A5A6A7A8AULL
 #define GUARD_INDEX 0x1B2B3B4B5B6B7B8BULL
 #define GUARD_DATA 0x1C2C3C4C5C6C7C8CULL
+#define LOCK_SLICE_NS 50000000LL /* a busy channel lock is waited for in slices this long (see chan_lock) */
 
 /* header words, in u64 units from the start of the file */
+#define Q_LEN 1
 #define Q_INDEX_CNT 11
 #define Q_DATA_SIZE 12
 #define Q_DATA_HEAD 13
@@ -58,31 +68,77 @@ typedef struct {
     pthread_cond_t *cond;
     volatile int32_t *dirty;
     volatile uint64_t *last_seq;
-    uint64_t *index;          /* index[0].size */
+    volatile uint64_t *index; /* index[0].size */
     char *data;               /* data ring */
-    uint64_t cnt, dsize;
+    uint64_t cnt, dsize, len; /* geometry validated at open */
     size_t off_guard_h, off_guard_i, off_guard_d;
+    volatile int *lost;       /* set by the SIGBUS guard when the file vanished under the mapping */
+    int no_guard;             /* what lost points to without a guard: always 0 */
     uint64_t seq, next;       /* reader state */
     int woken;                /* how the last get's futex wait ended: WAIT_NONE / WAIT_WOKEN / WAIT_TIMED_OUT */
 } Handle;
 
-static inline int guards_ok(const Handle *h) {
+/* libach check_guards, plus the geometry this handle was opened with: magic, len, index_cnt, data_size. */
+static inline int header_ok(const Handle *h) {
+    volatile uint64_t *q = h->q;
     uint64_t g_h, g_i, g_d;
     memcpy(&g_h, h->base + h->off_guard_h, 8);
     memcpy(&g_i, h->base + h->off_guard_i, 8);
     memcpy(&g_d, h->base + h->off_guard_d, 8); /* may be unaligned */
-    return g_h == GUARD_HEADER && g_i == GUARD_INDEX && g_d == GUARD_DATA && (uint32_t)h->q[0] == MAGIC;
+    return g_h == GUARD_HEADER && g_i == GUARD_INDEX && g_d == GUARD_DATA && (uint32_t)q[0] == MAGIC &&
+           q[Q_LEN] == h->len && q[Q_INDEX_CNT] == h->cnt && q[Q_DATA_SIZE] == h->dsize;
+}
+
+/* The ring counters (read once by the caller, under the lock) are in range: every put, libach's creation and
+ * `mds-ach repair` keep them so. */
+static inline int counters_ok(const Handle *h, uint64_t index_head, uint64_t index_free, uint64_t data_head,
+                              uint64_t data_free) {
+    return index_head < h->cnt && index_free <= h->cnt && data_head < h->dsize && data_free <= h->dsize;
+}
+
+/* A live index entry: a non-empty frame inside the data ring, with a sequence number that has been issued. */
+static inline int entry_ok(uint64_t size, uint64_t offset, uint64_t seq, uint64_t dsize, uint64_t last_seq) {
+    return size != 0 && offset < dsize && size <= dsize - offset && seq != 0 && seq <= last_seq;
+}
+
+static long long mono_ns(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (long long)ts.tv_sec * 1000000000LL + ts.tv_nsec;
 }
 
 /* libach chan_lock: lock, make a dead owner's mutex consistent, refuse a dirty channel. Called with the GIL
  * held; a busy lock (another process mid-put, or stopped while holding it) is waited for with the GIL released
- * so the process's other threads keep running. */
-static int chan_lock(Handle *h) {
+ * so the process's other threads keep running: as long as it takes when lock_ns < 0, else at most lock_ns (then
+ * LOCK_TIMED_OUT, the channel untouched). The wait is cut into LOCK_SLICE_NS timed locks, and between them the
+ * header is looked at again: a waiter parked in the kernel would otherwise never notice that the file was
+ * truncated under it (the lock's owner can then never release it; see _shmguard.c). pthread_mutex_timedlock takes
+ * a CLOCK_REALTIME deadline (POSIX); a clock step only lengthens or shortens one slice. */
+static int chan_lock(Handle *h, long long lock_ns) {
     int r = pthread_mutex_trylock(h->mutex);
     if (r == EBUSY) {
-        Py_BEGIN_ALLOW_THREADS
-        r = pthread_mutex_lock(h->mutex);
-        Py_END_ALLOW_THREADS
+        long long end = lock_ns < 0 ? -1 : mono_ns() + lock_ns;
+        for (;;) {
+            long long slice = LOCK_SLICE_NS;
+            if (end >= 0 && end - mono_ns() < slice)
+                slice = end - mono_ns();
+            if (slice < 0)
+                slice = 0;
+            struct timespec ts;
+            clock_gettime(CLOCK_REALTIME, &ts);
+            long long ns = ts.tv_nsec + slice;
+            ts.tv_sec += (time_t)(ns / 1000000000LL);
+            ts.tv_nsec = (long)(ns % 1000000000LL);
+            Py_BEGIN_ALLOW_THREADS
+            r = pthread_mutex_timedlock(h->mutex, &ts);
+            Py_END_ALLOW_THREADS
+            if (r != ETIMEDOUT)
+                break;
+            if (*h->lost || !header_ok(h))
+                return ACH_CORRUPT;
+            if (end >= 0 && mono_ns() >= end)
+                return LOCK_TIMED_OUT;
+        }
     }
     if (r == EOWNERDEAD) {
         pthread_mutex_consistent(h->mutex);
@@ -104,52 +160,71 @@ static void wake_all(Handle *h) {
     pthread_cond_broadcast(h->cond);
 }
 
-static inline void clear_entry(uint64_t *e, uint64_t *data_free, uint64_t *index_free) {
-    *data_free += e[0];
+/* libach's free(i) of a live entry, which is read once and checked first: 0 (nothing changed) if it is damaged. */
+static inline int evict(volatile uint64_t *e, uint64_t dsize, uint64_t last, uint64_t *data_free,
+                        uint64_t *index_free) {
+    uint64_t size = e[0], offset = e[1], seq = e[2];
+    if (!entry_ok(size, offset, seq, dsize, last))
+        return 0;
+    *data_free += size;
     *index_free += 1;
     e[0] = e[1] = e[2] = 0;
+    return 1;
 }
 
-/* libach ach_put steps 1-7 (ach-format.md section 4); caller holds the lock. */
+/* libach ach_put steps 1-7 (ach-format.md section 4); caller holds the lock. Every value read from the file is
+ * read once and checked before it is used, so nothing another process writes meanwhile can move an access out
+ * of the ring. Returns with dirty = 0, except when an index entry turns out damaged half-way: ACH_CORRUPT with
+ * dirty = 1, so every client sees the channel corrupt until `mds-ach repair` (as after a writer died mid-put).
+ * Damaged counters are refused before anything is written. */
 static int write_locked(Handle *h, const char *src, uint64_t n) {
-    volatile uint64_t *q = h->q;
-    uint64_t cnt = h->cnt, dsize = h->dsize, *ix = h->index;
-    *h->dirty = 1;
+    volatile uint64_t *q = h->q, *ix = h->index;
+    uint64_t cnt = h->cnt, dsize = h->dsize, last = *h->last_seq;
     uint64_t index_head = q[Q_INDEX_HEAD], index_free = q[Q_INDEX_FREE];
     uint64_t data_head = q[Q_DATA_HEAD], data_free = q[Q_DATA_FREE];
+    if (!counters_ok(h, index_head, index_free, data_head, data_free) || last == UINT64_MAX)
+        return ACH_CORRUPT; /* (a last_seq that cannot be incremented is as damaged as a wild counter) */
+    *h->dirty = 1;
     uint64_t slot = index_head, i;
-    if (index_free == 0) /* index full: drop the oldest frame, which sits in our slot */
-        clear_entry(ix + 3 * index_head, &data_free, &index_free);
+    if (index_free == 0 && !evict(ix + 3 * index_head, dsize, last, &data_free, &index_free))
+        return ACH_CORRUPT; /* index full: drop the oldest frame, which sits in our slot */
     if (dsize - data_head < n) { /* tail wrap: drop frames after data_head, restart at 0 */
         i = (index_head + index_free) % cnt;
         while (ix[3 * i + 1] > data_head) {
-            clear_entry(ix + 3 * i, &data_free, &index_free);
+            if (!evict(ix + 3 * i, dsize, last, &data_free, &index_free))
+                return ACH_CORRUPT;
             i = (i + 1) % cnt;
         }
-        if (i == index_head)
+        if (i == index_head) {
             data_free = dsize;
-        else
-            data_free = ix[3 * ((index_head + index_free) % cnt) + 1];
+        } else {
+            volatile uint64_t *oldest = ix + 3 * ((index_head + index_free) % cnt);
+            uint64_t size = oldest[0], offset = oldest[1], seq = oldest[2];
+            if (!entry_ok(size, offset, seq, dsize, last))
+                return ACH_CORRUPT;
+            data_free = offset;
+        }
         data_head = 0;
     }
     i = (index_head + index_free) % cnt;
     while (data_free < n) { /* clear overlap with the oldest frames */
         if (i == index_head)
             data_free = dsize;
-        else
-            clear_entry(ix + 3 * i, &data_free, &index_free);
+        else if (!evict(ix + 3 * i, dsize, last, &data_free, &index_free))
+            return ACH_CORRUPT;
         i = (i + 1) % cnt;
     }
     if (dsize - data_head < n) { /* libach's sanity check; cannot happen */
         q[Q_DATA_HEAD] = data_head;
         q[Q_DATA_FREE] = data_free;
         q[Q_INDEX_FREE] = index_free;
+        *h->dirty = 0;
         return ACH_BUG;
     }
     memcpy(h->data + data_head, src, n);
-    uint64_t seq = *h->last_seq + 1;
+    uint64_t seq = last + 1;
     *h->last_seq = seq;
-    uint64_t *e = ix + 3 * slot;
+    volatile uint64_t *e = ix + 3 * slot;
     e[0] = n;
     e[1] = data_head;
     e[2] = seq;
@@ -157,30 +232,40 @@ static int write_locked(Handle *h, const char *src, uint64_t n) {
     q[Q_DATA_FREE] = data_free - n;
     q[Q_INDEX_HEAD] = (index_head + 1) % cnt;
     q[Q_INDEX_FREE] = index_free - 1;
+    *h->dirty = 0;
     return ACH_OK;
 }
 
-/* libach ach_get steps 3-7; caller holds the lock. Sets *size (needed size on OVERFLOW). */
+/* libach ach_get steps 3-7; caller holds the lock. Sets *size (needed size on OVERFLOW). Values from the file
+ * are read once and checked before use, as in write_locked. */
 static int read_locked(Handle *h, char *dst, uint64_t cap, int options, uint64_t *size) {
-    volatile uint64_t *q = h->q;
-    uint64_t last = *h->last_seq, seq = h->seq, cnt = h->cnt, *ix = h->index, ri;
+    volatile uint64_t *q = h->q, *ix = h->index;
+    uint64_t last = *h->last_seq, seq = h->seq, cnt = h->cnt, ri;
+    uint64_t index_head = q[Q_INDEX_HEAD], index_free = q[Q_INDEX_FREE];
     *size = 0;
+    if (!counters_ok(h, index_head, index_free, q[Q_DATA_HEAD], q[Q_DATA_FREE]))
+        return ACH_CORRUPT;
     if (last == 0 || (seq == last && !(options & ACH_O_COPY)))
         return ACH_STALE_FRAMES;
     if (options & ACH_O_LAST)
-        ri = (q[Q_INDEX_HEAD] + cnt - 1) % cnt;
+        ri = (index_head + cnt - 1) % cnt;
     else if (ix[3 * h->next + 2] == seq + 1)
         ri = h->next;
     else if (seq == last)
-        ri = (q[Q_INDEX_HEAD] + cnt - 1) % cnt;
+        ri = (index_head + cnt - 1) % cnt;
     else
-        ri = (q[Q_INDEX_HEAD] + q[Q_INDEX_FREE]) % cnt;
-    uint64_t *e = ix + 3 * ri;
+        ri = (index_head + index_free) % cnt;
+    volatile uint64_t *e = ix + 3 * ri;
     uint64_t fsize = e[0], offset = e[1], eseq = e[2];
-    if (offset >= h->dsize || seq > eseq)
-        return ACH_BUG;
-    if (offset + fsize > h->dsize)
+    if (!entry_ok(fsize, offset, eseq, h->dsize, last)) {
+        if (fsize == 0 && offset == 0 && eseq == 0) { /* an empty ring (a repair kept no frame): nothing to miss */
+            h->seq = last;
+            return ACH_STALE_FRAMES;
+        }
         return ACH_CORRUPT;
+    }
+    if (seq > eseq) /* libach: the channel was re-created under this handle */
+        return ACH_BUG;
     if (cap < fsize) {
         *size = fsize;
         return ACH_OVERFLOW;
@@ -192,17 +277,17 @@ static int read_locked(Handle *h, char *dst, uint64_t cap, int options, uint64_t
     return eseq > seq + 1 ? ACH_MISSED_FRAME : ACH_OK;
 }
 
-/* guards, lock, read, unlock: a complete non-blocking libach get. */
-static int get_once(Handle *h, char *dst, uint64_t cap, int options, uint64_t *size) {
+/* header, lock, read, unlock: a complete non-blocking libach get. */
+static int get_once(Handle *h, char *dst, uint64_t cap, int options, uint64_t *size, long long lock_ns) {
     *size = 0;
-    if (!guards_ok(h))
+    if (!header_ok(h))
         return ACH_CORRUPT;
-    int r = chan_lock(h);
+    int r = chan_lock(h, lock_ns);
     if (r)
         return r;
     r = read_locked(h, dst, cap, options, size);
     pthread_mutex_unlock(h->mutex);
-    return r;
+    return *h->lost ? ACH_CORRUPT : r;
 }
 
 static void ns_to_timespec(long long ns, struct timespec *ts) {
@@ -223,15 +308,24 @@ static int check_open(Handle *h) {
 }
 
 static int Handle_init(Handle *h, PyObject *args, PyObject *kwds) {
-    unsigned long long base;
+    unsigned long long base, cnt, dsize, length, lost = 0;
     Py_ssize_t mutex_off, cond_off, dirty_off, last_off, header_size;
-    static char *kwlist[] = {"base", "mutex", "cond", "dirty", "last_seq", "header_size", NULL};
-    if (!PyArg_ParseTupleAndKeywords(args, kwds, "Knnnnn", kwlist, &base, &mutex_off, &cond_off, &dirty_off,
-                                     &last_off, &header_size))
+    static char *kwlist[] = {"base", "mutex", "cond", "dirty", "last_seq", "header_size", "index_cnt", "data_size",
+                             "length", "lost_flag", NULL};
+    h->base = NULL;
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "KnnnnnKKK|K", kwlist, &base, &mutex_off, &cond_off, &dirty_off,
+                                     &last_off, &header_size, &cnt, &dsize, &length, &lost))
         return -1;
     if (cond_off - mutex_off != (Py_ssize_t)sizeof(pthread_mutex_t)) {
         PyErr_Format(PyExc_ValueError, "layout has a %zd-byte mutex, this libc's is %zu", cond_off - mutex_off,
                      sizeof(pthread_mutex_t));
+        return -1;
+    }
+    /* the geometry Python validated against the mapped file: len = header + 24 * cnt + dsize + 24 bytes */
+    if (cnt == 0 || dsize == 0 || header_size < 0 || cnt > (1ULL << 40) || dsize > (1ULL << 50) ||
+        length != (unsigned long long)header_size + 24 * cnt + dsize + 24) {
+        PyErr_Format(PyExc_ValueError, "inconsistent geometry: index_cnt=%llu data_size=%llu length=%llu", cnt, dsize,
+                     length);
         return -1;
     }
     h->base = (char *)(uintptr_t)base;
@@ -240,14 +334,12 @@ static int Handle_init(Handle *h, PyObject *args, PyObject *kwds) {
     h->cond = (pthread_cond_t *)(h->base + cond_off);
     h->dirty = (volatile int32_t *)(h->base + dirty_off);
     h->last_seq = (volatile uint64_t *)(h->base + last_off);
-    h->cnt = h->q[Q_INDEX_CNT];
-    h->dsize = h->q[Q_DATA_SIZE];
-    if (h->cnt == 0 || h->dsize == 0) {
-        h->base = NULL;
-        PyErr_SetString(PyExc_ValueError, "channel has no frames");
-        return -1;
-    }
-    h->index = (uint64_t *)(h->base + header_size + 8);
+    h->cnt = cnt;
+    h->dsize = dsize;
+    h->len = length;
+    h->no_guard = 0;
+    h->lost = lost ? (volatile int *)(uintptr_t)lost : &h->no_guard;
+    h->index = (volatile uint64_t *)(h->base + header_size + 8);
     h->data = h->base + header_size + 16 + 24 * h->cnt;
     h->off_guard_h = (size_t)header_size;
     h->off_guard_i = (size_t)header_size + 8 + 24 * h->cnt;
@@ -257,64 +349,73 @@ static int Handle_init(Handle *h, PyObject *args, PyObject *kwds) {
     return 0;
 }
 
-PyDoc_STRVAR(put_doc, "put(src) -> status: a complete libach put (guards, lock, write, unlock, wake).");
+PyDoc_STRVAR(put_doc, "put(src, lock_ns=-1) -> status: a complete libach put (header, lock, write, unlock, wake).\n\n"
+                      "lock_ns < 0 waits for the channel mutex as long as it takes; otherwise at most lock_ns.");
 
-static PyObject *Handle_put(Handle *h, PyObject *src_obj) {
+static PyObject *Handle_put(Handle *h, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 1 && nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "put(src, lock_ns=-1)");
+        return NULL;
+    }
     if (check_open(h))
         return NULL;
+    long long lock_ns = nargs == 2 ? PyLong_AsLongLong(args[1]) : -1;
+    if (lock_ns == -1 && PyErr_Occurred())
+        return NULL;
     Py_buffer src;
-    if (PyObject_GetBuffer(src_obj, &src, PyBUF_SIMPLE) < 0)
+    if (PyObject_GetBuffer(args[0], &src, PyBUF_SIMPLE) < 0)
         return NULL;
     int r;
     uint64_t n = (uint64_t)src.len;
     if (n == 0) {
         r = ACH_EINVAL;
-    } else if (!guards_ok(h)) {
+    } else if (!header_ok(h)) {
         r = ACH_CORRUPT;
     } else if (n > h->dsize) {
         r = ACH_OVERFLOW;
-    } else if ((r = chan_lock(h)) == ACH_OK) {
+    } else if ((r = chan_lock(h, lock_ns)) == ACH_OK) {
         r = write_locked(h, (const char *)src.buf, n);
-        *h->dirty = 0;
         pthread_mutex_unlock(h->mutex);
         wake_all(h);
     }
     PyBuffer_Release(&src);
-    return PyLong_FromLong(r);
+    return PyLong_FromLong(*h->lost ? ACH_CORRUPT : r);
 }
 
-/* The (dst, options, slice_ns) arguments of get and poll; on success dst is a held writable buffer. */
+/* The (dst, options, slice_ns, lock_ns) arguments of get and poll; on success dst is a held writable buffer. */
 static int read_args(Handle *h, const char *name, PyObject *const *args, Py_ssize_t nargs, Py_buffer *dst,
-                     int *options, long long *slice_ns) {
-    if (nargs != 3) {
-        PyErr_Format(PyExc_TypeError, "%s(dst, options, slice_ns)", name);
+                     int *options, long long *slice_ns, long long *lock_ns) {
+    if (nargs != 3 && nargs != 4) {
+        PyErr_Format(PyExc_TypeError, "%s(dst, options, slice_ns, lock_ns=-1)", name);
         return -1;
     }
     if (check_open(h))
         return -1;
     *options = (int)PyLong_AsLong(args[1]);
     *slice_ns = PyLong_AsLongLong(args[2]);
+    *lock_ns = nargs == 4 ? PyLong_AsLongLong(args[3]) : -1;
     if (PyErr_Occurred())
         return -1;
     return PyObject_GetBuffer(args[0], dst, PyBUF_WRITABLE);
 }
 
 PyDoc_STRVAR(get_doc,
-             "get(dst, options, slice_ns) -> (status, size)\n\n"
+             "get(dst, options, slice_ns, lock_ns=-1) -> (status, size)\n\n"
              "Non-blocking libach get into the writable buffer dst. With ACH_O_WAIT and nothing new, sleep on the\n"
              "last_seq futex (GIL released) for at most slice_ns and return ACH_TIMEOUT if still nothing: the\n"
-             "caller loops, checking cancel, close, signals and its own deadline between slices.");
+             "caller loops, checking cancel, close, signals and its own deadline between slices. lock_ns bounds\n"
+             "the wait for the channel mutex (< 0: no bound).");
 
 static PyObject *Handle_get(Handle *h, PyObject *const *args, Py_ssize_t nargs) {
     Py_buffer dst;
     int options;
-    long long slice_ns;
-    if (read_args(h, "get", args, nargs, &dst, &options, &slice_ns) < 0)
+    long long slice_ns, lock_ns;
+    if (read_args(h, "get", args, nargs, &dst, &options, &slice_ns, &lock_ns) < 0)
         return NULL;
     uint64_t size = 0;
     int r;
     if (!(options & ACH_O_WAIT)) {
-        r = get_once(h, dst.buf, (uint64_t)dst.len, options, &size);
+        r = get_once(h, dst.buf, (uint64_t)dst.len, options, &size, lock_ns);
     } else {
         /* the lock-free look at last_seq is only a hint; get_once decides under the lock */
         uint64_t last = *h->last_seq;
@@ -330,7 +431,7 @@ static PyObject *Handle_get(Handle *h, PyObject *const *args, Py_ssize_t nargs) 
             Py_END_ALLOW_THREADS
             h->woken = (fr == -1 && err == ETIMEDOUT) ? WAIT_TIMED_OUT : WAIT_WOKEN;
         }
-        r = get_once(h, dst.buf, (uint64_t)dst.len, options & ~ACH_O_WAIT, &size);
+        r = get_once(h, dst.buf, (uint64_t)dst.len, options & ~ACH_O_WAIT, &size, lock_ns);
         if (r == ACH_STALE_FRAMES)
             r = ACH_TIMEOUT;
     }
@@ -339,7 +440,7 @@ static PyObject *Handle_get(Handle *h, PyObject *const *args, Py_ssize_t nargs) 
 }
 
 PyDoc_STRVAR(poll_doc,
-             "poll(dst, options, slice_ns) -> (status, size)\n\n"
+             "poll(dst, options, slice_ns, lock_ns=-1) -> (status, size)\n\n"
              "Busy-poll: spin on last_seq (GIL released) for at most slice_ns, then get. ACH_TIMEOUT when nothing\n"
              "new arrived within the slice.");
 
@@ -351,17 +452,11 @@ static inline void cpu_relax(void) {
 #endif
 }
 
-static long long mono_ns(void) {
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (long long)ts.tv_sec * 1000000000LL + ts.tv_nsec;
-}
-
 static PyObject *Handle_poll(Handle *h, PyObject *const *args, Py_ssize_t nargs) {
     Py_buffer dst;
     int options;
-    long long slice_ns;
-    if (read_args(h, "poll", args, nargs, &dst, &options, &slice_ns) < 0)
+    long long slice_ns, lock_ns;
+    if (read_args(h, "poll", args, nargs, &dst, &options, &slice_ns, &lock_ns) < 0)
         return NULL;
     int changed = *h->last_seq != h->seq;
     if (!changed) {
@@ -383,23 +478,37 @@ static PyObject *Handle_poll(Handle *h, PyObject *const *args, Py_ssize_t nargs)
         Py_END_ALLOW_THREADS
     }
     uint64_t size = 0;
-    int r = changed ? get_once(h, dst.buf, (uint64_t)dst.len, options & ~ACH_O_WAIT, &size) : ACH_TIMEOUT;
+    int r = changed ? get_once(h, dst.buf, (uint64_t)dst.len, options & ~ACH_O_WAIT, &size, lock_ns) : ACH_TIMEOUT;
     PyBuffer_Release(&dst);
     return Py_BuildValue("iK", r, (unsigned long long)size);
 }
 
-PyDoc_STRVAR(flush_doc, "flush() -> status: mark every frame as seen (libach ach_flush), under the lock.");
+PyDoc_STRVAR(flush_doc, "flush(lock_ns=-1) -> status: mark every frame as seen (libach ach_flush), under the lock.");
 
-static PyObject *Handle_flush(Handle *h, PyObject *unused) {
+static PyObject *Handle_flush(Handle *h, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs > 1) {
+        PyErr_SetString(PyExc_TypeError, "flush(lock_ns=-1)");
+        return NULL;
+    }
     if (check_open(h))
         return NULL;
-    int r = chan_lock(h);
+    long long lock_ns = nargs == 1 ? PyLong_AsLongLong(args[0]) : -1;
+    if (lock_ns == -1 && PyErr_Occurred())
+        return NULL;
+    if (!header_ok(h))
+        return PyLong_FromLong(ACH_CORRUPT);
+    int r = chan_lock(h, lock_ns);
     if (r == ACH_OK) {
-        h->seq = *h->last_seq;
-        h->next = h->q[Q_INDEX_HEAD];
+        uint64_t index_head = h->q[Q_INDEX_HEAD];
+        if (counters_ok(h, index_head, h->q[Q_INDEX_FREE], h->q[Q_DATA_HEAD], h->q[Q_DATA_FREE])) {
+            h->seq = *h->last_seq;
+            h->next = index_head;
+        } else {
+            r = ACH_CORRUPT;
+        }
         pthread_mutex_unlock(h->mutex);
     }
-    return PyLong_FromLong(r);
+    return PyLong_FromLong(*h->lost ? ACH_CORRUPT : r);
 }
 
 PyDoc_STRVAR(detach_doc, "detach(): forget the mapping; every later call raises instead of touching it.");
@@ -410,10 +519,10 @@ static PyObject *Handle_detach(Handle *h, PyObject *unused) {
 }
 
 static PyMethodDef Handle_methods[] = {
-    {"put", (PyCFunction)Handle_put, METH_O, put_doc},
+    {"put", (PyCFunction)(void (*)(void))Handle_put, METH_FASTCALL, put_doc},
     {"get", (PyCFunction)(void (*)(void))Handle_get, METH_FASTCALL, get_doc},
     {"poll", (PyCFunction)(void (*)(void))Handle_poll, METH_FASTCALL, poll_doc},
-    {"flush", (PyCFunction)Handle_flush, METH_NOARGS, flush_doc},
+    {"flush", (PyCFunction)(void (*)(void))Handle_flush, METH_FASTCALL, flush_doc},
     {"detach", (PyCFunction)Handle_detach, METH_NOARGS, detach_doc},
     {NULL, NULL, 0, NULL},
 };
@@ -434,7 +543,8 @@ static PyTypeObject HandleType = {
     PyVarObject_HEAD_INIT(NULL, 0).tp_name = "mds_ach._achfast.Handle",
     .tp_basicsize = sizeof(Handle),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = PyDoc_STR("Handle(base, mutex, cond, dirty, last_seq, header_size): C put/get on a mapped channel"),
+    .tp_doc = PyDoc_STR("Handle(base, mutex, cond, dirty, last_seq, header_size, index_cnt, data_size, length, "
+                        "lost_flag=0): C put/get on a mapped channel"),
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Handle_init,
     .tp_methods = Handle_methods,
@@ -453,7 +563,8 @@ PyMODINIT_FUNC PyInit__achfast(void) {
         return NULL;
     Py_INCREF(&HandleType);
     if (PyModule_AddObject(m, "Handle", (PyObject *)&HandleType) < 0 ||
-        PyModule_AddIntConstant(m, "MUTEX_SIZE", (long)sizeof(pthread_mutex_t)) < 0) {
+        PyModule_AddIntConstant(m, "MUTEX_SIZE", (long)sizeof(pthread_mutex_t)) < 0 ||
+        PyModule_AddIntConstant(m, "LOCK_TIMED_OUT", LOCK_TIMED_OUT) < 0) {
         Py_DECREF(&HandleType);
         Py_DECREF(m);
         return NULL;

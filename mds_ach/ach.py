@@ -34,6 +34,23 @@ Why some things look the way they do:
   when a compiler is there: one C call per frame instead of a few ctypes calls and ~100 bytecodes, which matters
   on a process that wakes with cold caches every cycle. Same algorithms, same bytes (the tests run both);
   ``MDS_ACH_PURE_PYTHON=1`` or ``Channel(..., fast=False)`` uses this module's code alone.
+* The file is not trusted: any process with write access can scribble over it. The geometry (``len``,
+  ``index_cnt``, ``data_size``) is validated once at open and compared with the header on every call; the ring
+  counters and each index entry a put or get uses are bounds-checked before use (read once, so a concurrent
+  scribble cannot slip between check and use). A damaged header reads as ACH_CORRUPT naming ``mds-ach repair``,
+  never as an access outside the mapping.
+* A channel file truncated while mapped would raise SIGBUS in every process touching it; so would a first write
+  to a page of a sparse file on a full ``/dev/shm``. Channel memory is therefore reserved when a channel is
+  created or opened (``posix_fallocate``: a full ``/dev/shm`` fails there, with the sizes), and every mapping is
+  registered with ``mds_ach._shmguard``, whose SIGBUS handler grows a truncated file back to its length (its
+  pages return as zeros, for every process) or, where that is impossible, maps private zeros over the rest, and
+  marks the handle lost: the call reports ACH_CORRUPT and the process keeps running (re-open the channel after
+  ``mds-ach repair``). Waits for a busy lock come back every ``_LOCK_SLICE_NS`` to look at the header, so a
+  waiter parked in the kernel notices a truncation too. Without the compiled guard (no C compiler) a
+  truncation still kills the process.
+* ``lock_timeout`` (per handle, or per ``put``/``get``) bounds the wait for the channel mutex: a lock held by a
+  stopped or runaway process then costs at most that long, and the call reports ACH_LOCKED without having
+  touched the channel. Default: wait as long as it takes, like libach.
 """
 
 from __future__ import annotations
@@ -58,7 +75,7 @@ ACH_BAD_SHM_FILE = 3
 ACH_FAILED_SYSCALL = 4
 ACH_EAGAIN = 5
 ACH_STALE_FRAMES = ACH_EAGAIN
-ACH_LOCKED = ACH_EAGAIN
+ACH_LOCKED = ACH_EAGAIN  # also: the channel mutex was not acquired within lock_timeout (put/get raise it)
 ACH_MISSED_FRAME = 6
 ACH_TIMEOUT = 7
 ACH_EEXIST = 8
@@ -103,7 +120,7 @@ _EXPLANATIONS = {
     ACH_INVALID_NAME: "invalid channel name (1-63 characters of [A-Za-z0-9_.-], not starting with '.')",
     ACH_BAD_SHM_FILE: "not an Ach channel file (bad magic number or too short)",
     ACH_FAILED_SYSCALL: "a system call failed",
-    ACH_EAGAIN: "no new frame (stale frames)",
+    ACH_EAGAIN: "no new frame (stale frames), or the channel lock was busy (ACH_LOCKED)",
     ACH_MISSED_FRAME: "frames were skipped",
     ACH_TIMEOUT: "timed out waiting for a frame",
     ACH_EEXIST: "channel already exists",
@@ -111,7 +128,7 @@ _EXPLANATIONS = {
     ACH_CLOSED: "channel handle is closed",
     ACH_BUG: "internal inconsistency (was the channel re-created while open?)",
     ACH_EINVAL: "invalid argument",
-    ACH_CORRUPT: "channel is corrupt (bad guard words, or a writer died mid-put); re-create it",
+    ACH_CORRUPT: "channel is corrupt (damaged header or index, or a writer died mid-put); run `mds-ach repair`",
     ACH_BAD_HEADER: "bad header",
     ACH_EACCES: "permission denied",
     ACH_CANCELED: "operation canceled",
@@ -162,6 +179,7 @@ _FUTEX_WAKE = 1
 _SYS_FUTEX = {"x86_64": 202, "aarch64": 98}
 
 _U64 = struct.Struct("<Q")
+_U64_MAX = 2**64 - 1
 _SPIN_SLICE_NS = 10_000_000  # a busy-poll returns to Python this often to see cancel, close and Ctrl-C
 
 
@@ -178,6 +196,22 @@ def _load_fast() -> ModuleType | None:
 
 _achfast = _load_fast()
 FAST_AVAILABLE = _achfast is not None  # the C fast path is built and not disabled
+_LOCK_TIMED_OUT = -1  # internal status (not libach's): the mutex was not acquired within lock_timeout
+_LOCK_SLICE_NS = 50_000_000  # a busy channel lock is waited for in timed slices this long (Channel._wait_for_lock)
+_GONE = -2  # _wait_for_lock: the header changed (e.g. the file was truncated) while waiting for the lock
+
+
+def _load_guard() -> ModuleType | None:
+    """The SIGBUS guard for channel mappings. Both paths use it, so MDS_ACH_PURE_PYTHON does not turn it off."""
+    try:
+        from mds_ach import _shmguard
+    except ImportError:
+        return None
+    return _shmguard
+
+
+_shmguard = _load_guard()
+GUARD_AVAILABLE = _shmguard is not None  # a truncated channel file cannot kill this process
 _NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-")
 
 
@@ -380,9 +414,8 @@ def parse_image(image: bytes | bytearray | memoryview, arch: str | None = None) 
     if len(data) < 4 or struct.unpack_from("<I", data, 0)[0] != MAGIC:
         raise AchException(ACH_BAD_SHM_FILE, "bad magic number")
     layout = LAYOUTS[arch] if arch else detect_layout(data)
-    _check_geometry(data, layout)
+    cnt, dsize = _check_geometry(data, layout)
     h = layout.header_size
-    cnt, dsize = struct.unpack_from("<QQ", data, 88)
     fields = struct.unpack_from("<QQQQ", data, 104)
     index = [IndexEntry(*struct.unpack_from("<QQQ", data, h + 8 + 24 * i)) for i in range(cnt)]
     d0 = layout.data_offset(cnt)
@@ -404,8 +437,9 @@ def parse_image(image: bytes | bytearray | memoryview, arch: str | None = None) 
     )
 
 
-def _check_geometry(data: bytes | memoryview, layout: Layout) -> None:
-    """Header length fields, file length and the three guards; raises AchException with the reason."""
+def _check_geometry(data: bytes | memoryview | mmap.mmap, layout: Layout) -> tuple[int, int]:
+    """Header length fields, file length and the three guards; raises AchException with the reason. Returns the
+    (index_cnt, data_size) it checked: use those, never a second read of the header, which may change meanwhile."""
     h = layout.header_size
     size = len(data)
     if size < h + 24:
@@ -428,6 +462,7 @@ def _check_geometry(data: bytes | memoryview, layout: Layout) -> None:
     for offset, value, what in guards:
         if struct.unpack_from("<Q", data, offset)[0] != value:
             raise AchException(ACH_CORRUPT, f"bad {what} guard at offset {offset}")
+    return cnt, dsize
 
 
 # --- glibc ---------------------------------------------------------------------------------------
@@ -448,6 +483,8 @@ class _Pthread:
             libc = ctypes.CDLL("libpthread.so.0", use_errno=True)
         vp = [ctypes.c_void_p]
         self.mutex_lock = self._fn(libc.pthread_mutex_lock, vp)
+        self.mutex_trylock = self._fn(libc.pthread_mutex_trylock, vp)
+        self.mutex_timedlock = self._fn(libc.pthread_mutex_timedlock, [ctypes.c_void_p, ctypes.POINTER(_Timespec)])
         self.mutex_unlock = self._fn(libc.pthread_mutex_unlock, vp)
         self.mutex_consistent = self._fn(libc.pthread_mutex_consistent, vp)
         self.cond_broadcast = self._fn(libc.pthread_cond_broadcast, vp)
@@ -525,7 +562,9 @@ def create(
     The file is built under a temporary name and linked into place, so no process ever opens a half
     initialised channel. Without ``truncate`` an existing channel gives ``ACH_EEXIST``; with it the old file
     is atomically replaced (processes that still have it open keep the old memory, they are not clobbered).
-    ``mode`` is applied exactly (not filtered by the umask).
+    ``mode`` is applied exactly (not filtered by the umask). Every page is allocated here (unlike libach, which
+    leaves the file sparse): a full ``/dev/shm`` fails now with ``ACH_FAILED_SYSCALL`` saying how many bytes
+    were needed, not later with a SIGBUS in the writer.
     """
     validate_name(name)
     count = ACH_DEFAULT_FRAME_COUNT if frame_count == 0 else frame_count
@@ -546,6 +585,7 @@ def create(
     try:
         try:
             os.ftruncate(fd, length)
+            _reserve(fd, length, name, "create")
             _initialise(fd, length, layout, name, count, count * size, clock)
             os.fchmod(fd, mode)
             if truncate:
@@ -585,6 +625,93 @@ def _initialise(fd: int, length: int, layout: Layout, name: str, count: int, dsi
         struct.pack_into("<Q", mm, h + 16 + 24 * count + dsize, GUARD_DATA)
     finally:
         mm.close()
+
+
+def _reserve(fd: int, length: int, name: str, what: str) -> None:
+    """Allocate every page of the channel file now (``posix_fallocate``; a no-op for pages that exist), so a full
+    ``/dev/shm`` is a clear error here and not a SIGBUS in whichever process first writes a fresh page later."""
+    try:
+        os.posix_fallocate(fd, 0, length)
+    except OSError as exc:
+        if exc.errno in (errno.EOPNOTSUPP, errno.ENODEV):  # not tmpfs: that file system reserves nothing
+            return
+        if exc.errno not in (errno.ENOSPC, errno.ENOMEM, errno.EFBIG, errno.EDQUOT):
+            raise _os_error(exc, name, shm_path(name)) from None
+        try:
+            vfs = os.statvfs(SHM_DIR)
+            room = f"{vfs.f_bavail * vfs.f_frsize} of {vfs.f_blocks * vfs.f_frsize} bytes free"
+        except OSError:
+            room = "free space unknown"
+        raise AchException(ACH_FAILED_SYSCALL, f"cannot {what} it: {length} bytes of channel memory cannot be "
+                                               f"reserved in {SHM_DIR} ({exc.strerror}; {room}); see `df -h "
+                                               f"{SHM_DIR}`, remove unused channels (`mds-ach rm`) or enlarge the "
+                                               f"tmpfs (`mount -o remount,size=256M {SHM_DIR}`)",
+                           channel=name) from None
+
+
+class MappingGuard:
+    """Keeps a SIGBUS in one mapped channel file from killing the process (see ``mds_ach/_shmguard.c``).
+
+    ``lost`` turns true when the file vanished under the mapping (truncated: the guard grows it back, so the
+    vanished part reads as zeros) or a page of it could not be allocated (private zeros from there on); every
+    mapping of a truncated file in this process is marked. ``release()`` before unmapping: a lost mapping must
+    stay mapped (a robust-mutex list may point into it) and its file open (the guard still watches it through
+    that descriptor), so both are kept, and ``release`` says so. Without the compiled guard nothing is guarded
+    and ``lost`` stays false.
+    """
+
+    _kept: list[tuple[mmap.mmap, int]] = []  # lost mappings and their files, never unmapped or closed
+
+    def __init__(self, mm: mmap.mmap, fd: int) -> None:
+        self._slot = -1
+        self._flag = ctypes.c_int(0)
+        if _shmguard is not None:
+            anchor = ctypes.c_char.from_buffer(mm)
+            try:
+                address = ctypes.addressof(anchor)
+            finally:
+                del anchor
+            self._slot = _shmguard.watch(address, len(mm), fd)
+            self._flag = ctypes.c_int.from_address(_shmguard.flag_address(self._slot))
+
+    @property
+    def flag(self) -> ctypes.c_int:
+        """The C int the SIGBUS handler sets (0: fine); ``flag.value`` is the cheapest way to look."""
+        return self._flag
+
+    @property
+    def flag_address(self) -> int:
+        """Address of ``flag`` for the C fast path; 0 without the guard."""
+        return 0 if self._slot < 0 else ctypes.addressof(self._flag)
+
+    @property
+    def lost(self) -> bool:
+        return self._flag.value != 0
+
+    def reason(self, name: str, length: int) -> str:
+        """What happened to a lost mapping, and what to do about it."""
+        size = _shmguard.state(self._slot)[1] if self._slot >= 0 else -1
+        path = shm_path(name)
+        if self._flag.value == getattr(_shmguard, "LOST_TRUNCATED", 1):
+            what = f"{path} shrank to {size} bytes while this process had its {length} bytes mapped (truncated)"
+        else:
+            what = (f"a page of {path} could not be allocated when it was first written (is {SHM_DIR} full? "
+                    f"`df -h {SHM_DIR}`)")
+        return (f"{what}; this handle stays unusable: run `mds-ach repair {name}` (it re-creates the channel), "
+                "then re-open the channel (restart this node)")
+
+    def release(self, mm: mmap.mmap, fd: int) -> bool:
+        """Stop guarding before ``mm`` is unmapped and ``fd`` closed. False when the mapping is lost: both are
+        kept, close neither."""
+        if self._slot < 0:
+            return True
+        if self.lost:
+            MappingGuard._kept.append((mm, fd))
+            return False
+        _shmguard.forget(self._slot)
+        self._slot = -1
+        self._flag = ctypes.c_int(0)
+        return True
 
 
 def _os_error(exc: OSError, name: str, path: str) -> AchException:
@@ -633,14 +760,20 @@ class Channel:
     A handle may be shared between threads; ``close()`` waits for calls in progress to leave.
     ``condvar_wait`` selects libach's condvar waits instead of the crash-safe futex waits (module docstring);
     such handles use the pure-Python path. ``fast=False`` refuses the C fast path for this handle.
+    ``lock_timeout`` (seconds, None = no bound) bounds the wait for the channel mutex in ``put``, ``get`` and
+    ``poll`` (``put`` and ``get`` can override it per call); a call that could not get the lock in time gives up
+    without touching the channel and reports ACH_LOCKED (``put``, ``get`` and ``poll`` raise it, ``put_status``
+    and ``get_status`` return it). ``flush`` always waits: a reader must not keep old frames because of a
+    busy lock.
     """
 
     def __init__(self, name: str, frame_count: int = 0, frame_size: int = 0, *, create: bool = True,
-                 mode: int = 0o660, condvar_wait: bool = False, fast: bool = True):
+                 mode: int = 0o660, condvar_wait: bool = False, fast: bool = True, lock_timeout: float | None = None):
         self.name = validate_name(name)
         self._condvar_wait = condvar_wait
         self._want_fast = fast
         self._closed = True  # until fully open, so __del__ / close() are harmless
+        self.lock_timeout = lock_timeout
         try:
             self._open()
         except AchException as exc:
@@ -656,7 +789,8 @@ class Channel:
     # -- open / close ------------------------------------------------------------------------------
 
     def _open(self) -> None:
-        """libach ``ach_open``: map the whole file, check magic/length/guards, reset the reader state."""
+        """libach ``ach_open``: map the whole file, check magic/length/guards, reset the reader state. Also reserve
+        the file's memory and guard the mapping (module docstring)."""
         layout = native_layout()
         path = shm_path(self.name)
         try:
@@ -670,20 +804,27 @@ class Channel:
                 raise AchException(ACH_BAD_SHM_FILE, f"{path}: bad magic number ({size} bytes)", channel=self.name)
             if size < layout.header_size + 24:
                 raise AchException(ACH_BAD_SHM_FILE, f"{path}: truncated, {size} bytes", channel=self.name)
+            _reserve(fd, size, self.name, "open")  # a sparse file (made by libach's ach mk) gets its pages now
             mm = mmap.mmap(fd, size)
         except BaseException:
             os.close(fd)
             raise
+        guard = MappingGuard(mm, fd)  # before the first access: the file may shrink at any time
         try:
-            _check_geometry(mm, layout)
+            cnt, dsize = _check_geometry(mm, layout)
+            if guard.lost:
+                raise AchException(ACH_CORRUPT, guard.reason(self.name, size))
         except AchException as exc:
-            mm.close()
-            os.close(fd)
+            if guard.release(mm, fd):
+                mm.close()
+                os.close(fd)
             exc.channel = self.name
             raise
         self._layout = layout
         self._fd = fd
         self._mm = mm
+        self._guard = guard
+        self._lost = guard.flag  # .value != 0: the file vanished under the mapping
         self._anchor = ctypes.c_char.from_buffer(mm)
         base = ctypes.addressof(self._anchor)
         self._mutex = ctypes.c_void_p(base + layout.mutex)
@@ -691,10 +832,8 @@ class Channel:
         self._mv = memoryview(mm)
         self._q = self._mv[: size - size % 8].cast("Q")
         self._i32 = self._mv[: size - size % 4].cast("i")
-        q = self._q
-        cnt = q[_Q_INDEX_CNT]
-        dsize = q[_Q_DATA_SIZE]
         h = layout.header_size
+        self._len = size
         self._cnt = cnt
         self._dsize = dsize
         self._ix = (h + 8) // 8  # u64 index of index[0].size
@@ -708,6 +847,7 @@ class Channel:
         self._clock = self._i32[_OFF_CLOCK // 4]
         self._fn = _libc()
         self._mutex_lock = self._fn.mutex_lock  # cached: attribute lookups show up on the hot path
+        self._mutex_trylock = self._fn.mutex_trylock
         self._mutex_unlock = self._fn.mutex_unlock
         self._cond_broadcast = self._fn.cond_broadcast
         sys_futex = ctypes.c_long(_SYS_FUTEX[layout.arch])
@@ -723,7 +863,7 @@ class Channel:
         if _achfast is not None and self._want_fast and not self._condvar_wait:
             try:
                 self._fast = _achfast.Handle(base, layout.mutex, layout.cond, layout.dirty, layout.last_seq,
-                                             layout.header_size)
+                                             layout.header_size, cnt, dsize, size, guard.flag_address)
             except ValueError:  # a libc whose mutex size differs from the layout: stay in Python
                 self._fast = None
         self._cancel = False
@@ -761,8 +901,9 @@ class Channel:
         self._i32.release()
         self._mv.release()
         del self._anchor
-        self._mm.close()
-        os.close(self._fd)
+        if self._guard.release(self._mm, self._fd):  # a lost mapping stays mapped (MappingGuard)
+            self._mm.close()
+            os.close(self._fd)
 
     def __enter__(self) -> Channel:
         return self
@@ -833,6 +974,21 @@ class Channel:
         return self._fast is not None
 
     @property
+    def lost(self) -> bool:
+        """The channel file vanished under this handle's mapping (truncated): every call reports ACH_CORRUPT."""
+        return not self._closed and self._lost.value != 0
+
+    @property
+    def lock_timeout(self) -> float | None:
+        """Seconds this handle waits at most for the channel mutex (None: as long as it takes)."""
+        return self._lock_timeout
+
+    @lock_timeout.setter
+    def lock_timeout(self, value: float | None) -> None:
+        self._lock_ns = _lock_ns(value)
+        self._lock_timeout = None if self._lock_ns < 0 else value
+
+    @property
     def last_seq(self) -> int:
         """Sequence number of the newest frame in the channel (read without the lock; 0 = empty)."""
         self._enter()
@@ -845,25 +1001,96 @@ class Channel:
     def layout(self) -> Layout:
         return self._layout
 
-    # -- locking -----------------------------------------------------------------------------------
+    # -- checks ------------------------------------------------------------------------------------
 
-    def _guards_ok(self) -> bool:
+    def _header_ok(self) -> bool:
+        """libach ``check_guards`` plus the geometry validated at open (magic, len, index_cnt, data_size)."""
         q = self._q
         return (q[self._qg_h] == GUARD_HEADER and q[self._qg_i] == GUARD_INDEX
-                and _U64.unpack_from(self._mv, self._off_g_d)[0] == GUARD_DATA and q[0] & 0xFFFFFFFF == MAGIC)
+                and _U64.unpack_from(self._mv, self._off_g_d)[0] == GUARD_DATA and q[0] & 0xFFFFFFFF == MAGIC
+                and q[_Q_LEN] == self._len and q[_Q_INDEX_CNT] == self._cnt and q[_Q_DATA_SIZE] == self._dsize)
 
-    def _lock(self) -> int:
+    def _counters_ok(self, index_head: int, index_free: int, data_head: int, data_free: int) -> bool:
+        """The ring counters (read once by the caller, under the lock) are in range."""
+        return index_head < self._cnt and index_free <= self._cnt and data_head < self._dsize \
+            and data_free <= self._dsize
+
+    def _corrupt_detail(self) -> str:
+        """Why this handle's calls report ACH_CORRUPT, and the remedy (for the exception; not on the hot path)."""
+        if self._lost.value:
+            return self._guard.reason(self.name, self._len)
+        repair = f"run `mds-ach repair {self.name}`"
+        if not self._header_ok():
+            try:
+                _check_geometry(self._mm, self._layout)
+            except AchException as exc:
+                problem = exc.detail
+            else:
+                problem = (f"header changed under this handle (len/index_cnt/data_size now {self._q[_Q_LEN]}/"
+                           f"{self._q[_Q_INDEX_CNT]}/{self._q[_Q_DATA_SIZE]}, opened as {self._len}/{self._cnt}/"
+                           f"{self._dsize})")
+            return f"{problem}; {repair} (it re-creates a channel with a damaged header), then re-open it"
+        if self._i32[self._i_dirty]:
+            return f"a writer died inside a put (dirty flag set); {repair}"
+        q = self._q
+        counters = (q[_Q_INDEX_HEAD], q[_Q_INDEX_FREE], q[_Q_DATA_HEAD], q[_Q_DATA_FREE])
+        if not self._counters_ok(*counters):
+            return (f"ring counters out of range (index_head/index_free {counters[0]}/{counters[1]} for "
+                    f"{self._cnt} slots, data_head/data_free {counters[2]}/{counters[3]} for {self._dsize} "
+                    f"bytes); {repair}")
+        return f"damaged index entry; {repair}"
+
+    def _error(self, status: int, detail: str = "", size: int | None = None, lock_ns: int = -1) -> AchException:
+        """The exception for a failed call, with what happened and what to do."""
+        if status == _LOCK_TIMED_OUT:
+            owner = self._i32[self._i_lock] & _FUTEX_TID_MASK if not self._closed else 0
+            return AchException(ACH_LOCKED, f"lock held by another process (thread {owner}) for > {lock_ns / 1e6:g} "
+                                            "ms; the call gave up without touching the channel", channel=self.name)
+        if status == ACH_CORRUPT and not detail and not self._closed:
+            try:
+                detail = self._corrupt_detail()
+            except (ValueError, AchException):  # closed by another thread meanwhile: the status says enough
+                detail = ""
+        return AchException(status, detail, channel=self.name, frame_size=size)
+
+    # -- locking -----------------------------------------------------------------------------------
+
+    def _wait_for_lock(self, lock_ns: int) -> int:
+        """The channel mutex is busy: wait for it in timed slices (GIL released), at most ``lock_ns`` (< 0: as long
+        as it takes). Between slices the header is looked at again, because a waiter parked in the kernel never
+        notices that the file was truncated under it (the owner can then never release the lock; see
+        ``_shmguard.c``). Returns the pthread result, ETIMEDOUT when it gave up, or _GONE. ``pthread_mutex_timedlock``
+        takes a CLOCK_REALTIME deadline (POSIX); a clock step only lengthens or shortens one slice."""
+        end = None if lock_ns < 0 else time.monotonic_ns() + lock_ns
+        ts = _Timespec()
+        ts_ref = ctypes.byref(ts)
+        while True:
+            span = _LOCK_SLICE_NS if end is None else max(0, min(_LOCK_SLICE_NS, end - time.monotonic_ns()))
+            ts.tv_sec, ts.tv_nsec = divmod(time.clock_gettime_ns(time.CLOCK_REALTIME) + span, 1_000_000_000)
+            r = self._fn.mutex_timedlock(self._mutex, ts_ref)
+            if r != _ETIMEDOUT:
+                return r
+            if self._lost.value or not self._header_ok():
+                return _GONE
+            if end is not None and time.monotonic_ns() >= end:
+                return _ETIMEDOUT
+
+    def _lock(self, lock_ns: int = -1) -> int:
         """libach ``chan_lock``: lock, recover a dead owner, then refuse a dirty channel."""
-        r = self._mutex_lock(self._mutex)
+        r = self._mutex_trylock(self._mutex)
         if r or self._i32[self._i_dirty]:
-            return self._lock_slow(r)
+            return self._lock_slow(r, lock_ns)
         return ACH_OK
 
-    def _lock_slow(self, r: int) -> int:
-        """After ``pthread_mutex_lock`` returned ``r``: EOWNERDEAD -> consistent; then the dirty check."""
+    def _lock_slow(self, r: int, lock_ns: int) -> int:
+        """After ``pthread_mutex_trylock`` returned ``r``: wait if busy; EOWNERDEAD -> consistent; the dirty check."""
+        if r == errno.EBUSY:
+            r = self._wait_for_lock(lock_ns)
         if r == _EOWNERDEAD:
             self._fn.mutex_consistent(self._mutex)
-        elif r == _ENOTRECOVERABLE:
+        elif r == _ETIMEDOUT:
+            return _LOCK_TIMED_OUT
+        elif r in (_ENOTRECOVERABLE, _GONE):
             return ACH_CORRUPT
         elif r:
             return ACH_FAILED_SYSCALL
@@ -886,9 +1113,10 @@ class Channel:
         self._syscall(*self._futex_wake_args)
         self._cond_broadcast(self._cond)
 
-    def _wait(self, deadline: float | None) -> int:
+    def _wait(self, deadline: float | None, lock_ns: int) -> int:
         """Holding the lock, wait for a frame newer than ``seq_num``. Returns with the lock held on OK / TIMEOUT /
-        CANCELED, released on CORRUPT / FAILED_SYSCALL."""
+        CANCELED, released on CORRUPT / FAILED_SYSCALL / a lock timeout (``lock_ns`` bounds each re-lock after a
+        futex wait; a condvar wait re-locks inside glibc, unbounded)."""
         q = self._q
         ql = self._q_last
         ts = _Timespec()  # per call: threads sharing a handle may wait at the same time
@@ -896,6 +1124,9 @@ class Channel:
         while True:
             if self._cancel or self._closed:
                 return ACH_CANCELED
+            if self._lost.value:  # the file was truncated while we waited: nothing will ever come
+                self._mutex_unlock(self._mutex)
+                return ACH_CORRUPT
             last = q[ql]
             if self._seq != last:
                 return ACH_OK
@@ -917,46 +1148,54 @@ class Channel:
                 ts.tv_sec, ts.tv_nsec = divmod(int(span * 1e9), 1_000_000_000)
                 self._mutex_unlock(self._mutex)
                 self._syscall(*self._futex_wait_args, ctypes.c_uint32(last & 0xFFFFFFFF), ts_ref, None, 0)
-                r = self._mutex_lock(self._mutex)
+                r = self._mutex_trylock(self._mutex)
+                if r == errno.EBUSY:
+                    r = self._wait_for_lock(lock_ns)
+                if r == _ETIMEDOUT:
+                    return _LOCK_TIMED_OUT
             if r == _EOWNERDEAD:
                 self._fn.mutex_consistent(self._mutex)
             elif r:
                 self._unlock_if_owned()
-                return ACH_CORRUPT if r == _ENOTRECOVERABLE else ACH_FAILED_SYSCALL
+                return ACH_CORRUPT if r in (_ENOTRECOVERABLE, _GONE) else ACH_FAILED_SYSCALL
             if self._i32[self._i_dirty]:
                 self._mutex_unlock(self._mutex)
                 return ACH_CORRUPT
 
     # -- put ---------------------------------------------------------------------------------------
 
-    def put(self, buf: object) -> None:
+    def put(self, buf: object, lock_timeout: float | None = None) -> None:
         """Write one frame (bytes, bytearray, memoryview or ctypes object). Raises AchException on any
-        non-OK status (classic binding), e.g. ACH_OVERFLOW when the frame is larger than the channel."""
-        r = self._put_fast(buf) if self._fast is not None else self._put(_byte_view(buf, False))
+        non-OK status (classic binding), e.g. ACH_OVERFLOW when the frame is larger than the channel, ACH_LOCKED
+        when the mutex was not acquired within ``lock_timeout`` seconds (None: this handle's ``lock_timeout``)."""
+        lock_ns = self._lock_ns if lock_timeout is None else _lock_ns(lock_timeout)
+        r = self._put_fast(buf, lock_ns) if self._fast is not None else self._put(_byte_view(buf, False), lock_ns)
         if r:
             detail = f"{_byte_view(buf, False).nbytes} bytes > data_size {self._dsize}" if r == ACH_OVERFLOW else ""
-            raise AchException(r, detail, channel=self.name)
+            raise self._error(r, detail, lock_ns=lock_ns)
 
-    def put_status(self, buf: object) -> int:
-        """Like ``put`` but returns the libach status instead of raising."""
-        return self._put_fast(buf) if self._fast is not None else self._put(_byte_view(buf, False))
+    def put_status(self, buf: object, lock_timeout: float | None = None) -> int:
+        """Like ``put`` but returns the libach status instead of raising (ACH_LOCKED for a lock timeout)."""
+        lock_ns = self._lock_ns if lock_timeout is None else _lock_ns(lock_timeout)
+        r = self._put_fast(buf, lock_ns) if self._fast is not None else self._put(_byte_view(buf, False), lock_ns)
+        return ACH_LOCKED if r == _LOCK_TIMED_OUT else r
 
-    def _put_fast(self, buf: object) -> int:
+    def _put_fast(self, buf: object, lock_ns: int) -> int:
         active = self._active
         active.append(1)
         try:
             if self._closed:
                 raise AchException(ACH_CLOSED, channel=self.name)
             try:
-                return self._fast.put(buf)
+                return self._fast.put(buf, lock_ns)
             except (TypeError, BufferError):  # not a plain contiguous buffer: convert it, or say what is wrong
-                return self._fast.put(_byte_view(buf, False))
+                return self._fast.put(_byte_view(buf, False), lock_ns)
         finally:
             active.pop()
             if self._closed and not active:
                 self._release()
 
-    def _put(self, src: memoryview) -> int:
+    def _put(self, src: memoryview, lock_ns: int = -1) -> int:
         n = src.nbytes
         active = self._active
         active.append(1)  # inlined _enter(): this is the hot path
@@ -965,19 +1204,18 @@ class Channel:
                 raise AchException(ACH_CLOSED, channel=self.name)
             if n == 0:
                 return ACH_EINVAL
-            if not self._guards_ok():
+            if not self._header_ok():
                 return ACH_CORRUPT
             if n > self._dsize:
                 return ACH_OVERFLOW
             mutex = self._mutex
             try:
-                r = self._mutex_lock(mutex)
+                r = self._mutex_trylock(mutex)
                 if r or self._i32[self._i_dirty]:
-                    r = self._lock_slow(r)
+                    r = self._lock_slow(r, lock_ns)
                     if r:
                         return r
                 r = self._write_locked(src, n)
-                self._i32[self._i_dirty] = 0
                 self._mutex_unlock(mutex)
             except BaseException:
                 # Interrupted while holding the lock: release it. If the update was half done, dirty stays 1 and
@@ -986,26 +1224,34 @@ class Channel:
                 self._wake_all()
                 raise
             self._wake_all()
-            return r
+            return ACH_CORRUPT if self._lost.value else r
         finally:
             active.pop()
             if self._closed and not active:
                 self._release()
 
     def _write_locked(self, src: memoryview, n: int) -> int:
-        """libach ``ach_put`` steps 1-7, literally (see ach-format.md section 4). Caller holds the lock."""
+        """libach ``ach_put`` steps 1-7, literally (see ach-format.md section 4). Caller holds the lock. Every value
+        read from the file is read once and checked before use. Returns with dirty = 0, except when an index entry
+        turns out damaged half-way: ACH_CORRUPT with dirty = 1, so every client sees the channel corrupt until
+        ``mds-ach repair`` (as after a writer died mid-put). Damaged counters are refused before any write."""
         q = self._q
-        self._i32[self._i_dirty] = 1
-        cnt = self._cnt
-        dsize = self._dsize
-        ix = self._ix
         index_head = q[_Q_INDEX_HEAD]
         index_free = q[_Q_INDEX_FREE]
         data_head = q[_Q_DATA_HEAD]
         data_free = q[_Q_DATA_FREE]
+        last = q[self._q_last]
+        cnt, dsize = self._cnt, self._dsize
+        if index_head >= cnt or index_free > cnt or data_head >= dsize or data_free > dsize or last == _U64_MAX:
+            return ACH_CORRUPT  # (_counters_ok inlined; a last_seq that cannot be incremented is damaged too)
+        self._i32[self._i_dirty] = 1
+        ix = self._ix
         slot = index_head
         if index_free == 0:  # index full: drop the oldest frame, which sits in our slot
             e = ix + 3 * index_head
+            size, offset, seq = q[e], q[e + 1], q[e + 2]
+            if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+                return ACH_CORRUPT
             data_free += q[e]
             index_free += 1
             q[e] = q[e + 1] = q[e + 2] = 0
@@ -1013,14 +1259,21 @@ class Channel:
             i = (index_head + index_free) % cnt
             while q[ix + 3 * i + 1] > data_head:
                 e = ix + 3 * i
-                data_free += q[e]
+                size, offset, seq = q[e], q[e + 1], q[e + 2]
+                if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+                    return ACH_CORRUPT
+                data_free += size
                 index_free += 1
                 q[e] = q[e + 1] = q[e + 2] = 0
                 i = (i + 1) % cnt
             if i == index_head:
                 data_free = dsize
             else:
-                data_free = q[ix + 3 * ((index_head + index_free) % cnt) + 1]
+                e = ix + 3 * ((index_head + index_free) % cnt)
+                size, offset, seq = q[e], q[e + 1], q[e + 2]
+                if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+                    return ACH_CORRUPT
+                data_free = offset
             data_head = 0
         i = (index_head + index_free) % cnt
         while data_free < n:  # clear overlap with the oldest frames
@@ -1028,16 +1281,20 @@ class Channel:
                 data_free = dsize
             else:
                 e = ix + 3 * i
-                data_free += q[e]
+                size, offset, seq = q[e], q[e + 1], q[e + 2]
+                if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+                    return ACH_CORRUPT
+                data_free += size
                 index_free += 1
                 q[e] = q[e + 1] = q[e + 2] = 0
             i = (i + 1) % cnt
         if dsize - data_head < n:  # libach's sanity check; cannot happen
             q[_Q_DATA_HEAD], q[_Q_DATA_FREE], q[_Q_INDEX_FREE] = data_head, data_free, index_free
+            self._i32[self._i_dirty] = 0
             return ACH_BUG
         start = self._d0 + data_head
         self._mv[start:start + n] = src
-        seq = q[self._q_last] + 1
+        seq = last + 1
         q[self._q_last] = seq
         e = ix + 3 * slot
         q[e] = n
@@ -1047,35 +1304,45 @@ class Channel:
         q[_Q_DATA_FREE] = data_free - n
         q[_Q_INDEX_HEAD] = (index_head + 1) % cnt
         q[_Q_INDEX_FREE] = index_free - 1
+        self._i32[self._i_dirty] = 0
         return ACH_OK
 
     # -- get ---------------------------------------------------------------------------------------
 
     def get(self, buf: object, wait: bool = False, last: bool = False, timeout: float | None = None,
-            copy: bool = False) -> tuple[int, int]:
+            copy: bool = False, lock_timeout: float | None = None) -> tuple[int, int]:
         """Read one frame into ``buf`` (bytearray, memoryview or ctypes object), in place.
 
         Default: the next frame in order. ``last``: the newest frame (older ones are skipped). ``copy``: return
         the last frame again even if already seen. ``wait``: block until there is a frame this handle has not
         seen; ``timeout`` (seconds, relative, only with ``wait``) bounds the wait, None = forever.
+        ``lock_timeout`` (seconds; None: this handle's ``lock_timeout``) bounds each wait for the channel mutex.
 
         Returns ``(status, frame_size)`` for ACH_OK, ACH_MISSED_FRAME (data returned, frames were skipped),
         ACH_STALE_FRAMES (nothing new, frame_size 0), ACH_TIMEOUT and ACH_CANCELED. Raises AchException for
-        ACH_OVERFLOW (``exc.frame_size`` = needed size; the frame stays unread) and for every error.
+        ACH_OVERFLOW (``exc.frame_size`` = needed size; the frame stays unread), for ACH_LOCKED (the mutex was
+        not acquired in time; nothing was read) and for every error.
         """
         options = (ACH_O_WAIT if wait else 0) | (ACH_O_LAST if last else 0) | (ACH_O_COPY if copy else 0)
-        status, size = self.get_status(buf, options, timeout)
+        lock_ns = self._lock_ns if lock_timeout is None else _lock_ns(lock_timeout)
+        status, size = self._get_any(buf, options, timeout, lock_ns)
         if status in (ACH_OK, ACH_MISSED_FRAME, ACH_STALE_FRAMES, ACH_TIMEOUT, ACH_CANCELED):
             return status, size
         if status == ACH_OVERFLOW:
-            raise AchException(status, f"frame is {size} bytes, buffer holds {_byte_view(buf, True).nbytes}",
-                               channel=self.name, frame_size=size)
-        raise AchException(status, channel=self.name)
+            raise self._error(status, f"frame is {size} bytes, buffer holds {_byte_view(buf, True).nbytes}", size)
+        raise self._error(status, lock_ns=lock_ns)
 
-    def get_status(self, buf: object, options: int = 0, timeout: float | None = None) -> tuple[int, int]:
+    def get_status(self, buf: object, options: int = 0, timeout: float | None = None,
+                   lock_timeout: float | None = None) -> tuple[int, int]:
         """libach ``ach_get`` with ACH_O_* ``options``; never raises for a status. ``timeout`` is relative
         seconds (used with ACH_O_WAIT). Returns ``(status, frame_size)``; frame_size is the needed size on
-        ACH_OVERFLOW and 0 when no frame was looked at."""
+        ACH_OVERFLOW and 0 when no frame was looked at. A lock timeout returns ACH_LOCKED, which equals
+        ACH_STALE_FRAMES as in libach's enum: use ``get`` (it raises for it) to tell them apart."""
+        lock_ns = self._lock_ns if lock_timeout is None else _lock_ns(lock_timeout)
+        status, size = self._get_any(buf, options, timeout, lock_ns)
+        return (ACH_LOCKED, 0) if status == _LOCK_TIMED_OUT else (status, size)
+
+    def _get_any(self, buf: object, options: int, timeout: float | None, lock_ns: int) -> tuple[int, int]:
         deadline = None
         if options & ACH_O_WAIT and timeout is not None:
             if timeout != timeout:
@@ -1083,8 +1350,8 @@ class Channel:
             if timeout != math.inf:
                 deadline = time.clock_gettime(self._clock) + max(0.0, timeout)
         if self._fast is not None:
-            return self._get_fast(buf, options, deadline)
-        return self._get(_byte_view(buf, True), options, deadline)
+            return self._get_fast(buf, options, deadline, lock_ns)
+        return self._get(_byte_view(buf, True), options, deadline, lock_ns)
 
     def _slice(self, deadline: float | None) -> tuple[int, bool]:
         """Nanoseconds of the next wait slice, and whether it is the last one before the deadline.
@@ -1098,7 +1365,7 @@ class Channel:
         left = int((deadline - time.clock_gettime(self._clock)) * 1e9)
         return (full, False) if left > full else (max(0, left), True)
 
-    def _get_fast(self, buf: object, options: int, deadline: float | None) -> tuple[int, int]:
+    def _get_fast(self, buf: object, options: int, deadline: float | None, lock_ns: int = -1) -> tuple[int, int]:
         """``_get`` through the C handle: one call per frame; waits in GIL-free futex slices."""
         active = self._active
         active.append(1)
@@ -1111,17 +1378,17 @@ class Channel:
             wait = options & ACH_O_WAIT
             span, final = self._slice(deadline) if wait else (0, True)
             try:
-                status, size = get(buf, options, span)
+                status, size = get(buf, options, span, lock_ns)
             except (TypeError, BufferError):  # not a plain writable buffer: convert it, or say what is wrong
                 buf = _byte_view(buf, True)
-                status, size = get(buf, options, span)
+                status, size = get(buf, options, span, lock_ns)
             while wait and status == ACH_TIMEOUT:  # a slice passed without a new frame
                 if self._cancel or self._closed:
                     return ACH_CANCELED, 0
                 if final:  # that was the last slice before the deadline
                     return ACH_TIMEOUT, 0
                 span, final = self._slice(deadline)
-                status, size = get(buf, options, span)
+                status, size = get(buf, options, span, lock_ns)
             if wait and status in (ACH_OK, ACH_MISSED_FRAME):
                 woken = self._fast.woken
                 if woken == _WAIT_TIMED_OUT:  # the frame came without a wake-up
@@ -1134,33 +1401,36 @@ class Channel:
             if self._closed and not active:
                 self._release()
 
-    def _get(self, dst: memoryview, options: int, deadline: float | None) -> tuple[int, int]:
+    def _get(self, dst: memoryview, options: int, deadline: float | None, lock_ns: int = -1) -> tuple[int, int]:
         active = self._active
         active.append(1)  # inlined _enter(): this is the hot path
         try:
             if self._closed:
                 raise AchException(ACH_CLOSED, channel=self.name)
-            if not self._guards_ok():
+            if not self._header_ok():
                 return ACH_CORRUPT, 0
             mutex = self._mutex
             try:
-                r = self._mutex_lock(mutex)
+                r = self._mutex_trylock(mutex)
                 if r or self._i32[self._i_dirty]:
-                    r = self._lock_slow(r)
+                    r = self._lock_slow(r, lock_ns)
                     if r:
                         return r, 0
                 if self._cancel:
                     self._mutex_unlock(mutex)
                     return ACH_CANCELED, 0
-                if options & ACH_O_WAIT:
-                    r = self._wait(deadline)
-                    if r:
-                        if r in (ACH_TIMEOUT, ACH_CANCELED):
-                            self._mutex_unlock(mutex)
-                        return r, 0
-                result = self._read_locked(dst, options)
+                while True:
+                    if options & ACH_O_WAIT:
+                        r = self._wait(deadline, lock_ns)
+                        if r:
+                            if r in (ACH_TIMEOUT, ACH_CANCELED):
+                                self._mutex_unlock(mutex)
+                            return r, 0
+                    result = self._read_locked(dst, options)
+                    if result[0] != ACH_STALE_FRAMES or not options & ACH_O_WAIT or self._seq != self._q[self._q_last]:
+                        break  # (a waiting get finds nothing only in a ring that a repair emptied: wait on)
                 self._mutex_unlock(mutex)
-                return result
+                return (ACH_CORRUPT, 0) if self._lost.value else result
             except BaseException:
                 self._unlock_if_owned()
                 raise
@@ -1170,30 +1440,39 @@ class Channel:
                 self._release()
 
     def _read_locked(self, dst: memoryview, options: int) -> tuple[int, int]:
-        """libach ``ach_get`` steps 3-7, literally. Caller holds the lock."""
+        """libach ``ach_get`` steps 3-7, literally. Caller holds the lock. Values from the file are read once and
+        checked before use, as in ``_write_locked``."""
         q = self._q
         last_seq = q[self._q_last]
+        index_head = q[_Q_INDEX_HEAD]
+        index_free = q[_Q_INDEX_FREE]
+        cnt = self._cnt
+        dsize = self._dsize
+        if index_head >= cnt or index_free > cnt or q[_Q_DATA_HEAD] >= dsize or q[_Q_DATA_FREE] > dsize:
+            return ACH_CORRUPT, 0  # (_counters_ok, inlined: this is the hot path)
         seq = self._seq
         if last_seq == 0 or (seq == last_seq and not options & ACH_O_COPY):
             return ACH_STALE_FRAMES, 0
-        cnt = self._cnt
         ix = self._ix
         if options & ACH_O_LAST:
-            ri = (q[_Q_INDEX_HEAD] + cnt - 1) % cnt
+            ri = (index_head + cnt - 1) % cnt
         elif q[ix + 3 * self._next + 2] == seq + 1:
             ri = self._next
         elif seq == last_seq:
-            ri = (q[_Q_INDEX_HEAD] + cnt - 1) % cnt
+            ri = (index_head + cnt - 1) % cnt
         else:
-            ri = (q[_Q_INDEX_HEAD] + q[_Q_INDEX_FREE]) % cnt
+            ri = (index_head + index_free) % cnt
         e = ix + 3 * ri
         size = q[e]
         offset = q[e + 1]
         eseq = q[e + 2]
-        if offset >= self._dsize or seq > eseq:
-            return ACH_BUG, 0
-        if offset + size > self._dsize:
+        if not (size and offset < dsize and size <= dsize - offset and eseq and eseq <= last_seq):
+            if size == offset == eseq == 0:  # an empty ring (a repair kept no frame): nothing to miss
+                self._seq = last_seq
+                return ACH_STALE_FRAMES, 0
             return ACH_CORRUPT, 0
+        if seq > eseq:  # libach: the channel was re-created under this handle
+            return ACH_BUG, 0
         if dst.nbytes < size:
             return ACH_OVERFLOW, size
         start = self._d0 + offset
@@ -1211,9 +1490,7 @@ class Channel:
             status, size = self._poll_fast(dst, timeout, ACH_O_LAST if last else 0)
             if status in (ACH_OK, ACH_MISSED_FRAME, ACH_STALE_FRAMES, ACH_CANCELED, ACH_TIMEOUT):
                 return status, size
-            if status == ACH_OVERFLOW:
-                raise AchException(status, channel=self.name, frame_size=size)
-            raise AchException(status, channel=self.name)
+            raise self._error(status, size=size, lock_ns=self._lock_ns)
         self._enter()
         try:
             q = self._q
@@ -1237,12 +1514,10 @@ class Channel:
                 spins += 1
         finally:
             self._leave()
-        status, size = self._get(dst, ACH_O_LAST if last else 0, None)
+        status, size = self._get(dst, ACH_O_LAST if last else 0, None, self._lock_ns)
         if status in (ACH_OK, ACH_MISSED_FRAME, ACH_STALE_FRAMES, ACH_CANCELED):
             return status, size
-        if status == ACH_OVERFLOW:
-            raise AchException(status, channel=self.name, frame_size=size)
-        raise AchException(status, channel=self.name)
+        raise self._error(status, size=size, lock_ns=self._lock_ns)
 
     def _poll_fast(self, dst: memoryview, timeout: float | None, options: int) -> tuple[int, int]:
         """``poll`` through the C handle: it spins with the GIL released, in slices, then gets."""
@@ -1256,7 +1531,7 @@ class Channel:
                 span = _SPIN_SLICE_NS
                 if deadline is not None:
                     span = min(span, max(0, int((deadline - time.monotonic()) * 1e9)))
-                status, size = poll(dst, options, span)
+                status, size = poll(dst, options, span, self._lock_ns)
                 if status != ACH_TIMEOUT or span < _SPIN_SLICE_NS:
                     return status, size
         finally:
@@ -1275,22 +1550,28 @@ class Channel:
         finally:
             self._leave()
         if r:
-            raise AchException(r, channel=self.name)
+            raise self._error(r)
 
     def _flush_locked(self) -> int:
+        if not self._header_ok():
+            return ACH_CORRUPT
         try:
             r = self._lock()
             if r == ACH_OK:
+                q = self._q
+                index_head = q[_Q_INDEX_HEAD]
                 if self._cancel:
                     r = ACH_CANCELED
+                elif not self._counters_ok(index_head, q[_Q_INDEX_FREE], q[_Q_DATA_HEAD], q[_Q_DATA_FREE]):
+                    r = ACH_CORRUPT
                 else:
-                    self._seq = self._q[self._q_last]
-                    self._next = self._q[_Q_INDEX_HEAD]
+                    self._seq = q[self._q_last]
+                    self._next = index_head
                 self._mutex_unlock(self._mutex)
         except BaseException:
             self._unlock_if_owned()
             raise
-        return r
+        return ACH_CORRUPT if self._lost.value else r
 
     def cancel(self, *, async_unsafe: bool = False) -> None:
         """Make every current and future get/flush on this handle return ACH_CANCELED (sticky).
@@ -1342,15 +1623,26 @@ class Channel:
             try:
                 r = self._lock()
                 if r:
-                    raise AchException(r, channel=self.name)
+                    raise self._error(r)
                 data = self._mm[:]
                 self._mutex_unlock(self._mutex)
             except BaseException:
                 self._unlock_if_owned()
                 raise
+            if self._lost.value:
+                raise self._error(ACH_CORRUPT)
         finally:
             self._leave()
         return parse_image(data, self._layout.arch)
 
     def fileno(self) -> int:
         return self._fd
+
+
+def _lock_ns(lock_timeout: float | None) -> int:
+    """A ``lock_timeout`` in seconds as the nanoseconds the lock calls take; -1 = no bound (None or inf)."""
+    if lock_timeout is None or lock_timeout == math.inf:
+        return -1
+    if not lock_timeout >= 0:
+        raise ValueError(f"lock_timeout must be >= 0 seconds or None, got {lock_timeout!r}")
+    return int(lock_timeout * 1e9)

@@ -26,15 +26,19 @@ class StructChannel(Generic[T]):
 
     ``latest()`` and ``wait()`` return a fresh ``ctype`` instance (callers may keep it) or None. Frames whose
     size differs from ``sizeof(ctype)`` are never returned; they are counted in ``bad_frames``.
+    ``lock_timeout`` (seconds; None: no bound) bounds how long ``latest``, ``wait`` and ``put`` wait for the
+    channel mutex, each call may override it; past it they raise ``AchException`` with ``ACH_LOCKED`` and leave
+    the channel untouched (a real-time loop skips that frame instead of stalling behind a stuck process).
     """
 
     def __init__(self, name: str, ctype: type[T], create: bool = True,
-                 frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_size: int = mds.CHANNEL_FRAME_SIZE):
+                 frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_size: int = mds.CHANNEL_FRAME_SIZE,
+                 lock_timeout: float | None = None):
         self.name = name
         self.ctype = ctype
         self.size = ctypes.sizeof(ctype)
         self.channel = ach.Channel(name, frame_count, frame_size, create=create,
-                                   mode=channel_access.channel_mode(name))
+                                   mode=channel_access.channel_mode(name), lock_timeout=lock_timeout)
         if channel_access.enforced():  # a node of the stack: never use a file another user planted
             try:
                 channel_access.require_trusted(self.channel)
@@ -62,20 +66,23 @@ class StructChannel(Generic[T]):
             self.missed_frames += 1
         return self.ctype.from_buffer_copy(self._buf)
 
-    def latest(self) -> T | None:
-        """The newest frame if one arrived since the last call, else None. Never blocks."""
-        status, size = self.channel.get(self._buf, last=True)
+    def latest(self, lock_timeout: float | None = None) -> T | None:
+        """The newest frame if one arrived since the last call, else None. Never waits for a frame (only for the
+        channel mutex, at most ``lock_timeout`` s if given or set on the channel)."""
+        status, size = self.channel.get(self._buf, last=True, lock_timeout=lock_timeout)
         return self._frame(status, size)
 
-    def wait(self, timeout: float | None = None) -> T | None:
+    def wait(self, timeout: float | None = None, lock_timeout: float | None = None) -> T | None:
         """Block until a new frame arrives (newest wins); None on timeout, cancel or close.
 
         ``timeout`` in seconds; None waits forever (still interruptible with Ctrl-C and ``cancel()``).
+        ``lock_timeout`` as for ``latest``.
         """
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            status, size = self.channel.get(self._buf, wait=True, last=True, timeout=remaining)
+            status, size = self.channel.get(self._buf, wait=True, last=True, timeout=remaining,
+                                            lock_timeout=lock_timeout)
             if status in (ach.ACH_TIMEOUT, ach.ACH_CANCELED):
                 return None
             frame = self._frame(status, size)
@@ -84,11 +91,12 @@ class StructChannel(Generic[T]):
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
-    def put(self, obj: T) -> None:
-        """Publish ``obj``; it must be a ``ctype`` instance (the exact layout is the wire contract)."""
+    def put(self, obj: T, lock_timeout: float | None = None) -> None:
+        """Publish ``obj``; it must be a ``ctype`` instance (the exact layout is the wire contract).
+        ``lock_timeout`` as for ``latest``."""
         if not isinstance(obj, self.ctype):
             raise TypeError(f"channel '{self.name}' carries {self.ctype.__name__}, got {type(obj).__name__}")
-        self.channel.put(obj)
+        self.channel.put(obj, lock_timeout=lock_timeout)
 
     def flush(self) -> None:
         """Treat everything in the channel as already seen."""

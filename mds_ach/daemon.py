@@ -125,7 +125,7 @@ class Daemon:
 def build(args: argparse.Namespace) -> Daemon:
     """Joint table, bus, channels and the loop (started, after reading the start pose)."""
     from mds_ach import canio, config
-    from mds_ach.daemon_loop import DaemonChannels, DaemonLoop
+    from mds_ach.daemon_loop import DaemonChannels, DaemonLoop, lock_timeout_for
 
     table = config.load(args.robot, args.config)
     if args.sim_faults and not args.nocan:
@@ -145,7 +145,7 @@ def build(args: argparse.Namespace) -> Daemon:
                           bitrate=args.bitrate, config_file=args.can_config, replay=args.replay,
                           replay_speed=args.replay_speed, can_log=args.can_log)
     try:
-        channels = DaemonChannels.open()
+        channels = DaemonChannels.open(lock_timeout=lock_timeout_for(args.rate))
     except Exception:
         io.close()
         raise

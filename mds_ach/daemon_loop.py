@@ -160,6 +160,12 @@ def tune_thread(rt_priority: int = 0) -> list[str]:
 # --- channels --------------------------------------------------------------------------------------------
 
 
+def lock_timeout_for(rate_hz: float) -> float:
+    """How long the loop waits at most for a channel's lock: a tenth of its period, at most 5 ms. A process that
+    holds a lock longer (stopped, or stuck inside a put) costs the loop that one read or write, never a cycle."""
+    return min(0.005, 0.1 / rate_hz) if rate_hz > 0 else 0.005  # (a bad rate is refused by DaemonLoop)
+
+
 @dataclass
 class DaemonChannels:
     """The Ach channels the daemon reads and writes (created if missing)."""
@@ -172,7 +178,9 @@ class DaemonChannels:
     param: object
 
     @classmethod
-    def open(cls) -> DaemonChannels:
+    def open(cls, lock_timeout: float | None = lock_timeout_for(1.0 / mds.MDS_LOOP_PERIOD)) -> DaemonChannels:
+        """Open (create) every channel; each get and put waits at most ``lock_timeout`` s for the channel lock
+        (``lock_timeout_for`` the loop's rate; None: as long as it takes)."""
         from mds_ach import ach, channel_access
         from mds_ach.channels import StructChannel
 
@@ -183,8 +191,9 @@ class DaemonChannels:
         opened = {}
         try:
             for key, (name, ctype) in names.items():
-                opened[key] = StructChannel(name, ctype)
-            opened["cmd"] = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+                opened[key] = StructChannel(name, ctype, lock_timeout=lock_timeout)
+            opened["cmd"] = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE,
+                                        lock_timeout=lock_timeout)
             if channel_access.enforced():  # as StructChannel does for the others
                 channel_access.require_trusted(opened["cmd"])
         except Exception:
@@ -511,6 +520,13 @@ class DaemonLoop:
             self._channel_error(channel.name, exc)
 
     def _channel_error(self, name: str, exc: Exception) -> None:
+        from mds_ach import ach
+
+        if isinstance(exc, ach.AchException) and exc.status == ach.ACH_LOCKED:  # skipped, not broken
+            self.status.lock_timeouts += 1
+            self._warn_rate(f"lock-{name}", f"channel {name}: {exc}; skipped this cycle ({self.status.lock_timeouts} "
+                                            "so far; `mds-ach repair --check` names the holder)")
+            return
         self.status.channel_errors += 1
         self._warn_rate(f"channel-{name}", f"channel {name}: {exc} (`mds-ach repair` fixes a corrupt channel)")
 

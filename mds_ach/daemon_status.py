@@ -15,7 +15,7 @@ import ctypes
 
 from mds_ach.msgs import MDS_JOINT_COUNT, _Packed
 
-DAEMON_STATUS_VERSION = 2
+DAEMON_STATUS_VERSION = 2  # 2: motion bounds, stalls, limited targets, bad replies, re-seeds, lock_timeouts
 
 BUS_STATE_ACTIVE = 0  # error-active: all fine
 BUS_STATE_PASSIVE = 1  # error-passive / warning level: frames get through, errors seen
@@ -103,6 +103,7 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         # ENABLE, resetbus), once its position is known: the pipeline nodes then set their output for the joint to
         # mds-state joint[].pos of that cycle (mds_ach.pipeline.ReseedWatch).
         ("joint_reseed", ctypes.c_uint32 * MDS_JOINT_COUNT),
+        ("lock_timeouts", ctypes.c_uint32),  # channel reads/writes skipped: the lock was held longer than allowed
     ]
 
 
@@ -121,7 +122,8 @@ def summary_line(st: MDS_DAEMON_STATUS) -> str:
                         ("unknown", st.unknown_node_frames), ("malformed", st.malformed_frames),
                         ("refused", st.refs_refused), ("clamped", st.refs_clamped), ("no-ack", st.acks_missing),
                         ("channel-err", st.channel_errors), ("limited", st.targets_limited),
-                        ("bad-reply", st.bad_replies), ("stalls", st.stalls)):
+                        ("bad-reply", st.bad_replies), ("stalls", st.stalls),
+                        ("lock-timeouts", st.lock_timeouts)):
         if value:
             faults.append(f"{name} {value}")
     return (f"{st.measured_rate_hz:.1f}/{st.rate_hz:g} Hz, period err p99 {st.period_error_p99 * 1e3:.2f} ms, "

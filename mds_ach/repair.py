@@ -15,9 +15,11 @@ pipeline nodes carry on with their open handles:
 3. rebuild the ring counters from the kept frames, set ``last_seq`` to the newest kept frame (no reader can
    have seen a frame whose put never finished), clear ``dirty`` and unlock. The condvar is never touched.
 
-The result is a state libach itself produces, so C and Python clients alike continue. A channel whose header,
-guards or mutex are damaged cannot be repaired in place: it is re-created with the same geometry and mode, and
-the processes that still map the old file are listed, because they must be restarted.
+The same rebuild repairs ring counters or index entries that something scribbled out of range (every get and put
+refuses them with ACH_CORRUPT). The result is a state libach itself produces, so C and Python clients alike
+continue. A channel whose geometry (length, frame count, data size), guards or mutex are damaged, or whose file
+was truncated, cannot be repaired in place: it is re-created with the same geometry and mode, and the processes
+that still map the old file are listed, because they must be restarted.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ _I32 = struct.Struct("<i")
 
 OK = "ok"
 MISSING = "missing"
-CORRUPT = "corrupt"  # dirty: a writer died mid-put; repairable in place
+CORRUPT = "corrupt"  # dirty (a writer died mid-put) or counters/index out of range; repairable in place
 BROKEN = "broken"  # header, guards or mutex damaged; must be re-created
 LOCKED = "locked"  # a live process holds the lock and does not let go
 UNSAFE = "unsafe"  # owner, mode or type the stack must not trust (channel_access); must be re-created
@@ -175,7 +177,8 @@ def _holder(tid: int) -> str:
 
 
 class _Mapped:
-    """The channel file mapped read-write, with the address of the mutex libach locks."""
+    """The channel file mapped read-write, with the address of the mutex libach locks. The mapping is guarded:
+    if the file shrinks meanwhile, ``lost`` turns true instead of the process dying of SIGBUS."""
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -188,6 +191,7 @@ class _Mapped:
         except BaseException:
             os.close(self.fd)
             raise
+        self.guard = ach.MappingGuard(self.mm, self.fd)
         self._anchor = ctypes.c_char.from_buffer(self.mm)
         base = ctypes.addressof(self._anchor)
         self.mutex = ctypes.c_void_p(base + self.layout.mutex)
@@ -210,10 +214,15 @@ class _Mapped:
     def lock_owner(self) -> int:
         return _I32.unpack_from(self.mm, self.layout.mutex)[0] & _FUTEX_TID_MASK
 
+    @property
+    def lost(self) -> bool:
+        return self.guard.lost
+
     def close(self) -> None:
         del self._anchor
-        self.mm.close()
-        os.close(self.fd)
+        if self.guard.release(self.mm, self.fd):  # a lost mapping stays (ach.MappingGuard)
+            self.mm.close()
+            os.close(self.fd)
 
 
 def _structure_problem(m: _Mapped) -> str | None:
@@ -222,6 +231,25 @@ def _structure_problem(m: _Mapped) -> str | None:
         ach.parse_image(m.mm[:], m.layout.arch)
     except ach.AchException as exc:
         return exc.reason
+    if m.lost:
+        return f"{m.path} shrank while it was being checked (truncated)"
+    return None
+
+
+def _ring_problem(m: _Mapped) -> str | None:
+    """Ring counters or live index entries out of range (what every get and put refuses), or None. Caller holds
+    the lock."""
+    h = m.layout.header_size
+    cnt, dsize, last_seq = m.u64(_OFF_INDEX_CNT), m.u64(_OFF_DATA_SIZE), m.u64(m.layout.last_seq)
+    index_head, index_free = m.u64(_OFF_INDEX_HEAD), m.u64(_OFF_INDEX_FREE)
+    data_head, data_free = m.u64(_OFF_DATA_HEAD), m.u64(_OFF_DATA_FREE)
+    if not (index_head < cnt and index_free <= cnt and data_head < dsize and data_free <= dsize):
+        return (f"ring counters out of range: index_head {index_head}, index_free {index_free} ({cnt} slots), "
+                f"data_head {data_head}, data_free {data_free} ({dsize} bytes)")
+    for slot in range(cnt):
+        size, offset, seq = struct.unpack_from("<QQQ", m.mm, h + 8 + 24 * slot)
+        if (size or offset or seq) and not (0 < size <= dsize - offset and offset < dsize and 0 < seq <= last_seq):
+            return f"index entry {slot} out of range: size {size}, offset {offset}, seq {seq} (last_seq {last_seq})"
     return None
 
 
@@ -336,14 +364,20 @@ def _examine(name: str, timeout: float, fix: bool) -> Report:
         if r not in (0, errno.EOWNERDEAD):
             return Report(name, LOCKED if r == errno.ETIMEDOUT else BROKEN, note)
         try:
-            if not m.dirty:
-                return Report(name, OK, note)
-            detail = "a writer died inside a put (dirty flag set): every get/put returns ACH_CORRUPT"
+            if m.dirty:
+                detail = "a writer died inside a put (dirty flag set): every get/put returns ACH_CORRUPT"
+            else:
+                detail = _ring_problem(m)
+                if detail is None:
+                    return Report(name, OK, note)
+                detail += ": every get/put that meets it returns ACH_CORRUPT"
             if not fix:
                 return Report(name, CORRUPT, detail)
             kept, dropped = _rebuild(m)
         finally:
             _unlock(m)
+        if m.lost:
+            return Report(name, BROKEN, f"{m.path} shrank while it was being repaired (truncated)")
         return Report(name, OK, detail, "repaired", kept, dropped)
     finally:
         m.close()

@@ -3,8 +3,10 @@ same statuses, same reader state, and the properties only C can break (threads s
 
 from __future__ import annotations
 
+import mmap
 import os
 import shutil
+import struct
 import subprocess
 import sys
 import sysconfig
@@ -31,12 +33,15 @@ def _can_build() -> bool:
 
 
 def test_fast_path_is_built_where_it_can_be() -> None:
-    """With a C compiler and Python headers, `make setup` builds the extension; a silent fallback would hide a
-    10x slower hot path."""
+    """With a C compiler and Python headers, `make setup` builds the extensions; a silent fallback would hide a
+    10x slower hot path, or leave channel mappings unguarded."""
     if not _can_build():
         pytest.skip("no C compiler or Python headers here: the pure-Python path is the only one")
     assert ach.FAST_AVAILABLE, "mds_ach._achfast is not importable: run `make setup` (pip install -e .)"
     assert os.environ.get("MDS_ACH_PURE_PYTHON", "") in ("", "0")
+    # the SIGBUS guard for channel mappings (a truncated channel file must not kill the process) is built with it
+    assert ach.GUARD_AVAILABLE, "mds_ach._shmguard is not importable: run `make setup` (pip install -e .)"
+    assert ach._achfast.LOCK_TIMED_OUT == ach._LOCK_TIMED_OUT
 
 
 needs_fast = pytest.mark.skipif(not ach.FAST_AVAILABLE, reason="mds_ach._achfast not built")
@@ -50,6 +55,14 @@ def _image(name: str) -> bytes:
 
 
 GET_OPTIONS = [0, ach.ACH_O_LAST, ach.ACH_O_COPY, ach.ACH_O_LAST | ach.ACH_O_COPY]
+# What a scribbler overwrites: a header word (len, index_cnt, data_size, the four ring counters, last_seq) or a word
+# of an index entry (slot taken modulo the channel's frame count), with a boundary value or any 64-bit value.
+HEADER_WORDS = [8, 88, 96, 104, 112, 120, 128, LAYOUT.last_seq]
+SCRIBBLE = st.tuples(
+    st.one_of(st.sampled_from(HEADER_WORDS), st.tuples(st.integers(0, 5), st.sampled_from([0, 8, 16]))),
+    st.one_of(st.sampled_from([0, 1, 2, 3, 4, 5, 6, 8, 40, 64, 100, 200, 239, 240, 241, 2**63, 2**64 - 1]),
+              st.integers(0, 2**64 - 1)),
+)
 OPS = st.lists(
     st.one_of(
         st.tuples(st.just("put"), st.integers(min_value=1, max_value=70)),
@@ -59,6 +72,27 @@ OPS = st.lists(
     ),
     max_size=60,
 )
+OPS_AND_SCRIBBLES = st.lists(
+    st.one_of(
+        st.tuples(st.just("put"), st.integers(min_value=1, max_value=70)),
+        st.tuples(st.just("get"), st.sampled_from(GET_OPTIONS)),
+        st.tuples(st.just("get-small"), st.just(0)),
+        st.tuples(st.just("flush"), st.just(0)),
+        st.tuples(st.just("scribble"), SCRIBBLE),
+    ),
+    max_size=40,
+)
+
+
+def _scribble(name: str, count: int, where: int | tuple[int, int], value: int) -> None:
+    """Overwrite one u64 of the channel file, as another process that ignores the lock would."""
+    offset = where if isinstance(where, int) else LAYOUT.index_offset() + 24 * (where[0] % count) + where[1]
+    fd = os.open(ach.shm_path(name), os.O_RDWR)
+    try:
+        with mmap.mmap(fd, 0) as mm:
+            struct.pack_into("<Q", mm, offset, value)
+    finally:
+        os.close(fd)
 
 
 @needs_fast
@@ -79,6 +113,45 @@ def test_same_bytes_statuses_and_reader_state_as_pure_python(ops: list[tuple[str
                     elif op == "flush":
                         ch.flush()
                         results.append(None)
+                    else:
+                        buf = bytearray(5 if op == "get-small" else 80)
+                        status, n = ch.get_status(buf, arg)
+                        results.append((status, n, bytes(buf[:n]) if status != ach.ACH_OVERFLOW else b""))
+                    results[-1] = (results[-1], ch.seq_num, ch.next_index)
+                assert results[0] == results[1], f"step {i}: {op} {arg}"
+            assert _image(NAME_FAST) == _image(NAME_PURE)
+    finally:
+        for name in (NAME_FAST, NAME_PURE):
+            ach.unlink(name)
+
+
+@needs_fast
+@settings(max_examples=200, deadline=None)
+@given(ops=OPS_AND_SCRIBBLES, count=st.integers(min_value=1, max_value=6), size=st.integers(min_value=8, max_value=40))
+def test_same_statuses_as_pure_python_on_a_scribbled_channel(ops: list[tuple[str, object]], count: int,
+                                                             size: int) -> None:
+    """Whatever is written over the header counters and the index, the C path never reads or writes outside the
+    channel (a crash would end this test) and gives exactly the statuses, bytes and reader state of the Python
+    path: ACH_CORRUPT for everything out of range, the same frames for everything that is not."""
+    for name in (NAME_FAST, NAME_PURE):
+        ach.create(name, count, size, truncate=True)
+    try:
+        with ach.Channel(NAME_FAST) as fast, ach.Channel(NAME_PURE, fast=False) as pure:
+            for i, (op, arg) in enumerate(ops):
+                if op == "scribble":
+                    for name in (NAME_FAST, NAME_PURE):
+                        _scribble(name, count, *arg)
+                    continue
+                results = []
+                for ch in (fast, pure):
+                    if op == "put":
+                        results.append(ch.put_status(bytes((i + k) % 251 for k in range(arg))))
+                    elif op == "flush":
+                        try:
+                            ch.flush()
+                            results.append(ach.ACH_OK)
+                        except ach.AchException as exc:
+                            results.append(exc.status)
                     else:
                         buf = bytearray(5 if op == "get-small" else 80)
                         status, n = ch.get_status(buf, arg)
