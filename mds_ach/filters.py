@@ -60,7 +60,8 @@ def accel_limit_step(previous, velocity, target, max_velocity: float, max_accel:
     vel = np.asarray(velocity, dtype=float)
     err = np.asarray(target, dtype=float) - prev
     a_dt = max_accel * dt
-    stop_speed = a_dt * (np.sqrt(0.25 + 2.0 * np.abs(err) / (a_dt * dt)) - 0.5)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # huge/zero steps: inf, capped next line
+        stop_speed = a_dt * (np.sqrt(0.25 + 2.0 * np.abs(err) / (a_dt * dt)) - 0.5)
     desired = np.sign(err) * np.minimum(max_velocity, stop_speed)
     dv = np.clip(desired - vel, -max_accel * dt, max_accel * dt)
     new_vel = vel + dv
