@@ -22,9 +22,9 @@ all: setup
 
 setup: $(STAMP)
 
-# pip install -e . also compiles mds_ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/_shmguard.c
+# pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
-$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml mds_ach/_achfast.c mds_ach/_shmguard.c
+$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/_shmguard.c
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
 	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
@@ -60,4 +60,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf build install log .pytest_cache mds_ach/_achfast.*.so mds_ach/_shmguard.*.so
+	rm -rf build install log .pytest_cache mds_ach/ach/_achfast.*.so mds_ach/ach/_shmguard.*.so

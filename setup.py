@@ -33,9 +33,9 @@ setup(
     package_data={"mds_ach": ["data/*", "web/*"]},
     # The C fast path of mds_ach.ach, and the SIGBUS guard for mapped channel files (a truncated channel must not
     # kill its users); both optional: without a compiler the pure-Python code is used, unguarded.
-    ext_modules=[Extension("mds_ach._achfast", ["mds_ach/_achfast.c"], extra_compile_args=["-O2", "-Wall"],
+    ext_modules=[Extension("mds_ach.ach._achfast", ["mds_ach/ach/_achfast.c"], extra_compile_args=["-O2", "-Wall"],
                            optional=True),
-                 Extension("mds_ach._shmguard", ["mds_ach/_shmguard.c"], extra_compile_args=["-O2", "-Wall"],
+                 Extension("mds_ach.ach._shmguard", ["mds_ach/ach/_shmguard.c"], extra_compile_args=["-O2", "-Wall"],
                            optional=True)],
     include_package_data=True,
     install_requires=["setuptools"],
@@ -47,15 +47,15 @@ setup(
     extras_require={"test": ["pytest"]},
     entry_points={
         "console_scripts": [
-            "daemon = mds_ach.daemon:main",
-            "filter = mds_ach.filter_node:main",
-            "mux = mds_ach.mux:main",
-            "ik = mds_ach.ik_node:main",
-            "collision = mds_ach.collision_node:main",
+            "daemon = mds_ach.nodes.daemon:main",
+            "filter = mds_ach.nodes.filter:main",
+            "mux = mds_ach.nodes.mux:main",
+            "ik = mds_ach.nodes.ik:main",
+            "collision = mds_ach.nodes.collision:main",
             "bridge = mds_ach_bridge.bridge:main",
-            "console = mds_ach.console:main",
-            "read = mds_ach.read:main",
-            "mds-ach = mds_ach.cli:main",
+            "console = mds_ach.tools.console:main",
+            "read = mds_ach.tools.read:main",
+            "mds-ach = mds_ach.tools.cli:main",
         ],
     },
 )

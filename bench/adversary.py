@@ -40,9 +40,12 @@ from pathlib import Path
 import numpy as np
 
 import mds_ach as mds
-from mds_ach import ach, checklog, config, launcher, simbus
-from mds_ach.channels import StructChannel
-from mds_ach.joints import LEFT_ARM, NECK, RIGHT_ARM, TORSO
+from mds_ach import ach
+from mds_ach.bus import simbus
+from mds_ach.robot import config
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.joints import LEFT_ARM, NECK, RIGHT_ARM, TORSO
+from mds_ach.tools import checklog, launcher
 
 TABLE = config.load("default")
 NODES = ("daemon", "mux", "filter", "collision", "ik", "bridge")
@@ -77,7 +80,7 @@ class Stack:
         self.daemon: subprocess.Popen | None = None
 
     def start(self) -> None:
-        from mds_ach.channels import make_channels
+        from mds_ach.robot.channels import make_channels
 
         bad = [r for r in make_channels() if not r.ok]
         if bad:

@@ -16,7 +16,7 @@ depend on what other benchmarks loaded into the parent. All children (Ach and rc
 priority to nice -20 when allowed, as a robot's real-time processes would run; on a shared, loaded machine this
 keeps other load from dominating either side.
 Targets (issue 2): blocking >= 5x lower median than rclpy, busy-poll >= 20x lower, in-process put+get of
-MDS_STATE <= 10 us median. They apply to the default implementation (the C fast path ``mds_ach._achfast`` when
+MDS_STATE <= 10 us median. They apply to the default implementation (the C fast path ``mds_ach.ach._achfast`` when
 built); the pure-Python path (``MDS_ACH_PURE_PYTHON=1``) is measured in the same run and printed for reference.
 """
 
@@ -125,7 +125,7 @@ def role_ros_publisher(count: int, rate: float) -> None:
     import rclpy
     from sensor_msgs.msg import JointState
 
-    from mds_ach.joints import MODEL_JOINTS
+    from mds_ach.robot.joints import MODEL_JOINTS
 
     rclpy.init()
     node = rclpy.create_node("bench_ach_publisher")

@@ -42,7 +42,7 @@ BASELINE_PUBLISHER = textwrap.dedent(
     import sys, time, rclpy
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
-    from mds_ach import joints
+    from mds_ach.robot import joints
     rate, seconds = float(sys.argv[1]), float(sys.argv[2])
     rclpy.init()
     node = rclpy.create_node('bench_baseline_publisher')
@@ -69,9 +69,10 @@ FAKE_DAEMON = textwrap.dedent(
     """
     import json, sys, threading, time
     import mds_ach as mds
-    from mds_ach import ach, joints
-    from mds_ach.channels import StructChannel
-    from mds_ach.msgs import MDS_REF, MDS_STATE
+    from mds_ach import ach
+    from mds_ach.robot import joints
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs import MDS_REF, MDS_STATE
     rate = float(sys.argv[1])
     for name in (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_IK_NAME):
         if ach.exists(name):
@@ -194,7 +195,7 @@ def _bridge(ros: _Ros, seconds: float) -> dict[str, object]:
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import JointState
 
-    from mds_ach import joints
+    from mds_ach.robot import joints
     from mds_ach_bridge.limits import load_limits
 
     nkr = joints.MODEL_JOINTS.index("NKR")

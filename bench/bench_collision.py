@@ -39,7 +39,7 @@ class NaiveChecker:
         import fcl
         import yourdfpy
 
-        from mds_ach.collision import _fcl_geometry, inflate
+        from mds_ach.kinematics.collision import _fcl_geometry, inflate
         from mds_ach.paths import urdf_path
 
         self.fcl = fcl
@@ -79,8 +79,8 @@ def _times(fn, items) -> list[float]:
 
 def run(quick: bool = False) -> list[Row]:
     import mds_ach as mds
-    from mds_ach.collision import load_model
-    from mds_ach.collision_node import Gate, GateConfig, Observed, joint_limits
+    from mds_ach.kinematics.collision import load_model
+    from mds_ach.nodes.collision import Gate, GateConfig, Observed, joint_limits
 
     model = load_model(world=TABLE)
     rng = np.random.default_rng(5)

@@ -61,8 +61,8 @@ def _nice() -> None:
 def role_writer(rate: float, seconds: float) -> None:
     """Write a new mds-ref every period: every moving joint on a 0.5 Hz sine of 0.15 rad about its home."""
     import mds_ach as mds
-    from mds_ach import config
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot import config
+    from mds_ach.robot.channels import StructChannel
 
     _nice()
     table = config.load("default")
@@ -86,9 +86,10 @@ def role_writer(rate: float, seconds: float) -> None:
 
 def role_loop(kind: str, rate: float, seconds: float) -> None:
     """Run the daemon loop (``abs``: the real scheduled thread; ``naive``: cycle + time.sleep) and print JSON."""
-    from mds_ach import canio, config
-    from mds_ach.daemon_loop import DaemonChannels, DaemonLoop, tune_thread
-    from mds_ach.simbus import SimNetwork
+    from mds_ach.bus import canio
+    from mds_ach.bus.simbus import SimNetwork
+    from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, tune_thread
+    from mds_ach.robot import config
 
     _nice()
     table = config.load("default")

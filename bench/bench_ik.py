@@ -28,7 +28,7 @@ import numpy as np
 
 from bench.common import Row, median, percentile
 from mds_ach import ik
-from mds_ach.kinematics import arm_kinematics, euler_zyx
+from mds_ach.kinematics.model import arm_kinematics, euler_zyx
 
 REPO = Path(__file__).resolve().parent.parent
 

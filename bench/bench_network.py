@@ -3,7 +3,7 @@
 A simulated robot host (its own network namespace and /dev/shm, joined to this namespace by a veth pair,
 see ``mds_ach.netsim``) runs a writer that puts ``MDS_STATE`` frames (14051 B) at 100 Hz with
 CLOCK_MONOTONIC in ``time``, and our achd server. Here (the operator station) an achd client process
-(``python -m mds_ach.achd -l pull ...``) brings them into the local ``mds-state`` and this process reads
+(``python -m mds_ach.net.achd -l pull ...``) brings them into the local ``mds-state`` and this process reads
 each with a blocking get and subtracts the stamp (both namespaces share the clock). SSH: the same client
 through ``ssh -L`` to a real sshd on the robot (OpenSSH, ed25519 keys).
 
@@ -32,7 +32,8 @@ TARGET_P50_MS = 5.0  # one tick of a 200 Hz loop: a remote operator sees the sta
 
 def role_writer(channel: str, rate: float, seconds: float) -> None:
     """Put stamped MDS_STATE frames on ``channel`` at ``rate`` Hz for ``seconds`` (absolute-time pacing)."""
-    from mds_ach import ach, msgs
+    from mds_ach import ach
+    from mds_ach.robot import msgs
 
     chan = ach.Channel(channel, 10, 3000)
     st = msgs.MDS_STATE()
@@ -50,7 +51,8 @@ def role_writer(channel: str, rate: float, seconds: float) -> None:
 
 def _collect(channel: str, count: int, timeout: float) -> list[float]:
     """``count`` one-way latencies (s) of frames arriving on the local ``channel`` after WARMUP frames."""
-    from mds_ach import ach, msgs
+    from mds_ach import ach
+    from mds_ach.robot import msgs
 
     deadline = time.monotonic() + timeout
     while not ach.exists(channel):
@@ -95,7 +97,7 @@ def _measure_pull(argv: list[str], count: int) -> list[float]:
 
     if ach.exists("mds-state"):
         ach.unlink("mds-state")
-    client = subprocess.Popen(_python("-m", "mds_ach.achd", *argv), cwd=REPO, stderr=subprocess.PIPE, text=True)
+    client = subprocess.Popen(_python("-m", "mds_ach.net.achd", *argv), cwd=REPO, stderr=subprocess.PIPE, text=True)
     try:
         return _collect("mds-state", count, timeout=30 + count / RATE_HZ)
     except RuntimeError as exc:
@@ -108,7 +110,7 @@ def _measure_pull(argv: list[str], count: int) -> list[float]:
 
 def run(quick: bool = False) -> list[Row]:
     from mds_ach import ach, netsim
-    from mds_ach.remote import SshTunnel
+    from mds_ach.net.remote import SshTunnel
 
     count = 60 if quick else 300
     case_s = (count + WARMUP) / RATE_HZ + 30
@@ -130,7 +132,8 @@ def run(quick: bool = False) -> list[Row]:
         procs = [
             robot.popen(_python("-m", "bench.bench_network", "writer", "mds-state", str(RATE_HZ), str(4 * case_s)),
                         cwd=REPO),
-            robot.popen(_python("-m", "mds_ach.achd", "serve", "--bind", ROBOT_IP, "--bind", "127.0.0.1"), cwd=REPO),
+            robot.popen(_python("-m", "mds_ach.net.achd", "serve", "--bind", ROBOT_IP, "--bind", "127.0.0.1"),
+                        cwd=REPO),
         ]
         sshd = tunnel = None
         try:

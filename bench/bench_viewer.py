@@ -18,8 +18,8 @@ import threading
 import time
 
 from bench.common import Row, median, percentile
-from mds_ach import viewer
-from mds_ach.joints import LEFT_ARM, RIGHT_ARM, lookup
+from mds_ach.robot.joints import LEFT_ARM, RIGHT_ARM, lookup
+from mds_ach.tools import viewer
 
 
 def _state(t: float):  # -> mds.MDS_STATE
@@ -41,7 +41,7 @@ def run(quick: bool = False) -> list[Row]:
 
     import mds_ach as mds
     from mds_ach import paths
-    from mds_ach.channels import StructChannel, make_channels
+    from mds_ach.robot.channels import StructChannel, make_channels
 
     make_channels()
     n = 100 if quick else 400

@@ -237,13 +237,14 @@ def _child(role: str, *args: str, env: dict[str, str]) -> subprocess.Popen:
 
 def _cli(*args: str, env: dict[str, str], timeout: float = 120.0) -> subprocess.CompletedProcess:
     exe = Path(sys.executable).parent / "mds-ach"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "mds_ach.cli"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "mds_ach.tools.cli"]
     return subprocess.run([*cmd, *args], capture_output=True, text=True, env=env, timeout=timeout)
 
 
 def soak(minutes: float, rate: float, writer_rate: float, nodes: list[str], warmup: float) -> int:
-    from mds_ach import ach, launcher
-    from mds_ach.channels import make_channels
+    from mds_ach import ach
+    from mds_ach.robot.channels import make_channels
+    from mds_ach.tools import launcher
 
     duration = minutes * 60.0
     warmup = min(warmup, duration / 3)
@@ -310,7 +311,7 @@ def soak(minutes: float, rate: float, writer_rate: float, nodes: list[str], warm
 
 def _daemon_status() -> object | None:
     from mds_ach import ach
-    from mds_ach.daemon_status import MDS_DAEMON_STATUS
+    from mds_ach.robot.daemon_status import MDS_DAEMON_STATUS
 
     st = MDS_DAEMON_STATUS()
     with ach.Channel(mds.MDS_CHAN_DAEMON_STATUS_NAME, create=False) as ch:
@@ -388,7 +389,7 @@ def _report(procs: dict[str, Proc], children: list[Proc], results: list[dict], s
             if r["max_gap"] > STALL_LIMIT:
                 failures.append(f"mds-state stalled for {r['max_gap']:.2f} s")
     if status is not None:
-        from mds_ach.daemon_status import summary_line
+        from mds_ach.robot.daemon_status import summary_line
 
         print(f"\ndaemon: {summary_line(status)}; cycles {status.cycle}, period error max "
               f"{status.period_error_max * 1e3:.2f} ms, cpu/cycle {status.cpu_per_cycle * 1e3:.2f} ms")

@@ -19,10 +19,10 @@ import time
 import numpy as np
 
 import mds_ach as mds
-from mds_ach.channels import StructChannel
 from mds_ach.ik import getFkArm
-from mds_ach.ik_client import IkClient, IkTimeout
-from mds_ach.joints import LEFT_ARM
+from mds_ach.nodes.ik_client import IkClient, IkTimeout
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.joints import LEFT_ARM
 
 BOX = [(0.3, 0.2, 0.0), (0.4, 0.45, 0.25), (0.4, -0.05, 0.25), (0.4, -0.05, -0.25), (0.4, 0.45, -0.25)]
 

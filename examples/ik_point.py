@@ -19,10 +19,10 @@ import time
 import numpy as np
 
 import mds_ach as mds
-from mds_ach.channels import StructChannel
 from mds_ach.ik import getFkArm
-from mds_ach.ik_client import IkClient, IkTimeout
-from mds_ach.joints import LEFT_ARM
+from mds_ach.nodes.ik_client import IkClient, IkTimeout
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.joints import LEFT_ARM
 
 
 def hand_position(state: mds.MDS_STATE) -> np.ndarray:

@@ -21,7 +21,7 @@ import numpy as np
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.ik import getFkArm, getIK
-from mds_ach.joints import LEFT_ARM
+from mds_ach.robot.joints import LEFT_ARM
 
 ORDER = ["p_x", "p_y", "p_z"]
 

@@ -6,8 +6,8 @@ like the original ``mds_ach.py`` did. Heavy modules (torch, fcl, rclpy) are neve
 
 from __future__ import annotations
 
-from mds_ach.joints import BY_ADDRESS, BY_NAME, BY_SHORT, JOINTS, Joint, getAddress, lookup
-from mds_ach.msgs import (
+from mds_ach.robot.joints import BY_ADDRESS, BY_NAME, BY_SHORT, JOINTS, Joint, getAddress, lookup
+from mds_ach.robot.msgs import (
     MDS_ARM_COUNT,
     MDS_CHAR_PARAM_BUFFER_SIZE,
     MDS_CMD,
@@ -45,7 +45,7 @@ MDS_CHAN_IK_STATE_NAME = "mds-ik-state"  # ik node status
 MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"  # mux ownership / ages
 MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"  # loop rate, overruns, bus load, faults
 # What the daemon executes (the collision gate's output). The one name to change when it is renamed: only the
-# stack's own user may write it (mds_ach.channel_access), operators write the controller inputs above it.
+# stack's own user may write it (mds_ach.robot.access), operators write the controller inputs above it.
 MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_NAME
 
 LEGACY_CHANNELS: tuple[str, ...] = (

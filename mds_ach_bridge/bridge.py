@@ -9,7 +9,7 @@ import argparse
 import sys
 
 import mds_ach as mds
-from mds_ach import joints
+from mds_ach.robot import joints
 from mds_ach_bridge import topics
 
 DESCRIPTION = f"""\
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
 
-    from mds_ach import channel_access
+    from mds_ach.robot import access as channel_access
     from mds_ach_bridge.node import BridgeNode
 
     channel_access.enforce_in_this_process()  # a node of the stack: refuse channel files another user planted

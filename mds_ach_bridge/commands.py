@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from mds_ach import joints
+from mds_ach.robot import joints
 from mds_ach_bridge.limits import Limits
 
 

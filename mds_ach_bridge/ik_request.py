@@ -12,7 +12,7 @@ import math
 from collections.abc import Sequence
 
 import mds_ach as mds
-from mds_ach.msgs import MDS_IK
+from mds_ach.robot.msgs import MDS_IK
 from mds_ach_bridge.commands import CommandError
 
 ARMS: dict[str, int] = {"left": mds.LEFT, "right": mds.RIGHT}

@@ -1,4 +1,4 @@
-"""Position limits for the joints the bridge accepts commands for, from the joint table (mds_ach.config).
+"""Position limits for the joints the bridge accepts commands for, from the joint table (mds_ach.robot.config).
 
 The joint table is the daemon's authority (ROM, margin, offset, direction, optional narrower limits per
 robot variant), so the bridge refuses exactly what the daemon would have to clamp. Disabled joints are
@@ -7,7 +7,7 @@ left out: a command for them is refused instead of being silently ignored downst
 
 from __future__ import annotations
 
-from mds_ach import config, joints
+from mds_ach.robot import config, joints
 
 Limits = dict[str, tuple[float, float]]
 

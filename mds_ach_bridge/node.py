@@ -28,10 +28,11 @@ from std_msgs.msg import Float64MultiArray, String
 from trajectory_msgs.msg import JointTrajectory
 
 import mds_ach as mds
-from mds_ach import ach, joints, paths
-from mds_ach.channels import StructChannel
-from mds_ach.daemon_loop import tune_thread
-from mds_ach.msgs import MDS_IK, MDS_REF, MDS_STATE
+from mds_ach import ach, paths
+from mds_ach.nodes.daemon_loop import tune_thread
+from mds_ach.robot import joints
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach_bridge import topics, trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
 from mds_ach_bridge.ik_request import make_request

@@ -75,7 +75,7 @@ def ach_impl(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) ->
         monkeypatch.setattr(ach, "_achfast", None)
         monkeypatch.setenv("MDS_ACH_PURE_PYTHON", "1")
     elif not ach.FAST_AVAILABLE:
-        pytest.skip("mds_ach._achfast is not built here (no C compiler); test_ach_fast.py reports why")
+        pytest.skip("mds_ach.ach._achfast is not built here (no C compiler); test_ach_fast.py reports why")
     return request.param
 
 

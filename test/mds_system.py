@@ -91,7 +91,7 @@ def arm_pos(arm: str) -> list[float]:
 
 
 def chain_fk(q: list[float], arm: str) -> tuple[np.ndarray, np.ndarray]:
-    """The original IK chain (mds-original.md section e.1), written out independently of mds_ach.kinematics."""
+    """The original IK chain (mds-original.md section e.1), written out independently of mds_ach.kinematics.model."""
     l1, l2, l3, l4 = 0.24551, 0.282575, 0.3127375, 0.0635
     m = 1.0 if arm == "left" else -1.0
 

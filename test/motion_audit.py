@@ -1,4 +1,4 @@
-"""The tests' check of recorded CAN traffic against the daemon's motion bounds (``mds_ach.motion``).
+"""The tests' check of recorded CAN traffic against the daemon's motion bounds (``mds_ach.robot.motion``).
 
 Every MOVETO target a joint was sent is checked with ``motion.check`` against the previous one; the track
 restarts at the measured position (at rest) when a re-seed is due: the joint's first valid position reply, a
@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 
 import can
 
-from mds_ach import mcb
-from mds_ach.config import JointTable
-from mds_ach.mcb import Command, StateArg, TrajectoryMode
-from mds_ach.motion import MotionBounds, Track, check
+from mds_ach.bus import mcb
+from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
+from mds_ach.robot.config import JointTable
+from mds_ach.robot.motion import MotionBounds, Track, check
 
 RESEED_COMMANDS = (Command.RESET, Command.ZERO_ENCODER, Command.ENABLE)
 

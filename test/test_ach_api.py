@@ -19,8 +19,8 @@ import pytest
 from conftest import wait_for
 
 from mds_ach import ach
-from mds_ach.channels import StructChannel
-from mds_ach.msgs import MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
 
 pytestmark = pytest.mark.usefixtures("ach_impl")  # every test: C fast path and pure Python
 

@@ -1,4 +1,4 @@
-"""The C fast path (``mds_ach._achfast``) against the pure-Python reference: built where it can be, same bytes,
+"""The C fast path (``mds_ach.ach._achfast``) against the pure-Python reference: built where it can be, same bytes,
 same statuses, same reader state, and the properties only C can break (threads sharing a handle, the GIL)."""
 
 from __future__ import annotations
@@ -37,14 +37,14 @@ def test_fast_path_is_built_where_it_can_be() -> None:
     10x slower hot path, or leave channel mappings unguarded."""
     if not _can_build():
         pytest.skip("no C compiler or Python headers here: the pure-Python path is the only one")
-    assert ach.FAST_AVAILABLE, "mds_ach._achfast is not importable: run `make setup` (pip install -e .)"
+    assert ach.FAST_AVAILABLE, "mds_ach.ach._achfast is not importable: run `make setup` (pip install -e .)"
     assert os.environ.get("MDS_ACH_PURE_PYTHON", "") in ("", "0")
     # the SIGBUS guard for channel mappings (a truncated channel file must not kill the process) is built with it
-    assert ach.GUARD_AVAILABLE, "mds_ach._shmguard is not importable: run `make setup` (pip install -e .)"
+    assert ach.GUARD_AVAILABLE, "mds_ach.ach._shmguard is not importable: run `make setup` (pip install -e .)"
     assert ach._achfast.LOCK_TIMED_OUT == ach._LOCK_TIMED_OUT
 
 
-needs_fast = pytest.mark.skipif(not ach.FAST_AVAILABLE, reason="mds_ach._achfast not built")
+needs_fast = pytest.mark.skipif(not ach.FAST_AVAILABLE, reason="mds_ach.ach._achfast not built")
 
 
 def _image(name: str) -> bytes:

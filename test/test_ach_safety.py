@@ -24,9 +24,10 @@ from pathlib import Path
 import pytest
 from conftest import REPO, in_netns
 
-from mds_ach import ach, repair
-from mds_ach.channels import StructChannel
-from mds_ach.msgs import MDS_REF
+from mds_ach import ach
+from mds_ach.ach import repair
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_REF
 
 NAME = "test-safety"
 LAYOUT = ach.native_layout()
@@ -323,7 +324,7 @@ with ach.Channel("test-other", 4, 64) as other:  # this thread's robust-mutex li
 """
 
 
-@pytest.mark.skipif(not ach.GUARD_AVAILABLE, reason="mds_ach._shmguard not built (no C compiler)")
+@pytest.mark.skipif(not ach.GUARD_AVAILABLE, reason="mds_ach.ach._shmguard not built (no C compiler)")
 @pytest.mark.parametrize("method, marker", [("_write_locked", "self._mv[start:start + n] = src"),
                                             ("_read_locked", "dst[:size] = self._mv[start:start + size]")],
                          ids=["put", "get"])

@@ -1,6 +1,6 @@
 """achd-compatible networking: our server and links on loopback, then two simulated hosts over a veth pair.
 
-The fast tests run a :class:`mds_ach.achd.Server` and :class:`mds_ach.achd.Link` in this process on
+The fast tests run a :class:`mds_ach.net.achd.Server` and :class:`mds_ach.net.achd.Link` in this process on
 loopback. The slow ones build a robot host (its own network and /dev/shm) joined to this namespace (the
 operator station) by a veth pair; the robot runs the simulated system (``daemon --nocan``, mux, filter and
 collision gate) and ``mds-ach remote serve``; the operator
@@ -23,9 +23,11 @@ import pytest
 from conftest import VENV_BIN, in_netns, wait_for
 
 import mds_ach as mds
-from mds_ach import ach, achd, msgs
-from mds_ach import achd_protocol as ap
+from mds_ach import ach
+from mds_ach.net import achd
+from mds_ach.net import protocol as ap
 from mds_ach.netsim import Host, Sshd, Veth, reachable
+from mds_ach.robot import msgs
 
 OP_IP = "10.77.0.1"
 ROBOT_IP = "10.77.0.2"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from mds_ach import achd_protocol as ap
+from mds_ach.net import protocol as ap
 
 RESP_MARK = b"\n--RESP--\n"
 FRAMES_MARK = b"\n--FRAMES--\n"

@@ -22,8 +22,10 @@ import pytest
 from conftest import VENV_BIN, in_netns, remove_mds_channels
 
 import mds_ach as mds
-from mds_ach import ach, joints, kinematics, paths
-from mds_ach.msgs import MDS_IK, MDS_STATE
+from mds_ach import ach, paths
+from mds_ach.kinematics import model as kinematics
+from mds_ach.robot import joints
+from mds_ach.robot.msgs import MDS_IK, MDS_STATE
 from mds_ach_bridge import trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
 from mds_ach_bridge.ik_request import make_request, quaternion_to_rpy
@@ -67,7 +69,7 @@ def test_positions_from_array_uses_the_documented_order() -> None:
 
 
 def test_limits_come_from_the_joint_table() -> None:
-    from mds_ach import config
+    from mds_ach.robot import config
 
     table = config.load()
     limits = load_limits()
@@ -147,7 +149,7 @@ def test_anchoring_checks_the_segment_from_the_current_reference() -> None:
 
 @pytest.mark.parametrize("rpy", [(0.0, 0.0, 0.0), (0.3, -0.4, 1.2), (-2.0, 1.1, -3.0), (1.57, 0.0, -1.57)])
 def test_quaternion_to_rpy_matches_the_kinematics_convention(rpy: tuple[float, float, float]) -> None:
-    """Same Z-Y-X angles the IK node extracts from a rotation matrix (mds_ach.kinematics.euler_zyx)."""
+    """Same Z-Y-X angles the IK node extracts from a rotation matrix (mds_ach.kinematics.model.euler_zyx)."""
     R = kinematics.rpy_matrix(*rpy)
     # quaternion from the matrix (w-major branch is fine away from 180 deg rotations)
     w = math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
@@ -337,7 +339,7 @@ def harness(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Harness]:
 
 
 def _state_channel():
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     return StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE, create=False)
 
@@ -533,7 +535,7 @@ def test_trajectory_from_another_process_moves_the_simulated_joint(harness: Harn
 def test_ik_target_is_forwarded_and_bad_frames_rejected(harness: Harness) -> None:
     from geometry_msgs.msg import PoseStamped
 
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     with StructChannel(mds.MDS_CHAN_IK_NAME, MDS_IK) as chan:
         chan.flush()
@@ -588,8 +590,8 @@ def test_first_frame_keeps_the_channel_content_for_joints_not_commanded(harness:
     the commanded joint may differ from that frame (the mux would take any other difference as a command)."""
     from sensor_msgs.msg import JointState
 
-    from mds_ach.channels import StructChannel
-    from mds_ach.msgs import MDS_REF
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs import MDS_REF
 
     limits = load_limits()
     lo, hi = limits["LSP"]

@@ -7,9 +7,9 @@ import os
 import threading
 
 from mds_ach import ach
-from mds_ach.channels import StructChannel
-from mds_ach.msgs import MDS_REF
-from mds_ach.pipeline import ChannelGuard
+from mds_ach.nodes.pipeline import ChannelGuard
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_REF
 
 
 def _set_dirty(name: str, value: int) -> None:

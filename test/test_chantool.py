@@ -15,9 +15,11 @@ import pytest
 from conftest import NOBODY, VENV_BIN, run_as
 
 import mds_ach as mds
-from mds_ach import ach, channel_access, cli
-from mds_ach.channels import make_channels, remove_channels
-from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE, set_name
+from mds_ach import ach
+from mds_ach.robot import access as channel_access
+from mds_ach.robot.channels import make_channels, remove_channels
+from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE, set_name
+from mds_ach.tools import cli
 
 
 @pytest.fixture

@@ -1,6 +1,6 @@
 """include/mds.h against the Python layouts: compiled with gcc/g++, every sizeof/offsetof compared.
 
-The header is generated from mds_ach.msgs, so these tests check what generation cannot promise by
+The header is generated from mds_ach.robot.msgs, so these tests check what generation cannot promise by
 itself: that a C compiler lays the structs out byte for byte like ctypes (packing, field types), that
 the bytes a C program writes decode correctly in Python, that the constants agree, and that the
 committed file is the generated one. The C examples need libach and are not built here.
@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 
 import mds_ach as mds
-from mds_ach import cheader, joints, msgs
+from mds_ach.robot import joints, msgs
+from mds_ach.tools import cheader
 
 INCLUDE = cheader.HEADER_PATH.parent
 
@@ -84,7 +85,8 @@ def _parse_layout(out: str) -> set[tuple[str, str, int, int]]:
 
 def test_committed_header_is_generated_text() -> None:
     committed = cheader.HEADER_PATH.read_text()
-    assert committed == cheader.generate(), "include/mds.h is stale: run `python -m mds_ach.cheader` and commit it"
+    assert committed == cheader.generate(), \
+        "include/mds.h is stale: run `python -m mds_ach.tools.cheader` and commit it"
     assert cheader.main(["--check"]) == 0
 
 

@@ -17,7 +17,9 @@ import numpy as np
 import pytest
 from conftest import VENV_BIN
 
-from mds_ach import canio, checklog, config, mcb, motion
+from mds_ach.bus import canio, mcb
+from mds_ach.robot import config, motion
+from mds_ach.tools import checklog
 
 TABLE = config.load("default")
 REAL_LOGS = "mds-reference/can/logs"

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import mds_ach as mds
-from mds_ach import collision
-from mds_ach.joints import MODEL_JOINTS
-from mds_ach.kinematics import load_model as load_kinematics
+from mds_ach.kinematics import collision
+from mds_ach.kinematics.model import load_model as load_kinematics
 from mds_ach.paths import config_path, urdf_path
+from mds_ach.robot.joints import MODEL_JOINTS
 
 HOME = {"RSP": -0.445, "RSR": -1.18, "REP": -1.25, "RSY": 0.15, "LSP": -0.45, "LSR": 1.2, "LEP": -1.25,
         "LSY": -0.25, "LWR": -0.28}

@@ -15,11 +15,11 @@ from conftest import VENV_BIN, wait_for
 
 import mds_ach as mds
 from mds_ach import ik
-from mds_ach.collision import load_model
-from mds_ach.collision_node import Gate, GateConfig, GateRunner, decision_to_dict, joint_limits
-from mds_ach.filter_node import FilterCore, parse_config
-from mds_ach.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
-from mds_ach.pipeline import make_ref, ref_arrays
+from mds_ach.kinematics.collision import load_model
+from mds_ach.nodes.collision import Gate, GateConfig, GateRunner, decision_to_dict, joint_limits
+from mds_ach.nodes.filter import FilterCore, parse_config
+from mds_ach.nodes.pipeline import make_ref, ref_arrays
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 
 N = mds.MDS_JOINT_COUNT
 ZERO_MODE = np.zeros(N, dtype=np.int16)
@@ -209,7 +209,7 @@ def test_expert_override_is_explicit_reported_and_expires(model) -> None:
     d = gate.process(target, ZERO_MODE, now + 0.025)
     assert d.overridden and not d.held and d.result.collides
     assert gate.report(now + 0.025).isCollide == 2  # visible on mds-collide
-    from mds_ach.monitor import collision_summary
+    from mds_ach.tools.monitor import collision_summary
 
     assert collision_summary(gate.report(now + 0.025)).startswith("EXPERT OVERRIDE")
     assert decision_to_dict(d, gate, now + 0.025)["override_remaining"] == pytest.approx(0.975)
@@ -255,7 +255,7 @@ def test_report_hysteresis_on_wall_time(model) -> None:
 def test_the_measured_pose_of_a_compliant_arm_holds_the_other_arm(model) -> None:
     """Mode 2: the left arm's reference went home but the arm stays where it is (the daemon's target follows the
     encoder). The right hand sent to where the left hand physically is must stop short of it, reported."""
-    from mds_ach.collision_node import Observed
+    from mds_ach.nodes.collision import Observed
 
     point = [0.40, 0.05, -0.10]
     left_there = solve("left", point)
@@ -319,7 +319,7 @@ def test_a_flagged_arm_never_moves_and_a_released_one_comes_back_at_the_filter_s
 def test_a_released_arm_waits_until_the_daemon_took_the_cleared_flag(model, echo: bool) -> None:
     """After a hold the flag is cleared first; the arm's reference stays put until mds-state shows that the daemon
     took a report without the flag (its 10 Hz cycle copies mds-collide into state.collide), or release_wait."""
-    from mds_ach.collision_node import Observed
+    from mds_ach.nodes.collision import Observed
 
     gate = make_gate(model)
     point = [0.40, 0.0, -0.10]
@@ -353,7 +353,7 @@ def test_a_released_arm_waits_until_the_daemon_took_the_cleared_flag(model, echo
 def test_arms_in_measured_contact_are_held_and_can_be_moved_apart(model) -> None:
     """Both arms pushed into contact (e.g. compliant arms moved by hand): reported and held while their references
     stand still; a reference that brings them closer is refused, one that moves an arm away passes (escaping)."""
-    from mds_ach.collision_node import Observed
+    from mds_ach.nodes.collision import Observed
 
     pos = HOME.copy()
     pos[L], pos[R] = solve("left", [0.40, 0.02, -0.1]), solve("right", [0.40, -0.02, -0.1])
@@ -399,7 +399,7 @@ def test_arms_in_measured_contact_are_held_and_can_be_moved_apart(model) -> None
 def test_moving_out_of_a_contact_is_reported_as_contact_not_as_a_hold(model) -> None:
     """isCollide = 3 while the arms are in contact but only moves out of it pass and nothing is held (the daemon
     holds nothing then); operators see it as CONTACT, a hold as BLOCKED."""
-    from mds_ach.monitor import collision_summary
+    from mds_ach.tools.monitor import collision_summary
 
     inside = HOME.copy()
     inside[L], inside[R] = solve("left", [0.40, 0.02, -0.1]), solve("right", [0.40, -0.02, -0.1])
@@ -425,14 +425,14 @@ def test_moving_out_of_a_contact_is_reported_as_contact_not_as_a_hold(model) -> 
 
 
 def _put(name: str, ref: np.ndarray) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     with StructChannel(name, mds.MDS_REF) as ch:
         ch.put(make_ref(ref, ZERO_MODE))
 
 
 def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     _put(mds.MDS_CHAN_REF_NAME, HOME)
     stale = HOME.copy()
@@ -499,7 +499,7 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
     docs: list[dict] = []
     node.create_subscription(String, "/mds/collision", lambda m: docs.append(json.loads(m.data)), 10)
     override = node.create_publisher(Float64, "/mds/collision/override", 10)
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
     try:

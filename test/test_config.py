@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from mds_ach import anatomy, config, joints
-from mds_ach.config import ConfigError
-from mds_ach.msgs import MDS_JOINT_PARAM, MDS_STATE, get_name
 from mds_ach.paths import config_path
+from mds_ach.robot import anatomy, config, joints
+from mds_ach.robot.config import ConfigError
+from mds_ach.robot.msgs import MDS_JOINT_PARAM, MDS_STATE, get_name
 
 ROBOT_FILES = {"default": "anatomy.xml", "isaac": "Isaac.anatomy.xml", "lucas": "Lucas.anatomy.xml",
                "octavia": "Octavia.anatomy.xml"}
@@ -55,7 +55,7 @@ def test_every_reference_config_file_loads(xml_dir: Path, caplog: pytest.LogCapt
         muscles = anatomy.load_anatomy(path)
         head_only = ".head." in path.name
         assert len(muscles) == (20 if head_only else 43), path.name
-        with caplog.at_level(logging.INFO, logger="mds_ach.anatomy"):
+        with caplog.at_level(logging.INFO, logger="mds_ach.robot.anatomy"):
             table = config.from_xml(path, xml_dir / "mdsach.xml")
         assert [j.short for j in table] == [j.short for j in joints.JOINTS if j.address in muscles]
         if head_only:
@@ -72,7 +72,7 @@ def test_duplicate_eye_short_names_are_mapped_with_a_note(xml_dir: Path, caplog:
     raw = {m.get("name"): m.find("parameter[@name='mdsachname']").get("value")
            for m in ET.parse(xml_dir / "mdsach.xml").getroot()}
     assert raw["LeftEyePan"] == raw["EyePitch"] == "LYP" and raw["RightEyePan"] == "RYP"
-    with caplog.at_level(logging.INFO, logger="mds_ach.anatomy"):
+    with caplog.at_level(logging.INFO, logger="mds_ach.robot.anatomy"):
         overlay = anatomy.load_overlay(xml_dir / "mdsach.xml")
     assert (overlay["LeftEyePan"].short, overlay["EyePitch"].short, overlay["RightEyePan"].short) == (
         "LYY", "EYP", "RYY")

@@ -21,8 +21,9 @@ from mds_system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, mds_ac
 from pty_session import PtySession
 
 import mds_ach as mds
-from mds_ach import ach, console
-from mds_ach.console import CommandError, Get, GetFk, Goto, Ik, Simple, parse
+from mds_ach import ach
+from mds_ach.tools import console
+from mds_ach.tools.console import CommandError, Get, GetFk, Goto, Ik, Simple, parse
 
 # --------------------------------------------------------------------------------------------- parser
 
@@ -104,8 +105,8 @@ LINES = st.one_of(
 @pytest.fixture
 def fake_system() -> Iterator[None]:
     """Channels holding one state frame at the home pose, and nothing running: the console must cope."""
-    from mds_ach.channels import StructChannel, make_channels
-    from mds_ach.config import load
+    from mds_ach.robot.channels import StructChannel, make_channels
+    from mds_ach.robot.config import load
 
     remove_mds_channels()
     make_channels()
@@ -141,9 +142,9 @@ def test_goto_is_reported_applied_only_when_the_mux_output_has_it(fake_system: N
     moved the joint, changes nothing, and the console must say so instead of reporting success."""
     import threading
 
-    from mds_ach.channels import StructChannel
-    from mds_ach.mux import MuxRunner, load_config
-    from mds_ach.pipeline import make_ref, ref_arrays
+    from mds_ach.nodes.mux import MuxRunner, load_config
+    from mds_ach.nodes.pipeline import make_ref, ref_arrays
+    from mds_ach.robot.channels import StructChannel
 
     cfg = load_config()
     logs: list[str] = []
@@ -250,7 +251,7 @@ def test_goto_moves_the_joint_through_the_pipeline(system: dict[str, str]) -> No
     # the motion went through the mux: the default controller owns LSP now
     from mds_system import newest
 
-    from mds_ach.mux import MDS_MUX_STATE
+    from mds_ach.nodes.mux import MDS_MUX_STATE
 
     mux_state = newest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
     owner = mux_state.owner[mds.LSP]
@@ -391,7 +392,7 @@ def test_commands_are_not_applied_while_the_mux_is_down(system: dict[str, str]) 
 
 
 def test_console_does_not_import_torch(fake_system: None) -> None:
-    code = ("import sys; from mds_ach.console import main; rc = main(['-c', 'get fk left']); "
+    code = ("import sys; from mds_ach.tools.console import main; rc = main(['-c', 'get fk left']); "
             "assert 'torch' not in sys.modules, 'console imported torch'; sys.exit(rc)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr

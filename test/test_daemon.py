@@ -24,14 +24,16 @@ from conftest import VENV_BIN, wait_for
 from motion_audit import Audit, MemoryLog, audit
 
 import mds_ach as mds
-from mds_ach import canio, config, daemon, mcb
-from mds_ach import daemon_status as ds
-from mds_ach.channels import StructChannel
-from mds_ach.daemon_loop import DaemonChannels, DaemonLoop, sleep_until
-from mds_ach.filters import filter_length
-from mds_ach.mcb import Command, StateArg
-from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
-from mds_ach.simbus import CAN_ERR_CRTL, ManualClock, SimNetwork
+from mds_ach.bus import canio, mcb
+from mds_ach.bus.mcb import Command, StateArg
+from mds_ach.bus.simbus import CAN_ERR_CRTL, ManualClock, SimNetwork
+from mds_ach.nodes import daemon
+from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, sleep_until
+from mds_ach.nodes.filters import filter_length
+from mds_ach.robot import config
+from mds_ach.robot import daemon_status as ds
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
 
 TABLE = config.load("default")
 
@@ -513,7 +515,8 @@ def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
 def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clean_shm) -> None:
     """mds-ref left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
     `mds-ach repair` the first new reference is approached within the motion bounds, like after a restart."""
-    from mds_ach import ach, repair
+    from mds_ach import ach
+    from mds_ach.ach import repair
 
     rig = make_rig(pose={"LEP": -1.0})
     try:

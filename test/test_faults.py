@@ -39,13 +39,11 @@ from conftest import VENV_BIN, in_netns, remove_mds_channels, wait_for
 from motion_audit import MemoryLog, audit, read_log
 
 import mds_ach as mds
-from mds_ach import ach, canio, channel_access, config, mcb, repair
-from mds_ach import daemon_status as ds
-from mds_ach.channels import StructChannel
-from mds_ach.daemon_loop import DaemonChannels, DaemonLoop
-from mds_ach.mcb import Command, StateArg
-from mds_ach.msgs import MDS_CMD, MDS_REF, MDS_STATE
-from mds_ach.simbus import (
+from mds_ach import ach
+from mds_ach.ach import repair
+from mds_ach.bus import canio, mcb
+from mds_ach.bus.mcb import Command, StateArg
+from mds_ach.bus.simbus import (
     CAN_ERR_BUSERROR,
     CAN_ERR_CRTL,
     CAN_ERR_CRTL_RX_PASSIVE,
@@ -54,6 +52,12 @@ from mds_ach.simbus import (
     ManualClock,
     SimNetwork,
 )
+from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
+from mds_ach.robot import access as channel_access
+from mds_ach.robot import config
+from mds_ach.robot import daemon_status as ds
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_CMD, MDS_REF, MDS_STATE
 
 TABLE = config.load("default")
 CAN_ERR_CRTL_ACTIVE = 0x40  # <linux/can/error.h>: data[1] "recovered to error active state"
@@ -760,7 +764,7 @@ class System:
         return mds_ach_cli(*args, timeout=timeout)
 
     def start(self, pose: dict[str, float] | None = None) -> None:
-        from mds_ach.channels import make_channels
+        from mds_ach.robot.channels import make_channels
 
         assert all(r.ok for r in make_channels())
         self.start_daemon(pose)
@@ -770,7 +774,7 @@ class System:
         self.moving(20)
 
     def start_daemon(self, pose: dict[str, float] | None = None) -> None:
-        from mds_ach import launcher
+        from mds_ach.tools import launcher
 
         log = self.rt / f"can-{len(self.can_logs) + 1}.asc"
         self.can_logs.append(log)
@@ -793,7 +797,7 @@ class System:
         assert proc.returncode == 0, f"mds-ach start --only {' '.join(names)}:\n{proc.stdout}\n{proc.stderr}"
 
     def pid(self, name: str) -> int | None:
-        from mds_ach import launcher
+        from mds_ach.tools import launcher
 
         return launcher.read_pid(name, self.rt)
 
@@ -804,7 +808,7 @@ class System:
         wait_for(lambda: self.pid(name) is None, 10, what=f"{name} to die")
 
     def log(self, name: str) -> str:
-        from mds_ach import launcher
+        from mds_ach.tools import launcher
 
         path = launcher.log_path(name, self.rt)
         return path.read_text(errors="replace") if path.exists() else ""
@@ -1011,8 +1015,8 @@ def test_sigkill_node_while_the_arms_move(system: System, node: str) -> None:
 
 
 def assert_ik_answers(s: System) -> None:
-    from mds_ach.console import fk_pose
-    from mds_ach.ik_client import IkClient
+    from mds_ach.nodes.ik_client import IkClient
+    from mds_ach.tools.console import fk_pose
 
     last = s.recorder.last()
     q = [last.ref[mds.BY_SHORT[n].address] for n in mds.joints.LEFT_ARM]

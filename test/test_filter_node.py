@@ -1,4 +1,4 @@
-"""Filter node: per-joint modes (shared maths in mds_ach.filters), config, late start without a jump, node life."""
+"""Filter node: per-joint modes (shared maths in mds_ach.nodes.filters), config, late start, node life."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import pytest
 from conftest import VENV_BIN, wait_for
 
 import mds_ach as mds
-from mds_ach import filters
-from mds_ach.filter_node import EMA, ENC, PASS, VEL, FilterCore, FilterRunner, load_config, parse_config
-from mds_ach.pipeline import make_ref, ref_arrays
+from mds_ach.nodes import filters
+from mds_ach.nodes.filter import EMA, ENC, PASS, VEL, FilterCore, FilterRunner, load_config, parse_config
+from mds_ach.nodes.pipeline import make_ref, ref_arrays
 
 N = mds.MDS_JOINT_COUNT
 ZERO_MODE = np.zeros(N, dtype=np.int16)
@@ -166,14 +166,14 @@ def test_non_finite_targets_are_ignored_per_joint() -> None:
 
 
 def _put(name: str, ref: np.ndarray) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     with StructChannel(name, mds.MDS_REF) as ch:
         ch.put(make_ref(ref, ZERO_MODE))
 
 
 def test_runner_starts_late_without_jump_and_resumes_the_mux_target(clean_shm: None) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     current = _target(LSR=1.2, RSR=-1.18, LEP=-1.25, REP=-1.25)
     _put(mds.MDS_CHAN_REF_NAME, current)  # what the daemon is commanding now
@@ -206,7 +206,7 @@ def test_runner_starts_late_without_jump_and_resumes_the_mux_target(clean_shm: N
 
 
 def test_runner_waits_for_a_reference_instead_of_commanding_zero(clean_shm: None) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     logs: list[str] = []
     runner = FilterRunner(parse_config({}), log=lambda level, msg: logs.append(msg))
@@ -245,7 +245,7 @@ def test_filter_rejects_bad_config_with_a_clear_message(tmp_path) -> None:
 @pytest.mark.ros
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_filter_node_streams_and_stops_cleanly(clean_shm: None, sig: int) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     _put(mds.MDS_CHAN_REF_NAME, _target(LSR=1.2))
     proc = subprocess.Popen([str(VENV_BIN / "filter"), "--rate", "50"], stdout=subprocess.PIPE,

@@ -34,10 +34,11 @@ from motion_audit import audit
 from test_faults import TABLE, CanRig, unsafe_commands
 
 import mds_ach as mds
-from mds_ach import ach, mcb
-from mds_ach import daemon_status as ds
-from mds_ach.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_COUNT, MDS_REF
-from mds_ach.pipeline import KNOWN_ADDRESSES, ref_arrays
+from mds_ach import ach
+from mds_ach.bus import mcb
+from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, ref_arrays
+from mds_ach.robot import daemon_status as ds
+from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_COUNT, MDS_REF
 
 # CI runs a fixed, modest set of examples; MDS_FUZZ_EXAMPLES=2000 fuzzes deeper with fresh random examples.
 FUZZ_EXAMPLES = int(os.environ.get("MDS_FUZZ_EXAMPLES", "30"))
@@ -127,7 +128,7 @@ def test_daemon_survives_anything_on_its_input_channels(fresh: None, caplog: pyt
             with ach.Channel(channel, create=False) as ch:
                 ch.put(data)
             bad_before = (rig.loop.ch.ref.bad_frames, rig.loop.ch.collide.bad_frames)
-            with caplog.at_level(logging.WARNING, logger="mds_ach.daemon"):
+            with caplog.at_level(logging.WARNING, logger="mds_ach.nodes.daemon"):
                 rig.run(0.1, move=False)  # one cycle takes the frame
             st_ = rig.status()
             if channel == mds.MDS_CHAN_REF_NAME:
@@ -164,7 +165,7 @@ def test_daemon_survives_anything_on_its_input_channels(fresh: None, caplog: pyt
 
 @pytest.fixture(scope="module")
 def gate_parts() -> tuple:
-    from mds_ach.collision_node import build_gate_parts
+    from mds_ach.nodes.collision import build_gate_parts
 
     return build_gate_parts()
 
@@ -180,11 +181,11 @@ def test_pipeline_nodes_never_pass_on_what_they_must_refuse(fresh: None, gate_pa
     the wrong size are dropped (StructChannel counts them); NaN/Inf frames are refused by the mux and counted; the
     filter ignores non-finite targets with a warning; the gate passes only finite, in-limit, collision-free
     references with valid modes."""
-    from mds_ach.collision_node import Gate
-    from mds_ach.filter_node import FilterCore, load_config
-    from mds_ach.mux import MuxCore
-    from mds_ach.mux import load_config as mux_config
-    from mds_ach.pipeline import make_ref
+    from mds_ach.nodes.collision import Gate
+    from mds_ach.nodes.filter import FilterCore, load_config
+    from mds_ach.nodes.mux import MuxCore
+    from mds_ach.nodes.mux import load_config as mux_config
+    from mds_ach.nodes.pipeline import make_ref
 
     model, gate_cfg, lower, upper = gate_parts
     rig = CanRig.start()
@@ -261,7 +262,7 @@ def test_random_can_frames_into_the_daemon(fresh: None, frames: list[tuple[str, 
     """Whatever arrives from the bus: no crash, every frame counted, nothing unsafe sent, never a non-finite
     position taken as a measurement. In compliant mode the garbage positions even become references: the limits
     still hold."""
-    from mds_ach.simbus import CAN_ERR_CRTL
+    from mds_ach.bus.simbus import CAN_ERR_CRTL
 
     rig = CanRig.start()
     mode = mds.MDS_REF_MODE_COMPLIANT if compliant else mds.MDS_REF_MODE_REF
@@ -312,7 +313,7 @@ console_lines = st.one_of(st.text(max_size=60), st.lists(st.one_of(words, st.tex
 @pytest.fixture
 def console_rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple]:
     """A daemon publishing mds-state (simulated bus), the legacy input channel, and a console with short waits."""
-    from mds_ach import console
+    from mds_ach.tools import console
 
     remove_mds_channels()
     for name, value in (("GOTO_TIMEOUT", 0.05), ("IK_TIMEOUT", 0.05), ("IK_MOTION_TIMEOUT", 0.05),
@@ -333,7 +334,7 @@ def console_rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple]:
 @FUZZ
 @given(line=console_lines)
 def test_random_console_lines(console_rig: tuple, line: str) -> None:
-    from mds_ach import console
+    from mds_ach.tools import console
 
     rig, con, out = console_rig
     try:

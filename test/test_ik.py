@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from test_urdf import original_chain
 
-from mds_ach import ik, kinematics
+from mds_ach import ik
+from mds_ach.kinematics import model as kinematics
 
 ARMS = ("left", "right")
 

@@ -15,9 +15,12 @@ import pytest
 from conftest import VENV_BIN, wait_for
 
 import mds_ach as mds
-from mds_ach import ik, kinematics
-from mds_ach.ik_client import IkClient, make_request
-from mds_ach.ik_msgs import (
+from mds_ach import ik
+from mds_ach.kinematics import model as kinematics
+from mds_ach.nodes.ik import IkNodeConfig, IkRunner, IkService, arm_limits
+from mds_ach.nodes.ik_client import IkClient, make_request
+from mds_ach.nodes.pipeline import make_ref, ref_arrays
+from mds_ach.robot.ik_msgs import (
     IK_BAD_REQUEST,
     IK_NOT_READY,
     IK_SOLVED,
@@ -26,9 +29,7 @@ from mds_ach.ik_msgs import (
     get_message,
     status_to_dict,
 )
-from mds_ach.ik_node import IkNodeConfig, IkRunner, IkService, arm_limits
-from mds_ach.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
-from mds_ach.pipeline import make_ref, ref_arrays
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 
 N = mds.MDS_JOINT_COUNT
 LEFT_ADDR = [BY_SHORT[s].address for s in LEFT_ARM]
@@ -45,7 +46,7 @@ def current_pose() -> np.ndarray:
 
 
 def put_state(ref: np.ndarray) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     st = mds.MDS_STATE()
     for a in range(N):
@@ -145,8 +146,8 @@ def test_service_seeds_from_the_current_reference(service: IkService) -> None:
 
 
 def test_collision_hook_keeps_solutions_clear_of_the_body() -> None:
-    from mds_ach.collision import load_model
-    from mds_ach.ik_node import collision_safety
+    from mds_ach.kinematics.collision import load_model
+    from mds_ach.nodes.ik import collision_safety
 
     svc = IkService(IkNodeConfig(), arm_limits("default"), collision_safety(lambda level, msg: None))
     model = load_model()
@@ -177,7 +178,7 @@ def _frames(ch) -> list:
 
 @pytest.mark.parametrize("output", [mds.MDS_CHAN_REF_IK_NAME, mds.MDS_CHAN_REF_FILTER_NAME])
 def test_runner_with_real_channels(clean_shm: None, output: str) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     cur = current_pose()
     put_state(cur)
@@ -227,7 +228,7 @@ def test_runner_with_real_channels(clean_shm: None, output: str) -> None:
 
 def test_old_requests_are_not_commands(clean_shm: None) -> None:
     """Requests already in mds-ik when the node starts are flushed, like the original did."""
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     put_state(current_pose())
     with StructChannel(mds.MDS_CHAN_IK_NAME, mds.MDS_IK) as ch:
@@ -265,8 +266,8 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
     import rclpy
     from std_msgs.msg import String
 
-    from mds_ach.channels import StructChannel
-    from mds_ach.ik_msgs import IK_STATUS_TOPIC
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.ik_msgs import IK_STATUS_TOPIC
 
     put_state(current_pose())
     proc = subprocess.Popen([str(VENV_BIN / "ik")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

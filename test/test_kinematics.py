@@ -1,4 +1,4 @@
-"""mds_ach.kinematics: numpy FK/Jacobian of the arms and the whole tree, the torch path, light imports."""
+"""mds_ach.kinematics.model: numpy FK/Jacobian of the arms and the whole tree, the torch path, light imports."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from test_urdf import original_chain
 
-from mds_ach import kinematics
-from mds_ach.joints import LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
+from mds_ach.kinematics import model as kinematics
+from mds_ach.robot.joints import LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
 
 SIGN = {"left": 1.0, "right": -1.0}
 
@@ -116,7 +116,7 @@ def test_torch_fk_and_jacobian_equal_numpy(arm: str) -> None:
 
 
 def test_kinematics_and_ik_import_without_torch() -> None:
-    code = ("import sys, mds_ach.kinematics, mds_ach.ik, mds_ach.ik_client, mds_ach.ik_msgs; "
+    code = ("import sys, mds_ach.kinematics.model, mds_ach.ik, mds_ach.nodes.ik_client, mds_ach.robot.ik_msgs; "
             "print(sorted(m for m in ('torch', 'pytorch_kinematics', 'yourdfpy', 'rclpy', 'fcl') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]"

@@ -15,11 +15,12 @@ from conftest import NOBODY, REPO, VENV_BIN, in_netns, remove_mds_channels, run_
 from mds_system import mds_ach, newest, running_system, system_env
 
 import mds_ach as mds
-from mds_ach import ach, repair
-from mds_ach.config import load
-from mds_ach.daemon_status import MDS_DAEMON_STATUS
-from mds_ach.launcher import NODES, node_command
-from mds_ach.msgs import get_name
+from mds_ach import ach
+from mds_ach.ach import repair
+from mds_ach.robot.config import load
+from mds_ach.robot.daemon_status import MDS_DAEMON_STATUS
+from mds_ach.robot.msgs import get_name
+from mds_ach.tools.launcher import NODES, node_command
 
 VERBS = ["start", "run", "stop", "kill", "killall", "status", "resetbus", "changerobot", "console", "read"]
 

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from mds_ach import mcb
-from mds_ach.mcb import BROADCAST_SID, HOST_SID, Command, ErrorCode, Response, StateArg
+from mds_ach.bus import mcb
+from mds_ach.bus.mcb import BROADCAST_SID, HOST_SID, Command, ErrorCode, Response, StateArg
 
 
 @dataclass

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mds_ach.motion import MotionBounds, Track, check, limit
+from mds_ach.robot.motion import MotionBounds, Track, check, limit
 
 BOUNDS = MotionBounds(max_velocity=2.0, max_acceleration=8.0, max_interval=0.15)
 

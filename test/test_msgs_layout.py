@@ -7,7 +7,7 @@ import ctypes
 import pytest
 
 import mds_ach as mds
-from mds_ach import msgs
+from mds_ach.robot import msgs
 
 
 def offsets(ctype: type[ctypes.Structure]) -> dict[str, int]:

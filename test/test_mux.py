@@ -14,8 +14,16 @@ import pytest
 from conftest import VENV_BIN, wait_for
 
 import mds_ach as mds
-from mds_ach.mux import MDS_MUX_STATE, Controller, MuxCore, MuxRunner, load_config, parse_controllers, state_to_dict
-from mds_ach.pipeline import make_ref, ref_arrays, select_joints
+from mds_ach.nodes.mux import (
+    MDS_MUX_STATE,
+    Controller,
+    MuxCore,
+    MuxRunner,
+    load_config,
+    parse_controllers,
+    state_to_dict,
+)
+from mds_ach.nodes.pipeline import make_ref, ref_arrays, select_joints
 
 ARMS = select_joints(["left_arm", "right_arm"])
 ALL = select_joints("all")
@@ -199,7 +207,7 @@ def test_state_reports_owners_ages_and_names() -> None:
 
 
 def _put(name: str, ref: np.ndarray, mode: np.ndarray = ZERO_MODE) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     with StructChannel(name, mds.MDS_REF) as ch:
         ch.put(make_ref(ref, mode))
@@ -208,7 +216,7 @@ def _put(name: str, ref: np.ndarray, mode: np.ndarray = ZERO_MODE) -> None:
 @pytest.fixture
 def runner(clean_shm: None):
     """A MuxRunner on the real channel names (private /dev/shm), started from a known mds-ref."""
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     ref, mode = _start_ref()
     _put(mds.MDS_CHAN_REF_NAME, ref)
@@ -239,7 +247,7 @@ def _newest(ch, timeout: float = 5.0):
 
 
 def test_runner_starts_from_current_reference_and_seeds_legacy_channel(runner) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     r, out, ref, _ = runner
     assert np.array_equal(_newest(out), ref)  # first output = current reference, not the old IK frame
@@ -248,7 +256,7 @@ def test_runner_starts_from_current_reference_and_seeds_legacy_channel(runner) -
 
 
 def test_runner_merges_inputs_event_driven(runner) -> None:
-    from mds_ach.channels import StructChannel
+    from mds_ach.robot.channels import StructChannel
 
     r, out, ref, _ = runner
     _newest(out)

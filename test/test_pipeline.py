@@ -27,13 +27,14 @@ from conftest import VENV_BIN, in_netns, wait_for
 from motion_audit import audit, read_log
 
 import mds_ach as mds
-from mds_ach import ach, config
-from mds_ach import daemon_status as ds
-from mds_ach.channels import StructChannel
-from mds_ach.collision import load_model
-from mds_ach.ik_msgs import IK_SOLVED, MDS_IK_STATUS
-from mds_ach.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
-from mds_ach.kinematics import arm_kinematics
+from mds_ach import ach
+from mds_ach.kinematics.collision import load_model
+from mds_ach.kinematics.model import arm_kinematics
+from mds_ach.robot import config
+from mds_ach.robot import daemon_status as ds
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.ik_msgs import IK_SOLVED, MDS_IK_STATUS
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -138,7 +139,7 @@ class System:
 
     def command(self, ref: np.ndarray, mode: np.ndarray) -> None:
         """A whole frame on mds-ref-filter (the mux's default controller, like console goto)."""
-        from mds_ach.pipeline import make_ref
+        from mds_ach.nodes.pipeline import make_ref
 
         if self.commands is None:
             self.commands = StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF)
@@ -351,13 +352,14 @@ def test_gate_checks_the_measured_pose_of_a_compliant_arm(gate_system: System) -
 
 def moveto_steps(log: Path) -> dict[int, list[tuple[float, float]]]:
     """Per joint address: (credit s, |target change| rad) of every MOVETO after the joint's first in a CAN log
-    (decoded with mds_ach.mcb, converted with the joint table). The credit is the time since the joint's previous
+    (decoded with mds_ach.bus.mcb, converted with the joint table). The credit is the time since the joint's previous
     MOVETO, but at most since the daemon's previous cycle (its broadcast position query): a joint that was held
     stood still at its last target, so a hold earns no credit, while a late daemon cycle does."""
     import can
 
-    from mds_ach import config, mcb
-    from mds_ach.mcb import Command, StateArg
+    from mds_ach.bus import mcb
+    from mds_ach.bus.mcb import Command, StateArg
+    from mds_ach.robot import config
 
     table = config.load()
     last: dict[int, tuple[float, float]] = {}
@@ -386,8 +388,8 @@ def test_gate_release_never_steps_the_motors(gate_system: System) -> None:
     comes on to the point. On the daemon's CAN log no MOVETO target differs from the joint's previous one by more
     than the filter's speed allows since the daemon's previous cycle (+ SAMPLING_SLACK for the filter's 25 ms
     frames): a release never sends the distance the arm missed while it was held."""
-    from mds_ach import filter_node
-    from mds_ach.pipeline import joint_label
+    from mds_ach.nodes import filter as filter_node
+    from mds_ach.nodes.pipeline import joint_label
 
     s = gate_system
     _, home, _ = s.frame()

@@ -13,14 +13,14 @@ import pytest
 from conftest import wait_for
 
 import mds_ach as mds
-from mds_ach import daemon_status as ds
-from mds_ach.channels import StructChannel
-from mds_ach.collision import load_model
-from mds_ach.collision_node import GateConfig, GateRunner, joint_limits
-from mds_ach.filter_node import FilterRunner, parse_config
-from mds_ach.joints import BY_SHORT
-from mds_ach.mux import Controller, MuxRunner
-from mds_ach.pipeline import KNOWN_ADDRESSES, ReseedWatch, make_ref, ref_arrays
+from mds_ach.kinematics.collision import load_model
+from mds_ach.nodes.collision import GateConfig, GateRunner, joint_limits
+from mds_ach.nodes.filter import FilterRunner, parse_config
+from mds_ach.nodes.mux import Controller, MuxRunner
+from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, ReseedWatch, make_ref, ref_arrays
+from mds_ach.robot import daemon_status as ds
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.joints import BY_SHORT
 
 N = mds.MDS_JOINT_COUNT
 LEP = BY_SHORT["LEP"].address

@@ -18,8 +18,10 @@ import can
 import pytest
 from conftest import REPO, VENV_BIN, in_netns, remove_mds_channels
 
-from mds_ach import checklog, config, mcb
-from mds_ach.simbus import FaultControl, ManualClock, SimNetwork, send_fault
+from mds_ach.bus import mcb
+from mds_ach.bus.simbus import FaultControl, ManualClock, SimNetwork, send_fault
+from mds_ach.robot import config
+from mds_ach.tools import checklog
 
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))

@@ -8,9 +8,10 @@ from pathlib import Path
 import can
 import pytest
 
-from mds_ach import canio, config, mcb
-from mds_ach.mcb import Command, ErrorCode, Response, StateArg
-from mds_ach.simbus import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED, ManualClock, SimBus, SimNetwork
+from mds_ach.bus import canio, mcb
+from mds_ach.bus.mcb import Command, ErrorCode, Response, StateArg
+from mds_ach.bus.simbus import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED, ManualClock, SimBus, SimNetwork
+from mds_ach.robot import config
 
 
 @pytest.fixture(scope="module")

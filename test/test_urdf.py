@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from mds_ach import kinematics
-from mds_ach.joints import LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
+from mds_ach.kinematics import model as kinematics
 from mds_ach.paths import urdf_path
+from mds_ach.robot.joints import LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
 
 L1, L2, L3, L4 = 0.24551, 0.282575, 0.3127375, 0.0635  # specs section e.1 (inches: 9.666, 11.125, 12.3125, 2.5)
 SHOULDER_HEIGHT = 1.2065
@@ -87,7 +87,7 @@ def test_arm_joints_have_the_ik_chain_origins_and_axes(robot, arm: str) -> None:
 
 
 def test_limits_are_inside_the_ik_clamps_and_the_joint_table(robot) -> None:
-    from mds_ach import config
+    from mds_ach.robot import config
 
     table = {j.short: j for j in config.load("default")}
     for name in MODEL_JOINTS:

@@ -28,8 +28,9 @@ import pytest
 from conftest import REPO, VENV_BIN, remove_mds_channels, wait_for
 
 import mds_ach as mds
-from mds_ach import ach, viewer
-from mds_ach.channels import StructChannel, make_channels
+from mds_ach import ach
+from mds_ach.robot.channels import StructChannel, make_channels
+from mds_ach.tools import viewer
 
 # --------------------------------------------------------------------------------------------------
 # helpers: frames for the fake daemon
@@ -170,7 +171,7 @@ def test_ik_request_places_the_marker_in_the_robot_frame(inproc: viewer.Viewer) 
 
 
 def test_ik_answer_recolours_and_captions_the_marker(inproc: viewer.Viewer) -> None:
-    from mds_ach.ik_msgs import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS
+    from mds_ach.robot.ik_msgs import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS
 
     make_channels()
     answer = MDS_IK_STATUS()
@@ -296,7 +297,7 @@ def _run_env(tmp_path: Path) -> dict[str, str]:
 
 
 def test_help_exits_zero() -> None:
-    out = subprocess.run([sys.executable, "-m", "mds_ach.viewer", "--help"], capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-m", "mds_ach.tools.viewer", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "--port" in out.stdout and "mds-ref-filter" in out.stdout
     out = subprocess.run([str(VENV_BIN / "mds-ach"), "sim", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "kill" in out.stdout
@@ -307,7 +308,7 @@ def test_help_exits_zero() -> None:
 def test_foreground_viewer_stops_cleanly_on_signals(sig: signal.Signals, tmp_path: Path, fresh_shm: None) -> None:
     url_file = tmp_path / "url"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mds_ach.viewer", "--port", "0", "--url-file", str(url_file)],
+        [sys.executable, "-m", "mds_ach.tools.viewer", "--port", "0", "--url-file", str(url_file)],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -342,7 +343,7 @@ def test_sim_verb_starts_in_background_serves_the_page_and_kill_stops_it(tmp_pat
     finally:
         stop = subprocess.run([mds_ach, "sim", "kill"], capture_output=True, text=True, env=env, timeout=30)
     assert stop.returncode == 0 and "stopped" in stop.stdout, stop.stdout + stop.stderr
-    assert not Path(f"/proc/{pid}").exists() or b"mds_ach.viewer" not in Path(f"/proc/{pid}/cmdline").read_bytes()
+    assert not Path(f"/proc/{pid}").exists() or b"mds_ach.tools.viewer" not in Path(f"/proc/{pid}/cmdline").read_bytes()
     assert not (tmp_path / "run" / viewer.SIM_PID).exists()
     again = subprocess.run([mds_ach, "sim", "kill"], capture_output=True, text=True, env=env, timeout=30)
     assert again.returncode == 0 and "not running" in again.stdout
@@ -471,7 +472,7 @@ def live_viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     assert all(r.ok for r in make_channels())
     url_file = tmp_path_factory.mktemp("viewer") / "url"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mds_ach.viewer", "--port", "0", "--url-file", str(url_file)],
+        [sys.executable, "-m", "mds_ach.tools.viewer", "--port", "0", "--url-file", str(url_file)],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
     )

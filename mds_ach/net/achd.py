@@ -1,0 +1,1086 @@
+"""achd-compatible network bridge: push a local Ach channel to a remote host, pull a remote one here.
+
+It speaks the C ``achd`` protocol (see :mod:`mds_ach.net.protocol`), so either end may be the C tool:
+our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` talks to our
+:class:`Server`. Differences from the C tool, all on the safe side:
+
+* the server is a real listening TCP server, bound to loopback unless told otherwise, and it only lets a
+  client write the channels on its allow-list (by default the safe pipeline inputs, never ``mds-ref``);
+* frames whose size does not match the channel's struct, or that fail validation (NaN/Inf references,
+  bad modes), are dropped and counted, never written;
+* a client reconnects after a drop and re-sends its newest frame; our server starts a sending
+  connection with the channel's newest frame (achd flushes it), so a reconnect never loses the newest
+  frame and a late client gets ``mds-param`` at once;
+* queues are bounded and the newest frame wins: the channel ring is the only queue, read newest-first
+  with get-last, and the socket send buffer is kept small;
+* no peer can lock others out: each remote address may hold a few connections (``max_per_peer``), loopback
+  peers (the robot's own tools, every operator coming through an SSH tunnel) have a pool of their own that
+  remote peers cannot use, and a connection that moves no data for ``idle_timeout_s`` is closed.
+
+Usage as a tool (same verbs and short options as achd)::
+
+    python -m mds_ach.net.achd [-p PORT] [-t tcp|udp] [-z REMOTE] [-u USEC] [-l] [-r] push|pull HOST CHANNEL
+    python -m mds_ach.net.achd serve [--bind ADDR] [--port PORT] [--allow-write CHAN] [--allow-read CHAN]
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import fnmatch
+import ipaddress
+import logging
+import math
+import os
+import select
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+
+from mds_ach.net import protocol as ap
+from mds_ach.robot import msgs
+
+log = logging.getLogger("mds_ach.net.achd")
+
+POLL_S = 0.2
+"""Every blocking wait (channel, socket) wakes at least this often to notice a stop request."""
+SEND_BUFFER_BYTES = 128 * 1024
+"""Socket send buffer of a sending link: small, so a slow link holds few stale frames (newest wins)."""
+HEADER_TIMEOUT_S = 5.0
+MAX_HEADER_BYTES = 32 * ap.LINE_LENGTH
+MAX_SERVED_STATS = 256
+REFUSED_RETRY_S = 2.0
+"""Back-off after the server refused a request (missing channel, not allowed): slower than a drop."""
+REF_ABS_MAX = 2 * math.pi
+"""No joint of the MDS turns more than a full turn: anything larger in a reference is garbage."""
+MAX_CLIENTS = 32
+"""Connections from remote (non-loopback) peers together."""
+MAX_PER_PEER = 8
+"""Connections from one remote address: ``mds-ach remote`` opens at most 5, a second tool fits too."""
+MAX_LOCAL_CLIENTS = 32
+"""Connections from loopback (local tools, SSH-tunnelled operators): a pool remote peers cannot exhaust."""
+IDLE_TIMEOUT_S = 300.0
+"""A served connection that sends and receives no frame for this long is closed (the client reconnects if it
+still wants the channel). Long enough that a quiet operator link is rarely rebuilt."""
+
+# Channels a client may write through our server unless told otherwise: the pipeline's inputs, so a
+# remote reference still passes the mux, filter and collision gate. Never mds-ref or mds-cmd.
+SAFE_WRITABLE: tuple[str, ...] = ("mds-ref-filter", "mds-ik")
+
+
+# --------------------------------------------------------------------------------------------------
+# What may be written: the struct each MDS channel carries, and checks of its content
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_ref(payload: bytes) -> str | None:
+    ref = msgs.MDS_REF.from_buffer_copy(payload)
+    for address, joint in enumerate(ref.joint):
+        if not math.isfinite(joint.ref):
+            return f"non-finite reference {joint.ref} at address {address:#x}"
+        if abs(joint.ref) > REF_ABS_MAX:
+            return f"reference {joint.ref:.3f} rad at address {address:#x} beyond one turn"
+        if joint.mode not in (0, 1, 2, 3):
+            return f"unknown ref mode {joint.mode} at address {address:#x}"
+    return None
+
+
+def _check_ik(payload: bytes) -> str | None:
+    ik = msgs.MDS_IK.from_buffer_copy(payload)
+    if ik.move not in (0, 1):
+        return f"ik move {ik.move} is neither arm"
+    for arm in ik.arm:
+        values = (arm.t_x, arm.t_y, arm.t_z, arm.r_x, arm.r_y, arm.r_z)
+        if not all(math.isfinite(v) for v in values):
+            return "non-finite ik target"
+        if not 0 <= arm.ik_method <= 6:
+            return f"ik method {arm.ik_method} outside 0..6"
+    return None
+
+
+def _check_cmd(payload: bytes) -> str | None:
+    cmd = msgs.MDS_CMD.from_buffer_copy(payload)
+    if not math.isfinite(cmd.value):
+        return "non-finite command value"
+    return None
+
+
+@dataclass(frozen=True)
+class FrameRule:
+    """The struct a channel carries (``None``: any non-empty frame) and a content check."""
+
+    ctype: type | None = None
+    check: Callable[[bytes], str | None] | None = None
+
+    def problem(self, payload: bytes) -> tuple[str, str] | None:
+        """``(kind, reason)`` why ``payload`` must not be written, kind ``size`` or ``invalid``; else None."""
+        if not payload:
+            return "size", "empty frame"
+        if self.ctype is not None and len(payload) != ctypes.sizeof(self.ctype):
+            return "size", f"{len(payload)} bytes, {self.ctype.__name__} has {ctypes.sizeof(self.ctype)}"
+        if self.check is not None:
+            reason = self.check(payload)
+            if reason:
+                return "invalid", reason
+        return None
+
+
+_RULES: dict[str, FrameRule] = {
+    "mds-state": FrameRule(msgs.MDS_STATE),
+    "mds-param": FrameRule(msgs.MDS_JOINT_PARAM),
+    "mds-collide": FrameRule(msgs.MDS_COLLIDE),
+    "mds-ik": FrameRule(msgs.MDS_IK, _check_ik),
+    "mds-cmd": FrameRule(msgs.MDS_CMD, _check_cmd),
+}
+
+
+def rule_for(channel: str) -> FrameRule:
+    """Every ``mds-ref*`` channel carries MDS_REF; the other MDS channels their legacy struct."""
+    if channel == "mds-ref" or channel.startswith("mds-ref-"):
+        return FrameRule(msgs.MDS_REF, _check_ref)
+    return _RULES.get(channel, FrameRule())
+
+
+# --------------------------------------------------------------------------------------------------
+# Counters
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class LinkStats:
+    """What one link did; read by status reports and tests (plain ints, written by one thread)."""
+
+    sent: int = 0
+    written: int = 0
+    dropped_size: int = 0
+    dropped_invalid: int = 0
+    dropped_oversize: int = 0
+    dropped_put: int = 0
+    stray_datagrams: int = 0
+    send_errors: int = 0
+    connects: int = 0
+    last_error: str = ""
+    last_drop: str = ""
+
+    def as_dict(self) -> dict[str, object]:
+        return asdict(self)
+
+
+class ConnectionLostError(Exception):
+    """The peer went away (EOF, reset, keepalive or user timeout)."""
+
+
+class IdleConnectionError(ConnectionLostError):
+    """A served connection moved no frame for the server's idle timeout and was closed."""
+
+
+class RemoteRefusedError(Exception):
+    """The server answered the request with a non-OK status."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(f"{ap.status_name(status)}: {message}")
+        self.status = status
+
+
+# --------------------------------------------------------------------------------------------------
+# Channel access
+# --------------------------------------------------------------------------------------------------
+
+
+def _ach():
+    """The Ach module, imported when a link starts (keeps ``import mds_ach.net.protocol`` light)."""
+    from mds_ach import ach
+
+    return ach
+
+
+def _geometry(chan) -> tuple[int, int]:
+    """``(frame_count, data_size)`` of an open channel: achd reports frame-size as data_size / count."""
+    return chan.frame_count, chan.data_size
+
+
+class _Source:
+    """Reads new frames of a local channel for sending; keeps the newest one for a resend."""
+
+    def __init__(self, chan, rule: FrameRule, get_last: bool, stats: LinkStats) -> None:
+        ach = _ach()
+        self._ach = ach
+        self.chan = chan
+        self.rule = rule
+        self.get_last = get_last
+        self.stats = stats
+        self.buf = bytearray(max(1, _geometry(chan)[1]))
+        self.newest: bytes | None = None
+        self.sent: bytes | None = None  # the last frame that went out, and when (monotonic)
+        self.sent_at = -math.inf
+
+    def next(self, timeout: float, last: bool | None = None, wait: bool = True) -> bytes | None:
+        """The next frame to send (the newest with get-last), or None if none came within ``timeout``."""
+        ach = self._ach
+        status, size = self.chan.get(
+            self.buf, wait=wait, last=self.get_last if last is None else last, timeout=timeout
+        )
+        if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+            return None
+        frame = bytes(self.buf[:size])
+        problem = self.rule.problem(frame)
+        if problem:
+            _count_drop(self.stats, problem, "local frame not sent")
+            return None
+        self.newest = frame
+        return frame
+
+
+class _Sink:
+    """Writes received frames into a local channel, after the size and content checks."""
+
+    def __init__(self, chan, rule: FrameRule, stats: LinkStats) -> None:
+        self.chan = chan
+        self.rule = rule
+        self.stats = stats
+        self._ach = _ach()
+
+    def put(self, payload: bytes) -> None:
+        problem = self.rule.problem(payload)
+        if problem:
+            _count_drop(self.stats, problem, "received frame dropped")
+            return
+        try:
+            self.chan.put(payload)
+        except self._ach.AchException as exc:
+            self.stats.dropped_put += 1
+            self.stats.last_drop = f"put failed: {exc}"
+            return
+        self.stats.written += 1
+
+
+CHANNEL_CHECK_S = 1.0
+"""How often a streaming loop checks that its channel file is still the one it opened."""
+
+
+def channel_replaced(chan) -> bool:
+    """True when the channel's file was removed or re-created since ``chan`` opened it (e.g. the robot's stack
+    was restarted): the handle then reads and writes an orphan nobody else sees any more."""
+    try:
+        return os.stat(_ach().shm_path(chan.name)).st_ino != os.fstat(chan.fileno()).st_ino
+    except OSError:
+        return True
+
+
+class _ChannelWatch:
+    """Raises :class:`ConnectionLostError` from a streaming loop once its channel has been replaced."""
+
+    def __init__(self, chan) -> None:
+        self.chan = chan
+        self.next_check = time.monotonic() + CHANNEL_CHECK_S
+
+    def check(self) -> None:
+        now = time.monotonic()
+        if now >= self.next_check:
+            self.next_check = now + CHANNEL_CHECK_S
+            if channel_replaced(self.chan):
+                raise ConnectionLostError(f"channel {self.chan.name} was removed or re-created")
+
+
+def _count_drop(stats: LinkStats, problem: tuple[str, str], what: str) -> None:
+    kind, reason = problem
+    if kind == "size":
+        stats.dropped_size += 1
+        n = stats.dropped_size
+    else:
+        stats.dropped_invalid += 1
+        n = stats.dropped_invalid
+    stats.last_drop = f"{kind}: {reason}"
+    if n == 1 or n % 100 == 0:  # the first, then every 100th: a flood must not flood the log
+        log.warning("%s (%s #%d): %s", what, kind, n, reason)
+
+
+# --------------------------------------------------------------------------------------------------
+# Sockets and the two data loops
+# --------------------------------------------------------------------------------------------------
+
+
+def _tune_tcp(sock: socket.socket, dead_after_s: float, sending: bool) -> None:
+    """No Nagle delay; keepalive and a user timeout so a dead link is noticed in ``dead_after_s``."""
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    idle = max(1, int(dead_after_s / 2))
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, idle)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL, 1)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, max(1, int(dead_after_s) - idle))
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, int(dead_after_s * 1000))
+    if sending:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+
+
+@dataclass
+class _Conn:
+    """One negotiated connection: TCP (data or control) plus, for UDP, the datagram socket and peer."""
+
+    tcp: socket.socket
+    udp: socket.socket | None = None
+    udp_peer: tuple[str, int] | None = None
+    leftover: bytes = b""
+    headers: ap.Headers = field(default_factory=ap.Headers)
+
+    def close(self) -> None:
+        for s in (self.tcp, self.udp):
+            if s is not None:
+                try:
+                    s.close()
+                except OSError:
+                    pass
+
+
+def _udp_socket(tcp: socket.socket) -> socket.socket:
+    """A datagram socket on the TCP connection's local address, any port (achd binds INADDR_ANY)."""
+    udp = socket.socket(tcp.family, socket.SOCK_DGRAM)
+    udp.bind((tcp.getsockname()[0], 0))
+    udp.setblocking(False)
+    return udp
+
+
+def _read_headers(sock: socket.socket, timeout: float) -> tuple[ap.Headers, bytes]:
+    """Read one header block from ``sock``; returns it and the bytes that came after it."""
+    parser = ap.HeaderParser()
+    deadline = time.monotonic() + timeout
+    total = 0
+    while not parser.done:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise ap.HeaderError(f"no complete header block within {timeout:.0f} s")
+        sock.settimeout(remaining)
+        try:
+            data = sock.recv(4096)
+        except TimeoutError as exc:
+            raise ap.HeaderError(f"no complete header block within {timeout:.0f} s") from exc
+        if not data:
+            raise ConnectionLostError("connection closed during the header exchange")
+        total += len(data)
+        if total > MAX_HEADER_BYTES:
+            raise ap.HeaderError(f"header block longer than {MAX_HEADER_BYTES} bytes")
+        rest = parser.feed(data)
+    return parser.headers(), rest
+
+
+def _peer_closed(conn: _Conn) -> bool:
+    """On a connection where the peer never sends, readable means EOF or reset (achd's rule too)."""
+    readable, _, _ = select.select([conn.tcp], [], [], 0)
+    if not readable:
+        return False
+    try:
+        data = conn.tcp.recv(4096)
+    except OSError:
+        return True
+    return not data
+
+
+def _send(conn: _Conn, payload: bytes, stats: LinkStats) -> None:
+    if conn.udp is None:
+        try:
+            conn.tcp.sendall(ap.frame_header(len(payload)) + payload)
+        except OSError as exc:
+            raise ConnectionLostError(f"send failed: {exc}") from exc
+        stats.sent += 1
+        return
+    if len(payload) > ap.UDP_MAX_PAYLOAD:
+        stats.dropped_oversize += 1
+        stats.last_drop = f"{len(payload)} bytes do not fit one UDP datagram"
+        return
+    try:
+        conn.udp.sendto(payload, conn.udp_peer)
+    except BlockingIOError:
+        stats.send_errors += 1  # socket buffer full: this datagram is lost, the next one is newer anyway
+        return
+    except OSError as exc:  # e.g. ENETUNREACH while the link is down: the TCP control link decides
+        stats.send_errors += 1
+        stats.last_error = f"udp send: {exc}"
+        return
+    stats.sent += 1
+
+
+class _IdleWatch:
+    """Raises :class:`ConnectionLostError` once a connection moved no frame for ``timeout`` s (None: never)."""
+
+    def __init__(self, timeout: float | None) -> None:
+        self.timeout = timeout
+        self.last = time.monotonic()
+
+    def active(self) -> None:
+        self.last = time.monotonic()
+
+    def check(self) -> None:
+        if self.timeout is not None and time.monotonic() - self.last > self.timeout:
+            raise IdleConnectionError(f"idle: no frame sent or received for {self.timeout:g} s")
+
+
+def _run_sender(
+    conn: _Conn, source: _Source, stats: LinkStats, stop: threading.Event, period_ns: int, first: bytes | None,
+    idle_timeout: float | None = None,
+) -> None:
+    """Send each new frame of ``source`` until stopped, the connection is lost or it was idle for
+    ``idle_timeout`` s."""
+    period = period_ns / 1e9
+    last_sent = 0.0
+    watch = _ChannelWatch(source.chan)
+    idle = _IdleWatch(idle_timeout)
+    if first is not None:
+        _send(conn, first, stats)
+        source.sent, last_sent = first, time.monotonic()
+        source.sent_at = last_sent
+    while not stop.is_set():
+        watch.check()
+        idle.check()
+        if _peer_closed(conn):
+            raise ConnectionLostError("peer closed the connection")
+        if period and last_sent:
+            remaining = last_sent + period - time.monotonic()
+            if remaining > 0:
+                stop.wait(min(remaining, POLL_S))
+                continue
+        frame = source.next(POLL_S)
+        if frame is None:
+            continue
+        _send(conn, frame, stats)
+        source.sent, last_sent = frame, time.monotonic()
+        source.sent_at = last_sent
+        idle.active()
+
+
+def _run_receiver(conn: _Conn, sink: _Sink, stats: LinkStats, stop: threading.Event, max_size: int,
+                  idle_timeout: float | None = None) -> None:
+    """Write each frame that arrives into ``sink`` until stopped, the connection is lost or nothing arrived for
+    ``idle_timeout`` s."""
+    decoder = ap.FrameDecoder(max_size)
+    oversize_seen = 0
+    watch = _ChannelWatch(sink.chan)
+    idle = _IdleWatch(idle_timeout)
+    if conn.udp is None and conn.leftover:
+        for frame in decoder.feed(conn.leftover):
+            sink.put(frame)
+    socks = [conn.tcp] + ([conn.udp] if conn.udp is not None else [])
+    while not stop.is_set():
+        watch.check()
+        idle.check()
+        readable, _, _ = select.select(socks, [], [], POLL_S)
+        if conn.tcp in readable:
+            try:
+                data = conn.tcp.recv(256 * 1024)
+            except OSError as exc:
+                raise ConnectionLostError(f"receive failed: {exc}") from exc
+            if not data:
+                raise ConnectionLostError("peer closed the connection")
+            idle.active()
+            if conn.udp is None:
+                try:
+                    frames = decoder.feed(data)
+                except ap.FrameError as exc:
+                    raise ConnectionLostError(str(exc)) from exc
+                stats.dropped_oversize += decoder.oversize - oversize_seen
+                oversize_seen = decoder.oversize
+                for frame in frames:
+                    sink.put(frame)
+        if conn.udp is not None and conn.udp in readable and _drain_udp(conn, sink, stats):
+            idle.active()
+
+
+def _drain_udp(conn: _Conn, sink: _Sink, stats: LinkStats) -> bool:
+    """Every queued datagram from the announced peer; others are counted as strays (achd ignores them).
+    True if one came from the peer."""
+    got = False
+    for _ in range(1000):
+        try:
+            payload, addr = conn.udp.recvfrom(65536)
+        except BlockingIOError:
+            return got
+        except OSError as exc:  # ICMP errors surface here; not fatal for a datagram socket
+            stats.last_error = f"udp receive: {exc}"
+            return got
+        if (addr[0], addr[1]) != conn.udp_peer:
+            stats.stray_datagrams += 1
+            continue
+        got = True
+        sink.put(payload)
+    return got
+
+
+# --------------------------------------------------------------------------------------------------
+# Client: one link
+# --------------------------------------------------------------------------------------------------
+
+
+class Link:
+    """One client link, like ``achd [-r] push|pull HOST CHANNEL``, running on its own thread.
+
+    ``mode`` is ours: ``push`` sends the local ``channel`` to the remote ``remote_channel``, ``pull``
+    brings the remote one into the local one (created with the server's sizes when missing).
+    """
+
+    def __init__(
+        self,
+        mode: str,
+        host: str,
+        channel: str,
+        *,
+        remote_channel: str | None = None,
+        port: int = ap.ACHD_PORT,
+        transport: str = "tcp",
+        get_last: bool = True,
+        period_ns: int = 0,
+        reconnect: bool = True,
+        resend_on_reconnect: bool = True,
+        dead_after_s: float = 5.0,
+        connect_timeout_s: float = 3.0,
+        max_frame: int = 16 * 1024 * 1024,
+    ) -> None:
+        if mode not in ap.DIRECTIONS:
+            raise ValueError(f"mode must be push or pull, not {mode!r}")
+        if transport not in ap.TRANSPORTS:
+            raise ValueError(f"transport must be tcp or udp, not {transport!r}")
+        for name in (channel, remote_channel or channel):
+            if not ap.valid_channel_name(name):
+                raise ValueError(f"invalid channel name {name!r}")
+        if period_ns < 0:
+            raise ValueError("period must not be negative")
+        self.mode = mode
+        self.host = host
+        self.port = port
+        self.channel = channel
+        self.remote_channel = remote_channel or channel
+        self.transport = transport
+        self.get_last = get_last
+        self.period_ns = period_ns
+        self.reconnect = reconnect
+        self.resend_on_reconnect = resend_on_reconnect
+        self.dead_after_s = dead_after_s
+        self.connect_timeout_s = connect_timeout_s
+        self.max_frame = max_frame
+        self.rule = rule_for(channel)
+        self.stats = LinkStats()
+        self.connected = threading.Event()
+        self.finished = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._chan = None
+        self._opened_once = False
+        self._source: _Source | None = None
+        self._lost_at = -math.inf  # monotonic time the last connection ended
+        self.udp_port: int | None = None
+        """Our datagram port on the current UDP connection (what the peer must send from/to)."""
+
+    @property
+    def name(self) -> str:
+        arrow = "->" if self.mode == "push" else "<-"
+        return f"{self.channel} {arrow} {self.host}:{self.port}/{self.remote_channel} ({self.transport})"
+
+    def start(self) -> Link:
+        self._thread = threading.Thread(target=self.run, name=f"achd {self.mode} {self.channel}", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def run(self) -> None:
+        """Connect, stream, and (with reconnect) start over after a drop, until :meth:`stop`."""
+        ach = _ach()
+        try:
+            while not self._stop.is_set():
+                t0 = time.monotonic()
+                retry_after = ap.RECONNECT_PERIOD_S
+                conn: _Conn | None = None
+                try:
+                    conn = self._connect()
+                    self.stats.connects += 1
+                    self.connected.set()
+                    log.info("%s: connected", self.name)
+                    self._stream(conn)
+                except RemoteRefusedError as exc:
+                    self.stats.last_error = str(exc)
+                    log.error("%s: server refused: %s", self.name, exc)
+                    retry_after = REFUSED_RETRY_S
+                except ach.AchException as exc:  # the local channel cannot be made or opened
+                    self.stats.last_error = str(exc)
+                    log.error("%s: local channel: %s", self.name, exc)
+                    retry_after = REFUSED_RETRY_S
+                except (OSError, ConnectionLostError, ap.HeaderError) as exc:
+                    self.stats.last_error = str(exc) or type(exc).__name__
+                    if self.connected.is_set():
+                        log.warning("%s: connection lost: %s", self.name, self.stats.last_error)
+                    else:
+                        log.debug("%s: connect failed: %s", self.name, self.stats.last_error)
+                finally:
+                    if self.connected.is_set():  # an established connection ended (not a failed attempt)
+                        self._lost_at = time.monotonic()
+                    self.connected.clear()
+                    if conn is not None:
+                        conn.close()
+                    if self._chan is not None and channel_replaced(self._chan):
+                        self._chan.close()  # reopened (or re-created) at the next connection
+                        self._chan = None
+                if not self.reconnect:
+                    break
+                self._stop.wait(max(0.0, t0 + retry_after - time.monotonic()))
+        finally:
+            if self._chan is not None:
+                self._chan.close()
+                self._chan = None
+            self.finished.set()
+
+    def _connect(self) -> _Conn:
+        tcp = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
+        conn = _Conn(tcp)
+        try:
+            _tune_tcp(tcp, self.dead_after_s, sending=self.mode == "push" and self.transport == "tcp")
+            udp_port = None
+            if self.transport == "udp":
+                conn.udp = _udp_socket(tcp)
+                udp_port = self.udp_port = conn.udp.getsockname()[1]
+            # The server's role is the opposite of ours.
+            server_role = "pull" if self.mode == "push" else "push"
+            request = ap.encode_request(
+                self.remote_channel, self.transport, server_role, self.get_last, self.period_ns, udp_port
+            )
+            tcp.settimeout(self.connect_timeout_s)
+            tcp.sendall(request)
+            headers, conn.leftover = _read_headers(tcp, HEADER_TIMEOUT_S)
+            conn.headers = headers
+            if headers.status is None or headers.status != ap.ACH_OK:
+                status = ap.ACH_BAD_HEADER if headers.status is None else headers.status
+                raise RemoteRefusedError(status, headers.message or "no status in the response")
+            if self.transport == "udp":
+                if not headers.remote_port:
+                    raise ap.HeaderError("udp response without remote-port")
+                conn.udp_peer = (tcp.getpeername()[0], headers.remote_port)
+            self._open_local(headers)
+            tcp.settimeout(self.dead_after_s)  # a send blocked longer than this means the link is dead
+            return conn
+        except BaseException:
+            conn.close()
+            raise
+
+    def _open_local(self, headers: ap.Headers) -> None:
+        """Open (or create with the server's sizes) the local channel; flushed the first time, as achd does."""
+        if self._chan is not None:
+            return
+        ach = _ach()
+        if not ach.exists(self.channel):
+            count = headers.frame_count or 16
+            size = headers.frame_size or 512
+            try:
+                ach.create(self.channel, count, size)
+            except ach.AchException as exc:
+                if exc.status != ach.ACH_EEXIST:
+                    raise
+        chan = ach.Channel(self.channel, create=False)
+        if not self._opened_once:  # achd: only frames put after the link started; a re-created channel is new
+            chan.flush()
+            self._opened_once = True
+        self._chan = chan
+        if self.mode == "push":
+            self._source = _Source(chan, self.rule, self.get_last, self.stats)
+
+    def _delivered(self) -> bool:
+        """Did the newest frame certainly reach the server before the old connection ended? Over TCP, when
+        it was sent and the connection then lived on for more than ``dead_after_s`` (``TCP_USER_TIMEOUT``
+        would have killed it had the data stayed unacknowledged). Re-sending it then would only replay an old
+        reference over newer ones (e.g. after the server closed a quiet connection as idle)."""
+        source = self._source
+        return (self.transport == "tcp" and source is not None and source.newest is not None
+                and source.sent == source.newest and self._lost_at - source.sent_at > self.dead_after_s)
+
+    def _stream(self, conn: _Conn) -> None:
+        if self.mode == "push":
+            assert self._source is not None
+            first = None
+            if self.resend_on_reconnect and self.stats.connects > 1 and not self._delivered():
+                first = self._source.newest  # TCP may have dropped it with the old connection
+            _run_sender(conn, self._source, self.stats, self._stop, self.period_ns, first)
+        else:
+            _run_receiver(conn, _Sink(self._chan, self.rule, self.stats), self.stats, self._stop, self.max_frame)
+
+
+# --------------------------------------------------------------------------------------------------
+# Server
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AccessPolicy:
+    """Which channels a network client may read (pull) and write (push); shell-style patterns."""
+
+    readable: tuple[str, ...] = ("*",)
+    writable: tuple[str, ...] = SAFE_WRITABLE
+
+    def allows(self, channel: str, server_direction: str) -> bool:
+        patterns = self.readable if server_direction == "push" else self.writable
+        return any(fnmatch.fnmatchcase(channel, p) for p in patterns)
+
+
+def is_local_peer(host: str) -> bool:
+    """Loopback (127.0.0.0/8, ::1, or IPv4-mapped loopback): this machine's tools and SSH-tunnelled operators."""
+    try:
+        address = ipaddress.ip_address(host.split("%", 1)[0])
+    except ValueError:
+        return False
+    mapped = getattr(address, "ipv4_mapped", None)
+    return address.is_loopback or (mapped is not None and mapped.is_loopback)
+
+
+class Server:
+    """``achd serve`` as a listening TCP server: one thread per accepted connection.
+
+    Binds loopback unless ``binds`` says otherwise; a connection's request decides the channel,
+    transport and direction, subject to ``policy``.
+
+    Admission, so that no peer can lock out another or the operator: a remote address holds at most
+    ``max_per_peer`` connections and all remote peers together ``max_clients``; loopback peers (local tools, and
+    operators coming through an SSH tunnel) have their own ``max_local_clients``, which remote peers cannot
+    use. A connection that sends and receives no frame for ``idle_timeout_s`` (None: never) is closed, one
+    that does not complete its request within ``HEADER_TIMEOUT_S`` too. Refusals answer ``ACH_EAGAIN``.
+    """
+
+    def __init__(
+        self,
+        binds: Iterable[str] = ("127.0.0.1",),
+        port: int = ap.ACHD_PORT,
+        *,
+        policy: AccessPolicy | None = None,
+        send_latest_on_connect: bool = True,
+        dead_after_s: float = 5.0,
+        max_clients: int = MAX_CLIENTS,
+        max_per_peer: int = MAX_PER_PEER,
+        max_local_clients: int = MAX_LOCAL_CLIENTS,
+        idle_timeout_s: float | None = IDLE_TIMEOUT_S,
+        max_frame: int = 16 * 1024 * 1024,
+    ) -> None:
+        for what, value in (("max_clients", max_clients), ("max_per_peer", max_per_peer),
+                            ("max_local_clients", max_local_clients)):
+            if value < 1:
+                raise ValueError(f"{what} must be at least 1, got {value}")
+        if idle_timeout_s is not None and not idle_timeout_s > 0:
+            raise ValueError(f"idle timeout must be > 0 s, got {idle_timeout_s}")
+        self.binds = tuple(binds)
+        self.port = port
+        self.policy = policy or AccessPolicy()
+        self.send_latest_on_connect = send_latest_on_connect
+        self.dead_after_s = dead_after_s
+        self.max_clients = max_clients
+        self.max_per_peer = max_per_peer
+        self.max_local_clients = max_local_clients
+        self.idle_timeout_s = idle_timeout_s
+        self.max_frame = max_frame
+        self.stats: dict[str, LinkStats] = {}
+        self.refused = 0
+        self.refused_busy = 0  # connections refused by the admission limits
+        self.idle_closed = 0  # connections closed for being idle
+        self._listeners: list[socket.socket] = []
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._per_peer: dict[str, int] = {}  # open connections per remote address
+        self._remote = 0
+        self._local = 0
+        self._lock = threading.Lock()
+
+    @property
+    def ports(self) -> list[int]:
+        return [s.getsockname()[1] for s in self._listeners]
+
+    def start(self) -> Server:
+        for address in self.binds:
+            family = socket.AF_INET6 if ":" in address else socket.AF_INET
+            sock = socket.socket(family, socket.SOCK_STREAM)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind((address, self.port))
+            except OSError as exc:
+                sock.close()
+                for listener in self._listeners:
+                    listener.close()
+                self._listeners.clear()
+                raise OSError(exc.errno, f"cannot listen on {address}:{self.port}: {exc.strerror}") from exc
+            sock.listen(16)
+            self._listeners.append(sock)
+            log.info("serving on %s:%d", address, sock.getsockname()[1])
+        thread = threading.Thread(target=self._accept_loop, name="achd accept", daemon=True)
+        thread.start()
+        self._threads.append(thread)
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def join(self, timeout: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout
+        for thread in list(self._threads):
+            thread.join(max(0.0, deadline - time.monotonic()))
+        for sock in self._listeners:
+            sock.close()
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            readable, _, _ = select.select(self._listeners, [], [], POLL_S)
+            for listener in readable:
+                try:
+                    sock, peer = listener.accept()
+                except OSError:
+                    continue
+                busy = self._admit(peer[0])
+                if busy:
+                    self.refused_busy += 1
+                    if self.refused_busy == 1 or self.refused_busy % 100 == 0:  # a flood must not flood the log
+                        log.warning("refusing %s (#%d): %s", peer[0], self.refused_busy, busy)
+                    _refuse(sock, ap.ACH_EAGAIN, busy)
+                    continue
+                thread = threading.Thread(target=self._serve_one, args=(sock, peer), daemon=True)
+                with self._lock:
+                    self._threads = [t for t in self._threads if t.is_alive()]
+                    self._threads.append(thread)
+                thread.start()
+
+    def _admit(self, host: str) -> str | None:
+        """Count a new connection from ``host`` in, or say why it is refused (its pool or its share is full)."""
+        with self._lock:
+            if is_local_peer(host):
+                if self._local >= self.max_local_clients:
+                    return f"too many local connections ({self.max_local_clients})"
+                self._local += 1
+                return None
+            mine = self._per_peer.get(host, 0)
+            if mine >= self.max_per_peer:
+                return f"too many connections from {host} ({self.max_per_peer}); close some first"
+            if self._remote >= self.max_clients:
+                return f"too many remote clients ({self.max_clients})"
+            self._per_peer[host] = mine + 1
+            self._remote += 1
+            return None
+
+    def _release(self, host: str) -> None:
+        with self._lock:
+            if is_local_peer(host):
+                self._local -= 1
+                return
+            self._remote -= 1
+            left = self._per_peer.get(host, 1) - 1
+            if left > 0:
+                self._per_peer[host] = left
+            else:
+                self._per_peer.pop(host, None)
+
+    def connections(self) -> dict[str, int]:
+        """Open connections: ``local``, ``remote`` and one entry per remote address."""
+        with self._lock:
+            return {"local": self._local, "remote": self._remote, **self._per_peer}
+
+    def _serve_one(self, sock: socket.socket, peer: tuple) -> None:
+        conn = _Conn(sock)
+        chan = None
+        who = f"{peer[0]}:{peer[1]}"
+        try:
+            try:
+                headers, conn.leftover = _read_headers(sock, HEADER_TIMEOUT_S)
+                headers.check_request()
+            except ap.HeaderError as exc:
+                self.refused += 1
+                log.warning("%s: bad request: %s", who, exc)
+                _refuse(sock, exc.status, str(exc))
+                return
+            name, direction = headers.channel_name, headers.direction
+            assert name is not None and direction is not None
+            if not self.policy.allows(name, direction):
+                self.refused += 1
+                verb = "read" if direction == "push" else "written"
+                log.warning("%s: refused, channel %s may not be %s from the network", who, name, verb)
+                _refuse(sock, ap.ACH_EACCES, f"channel {name} may not be {verb} from the network")
+                return
+            ach = _ach()
+            try:
+                chan = ach.Channel(name, create=False)
+            except ach.AchException as exc:
+                self.refused += 1
+                _refuse(sock, exc.status, f"cannot open channel {name} ({exc})")
+                return
+            frame_count, data_size = _geometry(chan)
+            _tune_tcp(sock, self.dead_after_s, sending=direction == "push" and headers.transport == "tcp")
+            udp_port = None
+            if headers.transport == "udp":
+                conn.udp = _udp_socket(sock)
+                udp_port = conn.udp.getsockname()[1]
+                conn.udp_peer = (peer[0], headers.remote_port)
+            sock.sendall(ap.encode_response(frame_count, data_size // frame_count, udp_port))
+            sock.settimeout(self.dead_after_s)
+            stats = LinkStats(connects=1)
+            key = f"{who} {direction} {name} ({headers.transport})"
+            with self._lock:
+                self.stats[key] = stats
+                while len(self.stats) > MAX_SERVED_STATS:  # keep the newest connections' counters
+                    del self.stats[next(iter(self.stats))]
+            log.info("%s: serving %s %s via %s", who, direction, name, headers.transport)
+            rule = rule_for(name)
+            if direction == "push":
+                source = _Source(chan, rule, bool(headers.get_last), stats)
+                first = None
+                if self.send_latest_on_connect:
+                    first = source.next(0.0, last=True, wait=False)
+                else:
+                    chan.flush()
+                _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first, self.idle_timeout_s)
+            else:
+                chan.flush()
+                _run_receiver(conn, _Sink(chan, rule, stats), stats, self._stop, self.max_frame, self.idle_timeout_s)
+        except (OSError, ConnectionLostError) as exc:
+            self.idle_closed += isinstance(exc, IdleConnectionError)
+            log.info("%s: finished: %s", who, exc)
+        except Exception:  # one broken connection must never take the server down
+            log.exception("%s: connection failed", who)
+        finally:
+            conn.close()
+            if chan is not None:
+                chan.close()
+            self._release(peer[0])
+
+
+def _refuse(sock: socket.socket, status: int, message: str) -> None:
+    """achd's error reply (status, message, '.'), then close."""
+    try:
+        sock.settimeout(1.0)
+        sock.sendall(ap.encode_error(status, message))
+    except OSError:
+        pass
+    finally:
+        sock.close()
+
+
+# --------------------------------------------------------------------------------------------------
+# Command line (achd's verbs and short options)
+# --------------------------------------------------------------------------------------------------
+
+
+def install_stop_signals(stop: Callable[[], None]) -> None:
+    """SIGINT/SIGTERM ask the loops to stop; the main thread then exits 0."""
+
+    def handler(signum, frame):  # noqa: ARG001 - signal API
+        stop()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def add_server_limit_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """The admission and idle options of a server (``achd serve``, ``mds-ach remote serve``)."""
+    p.add_argument("--max-clients", type=int, default=MAX_CLIENTS,
+                   help=f"{prefix}connections from remote peers together (default {MAX_CLIENTS})")
+    p.add_argument("--max-per-peer", type=int, default=MAX_PER_PEER,
+                   help=f"{prefix}connections from one remote address (default {MAX_PER_PEER})")
+    p.add_argument("--max-local", type=int, default=MAX_LOCAL_CLIENTS,
+                   help=f"{prefix}connections from loopback: local tools and SSH-tunnelled operators, a pool "
+                        f"remote peers cannot use (default {MAX_LOCAL_CLIENTS})")
+    p.add_argument("--idle-timeout", type=float, default=IDLE_TIMEOUT_S, metavar="S",
+                   help=f"{prefix}close a connection that sends and receives no frame for S seconds "
+                        f"(default {IDLE_TIMEOUT_S:g}; 0: never)")
+
+
+def server_limits(args: argparse.Namespace) -> dict[str, object]:
+    """``Server`` keyword arguments from ``add_server_limit_arguments`` options."""
+    return {"max_clients": args.max_clients, "max_per_peer": args.max_per_peer,
+            "max_local_clients": args.max_local, "idle_timeout_s": args.idle_timeout or None}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap_ = argparse.ArgumentParser(
+        prog="python -m mds_ach.net.achd",
+        description="Forward Ach channels over the network, compatible with golems/ach's achd.",
+        epilog=(
+            "examples:\n"
+            "  python -m mds_ach.net.achd serve                      serve on 127.0.0.1:8076\n"
+            "  python -m mds_ach.net.achd serve --bind 10.0.0.2      serve on that address\n"
+            "  python -m mds_ach.net.achd -r pull robot mds-state    robot's mds-state -> local mds-state\n"
+            "  python -m mds_ach.net.achd -r -t udp -u 100000 pull robot mds-state   at most 10 Hz over UDP\n"
+            "  python -m mds_ach.net.achd -r push robot mds-ref-filter\n"
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap_.add_argument("verb", choices=("serve", "push", "pull"), help="serve, or the direction of this link")
+    ap_.add_argument("host", nargs="?", help="remote host (push/pull)")
+    ap_.add_argument("channel", nargs="?", help="local channel (push/pull)")
+    ap_.add_argument("-p", "--port", type=int, default=ap.ACHD_PORT, help="TCP port (default 8076)")
+    ap_.add_argument("-t", "--transport", choices=ap.TRANSPORTS, default="tcp", help="data transport")
+    ap_.add_argument("-z", "--remote-channel", help="remote channel name (default: the local name)")
+    ap_.add_argument("-u", "--period-us", type=int, default=0, help="send period in microseconds (implies -l)")
+    ap_.add_argument("-l", "--get-last", action="store_true", help="send only the newest frame")
+    ap_.add_argument("-r", "--reconnect", action="store_true", help="reconnect when the connection drops")
+    ap_.add_argument("--bind", action="append", help="serve: address to listen on (repeatable; default 127.0.0.1)")
+    ap_.add_argument("--allow-read", action="append", help="serve: channel pattern clients may pull (default *)")
+    ap_.add_argument(
+        "--allow-write",
+        action="append",
+        help=f"serve: channel pattern clients may push into (default {', '.join(SAFE_WRITABLE)})",
+    )
+    ap_.add_argument("--flush-on-connect", action="store_true", help="serve: like achd, never send old frames")
+    add_server_limit_arguments(ap_, "serve: ")
+    ap_.add_argument("-v", "--verbose", action="store_true", help="log every connection")
+    return ap_
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="achd: %(message)s")
+    stop = threading.Event()
+    install_stop_signals(stop.set)
+    if args.verb == "serve":
+        if args.host or args.channel:
+            print("achd: serve takes no HOST or CHANNEL", file=sys.stderr)
+            return 2
+        policy = AccessPolicy(
+            readable=tuple(args.allow_read or ("*",)), writable=tuple(args.allow_write or SAFE_WRITABLE)
+        )
+        try:
+            server = Server(
+                args.bind or ("127.0.0.1",), args.port, policy=policy,
+                send_latest_on_connect=not args.flush_on_connect, **server_limits(args),
+            ).start()
+        except ValueError as exc:
+            print(f"achd: {exc}", file=sys.stderr)
+            return 2
+        except OSError as exc:
+            print(f"achd: {exc.strerror or exc}", file=sys.stderr)
+            return 1
+        print(f"achd: serving on {', '.join(args.bind or ['127.0.0.1'])} port {server.ports[0]}", file=sys.stderr)
+        while not stop.wait(POLL_S):
+            pass
+        server.stop()
+        server.join()
+        return 0
+    if not args.host or not args.channel:
+        print("achd: push/pull need HOST and CHANNEL", file=sys.stderr)
+        return 2
+    try:
+        link = Link(
+            args.verb, args.host, args.channel, remote_channel=args.remote_channel, port=args.port,
+            transport=args.transport, get_last=args.get_last or args.period_us > 0,
+            period_ns=args.period_us * 1000, reconnect=args.reconnect,
+        ).start()
+    except ValueError as exc:
+        print(f"achd: {exc}", file=sys.stderr)
+        return 2
+    while not stop.wait(POLL_S):
+        if link.finished.is_set():
+            break
+    link.stop()
+    link.join(5.0)
+    if link.finished.is_set() and not stop.is_set():
+        print(f"achd: {link.name}: {link.stats.last_error or 'finished'}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

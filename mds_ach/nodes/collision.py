@@ -1,0 +1,759 @@
+"""Collision gate (``ros2 run mds_ach collision``): ``mds-ref-smooth`` -> checks -> ``mds-ref`` (the daemon's input).
+
+Every reference is checked before it can reach the daemon, in this order:
+
+1. **Validation.** NaN/Inf or out-of-limit values (URDF limits intersected with the joint table) and unknown
+   ref modes (not 0..3) are never passed on: those joints keep their last sent value and mode, and the
+   refusal is logged (throttled).
+2. **Speed bound.** No joint moves faster than ``max_velocity`` between two outputs (wall time; a pause
+   credits at most ``max_dt``; the first reference after start moves nothing). Joints that were held come
+   back at ``release_velocity`` (the filter's speed) until they have caught up with the input.
+3. **Collision check** of what the robot will really do (``mds_ach.kinematics.collision``: self-collision and world
+   objects, clearance ``margin``). The robot is somewhere between where it is (``mds-state`` ``pos`` of fresh
+   joints) and where it is sent (the reference); in mode 2 the daemon's target *is* the measured position,
+   in mode 3 a blend. So every combination of {reference, measured pose} of the three units left arm, right
+   arm and body (waist + neck) is checked: up to 8 configurations in one batched check (a unit measured
+   within 1e-4 rad of its reference counts once; without a recent ``mds-state``, the reference alone).
+   A reference is *blocked* when, in some configuration, it adds a colliding pair or lowers the total
+   clearance of the colliding pairs (signed distance of the un-inflated shapes) below what the previous
+   output had there, with the same measured pose. The arm(s) whose reference moved into the contact are held
+   at their previous output while the rest goes through; if the waist or neck moved it, every modelled joint
+   is held. So an arm in contact, measured or commanded, can always be moved out of it (such a move is
+   reported as *escaping*), never further in. An arm in contact whose input does not ask it to move is held
+   too.
+
+**Holding and releasing agree with ``mds-collide``.** The daemon withholds the targets of an arm whose parts
+``mds-collide`` flags (``daemon_loop._collision_held``). So the gate flags exactly the arms it holds, keeps an
+arm held for ``release_time`` after the last blocked reference (the legacy hysteresis, now on the hold itself,
+not only on the report), then clears the flag and keeps publishing the held reference until the daemon has
+taken a report without the flag (``mds-state`` echoes ``mds-collide`` in ``state.collide``; ``release_wait``
+bounds the wait), and only then moves the arm on, at ``release_velocity``. The daemon therefore never sees an
+arm's reference move while it withholds that arm, and never sends accumulated distance in one frame.
+
+Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``/mds/collision``
+(std_msgs/String, JSON with predicted pairs, current contacts, parts, held/releasing/escaping arms, refusals
+and the override state). Top-level ``isCollide``: **1** = the gate holds an arm: the flagged parts are those
+of the held arms, and the daemon holds exactly those arms; **2** = a predicted collision was passed by the
+expert override; **3** = in contact (measured or commanded) but nothing held: only moves out of it are passed,
+the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part: ``isCollide``
+as above; ``collision`` counts the checks of the current episode (saturating at ``counter_max``, 0 when clear);
+``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration of the episode. ``time`` = CLOCK_MONOTONIC
+of the report (the stamp the daemon echoes), ``time_dt`` = time since the previous report.
+
+**Expert override** (never the default, never silent): publish the number of seconds on
+``/mds/collision/override`` (std_msgs/Float64), e.g.
+``ros2 topic pub --once /mds/collision/override std_msgs/msg/Float64 "{data: 3.0}"``. For that long (at most
+``override_max``, config) predicted collisions are reported but not blocked; validation and the speed bound
+still apply, and held arms are released as above. It expires by itself; 0 or a negative value ends it at once.
+Start, every second while active, and end are logged at WARN/ERROR level; mds-collide shows ``isCollide = 2``
+while it passes a collision and ``/mds/collision`` carries ``override_remaining``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach.nodes import filters
+from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, cancel_wait, labels
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
+from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
+
+ARM_ADDRESSES: dict[str, np.ndarray] = {
+    "left": np.array([BY_SHORT[n].address for n in LEFT_ARM]),
+    "right": np.array([BY_SHORT[n].address for n in RIGHT_ARM]),
+}
+MODEL_ADDRESSES = np.array([BY_SHORT[n].address for n in MODEL_JOINTS])
+COLLIDE_BLOCKED = 1
+COLLIDE_OVERRIDDEN = 2
+COLLIDE_CONTACT = 3
+
+# Units the gate holds independently: each arm, and the body (waist + neck), whose motion moves both arms.
+UNITS: tuple[str, ...] = ("left", "right", "body")
+UNIT_ADDRESSES: dict[str, np.ndarray] = {
+    **ARM_ADDRESSES, "body": np.array([BY_SHORT[n].address for n in TORSO + NECK])}
+_UNIT_Q = {u: np.array([list(MODEL_ADDRESSES).index(a) for a in UNIT_ADDRESSES[u]]) for u in UNITS}  # in q
+_UNIT_OF_GROUP = {"left": "left", "right": "right", "body": "body", "head": "body"}  # 'world' moves with nothing
+ARM_PARTS: dict[str, tuple[int, ...]] = {
+    "left": (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
+             mds.COLLIDE_L_WRIST),
+    "right": (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
+              mds.COLLIDE_R_WRIST),
+}
+SAME_POSE = 1e-4  # rad: a unit measured this close to its reference is checked once (0.06 mm at the hand)
+CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than this are "brought closer"
+
+Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
+FREE, HELD, RELEASING = "free", "held", "releasing"
+
+
+@dataclass(frozen=True)
+class GateConfig:
+    max_velocity: float | None = 2.0  # rad/s, None = no bound
+    max_dt: float = 0.05  # s, longest interval the speed bound credits (>= 2 filter periods)
+    release_time: float = 0.1  # s, hysteresis of a hold (and of its report)
+    counter_max: int = 240
+    override_max: float = 10.0  # s
+    report_rate: float = 10.0  # Hz
+    release_velocity: float | None = None  # rad/s of a released joint; None = filters.DEFAULT_MAX_VELOCITY
+    state_timeout: float = 0.5  # s: an older mds-state gives no measured pose
+    release_wait: float = 1.0  # s: longest wait for the daemon to echo a cleared report
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any], where: str = "collision config") -> GateConfig:
+        def num(key: str, default: float | None, positive: bool = True, allow_none: bool = False) -> float | None:
+            value = data.get(key, default)
+            if value is None and allow_none:
+                return None
+            try:
+                value = float(value)  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                raise ValueError(f"{where}: {key} must be a number, got {data.get(key)!r}") from None
+            if not math.isfinite(value) or (positive and value <= 0):
+                raise ValueError(f"{where}: {key} must be a finite number > 0, got {value}")
+            return value
+
+        return cls(
+            max_velocity=num("max_velocity", 2.0, allow_none=True),
+            max_dt=num("max_dt", 0.05),  # type: ignore[arg-type]
+            release_time=num("release_time", 0.1),  # type: ignore[arg-type]
+            counter_max=int(num("counter_max", 240)),  # type: ignore[arg-type]
+            override_max=num("override_max", 10.0),  # type: ignore[arg-type]
+            report_rate=num("report_rate", 10.0),  # type: ignore[arg-type]
+            release_velocity=num("release_velocity", None, allow_none=True),
+            state_timeout=num("state_timeout", 0.5),  # type: ignore[arg-type]
+            release_wait=num("release_wait", 1.0),  # type: ignore[arg-type]
+        )
+
+
+@dataclass(frozen=True)
+class Observed:
+    """What the daemon reports back on ``mds-state``: the measured pose and the ``mds-collide`` it acted on."""
+
+    pos: np.ndarray  # (100) measured position, NaN where the joint is not fresh (state.joint[].active == 0)
+    time: float  # state.time (CLOCK_MONOTONIC)
+    collide_time: float  # state.collide.time: the stamp of the newest gate report the daemon has taken
+
+    @classmethod
+    def from_state(cls, state: MDS_STATE) -> Observed:
+        """Stale joints (``active`` 0) count as unknown: the gate then takes them where they are commanded."""
+        pos = np.array([state.joint[a].pos if state.joint[a].active else math.nan
+                        for a in range(MDS_JOINT_COUNT)], dtype=float)
+        return cls(pos, float(state.time), float(state.collide.time))
+
+
+@dataclass
+class Decision:
+    """What the gate did with one reference."""
+
+    ref: np.ndarray
+    mode: np.ndarray
+    result: Any  # CheckResult: predicted collisions of the (validated, speed-bounded) input, every configuration
+    held: tuple[str, ...] = ()  # 'left', 'right' or 'all': flagged on mds-collide, reference frozen
+    refused: tuple[int, ...] = ()  # addresses refused by validation
+    overridden: bool = False  # a predicted collision passed because of the expert override
+    releasing: tuple[str, ...] = ()  # units no longer flagged, frozen until the daemon has taken the clear report
+    escaping: tuple[str, ...] = ()  # arms in contact whose reference moves them out of it (passed)
+    contacts: Any = None  # CheckResult: contacts of the output (with the measured pose) -- in contact now
+    measured: bool = False  # the measured pose was part of the check
+
+
+@dataclass
+class _PartState:
+    last: float = -math.inf  # last contact (held or not)
+    held: float = -math.inf  # last time its arm was held for a contact of this part
+    start: float = -math.inf
+    count: int = 0
+
+
+@dataclass
+class _Unit:
+    state: str = FREE
+    held_at: float = -math.inf  # last (re)hold: held while now - held_at <= release_time
+    released_at: float = -math.inf
+    stamp: float | None = None  # time of the first report without the hold (what the daemon must echo)
+
+
+def _merge(results: Iterable[Any]) -> Any:
+    """One CheckResult with every pair of ``results`` once (the smallest clearance)."""
+    from mds_ach.kinematics.collision import CheckResult
+
+    best: dict[tuple[str, str], Any] = {}
+    for r in results:
+        for c in r.contacts:
+            old = best.get((c.a, c.b))
+            if old is None or c.clearance < old.clearance:
+                best[(c.a, c.b)] = c
+    return CheckResult(tuple(best[k] for k in sorted(best)))
+
+
+@dataclass
+class Gate:
+    """The gate's decision logic on arrays (no channels, no ROS): ``process()`` one reference at a time."""
+
+    model: Any  # mds_ach.kinematics.collision.CollisionModel
+    config: GateConfig
+    ref: np.ndarray  # last output (100)
+    mode: np.ndarray
+    now: float
+    lower: np.ndarray = field(default_factory=lambda: np.full(MDS_JOINT_COUNT, -math.inf))
+    upper: np.ndarray = field(default_factory=lambda: np.full(MDS_JOINT_COUNT, math.inf))
+
+    def __post_init__(self) -> None:
+        self.ref = np.array(self.ref, dtype=float)
+        self.mode = np.array(self.mode, dtype=np.int16)
+        self.last_time = self.now
+        self._first = True
+        self.current = self.model.check(self.model.q_from_ref(self.ref))  # contacts of the output
+        self.override_until = -math.inf
+        self.parts = [_PartState() for _ in range(MDS_COLLIDE_JNT_NUM)]
+        self.units = {u: _Unit() for u in UNITS}
+        self.release_velocity = self.config.release_velocity or filters.DEFAULT_MAX_VELOCITY
+        self._ramp = np.zeros(MDS_JOINT_COUNT, dtype=bool)  # released joints still catching up with the input
+        self._cache: dict[bytes, Any] = {}  # configuration -> CheckResult (a pure function of it), see _check
+        self.last_report = self.now
+        self._override_time = -math.inf
+        self._contact_time = -math.inf
+        self._known = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+        self._known[list(KNOWN_ADDRESSES)] = True
+
+    # ----- override
+
+    def set_override(self, seconds: float, now: float) -> float:
+        """Start (seconds > 0, capped at override_max) or end (<= 0) the expert override; returns its length."""
+        if not math.isfinite(seconds) or seconds <= 0:
+            self.override_until = -math.inf
+            return 0.0
+        seconds = min(seconds, self.config.override_max)
+        self.override_until = now + seconds
+        return seconds
+
+    def override_remaining(self, now: float) -> float:
+        return max(0.0, self.override_until - now)
+
+    # ----- holds
+
+    def held(self, now: float) -> tuple[str, ...]:
+        """Units flagged as held at ``now`` (hysteresis ``release_time``), as reported: 'all' or the arms."""
+        units = {u for u, s in self.units.items() if now - s.held_at <= self.config.release_time}
+        return ("all",) if units == set(UNITS) else tuple(sorted(units - {"body"}))
+
+    def _update_units(self, observed: Observed | None, now: float) -> None:
+        """HELD -> RELEASING once ``release_time`` passed without a new hold; RELEASING -> FREE once the daemon
+        echoed a report stamped at or after the release (or ``release_wait`` passed, or nothing echoes)."""
+        for u in self.units.values():
+            if u.state == HELD and now - u.held_at > self.config.release_time:
+                u.state, u.released_at, u.stamp = RELEASING, now, None
+            if u.state == RELEASING and (
+                    observed is None
+                    or (u.stamp is not None and observed.collide_time >= u.stamp)
+                    or now - u.released_at > self.config.release_wait):
+                u.state = FREE
+
+    def _hold(self, units: Iterable[str], now: float) -> None:
+        for name in units:
+            u = self.units[name]
+            u.state, u.held_at = HELD, now
+
+    # ----- configurations
+
+    def _configs(self, x: np.ndarray, pos: np.ndarray | None,
+                 choices: Iterable[Choice] | None = None) -> dict[Choice, np.ndarray]:
+        """Model joint vectors of output ``x`` combined per unit with the measured pose ``pos`` (NaN: not known,
+        taken at its reference). Without ``choices``: every distinct combination."""
+        q_ref = self.model.q_from_ref(x)
+        if pos is None:
+            return {(False, False, False): q_ref}
+        q_pos = self.model.q_from_ref(np.where(np.isnan(pos), x, pos))
+        if choices is None:
+            options = [(False, True) if np.abs(q_pos[_UNIT_Q[u]] - q_ref[_UNIT_Q[u]]).max() > SAME_POSE else (False,)
+                       for u in UNITS]
+            choices = itertools.product(*options)
+        out = {}
+        for c in choices:
+            q = q_ref.copy()
+            for u, measured in zip(UNITS, c, strict=True):
+                if measured:
+                    q[_UNIT_Q[u]] = q_pos[_UNIT_Q[u]]
+            out[c] = q
+        return out
+
+    def _analyze(self, x: np.ndarray, pos: np.ndarray | None) -> tuple[dict[Choice, Any], list[tuple[Choice, Any]]]:
+        """Check output candidate ``x`` in every configuration. Compared with the previous output in the same
+        configuration (same measured pose), a new colliding pair blocks, and so do the pairs that came closer
+        when the colliding pairs' total clearance dropped: a move out of contact may trade a little of one pair
+        for more of the others (the straight way home from an interlock often does), never the total."""
+        cfg = self._configs(x, pos)
+        res = dict(zip(cfg, self._check(list(cfg.values())), strict=True))
+        hit = [c for c, r in res.items() if r.collides]
+        if not hit:
+            return res, []
+        base = self._configs(self.ref, pos, hit)
+        changed = [c for c in hit if not np.array_equal(cfg[c], base[c])]
+        before = dict(zip(changed, self._check([base[c] for c in changed]), strict=True))
+        blocking = []
+        for c in changed:
+            old = {(k.a, k.b): k.clearance for k in before[c].contacts}
+            new = [k for k in res[c].contacts if (k.a, k.b) not in old]
+            kept = [k for k in res[c].contacts if (k.a, k.b) in old]
+            closer = sum(k.clearance - old[(k.a, k.b)] for k in kept) < -CLOSER
+            blocking += [(c, k) for k in new]
+            if closer:
+                blocking += [(c, k) for k in kept if k.clearance < old[(k.a, k.b)]]
+        return res, blocking
+
+    def _check(self, qs: list[np.ndarray]) -> list[Any]:
+        """``model.check_many``, remembering the answers of recent frames: the previous output's configurations
+        (the baseline of every comparison) were checked in the previous frame, and a held arm's configurations
+        repeat frame after frame."""
+        keys = [q.tobytes() for q in qs]
+        todo = {k: q for k, q in zip(keys, qs, strict=True) if k not in self._cache}
+        if todo:
+            self._cache.update(zip(todo, self.model.check_many(np.array(list(todo.values()))), strict=True))
+        return [self._cache[k] for k in keys]
+
+    def _movers(self, blocking: list[tuple[Choice, Any]], x: np.ndarray) -> set[str]:
+        """Units whose reference moved into the blocking contacts; every unit if the body (waist, neck) did."""
+        moved = {u: not np.array_equal(x[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]]) for u in UNITS}
+        out: set[str] = set()
+        for choice, contact in blocking:
+            for group in (contact.group_a, contact.group_b):
+                unit = _UNIT_OF_GROUP.get(group)
+                if unit is None:
+                    continue
+                if unit != "body" and not choice[UNITS.index(unit)] and moved[unit]:
+                    out.add(unit)
+                if not choice[2] and moved["body"]:
+                    out.add("body")
+        return set(UNITS) if "body" in out or not out else out
+
+    def _freeze(self, cand: np.ndarray, cand_mode: np.ndarray, units: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
+        out, out_mode = cand.copy(), cand_mode.copy()
+        for u in units:
+            idx = UNIT_ADDRESSES[u]
+            out[idx], out_mode[idx] = self.ref[idx], self.mode[idx]
+        return out, out_mode
+
+    # ----- the decision
+
+    def process(self, ref: np.ndarray, mode: np.ndarray, now: float, observed: Observed | None = None) -> Decision:
+        ref = np.asarray(ref, dtype=float)
+        mode = np.asarray(mode, dtype=np.int16)
+        cand = ref.copy()
+        cand_mode = mode.copy()
+        bad = ~np.isfinite(ref) | (ref < self.lower) | (ref > self.upper) | (mode < 0) | (mode > 3)
+        cand[bad] = self.ref[bad]
+        cand_mode[bad] = self.mode[bad]
+        refused = tuple(int(a) for a in np.flatnonzero(bad & self._known))
+        # The first reference after start gets no credit: whatever the input says, the output starts from where
+        # the daemon is (a restarted gate must not step).
+        dt = 0.0 if self._first else min(max(now - self.last_time, 0.0), self.config.max_dt)
+        if self.config.max_velocity is not None:
+            step = self.config.max_velocity * dt
+            cand = self.ref + np.clip(cand - self.ref, -step, step)
+        # Joints released from a hold come back at the release speed until they have caught up.
+        step = self.release_velocity * dt
+        lag = cand - self.ref
+        cand[self._ramp] = self.ref[self._ramp] + np.clip(lag[self._ramp], -step, step)
+        self._ramp &= np.abs(lag) > step
+
+        overriding = self.override_remaining(now) > 0
+        if overriding:  # nothing is held: clear the flags at once, release through the daemon echo as usual
+            for u in self.units.values():
+                u.held_at = -math.inf
+            for p in self.parts:
+                p.held = -math.inf
+        pos = None
+        if observed is not None and now - observed.time <= self.config.state_timeout:
+            pos = observed.pos
+        self._update_units(observed, now)
+
+        if len(self._cache) > 512:
+            self._cache.clear()
+        res, blocking = self._analyze(cand, pos)
+        result = _merge(res.values())
+        frozen = {n for n, u in self.units.items() if u.state != FREE}
+        out, out_mode, res_out, blocked = cand, cand_mode, res, set()
+        overridden = bool(blocking) and overriding
+        seen = list(blocking)  # contacts that decide holds and flags
+        if overridden and frozen:  # released by the override: still waiting for the daemon's echo
+            out, out_mode = self._freeze(cand, cand_mode, frozen)
+            res_out = self._analyze(out, pos)[0]
+        elif not overridden:
+            blocked = self._movers(blocking, cand) if blocking else set()
+            held = frozen | blocked
+            if held:
+                out, out_mode = self._freeze(cand, cand_mode, held)
+                res_out, more = self._analyze(out, pos)
+                while more:  # the rest of the input runs into a frozen unit: hold those units too
+                    extra = (self._movers(more, out) - held) or set(UNITS) - held
+                    if not extra:
+                        break
+                    seen += more
+                    held |= extra
+                    blocked |= extra
+                    out, out_mode = self._freeze(cand, cand_mode, held)
+                    res_out, more = self._analyze(out, pos)
+        contacts = _merge(res_out.values())
+        # An arm in contact whose input does not ask it to move stays held (and flagged); one that moves passes.
+        involved = [(c, k) for c, r in res_out.items() for k in r.contacts] + seen
+        static = {u for u in ("left", "right")
+                  if np.array_equal(cand[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]])}
+        touching = {_UNIT_OF_GROUP.get(g) for _, k in involved for g in (k.group_a, k.group_b)}
+        renewed = set() if overridden else blocked | (static & touching)
+        if renewed - blocked:
+            out, out_mode = self._freeze(out, out_mode, renewed - blocked)  # the mode stays too
+        self._hold(renewed, now)
+        for n, u in self.units.items():
+            if u.state != FREE:
+                self._ramp[UNIT_ADDRESSES[n]] = True
+        escaping = tuple(sorted(u for u in ("left", "right") if u in touching and self.units[u].state == FREE))
+        self._track(involved, renewed, now, overridden)
+        self.ref, self.mode, self.current, self.last_time = out, out_mode, contacts, now
+        self._first = False
+        releasing = tuple(n for n, u in self.units.items() if u.state == RELEASING)
+        return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
+                        escaping, contacts, pos is not None)
+
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints' output where they are (``pipeline.ReseedWatch``: after HOME, reset, resetbus)."""
+        self.ref[addresses] = positions
+        self.current = self.model.check(self.model.q_from_ref(self.ref))
+
+    # ----- reporting
+
+    def _track(self, involved: list[tuple[Choice, Any]], renewed: set[str], now: float, overridden: bool) -> None:
+        """Part states: contact times, and hold times for the parts of the arms held now."""
+        arms = {"left", "right"} & renewed
+        hit: set[int] = set()
+        held: set[int] = set()
+        touching: set[str] = set()
+        for _, k in involved:
+            for group, part in ((k.group_a, k.part_a), (k.group_b, k.part_b)):
+                touching.add(group)
+                if part >= 0:
+                    hit.add(part)
+                    if group in arms:
+                        held.add(part)
+        for arm in arms & touching:  # held for a primitive without a legacy part: flag the whole arm
+            if not held & set(ARM_PARTS[arm]):
+                held |= set(ARM_PARTS[arm])
+        for p, st in enumerate(self.parts):
+            if p in hit or p in held:
+                if now - st.last > self.config.release_time:
+                    st.start, st.count = now, 0
+                st.last = now
+                st.count = min(st.count + 1, self.config.counter_max)
+            elif now - st.last > self.config.release_time:
+                st.count = 0
+            if p in held:
+                st.held = now
+        if involved:
+            self._contact_time = now
+            if overridden:
+                self._override_time = now
+
+    def report(self, now: float) -> MDS_COLLIDE:
+        """The legacy ``mds-collide`` frame for ``now`` (hysteresis on wall time); see the module doc."""
+        rt = self.config.release_time
+        c = MDS_COLLIDE()
+        holding = bool(self.held(now))
+        if holding:
+            c.isCollide = COLLIDE_BLOCKED
+        elif now - self._override_time <= rt:
+            c.isCollide = COLLIDE_OVERRIDDEN
+        elif now - self._contact_time <= rt:
+            c.isCollide = COLLIDE_CONTACT
+        for p, st in enumerate(self.parts):
+            active = now - st.last <= rt
+            j = c.joint[p]
+            j.collision = st.count if active else 0
+            j.isCollide = int(now - st.held <= rt if holding else active and c.isCollide != 0)
+            j.time = st.last if math.isfinite(st.last) else 0.0
+            j.time_dt = now - st.start if active else 0.0
+        c.time = now
+        c.time_dt = now - self.last_report
+        self.last_report = now
+        for u in self.units.values():
+            if u.state == RELEASING and u.stamp is None:
+                u.stamp = now  # the first report without its hold: once the daemon echoes it, the unit moves
+        return c
+
+
+def decision_to_dict(d: Decision | None, gate: Gate, now: float) -> dict[str, Any]:
+    """The JSON document of /mds/collision."""
+    res = d.result if d is not None else gate.current
+    now_contacts = d.contacts if d is not None else gate.current
+    return {
+        "time": now,
+        "collision": bool(res.collides),
+        "pairs": sorted([c.a, c.b] for c in res.contacts),
+        "parts": [mds.COLLIDE_PART_NAMES[p] for p in sorted(res.parts)],
+        "contact": sorted([c.a, c.b] for c in now_contacts.contacts),
+        "held": list(gate.held(now)),
+        "releasing": list(d.releasing) if d is not None else [],
+        "escaping": list(d.escaping) if d is not None else [],
+        "measured": bool(d.measured) if d is not None else False,
+        "refused": [labels([a]) for a in d.refused] if d is not None else [],
+        "overridden": bool(d.overridden) if d is not None else False,
+        "override_remaining": round(gate.override_remaining(now), 3),
+        "margin": gate.model.margin,
+    }
+
+
+def joint_limits(model: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Per-address limits: the joint table (config/joints.yaml) intersected with the URDF for modelled joints."""
+    lower = np.full(MDS_JOINT_COUNT, -math.inf)
+    upper = np.full(MDS_JOINT_COUNT, math.inf)
+    from mds_ach.robot import config as joint_config
+
+    for j in joint_config.load():
+        lower[j.address], upper[j.address] = j.lower, j.upper
+    lower[model.addresses] = np.maximum(lower[model.addresses], model.lower)
+    upper[model.addresses] = np.minimum(upper[model.addresses], model.upper)
+    return lower, upper
+
+
+def load_config(path: str | Path | None = None) -> dict[str, Any]:
+    from mds_ach.kinematics.collision import load_yaml
+    from mds_ach.paths import config_path
+
+    path = Path(path) if path else config_path("collision.yaml")
+    if not path.is_file():
+        raise ValueError(f"collision config {path} not found")
+    return load_yaml(path)
+
+
+# --------------------------------------------------------------------------------------------- Ach side
+
+
+class GateRunner:
+    """Channels around ``Gate``: wait for ``mds-ref-smooth``, decide with the newest ``mds-state`` (measured pose,
+    echoed ``mds-collide``), put ``mds-ref`` and ``mds-collide``."""
+
+    def __init__(self, model: Any, config: GateConfig, lower: np.ndarray, upper: np.ndarray,
+                 log: Callable[[str, str], None] | None = None,
+                 on_report: Callable[[Decision | None, Gate, float], None] | None = None,
+                 sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+        self.model = model
+        self.config = config
+        self.lower, self.upper = lower, upper
+        self.log = log or (lambda level, msg: print(f"[collision] {level}: {msg}", flush=True))
+        self.on_report = on_report
+        self.sources = tuple(sources)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._override_requests: list[float] = []
+        self._inp: Any = None
+        self.gate: Gate | None = None
+        self.ready = threading.Event()
+        self.processed = 0
+        self.check_times: list[float] = []
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._inp is not None:
+            cancel_wait(self._inp)
+
+    def request_override(self, seconds: float) -> None:
+        """Thread-safe: queue an expert-override request (applied by the gate thread)."""
+        with self._lock:
+            self._override_requests.append(float(seconds))
+
+    def run(self) -> None:
+        from mds_ach.nodes.pipeline import ChannelGuard, ReseedWatch, make_ref, ref_arrays, wait_current_reference
+        from mds_ach.robot.channels import StructChannel
+
+        found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
+        if found is None:
+            return
+        ref, mode, source = found
+        gate = Gate(self.model, self.config, ref, mode, time.monotonic(), self.lower, self.upper)
+        self._inp = inp = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+        out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+        collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
+        state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+        observed: Observed | None = None
+        inp.latest()  # a frame already waiting is an old command: act only on frames that arrive from now on
+        self.gate = gate
+        report_period = 1.0 / self.config.report_rate
+        override_log = 0.0
+        last_refusal_log = last_override_log = -math.inf
+        guard = ChannelGuard(self.log, self._stop)
+        watch = ReseedWatch(self.log, self._stop)
+        try:
+            msg = f"started from {source}; margin {self.model.margin:g} m, {len(self.model.pairs)} pairs"
+            if gate.current.collides:
+                self.log("error", f"{msg}; the current reference is IN COLLISION: "
+                                  f"{sorted(gate.current.pairs)} - only moves out of it are passed")
+            else:
+                self.log("info", msg)
+            collide.put(gate.report(time.monotonic()))
+            self.ready.set()
+            while not self._stop.is_set():
+                frame = guard.call(inp.name, inp.wait, timeout=report_period)  # broken input: hold, report
+                now = time.monotonic()
+                override_log = self._apply_overrides(gate, now, override_log)
+                state = guard.call(state_ch.name, state_ch.latest)  # a broken state: keep the last one
+                if state is not None:
+                    observed = Observed.from_state(state)
+                found = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
+                if found is not None:
+                    gate.reseed(*found)
+                    self.log("info", f"re-seeded {labels(found[0])} where the joints are")
+                decision = None
+                if frame is not None:
+                    t0 = time.perf_counter()
+                    decision = gate.process(*ref_arrays(frame), now, observed)
+                    self.check_times.append(time.perf_counter() - t0)
+                    if len(self.check_times) > 10000:
+                        del self.check_times[:5000]
+                    # The report before the reference: the daemon reads the reference first, then the report, so
+                    # whenever it sees a held reference it also sees the hold.
+                    guard.call(collide.name, collide.put, gate.report(now))
+                    guard.call(out.name, out.put, make_ref(decision.ref, decision.mode))
+                    self.processed += 1
+                    if decision.refused and now - last_refusal_log > 1.0:
+                        self.log("error", f"refused out-of-limit/non-finite references or bad modes for "
+                                          f"{labels(decision.refused)} (held at their last value)")
+                        last_refusal_log = now
+                    if decision.overridden and now - last_override_log > 1.0:
+                        self.log("error", f"EXPERT OVERRIDE passed a predicted collision: "
+                                          f"{sorted(decision.result.pairs)}")
+                        last_override_log = now
+                reported = frame is not None
+                if not reported and now - gate.last_report >= report_period:
+                    guard.call(collide.name, collide.put, gate.report(now))
+                    reported = True
+                if reported and self.on_report is not None:
+                    self.on_report(decision, gate, now)
+        finally:
+            for ch in (inp, out, collide, state_ch, watch):
+                ch.close()
+            if self.check_times:
+                ms = np.array(self.check_times) * 1e3
+                self.log("info", f"{self.processed} references gated; decision time median {np.median(ms):.2f} ms, "
+                                 f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.2f} ms")
+
+    def _apply_overrides(self, gate: Gate, now: float, last_log: float) -> float:
+        with self._lock:
+            requests, self._override_requests = self._override_requests, []
+        for seconds in requests:
+            granted = gate.set_override(seconds, now)
+            if granted > 0:
+                self.log("error", f"EXPERT OVERRIDE ON for {granted:.1f} s (requested {seconds:g} s): predicted "
+                                  f"collisions are reported but NOT blocked")
+            else:
+                self.log("warn", "expert override cancelled: collision checking blocks again")
+            last_log = now
+        remaining = gate.override_remaining(now)
+        if remaining > 0 and now - last_log >= 1.0:
+            self.log("error", f"EXPERT OVERRIDE active, {remaining:.1f} s left")
+            return now
+        if remaining == 0 and gate.override_until > -math.inf and gate.override_until <= now:
+            self.log("warn", "expert override expired: collision checking blocks again")
+            gate.override_until = -math.inf
+        return last_log
+
+
+# --------------------------------------------------------------------------------------------- ROS node
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="collision",
+        description="Collision gate: reads mds-ref-smooth, writes mds-ref. Checks each reference (limits, speed "
+                    "bound, self-collision and world objects with python-fcl) and holds the affected arm at its "
+                    "last safe reference on a predicted collision. Reports on mds-collide and /mds/collision. "
+                    "Expert override: publish seconds (std_msgs/Float64) on /mds/collision/override.",
+        epilog="Example: ros2 run mds_ach collision --world my_world.yaml --margin 0.03",
+    )
+    p.add_argument("--config", help="gate YAML (default: the package's config/collision.yaml)")
+    p.add_argument("--world", help="world objects YAML (default: the package's config/world.yaml)")
+    p.add_argument("--urdf", help="robot URDF (default: the package's urdf/mds.urdf)")
+    p.add_argument("--margin", type=float, help="minimum clearance in m (overrides the config)")
+    return p
+
+
+def build_gate_parts(config_path: str | None = None, world: str | None = None, urdf: str | None = None,
+                     margin: float | None = None) -> tuple[Any, GateConfig, np.ndarray, np.ndarray]:
+    """Model, gate config and limits from the files (shared by the node and the tests)."""
+    from mds_ach.kinematics.collision import load_model
+
+    cfg = dict(load_config(config_path))
+    if margin is not None:
+        cfg["margin"] = margin
+    model = load_model(urdf, cfg, world)
+    lower, upper = joint_limits(model)
+    if cfg.get("release_velocity") is None:
+        cfg["release_velocity"] = filter_speed()
+    return model, GateConfig.from_mapping(cfg), lower, upper
+
+
+def filter_speed(path: str | Path | None = None) -> float:
+    """The slowest ``max_velocity`` of any modelled joint in the filter's config (config/filter.yaml): how fast a
+    released joint comes back, so that it never outruns what the filter itself would have commanded."""
+    from mds_ach.nodes import filter as filter_node
+
+    return float(filter_node.load_config(path).max_velocity[MODEL_ADDRESSES].min())
+
+
+def _make_node(args: argparse.Namespace) -> Any:
+    from rclpy.node import Node
+    from std_msgs.msg import Float64, String
+
+    from mds_ach.nodes.pipeline import ros_log, start_worker
+
+    model, gate_cfg, lower, upper = build_gate_parts(args.config, args.world, args.urdf, args.margin)
+
+    class CollisionNode(Node):
+        def __init__(self) -> None:
+            super().__init__("collision")
+            self.declare_parameter("margin", model.margin)
+            self.pub = self.create_publisher(String, "/mds/collision", 10)
+            self.create_subscription(Float64, "/mds/collision/override", self._on_override, 10)
+            log = ros_log(self)
+            self._last_pub = -math.inf
+            self._last_doc: str = ""
+            self.runner = GateRunner(model, gate_cfg, lower, upper, log=log, on_report=self._on_report)
+            self.thread = start_worker(self, self.runner.run, "collision")
+
+        def _on_override(self, msg: Any) -> None:
+            self.get_logger().warning(f"expert override request received: {msg.data:g} s")
+            self.runner.request_override(float(msg.data))
+
+        def _on_report(self, decision: Decision | None, gate: Gate, now: float) -> None:
+            doc = decision_to_dict(decision, gate, now)
+            key = json.dumps({k: v for k, v in doc.items() if k != "time"})
+            if not self.context.ok():  # shutting down after SIGINT/SIGTERM
+                return
+            if key != self._last_doc or now - self._last_pub >= 1.0 / gate.config.report_rate:
+                self.pub.publish(String(data=json.dumps(doc)))
+                self._last_doc, self._last_pub = key, now
+
+        def shutdown(self) -> None:
+            self.runner.stop()
+            self.thread.join(timeout=3.0)
+
+    return CollisionNode()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from mds_ach.nodes.pipeline import run_node
+
+    return run_node(argv, _build_parser(), _make_node)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,358 @@
+"""``daemon`` (``ros2 run mds_ach daemon``): the MDS CAN driver node.
+
+Reads references from ``mds-ref``, drives the Xitome MCB nodes over any python-can bus (``--nocan``: the
+simulated MDS bus in this process), publishes ``mds-state`` every cycle, ``mds-param`` at start and
+``mds-daemon-status``; loop statistics and bus load go to ``/diagnostics`` (WARN above 60 % bus load).
+
+Setup commands reach it two ways:
+
+* the ``mds-cmd`` Ach channel (``MDS_CMD``: seq, cmd = ``MDS_CMD_*``, address (0 = every enabled joint));
+  the result is echoed in ``mds-daemon-status`` (``cmd_seq``, ``cmd_result``);
+* the ROS service ``~/command`` (``/mds_daemon/command``) of type ``diagnostic_msgs/srv/AddDiagnostics``
+  (the installed ROS wheels have no std_srvs): ``load_namespace`` carries the command text
+  ``"<enable|disable|home|reset|zero|resetbus> [joint|all]"``, the reply's ``success``/``message`` the result.
+  Example: ``ros2 service call /mds_daemon/command diagnostic_msgs/srv/AddDiagnostics
+  "{load_namespace: 'home LEP'}"``.
+
+ROS parameters ``robot``, ``rate`` and ``nocan`` (defaults from the command line) serve launch files.
+The real-time loop runs on its own thread (see :mod:`mds_ach.nodes.daemon_loop`); the executor only serves the
+service and the diagnostics timer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mds_ach as mds
+from mds_ach.robot import daemon_status as ds
+
+log = logging.getLogger("mds_ach.nodes.daemon")
+
+BUS_LOAD_WARN = 60.0  # percent
+COMMAND_CODES = {"enable": mds.MDS_CMD_ENABLE, "disable": mds.MDS_CMD_DISABLE, "home": mds.MDS_CMD_HOME,
+                 "reset": mds.MDS_CMD_RESET, "zero": mds.MDS_CMD_ZERO_ENCODER,
+                 "zero_encoder": mds.MDS_CMD_ZERO_ENCODER, "resetbus": mds.MDS_CMD_RESET_BUS,
+                 "reset_bus": mds.MDS_CMD_RESET_BUS}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="daemon",
+        description="MDS CAN daemon: mds-ref -> Xitome MCB nodes -> mds-state. The CAN bus is any python-can "
+                    "interface chosen by python-can's configuration (--interface/--channel/--bitrate, "
+                    "$CAN_INTERFACE/$CAN_CHANNEL/$CAN_BITRATE, ~/.canrc or --can-config); --nocan simulates "
+                    "the robot's bus in-process.",
+        epilog="Examples: daemon --nocan | daemon -i socketcan -c can0 | daemon -i pcan -c PCAN_USBBUS1 -b 1000000 "
+               "--can-log run.asc | daemon --replay run.asc. ROS arguments (--ros-args ...) are accepted.",
+    )
+    bus = ap.add_argument_group("CAN bus")
+    bus.add_argument("--nocan", action="store_true", help="simulated MDS bus: every joint-table node answers")
+    bus.add_argument("-i", "--interface", help="python-can interface (socketcan, kvaser, pcan, slcan, virtual...)")
+    bus.add_argument("-c", "--channel", help="python-can channel (e.g. can0)")
+    bus.add_argument("-b", "--bitrate", type=int, help="bit/s (default: config, else 1000000); also for bus load")
+    bus.add_argument("--can-config", metavar="FILE", help="python-can config file (default ~/.canrc, /etc/can.conf)")
+    bus.add_argument("--can-log", metavar="FILE",
+                     help="record all traffic; format by suffix: .asc .blf .csv .log .trc .txt (.mf4 needs asammdf)")
+    bus.add_argument("--replay", metavar="FILE", help="feed the node replies of a recorded log back (no robot)")
+    bus.add_argument("--replay-speed", type=float, default=1.0, help="replay pacing factor; 0 = as fast as read")
+    loop = ap.add_argument_group("loop")
+    loop.add_argument("-r", "--rate", type=float, default=1.0 / mds.MDS_LOOP_PERIOD, help="loop rate in Hz (10)")
+    loop.add_argument("--robot", help="robot variant (isaac, lucas, octavia, default); else $MDS_ACH_ROBOT or the "
+                                      "choice saved by `mds-ach changerobot`")
+    loop.add_argument("--config", metavar="FILE", help="joint table YAML (default: config/joints.yaml)")
+    loop.add_argument("--reply-wait", type=float, help="s to wait for position replies per cycle (half a period)")
+    loop.add_argument("--stale-after", type=float, help="s without a reply before a joint is stale (3.5 periods)")
+    loop.add_argument("--filter-length", type=float, help="L of the mode-0 filter (default: 95%% in 4.0 s)")
+    loop.add_argument("--no-collide-gate", action="store_true",
+                      help="do not hold the robot while mds-collide reports a collision (expert use only)")
+    loop.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the loop thread (needs "
+                                                                 "CAP_SYS_NICE); 0 = normal scheduling")
+    sim = ap.add_argument_group("simulated bus (--nocan)")
+    sim.add_argument("--sim-pose", metavar="J=RAD,...", default="",
+                     help="where the simulated joints start, e.g. LEP=-1.0,RSR=-0.5 (default: home pose)")
+    sim.add_argument("--sim-ideal", action="store_true", help="no wire time: replies arrive at once")
+    sim.add_argument("--sim-faults", metavar="SOCKET",
+                     help="test-only: take fault-injection requests (offline node, bogus position replies, bus-off) "
+                          "on this Unix socket (mds_ach.bus.simbus.FaultControl)")
+    ap.add_argument("--no-ros", action="store_true", help="run without rclpy (no /diagnostics, no service)")
+    ap.add_argument("--duration", type=float, help="stop after this many seconds (tests, benchmarks)")
+    ap.add_argument("-d", "--debug", action="store_true", help="debug logging")
+    return ap
+
+
+def parse_pose(text: str) -> dict[str, float]:
+    """'LEP=-1.0,RSR=-0.5' -> {'LEP': -1.0, 'RSR': -0.5}; bad input raises ValueError naming the item."""
+    from mds_ach.robot.joints import lookup
+
+    pose: dict[str, float] = {}
+    for item in filter(None, (p.strip() for p in text.replace(" ", ",").split(","))):
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--sim-pose: expected JOINT=RAD, got {item!r}")
+        try:
+            pose[lookup(name).short] = float(value)
+        except KeyError as exc:
+            raise ValueError(f"--sim-pose: {exc.args[0]}") from None
+        except ValueError:
+            raise ValueError(f"--sim-pose: {item!r}: not a number") from None
+    return pose
+
+
+@dataclass
+class Daemon:
+    """Everything a running daemon owns (so tests and the node tear it down the same way)."""
+
+    loop: object
+    io: object
+    channels: object
+    network: object | None = None
+    faults: object | None = None  # simbus.FaultControl (--sim-faults)
+
+    def close(self) -> None:
+        self.loop.stop()
+        if self.faults is not None:
+            self.faults.close()
+        self.io.close()
+        self.channels.close()
+
+
+def build(args: argparse.Namespace) -> Daemon:
+    """Joint table, bus, channels and the loop (started, after reading the start pose)."""
+    from mds_ach.bus import canio
+    from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, lock_timeout_for
+    from mds_ach.robot import config
+
+    table = config.load(args.robot, args.config)
+    if args.sim_faults and not args.nocan:
+        raise ValueError("--sim-faults needs --nocan: faults are injected into the simulated bus only")
+    network = None
+    if args.nocan:
+        from mds_ach.bus.simbus import SimNetwork
+
+        pose = parse_pose(args.sim_pose)
+        for short, q in pose.items():
+            if not table[short].within_limits(q):
+                j = table[short]
+                raise ValueError(f"--sim-pose: {short}={q} is outside [{j.lower:.4f}, {j.upper:.4f}]")
+        network = SimNetwork.from_table(table, pose=pose, bitrate=None if args.sim_ideal else
+                                        (args.bitrate or canio.DEFAULT_BITRATE))
+    io = canio.make_canio(nocan=args.nocan, network=network, interface=args.interface, channel=args.channel,
+                          bitrate=args.bitrate, config_file=args.can_config, replay=args.replay,
+                          replay_speed=args.replay_speed, can_log=args.can_log)
+    try:
+        channels = DaemonChannels.open(lock_timeout=lock_timeout_for(args.rate))
+    except Exception:
+        io.close()
+        raise
+    try:
+        loop = DaemonLoop(table, io, channels, rate_hz=args.rate, reply_wait=args.reply_wait,
+                          stale_after=args.stale_after, filter_length=args.filter_length,
+                          collide_gate=not args.no_collide_gate, nocan=args.nocan, rt_priority=args.rt_priority)
+        loop.start_up()
+    except Exception:
+        io.close()
+        channels.close()
+        raise
+    log.info("robot %s (%s), %s, %.4g Hz, filter L %.2f", table.robot, ", ".join(table.sources), io.description,
+             args.rate, loop.L)
+    faults = None
+    if args.sim_faults:
+        from mds_ach.bus.simbus import FaultControl
+
+        faults = FaultControl(args.sim_faults, network)
+        log.warning("test-only fault injection on %s", args.sim_faults)
+    loop.start()
+    return Daemon(loop, io, channels, network, faults)
+
+
+def parse_command(text: str) -> tuple[int, int]:
+    """'home LEP' -> (MDS_CMD_HOME, 0x4C); 'resetbus' -> (MDS_CMD_RESET_BUS, 0); 'enable all' -> (.., 0)."""
+    from mds_ach.robot.joints import lookup
+
+    words = text.split()
+    if not words or words[0].lower() not in COMMAND_CODES or len(words) > 2:
+        raise ValueError(f"expected '<{'|'.join(sorted(set(COMMAND_CODES) - {'zero_encoder', 'reset_bus'}))}> "
+                         f"[joint|all]', got {text!r}")
+    code = COMMAND_CODES[words[0].lower()]
+    if len(words) == 1 or words[1].lower() == "all":
+        return code, 0
+    try:
+        return code, lookup(words[1]).address
+    except KeyError as exc:
+        raise ValueError(exc.args[0]) from None
+
+
+def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list[str], new_channel_errors: int = 0,
+                      bad_reply_names: Sequence[str] = (), new_stalls: int = 0):
+    """The daemon's DiagnosticStatus (OK / WARN above 60 % bus load, stale joints, joints with implausible position
+    replies, late loop, stalls or channel errors since the last report / ERROR bus-off or loop stopped). Targets
+    the daemon had to limit are reported as values (per joint), not as a problem: the limiter did its job."""
+    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    from mds_ach.robot.joints import BY_ADDRESS
+
+    level, problems = DiagnosticStatus.OK, []
+    if st.bus_load_avg > BUS_LOAD_WARN:
+        level = DiagnosticStatus.WARN
+        problems.append(f"bus load {st.bus_load_avg:.0f} % > {BUS_LOAD_WARN:.0f} %")
+    if st.stale_count:
+        level = DiagnosticStatus.WARN
+        problems.append(f"{st.stale_count} stale joint(s): {' '.join(stale_names)}")
+    if bad_reply_names:
+        level = DiagnosticStatus.WARN
+        problems.append(f"implausible position replies (position not trusted): {' '.join(bad_reply_names)}")
+    if new_stalls:
+        level = DiagnosticStatus.WARN
+        problems.append(f"control loop stalled {new_stalls} time(s) (longest {st.stall_max:.2f} s)")
+    if new_channel_errors:
+        level = DiagnosticStatus.WARN
+        problems.append(f"{new_channel_errors} Ach channel error(s): see the log, `mds-ach repair`")
+    if st.bus_state == ds.BUS_STATE_PASSIVE:
+        level = DiagnosticStatus.WARN
+        problems.append("CAN error-passive")
+    if st.period_error_p99 > 0.5 / max(st.rate_hz, 1e-9):
+        level = DiagnosticStatus.WARN
+        problems.append(f"loop late: p99 period error {st.period_error_p99 * 1e3:.1f} ms")
+    if st.bus_state == ds.BUS_STATE_BUS_OFF:
+        level = DiagnosticStatus.ERROR
+        problems.append("CAN bus-off: run `mds-ach resetbus`")
+    if not running:
+        level = DiagnosticStatus.ERROR
+        problems.append("control loop not running")
+    values = {
+        "rate_hz": f"{st.rate_hz:g}", "measured_rate_hz": f"{st.measured_rate_hz:.3f}",
+        "period_error_p50_ms": f"{st.period_error_p50 * 1e3:.3f}",
+        "period_error_p99_ms": f"{st.period_error_p99 * 1e3:.3f}",
+        "period_error_max_ms": f"{st.period_error_max * 1e3:.3f}", "overruns": str(st.overruns),
+        "cycle_time_ms": f"{st.cycle_time * 1e3:.3f}", "cpu_per_cycle_ms": f"{st.cpu_per_cycle * 1e3:.3f}",
+        "bus_load_percent": f"{st.bus_load:.1f}", "bus_load_avg_percent": f"{st.bus_load_avg:.1f}",
+        "bitrate": str(st.bitrate), "bus_state": ds.BUS_STATE_NAMES.get(st.bus_state, "?"),
+        "nocan": str(bool(st.nocan)), "cycle": str(st.cycle), "tx_frames": str(st.tx_frames),
+        "rx_frames": str(st.rx_frames), "tx_errors": str(st.tx_errors), "error_frames": str(st.error_frames),
+        "bus_off_count": str(st.bus_off_count), "unknown_node_frames": str(st.unknown_node_frames),
+        "malformed_frames": str(st.malformed_frames), "node_errors": str(st.node_errors),
+        "acks_missing": str(st.acks_missing), "refs_refused": str(st.refs_refused),
+        "refs_clamped": str(st.refs_clamped), "collision_holds": str(st.collision_holds),
+        "channel_errors": str(st.channel_errors),
+        "stale_joints": " ".join(stale_names), "replies": f"{st.replies_received}/{st.replies_expected}",
+        "max_velocity_rad_s": f"{st.max_velocity:g}", "max_acceleration_rad_s2": f"{st.max_acceleration:g}",
+        "targets_limited": str(st.targets_limited), "limited_joints": " ".join(
+            f"{BY_ADDRESS[a].short}:{st.joint_limited[a]}" for a in BY_ADDRESS if st.joint_limited[a]),
+        "bad_replies": str(st.bad_replies), "bad_reply_joints": " ".join(bad_reply_names),
+        "stalls": str(st.stalls), "stall_max_s": f"{st.stall_max:.3f}",
+    }
+    return DiagnosticStatus(level=level, name="mds_daemon: control loop", hardware_id="mds",
+                            message="; ".join(problems) or "OK",
+                            values=[KeyValue(key=k, value=v) for k, v in values.items()])
+
+
+def _make_node(args: argparse.Namespace):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from diagnostic_msgs.srv import AddDiagnostics
+    from rclpy.node import Node
+
+    from mds_ach.robot.joints import BY_ADDRESS
+
+    class DaemonNode(Node):
+        """Diagnostics timer and command service around the loop thread (which never waits on ROS)."""
+
+        def __init__(self) -> None:
+            super().__init__("mds_daemon")
+            # ROS parameters for launch files; the command line gives their defaults.
+            robot = self.declare_parameter("robot", args.robot or "").value
+            rate = self.declare_parameter("rate", float(args.rate)).value
+            nocan = self.declare_parameter("nocan", bool(args.nocan)).value
+            args.robot, args.rate, args.nocan = robot or None, float(rate), bool(nocan)
+            self.daemon = build(args)
+            self._channel_errors = 0
+            self._stalls = 0
+            self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.create_timer(1.0, self._diagnostics)
+            self.create_service(AddDiagnostics, "~/command", self._command)
+
+        def _diagnostics(self) -> None:
+            st = self.daemon.loop.snapshot()
+            if not self.daemon.loop.running:
+                # The loop thread died (its traceback is in the log): stop the process so a supervisor notices;
+                # the MCB nodes hold their last targets.
+                self.get_logger().fatal("control loop stopped; exiting")
+                raise SystemExit(1)
+            stale = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_STALE
+                     and st.joint_flags[a] & ds.JOINT_ENABLED]
+            bad = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_BAD_REPLY]
+            msg = DiagnosticArray()
+            msg.header.stamp = self.get_clock().now().to_msg()
+            new_errors, self._channel_errors = st.channel_errors - self._channel_errors, st.channel_errors
+            new_stalls, self._stalls = st.stalls - self._stalls, st.stalls
+            msg.status = [diagnostic_status(st, self.daemon.loop.running, stale, new_errors, bad, new_stalls)]
+            self.diag_pub.publish(msg)
+
+        def _command(self, request, response):
+            try:
+                code, address = parse_command(request.load_namespace)
+            except ValueError as exc:
+                response.success, response.message = False, str(exc)
+                return response
+            cmd = self.daemon.loop.submit(code, address)
+            if not cmd.done.wait(max(2.0, 5 * self.daemon.loop.period)):
+                response.success, response.message = False, "the control loop did not answer in time"
+                return response
+            response.success, response.message = cmd.result == ds.CMD_OK, cmd.message
+            return response
+
+        def shutdown(self) -> None:
+            self.daemon.close()
+
+    return DaemonNode()
+
+
+def _run_plain(args: argparse.Namespace) -> int:
+    """No ROS: the loop thread runs until SIGINT/SIGTERM or --duration."""
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        daemon = build(args)
+    except ValueError as exc:
+        print(f"daemon: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        while not stop.wait(0.2):
+            if not daemon.loop.running:
+                log.error("control loop stopped")
+                return 1
+    finally:
+        daemon.close()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv if argv is None else argv)
+    parser = build_parser()
+    from rclpy.utilities import remove_ros_args
+
+    args = parser.parse_args(remove_ros_args(argv)[1:])
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
+                        format="[daemon] %(levelname)s: %(message)s")
+    if args.duration is not None:
+        timer = threading.Timer(args.duration, lambda: signal.raise_signal(signal.SIGTERM))
+        timer.daemon = True
+        timer.start()
+    if args.no_ros:
+        from mds_ach.robot import access as channel_access
+
+        channel_access.enforce_in_this_process()  # refuse channel files another user planted (run_node does too)
+        return _run_plain(args)
+    from mds_ach.nodes.pipeline import run_node
+
+    return run_node(argv, parser, _make_node)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

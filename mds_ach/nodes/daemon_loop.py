@@ -1,0 +1,983 @@
+"""The daemon's real-time loop: references in, MCB frames out, positions back, ``mds-state`` published.
+
+One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread:
+
+1. setup commands queued from ``mds-cmd`` or the ROS service (enable, disable, home, reset, zero, reset bus);
+2. newest ``mds-collide`` (copied into ``state.collide``) and newest ``mds-ref`` -- nothing new means the
+   previous reference holds (zero-order hold); NaN/Inf or an unknown mode refuses that joint's value;
+3. per joint: clamp to the joint limits, then the legacy mode (0 first-order filter with L giving 95 % of a
+   step in 4.0 s at the loop rate, 1 pass-through, 2 compliant (follow the encoder), 3 encoder filter): the
+   joint's *goal*;
+4. for enabled joints, unless ``mds-collide`` says a collision is predicted for that arm (``_collision_held``):
+   the goal through ``motion.limit`` at the moment the joint's frames go out, then, if the target (float32
+   counts) changed, the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
+5. one broadcast ACTUAL_POSITION query; replies decoded in binary until every live node answered or the
+   reply window closes; a node silent for ``stale_after`` is stale (``state.active`` 0, flagged in
+   ``mds-daemon-status``), never reported as fresh; an implausible reply is never taken as a position;
+6. ``mds-state`` (legacy layout, CLOCK_MONOTONIC time) and ``mds-daemon-status``.
+
+**The motion bounds hold on every path.** Each joint keeps a ``motion.Track`` of the last target it was sent
+(the float32 counts converted back to rad, i.e. what a CAN log shows) and every new target is limited from it
+(speed, acceleration, braking for the joint limits; ``mds_ach.robot.motion``). Whatever made the goal jump -- a mode
+change, a stall of this loop, a collision hold released, bus-off, a restart, an upstream node that moved on --
+the joint ramps. A joint that is not sent to keeps its track (by the definition its velocity becomes 0).
+The track is *re-seeded* at the measured position, at rest, when the daemon starts, after HOME, RESET,
+ZERO_ENCODER and ENABLE, and when a silent node answers again: until the next MOVETO it follows the joint's
+trusted replies, and that MOVETO states exactly where the joint is (a zero step), so the daemon and any
+observer of the log (``mds-ach check-log``) restart from the same point. A joint whose position the daemon
+never knew is not commanded. Targets that had to be limited are flagged (``JOINT_LIMITED``) and counted.
+
+**Position replies are validated**: one outside the joint's range (plus a margin) or implying a speed beyond
+``REPLY_SPEED_FACTOR`` times the velocity bound is refused (``JOINT_BAD_REPLY``, counted); ``pos`` keeps the
+last good value and the joint counts as not fresh until ``REPLIES_TO_TRUST`` consistent replies in a row. A
+joint in mode 2 or 3 without a trusted, fresh position holds its last target.
+
+``state.joint[a].active`` is 1 while the joint's position is fresh and trusted, ``pos`` is NaN until a first
+reading arrived, ``vel`` is the finite difference of fresh readings, ``cur`` the last CURRENT reply (raw units),
+``ref`` the target the joint is commanded to, ``ref_c_send`` the last one sent (float32 counts, as on the bus).
+Setup commands (enable, reset, zero encoder, home) never move a joint by themselves except HOME: afterwards
+the joint holds where it is until its reference on ``mds-ref`` changes, and once its position is known the
+daemon asks the pipeline to restart the joint's reference there (``joint_reseed`` in ``mds-daemon-status``;
+``resetbus`` does the same for every joint).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import logging
+import math
+import os
+import queue
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach.bus import mcb
+from mds_ach.bus.canio import CanIO
+from mds_ach.bus.mcb import Response, StateArg
+from mds_ach.nodes import filters
+from mds_ach.robot import daemon_status as ds
+from mds_ach.robot import motion
+from mds_ach.robot.config import JointConfig, JointTable
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
+from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
+
+log = logging.getLogger("mds_ach.nodes.daemon")
+
+CAN_ERR_CRTL = 0x004
+CAN_ERR_BUSOFF = 0x040
+CAN_ERR_RESTARTED = 0x100
+CAN_ERR_CRTL_PASSIVE = 0x30  # RX or TX passive in data[1]
+CAN_ERR_CRTL_WARNING = 0x0C
+CAN_ERR_CRTL_ACTIVE = 0x40  # recovered to error-active
+
+HOMING_TIMEOUT = 60.0  # s: stop waiting for a homing joint to settle
+COMMAND_NAMES = {mds.MDS_CMD_ENABLE: "enable", mds.MDS_CMD_DISABLE: "disable", mds.MDS_CMD_HOME: "home",
+                 mds.MDS_CMD_RESET: "reset", mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET_BUS: "resetbus"}
+_F32 = struct.Struct("<f")
+
+
+def f32(value: float) -> float:
+    """The value as the float32 that goes on the wire (what decides whether a target 'changed')."""
+    return _F32.unpack(_F32.pack(value))[0]
+
+
+# --- absolute-time sleeping -----------------------------------------------------------------------------
+
+CLOCK_MONOTONIC = 1
+TIMER_ABSTIME = 1
+PR_SET_TIMERSLACK = 29
+
+
+STALL_PERIODS = 2.0  # a cycle that starts more than this many periods after the previous one: the loop stalled
+# Position replies: a reply further than REPLY_RANGE_MARGIN of the joint's range (at least REPLY_RANGE_MIN) beyond
+# its limits, or implying more than REPLY_SPEED_FACTOR times the velocity bound since the last good reply (plus
+# REPLY_SLACK for encoder noise and time-stamp jitter), cannot be right: no node moves its joint like that.
+REPLY_RANGE_MARGIN = 0.05
+REPLY_RANGE_MIN = 0.1  # rad
+REPLY_SPEED_FACTOR = 4.0
+REPLY_SLACK = 0.05  # rad
+REPLIES_TO_TRUST = 3  # consistent replies in a row before a joint's position is trusted again
+LIMIT_TOLERANCE = 1e-9  # rad: a target further than this from the goal counts as limited
+
+_LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
+               mds.COLLIDE_L_WRIST)
+_RIGHT_PARTS = (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM, mds.COLLIDE_R_ELBOW,
+                mds.COLLIDE_R_WRIST)
+_LEFT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in LEFT_ARM)
+_RIGHT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in RIGHT_ARM)
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+try:
+    _libc = ctypes.CDLL(None, use_errno=True)
+    _clock_nanosleep = _libc.clock_nanosleep
+    _clock_nanosleep.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Timespec), ctypes.c_void_p]
+    _clock_nanosleep.restype = ctypes.c_int
+except (OSError, AttributeError):  # not glibc: fall back to a relative sleep to the deadline
+    _libc = None
+    _clock_nanosleep = None
+
+
+def sleep_until(deadline: float) -> None:
+    """Sleep until ``deadline`` on the CLOCK_MONOTONIC timeline (``time.monotonic()``), absolute, so that
+    lateness never accumulates; restarts after signals. The GIL is released while sleeping."""
+    if _clock_nanosleep is None:
+        remaining = deadline - time.monotonic()
+        if remaining > 0:
+            time.sleep(remaining)
+        return
+    sec = math.floor(deadline)
+    ts = _Timespec(int(sec), int((deadline - sec) * 1e9))
+    while _clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, ctypes.byref(ts), None) == 4:  # EINTR
+        pass
+
+
+def tune_thread(rt_priority: int = 0) -> list[str]:
+    """Best effort for the calling thread: 1 ns timer slack, optional SCHED_FIFO. Returns what failed."""
+    problems = []
+    if _libc is not None:
+        try:
+            if _libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(1), 0, 0, 0) != 0:
+                problems.append("timer slack unchanged")
+        except AttributeError:
+            problems.append("no prctl")
+    if rt_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+        except (PermissionError, OSError) as exc:
+            problems.append(f"SCHED_FIFO {rt_priority} refused ({exc.strerror or exc}); running with normal priority")
+    return problems
+
+
+# --- channels --------------------------------------------------------------------------------------------
+
+
+def lock_timeout_for(rate_hz: float) -> float:
+    """How long the loop waits at most for a channel's lock: a tenth of its period, at most 5 ms. A process that
+    holds a lock longer (stopped, or stuck inside a put) costs the loop that one read or write, never a cycle."""
+    return min(0.005, 0.1 / rate_hz) if rate_hz > 0 else 0.005  # (a bad rate is refused by DaemonLoop)
+
+
+@dataclass
+class DaemonChannels:
+    """The Ach channels the daemon reads and writes (created if missing)."""
+
+    ref: object
+    state: object
+    collide: object
+    cmd: object
+    status: object
+    param: object
+
+    @classmethod
+    def open(cls, lock_timeout: float | None = lock_timeout_for(1.0 / mds.MDS_LOOP_PERIOD)) -> DaemonChannels:
+        """Open (create) every channel; each get and put waits at most ``lock_timeout`` s for the channel lock
+        (``lock_timeout_for`` the loop's rate; None: as long as it takes)."""
+        from mds_ach import ach
+        from mds_ach.robot import access as channel_access
+        from mds_ach.robot.channels import StructChannel
+
+        names = {"ref": (mds.MDS_CHAN_REF_NAME, MDS_REF), "state": (mds.MDS_CHAN_STATE_NAME, MDS_STATE),
+                 "collide": (mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE),
+                 "status": (mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS),
+                 "param": (mds.MDS_CHAN_PARAM_NAME, MDS_JOINT_PARAM)}
+        opened = {}
+        try:
+            for key, (name, ctype) in names.items():
+                opened[key] = StructChannel(name, ctype, lock_timeout=lock_timeout)
+            opened["cmd"] = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE,
+                                        lock_timeout=lock_timeout)
+            if channel_access.enforced():  # as StructChannel does for the others
+                channel_access.require_trusted(opened["cmd"])
+        except Exception:
+            for ch in opened.values():
+                ch.close()
+            raise
+        return cls(**opened)
+
+    def close(self) -> None:
+        for ch in (self.ref, self.state, self.collide, self.cmd, self.status, self.param):
+            ch.close()
+
+
+# --- per-joint runtime state ---------------------------------------------------------------------------
+
+
+@dataclass
+class JointRuntime:
+    """What the loop knows about one configured joint between cycles."""
+
+    cfg: JointConfig
+    ref_r: float  # last accepted reference from mds-ref (joint rad)
+    goal: float  # the reference after the joint's mode (clamped): what the limiter steers towards
+    track: motion.Track  # the last target sent (float32 counts, as the log shows it): the limiter's state
+    ref: float  # the target commanded now (full precision; state.ref)
+    mode: int = mds.MDS_REF_MODE_REF
+    enabled: bool = True  # commands are sent (config enabled and not disabled at run time)
+    pos: float = math.nan  # the last trusted position
+    vel: float = 0.0
+    cur: float = 0.0
+    ref_c: float = 0.0
+    last_reply: float = -math.inf  # monotonic time of the last trusted position reply
+    last_heard: float = -math.inf  # ... of the last position reply of any kind (staleness)
+    trusted: bool = True  # False after an implausible reply, until REPLIES_TO_TRUST consistent ones
+    suspect: tuple[float, float] | None = None  # (q, t) of the last in-range reply while not trusted
+    consistent: int = 0  # consistent replies in a row while not trusted
+    reseed: bool = True  # the track follows trusted replies until a MOVETO states that position
+    pipeline_reseed: bool = False  # ask the pipeline to restart the joint's reference where it is, once known
+    goal_prev: float = math.nan  # the goal when the previous target was computed, and when: the goal's velocity
+    goal_t: float = -math.inf
+    sent_counts: float | None = None  # float32 counts of the last MOVETO that went out completely
+    ref_c_send: float = math.nan
+    ack_due: float = math.inf  # MOVETO ACK expected before this time
+    hold: float | None = None  # after a setup command: hold until ref_r differs from this
+    flags: int = 0
+    homing_since: float | None = None
+
+
+@dataclass
+class Command:
+    """A setup command for the loop; ``done`` is set with ``result``/``message`` when handled."""
+
+    code: int
+    address: int = 0
+    value: float = 0.0
+    seq: int = 0
+    done: threading.Event = field(default_factory=threading.Event)
+    result: int = ds.CMD_OK
+    message: str = ""
+
+
+class Stats:
+    """Loop timing over a sliding window of cycles (ring buffers; the first cycle has no period)."""
+
+    def __init__(self, window: int) -> None:
+        self.window = window
+        self.period_err = np.zeros(window)
+        self.wake = np.zeros(window)
+        self.cpu = np.zeros(window)
+        self.load = np.zeros(window)
+        self.n = 0  # cycles recorded
+        self.n_period = 0  # period errors recorded
+
+    def add(self, period_err: float | None, wake: float, cpu: float, load: float) -> None:
+        i = self.n % self.window
+        self.wake[i], self.cpu[i], self.load[i] = wake, cpu, load
+        self.n += 1
+        if period_err is not None:
+            self.period_err[self.n_period % self.window] = period_err
+            self.n_period += 1
+
+    def view(self, a: np.ndarray) -> np.ndarray:
+        return a[: min(self.n_period if a is self.period_err else self.n, self.window)]
+
+
+# --- the loop ----------------------------------------------------------------------------------------------
+
+
+class DaemonLoop:
+    """The MDS driver loop; ``cycle()`` is one period, ``run()`` the scheduled thread body."""
+
+    def __init__(
+        self,
+        table: JointTable,
+        io: CanIO,
+        channels: DaemonChannels,
+        *,
+        rate_hz: float = 1.0 / mds.MDS_LOOP_PERIOD,
+        reply_wait: float | None = None,
+        stale_after: float | None = None,
+        filter_length: float | None = None,
+        collide_gate: bool = True,
+        nocan: bool = False,
+        rt_priority: int = 0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
+            raise ValueError(f"loop rate must be in (0, 1000] Hz, got {rate_hz}")
+        self.table = table
+        self.io = io
+        self.ch = channels
+        self.rate = rate_hz
+        self.period = 1.0 / rate_hz
+        self.reply_wait = self.period * 0.5 if reply_wait is None else reply_wait
+        self.stale_after = max(3.5 * self.period, 0.02) if stale_after is None else stale_after
+        self.ack_timeout = max(2.5 * self.period, 0.05)
+        self.L = filters.filter_length(rate_hz) if filter_length is None else filter_length
+        self.bounds = table.motion_bounds(self.period)
+        self.collide_gate = collide_gate
+        self.nocan = nocan
+        self.rt_priority = rt_priority
+        self.clock = clock
+        self.joints: dict[int, JointRuntime] = {
+            j.address: JointRuntime(j, ref_r=j.home, goal=j.home, track=motion.Track(j.home), ref=j.home,
+                                    enabled=j.enabled)
+            for j in table
+        }
+        self._fixed_frames = {
+            j.address: (mcb.encode_set_acceleration(j.address, table.accel_counts(j)),
+                        mcb.encode_trajectory_mode(j.address, mcb.TrajectoryMode.MOVETO),
+                        mcb.encode_trajectory_period(j.address, table.trajectory_period)) for j in table}
+        self.state = MDS_STATE()
+        table.fill_state(self.state)
+        self.collide = MDS_COLLIDE()
+        self.status = ds.MDS_DAEMON_STATUS(version=ds.DAEMON_STATUS_VERSION, pid=os.getpid())
+        self.status.rate_hz, self.status.bitrate, self.status.nocan = rate_hz, io.bitrate, int(nocan)
+        self.status.stale_after, self.status.filter_length = self.stale_after, self.L
+        self.status.max_velocity, self.status.max_acceleration = self.bounds.max_velocity, self.bounds.max_acceleration
+        self.status.max_interval = self.bounds.max_interval
+        self.stats = Stats(max(50, min(2000, int(rate_hz * 10))))
+        self.commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._cmd_buf = bytearray(max(ctypes.sizeof(MDS_CMD), channels.cmd.data_size))
+        self.bus_state = ds.BUS_STATE_ACTIVE
+        self.unknown_addresses: set[int] = set()
+        self.cycle_count = 0
+        self._last_start: float | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()  # guards snapshot() against the loop thread
+        self._snapshot = ds.MDS_DAEMON_STATUS()
+        self._warned: set[str] = set()
+        self._ref_unreadable = False  # the last read of mds-ref failed (e.g. left corrupt by a dead writer)
+        self._last_warn: dict[str, float] = {}
+        self._answered: set[int] = set()
+        self.start_time = clock()
+        self.status.start_time = self.start_time
+
+    # --- start-up --------------------------------------------------------------------------------------
+
+    def start_up(self, listen: float = 0.5, queries: int = 3) -> int:
+        """Publish ``mds-param``, read where the robot is and start the reference there (no step).
+
+        Joints that answer start at their measured position (their tracks are re-seeded there); the others
+        show the configured home pose and get no target until they answer. No motion frame is sent until a
+        reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped. Returns how many joints answered.
+        """
+        self._put(self.ch.param, self.table.to_param())
+        for ch in (self.ch.ref, self.ch.cmd):
+            try:
+                ch.flush()
+            except Exception as exc:  # a corrupt channel: reported on every read later
+                self._channel_error(getattr(ch, "name", "?"), exc)
+        for _ in range(max(1, queries)):
+            self.io.send(mcb.encode_query_positions())
+            deadline = self.clock() + listen / max(1, queries)
+            while self.clock() < deadline:
+                msg = self.io.recv(max(0.0, deadline - self.clock()))
+                if msg is not None:
+                    self._handle(msg, self.clock())
+                if all(math.isfinite(jr.pos) for jr in self.joints.values()):
+                    break
+            if all(math.isfinite(jr.pos) for jr in self.joints.values()):
+                break
+        answered = 0
+        for jr in self.joints.values():
+            if math.isfinite(jr.pos):
+                jr.ref_r = jr.goal = jr.pos  # hold here until mds-ref says otherwise
+                answered += 1
+            jr.ref_c_send = jr.ref
+        self._fill_state(self.clock())
+        self.state.time = time.monotonic()
+        self._put(self.ch.state, self.state)
+        if answered == 0:
+            log.warning("no joint answered the position query; starting from the configured home pose")
+        else:
+            missing = [jr.cfg.short for jr in self.joints.values() if not math.isfinite(jr.pos)]
+            log.info("start-up: %d of %d joints answered%s", answered, len(self.joints),
+                     f" (silent: {', '.join(missing)})" if missing else "")
+        return answered
+
+    # --- thread ------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.run, name="mds-daemon-loop", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def run(self) -> None:
+        """Absolute-time schedule: deadlines at start + k*period; a missed deadline is an overrun and the
+        schedule skips to the next future slot (never a burst of catch-up cycles)."""
+        for problem in tune_thread(self.rt_priority):
+            log.warning("loop thread: %s", problem)
+        # Everything allocated so far lives for the whole run: keep it out of the cyclic GC's full passes,
+        # whose pauses would otherwise land in the loop.
+        gc.collect()
+        gc.freeze()
+        next_deadline = self.clock()
+        try:
+            while not self._stop.is_set():
+                sleep_until(next_deadline)
+                start = self.clock()
+                self.cycle(deadline=next_deadline, start=start)
+                next_deadline += self.period
+                now = self.clock()
+                if now > next_deadline:
+                    missed = math.ceil((now - next_deadline) / self.period)
+                    self.status.overruns += 1
+                    next_deadline += missed * self.period
+        except Exception:
+            log.exception("daemon loop stopped by an internal error")
+            raise
+
+    def submit(self, code: int, address: int = 0, value: float = 0.0, seq: int = 0) -> Command:
+        """Queue a setup command for the next cycle (thread-safe); wait on ``.done`` for the result."""
+        cmd = Command(code, address, value, seq)
+        self.commands.put(cmd)
+        return cmd
+
+    def snapshot(self) -> ds.MDS_DAEMON_STATUS:
+        """A consistent copy of the last published status (for the diagnostics publisher thread)."""
+        with self._lock:
+            return ds.MDS_DAEMON_STATUS.from_buffer_copy(self._snapshot)
+
+    # --- one cycle ---------------------------------------------------------------------------------------
+
+    def cycle(self, deadline: float | None = None, start: float | None = None) -> None:
+        start = self.clock() if start is None else start
+        deadline = start if deadline is None else deadline
+        cpu0 = time.thread_time()
+        self.io.counters.take_bits()  # bus load counts the frames sent and received during this cycle
+        if self._last_start is not None and start - self._last_start > STALL_PERIODS * self.period:
+            self._stalled(start - self._last_start)
+        self._read_commands()
+        self._run_commands(start)
+        # The reference first, then the collision report: the gate publishes a hold's report before the held
+        # reference, so a held reference read here always comes with its hold (the arm is withheld, never braked
+        # past the point where the gate stopped it).
+        ref = self._latest(self.ch.ref)  # a corrupt or silent channel means no new reference: hold
+        collide = self._latest(self.ch.collide)
+        if collide is not None:
+            self.collide = collide
+            ctypes.memmove(ctypes.addressof(self.state.collide), ctypes.addressof(collide), ctypes.sizeof(collide))
+        if self.ch.ref.bad_frames:
+            self._warn_once("ref-size", f"mds-ref: frames of the wrong size ignored (MDS_REF is "
+                                        f"{ctypes.sizeof(MDS_REF)} bytes)")
+        if ref is not None:
+            self.status.refs_received += 1
+            if self._ref_unreadable:
+                self._resume_ref()
+            self._accept_ref(ref)
+        self._drain(start)  # late replies and ACKs of the previous cycle
+        self._check_acks(start)
+        self._update_goals(start)
+        self._send_targets()
+        self._query(start)
+        now = self.clock()
+        self._fill_state(now)
+        self.state.time = time.monotonic()
+        self._put(self.ch.state, self.state)
+        self._publish_status(start, deadline, cpu0)
+
+    def _latest(self, channel):
+        """Newest new frame of an input channel; a broken channel (e.g. a writer killed mid-put) is reported,
+        never allowed to stop the loop: it reads as 'nothing new'."""
+        try:
+            return channel.latest()
+        except Exception as exc:
+            if channel is self.ch.ref:
+                self._ref_unreadable = True
+            self._channel_error(channel.name, exc)
+            return None
+
+    def _resume_ref(self) -> None:
+        """The reference input is readable again after an outage (e.g. repaired after a writer died mid-put).
+        Upstream kept moving while the daemon held: the limiter ramps every joint to the new reference."""
+        self._ref_unreadable = False
+        log.warning(f"{self.ch.ref.name} readable again: ramping to its reference within the motion bounds")
+
+    def _stalled(self, gap: float) -> None:
+        """This loop did not run for ``gap`` s (a suspended process, a starved CPU): say so (every stall of 0.5 s
+        or more, shorter ones at most every 5 s). The joints were not sent anything meanwhile, so the limiter
+        starts every target from rest where it was."""
+        self.status.stalls += 1
+        self.status.stall_max = max(self.status.stall_max, gap)
+        text = (f"control loop stalled: {gap:.3f} s between two cycles (period {self.period:.3f} s, "
+                f"{self.status.stalls} stalls so far); targets ramp from where they were")
+        if gap >= 0.5:
+            log.warning(text)
+        else:
+            self._warn_rate("stall", text)
+
+    def _put(self, channel, frame) -> None:
+        try:
+            channel.put(frame)
+        except Exception as exc:
+            self._channel_error(channel.name, exc)
+
+    def _channel_error(self, name: str, exc: Exception) -> None:
+        from mds_ach import ach
+
+        if isinstance(exc, ach.AchException) and exc.status == ach.ACH_LOCKED:  # skipped, not broken
+            self.status.lock_timeouts += 1
+            self._warn_rate(f"lock-{name}", f"channel {name}: {exc}; skipped this cycle ({self.status.lock_timeouts} "
+                                            "so far; `mds-ach repair --check` names the holder)")
+            return
+        self.status.channel_errors += 1
+        self._warn_rate(f"channel-{name}", f"channel {name}: {exc} (`mds-ach repair` fixes a corrupt channel)")
+
+    def _read_commands(self) -> None:
+        """Every new mds-cmd frame in order (not just the newest: two quick commands must both count)."""
+        from mds_ach import ach
+
+        for _ in range(mds.CHANNEL_FRAME_COUNT):
+            try:
+                status, size = self.ch.cmd.get(self._cmd_buf)
+            except ach.AchException as exc:
+                self._channel_error(mds.MDS_CHAN_BOARD_CMD_NAME, exc)
+                return
+            if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+                return
+            if size != ctypes.sizeof(MDS_CMD):
+                self._warn_once(f"cmd-size-{size}", f"mds-cmd: ignored a {size}-byte frame (MDS_CMD is "
+                                                    f"{ctypes.sizeof(MDS_CMD)} bytes)")
+                continue
+            c = MDS_CMD.from_buffer_copy(self._cmd_buf[:size])
+            self.commands.put(Command(c.cmd, c.address, c.value, c.seq))
+
+    def _run_commands(self, now: float) -> None:
+        while True:
+            try:
+                cmd = self.commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                cmd.result, cmd.message = self._execute(cmd, now)
+            except Exception as exc:  # a bad command must never stop the loop
+                cmd.result, cmd.message = ds.CMD_FAILED, f"internal error: {exc}"
+                log.exception("command %s failed", cmd)
+            level = logging.INFO if cmd.result == ds.CMD_OK else logging.WARNING
+            log.log(level, "command %s: %s", COMMAND_NAMES.get(cmd.code, cmd.code), cmd.message)
+            self.status.cmd_seq, self.status.cmd_result = cmd.seq, cmd.result
+            cmd.done.set()
+
+    def _execute(self, cmd: Command, now: float) -> tuple[int, str]:
+        if cmd.code == mds.MDS_CMD_RESET_BUS:
+            self.io.reopen()
+            self.status.bus_resets += 1
+            self.bus_state = ds.BUS_STATE_ACTIVE
+            for jr in self.joints.values():
+                # Frames may have been lost while the bus was down: send the current (limited) target again,
+                # and let the pipeline restart where the joints stand instead of where it got to meanwhile.
+                jr.sent_counts = None
+                jr.pipeline_reseed = jr.enabled
+            return ds.CMD_OK, f"CAN bus re-opened ({self.io.description})"
+        if cmd.code not in COMMAND_NAMES:
+            return ds.CMD_REFUSED, f"unknown command code {cmd.code}"
+        if cmd.address == 0:
+            targets = [jr for jr in self.joints.values() if jr.cfg.enabled]
+        else:
+            jr = self.joints.get(cmd.address)
+            if jr is None:
+                return ds.CMD_REFUSED, f"no joint at address 0x{cmd.address:02X}"
+            if not jr.cfg.enabled:
+                return ds.CMD_REFUSED, f"{jr.cfg.short} is disabled in the joint table: no frames go to it"
+            targets = [jr]
+        build = {mds.MDS_CMD_ENABLE: mcb.encode_enable, mds.MDS_CMD_DISABLE: mcb.encode_disable,
+                 mds.MDS_CMD_HOME: mcb.encode_home, mds.MDS_CMD_RESET: mcb.encode_reset,
+                 mds.MDS_CMD_ZERO_ENCODER: mcb.encode_zero_encoder}[cmd.code]
+        failed = [jr.cfg.short for jr in targets if not self.io.send(build(jr.cfg.address))]
+        for jr in targets:
+            if cmd.code == mds.MDS_CMD_DISABLE:
+                jr.enabled = False
+            else:
+                jr.enabled = True
+                # Hold where the joint is until its reference changes (see module doc); HOME moves it itself.
+                # The next target starts from where the joint is then, and so does the pipeline's reference.
+                jr.hold = jr.ref_r
+                jr.sent_counts = None
+                jr.ack_due = math.inf
+                jr.reseed = jr.pipeline_reseed = True
+                if cmd.code in (mds.MDS_CMD_RESET, mds.MDS_CMD_ZERO_ENCODER, mds.MDS_CMD_HOME):
+                    # The count restarts: old readings are void.
+                    jr.pos, jr.last_reply, jr.last_heard = math.nan, -math.inf, -math.inf
+                    jr.trusted, jr.suspect, jr.consistent = True, None, 0
+                jr.homing_since = now if cmd.code == mds.MDS_CMD_HOME else None
+        names = ", ".join(jr.cfg.short for jr in targets)
+        if failed:
+            return ds.CMD_FAILED, f"{COMMAND_NAMES[cmd.code]} not sent to {', '.join(failed)}: " \
+                                  f"{self.io.counters.last_error}"
+        return ds.CMD_OK, f"{COMMAND_NAMES[cmd.code]} sent to {names}"
+
+    def _accept_ref(self, ref: MDS_REF) -> None:
+        for a, jr in self.joints.items():
+            entry = ref.joint[a]
+            value, mode = entry.ref, entry.mode
+            if not math.isfinite(value) or mode not in (0, 1, 2, 3):
+                if not jr.flags & ds.JOINT_REFUSED:
+                    self.status.refs_refused += 1
+                    what = f"mode {mode}" if math.isfinite(value) else f"value {value}"
+                    self._warn_rate(f"refuse-{a}", f"mds-ref: {jr.cfg.short} {what} refused; holding "
+                                                    f"{jr.ref_r:.4f}")
+                jr.flags |= ds.JOINT_REFUSED
+                continue
+            jr.flags &= ~ds.JOINT_REFUSED
+            if value != jr.ref_r and not jr.cfg.within_limits(value):
+                self.status.refs_clamped += 1
+                self._warn_rate(f"clamp-{a}", f"mds-ref: {jr.cfg.short} {value:.4f} outside "
+                                              f"[{jr.cfg.lower:.4f}, {jr.cfg.upper:.4f}]: clamped")
+            jr.ref_r, jr.mode = value, mode
+
+    def _update_goals(self, now: float) -> None:
+        """Each joint's goal: its reference clamped to the limits, through its mode. A joint in mode 2 or 3
+        without a trusted, fresh position holds its last target."""
+        for jr in self.joints.values():
+            cfg = jr.cfg
+            jr.flags &= ~(ds.JOINT_CLAMPED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
+            if not cfg.within_limits(jr.ref_r):
+                jr.flags |= ds.JOINT_CLAMPED
+            if jr.hold is not None:
+                if jr.ref_r == jr.hold:
+                    continue
+                jr.hold = None
+            desired = cfg.clamp(jr.ref_r)
+            known = self._known(jr, now)
+            if jr.mode == mds.MDS_REF_MODE_REF:
+                goal = desired
+            elif jr.mode == mds.MDS_REF_MODE_REF_FILTER:
+                goal = filters.ema_step(jr.goal, desired, self.L)
+            elif jr.mode == mds.MDS_REF_MODE_COMPLIANT:
+                goal = jr.pos if known else jr.track.q
+            else:  # MDS_REF_MODE_ENC_FILTER
+                goal = filters.enc_filter_step(jr.pos, desired, self.L) if known else jr.track.q
+            jr.goal = cfg.clamp(goal)
+
+    def _known(self, jr: JointRuntime, now: float) -> bool:
+        """Is the joint's position trusted and fresh (``state.active``)?"""
+        return jr.trusted and math.isfinite(jr.pos) and now - jr.last_reply <= self.stale_after
+
+    def _collision_held(self) -> frozenset[int] | None:
+        """Joints not to command while ``mds-collide`` reports a predicted collision (``isCollide == 1``).
+
+        Like the original, held targets go out as soon as the collision clears. Unlike the original, only the
+        arm whose parts are flagged is held, so the gate's per-arm hold is not turned into a whole-robot stop;
+        a report that flags no part (e.g. an external legacy checker) holds every joint. ``isCollide == 2`` is
+        the gate's logged expert override and holds nothing. ``None`` means hold everything.
+        """
+        c = self.collide
+        if not self.collide_gate or c.isCollide != 1:
+            return frozenset()
+        held: set[int] = set()
+        if any(c.joint[i].isCollide for i in _LEFT_PARTS):
+            held.update(_LEFT_ARM_ADDRESSES)
+        if any(c.joint[i].isCollide for i in _RIGHT_PARTS):
+            held.update(_RIGHT_ARM_ADDRESSES)
+        return frozenset(held) if held else None
+
+    def _send_targets(self) -> None:
+        held = self._collision_held()
+        if held is None or held:
+            self.status.collision_holds += 1
+            if held is None:
+                return
+        if self.bus_state == ds.BUS_STATE_BUS_OFF:
+            return  # nothing gets through; `mds-ach resetbus` re-opens the bus
+        for a, jr in self.joints.items():
+            if not jr.enabled or jr.hold is not None or jr.homing_since is not None or a in held:
+                continue
+            t = self.clock()  # the limiter counts the time up to these very frames
+            if t - jr.last_heard > self.stale_after:
+                continue  # a silent node gets nothing: when it answers again, it restarts from where it is
+            if jr.reseed:
+                if not self._known(jr, t):
+                    continue  # never command a joint from a position the daemon does not know
+                # The first target after a re-seed states where the joint is (a zero step), and only once the goal
+                # is elsewhere; the modes (mode 0's filter too) and the ramp start from there with the next cycle.
+                q = jr.cfg.clamp(jr.track.q)
+                if f32(jr.cfg.to_counts(q)) == f32(jr.cfg.to_counts(jr.goal)):
+                    continue
+                jr.goal = jr.goal_prev = q
+                jr.goal_t = t
+            else:
+                q = self._limited(jr, t)
+            self._send(a, jr, q, t)
+
+    def _limited(self, jr: JointRuntime, t: float) -> float:
+        """The joint's goal through the motion bounds from its track, at time ``t``; counted when it differs."""
+        cfg = jr.cfg
+        dt = t - jr.goal_t
+        goal_velocity = (jr.goal - jr.goal_prev) / dt if 0 < dt <= self.bounds.max_interval else 0.0
+        jr.goal_prev, jr.goal_t = jr.goal, t
+        q = motion.limit(jr.track, jr.goal, t, self.bounds, desired_velocity=goal_velocity, lower=cfg.lower,
+                         upper=cfg.upper)
+        q = cfg.clamp(q)  # never needed with regular cycles: the limiter brakes for the limits itself
+        if abs(q - jr.goal) > LIMIT_TOLERANCE:
+            jr.flags |= ds.JOINT_LIMITED
+            self.status.targets_limited += 1
+            self.status.joint_limited[cfg.address] += 1
+        return q
+
+    def _send(self, a: int, jr: JointRuntime, q: float, t: float) -> None:
+        """The 4-frame SET sequence for target ``q`` if its float32 counts changed (or a re-send is due)."""
+        jr.ref = q
+        c32 = f32(jr.cfg.to_counts(q))
+        if c32 == jr.sent_counts and not jr.reseed:
+            return
+        accel, mode, period = self._fixed_frames[a]
+        # The original daemon's sequence (mcb.encode_position_sequence), three of its frames precomputed.
+        moveto = mcb.encode_moveto(a, c32)
+        for frame in (accel, moveto, mode, period):
+            if not self.io.send(frame, at=t):
+                return  # counted as a tx error; the target goes out again next cycle
+            if frame is moveto:  # it is on the bus (and in the log): this is what the node was told
+                sent = jr.cfg.to_joint(c32)
+                jr.track.advance(sent, t, self.bounds)
+                jr.reseed = False
+                jr.ref_c_send = sent
+                jr.ack_due = t + self.ack_timeout
+                jr.flags |= ds.JOINT_MOVING
+        jr.sent_counts = c32
+
+    def _check_acks(self, now: float) -> None:
+        for jr in self.joints.values():
+            if now > jr.ack_due:
+                jr.ack_due = math.inf
+                jr.sent_counts = None  # send the target again
+                self.status.acks_missing += 1
+
+    def _query(self, start: float) -> None:
+        # Stale joints are not waited for (their replies are still taken when they come); when every joint
+        # is silent the whole window is used, in case the robot just came back.
+        expected = {a for a, jr in self.joints.items() if start - jr.last_heard <= self.stale_after}
+        expected = expected or set(self.joints)
+        self.status.replies_expected = len(expected)
+        self._answered = set()
+        if not self.io.send(mcb.encode_query_positions()):
+            self.status.replies_received = 0
+            return
+        deadline = start + self.reply_wait
+        while not expected <= self._answered:
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                break
+            msg = self.io.recv(remaining)
+            if msg is None:
+                break
+            self._handle(msg, self.clock())
+        self.status.replies_received = len(self._answered)
+
+    def _drain(self, now: float) -> None:
+        """Frames that arrived since the last reply window, each dated by its receive timestamp."""
+        self._answered = set()
+        wall = time.time()
+        for _ in range(10_000):
+            msg = self.io.recv(0)
+            if msg is None:
+                return
+            waited = min(max(0.0, wall - msg.timestamp), self.period) if msg.timestamp else 0.0
+            self._handle(msg, now - waited)
+
+    def _handle(self, msg, now: float) -> None:
+        """One received frame: positions, ACKs, node errors, bus errors, junk -- each counted."""
+        if msg.is_error_frame:
+            self._bus_error(msg)
+            return
+        if msg.is_extended_id or msg.is_remote_frame or msg.dlc != mcb.DLC or len(msg.data) != mcb.DLC:
+            self.status.malformed_frames += 1
+            self._warn_rate("malformed", f"malformed frame ignored: {msg}")
+            return
+        if msg.arbitration_id != mcb.HOST_SID:
+            self.status.unknown_node_frames += 1  # another host's traffic, or a node on a wrong ID
+            return
+        pos = mcb.decode_position(msg.data)
+        if pos is not None:
+            address, counts = pos
+            jr = self.joints.get(address)
+            if jr is None:
+                self._unknown(address)
+                return
+            if not math.isfinite(counts):
+                self.status.malformed_frames += 1
+                return
+            self._answered.add(address)
+            self._position_reply(jr, jr.cfg.to_joint(counts), now)
+            return
+        data = msg.data
+        if data[7] == Response.ACK:  # fast path: the 4 ACKs of every SET sequence
+            jr = self.joints.get(data[4] | data[5] << 8)
+            if jr is not None:
+                if data[6] == mcb.Command.SET and data[3] == StateArg.MOVETO_TARGET:
+                    jr.ack_due = math.inf
+                return
+        frame = mcb.decode(msg.arbitration_id, data)
+        jr = self.joints.get(frame.address)
+        if jr is None:
+            self._unknown(frame.address)
+            return
+        if frame.command == Response.STATE:
+            if frame.argument == StateArg.CURRENT:
+                jr.cur = float(frame.value)
+            elif frame.argument == StateArg.DESIRED_POSITION and math.isfinite(frame.value):
+                jr.ref_c = jr.cfg.to_joint(frame.value)
+        elif frame.command in (Response.WARNING, Response.ERROR):
+            if frame.command == Response.WARNING and frame.argument == mcb.ErrorCode.TRAJECTORY_BUFFER_EMPTY:
+                return  # the node finished its move: normal
+            self.status.node_errors += 1
+            self._warn_rate(f"node-{frame.address}", f"{jr.cfg.short}: {frame}")
+
+    def _position_reply(self, jr: JointRuntime, q: float, now: float) -> None:
+        """Take a position reply as the joint's position only if it is plausible (see REPLY_*): in range and
+        consistent with the last good reply. After an implausible one, REPLIES_TO_TRUST in-range replies in a
+        row, each consistent with the one before, make the position trusted again. Replies after a silence
+        longer than ``stale_after`` re-seed the track (a node back online)."""
+        resumed = now - jr.last_heard > self.stale_after
+        jr.last_heard = now
+        cfg = jr.cfg
+        margin = max(REPLY_RANGE_MARGIN * (cfg.upper - cfg.lower), REPLY_RANGE_MIN)
+        in_range = cfg.lower - margin <= q <= cfg.upper + margin
+
+        def near(q0: float, t0: float) -> bool:
+            return abs(q - q0) <= REPLY_SPEED_FACTOR * self.bounds.max_velocity * max(now - t0, 0.0) + REPLY_SLACK
+
+        good = in_range and (not math.isfinite(jr.pos) or near(jr.pos, jr.last_reply))
+        if jr.trusted and not good:
+            self._bad_reply(jr, q, in_range)
+            jr.trusted, jr.suspect, jr.consistent = False, (q, now) if in_range else None, int(in_range)
+            return
+        if not jr.trusted:
+            chain = in_range and jr.suspect is not None and near(*jr.suspect)
+            if not (good or chain):
+                self._bad_reply(jr, q, in_range)
+            jr.suspect, jr.consistent = (q, now) if in_range else None, jr.consistent + 1 if chain else int(in_range)
+            if jr.consistent < REPLIES_TO_TRUST:
+                return
+            jr.trusted, jr.vel = True, 0.0
+            log.info("%s: %d consistent position replies (%.4f rad): position trusted again", cfg.short,
+                     REPLIES_TO_TRUST, q)
+        elif math.isfinite(jr.pos) and now > jr.last_reply and now - jr.last_reply <= self.stale_after:
+            jr.vel = (q - jr.pos) / (now - jr.last_reply)
+        else:
+            jr.vel = 0.0
+        jr.pos, jr.last_reply = q, now
+        if resumed:
+            jr.reseed = True  # a node back after a silence: where it is now, not what it was told before
+        if jr.reseed:
+            jr.track.reseed(q, now)
+            jr.ref, jr.goal, jr.goal_t = q, cfg.clamp(q), -math.inf
+
+    def _bad_reply(self, jr: JointRuntime, q: float, in_range: bool) -> None:
+        """Count an implausible reply; warn (rate-limited) when it costs the joint its trusted position."""
+        self.status.bad_replies += 1
+        self.status.joint_bad_replies[jr.cfg.address] += 1
+        if jr.trusted:
+            why = "outside its range" if not in_range else "an impossible jump"
+            self._warn_rate(f"bad-reply-{jr.cfg.address}",
+                            f"{jr.cfg.short}: position reply {q:.4f} rad is {why} (last good {jr.pos:.4f} rad): "
+                            f"ignored; not trusted until {REPLIES_TO_TRUST} consistent replies (mode 2/3 holds)")
+
+    def _unknown(self, address: int) -> None:
+        self.status.unknown_node_frames += 1
+        if address not in self.unknown_addresses:
+            self.unknown_addresses.add(address)
+            log.warning("frames from node 0x%02X, which is not in the joint table (counted, ignored)", address)
+
+    def _bus_error(self, msg) -> None:
+        err = msg.arbitration_id
+        status = msg.data[1] if len(msg.data) > 1 else 0
+        if err & CAN_ERR_BUSOFF:
+            if self.bus_state != ds.BUS_STATE_BUS_OFF:
+                self.status.bus_off_count += 1
+                log.error("CAN bus-off: nothing reaches the robot until `mds-ach resetbus`")
+            self.bus_state = ds.BUS_STATE_BUS_OFF
+        elif err & CAN_ERR_RESTARTED:
+            self.bus_state = ds.BUS_STATE_ACTIVE
+            log.info("CAN controller restarted")
+        elif err & CAN_ERR_CRTL and status & CAN_ERR_CRTL_ACTIVE:
+            if self.bus_state == ds.BUS_STATE_PASSIVE:
+                self.bus_state = ds.BUS_STATE_ACTIVE
+                log.info("CAN controller back to error-active")
+        elif err & CAN_ERR_CRTL and status & (CAN_ERR_CRTL_PASSIVE | CAN_ERR_CRTL_WARNING):
+            if self.bus_state == ds.BUS_STATE_ACTIVE:
+                self.bus_state = ds.BUS_STATE_PASSIVE
+                self._warn_rate("passive", f"CAN controller error-passive/warning (status 0x{status:02X})")
+
+    # --- publishing -----------------------------------------------------------------------------------------
+
+    def _fill_state(self, now: float) -> None:
+        stale = 0
+        for a, jr in self.joints.items():
+            s = self.state.joint[a]
+            fresh = self._known(jr, now)
+            heard = now - jr.last_heard <= self.stale_after
+            if jr.homing_since is not None and now - jr.homing_since > 1.0:
+                counts_per_cycle = abs(jr.vel) * self.period * jr.cfg.cpr / (2 * math.pi)
+                if (fresh and counts_per_cycle < 2.0) or now - jr.homing_since > HOMING_TIMEOUT:
+                    jr.homing_since = None  # settled: hold there (jr.hold) until the reference changes
+            if jr.pipeline_reseed and fresh and jr.homing_since is None:
+                jr.pipeline_reseed = False
+                self.status.joint_reseed[a] += 1  # the pipeline restarts this joint at s.pos below
+                log.info("%s: the pipeline's reference restarts where the joint is (%.4f rad)", jr.cfg.short, jr.pos)
+            s.ref_r, s.ref, s.ref_c_send, s.ref_c = jr.ref_r, jr.ref, jr.ref_c_send, jr.ref_c
+            s.pos, s.vel, s.cur = jr.pos, (jr.vel if fresh else 0.0), jr.cur
+            s.enabled, s.active = int(jr.enabled), int(fresh)
+            flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
+            flags |= ds.JOINT_CONFIGURED | (ds.JOINT_ENABLED if jr.enabled else 0)
+            flags |= ds.JOINT_FRESH if fresh else 0 if heard else ds.JOINT_STALE
+            flags |= 0 if jr.trusted else ds.JOINT_BAD_REPLY
+            self.status.joint_flags[a] = flags
+            self.status.joint_age[a] = now - jr.last_heard if math.isfinite(jr.last_heard) else -1.0
+            if not heard and jr.enabled:
+                stale += 1
+        self.status.stale_count = stale
+
+    def _publish_status(self, start: float, deadline: float, cpu0: float) -> None:
+        st = self.status
+        now = self.clock()
+        period_err = None if self._last_start is None else (start - self._last_start) - self.period
+        self._last_start = start
+        load = 100.0 * self.io.counters.bits / (self.io.bitrate * self.period)
+        self.stats.add(period_err, start - deadline, time.thread_time() - cpu0, load)
+        self.cycle_count += 1
+        st.cycle, st.time = self.cycle_count, time.monotonic()
+        st.period_error, st.cycle_time = period_err or 0.0, now - start
+        st.cycle_time_max = max(st.cycle_time_max, st.cycle_time)
+        errs = self.stats.view(self.stats.period_err)
+        # Window statistics ten times a second (percentiles cost ~0.3 ms; per-cycle values stay current).
+        if errs.size and (self.cycle_count % max(1, round(self.rate / 10)) == 0 or errs.size < 3):
+            abs_errs = np.abs(errs)
+            st.period_error_p50, st.period_error_p99 = np.percentile(abs_errs, [50, 99])
+            st.period_error_max = float(abs_errs.max())
+            st.measured_rate_hz = 1.0 / (self.period + float(errs.mean()))
+        st.wake_latency_max = float(self.stats.view(self.stats.wake).max())
+        st.cpu_per_cycle = float(self.stats.view(self.stats.cpu).mean())
+        st.bus_load, st.bus_load_avg = load, float(self.stats.view(self.stats.load).mean())
+        c = self.io.counters
+        st.tx_frames, st.rx_frames, st.tx_errors, st.rx_errors = c.tx_frames, c.rx_frames, c.tx_errors, c.rx_errors
+        st.error_frames = c.error_frames
+        if self.bus_state != ds.BUS_STATE_BUS_OFF and self.io.state.name == "ERROR":
+            st.bus_off_count += 1
+            self.bus_state = ds.BUS_STATE_BUS_OFF
+            log.error("CAN interface reports bus-off: nothing reaches the robot until `mds-ach resetbus`")
+        st.bus_state = self.bus_state
+        self._put(self.ch.status, st)
+        with self._lock:
+            ctypes.memmove(ctypes.addressof(self._snapshot), ctypes.addressof(st), ctypes.sizeof(st))
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning(text)
+
+    def _warn_rate(self, key: str, text: str, every: float = 5.0) -> None:
+        """At most one warning per ``every`` seconds per key (a flood must not stall the loop)."""
+        now = time.monotonic()
+        if now - self._last_warn.get(key, -math.inf) >= every:
+            self._last_warn[key] = now
+            log.warning(text)

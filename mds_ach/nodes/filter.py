@@ -1,0 +1,326 @@
+"""Reference smoother (``ros2 run mds_ach filter``): ``mds-ref-mux`` -> per-joint filter -> ``mds-ref-smooth``.
+
+Runs at a fixed rate (config/filter.yaml ``rate``, default 40 Hz like the deployed mds-filter) on an absolute
+schedule and publishes every tick, so the collision gate sees a steady stream. Per-joint modes (the maths is
+``mds_ach.nodes.filters``, shared with the daemon):
+
+* ``velocity_limit`` (default): constant-speed ramp, 1.57 rad/s, snapping onto the target within one step,
+  what the original deployment ran (``src/mds-filter.c``). Optional ``max_accel`` (rad/s^2) adds an
+  acceleration limit that also brakes onto the target; config/filter.yaml sets 4 rad/s^2, below the daemon's
+  last-line bounds (``mds_ach.robot.motion``), so smoothed references reach the robot unchanged.
+* ``ema``: the paper's first-order filter theta_n = (theta_{n-1} (L - 1) + theta_des) / L with L from
+  ``settle_time``/``settle_fraction`` at this rate (default: 95 % of a step within 4.0 s).
+* ``enc_filter``: the same update started from the measured position (``mds-state`` joint[].pos) each tick,
+  so the reference stays compliant to where the joint really is. Falls back to ``ema`` without a state.
+* ``pass``: no smoothing.
+
+Why the velocity limiter is the default: its timing is predictable (a move of d rad takes d / 1.57 s, small
+moves are quick), it never overshoots, and it is what the robot ran in 2015; the EMA makes every move take
+~4 s and approaches the target only asymptotically.
+
+The legacy mode field of each joint travels with the reference, except that mode 0 ("first-order filter",
+what zero-initialised legacy frames carry) leaves a smoothing joint as mode 1 (pass-through): the reference
+is already smooth, so the daemon must not filter it a second time (config ``mark_smoothed``, default true).
+
+No jump when started late or restarted: the output starts at the current reference (``mds-ref``, else
+``mds-state`` joint[].ref) and the newest ``mds-ref-mux`` frame (if any) becomes the target, so an
+interrupted move resumes from where the robot is. NaN/Inf targets are ignored per joint (with a warning).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach.nodes import filters
+from mds_ach.nodes.pipeline import labels, make_ref, ref_arrays, select_joints
+from mds_ach.robot.msgs import MDS_JOINT_COUNT
+
+MODES = ("pass", "ema", "enc_filter", "velocity_limit")
+PASS, EMA, ENC, VEL = range(4)
+DEFAULT_RATE = 40.0
+_PARAM_KEYS = {"mode", "max_velocity", "max_accel", "settle_time", "settle_fraction"}
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Per-address arrays (length 100) of the smoothing parameters, plus the loop rate."""
+
+    rate: float
+    mode: np.ndarray  # int codes PASS/EMA/ENC/VEL
+    max_velocity: np.ndarray  # rad/s
+    max_accel: np.ndarray  # rad/s^2, inf = no acceleration limit
+    length: np.ndarray  # EMA L at this rate
+    mark_smoothed: bool = True  # mode 0 out of a smoothing joint becomes mode 1 (the daemon passes it through)
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate
+
+    def describe(self) -> str:
+        parts = []
+        for code, name in enumerate(MODES):
+            idx = np.flatnonzero(self.mode == code)
+            if len(idx):
+                parts.append(f"{name}: {len(idx)} joints")
+        return ", ".join(parts)
+
+
+def _joint_params(entry: Mapping[str, Any], base: dict[str, Any], where: str) -> dict[str, Any]:
+    unknown = set(entry) - _PARAM_KEYS - {"joints"}
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {sorted(unknown)} (allowed: {sorted(_PARAM_KEYS)})")
+    out = dict(base)
+    out.update({k: v for k, v in entry.items() if k in _PARAM_KEYS})
+    if out["mode"] not in MODES:
+        raise ValueError(f"{where}: mode must be one of {', '.join(MODES)}, got {out['mode']!r}")
+    for key in ("max_velocity", "settle_time"):
+        val = float(out[key])
+        if not (math.isfinite(val) and val > 0):
+            raise ValueError(f"{where}: {key} must be > 0, got {out[key]!r}")
+        out[key] = val
+    if out["max_accel"] is not None:
+        out["max_accel"] = float(out["max_accel"])
+        if not (math.isfinite(out["max_accel"]) and out["max_accel"] > 0):
+            raise ValueError(f"{where}: max_accel must be > 0 or null")
+    out["settle_fraction"] = float(out["settle_fraction"])
+    if not 0 < out["settle_fraction"] < 1:
+        raise ValueError(f"{where}: settle_fraction must be in (0, 1)")
+    return out
+
+
+def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: float | None = None) -> FilterParams:
+    """Validate filter.yaml: ``rate``, ``default`` parameters, ``joints`` overrides (applied in order)."""
+    unknown = set(data) - {"rate", "default", "joints", "mark_smoothed"}
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {sorted(unknown)}")
+    rate = float(rate if rate is not None else data.get("rate", DEFAULT_RATE))
+    if not (math.isfinite(rate) and 0 < rate <= 1000):
+        raise ValueError(f"{where}: rate must be in (0, 1000] Hz, got {rate}")
+    base = {"mode": "velocity_limit", "max_velocity": filters.DEFAULT_MAX_VELOCITY, "max_accel": None,
+            "settle_time": filters.DEFAULT_SETTLE_TIME, "settle_fraction": filters.DEFAULT_SETTLE_FRACTION}
+    base = _joint_params(data.get("default") or {}, base, f"{where}: default")
+    per = [base] * MDS_JOINT_COUNT
+    for k, entry in enumerate(data.get("joints") or []):
+        here = f"{where}: joints[{k}]"
+        if not isinstance(entry, Mapping) or "joints" not in entry:
+            raise ValueError(f"{here}: needs 'joints' (names, groups or patterns) and the parameters to set")
+        for a in select_joints(entry["joints"], here):
+            per[a] = _joint_params(entry, per[a], here)
+    return FilterParams(
+        rate=rate,
+        mode=np.array([MODES.index(p["mode"]) for p in per]),
+        max_velocity=np.array([p["max_velocity"] for p in per]),
+        max_accel=np.array([math.inf if p["max_accel"] is None else p["max_accel"] for p in per]),
+        length=np.array([filters.filter_length(rate, p["settle_time"], p["settle_fraction"]) for p in per]),
+        mark_smoothed=bool(data.get("mark_smoothed", True)),
+    )
+
+
+def load_config(path: str | Path | None = None, rate: float | None = None) -> FilterParams:
+    import yaml
+
+    from mds_ach.paths import config_path
+
+    path = Path(path) if path else config_path("filter.yaml")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except FileNotFoundError:
+        raise ValueError(f"filter config {path} not found") from None
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{path}: expected a mapping")
+    return parse_config(data, str(path), rate)
+
+
+# --------------------------------------------------------------------------------------------- filter state
+
+
+class FilterCore:
+    """The smoother's state (output, velocity, target) and one ``step()`` per tick. No channels here."""
+
+    def __init__(self, params: FilterParams, ref: np.ndarray, mode: np.ndarray) -> None:
+        self.p = params
+        self.out = np.array(ref, dtype=float)
+        self.vel = np.zeros(MDS_JOINT_COUNT)
+        self.target = self.out.copy()
+        self.mode = np.array(mode, dtype=np.int16)
+        self._accel = np.isfinite(params.max_accel)
+
+    def set_target(self, ref: np.ndarray, mode: np.ndarray) -> str | None:
+        """New desired reference; non-finite entries keep their old target. Returns a warning or None."""
+        ref = np.asarray(ref, dtype=float)
+        ok = np.isfinite(ref)
+        self.target[ok] = ref[ok]
+        self.mode[ok] = np.asarray(mode, dtype=np.int16)[ok]
+        if not ok.all():
+            return f"ignored non-finite targets for {labels(np.flatnonzero(~ok))}"
+        return None
+
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints where they are, at rest (``pipeline.ReseedWatch``): output and target."""
+        self.out[addresses] = self.target[addresses] = positions
+        self.vel[addresses] = 0.0
+
+    def step(self, measured: np.ndarray | None = None) -> np.ndarray:
+        """Advance one tick. ``measured``: mds-state joint[].pos for the enc_filter joints (None = unknown)."""
+        p, out, tgt = self.p, self.out, self.target
+        new = out.copy()
+        m = p.mode == PASS
+        new[m] = tgt[m]
+        enc = p.mode == ENC
+        use_enc = enc & np.isfinite(measured) if measured is not None else np.zeros(MDS_JOINT_COUNT, dtype=bool)
+        groups = [((p.mode == EMA) | (enc & ~use_enc), out)]
+        if measured is not None:
+            groups.append((use_enc, measured))
+        for mask, source in groups:
+            for length in np.unique(p.length[mask]):
+                sel = mask & (p.length == length)
+                new[sel] = filters.ema_step(source[sel], tgt[sel], float(length))
+        vel = p.mode == VEL
+        plain = vel & ~self._accel
+        if plain.any():
+            new[plain] = filters.velocity_limit_step(out[plain], tgt[plain], p.max_velocity[plain], p.dt)
+        acc = vel & self._accel
+        if acc.any():
+            pos, v = filters.accel_limit_step(out[acc], self.vel[acc], tgt[acc], p.max_velocity[acc],
+                                              p.max_accel[acc], p.dt)
+            new[acc] = pos
+            self.vel[acc] = v
+        self.vel[~acc] = (new[~acc] - out[~acc]) * p.rate
+        self.out = new
+        return new
+
+    def out_mode(self) -> np.ndarray:
+        """The mode field to publish: mode 0 of a smoothing joint becomes 1 (see the module doc)."""
+        if not self.p.mark_smoothed:
+            return self.mode.copy()
+        smoothed = (self.mode == mds.MDS_REF_MODE_REF_FILTER) & (self.p.mode != PASS)
+        return np.where(smoothed, np.int16(mds.MDS_REF_MODE_REF), self.mode).astype(np.int16)
+
+
+# --------------------------------------------------------------------------------------------- Ach side
+
+
+class FilterRunner:
+    """The real-time loop: channels + ``FilterCore`` on an absolute schedule. ``run()`` blocks until ``stop()``."""
+
+    def __init__(self, params: FilterParams, log: Callable[[str, str], None] | None = None,
+                 sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+        self.params = params
+        self.log = log or (lambda level, msg: print(f"[filter] {level}: {msg}", flush=True))
+        self.sources = tuple(sources)
+        self._stop = threading.Event()
+        self.ready = threading.Event()
+        self.core: FilterCore | None = None
+        self.ticks = 0
+        self.overruns = 0
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def run(self) -> None:
+        from mds_ach.nodes.pipeline import ChannelGuard, Periodic, ReseedWatch, state_positions, wait_current_reference
+        from mds_ach.robot.channels import StructChannel
+
+        found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
+        if found is None:
+            return
+        ref, mode, source = found
+        core = FilterCore(self.params, ref, mode)
+        inp = StructChannel(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
+        out = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+        state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        needs_state = bool(np.any(self.params.mode == ENC))
+        measured: np.ndarray | None = None
+        warned_state = False
+        self.core = core
+        guard = ChannelGuard(self.log, self._stop)
+        watch = ReseedWatch(self.log, self._stop)
+        try:
+            self.log("info", f"started from {source} at {self.params.rate:g} Hz ({self.params.describe()})")
+            timer = Periodic(self.params.dt)
+            self.ready.set()
+            while True:
+                frame = guard.call(inp.name, inp.latest)  # a broken input: keep smoothing to the last target
+                if frame is not None:
+                    problem = core.set_target(*ref_arrays(frame))
+                    if problem:
+                        self.log("warn", problem)
+                found = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins
+                if found is not None:
+                    core.reseed(*found)
+                    self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or "
+                                     f"resetbus)")
+                if needs_state:
+                    st = guard.call(state_ch.name, state_ch.latest)
+                    if st is not None:
+                        measured = state_positions(st)
+                    elif measured is None and not warned_state:
+                        self.log("warn", "enc_filter joints have no mds-state yet: using ema until it arrives")
+                        warned_state = True
+                guard.call(out.name, out.put, make_ref(core.step(measured), core.out_mode()))
+                self.ticks += 1
+                if not timer.wait(self._stop):
+                    break
+                self.overruns = timer.overruns
+        finally:
+            inp.close()
+            out.close()
+            state_ch.close()
+            watch.close()
+
+
+# --------------------------------------------------------------------------------------------- ROS node
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="filter",
+        description="Reference smoother: reads mds-ref-mux, writes mds-ref-smooth at a fixed rate with a "
+                    "per-joint mode (velocity_limit 1.57 rad/s, 4 rad/s^2 by default, ema, enc_filter, pass; "
+                    "config/filter.yaml). Starts from the current reference: no jump when started late.",
+        epilog="Example: ros2 run mds_ach filter --rate 50",
+    )
+    p.add_argument("--config", help="filter YAML (default: the package's config/filter.yaml)")
+    p.add_argument("--rate", type=float, help="loop rate in Hz (overrides the config; default 40)")
+    return p
+
+
+def _make_node(args: argparse.Namespace) -> Any:
+    from rclpy.node import Node
+
+    from mds_ach.nodes.pipeline import ros_log, start_worker
+
+    params = load_config(args.config, args.rate)
+
+    class FilterNode(Node):
+        def __init__(self) -> None:
+            super().__init__("filter")
+            self.declare_parameter("rate", params.rate)
+            log = ros_log(self)
+            self.runner = FilterRunner(params, log=log)
+            self.thread = start_worker(self, self.runner.run, "filter")
+
+        def shutdown(self) -> None:
+            self.runner.stop()
+            self.thread.join(timeout=3.0)
+
+    return FilterNode()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from mds_ach.nodes.pipeline import run_node
+
+    return run_node(argv, _build_parser(), _make_node)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,341 @@
+"""IK node (``ros2 run mds_ach ik``): Cartesian requests on ``mds-ik`` -> joint references for one arm.
+
+For every ``MDS_IK`` request (``move``: 0 right, 1 left; ``arm[move].ik_method``: task DOF 1..6 taken in
+the order x, y, z, roll, pitch, yaw from ``t_x t_y t_z r_x r_y r_z``; robot frame, m and rad):
+
+1. refuse bad requests (arm not 0/1, DOF not 1..6, NaN/Inf among the used values) with a message;
+2. seed from the current reference (``mds-state`` joint[].ref, as the original did; else ``mds-ref``);
+3. solve with ``mds_ach.ik`` inside the URDF limits narrowed to the active robot's joint table; candidate
+   poses and the joint-space path to them are collision-checked (``mds_ach.kinematics.collision``) when available;
+4. on success write the arm's six references into the node's output channel: ``mds-ref-ik``, the ik input
+   of the mux (``--output mds-ref-filter`` for the legacy set-up without a mux). The frame is the newest one
+   on that channel (else the mux output / ``mds-ref`` / ``mds-state``) with only those six joints replaced,
+   so other joints are never touched. Never straight to ``mds-ref``: the mux, filter and collision gate
+   stay in the path. An unreachable target writes nothing (the arm holds) and says so.
+
+Every request gets an answer on ``mds-ik-state`` (``MDS_IK_STATUS``, see ``mds_ach.robot.ik_msgs``) and as JSON
+on the ROS topic ``/mds/ik_status`` (std_msgs/String).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach import ik
+from mds_ach.robot.ik_msgs import (
+    IK_BAD_REQUEST,
+    IK_NOT_READY,
+    IK_SOLVED,
+    IK_STATUS_TOPIC,
+    IK_UNREACHABLE,
+    MDS_IK_STATUS,
+    set_message,
+    status_to_dict,
+)
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
+
+ARM_JOINTS: dict[int, tuple[str, ...]] = {mds.RIGHT: RIGHT_ARM, mds.LEFT: LEFT_ARM}
+ARM_NAMES: dict[int, str] = {mds.RIGHT: "right", mds.LEFT: "left"}
+SafetyFactory = Callable[[np.ndarray], ik.SafetyCheck]
+
+
+@dataclass
+class IkNodeConfig:
+    output: str = mds.MDS_CHAN_REF_IK_NAME
+    tolerance: float = ik.DEFAULT_ERR[2]
+    max_iterations: int = ik.DEFAULT_ITERATIONS
+    timeout: float = 2.0  # s, cap on one solve whatever the iteration count
+    collision_check: bool = True
+    seed_sources: tuple[str, ...] = (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_REF_NAME)
+    base_sources: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.tolerance) and self.tolerance > 0):
+            raise ValueError(f"tolerance must be > 0, got {self.tolerance}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if self.output == mds.MDS_CHAN_REF_NAME:
+            raise ValueError("the ik node never writes mds-ref directly: use mds-ref-ik (mux) or mds-ref-filter")
+        if not self.base_sources:
+            self.base_sources = (self.output, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_NAME,
+                                 mds.MDS_CHAN_STATE_NAME)
+
+
+@dataclass
+class Outcome:
+    """What one request produced: the status frame, and the six (address, value) refs to write if solved."""
+
+    status: MDS_IK_STATUS
+    refs: dict[int, float] | None = None
+
+
+class IkService:
+    """Request -> solution, without channels (the runner and the tests feed it)."""
+
+    def __init__(self, config: IkNodeConfig, limits: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+                 safety: SafetyFactory | None = None) -> None:
+        self.config = config
+        self.safety = safety
+        self.options = ik.IKOptions(tolerance=config.tolerance, max_iterations=config.max_iterations,
+                                    timeout=config.timeout)
+        self.solvers = {arm: ik.IKSolver(name, self.options, limits=(limits or {}).get(arm))
+                        for arm, name in ARM_NAMES.items()}
+        self.seq = 0
+
+    def handle(self, request: mds.MDS_IK, current: np.ndarray | None) -> Outcome:
+        """Solve one request. ``current``: the 100 current refs by address (None = unknown: not ready)."""
+        self.seq += 1
+        st = MDS_IK_STATUS()
+        st.seq = self.seq
+        st.arm = -1
+        move = int(request.move)
+        if move not in ARM_NAMES:
+            return self._refuse(st, IK_BAD_REQUEST, f"bad request: move must be 0 (right) or 1 (left), got {move}")
+        st.arm = move
+        a = request.arm[move]
+        values = [a.t_x, a.t_y, a.t_z, a.r_x, a.r_y, a.r_z]
+        for i, v in enumerate(values):
+            st.target[i] = v
+        dof = int(a.ik_method)
+        st.dof = dof
+        if not 1 <= dof <= 6:
+            return self._refuse(st, IK_BAD_REQUEST, f"bad request: ik_method (DOF) must be 1..6, got {dof}")
+        used = np.array(values[:dof], dtype=float)
+        if not np.all(np.isfinite(used)):
+            return self._refuse(st, IK_BAD_REQUEST, f"bad request: NaN/Inf in the target {used.tolist()}")
+        if current is None or not np.all(np.isfinite(current)):
+            return self._refuse(st, IK_NOT_READY, "no current reference (is the daemon running?); nothing moved")
+        addresses = [BY_SHORT[s].address for s in ARM_JOINTS[move]]
+        solver = self.solvers[move]
+        solver.is_safe = self.safety(current) if self.safety is not None else None
+        result = solver.solve(used, ik.DOF_ORDERS[dof], current[addresses])
+        st.iterations = result.iterations
+        st.error = result.error
+        st.solve_time = result.time
+        for i, v in enumerate(result.q):
+            st.q[i] = v
+        if not result.success:
+            st.status = IK_UNREACHABLE
+            unsafe = f", {result.rejected_unsafe} colliding" if result.rejected_unsafe else ""
+            set_message(st, f"unreachable: best error {result.error:.3g} after {result.iterations} iterations"
+                            f"{unsafe}; nothing moved")
+            return Outcome(st)
+        st.status = IK_SOLVED
+        set_message(st, f"solved in {result.iterations} iterations, error {result.error:.2g}")
+        return Outcome(st, dict(zip(addresses, result.q.tolist(), strict=True)))
+
+    @staticmethod
+    def _refuse(st: MDS_IK_STATUS, code: int, message: str) -> Outcome:
+        st.status = code
+        st.error = math.nan
+        set_message(st, message)
+        return Outcome(st)
+
+
+def arm_limits(robot: str | None = None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per-arm (lower, upper) from the active robot's joint table (config/joints.yaml + overlay)."""
+    from mds_ach.robot import config as joint_config
+
+    table = {j.short: j for j in joint_config.load(robot)}
+    out = {}
+    for arm, names in ARM_JOINTS.items():
+        out[arm] = (np.array([table[n].lower for n in names]), np.array([table[n].upper for n in names]))
+    return out
+
+
+def collision_safety(log: Callable[[str, str], None]) -> SafetyFactory | None:
+    """A factory of ``is_safe`` hooks from the package collision model, or None (with a warning) if unavailable.
+
+    A candidate is unsafe when the model predicts a collision that involves the solved arm; the rest of the
+    body is posed at the current reference.
+    """
+    try:
+        from mds_ach.kinematics.collision import load_model
+
+        model = load_model()
+    except Exception as exc:  # missing fcl, bad config: the gate downstream still checks every reference
+        log("warn", f"IK candidates are not collision-checked ({exc}); the collision gate still is")
+        return None
+    addresses = {name: [BY_SHORT[s].address for s in joints] for name, joints in
+                 (("left", LEFT_ARM), ("right", RIGHT_ARM))}
+
+    def factory(current: np.ndarray) -> ik.SafetyCheck:
+        base = current.copy()
+
+        def is_safe(q_arm: np.ndarray, arm: str) -> bool:
+            ref = base.copy()
+            ref[addresses[arm]] = q_arm
+            return arm not in model.check(model.q_from_ref(ref)).arms
+
+        return is_safe
+
+    return factory
+
+
+# --------------------------------------------------------------------------------------------- Ach side
+
+
+class IkRunner:
+    """The request loop: wait on ``mds-ik``, solve, write the output channel and ``mds-ik-state``."""
+
+    def __init__(self, service: IkService, log: Callable[[str, str], None] | None = None,
+                 on_status: Callable[[MDS_IK_STATUS], None] | None = None) -> None:
+        self.service = service
+        self.config = service.config
+        self.log = log or (lambda level, msg: print(f"[ik] {level}: {msg}", flush=True))
+        self.on_status = on_status
+        self._stop = threading.Event()
+        self._requests: Any = None
+        self.ready = threading.Event()
+        self.handled = 0
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._requests is not None:
+            self._requests.cancel()
+
+    def run(self) -> None:
+        from mds_ach.nodes.pipeline import current_reference, make_ref
+        from mds_ach.robot.channels import StructChannel
+
+        requests = StructChannel(mds.MDS_CHAN_IK_NAME, mds.MDS_IK)
+        status_ch = StructChannel(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS)
+        out = StructChannel(self.config.output, mds.MDS_REF)
+        self._requests = requests
+        try:
+            requests.flush()  # requests from before the start are not commands (the original flushed too)
+            self.log("info", f"waiting for requests on {mds.MDS_CHAN_IK_NAME}; solutions go to {self.config.output}")
+            self.ready.set()
+            while not self._stop.is_set():
+                request = requests.wait(timeout=0.5)
+                if request is None:
+                    continue
+                try:
+                    st = self._handle(request, out, current_reference, make_ref)
+                except Exception as exc:  # keep serving: one bad request must not take the node down
+                    self.log("error", f"request failed: {exc!r}; nothing moved")
+                    st = IkService._refuse(MDS_IK_STATUS(), IK_BAD_REQUEST, f"internal error: {exc!r}"[:79]).status
+                    st.arm = -1
+                st.stamp = time.monotonic()
+                status_ch.put(st)
+                self.handled += 1
+                self._report(st)
+        finally:
+            requests.close()
+            status_ch.close()
+            out.close()
+
+    def _handle(self, request: mds.MDS_IK, out: Any, current_reference: Callable[..., Any],
+                make_ref: Callable[..., Any]) -> MDS_IK_STATUS:
+        found = current_reference(self.config.seed_sources)
+        outcome = self.service.handle(request, None if found is None else found[0])
+        st = outcome.status
+        if outcome.refs is not None:
+            base = current_reference(self.config.base_sources)
+            if base is None:  # cannot happen when a seed was found, but never write a zero frame
+                st.status = IK_NOT_READY
+                set_message(st, "no reference to modify; nothing moved")
+            else:
+                ref, mode, _ = base
+                for address, value in outcome.refs.items():
+                    ref[address] = value
+                out.put(make_ref(ref, mode))
+        return st
+
+    def _report(self, st: MDS_IK_STATUS) -> None:
+        doc = status_to_dict(st)
+        level = "info" if st.status == IK_SOLVED else "warn"
+        self.log(level, f"#{doc['seq']} {doc['arm']} {doc['dof']}-DOF {doc['target'][:max(doc['dof'], 0)]}: "
+                        f"{doc['message']} ({st.solve_time * 1e3:.1f} ms)")
+        if self.on_status is not None:
+            self.on_status(st)
+
+
+# --------------------------------------------------------------------------------------------- ROS node
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="ik",
+        description="Inverse kinematics service: solves Cartesian requests from mds-ik (console 'ik left 3 0.3 "
+                    "0.2 0', legacy mds_ik_t clients) for one arm and writes the six joint references to the "
+                    "mux input mds-ref-ik (through mux, filter and collision gate; never straight to mds-ref). "
+                    f"Answers on mds-ik-state and the ROS topic {IK_STATUS_TOPIC} (JSON). Unreachable targets "
+                    "move nothing.",
+        epilog="Example: ros2 run mds_ach ik --output mds-ref-filter   (legacy set-up without the mux)",
+    )
+    p.add_argument("--output", default=mds.MDS_CHAN_REF_IK_NAME,
+                   help="channel for the solutions (default: mds-ref-ik; mds-ref-filter without the mux)")
+    p.add_argument("--tolerance", type=float, default=ik.DEFAULT_ERR[2],
+                   help="task error tolerance, m and rad mixed as in the original (default 0.01)")
+    p.add_argument("--max-iterations", type=int, default=ik.DEFAULT_ITERATIONS,
+                   help="iteration cap per request (default 1000)")
+    p.add_argument("--timeout", type=float, default=2.0, help="cap on one solve in s (default 2)")
+    p.add_argument("--no-collision-check", action="store_true",
+                   help="do not collision-check IK candidates (the collision gate still checks every reference)")
+    p.add_argument("--robot", help="robot whose joint table narrows the limits (default: MDS_ROBOT or 'default')")
+    return p
+
+
+def build_service(args: argparse.Namespace, log: Callable[[str, str], None]) -> IkService:
+    """Config, limits and collision hook from the command line (shared by the node and the tests)."""
+    config = IkNodeConfig(output=args.output, tolerance=args.tolerance, max_iterations=args.max_iterations,
+                          timeout=args.timeout, collision_check=not args.no_collision_check)
+    safety = collision_safety(log) if config.collision_check else None
+    return IkService(config, arm_limits(args.robot), safety)
+
+
+def _make_node(args: argparse.Namespace) -> Any:
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from std_msgs.msg import String
+
+    from mds_ach.nodes.pipeline import ros_log
+
+    class IkNode(Node):
+        def __init__(self) -> None:
+            super().__init__("ik")
+            log = ros_log(self)
+            service = build_service(args, log)
+            self.declare_parameter("output", service.config.output)
+            self.declare_parameter("tolerance", service.config.tolerance)
+            self.declare_parameter("max_iterations", service.config.max_iterations)
+            self.declare_parameter("collision_check", service.safety is not None)
+            self.pub: Any = None
+            self.runner = IkRunner(service, log=log, on_status=self._publish)
+            self.thread = threading.Thread(target=self.runner.run, name="ik", daemon=True)
+            self.thread.start()
+            # The status topic appears once requests are being taken: a client that sees it can ask at once.
+            self.runner.ready.wait(10.0)
+            qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            self.pub = self.create_publisher(String, IK_STATUS_TOPIC, qos)
+
+        def _publish(self, st: MDS_IK_STATUS) -> None:
+            if self.pub is not None and self.context.ok():
+                self.pub.publish(String(data=json.dumps(status_to_dict(st))))
+
+        def shutdown(self) -> None:
+            self.runner.stop()
+            self.thread.join(timeout=5.0)
+
+    return IkNode()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from mds_ach.nodes.pipeline import run_node
+
+    return run_node(argv, _build_parser(), _make_node)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

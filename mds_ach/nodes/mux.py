@@ -1,0 +1,451 @@
+"""Joint mux (``ros2 run mds_ach mux``): merges the references of several controllers into ``mds-ref-mux``.
+
+Each controller writes whole ``MDS_REF`` frames to its own input channel (config/mux.yaml). The rule:
+
+* a joint changes only when a controller *modified* it (compared with that controller's previous frame; the
+  first frame after start is compared with the mux output) **and** holds write permission for it:
+  the joint is in the controller's ``joints`` and no higher-priority controller currently owns it;
+* a controller that modifies a permitted joint becomes its owner; ownership lasts while the controller is
+  fresh. A controller goes *stale* ``timeout`` seconds after its last frame that changed anything (a client
+  re-sending the same frame is holding, not commanding); its joints are then released and fall back to
+  whoever changes them next. The output keeps its last value until then: no jump.
+
+Why "modified" rather than "newest frame wins": legacy clients read-modify-write a whole frame (console
+``goto`` changes one joint and re-sends the other 99 as they were). Only real changes are commands.
+
+Event-based: one thread per input blocks on its channel and queues frames; the mux thread applies them in
+arrival order and publishes ``mds-ref-mux`` on every output change. Ownership and ages go to
+``mds-mux-state`` (``MDS_MUX_STATE`` below) and to the ROS topic ``/mds/mux_state`` (std_msgs/String, JSON).
+
+At start the output is the current reference (``mds-ref``, else ``mds-state`` joint[].ref), published once
+so the filter holds still; frames already waiting in the input channels are taken as each controller's
+previous frame, not applied (they are old commands). Controllers with ``seed: true`` (the legacy
+``mds-ref-filter``) get the start reference written to their channel, as the original mds-filter did, so
+read-modify-write clients start from the real pose instead of zeros.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach.nodes.pipeline import (
+    KNOWN_ADDRESSES,
+    ChannelGuard,
+    ReseedWatch,
+    cancel_wait,
+    joint_label,
+    labels,
+    make_ref,
+    ref_arrays,
+    select_joints,
+)
+from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
+
+MUX_MAX_CONTROLLERS = 8
+DEFAULT_STATE_RATE = 10.0
+
+
+class MDS_MUX_STATE(ctypes.LittleEndianStructure):  # noqa: N801 - legacy naming style
+    """``mds-mux-state`` frame (packed, 506 B): who owns each joint and how fresh each controller is.
+
+    owner[address]     controller index (into name[]) that owns the joint, -1 = nobody (holding)
+    count              number of configured controllers (<= 8)
+    priority[i]        controller priority (higher wins)
+    stale[i]           1 when the controller is stale (no change within its timeout) or never sent
+    age[i]             s since the controller's last frame, -1 = never
+    change_age[i]      s since its last frame that changed a joint, -1 = never
+    name[i]            controller name, char[30]
+    time               CLOCK_MONOTONIC at publish
+    seq                publish counter
+    """
+
+    _pack_ = 1
+    _fields_ = [
+        ("owner", ctypes.c_int8 * MDS_JOINT_COUNT),
+        ("count", ctypes.c_int16),
+        ("priority", ctypes.c_int16 * MUX_MAX_CONTROLLERS),
+        ("stale", ctypes.c_uint8 * MUX_MAX_CONTROLLERS),
+        ("age", ctypes.c_double * MUX_MAX_CONTROLLERS),
+        ("change_age", ctypes.c_double * MUX_MAX_CONTROLLERS),
+        ("name", Name30 * MUX_MAX_CONTROLLERS),
+        ("time", ctypes.c_double),
+        ("seq", ctypes.c_uint32),
+    ]
+
+
+# --------------------------------------------------------------------------------------------- config
+
+
+@dataclass(frozen=True)
+class Controller:
+    """One mux input (one entry of config/mux.yaml ``controllers``)."""
+
+    name: str
+    channel: str
+    priority: int
+    joints: tuple[int, ...]  # permitted addresses
+    timeout: float | None  # s after its last change until it goes stale; None = never stale
+    seed: bool = False
+
+
+def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux config") -> list[Controller]:
+    """Validate the ``controllers`` list: unique names, channels and priorities, known joints, timeout > 0."""
+    if not entries:
+        raise ValueError(f"{where}: no controllers configured")
+    if len(entries) > MUX_MAX_CONTROLLERS:
+        raise ValueError(f"{where}: at most {MUX_MAX_CONTROLLERS} controllers, got {len(entries)}")
+    out: list[Controller] = []
+    for k, e in enumerate(entries):
+        if not isinstance(e, Mapping):
+            raise ValueError(f"{where}: controllers[{k}] must be a mapping")
+        name = str(e.get("name", "")).strip()
+        here = f"{where}: controller {name or k!r}"
+        unknown = set(e) - {"name", "channel", "priority", "joints", "timeout", "seed"}
+        if unknown:
+            raise ValueError(f"{here}: unknown keys {sorted(unknown)}")
+        if not name or len(name.encode()) >= 30:
+            raise ValueError(f"{here}: needs a name of 1..29 characters")
+        channel = str(e.get("channel", "")).strip()
+        if not channel:
+            raise ValueError(f"{here}: needs an input channel")
+        if channel in (mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_CHAN_REF_NAME):
+            raise ValueError(f"{here}: {channel} is a pipeline output, not a controller input")
+        try:
+            priority = int(e["priority"])
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"{here}: needs an integer priority (higher wins)") from None
+        joints = select_joints(e.get("joints", "all"), f"{here} joints")
+        timeout = e.get("timeout")
+        if timeout is not None:
+            timeout = float(timeout)
+            if not (math.isfinite(timeout) and timeout > 0):
+                raise ValueError(f"{here}: timeout must be > 0 s (or null for never stale)")
+        out.append(Controller(name, channel, priority, joints, timeout, bool(e.get("seed", False))))
+    for attr, plural in (("name", "names"), ("channel", "channels"), ("priority", "priorities")):
+        values = [getattr(c, attr) for c in out]
+        dupes = sorted({str(v) for v in values if values.count(v) > 1})
+        if dupes:
+            raise ValueError(f"{where}: controller {plural} must be unique, repeated: {', '.join(dupes)}")
+    return out
+
+
+def load_config(path: str | Path | None = None) -> dict[str, Any]:
+    """config/mux.yaml (or ``path``) -> {'controllers': [Controller...], 'state_rate': Hz}."""
+    import yaml
+
+    from mds_ach.paths import config_path
+
+    path = Path(path) if path else config_path("mux.yaml")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except FileNotFoundError:
+        raise ValueError(f"mux config {path} not found") from None
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{path}: expected a mapping")
+    rate = float(data.get("state_rate", DEFAULT_STATE_RATE))
+    if not (math.isfinite(rate) and rate > 0):
+        raise ValueError(f"{path}: state_rate must be > 0 Hz")
+    return {"controllers": parse_controllers(data.get("controllers") or [], str(path)), "state_rate": rate}
+
+
+# --------------------------------------------------------------------------------------------- merge logic
+
+
+class MuxCore:
+    """The merge rule, without channels or threads (so it can be tested exactly). Times are wall seconds."""
+
+    def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray) -> None:
+        self.controllers = list(controllers)
+        n = len(self.controllers)
+        self.ref = np.array(ref, dtype=float)
+        self.mode = np.array(mode, dtype=np.int16)
+        self.owner = np.full(MDS_JOINT_COUNT, -1, dtype=np.int8)
+        self._permit = np.zeros((n, MDS_JOINT_COUNT), dtype=bool)
+        for i, c in enumerate(self.controllers):
+            self._permit[i, list(c.joints)] = True
+        self._known = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+        self._known[list(KNOWN_ADDRESSES)] = True
+        self._prio = np.array([c.priority for c in self.controllers])
+        self._prev: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n
+        self.last_frame = np.full(n, -math.inf)
+        self.last_change = np.full(n, -math.inf)
+        self.refused = np.zeros(n, dtype=int)
+
+    def absorb(self, index: int, ref: np.ndarray, mode: np.ndarray) -> None:
+        """Take a frame as the controller's previous frame without applying it (old frames at start-up)."""
+        self._prev[index] = (np.array(ref, dtype=float), np.array(mode, dtype=np.int16))
+
+    def stale(self, index: int, now: float) -> bool:
+        timeout = self.controllers[index].timeout
+        if self.last_change[index] == -math.inf:
+            return True
+        return timeout is not None and now - self.last_change[index] > timeout
+
+    def update(self, index: int, ref: np.ndarray, mode: np.ndarray, now: float) -> tuple[bool, str | None]:
+        """Apply one frame of controller ``index``. Returns (output changed, refusal message or None).
+
+        A frame with NaN/Inf in a known joint is refused as a whole (the controller is broken).
+        """
+        ref = np.asarray(ref, dtype=float)
+        mode = np.asarray(mode, dtype=np.int16)
+        self.last_frame[index] = now
+        bad = self._known & ~np.isfinite(ref)
+        if bad.any():
+            self.refused[index] += 1
+            return False, (f"refused a frame from '{self.controllers[index].name}': non-finite reference for "
+                           f"{labels(np.flatnonzero(bad))}")
+        prev = self._prev[index]
+        base_ref, base_mode = prev if prev is not None else (self.ref, self.mode)
+        modified = self._known & ((ref != base_ref) | (mode != base_mode))
+        self._prev[index] = (ref.copy(), mode.copy())
+        if not modified.any():
+            return False, None
+        self.last_change[index] = now
+        self.release_stale(now)
+        owner = self.owner.astype(int)
+        owned = owner >= 0
+        owner_prio = np.where(owned, self._prio[np.maximum(owner, 0)], np.iinfo(np.int64).min)
+        may = modified & self._permit[index] & ((~owned) | (owner == index) | (owner_prio < self._prio[index]))
+        if not may.any():
+            return False, None
+        self.owner[may] = index
+        changed = may & ((self.ref != ref) | (self.mode != mode))
+        self.ref[may] = ref[may]
+        self.mode[may] = mode[may]
+        return bool(changed.any()), None
+
+    def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
+        """Restart these joints' output where they are (``pipeline.ReseedWatch``); ownership is unchanged."""
+        self.ref[addresses] = positions
+
+    def release_stale(self, now: float) -> bool:
+        """Release the joints of stale controllers (values stay). True if any ownership changed."""
+        changed = False
+        for i in range(len(self.controllers)):
+            if self.stale(i, now):
+                mine = self.owner == i
+                if mine.any():
+                    self.owner[mine] = -1
+                    changed = True
+        return changed
+
+    def state(self, now: float, seq: int = 0) -> MDS_MUX_STATE:
+        st = MDS_MUX_STATE()
+        for a in range(MDS_JOINT_COUNT):
+            st.owner[a] = int(self.owner[a])
+        st.count = len(self.controllers)
+        for i, c in enumerate(self.controllers):
+            st.priority[i] = c.priority
+            st.stale[i] = int(self.stale(i, now))
+            st.age[i] = now - self.last_frame[i] if self.last_frame[i] > -math.inf else -1.0
+            st.change_age[i] = now - self.last_change[i] if self.last_change[i] > -math.inf else -1.0
+            st.name[i] = Name30.from_buffer_copy(c.name.encode("ascii").ljust(30, b"\0"))
+        st.time = now
+        st.seq = seq
+        return st
+
+
+def state_to_dict(st: MDS_MUX_STATE) -> dict[str, Any]:
+    """The JSON document of /mds/mux_state: controllers (name, priority, stale, ages) and joint owners."""
+    names = [get_name(bytes(st.name[i])) for i in range(st.count)]
+    return {
+        "time": st.time,
+        "controllers": [
+            {"name": names[i], "priority": st.priority[i], "stale": bool(st.stale[i]),
+             "age": None if st.age[i] < 0 else round(st.age[i], 4),
+             "change_age": None if st.change_age[i] < 0 else round(st.change_age[i], 4)}
+            for i in range(st.count)
+        ],
+        "owners": {joint_label(a): names[st.owner[a]] for a in KNOWN_ADDRESSES if st.owner[a] >= 0},
+    }
+
+
+# --------------------------------------------------------------------------------------------- Ach side
+
+
+class MuxRunner:
+    """Channels and threads around ``MuxCore``. ``run()`` blocks until ``stop()``; no ROS in here."""
+
+    def __init__(self, controllers: Sequence[Controller], state_rate: float = DEFAULT_STATE_RATE,
+                 log: Callable[[str, str], None] | None = None,
+                 on_state: Callable[[MDS_MUX_STATE], None] | None = None,
+                 output: str = mds.MDS_CHAN_REF_MUX_NAME,
+                 sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+        self.controllers = list(controllers)
+        self.state_period = 1.0 / state_rate
+        self.log = log or (lambda level, msg: print(f"[mux] {level}: {msg}", flush=True))
+        self.on_state = on_state
+        self.output_name = output
+        self.sources = tuple(sources)
+        self._stop = threading.Event()
+        self._queue: queue.Queue[tuple[int, mds.MDS_REF, float]] = queue.Queue()
+        self._inputs: list[Any] = []
+        self._threads: list[threading.Thread] = []
+        self.core: MuxCore | None = None
+        self.ready = threading.Event()
+        self.published = 0
+
+    def stop(self) -> None:
+        self._stop.set()
+        for ch in self._inputs:
+            cancel_wait(ch)
+
+    def run(self) -> None:
+        from mds_ach.nodes.pipeline import wait_current_reference
+        from mds_ach.robot.channels import StructChannel
+
+        found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
+        if found is None:
+            return
+        ref, mode, source = found
+        out = StructChannel(self.output_name, mds.MDS_REF)
+        state_ch = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        watch = ReseedWatch(self.log, self._stop)
+        core = MuxCore(self.controllers, ref, mode)
+        try:
+            for i, c in enumerate(self.controllers):
+                ch = StructChannel(c.channel, mds.MDS_REF)
+                self._inputs.append(ch)
+                old = ch.latest()
+                if c.seed:
+                    ch.put(make_ref(ref, mode))
+                    core.absorb(i, ref, mode)
+                elif old is not None:
+                    core.absorb(i, *ref_arrays(old))
+            self.core = core
+            out.put(make_ref(core.ref, core.mode))
+            self.published += 1
+            self.log("info", f"started from {source}; inputs: " + ", ".join(
+                f"{c.name} <- {c.channel} (priority {c.priority})" for c in self.controllers))
+            for i in range(len(self.controllers)):
+                t = threading.Thread(target=self._reader, args=(i,), name=f"mux-in-{self.controllers[i].name}",
+                                     daemon=True)
+                t.start()
+                self._threads.append(t)
+            self.ready.set()
+            self._loop(core, out, state_ch, watch)
+        finally:
+            self._stop.set()
+            for ch in self._inputs:
+                cancel_wait(ch)
+            for t in self._threads:
+                t.join(timeout=2.0)
+            for ch in self._inputs:
+                ch.close()
+            out.close()
+            state_ch.close()
+            watch.close()
+
+    def _reader(self, index: int) -> None:
+        """Block on one input channel; hand every new frame to the mux thread with its arrival time."""
+        ch = self._inputs[index]
+        # A client that died inside a put leaves its input ACH_CORRUPT: keep this thread alive, say so, and pick
+        # the channel up again once `mds-ach repair` fixed it.
+        guard = ChannelGuard(self.log, self._stop)
+        while not self._stop.is_set():
+            frame = guard.call(ch.name, ch.wait, timeout=0.5)
+            if frame is not None:
+                self._queue.put((index, frame, time.monotonic()))
+
+    def _loop(self, core: MuxCore, out: Any, state_ch: Any, watch: ReseedWatch) -> None:
+        seq = 0
+        next_state = time.monotonic()
+        while not self._stop.is_set():
+            timeout = max(0.0, next_state - time.monotonic())
+            try:
+                index, frame, t = self._queue.get(timeout=timeout)
+            except queue.Empty:
+                self._reseed(core, out, watch)
+            else:
+                self._reseed(core, out, watch)  # before the frame: a command after HOME starts at the joint
+                changed, problem = core.update(index, *ref_arrays(frame), t)
+                if problem:
+                    self.log("error", problem)
+                if changed:
+                    out.put(make_ref(core.ref, core.mode))
+                    self.published += 1
+                if not self._queue.empty():
+                    continue
+            now = time.monotonic()
+            if now >= next_state:
+                core.release_stale(now)
+                seq += 1
+                st = core.state(now, seq)
+                state_ch.put(st)
+                if self.on_state is not None:
+                    self.on_state(st)
+                next_state = now + self.state_period
+
+    def _reseed(self, core: MuxCore, out: Any, watch: ReseedWatch) -> None:
+        """Restart the joints the daemon asks for (HOME, reset, resetbus) where they are, and publish that."""
+        found = watch.poll()
+        if found is not None:
+            core.reseed(*found)
+            out.put(make_ref(core.ref, core.mode))
+            self.published += 1
+            self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or resetbus)")
+
+
+# --------------------------------------------------------------------------------------------- ROS node
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="mux",
+        description="Joint mux: merges the controllers' reference channels (config/mux.yaml) into mds-ref-mux. "
+                    "A joint changes only when a permitted controller changed it and no fresher, higher-priority "
+                    "controller owns it. Ownership: mds-mux-state channel and /mds/mux_state (JSON).",
+        epilog="Example: ros2 run mds_ach mux --config my_mux.yaml   (ROS args: --ros-args -r __node:=mux2)",
+    )
+    p.add_argument("--config", help="mux YAML (default: the package's config/mux.yaml)")
+    return p
+
+
+def _make_node(args: argparse.Namespace) -> Any:
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    from mds_ach.nodes.pipeline import ros_log, start_worker
+
+    cfg = load_config(args.config)
+
+    class MuxNode(Node):
+        def __init__(self) -> None:
+            super().__init__("mux")
+            self.pub = self.create_publisher(String, "/mds/mux_state", 10)
+            log = ros_log(self)
+            self.runner = MuxRunner(cfg["controllers"], cfg["state_rate"], log=log, on_state=self._on_state)
+            self.thread = start_worker(self, self.runner.run, "mux")
+
+        def _on_state(self, st: MDS_MUX_STATE) -> None:
+            if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
+                self.pub.publish(String(data=json.dumps(state_to_dict(st))))
+
+        def shutdown(self) -> None:
+            self.runner.stop()
+            self.thread.join(timeout=3.0)
+
+    return MuxNode()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from mds_ach.nodes.pipeline import run_node
+
+    return run_node(argv, _build_parser(), _make_node)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,382 @@
+"""Plumbing shared by the reference-pipeline nodes (mux, filter, collision gate).
+
+* ``MDS_REF`` frames <-> numpy arrays (100 refs + 100 modes, indexed by CAN address), so the nodes do their
+  per-joint work vectorised;
+* joint selections from config (``'all'``, group names, fnmatch patterns such as ``'L*'``, addresses);
+* the *current reference* at start-up, so a node started late (or restarted) continues from what the daemon
+  is already commanding instead of jumping;
+* ``run_node``: the common ``main()`` of an rclpy node with an Ach real-time thread (``--help`` without rclpy
+  start-up, ROS args, clean exit 0 on SIGINT/SIGTERM).
+
+No rclpy import at module level: the helpers are used by tests and tools that never start DDS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+import mds_ach as mds
+from mds_ach.robot.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
+
+REF_DTYPE = np.dtype([("ref", "<f8"), ("mode", "<i2")])  # packed, itemsize 10 == sizeof(MDS_JOINT_REF)
+KNOWN_ADDRESSES: tuple[int, ...] = tuple(j.address for j in JOINTS)
+JOINT_GROUPS: dict[str, tuple[str, ...]] = {
+    "left_arm": LEFT_ARM,
+    "right_arm": RIGHT_ARM,
+    "arms": LEFT_ARM + RIGHT_ARM,
+    "neck": NECK,
+    "head": NECK,
+    "torso": TORSO,
+    "model": MODEL_JOINTS,
+    "all": tuple(j.short for j in JOINTS),
+}
+
+
+# --------------------------------------------------------------------------------------------- ref arrays
+
+
+def ref_arrays(frame: mds.MDS_REF) -> tuple[np.ndarray, np.ndarray]:
+    """(ref, mode) arrays of length 100 (copies) from an ``MDS_REF``."""
+    a = np.frombuffer(bytes(frame), dtype=REF_DTYPE)
+    return a["ref"].astype(float), a["mode"].astype(np.int16)
+
+
+def make_ref(ref: np.ndarray, mode: np.ndarray) -> mds.MDS_REF:
+    """An ``MDS_REF`` from ref/mode arrays of length 100."""
+    a = np.empty(mds.MDS_JOINT_COUNT, dtype=REF_DTYPE)
+    a["ref"] = ref
+    a["mode"] = mode
+    return mds.MDS_REF.from_buffer_copy(a.tobytes())
+
+
+def state_refs(state: mds.MDS_STATE) -> np.ndarray:
+    """``state.joint[i].ref`` for all 100 addresses: what the daemon is commanding now."""
+    return np.array([state.joint[i].ref for i in range(mds.MDS_JOINT_COUNT)], dtype=float)
+
+
+def state_positions(state: mds.MDS_STATE) -> np.ndarray:
+    """``state.joint[i].pos`` (measured, rad) for all 100 addresses."""
+    return np.array([state.joint[i].pos for i in range(mds.MDS_JOINT_COUNT)], dtype=float)
+
+
+def joint_label(address: int) -> str:
+    j = BY_ADDRESS.get(int(address))
+    return j.short if j else f"0x{int(address):02X}"
+
+
+def labels(addresses: Iterable[int]) -> str:
+    return ", ".join(joint_label(a) for a in addresses)
+
+
+# --------------------------------------------------------------------------------------------- joint selections
+
+
+def select_joints(spec: Any, where: str = "joints") -> tuple[int, ...]:
+    """Addresses (sorted) selected by ``spec``: ``'all'``, a group (left_arm, right_arm, arms, neck, torso, model),
+    a short/long name or address, an fnmatch pattern on short names (``'L*'``, ``'?SP'``), or a list of those.
+
+    A pattern or name that selects nothing is an error (a typo must not silently drop permissions).
+    """
+    items = [spec] if isinstance(spec, str | int) else list(spec or [])
+    if not items:
+        raise ValueError(f"{where}: empty joint selection")
+    out: set[int] = set()
+    for item in items:
+        if isinstance(item, int) and not isinstance(item, bool):
+            if item not in BY_ADDRESS:
+                raise ValueError(f"{where}: no joint at address {item:#x}")
+            out.add(item)
+            continue
+        text = str(item).strip()
+        if text.lower() in JOINT_GROUPS:
+            out.update(BY_SHORT[s].address for s in JOINT_GROUPS[text.lower()])
+            continue
+        if any(ch in text for ch in "*?["):
+            hits = [j.address for j in JOINTS if fnmatch.fnmatchcase(j.short, text.upper())]
+            if not hits:
+                raise ValueError(f"{where}: pattern {text!r} matches no joint short name")
+            out.update(hits)
+            continue
+        try:
+            out.add(lookup(text).address)
+        except KeyError as exc:
+            groups = ", ".join(JOINT_GROUPS)
+            raise ValueError(f"{where}: {exc.args[0]}; or use a group ({groups}) or a pattern such as 'L*'") from None
+    return tuple(sorted(out))
+
+
+# --------------------------------------------------------------------------------------------- current reference
+
+
+def current_reference(sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)
+                      ) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """(ref, mode, source) from the newest frame on the first source channel that has one, else None.
+
+    ``mds-ref`` gives ref and mode; ``mds-state`` gives ``joint[].ref`` (mode 0); any other name is read as an
+    ``MDS_REF`` channel. Channels are created if missing, so nodes can start in any order.
+    """
+    from mds_ach.robot.channels import StructChannel
+
+    for name in sources:
+        ctype = mds.MDS_STATE if name == mds.MDS_CHAN_STATE_NAME else mds.MDS_REF
+        ch = StructChannel(name, ctype)
+        try:
+            frame = ch.latest()
+        finally:
+            ch.close()
+        if frame is None:
+            continue
+        if isinstance(frame, mds.MDS_STATE):
+            ref = state_refs(frame)
+            if not np.all(np.isfinite(ref)):
+                continue
+            return ref, np.zeros(mds.MDS_JOINT_COUNT, dtype=np.int16), name
+        ref, mode = ref_arrays(frame)
+        if np.all(np.isfinite(ref)):
+            return ref, mode, name
+    return None
+
+
+def wait_current_reference(stop: threading.Event, log: Callable[[str], None],
+                           sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME),
+                           poll: float = 0.1) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Poll ``current_reference`` until one exists (None if ``stop`` is set first); logs once while waiting.
+
+    Why wait instead of starting at zero: an all-zero reference would send every joint to its homed zero.
+    """
+    said = False
+    while not stop.is_set():
+        found = current_reference(sources)
+        if found is not None:
+            return found
+        if not said:
+            log(f"waiting for a current reference on {' or '.join(sources)} (is the daemon running?)")
+            said = True
+        stop.wait(poll)
+    return None
+
+
+class ReseedWatch:
+    """Which joints the daemon asks the pipeline to restart where they are, and where that is.
+
+    After HOME, RESET, ZERO_ENCODER, ENABLE or ``resetbus`` a joint is somewhere else than the pipeline's
+    reference for it (HOME moved it, a reset restarted its count, the bus was down while the reference moved).
+    Once its position is known the daemon increments ``joint_reseed[address]`` in ``mds-daemon-status``; the mux,
+    the filter and the collision gate ``poll()`` this and set their output for those joints to the measured
+    position (``mds-state`` pos), so the next command starts from the joint instead of from a stale reference.
+    A daemon seen for the first time (or restarted) only sets the baseline. A broken channel reads as nothing
+    new (``ChannelGuard`` says so in the node's log).
+    """
+
+    def __init__(self, log: Callable[[str, str], None], stop: threading.Event) -> None:
+        from mds_ach.robot import daemon_status
+        from mds_ach.robot.channels import StructChannel
+
+        self._guard = ChannelGuard(log, stop)
+        self._status = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, daemon_status.MDS_DAEMON_STATUS)
+        self._state = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        self._last_state: mds.MDS_STATE | None = None
+        self._seen: np.ndarray | None = None
+        self._daemon: tuple[int, float] | None = None
+
+    def poll(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(addresses, measured positions) to re-seed now, or None. Never blocks."""
+        st = self._guard.call(self._status.name, self._status.latest)
+        if st is None:
+            return None
+        counts = np.frombuffer(bytes(st.joint_reseed), dtype="<u4").copy()
+        daemon = (st.pid, st.start_time)
+        if self._seen is None or daemon != self._daemon:
+            self._seen, self._daemon = counts, daemon
+            return None
+        changed = np.flatnonzero(counts != self._seen)
+        self._seen = counts
+        if not changed.size:
+            return None
+        state = self._guard.call(self._state.name, self._state.latest) or self._last_state  # published first
+        self._last_state = state
+        if state is None:
+            return None
+        pos = state_positions(state)[changed]
+        ok = np.isfinite(pos)
+        return (changed[ok], pos[ok]) if ok.any() else None
+
+    def close(self) -> None:
+        self._status.close()
+        self._state.close()
+
+
+def cancel_wait(channel: Any) -> None:
+    """Wake a thread blocked in ``channel.wait()``; a channel that is already closed needs no waking."""
+    from mds_ach import ach
+
+    try:
+        channel.cancel()
+    except ach.AchException as exc:
+        if exc.status != ach.ACH_CLOSED:
+            raise
+
+
+# --------------------------------------------------------------------------------------------- timing
+
+
+class Periodic:
+    """Absolute-time schedule on CLOCK_MONOTONIC: ``wait()`` sleeps until the next tick; overruns re-sync
+    (and are counted) instead of bursting to catch up."""
+
+    def __init__(self, period: float) -> None:
+        if not period > 0:
+            raise ValueError("period must be > 0")
+        self.period = period
+        self.next = time.monotonic() + period
+        self.overruns = 0
+
+    def wait(self, stop: threading.Event) -> bool:
+        """Sleep until the next tick; False if ``stop`` was set meanwhile."""
+        delay = self.next - time.monotonic()
+        if delay > 0:
+            if stop.wait(delay):
+                return False
+        self.next += self.period
+        now = time.monotonic()
+        if now > self.next:
+            self.overruns += 1
+            self.next = now + self.period
+        return not stop.is_set()
+
+
+# --------------------------------------------------------------------------------------------- main()
+
+
+def ros_log(node: Any) -> Callable[[str, str], None]:
+    """``log(level, msg)`` for the Ach-side runners, backed by the node's logger.
+
+    One call site per severity: rclpy's logger refuses a call site whose severity changes between calls.
+    """
+    logger = node.get_logger()
+
+    def log(level: str, msg: str) -> None:
+        if level == "error":
+            logger.error(msg)
+        elif level == "warn":
+            logger.warning(msg)
+        else:
+            logger.info(msg)
+
+    return log
+
+
+def start_worker(node: Any, target: Callable[[], None], name: str) -> threading.Thread:
+    """Run the node's real-time loop on its own thread. If it raises, the error is logged with its traceback
+    and the node shuts down (``run_node`` then exits 1): a dead real-time loop must not look like a live node."""
+    import traceback
+
+    def body() -> None:
+        try:
+            target()
+        except Exception as exc:  # report and stop: never limp on without the loop
+            node.worker_error = exc
+            node.get_logger().fatal(f"{name} loop failed: {exc!r}\n{traceback.format_exc()}")
+            node.context.try_shutdown()
+
+    node.worker_error = None
+    thread = threading.Thread(target=body, name=name, daemon=True)
+    thread.start()
+    return thread
+
+
+
+def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
+             make_node: Callable[[argparse.Namespace], Any]) -> int:
+    """Parse CLI args (ROS args removed), start rclpy, build the node, spin until SIGINT/SIGTERM; exit 0.
+
+    ``make_node(args)`` returns an rclpy Node that has a ``shutdown()`` method stopping its real-time thread.
+    A ``ValueError`` from it (bad config) is printed as a one-line error with exit status 2; a real-time loop
+    that died (``start_worker``) gives exit status 1.
+
+    Signals: our own SIGINT/SIGTERM handlers set a flag that a ``spin_once`` loop checks every 0.1 s. rclpy's
+    handlers are not used: a signal that arrives while the node is still being built could be lost there and
+    leave the executor spinning forever.
+    """
+    import signal
+
+    argv = list(sys.argv if argv is None else argv)
+    from rclpy.utilities import remove_ros_args
+
+    from mds_ach.robot import access as channel_access
+
+    args = parser.parse_args(remove_ros_args(argv)[1:])
+    channel_access.enforce_in_this_process()  # a node: refuse channel files another user planted
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    status = 0
+    try:
+        if not stop.is_set():
+            node = make_node(args)
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)
+    except ExternalShutdownException:
+        pass
+    except ValueError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        status = 2
+    finally:
+        if node is not None:
+            node.shutdown()
+            if getattr(node, "worker_error", None) is not None:
+                status = 1
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return status
+
+
+class ChannelGuard:
+    """Keeps a node running through a broken channel and says so, at most every ``every`` seconds.
+
+    A client killed inside a put leaves its channel ACH_CORRUPT until ``mds-ach repair``; a node that died on
+    that would take the whole pipeline down with it. ``call`` returns ``default`` instead and pauses briefly so
+    a failing wait does not spin; once the channel is repaired the same handle works again.
+    """
+
+    def __init__(self, log: Callable[[str, str], None], stop: threading.Event, every: float = 5.0) -> None:
+        self._log = log
+        self._stop = stop
+        self._every = every
+        self._last: dict[str, float] = {}
+        self.errors = 0
+
+    def call(self, name: str, fn: Callable[..., Any], *args: Any, default: Any = None, **kwargs: Any) -> Any:
+        from mds_ach import ach
+
+        try:
+            return fn(*args, **kwargs)
+        except ach.AchException as exc:
+            self.errors += 1
+            now = time.monotonic()
+            if now - self._last.get(name, -float("inf")) >= self._every:
+                self._last[name] = now
+                self._log("error", f"channel {name}: {exc}; holding until `mds-ach repair {name}`")
+            self._stop.wait(0.05)
+            return default

@@ -1,0 +1,225 @@
+"""Readers for the original Xitome / MDS-Ach XML configuration files, taken as they are.
+
+* ``anatomy.xml`` (and ``<Robot>.anatomy.xml``, ``<Robot>.head.anatomy.xml``): one ``<muscle address name>``
+  per node with ``<parameter name value>`` children. "x%" means x/100; a repeated parameter overrides the
+  earlier one (what the original parser did); an empty value means "not set".
+* ``mdsach.xml``: the MDS-Ach overlay matched **by muscle name**: short name, offset, direction, enabled.
+* ``nrl00x.xml``: MCB node settings, a concatenation of ``<node>`` documents (not one well-formed file).
+
+The original overlay gave the short name LYP to two eye joints and RYP to the right eye pan; those are
+mapped to the unique names of :mod:`mds_ach.robot.joints` (LYY, EYP, RYY) with a logged note.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mds_ach.robot import joints as joint_table
+
+log = logging.getLogger(__name__)
+
+ANATOMY_NUMBERS = (
+    "rom",
+    "encoderresolution",
+    "gearratio",
+    "HomeAcceleration",
+    "HomeVelocity",
+    "HomeError",
+    "HomeBuffer",
+    "HomeTimeout",
+    "MCB.P",
+    "MCB.I",
+    "MCB.D",
+    "MCB.M",
+    "safetymargin",
+    "encoderconfig.tickspercount",
+    "rom.margin",
+)
+ANATOMY_TEXTS = ("coordsys", "HomeType", "HomeTarget")
+
+
+class XmlConfigError(ValueError):
+    """A Xitome XML file that cannot be used; the message names file, muscle and parameter."""
+
+
+@dataclass
+class Muscle:
+    """One ``<muscle>`` of an anatomy file: numbers (None when empty) and texts by parameter name."""
+
+    address: int
+    name: str
+    numbers: dict[str, float | None] = field(default_factory=dict)
+    texts: dict[str, str] = field(default_factory=dict)
+    homed: bool | None = None
+
+
+@dataclass
+class Overlay:
+    """One ``<muscle>`` of mdsach.xml."""
+
+    name: str
+    short: str
+    offset: float
+    direction: float
+    enabled: bool
+
+
+@dataclass
+class NodeConfig:
+    """One ``<node>`` of an nrl00x.xml MCB settings file."""
+
+    address: int
+    mode: int
+    maxpwm: int
+    p: float
+    i: float
+    d: float
+    deadzone: int
+    accumulator_limit: float
+    qei_config: int
+    qei_frequency: int
+
+
+def parse_number(text: str | None, where: str) -> float | None:
+    """'5%' -> 0.05, '28592' -> 28592.0, '' -> None; anything else is refused naming ``where``."""
+    if text is None or text.strip() == "":
+        return None
+    raw = text.strip()
+    scale = 1.0
+    if raw.endswith("%"):
+        raw, scale = raw[:-1], 0.01
+    try:
+        value = float(raw) * scale
+    except ValueError:
+        raise XmlConfigError(f"{where}: not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise XmlConfigError(f"{where}: not a finite number: {text!r}")
+    return value
+
+
+def _parse(path: Path) -> ET.Element:
+    try:
+        return ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise XmlConfigError(f"{path}: malformed XML: {exc}") from None
+    except OSError as exc:
+        raise XmlConfigError(f"{path}: cannot read: {exc.strerror}") from None
+
+
+def _params(muscle: ET.Element) -> dict[str, str]:
+    """Parameters of a muscle; later duplicates override earlier ones, as in the original parser."""
+    return {p.get("name", ""): p.get("value", "") for p in muscle.findall("parameter")}
+
+
+def load_anatomy(path: str | Path) -> dict[int, Muscle]:
+    """All muscles of an anatomy file by address."""
+    path = Path(path)
+    root = _parse(path)
+    if root.tag != "anatomy":
+        raise XmlConfigError(f"{path}: root element is <{root.tag}>, expected <anatomy>")
+    out: dict[int, Muscle] = {}
+    for el in root.findall("muscle"):
+        name = el.get("name", "")
+        addr_text = el.get("address")
+        where = f"{path}: muscle {name or '?'}"
+        if not name or addr_text is None:
+            raise XmlConfigError(f"{where}: needs both 'name' and 'address' attributes")
+        try:
+            address = int(addr_text, 0)
+        except ValueError:
+            raise XmlConfigError(f"{where}: address {addr_text!r} is not an integer") from None
+        if address in out:
+            raise XmlConfigError(f"{where}: duplicate address 0x{address:02X} (also {out[address].name})")
+        params = _params(el)
+        muscle = Muscle(address, name)
+        for key in ANATOMY_NUMBERS:
+            muscle.numbers[key] = parse_number(params.get(key), f"{where}: parameter {key}")
+        for key in ANATOMY_TEXTS:
+            muscle.texts[key] = params.get(key, "")
+        homed = el.get("homed")
+        muscle.homed = None if homed is None else homed.strip().lower() == "true"
+        for key in ("rom", "encoderresolution", "gearratio", "encoderconfig.tickspercount"):
+            value = muscle.numbers[key]
+            if value is None or value <= 0:
+                raise XmlConfigError(f"{where}: parameter {key} must be a positive number, got {params.get(key)!r}")
+        out[address] = muscle
+    if not out:
+        raise XmlConfigError(f"{path}: no <muscle> elements")
+    return out
+
+
+def load_overlay(path: str | Path) -> dict[str, Overlay]:
+    """mdsach.xml entries by anatomy (long) name, with short names made unique (see module doc)."""
+    path = Path(path)
+    root = _parse(path)
+    out: dict[str, Overlay] = {}
+    for el in root.findall("muscle"):
+        name = el.get("name", "")
+        where = f"{path}: muscle {name or '?'}"
+        if not name:
+            raise XmlConfigError(f"{where}: missing 'name' attribute")
+        params = _params(el)
+        short = params.get("mdsachname", "").strip()
+        canonical = joint_table.BY_NAME.get(name)
+        if canonical is not None and canonical.short != short:
+            log.info("%s: short name %r for %s mapped to the unique name %r", path.name, short, name, canonical.short)
+            short = canonical.short
+        if not short:
+            raise XmlConfigError(f"{where}: parameter mdsachname missing")
+        offset = parse_number(params.get("offset", "0"), f"{where}: parameter offset") or 0.0
+        direction = parse_number(params.get("direction", "1"), f"{where}: parameter direction")
+        enabled = parse_number(params.get("enabled", "0"), f"{where}: parameter enabled") or 0.0
+        if direction not in (1.0, -1.0):
+            raise XmlConfigError(f"{where}: parameter direction must be 1 or -1, got {params.get('direction')!r}")
+        out[name] = Overlay(name, short, offset, direction, enabled != 0)
+    shorts = [o.short for o in out.values()]
+    dup = sorted({s for s in shorts if shorts.count(s) > 1})
+    if dup:
+        raise XmlConfigError(f"{path}: duplicate short names {dup}")
+    return out
+
+
+_XML_DECL = re.compile(r"<\?xml[^>]*\?>")
+
+
+def load_node_configs(path: str | Path) -> dict[int, NodeConfig]:
+    """The ``<node>`` documents of an nrl00x.xml file by address."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise XmlConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        root = ET.fromstring("<nodes>" + _XML_DECL.sub("", text) + "</nodes>")
+    except ET.ParseError as exc:
+        raise XmlConfigError(f"{path}: malformed XML: {exc}") from None
+    out: dict[int, NodeConfig] = {}
+    for el in root.findall("node"):
+        where = f"{path}: node {el.get('address')}"
+        try:
+            gains, ctrl, qei = el.find("gains"), el.find("controlparameters"), el.find("qei")
+            node = NodeConfig(
+                address=int(el.get("address", ""), 0),
+                mode=int((el.findtext("mode") or "").strip(), 0),
+                maxpwm=int((el.findtext("maxpwm") or "").strip(), 0),
+                p=float(gains.get("p", "")),
+                i=float(gains.get("i", "")),
+                d=float(gains.get("d", "")),
+                deadzone=int(ctrl.get("dz", ""), 0),
+                accumulator_limit=float(ctrl.get("al", "")),
+                qei_config=int(qei.get("config", ""), 0),
+                qei_frequency=int(qei.get("frequency", ""), 0),
+            )
+        except (ValueError, AttributeError) as exc:
+            raise XmlConfigError(f"{where}: bad or missing field ({exc})") from None
+        if node.address in out:
+            raise XmlConfigError(f"{where}: duplicate address")
+        out[node.address] = node
+    if not out:
+        raise XmlConfigError(f"{path}: no <node> documents")
+    return out

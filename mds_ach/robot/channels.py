@@ -1,0 +1,217 @@
+"""Typed Ach channels: one ctypes struct per frame, newest-frame semantics, and MDS channel management.
+
+Every MDS channel carries exactly one struct type (``mds-state`` -> ``MDS_STATE`` ...). ``StructChannel``
+makes the common patterns one call (``latest()`` in a control loop, ``wait()`` in an event loop) and refuses
+frames of the wrong size instead of handing out half-filled or truncated structs: a C client built against
+an older ``mds.h`` must not silently move joints.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import grp
+import os
+import time
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import mds_ach as mds
+from mds_ach import ach
+from mds_ach.robot import access as channel_access
+
+T = TypeVar("T", bound=ctypes.Structure)
+
+
+class StructChannel(Generic[T]):
+    """An Ach channel whose frames are instances of ``ctype``.
+
+    ``latest()`` and ``wait()`` return a fresh ``ctype`` instance (callers may keep it) or None. Frames whose
+    size differs from ``sizeof(ctype)`` are never returned; they are counted in ``bad_frames``.
+    ``lock_timeout`` (seconds; None: no bound) bounds how long ``latest``, ``wait`` and ``put`` wait for the
+    channel mutex, each call may override it; past it they raise ``AchException`` with ``ACH_LOCKED`` and leave
+    the channel untouched (a real-time loop skips that frame instead of stalling behind a stuck process).
+    """
+
+    def __init__(self, name: str, ctype: type[T], create: bool = True,
+                 frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_size: int = mds.CHANNEL_FRAME_SIZE,
+                 lock_timeout: float | None = None):
+        self.name = name
+        self.ctype = ctype
+        self.size = ctypes.sizeof(ctype)
+        self.channel = ach.Channel(name, frame_count, frame_size, create=create,
+                                   mode=channel_access.channel_mode(name), lock_timeout=lock_timeout)
+        if channel_access.enforced():  # a node of the stack: never use a file another user planted
+            try:
+                channel_access.require_trusted(self.channel)
+            except BaseException:
+                self.channel.close()
+                raise
+        if self.size > self.channel.data_size:
+            data_size = self.channel.data_size
+            self.channel.close()
+            raise ValueError(f"channel '{name}' holds frames of at most {data_size} bytes, but {ctype.__name__} "
+                             f"needs {self.size}; remove it (mds-ach rm {name}) and re-create it (mds-ach make)")
+        # Every frame fits in a buffer of data_size, so a wrong-sized frame is read (and counted) exactly once
+        # instead of sticking in the channel as an endless ACH_OVERFLOW.
+        self._buf = bytearray(self.channel.data_size)
+        self.bad_frames = 0
+        self.missed_frames = 0
+
+    def _frame(self, status: int, size: int) -> T | None:
+        if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+            return None
+        if size != self.size:
+            self.bad_frames += 1
+            return None
+        if status == ach.ACH_MISSED_FRAME:
+            self.missed_frames += 1
+        return self.ctype.from_buffer_copy(self._buf)
+
+    def latest(self, lock_timeout: float | None = None) -> T | None:
+        """The newest frame if one arrived since the last call, else None. Never waits for a frame (only for the
+        channel mutex, at most ``lock_timeout`` s if given or set on the channel)."""
+        status, size = self.channel.get(self._buf, last=True, lock_timeout=lock_timeout)
+        return self._frame(status, size)
+
+    def wait(self, timeout: float | None = None, lock_timeout: float | None = None) -> T | None:
+        """Block until a new frame arrives (newest wins); None on timeout, cancel or close.
+
+        ``timeout`` in seconds; None waits forever (still interruptible with Ctrl-C and ``cancel()``).
+        ``lock_timeout`` as for ``latest``.
+        """
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            status, size = self.channel.get(self._buf, wait=True, last=True, timeout=remaining,
+                                            lock_timeout=lock_timeout)
+            if status in (ach.ACH_TIMEOUT, ach.ACH_CANCELED):
+                return None
+            frame = self._frame(status, size)
+            if frame is not None:
+                return frame
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def put(self, obj: T, lock_timeout: float | None = None) -> None:
+        """Publish ``obj``; it must be a ``ctype`` instance (the exact layout is the wire contract).
+        ``lock_timeout`` as for ``latest``."""
+        if not isinstance(obj, self.ctype):
+            raise TypeError(f"channel '{self.name}' carries {self.ctype.__name__}, got {type(obj).__name__}")
+        self.channel.put(obj, lock_timeout=lock_timeout)
+
+    def flush(self) -> None:
+        """Treat everything in the channel as already seen."""
+        self.channel.flush()
+
+    def cancel(self) -> None:
+        """Wake a blocked ``wait()`` for good (e.g. at shutdown, from another thread or a signal handler)."""
+        self.channel.cancel()
+
+    def close(self) -> None:
+        self.channel.close()
+
+    def __enter__(self) -> StructChannel[T]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --- MDS channel set ------------------------------------------------------------------------------
+
+
+@dataclass
+class ChannelReport:
+    """What ``make_channels`` did with one channel; ``ok`` False means it needs attention."""
+
+    name: str
+    action: str  # "created", "exists" or "error"
+    detail: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.action != "error"
+
+
+def check_existing(name: str, frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_size: int = mds.CHANNEL_FRAME_SIZE,
+                   mode: int = channel_access.CHANNEL_MODE, gid: int | None = None) -> ChannelReport:
+    """Is the existing channel ``name`` one the stack may use: trusted (owner, mode, group), an Ach file, of the
+    expected geometry? The report's detail says what is wrong and what to do."""
+    why = channel_access.path_problem(name, mode, gid)
+    if why is not None:
+        return ChannelReport(name, "error", f"{why}; {channel_access.recreate_hint(name)}")
+    try:
+        with ach.Channel(name, create=False) as ch:
+            count, size = ch.frame_count, ch.frame_size
+    except ach.AchException as exc:
+        return ChannelReport(name, "error", exc.reason)
+    if (count, size) != (frame_count, frame_size):
+        return ChannelReport(name, "error", f"exists as {count} x {size} B, expected {frame_count} x {frame_size} B; "
+                                            f"remove it (mds-ach rm {name}) to re-create it")
+    return ChannelReport(name, "exists", f"{count} x {size} B")
+
+
+def make_channels(
+    names: tuple[str, ...] | list[str] = mds.ALL_CHANNELS,
+    mode: int = channel_access.CHANNEL_MODE,
+    group: str | int | None = None,
+    frame_count: int = mds.CHANNEL_FRAME_COUNT,
+    frame_size: int = mds.CHANNEL_FRAME_SIZE,
+) -> list[ChannelReport]:
+    """Create every channel (10 x 3000 B by default) with ``mode``; existing ones are validated, never clobbered.
+
+    ``mode`` may only restrict ``CHANNEL_MODE`` (0660); the daemon's input gets it without group write
+    (``channel_access.channel_mode``). ``group`` (name or gid) is given to the channels created here, so members
+    of that group can run the clients. An existing channel is accepted only when the stack may trust it (owner,
+    mode, group: ``channel_access``). Returns one report per channel; see ``ChannelReport.ok``.
+    """
+    channel_access.check_configured_mode(mode)
+    gid = _resolve_group(group)
+    reports = []
+    for name in names:
+        chan_mode = channel_access.channel_mode(name, mode)
+        try:
+            ach.create(name, frame_count, frame_size, mode=chan_mode)
+        except ach.AchException as exc:
+            if exc.status == ach.ACH_EEXIST:
+                reports.append(check_existing(name, frame_count, frame_size, mode, gid))
+            else:
+                reports.append(ChannelReport(name, "error", exc.reason))
+            continue
+        detail = f"{frame_count} x {frame_size} B, mode {chan_mode:#o}"
+        if gid is not None:
+            try:
+                os.chown(ach.shm_path(name), -1, gid)
+                detail += f", group {group}"
+            except OSError as exc:
+                reports.append(ChannelReport(name, "error", f"created, but chgrp {group} failed: {exc.strerror}"))
+                continue
+        reports.append(ChannelReport(name, "created", detail))
+    return reports
+
+
+def _resolve_group(group: str | int | None) -> int | None:
+    if group is None:
+        return None
+    if isinstance(group, int):
+        return group
+    if group.isdigit():
+        return int(group)
+    try:
+        return grp.getgrnam(group).gr_gid
+    except KeyError:
+        raise ValueError(f"no such group: {group!r}") from None
+
+
+def remove_channels(names: tuple[str, ...] | list[str] = mds.ALL_CHANNELS) -> list[str]:
+    """Unlink the channels that exist; returns the names removed. Missing ones are skipped silently."""
+    removed = []
+    for name in names:
+        try:
+            ach.unlink(name)
+        except ach.AchException as exc:
+            if exc.status != ach.ACH_ENOENT:
+                raise
+            continue
+        removed.append(name)
+    return removed

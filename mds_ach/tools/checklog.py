@@ -1,0 +1,568 @@
+"""``mds-ach check-log``: audit recorded CAN traffic against the invariants every target sent to a motor obeys.
+
+The daemon is the last stage before the motors; a log of what really went on the bus (``daemon --can-log``,
+``candump -l`` on the robot, the original MDS-Ach dumps) shows whether it kept its promises, whatever happened
+upstream. Findings, each with the joint, the log time and the value against its bound:
+
+* ``non-finite``: a NaN/Inf target, or a NaN/Inf float in any SET to a joint;
+* ``limit``: a MOVETO (or SET_TARGET) target outside the joint's range (in counts, half a count of tolerance);
+* ``address``: a frame that can move a joint (target, HOME) sent to an address that is not an enabled joint of
+  the table, or broadcast to every node;
+* ``speed``, ``acceleration``: :func:`mds_ach.robot.motion.check` on every target, per joint, exactly the definition
+  the daemon's limiter enforces;
+* ``collision`` (``--collisions``): the commanded pose after a batch of targets collides, with the collision
+  gate's model and world file. A joint's entry is its latest target; before its first one, and after a HOME,
+  RESET, ZERO_ENCODER or ENABLE (the node holds wherever that leaves it), its measured position. The homing
+  search itself is not a target and is not checked.
+
+Tracks. A joint's sequence of targets is checked against the track of its previous target. A re-seed starts a
+track at the measured position, at rest (:meth:`mds_ach.robot.motion.Track.reseed`): at the joint's first valid
+position reply, at the first valid reply after a HOME, RESET, ZERO_ENCODER, ENABLE or encoder SET to it (its
+count restarts, or it holds where it is), and when its valid replies resume after a gap longer than the stale
+window (3.5 periods, the daemon's ``stale_after``). The daemon may re-seed at a slightly different moment than
+the log shows, so from a re- seed until the joint's next target every valid reply is a candidate start as well,
+and the next step passes if it is within bounds from any candidate: the last sent target, the first reply, or the
+latest one. Candidates that pass all stay in play (each is a history the daemon could have had); when none
+passes, the step is a violation (against the candidate it breaks least) and the sequence goes on from that
+candidate, so every offending step is reported once: a jump and the stop right after it are two. A reply is valid
+when it is finite and within the joint's range plus 0.1 rad (anything else is implausible and ignored, as the
+daemon ignores it).
+
+The daemon period (for ``max_interval`` = 1.5 periods and the stale window) is the median interval of the
+broadcast position query, which the daemon sends once per cycle, or ``--rate``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+from collections import Counter
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from mds_ach.bus import canio, mcb
+from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
+from mds_ach.robot import motion
+from mds_ach.robot.config import ConfigError, JointConfig, JointTable
+from mds_ach.robot.msgs import MDS_JOINT_COUNT
+
+KINDS = ("non-finite", "limit", "address", "speed", "acceleration", "collision")
+MOTION_KINDS = ("speed", "acceleration")
+STALE_PERIODS = 3.5  # the daemon's stale_after (mds_ach.nodes.daemon_loop): 3.5 periods, at least 20 ms
+MIN_STALE = 0.02
+REPLY_MARGIN = 0.1  # rad beyond the joint's range: a position reply further out is implausible
+COUNT_TOLERANCE = 0.5  # counts: float32 rounding of a target at a limit is far below one encoder count
+# Commands after which a node's count restarts or it holds where it is: the next valid reply re-seeds (HOME, a
+# SET of TRAJECTORY_MODE, and encoder SETs are handled with the SETs).
+_RESEED_COMMANDS = (Command.RESET, Command.ZERO_ENCODER, Command.ENABLE)
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One violation: what, where, when (s since the log's first frame) and how far past which bound."""
+
+    kind: str
+    time: float
+    joint: str  # short name, or the address in hex when it is not a joint of the table
+    value: float
+    bound: float
+    text: str
+
+    def line(self) -> str:
+        return f"t={self.time:10.4f} s  {self.kind:<12} {self.joint:<6} {self.text}"
+
+
+@dataclass
+class FileReport:
+    """Everything the audit of one log found, and what it looked at."""
+
+    path: str
+    format: str = ""
+    error: str = ""  # why the file could not be audited (exit status 2)
+    warning: str = ""  # e.g. speed/acceleration not checked
+    frames: int = 0
+    start_stamp: float = math.nan  # time stamp of the first frame as the log records it
+    duration: float = 0.0
+    period: float | None = None
+    period_source: str = ""
+    stale_after: float | None = None
+    bounds: motion.MotionBounds | None = None
+    queries: int = 0
+    targets: Counter = field(default_factory=Counter)  # short name -> MOVETO/SET_TARGET frames
+    commands: Counter = field(default_factory=Counter)  # "HOME", "RESET", "SET TRAJECTORY_PERIOD", ...
+    replies_valid: int = 0
+    replies_ignored: int = 0  # non-finite or implausible positions
+    replies_unknown: int = 0  # position replies from nodes not in the joint table
+    other_replies: int = 0
+    error_frames: int = 0
+    other_frames: int = 0  # extended IDs, wrong lengths
+    reseeds: int = 0
+    unseeded_targets: int = 0  # targets of a joint with no known position and no earlier target
+    silent_targets: int = 0  # targets to a joint silent for longer than the stale window (they may not arrive)
+    poses_checked: int = 0
+    findings: list[Finding] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.error and not self.findings
+
+    def counts(self) -> Counter:
+        return Counter(f.kind for f in self.findings)
+
+
+@dataclass
+class Report:
+    files: list[FileReport]
+
+    @property
+    def findings(self) -> list[Finding]:
+        return [f for r in self.files for f in r.findings]
+
+    @property
+    def exit_code(self) -> int:
+        """2 if a file could not be audited (completely), else 1 for any violation, else 0."""
+        if any(r.error for r in self.files):
+            return 2
+        return 1 if self.findings else 0
+
+
+# --------------------------------------------------------------------------------------------- the audit
+
+
+def infer_period(path: str | Path) -> tuple[float | None, int]:
+    """(median interval of the broadcast position queries, number of queries); None below two queries."""
+    times = [m.timestamp for m in _read(path) if _is_position_query(m)]
+    intervals = [b - a for a, b in zip(times, times[1:], strict=False) if b > a]
+    return (statistics.median(intervals) if intervals else None), len(times)
+
+
+def _read(path: str | Path, torn: list[str] | None = None) -> Iterator[can.Message]:
+    """``canio.read_log``, except that an incomplete last line (a recorder killed mid-write) ends the log, noted
+    in ``torn``, instead of failing it."""
+    try:
+        yield from canio.read_log(path)
+    except canio.TornLogError as exc:
+        if torn is not None:
+            torn.append(str(exc))
+
+
+def _is_position_query(msg: Any) -> bool:
+    data = msg.data
+    return (msg.arbitration_id == mcb.BROADCAST_SID and not msg.is_extended_id and not msg.is_error_frame
+            and len(data) == mcb.DLC and data[7] == Command.QUERY_STATE and data[6] == StateArg.ACTUAL_POSITION)
+
+
+@dataclass
+class _JointAudit:
+    """Per joint: the candidate tracks of its last sent target, the pending re-seed candidates, the replies."""
+
+    cfg: JointConfig
+    lo_counts: float
+    hi_counts: float
+    sent: list[motion.Track] = field(default_factory=list)  # histories of the targets sent so far
+    seeds: list[motion.Track] = field(default_factory=list)  # since a re-seed, until the next target: first, latest
+    last_reply: float = -math.inf
+    reseed_due: bool = False  # a command restarted the count: the next valid reply re-seeds
+    holding: bool = True  # no target since the start or a setup command: the node holds where it is
+
+
+class _Auditor:
+    """Consumes one log's frames in order and fills a FileReport."""
+
+    def __init__(self, table: JointTable, report: FileReport, model: Any | None, t0: float) -> None:
+        self.table = table
+        self.r = report
+        self.bounds = report.bounds
+        self.stale = report.stale_after if report.stale_after is not None else math.inf
+        self.t0 = t0
+        self.joints: dict[int, _JointAudit] = {}
+        for j in table:
+            a, b = j.to_counts(j.lower), j.to_counts(j.upper)
+            self.joints[j.address] = _JointAudit(j, min(a, b), max(a, b))
+        self.model = model
+        self.pose = np.zeros(MDS_JOINT_COUNT)  # by address, like mds-ref: the commanded pose for --collisions
+        for j in table:
+            self.pose[j.address] = j.home
+        self.pose_dirty = False
+        self.colliding: tuple[float, set[str], int, set[str]] | None = None  # start, pairs, batches, arms
+
+    # ----- frames
+
+    def frame(self, msg: Any) -> None:
+        t = msg.timestamp
+        if msg.is_error_frame:
+            self.r.error_frames += 1
+            return
+        data = bytes(msg.data)
+        if msg.is_extended_id or msg.is_remote_frame or len(data) != mcb.DLC:
+            self.r.other_frames += 1
+            return
+        if msg.arbitration_id == mcb.HOST_SID:
+            self._reply(t, data)
+            return
+        frame = mcb.decode(msg.arbitration_id, data)
+        if _is_position_query(msg):
+            self.r.queries += 1
+            self.end_batch(t)
+            return
+        self._command(t, frame)
+
+    def _reply(self, t: float, data: bytes) -> None:
+        pos = mcb.decode_position(data)
+        if pos is None:
+            self.r.other_replies += 1
+            return
+        address, counts = pos
+        ja = self.joints.get(address)
+        if ja is None:
+            self.r.replies_unknown += 1
+            return
+        q = ja.cfg.to_joint(counts) if math.isfinite(counts) else math.nan
+        if not (math.isfinite(q) and ja.cfg.lower - REPLY_MARGIN <= q <= ja.cfg.upper + REPLY_MARGIN):
+            self.r.replies_ignored += 1
+            return
+        self.r.replies_valid += 1
+        if self.model is not None and ja.holding:
+            self._set_pose(address, q)  # no target to it (yet, or since HOME...): it is commanded to stay there
+        first = ja.last_reply == -math.inf
+        if first or ja.reseed_due or t - ja.last_reply > self.stale:  # after HOME/RESET/ZERO, after a gap
+            ja.reseed_due = False
+            ja.seeds = [motion.Track(q, 0.0, t)]
+            self.r.reseeds += 1
+        elif len(ja.seeds) == 1:
+            ja.seeds.append(motion.Track(q, 0.0, t))
+        elif ja.seeds:
+            ja.seeds[1].reseed(q, t)
+        ja.last_reply = t
+
+    def _command(self, t: float, f: mcb.McbFrame) -> None:
+        dest = f.arbitration_id
+        if f.command == Command.SET:
+            name = f"SET {_name(f.argument)}"
+            if f.argument == StateArg.MOVETO_TARGET:
+                self._target(t, dest, float(f.value))
+                return
+            self.r.commands[name] += 1
+            if isinstance(f.value, float) and not math.isfinite(f.value) and dest in self.joints:
+                self._find("non-finite", t, self._label(dest), f.value, math.nan, f"{name} {f.value}")
+            if f.argument == StateArg.TRAJECTORY_MODE and f.value == TrajectoryMode.HOME:
+                self.r.commands["HOME"] += 1
+                self._moves(t, dest, "HOME")
+                self._reseed_due(dest)
+            elif f.argument == StateArg.ENCODER:
+                self._reseed_due(dest)
+            return
+        if f.command == Command.SET_TARGET:
+            self._target(t, dest, float(f.value))
+            return
+        self.r.commands[_name(f.command)] += 1
+        if f.command in _RESEED_COMMANDS:
+            self._reseed_due(dest)
+
+    def _reseed_due(self, dest: int) -> None:
+        for a in (self.joints if dest == mcb.BROADCAST_SID else [dest]):
+            if a in self.joints:
+                self.joints[a].reseed_due = self.joints[a].holding = True
+
+    def _moves(self, t: float, dest: int, what: str) -> bool:
+        """Is ``dest`` an enabled joint? Else an ``address`` finding for this motion frame."""
+        ja = self.joints.get(dest)
+        if ja is not None and ja.cfg.enabled:
+            return True
+        if dest == mcb.BROADCAST_SID:
+            why = "broadcast: it would move every node"
+        elif ja is None:
+            why = "not a joint of the table"
+        else:
+            why = "disabled in the joint table"
+        self._find("address", t, self._label(dest), math.nan, math.nan, f"{what} to 0x{dest:02X}: {why}")
+        return False
+
+    def _target(self, t: float, dest: int, counts: float) -> None:
+        ja = self.joints.get(dest)
+        label = self._label(dest)
+        self.r.targets[label] += 1
+        if not self._moves(t, dest, f"target {counts:.6g} counts"):
+            return
+        if not math.isfinite(counts):
+            self._find("non-finite", t, label, counts, math.nan, f"target {counts} counts")
+            return
+        cfg = ja.cfg
+        q = cfg.to_joint(counts)
+        if math.isfinite(ja.last_reply) and t - ja.last_reply > self.stale:
+            self.r.silent_targets += 1
+        if not ja.lo_counts - COUNT_TOLERANCE <= counts <= ja.hi_counts + COUNT_TOLERANCE:
+            bound = cfg.upper if q > cfg.upper else cfg.lower
+            self._find("limit", t, label, q, bound, f"target {q:.4f} rad ({counts:.1f} counts) outside "
+                                                    f"[{cfg.lower:.4f}, {cfg.upper:.4f}]")
+        if self.bounds is not None:
+            self._motion(t, ja, q)
+        ja.holding = False
+        if self.model is not None:
+            self._set_pose(dest, q)
+            self.pose_dirty = True
+
+    def _motion(self, t: float, ja: _JointAudit, q: float) -> None:
+        candidates = ja.sent + ja.seeds
+        ja.seeds = []
+        if not candidates:
+            self.r.unseeded_targets += 1  # nothing known before it: the sequence starts here
+            ja.sent = [motion.Track(q, 0.0, t)]
+            return
+        results = [(track, motion.check(track, q, t, self.bounds)) for track in candidates]
+        passing = [track for track, found in results if not found]
+        if not passing:
+            track, found = min(results, key=lambda r: max(v.value / v.bound for v in r[1]))
+            for v in found:
+                unit = "rad/s" if v.kind == "speed" else "rad/s^2"
+                h = self.bounds.interval(t - track.t)
+                self._find(v.kind, t, ja.cfg.short, v.value, v.bound,
+                           f"{v.value:.3f} {unit} > {v.bound:g}: {track.q:.4f} -> {q:.4f} rad in "
+                           f"{h * 1e3:.1f} ms (previous velocity {track.previous_velocity(t, self.bounds):.3f} rad/s)")
+            passing = [track]  # the sequence goes on from there: each offending step is reported once
+        tracks: list[motion.Track] = []
+        for track in passing:
+            track.advance(q, t, self.bounds)
+            if not any(abs(track.v - other.v) < 1e-12 for other in tracks):
+                tracks.append(track)
+        ja.sent = tracks
+
+    # ----- commanded pose (--collisions)
+
+    def _set_pose(self, address: int, q: float) -> None:
+        self.pose[address] = q  # addresses of the table are < MDS_JOINT_COUNT (config.validate)
+
+    def end_batch(self, t: float) -> None:
+        """After the targets of one cycle (the next position query, or the end of the log): check the pose."""
+        if self.model is None or not self.pose_dirty:
+            return
+        self.pose_dirty = False
+        self.r.poses_checked += 1
+        result = self.model.check(self.model.q_from_ref(self.pose))
+        if result.collides:
+            pairs = {f"{c.a}/{c.b}" for c in result.contacts}
+            if self.colliding is None:
+                self.colliding = (t, pairs, 1, result.arms)
+            else:
+                start, seen, n, arms = self.colliding
+                self.colliding = (start, seen | pairs, n + 1, arms | result.arms)
+        elif self.colliding is not None:
+            self._close_collision(t)
+
+    def _close_collision(self, t: float) -> None:
+        start, pairs, n, arms = self.colliding
+        self.colliding = None
+        self._find("collision", start, "+".join(sorted(arms)) or "pose", float(n), 0.0,
+                   f"commanded pose collides for {n} batch(es) ({t - start:.3f} s): {', '.join(sorted(pairs))}")
+
+    def finish(self, t: float) -> None:
+        self.end_batch(t)
+        if self.colliding is not None:
+            self._close_collision(t)
+
+    # ----- helpers
+
+    def _label(self, address: int) -> str:
+        ja = self.joints.get(address)
+        return ja.cfg.short if ja is not None else f"0x{address:02X}"
+
+    def _find(self, kind: str, t: float, joint: str, value: float, bound: float, text: str) -> None:
+        self.r.findings.append(Finding(kind, t - self.t0, joint, value, bound, text))
+
+
+def _name(code: int) -> str:
+    return code.name if hasattr(code, "name") else f"0x{code:02X}"
+
+
+def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None,
+               stale_after: float | None = None, model: Any | None = None) -> FileReport:
+    """Audit one log (any format :func:`mds_ach.bus.canio.read_log` reads); never raises for a bad file."""
+    report = FileReport(str(path))
+    try:
+        report.format = canio.log_format(path)
+        if rate is not None:
+            report.period, report.period_source = 1.0 / rate, f"--rate {rate:g} Hz"
+        else:
+            report.period, n = infer_period(path)
+            if report.period is not None:
+                report.period_source = f"inferred from {n} position queries (median interval)"
+        if report.period is not None:
+            report.bounds = table.motion_bounds(report.period)
+            report.stale_after = stale_after if stale_after is not None else \
+                max(STALE_PERIODS * report.period, MIN_STALE)
+        auditor: _Auditor | None = None
+        t = 0.0
+        torn: list[str] = []
+        for msg in _read(path, torn):
+            t = msg.timestamp
+            if auditor is None:
+                report.start_stamp = t
+                auditor = _Auditor(table, report, model, t)
+            auditor.frame(msg)
+            report.frames += 1
+        if auditor is None:
+            report.error = "no CAN frames in the file"
+            return report
+        auditor.finish(t)
+        report.duration = t - report.start_stamp
+        if torn:
+            report.warning = f"{torn[0]}: the frames before it are audited"
+    except (canio.LogReadError, OSError) as exc:
+        report.error = str(exc)
+        return report
+    if report.bounds is None and sum(report.targets.values()):
+        report.error = ("speed and acceleration not checked: fewer than two broadcast position queries, so the "
+                        "daemon period is unknown; give it with --rate HZ")
+    return report
+
+
+def audit(paths: Sequence[str | Path], table: JointTable, *, rate: float | None = None,
+          stale_after: float | None = None, model: Any | None = None) -> Report:
+    """Audit each log on its own (one daemon run per file: a restarted daemon re-seeds like a new log)."""
+    return Report([audit_file(p, table, rate=rate, stale_after=stale_after, model=model) for p in paths])
+
+
+# --------------------------------------------------------------------------------------------- the report
+
+
+def format_report(report: Report, table: JointTable, max_listed: int = 0) -> str:
+    lines: list[str] = []
+    for r in report.files:
+        lines += _file_lines(r, max_listed)
+    total = Counter(f.kind for f in report.findings)
+    bad = [r for r in report.files if r.error]
+    if total:
+        kinds = ", ".join(f"{k} {total[k]}" for k in KINDS if total[k])
+        lines.append(f"check-log: {sum(total.values())} violation(s) in {len(report.files)} file(s): {kinds}")
+    elif not bad:
+        lines.append(f"check-log: clean: {len(report.files)} file(s), no violation (joint table {table.robot})")
+    if bad:
+        lines.append(f"check-log: {len(bad)} file(s) not (completely) audited: "
+                     + ", ".join(Path(r.path).name for r in bad))
+    return "\n".join(lines)
+
+
+def _file_lines(r: FileReport, max_listed: int) -> list[str]:
+    start = ""
+    if r.frames and r.start_stamp > 1e9:  # wall-clock stamps (the recorder, candump); ASC logs start at 0
+        start = f", from {datetime.fromtimestamp(r.start_stamp, UTC):%Y-%m-%d %H:%M:%S.%f} UTC"
+    out = [f"{r.path} ({r.format or 'unknown format'}): {r.frames} frames over {r.duration:.3f} s{start}"]
+    if r.period is not None:
+        b = r.bounds
+        out.append(f"  period {r.period * 1e3:.2f} ms {r.period_source}; stale window {r.stale_after * 1e3:.1f} ms; "
+                   f"bounds {b.max_velocity:g} rad/s, {b.max_acceleration:g} rad/s^2, steps count at most "
+                   f"{b.max_interval * 1e3:.1f} ms")
+    if r.frames:
+        per_joint = " ".join(f"{j} {n}" for j, n in sorted(r.targets.items()))
+        out.append(f"  targets: {sum(r.targets.values())}" + (f" ({per_joint})" if per_joint else ""))
+        if r.commands:
+            out.append("  commands: " + ", ".join(f"{k} {n}" for k, n in sorted(r.commands.items())))
+        out.append(f"  position queries {r.queries}; position replies {r.replies_valid} valid, {r.replies_ignored} "
+                   f"ignored (non-finite or beyond the range + {REPLY_MARGIN} rad), {r.replies_unknown} from nodes "
+                   f"not in the table; other replies {r.other_replies}; "
+                   f"error frames {r.error_frames}; re-seeds {r.reseeds}")
+        if r.silent_targets:
+            out.append(f"  {r.silent_targets} target(s) went to a joint silent for longer than the stale window: "
+                       "they may never have arrived (not a violation; the step from the last target is what is "
+                       "checked)")
+        if r.unseeded_targets:
+            out.append(f"  {r.unseeded_targets} target(s) came before any position of their joint: their first step "
+                       "is not checked")
+        if r.poses_checked:
+            out.append(f"  commanded poses checked for collisions: {r.poses_checked}")
+    if r.warning:
+        out.append(f"  warning: {r.warning}")
+    if r.error:
+        out.append(f"  NOT AUDITED: {r.error}")
+    counts = r.counts()
+    if counts:
+        per = []
+        for kind in KINDS:
+            if counts[kind]:
+                joints = Counter(f.joint for f in r.findings if f.kind == kind)
+                per.append(f"{kind} {counts[kind]} (" + " ".join(f"{j} {n}" for j, n in sorted(joints.items())) + ")")
+        out.append("  violations: " + "; ".join(per))
+        listed = r.findings if max_listed <= 0 else r.findings[:max_listed]
+        out += ["    " + f.line() for f in listed]
+        if len(listed) < len(r.findings):
+            out.append(f"    ... and {len(r.findings) - len(listed)} more (--max 0 lists all)")
+    elif r.frames and not r.error:
+        out.append("  violations: none")
+    return out
+
+
+# --------------------------------------------------------------------------------------------- CLI
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Audit recorded CAN traffic (daemon --can-log, candump -l, python-can .asc/.blf/.csv/.log/.trc, "
+                     "the original MDS-Ach text dumps) against the safety invariants: every target finite, inside "
+                     "its joint's limits, to an enabled joint, within the speed and acceleration bounds of the "
+                     "joint table (mds_ach.robot.motion); optionally no commanded collision. Exit status 0 clean, "
+                     "1 violations, 2 a file could not be audited.")
+    p.add_argument("files", nargs="+", metavar="FILE", help="CAN logs; each is audited on its own")
+    p.add_argument("--robot", help="robot variant of the joint table (default: $MDS_ACH_ROBOT, the saved choice, "
+                                   "else 'default')")
+    p.add_argument("--config", metavar="FILE", help="joint table YAML (default: the installed config/joints.yaml)")
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="daemon loop rate (default: inferred from the broadcast position queries)")
+    p.add_argument("--stale-after", type=float, metavar="S",
+                   help=f"reply gap after which a joint re-seeds (default {STALE_PERIODS:g} periods, as the daemon)")
+    p.add_argument("--collisions", action="store_true",
+                   help="also check every commanded pose with the collision gate's model (self and world)")
+    p.add_argument("--world", metavar="FILE", help="world objects for --collisions (default: config/world.yaml)")
+    p.add_argument("--collision-margin", type=float, default=0.0, metavar="M",
+                   help="clearance (m) below which a commanded pose counts as colliding (default 0: touching)")
+    p.add_argument("--max", type=int, default=0, metavar="N",
+                   help="list at most N violations per file (default 0: all; the summary counts every one)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from mds_ach.robot import config
+
+    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
+        print(f"mds-ach check-log: --rate must be > 0 Hz, got {args.rate}", file=sys.stderr)
+        return 2
+    if args.stale_after is not None and not (math.isfinite(args.stale_after) and args.stale_after > 0):
+        print(f"mds-ach check-log: --stale-after must be > 0 s, got {args.stale_after}", file=sys.stderr)
+        return 2
+    try:
+        table = config.load(args.robot, args.config)
+        model = collision_model(args.world, args.collision_margin) if args.collisions else None
+    except (ConfigError, OSError, ValueError) as exc:
+        print(f"mds-ach check-log: {exc}", file=sys.stderr)
+        return 2
+    report = audit(args.files, table, rate=args.rate, stale_after=args.stale_after, model=model)
+    print(format_report(report, table, args.max))
+    return report.exit_code
+
+
+def collision_model(world: str | None = None, margin: float = 0.0) -> Any:
+    """The collision gate's model (URDF, config/collision.yaml, the world file) with clearance ``margin``."""
+    from mds_ach.kinematics import collision
+    from mds_ach.paths import config_path
+
+    if not (math.isfinite(margin) and margin >= 0):
+        raise ValueError(f"--collision-margin must be >= 0 m, got {margin}")
+    path = config_path("collision.yaml")
+    cfg = dict(collision.load_yaml(path)) if path.exists() else {}
+    cfg["margin"] = margin
+    return collision.load_model(config=cfg, world=world)
+
+
+def main(argv: Iterable[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mds-ach check-log")
+    add_arguments(ap)
+    return run(ap.parse_args(list(argv) if argv is not None else None))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,137 @@
+"""``mds-ach``: the command-line front-end (``mds-ach <verb> [options]``).
+
+Verbs live in a registry so that other modules add theirs with one line: ``VERBS[name] = Verb(help,
+"module:add_arguments_function", "module:handler_function")``. The target modules are imported only
+when their verb runs (or when that verb's ``--help`` is built), which keeps ``mds-ach --help`` and light verbs
+fast: nothing here imports rclpy, torch or fcl.
+
+A handler takes the parsed ``argparse.Namespace`` and returns the exit code: 0 success, 1 runtime failure
+(message on stderr), 2 usage error (argparse does this itself).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import signal
+import sys
+from collections.abc import Callable
+from typing import NamedTuple
+
+PROG = "mds-ach"
+
+
+class Verb(NamedTuple):
+    """One sub-command: one-line help, and "module:function" strings resolved lazily."""
+
+    help: str
+    add_arguments: str  # f(parser: argparse.ArgumentParser) -> None
+    handler: str  # f(args: argparse.Namespace) -> int
+
+
+VERBS: dict[str, Verb] = {
+    "make": Verb("create every MDS Ach channel (existing ones are checked, not clobbered)",
+                 "mds_ach.tools.chantool:add_make_arguments", "mds_ach.tools.chantool:run_make"),
+    "rm": Verb("remove Ach channels (default: every MDS channel)",
+               "mds_ach.tools.chantool:add_rm_arguments", "mds_ach.tools.chantool:run_rm"),
+    "dump": Verb("print the newest frame of a channel, decoded by its type",
+                 "mds_ach.tools.chantool:add_dump_arguments", "mds_ach.tools.chantool:run_dump"),
+    "repair": Verb("check the channels; repair corrupt ones in place (a writer killed inside a put)",
+                   "mds_ach.ach.repair:add_arguments", "mds_ach.ach.repair:run"),
+    "check-log": Verb("audit a CAN log: targets finite, in limits, to enabled joints, within speed/acceleration",
+                      "mds_ach.tools.checklog:add_arguments", "mds_ach.tools.checklog:run"),
+    # operator verbs (mds_ach.tools.launcher, console, read)
+    "start": Verb("start every node as its own process ('start nocan': simulated bus); returns when state is live",
+                  "mds_ach.tools.launcher:add_start_arguments", "mds_ach.tools.launcher:run_start"),
+    "run": Verb("start everything in the foreground; Ctrl-C stops it all ('make run' = 'run --nocan')",
+                "mds_ach.tools.launcher:add_run_arguments", "mds_ach.tools.launcher:run_run"),
+    "stop": Verb("stop the nodes (SIGTERM, then SIGKILL after a grace time)",
+                 "mds_ach.tools.launcher:add_stop_arguments", "mds_ach.tools.launcher:run_stop"),
+    "kill": Verb("SIGKILL every node", "mds_ach.tools.launcher:add_kill_arguments", "mds_ach.tools.launcher:run_kill"),
+    "killall": Verb("SIGKILL every node and remove every MDS channel",
+                    "mds_ach.tools.launcher:add_killall_arguments", "mds_ach.tools.launcher:run_killall"),
+    "status": Verb("which nodes run, loop rate, bus load, collision state",
+                   "mds_ach.tools.launcher:add_status_arguments", "mds_ach.tools.launcher:run_status"),
+    "resetbus": Verb("ask the daemon to reset the CAN bus (bus-off recovery)",
+                     "mds_ach.tools.launcher:add_resetbus_arguments", "mds_ach.tools.launcher:run_resetbus"),
+    "changerobot": Verb("choose the robot variant (isaac, lucas, octavia) for the next start",
+                        "mds_ach.tools.launcher:add_changerobot_arguments", "mds_ach.tools.launcher:run_changerobot"),
+    "console": Verb("interactive console: goto, get, get fk, ik (-c CMD for scripts)",
+                    "mds_ach.tools.console:add_arguments", "mds_ach.tools.console:run"),
+    "read": Verb("live joint table (Joint, Enabled, address, Commanded/Actual Pos, collisions)",
+                 "mds_ach.tools.read:add_arguments", "mds_ach.tools.read:run"),
+    "remote": Verb("share the robot over the network: 'remote HOST' (operator), 'remote serve' (robot), 'remote kill'",
+                   "mds_ach.net.remote:add_arguments", "mds_ach.net.remote:run"),
+    "sim": Verb("3-D viewer in the browser, in the background (prints the URL); 'sim kill' stops it",
+                "mds_ach.tools.viewer:add_sim_arguments", "mds_ach.tools.viewer:run_sim"),
+}
+ALIASES: dict[str, str] = {"mk": "make", "create": "make", "remove": "rm", "unlink": "rm"}
+
+
+def _resolve(target: str) -> Callable:
+    module, _, func = target.partition(":")
+    return getattr(importlib.import_module(module), func)
+
+
+def _selected_verb(argv: list[str]) -> str | None:
+    """The first non-option word, if it names a verb (so only that verb's module gets imported)."""
+    for word in argv:
+        if word == "--":
+            return None
+        if not word.startswith("-"):
+            return ALIASES.get(word, word) if ALIASES.get(word, word) in VERBS else None
+    return None
+
+
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The full parser; only ``selected``'s arguments are built (the others only need their help line)."""
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="MDS-Ach front-end: manage the shared-memory channels and run the system's tools.",
+        epilog=f"Run '{PROG} VERB --help' for a verb's options. Exit codes: 0 ok, 1 failure, 2 usage error.",
+    )
+    sub = parser.add_subparsers(dest="verb", metavar="VERB")
+    for name, verb in VERBS.items():
+        aliases = [a for a, v in ALIASES.items() if v == name]
+        p = sub.add_parser(name, help=verb.help, aliases=aliases, description=verb.help)
+        if name == selected:
+            _resolve(verb.add_arguments)(p)
+            p.set_defaults(_handler=verb.handler)
+    return parser
+
+
+def strip_ros_args(argv: list[str]) -> list[str]:
+    """Drop ``--ros-args ... [--]`` blocks like rclpy.utilities.remove_ros_args, without importing rclpy."""
+    out: list[str] = []
+    in_ros = False
+    for word in argv:
+        if word == "--ros-args":
+            in_ros = True
+        elif in_ros and word == "--":
+            in_ros = False
+        elif not in_ros:
+            out.append(word)
+    return out
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = strip_ros_args(sys.argv[1:] if argv is None else argv)
+    signal.signal(signal.SIGTERM, _terminate)  # SIGTERM ends a blocking verb as cleanly as Ctrl-C
+    selected = _selected_verb(argv)
+    parser = build_parser(selected)
+    args = parser.parse_args(argv)
+    if args.verb is None:
+        parser.print_help(sys.stderr)
+        return 2
+    try:
+        return int(_resolve(args._handler)(args) or 0)
+    except KeyboardInterrupt:
+        return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,713 @@
+"""``mds-ach console``: the operator's command line (prompt ``>> mds-ach-console$ ``), as in the original.
+
+Commands keep the original's names and output formats; motion goes through the safety pipeline: ``goto``
+read-modify-writes ``mds-ref-filter`` (the mux's default controller input, then filter and collision gate),
+``ik`` asks the IK node on ``mds-ik``. A motion command is reported applied only once the mux acknowledged it
+(``mds-mux-state``) and its output (``mds-ref-mux``) has the targets; with the mux down nothing is sent and the
+console says "not applied: mux not running". Bad input prints what was wrong plus the usage and never ends the
+console. ``-c "cmd"`` (repeatable) runs commands non-interactively; the exit status says whether they worked.
+
+Only numpy forward kinematics is used (``get fk``), so the console starts without torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import math
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import mds_ach as mds
+from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
+from mds_ach.tools.monitor import Latest
+
+if TYPE_CHECKING:  # pragma: no cover - typing only
+    from mds_ach.nodes.mux import MDS_MUX_STATE
+    from mds_ach.robot.config import JointTable
+
+PROMPT = ">> mds-ach-console$ "
+ARMS = {"left": (mds.LEFT, LEFT_ARM), "right": (mds.RIGHT, RIGHT_ARM)}
+IK_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
+GOTO_TOLERANCE = 0.01  # rad, "arrived" for goto ... wait
+GOTO_TIMEOUT = 20.0  # s
+IK_TIMEOUT = 10.0  # s for the IK node's answer
+IK_MOTION_TIMEOUT = 20.0  # s for the arm to arrive (ik ... wait)
+STATE_WAIT = 1.0  # s to wait for a first state frame
+RELEASE_TIMEOUT = 10.0  # s to wait for a higher-priority mux controller to release a joint
+MUX_TIMEOUT = 1.0  # s for a new mds-mux-state frame (the mux publishes at 10 Hz, config/mux.yaml state_rate)
+APPLIED_TOLERANCE = 1e-9  # rad: the mux copies references, it does not compute them
+NOT_RUNNING = (f"not applied: mux not running (no new frame on {mds.MDS_CHAN_MUX_STATE_NAME} within {MUX_TIMEOUT:g} s)"
+               "; start it: mds-ach start --only mux")
+
+USAGE = f"""\
+commands (joint names: short or long, e.g. LSP or LeftShoulderExt, any case):
+  goto <joint> <rad> [wait]          move one joint through the mux, smoothing filter and collision gate
+                                     (writes {mds.MDS_CHAN_REF_FILTER_NAME}); 'wait': until it arrives
+  get <joint>                        measured state and reference of one joint
+  get fk <left|right>                6-DOF pose of the arm's tool point from the current references
+  ik <left|right> <dof> <p1> ... <pN> [wait]
+                                     move the tool point through the IK node; dof 1..6 takes the first N
+                                     of x y z (m) rx ry rz (rad, Z-Y-X angles), robot frame: x forward,
+                                     y left, z up, origin midway between the shoulders
+  zeroall                            every enabled joint to 0 rad through the smoothing path
+  help                               this text
+  exit                               quit (also 'quit' or Ctrl-D)"""
+
+
+class CommandError(Exception):
+    """Bad input or an unmet precondition; the message says what was wrong (and the usage follows)."""
+
+    def __init__(self, message: str, usage: bool = True) -> None:
+        super().__init__(message)
+        self.show_usage = usage
+
+
+# --------------------------------------------------------------------------------------------- parsing
+
+
+@dataclass(frozen=True)
+class Goto:
+    joint: Joint
+    value: float
+    wait: bool = False
+
+
+@dataclass(frozen=True)
+class Get:
+    joint: Joint
+
+
+@dataclass(frozen=True)
+class GetFk:
+    arm: str
+
+
+@dataclass(frozen=True)
+class Ik:
+    arm: str
+    dof: int
+    values: tuple[float, ...]
+    wait: bool = False
+
+
+@dataclass(frozen=True)
+class Simple:
+    name: str  # help, exit, zeroall, empty
+
+
+Command = Goto | Get | GetFk | Ik | Simple
+
+
+def _number(text: str, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise CommandError(f"{what} must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise CommandError(f"{what} must be finite, got {text!r}")
+    return value
+
+
+def _joint(text: str) -> Joint:
+    try:
+        return lookup(text)
+    except KeyError:
+        raise CommandError(f"unknown joint {text!r}; short names: {' '.join(j.short for j in JOINTS)}") from None
+
+
+def _arm(text: str) -> str:
+    arm = text.lower()
+    if arm not in ARMS:
+        raise CommandError(f"arm must be 'left' or 'right', got {text!r}")
+    return arm
+
+
+def parse(line: str) -> Command:
+    """One console line -> a command; CommandError says what is wrong with it."""
+    words = line.split()
+    if not words or words[0].startswith("#"):
+        return Simple("empty")
+    verb, args = words[0].lower(), words[1:]
+    if verb in ("help", "h", "?", "exit", "quit", "zeroall"):
+        if args:
+            raise CommandError(f"'{verb}' takes no arguments")
+        return Simple({"h": "help", "?": "help", "quit": "exit"}.get(verb, verb))
+    if verb == "goto":
+        if args and args[0].lower() == "filter":  # the original's 'goto filter <JNT> <rad>'
+            args = args[1:]
+        wait = bool(args) and args[-1].lower() == "wait"
+        if wait:
+            args = args[:-1]
+        if len(args) != 2:
+            raise CommandError("usage: goto <joint> <rad> [wait]")
+        return Goto(_joint(args[0]), _number(args[1], "the position"), wait)
+    if verb == "get":
+        if len(args) == 2 and args[0].lower() == "fk":
+            return GetFk(_arm(args[1]))
+        if len(args) == 1 and args[0].lower() != "fk":
+            return Get(_joint(args[0]))
+        raise CommandError("usage: get <joint> | get fk <left|right>")
+    if verb == "ik":
+        wait = bool(args) and args[-1].lower() == "wait"
+        if wait:
+            args = args[:-1]
+        if len(args) < 2:
+            raise CommandError("usage: ik <left|right> <dof> <p1> ... <pN> [wait]")
+        arm = _arm(args[0])
+        try:
+            dof = int(args[1])
+        except ValueError:
+            raise CommandError(f"dof must be an integer 1..6, got {args[1]!r}") from None
+        if not 1 <= dof <= 6:
+            raise CommandError(f"dof must be 1..6, got {dof}")
+        if len(args) - 2 != dof:
+            names = " ".join(IK_COMPONENTS[:dof])
+            raise CommandError(f"ik {arm} {dof} needs {dof} value(s) ({names}), got {len(args) - 2}")
+        values = tuple(_number(v, IK_COMPONENTS[i]) for i, v in enumerate(args[2:]))
+        return Ik(arm, dof, values, wait)
+    raise CommandError(f"unknown command {words[0]!r}")
+
+
+# --------------------------------------------------------------------------------------------- the console
+
+
+def fk_pose(q: Sequence[float], arm: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """(position, Z-Y-X rotation) of the arm's tool point for q = [SP, SR, SY, EP, WY, WR] (numpy, no torch)."""
+    from mds_ach.kinematics.model import euler_zyx, fk_matrix
+
+    T = fk_matrix(list(q), arm)
+    rot = euler_zyx(T[:3, :3])
+    return (float(T[0, 3]), float(T[1, 3]), float(T[2, 3])), (float(rot[0]), float(rot[1]), float(rot[2]))
+
+
+def format_fk(arm: str, pos: Sequence[float], rot: Sequence[float]) -> list[str]:
+    """The original's ``get fk`` lines (5 decimals)."""
+    return [f"6DOF FK - for  {arm}  arm",
+            f"pos:\tx = {pos[0]:.5f} \ty = {pos[1]:.5f} \tz = {pos[2]:.5f}",
+            f"rot:\tx = {rot[0]:.5f} \ty = {rot[1]:.5f} \tz = {rot[2]:.5f}"]
+
+
+class Console:
+    """Executes parsed commands against the running system. ``out``/``err`` print one line each, ``progress``
+    one dot while a ``wait`` is pending."""
+
+    def __init__(self, out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None,
+                 progress: Callable[[], None] | None = None) -> None:
+        self.out = out or _default_out
+        self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
+        self.progress = progress or (lambda: print(".", end="", flush=True))
+        self.state = Latest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        self._table: JointTable | None = None
+
+    def close(self) -> None:
+        self.state.close()
+
+    # -- helpers ----------------------------------------------------------------------------------
+
+    def _state(self) -> mds.MDS_STATE:
+        state = self.state.read()
+        if state is None:
+            state = self.state.wait_new(STATE_WAIT)
+        if state is None:
+            raise CommandError(f"no robot state ({self.state.error or 'no frames on ' + self.state.name}); "
+                               "is MDS-Ach running? (mds-ach start)", usage=False)
+        return state
+
+    def _joint_table(self) -> JointTable:
+        if self._table is None:
+            from mds_ach.robot.choice import effective_robot
+            from mds_ach.robot.config import load
+
+            self._table = load(effective_robot()[0])
+        return self._table
+
+    def _check_target(self, joint: Joint, value: float, state: mds.MDS_STATE) -> None:
+        """Refuse what the daemon would refuse, with a message: disabled joints, targets beyond the limits."""
+        if not state.joint[joint.address].enabled:
+            raise CommandError(f"{joint.short} ({joint.name}) is disabled in the joint table; it cannot move",
+                               usage=False)
+        cfg = self._joint_table().get(joint.address)
+        if cfg is not None and not cfg.within_limits(value):
+            raise CommandError(f"{value:.5f} rad is outside {joint.short}'s range "
+                               f"[{cfg.lower:.5f}, {cfg.upper:.5f}] rad", usage=False)
+
+    def _put_refs(self, targets: dict[int, float], state: mds.MDS_STATE) -> None:
+        """Read-modify-write ``mds-ref-filter``: the mux takes only the joints that changed as commands."""
+        from mds_ach import ach
+
+        name = mds.MDS_CHAN_REF_FILTER_NAME
+        if not ach.exists(name):
+            raise CommandError(f"channel {name} does not exist; is MDS-Ach running? (mds-ach start)", usage=False)
+        ref = mds.MDS_REF()
+        with ach.Channel(name, create=False) as chan:
+            status, size = chan.get(ref, last=True, copy=True)
+            if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME) or size != ctypes.sizeof(ref) or \
+                    not all(math.isfinite(ref.joint[i].ref) for i in range(mds.MDS_JOINT_COUNT)):
+                # nothing usable yet (the mux seeds this channel when it starts): begin from what is commanded
+                ref = mds.MDS_REF()
+                for i in range(mds.MDS_JOINT_COUNT):
+                    ref.joint[i].ref = state.joint[i].ref
+            for address, value in targets.items():
+                ref.joint[address].ref = value
+            chan.put(ref)
+
+    @staticmethod
+    def _mux_holders(st: MDS_MUX_STATE, addresses: list[int],
+                     channel: str = mds.MDS_CHAN_REF_FILTER_NAME) -> dict[int, str]:
+        """Joints of ``addresses`` owned by a higher-priority mux controller than ours (the one reading
+        ``channel``)."""
+        mine = _controller_for(channel)
+        names = _mux_names(st)
+        if mine not in names:
+            return {}
+        my_priority = st.priority[names.index(mine)]
+        return {a: names[st.owner[a]] for a in addresses
+                if 0 <= st.owner[a] < len(names) and names[st.owner[a]] != mine
+                and st.priority[st.owner[a]] > my_priority}
+
+    @staticmethod
+    def _mux_state(newer_than: float, chan: Latest,
+                   accept: Callable[[MDS_MUX_STATE], bool] = lambda st: True) -> MDS_MUX_STATE | None:
+        """The first mux state published after ``newer_than`` (CLOCK_MONOTONIC) that ``accept`` takes, waiting up
+        to ``MUX_TIMEOUT`` s; None without a live mux (its last frame stays in the channel when it dies)."""
+        deadline = time.monotonic() + MUX_TIMEOUT
+        st = chan.read()
+        while True:
+            if st is not None and st.time > newer_than and accept(st):
+                return st
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            st = chan.wait_new(min(0.1, remaining)) or st
+
+    def _require_mux(self) -> None:
+        """CommandError unless the mux published a new state just now: a command it cannot take is not sent."""
+        from mds_ach.nodes.mux import MDS_MUX_STATE
+
+        chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        try:
+            if self._mux_state(time.monotonic(), chan) is None:
+                raise CommandError(NOT_RUNNING + "; nothing sent", usage=False)
+        finally:
+            chan.close()
+
+    def _wait_until_free(self, addresses: list[int]) -> None:
+        """Wait (up to ``RELEASE_TIMEOUT`` s) while a higher-priority mux controller owns one of the joints.
+
+        Why: the mux applies a frame only to joints its controller may write *now*; a goto sent while the IK
+        node (or ROS) still owns the joint is absorbed without effect and is not replayed after the release.
+        A mux state published after this call started is awaited first, so a move the IK node answered a
+        moment ago is already visible.
+        """
+        from mds_ach.nodes.mux import MDS_MUX_STATE
+
+        chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        try:
+            st = self._mux_state(time.monotonic(), chan)
+            if st is None:  # nothing would take the command: do not leave it in the channel either
+                raise CommandError(NOT_RUNNING + "; nothing sent", usage=False)
+            deadline = time.monotonic() + RELEASE_TIMEOUT
+            said = False
+            while True:
+                held = self._mux_holders(st, addresses)
+                if not held:
+                    return
+                text = ", ".join(f"{mds.BY_ADDRESS[a].short} (held by '{n}')" for a, n in held.items())
+                if time.monotonic() > deadline:
+                    raise CommandError(f"{text}: a higher-priority controller still commands it after "
+                                       f"{RELEASE_TIMEOUT:g} s; nothing sent (see 'mds-ach dump mds-mux-state')",
+                                       usage=False)
+                if not said:
+                    self.out(f"waiting for the mux to release {text} ...")
+                    said = True
+                st = chan.wait_new(0.2) or st
+        finally:
+            chan.close()
+
+    def _confirm_applied(self, targets: dict[int, float], sent_at: float,
+                         channel: str = mds.MDS_CHAN_REF_FILTER_NAME) -> None:
+        """Report success only once the command reached the pipeline: the mux acknowledged a frame from
+        ``channel``'s controller that arrived after ``sent_at`` (in ``mds-mux-state``), no higher-priority
+        controller holds the joints, and the mux output (``mds-ref-mux``) has every target. CommandError
+        ("not applied: ...") otherwise: a dead mux, or one that ignored the frame, moves nothing."""
+        from mds_ach.nodes.mux import MDS_MUX_STATE
+
+        mine = _controller_for(channel)
+        chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        out = Latest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
+        try:
+            st = self._mux_state(sent_at, chan, lambda st: _took_frame_since(st, mine, sent_at))
+            if st is None:
+                latest = chan.read()
+                if latest is not None and latest.time > sent_at and mine not in _mux_names(latest):
+                    raise CommandError(f"not applied: the mux has no controller reading {channel} "
+                                       "(config/mux.yaml)", usage=False)
+                raise CommandError(NOT_RUNNING, usage=False)
+            held = self._mux_holders(st, list(targets), channel)
+            output = out.read()
+        finally:
+            chan.close()
+            out.close()
+        if held:
+            text = ", ".join(f"{mds.BY_ADDRESS[a].short} (held by '{n}')" for a, n in held.items())
+            raise CommandError(f"not applied: {text} took the joint first; send the command again once it is free",
+                               usage=False)
+        if output is None:
+            raise CommandError(f"not applied: nothing on {mds.MDS_CHAN_REF_MUX_NAME} (is the mux running?)",
+                               usage=False)
+        off = {a: v for a, v in targets.items() if not abs(output.joint[a].ref - v) <= APPLIED_TOLERANCE}
+        if off:
+            text = ", ".join(f"{mds.BY_ADDRESS[a].short} at {output.joint[a].ref:.5f} (target {v:.5f})"
+                             for a, v in off.items())
+            raise CommandError(f"not applied: the mux output ({mds.MDS_CHAN_REF_MUX_NAME}) keeps {text}; the mux "
+                               f"takes only changes from '{mine}': send another value first, then this one",
+                               usage=False)
+
+    def _wait_arrival(self, targets: dict[int, float], timeout: float) -> bool:
+        """Print a dot per half second until every target joint's measured position is within tolerance."""
+        deadline = time.monotonic() + timeout
+        next_dot = time.monotonic() + 0.5
+        dots = False
+        while time.monotonic() < deadline:
+            state = self.state.wait_new(0.2) or self.state.read()
+            if state is not None and all(abs(state.joint[a].pos - v) <= GOTO_TOLERANCE for a, v in targets.items()):
+                if dots:
+                    self.out("")
+                return True
+            if time.monotonic() >= next_dot:
+                self.progress()
+                dots = True
+                next_dot += 0.5
+        if dots:
+            self.out("")
+        return False
+
+    def _not_arrived(self, targets: dict[int, float]) -> str:
+        state = self.state.read()
+        parts = []
+        for a, v in targets.items():
+            j = mds.BY_ADDRESS[a]
+            if state is not None:
+                parts.append(f"{j.short} target {v:.5f}, ref {state.joint[a].ref:.5f}, pos {state.joint[a].pos:.5f}")
+        from mds_ach.tools.monitor import collision_summary
+
+        collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+        try:
+            summary = collision_summary(collide.read())
+        finally:
+            collide.close()
+        return "; ".join(parts) + f"; collision gate: {summary}"
+
+    # -- commands ---------------------------------------------------------------------------------
+
+    def execute(self, cmd: Command) -> None:
+        """Run one parsed command; CommandError on failure."""
+        if isinstance(cmd, Goto):
+            self.goto(cmd)
+        elif isinstance(cmd, Get):
+            self.get(cmd.joint)
+        elif isinstance(cmd, GetFk):
+            self.get_fk(cmd.arm)
+        elif isinstance(cmd, Ik):
+            self.ik(cmd)
+        elif cmd.name == "help":
+            self.out(USAGE)
+        elif cmd.name == "zeroall":
+            self.zeroall()
+
+    def goto(self, cmd: Goto) -> None:
+        state = self._state()
+        self._check_target(cmd.joint, cmd.value, state)
+        self._wait_until_free([cmd.joint.address])
+        sent_at = time.monotonic()
+        self._put_refs({cmd.joint.address: cmd.value}, state)
+        self._confirm_applied({cmd.joint.address: cmd.value}, sent_at)
+        self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
+        if cmd.wait:
+            if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT):
+                raise CommandError(f"{cmd.joint.short} did not arrive within {GOTO_TIMEOUT:g} s: "
+                                   + self._not_arrived({cmd.joint.address: cmd.value}), usage=False)
+            self.out("done")
+
+    def zeroall(self) -> None:
+        state = self._state()
+        targets = {j.address: 0.0 for j in JOINTS if state.joint[j.address].enabled}
+        for a in targets:
+            self._check_target(mds.BY_ADDRESS[a], 0.0, state)
+        self._wait_until_free(list(targets))
+        sent_at = time.monotonic()
+        self._put_refs(targets, state)
+        self._confirm_applied(targets, sent_at)
+        self.out(f"{len(targets)} enabled joints -> 0 rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
+
+    def get(self, joint: Joint) -> None:
+        state = self._state()
+        js = state.joint[joint.address]
+        self.out(f"{joint.short}  State =  {js.pos:.5f}  rad")
+        self.out(f"{joint.short}  Ref   =  {js.ref:.5f}  rad")
+        age = self.state.age()
+        if age is not None and age > 1.0:
+            self.out(f"(state is {age:.1f} s old: is the daemon running?)")
+
+    def get_fk(self, arm: str) -> None:
+        state = self._state()
+        q = [state.joint[BY_SHORT[s].address].ref for s in ARMS[arm][1]]
+        for line in format_fk(arm, *fk_pose(q, arm)):
+            self.out(line)
+
+    def ik(self, cmd: Ik) -> None:
+        from mds_ach.nodes.ik_client import IkClient, IkTimeout
+
+        self._state()  # a clear message when the system is not running
+        self._require_mux()
+        values = list(cmd.values) + [0.0] * (6 - cmd.dof)
+        sent_at = time.monotonic()
+        try:
+            with IkClient() as client:
+                reply = client.request(cmd.arm, cmd.dof, values, timeout=IK_TIMEOUT)
+        except IkTimeout as exc:
+            raise CommandError(str(exc), usage=False) from None
+        if not reply.success:
+            self.out(reply.message or "unreachable; nothing moved")
+            raise CommandError(f"ik {cmd.arm} {cmd.dof}: target not reachable", usage=False)
+        self.out(f"solved: error {reply.error:.5f} in {reply.iterations} iterations "
+                 f"({reply.time * 1000:.1f} ms)")
+        for line in format_fk(cmd.arm, *fk_pose(reply.q, cmd.arm)):
+            self.out(line)
+        targets = {BY_SHORT[s].address: float(v) for s, v in zip(ARMS[cmd.arm][1], reply.q, strict=True)}
+        self._confirm_applied(targets, sent_at, mds.MDS_CHAN_REF_IK_NAME)  # the IK node's output, a mux input
+        if cmd.wait:
+            if not self._wait_arrival(targets, IK_MOTION_TIMEOUT):
+                raise CommandError(f"the {cmd.arm} arm did not arrive within {IK_MOTION_TIMEOUT:g} s: "
+                                   + self._not_arrived(targets), usage=False)
+            self.out("done")
+
+    def run_line(self, line: str) -> bool:
+        """Parse and execute one line, printing errors; True on success. Never raises for bad input."""
+        try:
+            self.execute(parse(line))
+            return True
+        except CommandError as exc:
+            self.err(f"  {exc}")
+            if exc.show_usage:
+                self.err(USAGE)
+            return False
+
+
+_DEFAULT_CONTROLLERS = {mds.MDS_CHAN_REF_FILTER_NAME: "default", mds.MDS_CHAN_REF_IK_NAME: "ik"}
+
+
+@lru_cache(maxsize=4)
+def _controller_for(channel: str) -> str:
+    """The mux controller fed by ``channel`` (config/mux.yaml): 'default' for mds-ref-filter, 'ik' for
+    mds-ref-ik unless configured otherwise."""
+    try:
+        from mds_ach.nodes.mux import load_config
+
+        for c in load_config()["controllers"]:
+            if c.channel == channel:
+                return c.name
+    except (ValueError, OSError):
+        pass
+    return _DEFAULT_CONTROLLERS.get(channel, channel)
+
+
+def _mux_names(st: MDS_MUX_STATE) -> list[str]:
+    from mds_ach.robot.msgs import get_name
+
+    return [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
+
+
+def _took_frame_since(st: MDS_MUX_STATE, controller: str, since: float) -> bool:
+    """Did the mux receive a frame from ``controller`` at or after ``since`` (CLOCK_MONOTONIC)?
+    ``age`` is the time from that frame's arrival to ``st.time``, so the arrival is ``st.time - age``."""
+    names = _mux_names(st)
+    if controller not in names:
+        return False
+    i = names.index(controller)
+    return st.age[i] >= 0 and st.time - st.age[i] >= since
+
+
+def _default_out(text: str) -> None:
+    print(text, flush=True)
+
+
+# --------------------------------------------------------------------------------------------- interactive
+
+
+def history_path() -> Path:
+    """$MDS_ACH_HISTORY, else $XDG_STATE_HOME/mds-ach/console_history (~/.local/state/...)."""
+    env = os.environ.get("MDS_ACH_HISTORY")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "mds-ach" / "console_history"
+
+
+def _completer(text: str, index: int) -> str | None:
+    import readline
+
+    words = readline.get_line_buffer()[: readline.get_begidx()].split()
+    if not words:
+        options = ["goto", "get", "ik", "zeroall", "help", "exit"]
+    elif words[0] == "get" and len(words) == 1:
+        options = ["fk"] + [j.short for j in JOINTS]
+    elif (words[0] == "ik" and len(words) == 1) or (words[:2] == ["get", "fk"] and len(words) == 2):
+        options = list(ARMS)
+    elif words[0] == "goto" and len(words) == 1:
+        options = [j.short for j in JOINTS]
+    else:
+        options = []
+    matches = [o + " " for o in options if o.lower().startswith(text.lower())]
+    return matches[index] if index < len(matches) else None
+
+
+def _setup_readline() -> Callable[[], None]:
+    """Line editing, history and tab completion; returns the function that saves the history."""
+    try:
+        import readline
+    except ImportError:  # pragma: no cover - readline is part of CPython on Linux
+        return lambda: None
+    path = history_path()
+    try:
+        readline.read_history_file(path)
+    except (OSError, UnicodeDecodeError):
+        pass
+    readline.set_history_length(1000)
+    readline.set_completer(_completer)
+    readline.set_completer_delims(" \t")
+    readline.parse_and_bind("tab: complete")
+
+    def save() -> None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            readline.write_history_file(path)
+        except OSError:
+            pass
+
+    return save
+
+
+def interactive(console: Console) -> int:
+    """The prompt loop: Ctrl-C abandons the current line or command, Ctrl-D or 'exit' quits."""
+    save = _setup_readline() if sys.stdin.isatty() else (lambda: None)
+    if sys.stdin.isatty():
+        console.out("MDS-Ach console. Type 'help' for the commands, 'exit' to quit.")
+    status = 0
+    try:
+        while True:
+            try:
+                line = input(PROMPT) if sys.stdin.isatty() else sys.stdin.readline()
+                if not sys.stdin.isatty():
+                    if not line:
+                        break
+                    print(PROMPT + line.rstrip("\n"), flush=True)
+            except EOFError:
+                console.out("")
+                break
+            except KeyboardInterrupt:
+                console.out("")
+                continue
+            try:
+                cmd = parse(line)
+            except CommandError as exc:
+                console.err(f"  {exc}")
+                if exc.show_usage:
+                    console.err(USAGE)
+                status = 1
+                continue
+            if isinstance(cmd, Simple) and cmd.name == "exit":
+                break
+            try:
+                console.execute(cmd)
+            except CommandError as exc:
+                console.err(f"  {exc}")
+                if exc.show_usage:
+                    console.err(USAGE)
+                status = 1
+            except KeyboardInterrupt:
+                console.out("\n  interrupted")
+    finally:
+        save()
+    return status if not sys.stdin.isatty() else 0
+
+
+def run_commands(console: Console, commands: Sequence[str]) -> int:
+    """``-c`` mode: run each command in order, stop at the first failure (exit 1), 'exit' stops with 0."""
+    for line in commands:
+        try:
+            cmd = parse(line)
+        except CommandError as exc:
+            console.err(f"  {exc}")
+            if exc.show_usage:
+                console.err(USAGE)
+            return 1
+        if isinstance(cmd, Simple) and cmd.name == "exit":
+            return 0
+        try:
+            console.execute(cmd)
+        except CommandError as exc:
+            console.err(f"  {exc}")
+            if exc.show_usage:
+                console.err(USAGE)
+            return 1
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- entry points
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("The MDS-Ach console: move joints (goto), read them (get, get fk) and send Cartesian targets "
+                     "(ik), through the mux, smoothing filter and collision gate. Without -c it is interactive "
+                     "(line editing, history, tab completion); commands are read from stdin when it is not a "
+                     "terminal.")
+    p.epilog = USAGE + "\n\nexamples:\n  mds-ach console -c 'get fk left'\n  mds-ach console -c 'goto LSP -0.3 wait' " \
+                       "-c 'get LSP'"
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.add_argument("-c", "--command", action="append", default=[], metavar="CMD",
+                   help="run CMD and exit (repeatable; stops at the first failure, exit status 1)")
+    p.add_argument("legacy", nargs="?", choices=["read"], help=argparse.SUPPRESS)  # 'mds_console.py read'
+
+
+def run(args: argparse.Namespace) -> int:
+    console = Console()
+    previous = signal.signal(signal.SIGTERM, _sigterm)
+    try:
+        if args.command:
+            return run_commands(console, args.command)
+        return interactive(console)
+    except _TerminatedError:
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        console.close()
+
+
+class _TerminatedError(Exception):
+    pass
+
+
+def _sigterm(signum: int, frame: object) -> None:
+    raise _TerminatedError
+
+
+def main(argv: list[str] | None = None) -> int:
+    from mds_ach.tools.cli import strip_ros_args
+
+    argv = strip_ros_args(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(prog="console")
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

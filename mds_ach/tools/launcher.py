@@ -1,0 +1,806 @@
+"""Process manager behind ``mds-ach start|stop|kill|killall|status|run|resetbus|changerobot``.
+
+Each node runs as its own process, as in the original (nohup'd daemons, one pid log), so any node can be
+stopped, restarted or replaced by hand. Pid files and logs live in ``paths.runtime_dir()``; every terminal,
+and ``scripts/start_nodes.sh`` (which writes the same one-number pid files), sees the same system.
+
+A pid file is trusted only while that pid is alive and its command line names the node, so a stale file
+whose pid was reused by another program never gets that program killed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+
+import mds_ach as mds
+from mds_ach.paths import runtime_dir
+
+# Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
+# the others start from), then the reference pipeline, then the clients that feed it.
+NODES: tuple[str, ...] = ("daemon", "mux", "filter", "collision", "ik", "bridge")
+ENTRY_POINTS: dict[str, str] = {
+    "daemon": "mds_ach.nodes.daemon:main",
+    "mux": "mds_ach.nodes.mux:main",
+    "filter": "mds_ach.nodes.filter:main",
+    "collision": "mds_ach.nodes.collision:main",
+    "ik": "mds_ach.nodes.ik:main",
+    "bridge": "mds_ach_bridge.bridge:main",
+}
+DEFAULT_START_TIMEOUT = 60.0  # s; first start on a loaded 2-core machine imports torch, fcl and rclpy
+DEFAULT_STOP_GRACE = 5.0  # s between SIGTERM and SIGKILL
+LOG_TAIL_LINES = 25
+
+Printer = Callable[[str], None]
+
+
+class LaunchError(RuntimeError):
+    """A node did not come up; ``node`` names it and the message carries its log tail."""
+
+    def __init__(self, node: str, message: str) -> None:
+        super().__init__(message)
+        self.node = node
+
+
+def _err(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _out(text: str) -> None:
+    print(text, flush=True)
+
+
+# --------------------------------------------------------------------------------------------- files
+
+
+def pid_path(name: str, rt: Path | None = None) -> Path:
+    return (rt or runtime_dir()) / f"{name}.pid"
+
+
+def log_path(name: str, rt: Path | None = None) -> Path:
+    return (rt or runtime_dir()) / f"{name}.log"
+
+
+def log_tail(name: str, lines: int = LOG_TAIL_LINES, rt: Path | None = None) -> str:
+    """The last ``lines`` lines of a node's log (or a note that there is none)."""
+    path = log_path(name, rt)
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - 64 * 1024))
+            text = f.read().decode("utf-8", "replace")
+    except OSError:
+        return f"(no log at {path})"
+    tail = text.splitlines()[-lines:]
+    return "\n".join(tail) if tail else f"(log {path} is empty)"
+
+
+def _write_pid(name: str, pid: int, rt: Path) -> None:
+    path = pid_path(name, rt)
+    tmp = path.with_suffix(".pid.tmp")
+    tmp.write_text(f"{pid}\n")
+    os.replace(tmp, path)
+
+
+def _remove_pid(name: str, rt: Path) -> None:
+    try:
+        pid_path(name, rt).unlink()
+    except FileNotFoundError:
+        pass
+
+
+# --------------------------------------------------------------------------------------------- processes
+
+
+def _proc_argv(pid: int) -> list[str]:
+    try:
+        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return []
+    return [a.decode("utf-8", "replace") for a in raw.split(b"\0") if a]
+
+
+def _alive(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie (an exited child nobody reaped yet)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rfind(")") + 2:][:1] not in ("Z", "X")
+
+
+def _runs_node(pid: int, name: str) -> bool:
+    """Does ``pid``'s command line name node ``name`` (console script, ros2 run path or launcher exec)?"""
+    return any(Path(a).name == name for a in _proc_argv(pid)[:5])
+
+
+def read_pid(name: str, rt: Path | None = None) -> int | None:
+    """The pid in ``name``'s pid file if that process is alive and really is the node, else None."""
+    try:
+        pid = int(pid_path(name, rt).read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return pid if pid > 0 and _alive(pid) and _runs_node(pid, name) else None
+
+
+def running_nodes(rt: Path | None = None) -> dict[str, int]:
+    """node -> pid for every node of ``NODES`` that runs according to its pid file."""
+    return {n: pid for n in NODES if (pid := read_pid(n, rt)) is not None}
+
+
+def _is_mds_script(path: Path) -> bool:
+    """A console script of this package (not e.g. Debian's unrelated /usr/bin/daemon)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return os.access(path, os.X_OK) and (b"mds_ach" in head or b"mds-ach" in head)
+
+
+def node_command(name: str) -> list[str]:
+    """How to run node ``name``: the console script beside this interpreter, else ``<ament prefix>/lib/mds_ach``
+    (what ``ros2 run`` executes), else this module's ``exec`` entry (always works from a source checkout)."""
+    if name not in ENTRY_POINTS:
+        raise ValueError(f"unknown node {name!r}; nodes: {', '.join(NODES)}")
+    candidates = [Path(sys.executable).parent / name]
+    candidates += [Path(p) / "lib" / "mds_ach" / name for p in os.environ.get("AMENT_PREFIX_PATH", "").split(":") if p]
+    for path in candidates:
+        if path.is_file() and _is_mds_script(path):
+            return [str(path)]
+    return [sys.executable, "-m", "mds_ach.tools.launcher", "exec", name]
+
+
+def node_args(name: str, nocan: bool) -> list[str]:
+    return ["--nocan"] if name == "daemon" and nocan else []
+
+
+def child_env() -> dict[str, str]:
+    """The nodes' environment: ours, unbuffered output for live logs, and the saved robot choice."""
+    from mds_ach.robot.choice import effective_robot
+    from mds_ach.robot.config import ROBOT_ENV
+
+    env = dict(os.environ)
+    env["PYTHONUNBUFFERED"] = "1"
+    robot, _ = effective_robot(env)
+    env[ROBOT_ENV] = robot
+    return env
+
+
+def start_node(name: str, args: Sequence[str] = (), rt: Path | None = None,
+               env: dict[str, str] | None = None) -> subprocess.Popen:
+    """Start one node in its own session (a Ctrl-C meant for the launcher never reaches it directly),
+    output to ``<runtime>/<name>.log``, pid in ``<runtime>/<name>.pid``."""
+    rt = rt or runtime_dir()
+    rt.mkdir(parents=True, exist_ok=True)
+    with open(log_path(name, rt), "wb") as log:
+        proc = subprocess.Popen(node_command(name) + list(args), stdin=subprocess.DEVNULL, stdout=log,
+                                stderr=subprocess.STDOUT, start_new_session=True,
+                                env=env if env is not None else child_env())
+    _write_pid(name, proc.pid, rt)
+    return proc
+
+
+# --------------------------------------------------------------------------------------------- start
+
+
+def _exit_text(code: int | None) -> str:
+    if code is None:
+        return "is still running"
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with status {code}"
+
+
+def _dead(procs: dict[str, subprocess.Popen]) -> tuple[str, int] | None:
+    for name, proc in procs.items():
+        code = proc.poll()
+        if code is not None:
+            return name, code
+    return None
+
+
+class _Heartbeat:
+    """Counts new frames on a node's periodic output channel (opened read-only, flushed first, so frames
+    from an earlier run never count)."""
+
+    def __init__(self, channel: str) -> None:
+        from mds_ach import ach
+
+        self.name = channel
+        self.chan = ach.Channel(channel, create=False)
+        self.chan.flush()
+        self.buf = bytearray(self.chan.data_size)
+        self.frames = 0
+
+    def ready(self) -> bool:
+        from mds_ach import ach
+
+        status, _ = self.chan.get(self.buf, last=True)
+        if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+            self.frames += 1
+        return self.frames >= 2
+
+    def what(self) -> str:
+        return f"no new frames on {self.name}"
+
+    def close(self) -> None:
+        self.chan.close()
+
+
+class _IkProbe(_Heartbeat):
+    """The IK node publishes only answers, and drops requests sent before it is ready: ask it a request it
+    must refuse (``move = -1``, nothing can move) every 0.5 s until an answer appears on ``mds-ik-state``."""
+
+    def __init__(self) -> None:
+        from mds_ach import ach
+
+        super().__init__(mds.MDS_CHAN_IK_STATE_NAME)
+        self.requests = ach.Channel(mds.MDS_CHAN_IK_NAME, create=False)
+        self.next_probe = 0.0
+
+    def ready(self) -> bool:
+        from mds_ach import ach
+
+        status, _ = self.chan.get(self.buf, last=True)
+        if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+            return True
+        if time.monotonic() >= self.next_probe:
+            self.requests.put(mds.MDS_IK(move=-1))
+            self.next_probe = time.monotonic() + 0.5
+        return False
+
+    def what(self) -> str:
+        return f"no answer on {self.name} to a probe request on {mds.MDS_CHAN_IK_NAME}"
+
+    def close(self) -> None:
+        super().close()
+        self.requests.close()
+
+
+# How each node shows it is up: frames on its periodic output (the daemon's mds-state first of all), the IK
+# node's answer to a probe; the bridge only needs to stay alive (its output is ROS, not a channel).
+READY_CHANNELS: dict[str, str] = {
+    "daemon": mds.MDS_CHAN_STATE_NAME,
+    "mux": mds.MDS_CHAN_MUX_STATE_NAME,
+    "filter": mds.MDS_CHAN_REF_SMOOTH_NAME,
+    "collision": mds.MDS_CHAN_COLLIDE_NAME,
+}
+
+
+def _readiness(name: str) -> _Heartbeat | None:
+    if name == "ik":
+        return _IkProbe()
+    channel = READY_CHANNELS.get(name)
+    return _Heartbeat(channel) if channel else None
+
+
+def _check_dead(procs: dict[str, subprocess.Popen], rt: Path) -> None:
+    dead = _dead(procs)
+    if dead:
+        name, code = dead
+        raise LaunchError(name, f"{name} {_exit_text(code)} during start-up; last lines of "
+                                f"{log_path(name, rt)}:\n{log_tail(name, rt=rt)}")
+
+
+def wait_ready(procs: dict[str, subprocess.Popen], checks: dict[str, _Heartbeat], timeout: float, rt: Path,
+               abort: Callable[[], bool] = lambda: False) -> None:
+    """Return once every check passes (two new ``mds-state`` frames: the daemon's loop runs; likewise each
+    pipeline node's output); raise LaunchError naming the node if one of ``procs`` dies first or a check
+    does not pass within ``timeout``."""
+    deadline = time.monotonic() + timeout
+    pending = dict(checks)
+    while pending:
+        _check_dead(procs, rt)
+        if abort():
+            raise LaunchError("", "start-up interrupted")
+        for name, check in list(pending.items()):
+            if check.ready():
+                del pending[name]
+        if not pending:
+            break
+        if time.monotonic() > deadline:
+            name, check = next(iter(pending.items()))
+            raise LaunchError(name, f"{name} is not up after {timeout:g} s ({check.what()}); last lines of "
+                                    f"{log_path(name, rt)}:\n{log_tail(name, rt=rt)}")
+        time.sleep(0.05)
+    _check_dead(procs, rt)
+
+
+def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[str] = NODES,
+           rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
+           out: Printer = _out, group: str | None = None) -> dict[str, subprocess.Popen]:
+    """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
+    until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``).
+
+    Existing channels must be ones the stack may trust (``channel_access``: owner, mode, group); otherwise
+    nothing is started.
+
+    On failure every node started here is stopped again and LaunchError is raised (the system is left as
+    it was found)."""
+    from mds_ach.robot.channels import make_channels
+
+    rt = rt or runtime_dir()
+    try:
+        reports = make_channels(group=group)
+    except ValueError as exc:  # unknown group
+        raise LaunchError("", str(exc)) from None
+    bad = [r for r in reports if not r.ok]
+    if bad:
+        raise LaunchError("", "refusing to start, channel problems:\n"
+                          + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
+    already = running_nodes(rt)
+    env = child_env()
+    procs: dict[str, subprocess.Popen] = {}
+    checks: dict[str, _Heartbeat] = {}
+    try:
+        for name in names:
+            if name in already:
+                out(f"  {name:<10} already running (pid {already[name]})")
+                continue
+            check = _readiness(name)
+            if check is not None:
+                checks[name] = check
+            procs[name] = start_node(name, node_args(name, nocan), rt, env)
+            out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
+        wait_ready(procs, checks, timeout, rt, abort)
+    except BaseException:
+        stop_nodes(list(procs), rt=rt, procs=procs, out=lambda _t: None)
+        raise
+    finally:
+        for check in checks.values():
+            check.close()
+    return procs
+
+
+# --------------------------------------------------------------------------------------------- stop / kill
+
+
+def _wait_gone(pids: dict[str, int], procs: dict[str, subprocess.Popen], timeout: float) -> dict[str, int]:
+    """Wait until the processes exit (reaping our own children); returns those still alive."""
+    deadline = time.monotonic() + timeout
+    left = dict(pids)
+    while left:
+        for name, pid in list(left.items()):
+            if name in procs and procs[name].pid == pid:
+                procs[name].poll()
+            if not _alive(pid):
+                del left[name]
+        if not left or time.monotonic() > deadline:
+            break
+        time.sleep(0.02)
+    return left
+
+
+def stop_nodes(names: Iterable[str] = NODES, grace: float = DEFAULT_STOP_GRACE, rt: Path | None = None,
+               procs: dict[str, subprocess.Popen] | None = None, sig: int = signal.SIGTERM,
+               out: Printer = _out) -> list[str]:
+    """Stop nodes: ``sig`` to the clients and pipeline first, the daemon last (the robot holds its last
+    reference meanwhile), SIGKILL after ``grace`` s. Returns the nodes that were running."""
+    rt = rt or runtime_dir()
+    procs = procs or {}
+    names = list(names)
+    pids: dict[str, int] = {}
+    for name in names:
+        pid = read_pid(name, rt)
+        if pid is None and name in procs and procs[name].poll() is None:
+            pid = procs[name].pid
+        if pid is not None:
+            pids[name] = pid
+    stages = [{n: p for n, p in pids.items() if n != "daemon"}, {n: p for n, p in pids.items() if n == "daemon"}]
+    for stage in stages:
+        if not stage:
+            continue
+        for pid in stage.values():
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:
+                pass
+        left = _wait_gone(stage, procs, grace if sig != signal.SIGKILL else 2.0)
+        for name, pid in left.items():
+            out(f"  {name:<10} did not exit {grace:g} s after {signal.Signals(sig).name}; sending SIGKILL")
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        _wait_gone(left, procs, 2.0)
+        for name, pid in stage.items():
+            out(f"  {name:<10} stopped (pid {pid})")
+    for name in names:
+        if read_pid(name, rt) is None:
+            _remove_pid(name, rt)
+    return list(pids)
+
+
+# --------------------------------------------------------------------------------------------- commands
+
+
+def send_command(cmd: int, address: int = 0, value: float = 0.0) -> int:
+    """Put one ``MDS_CMD`` on ``mds-cmd`` with the next sequence number; returns that number."""
+    from mds_ach import ach
+
+    chan = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, create=False)
+    try:
+        last = mds.MDS_CMD()
+        status, size = chan.get(last, last=True, copy=True)
+        seq = (last.seq + 1) & 0xFFFFFFFF if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and \
+            size == ctypes.sizeof(mds.MDS_CMD) else 1
+        chan.put(mds.MDS_CMD(seq=seq, cmd=cmd, address=address, value=value))
+    finally:
+        chan.close()
+    return seq
+
+
+def state_rate(window: float = 1.0) -> tuple[float, int] | None:
+    """New ``mds-state`` frames per second over ``window`` s, and how many frames of the wrong size arrived
+    (None when the channel does not exist). Raises ``ach.AchException``/``ValueError`` for a damaged channel."""
+    from mds_ach import ach
+    from mds_ach.robot.channels import StructChannel
+
+    if not ach.exists(mds.MDS_CHAN_STATE_NAME):
+        return None
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as chan:
+        chan.latest()
+        frames, t0 = 0, time.monotonic()
+        first = last = None
+        while time.monotonic() - t0 < window:
+            if chan.wait(max(0.0, window - (time.monotonic() - t0))) is not None:
+                frames += 1
+                now = time.monotonic()
+                first = now if first is None else first
+                last = now
+        if frames >= 2 and first is not None and last is not None and last > first:
+            return (frames - 1) / (last - first), chan.bad_frames
+        return float(frames) / window, chan.bad_frames
+
+
+def channel_problems(names: Sequence[str] = mds.ALL_CHANNELS) -> dict[str, str]:
+    """channel -> what is wrong with it and what to do, for every MDS channel the system cannot use: missing
+    (while others exist), owned by another user or too open, not an Ach file, truncated, corrupt, locked, or of
+    the wrong size."""
+    from mds_ach import ach
+    from mds_ach.ach import repair
+    from mds_ach.robot.channels import check_existing
+
+    if not any(os.path.lexists(ach.shm_path(n)) for n in names):
+        return {}  # nothing made yet: the node lines already say that nothing runs
+    problems = {}
+    for name in names:
+        health = repair.check(name)
+        if not health.ok:
+            problems[name] = f"{health.state}: {health.detail}; {health.hint()}"
+            continue
+        made = check_existing(name)
+        if not made.ok:
+            problems[name] = made.detail
+    return problems
+
+
+def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str], int]:
+    """Lines for ``mds-ach status`` and its exit status: 0 all well, 1 a channel is damaged or not to be
+    trusted, 3 a node is not running. Never raises for a damaged channel: it is reported with the repair hint."""
+    from mds_ach import ach
+    from mds_ach.robot.choice import effective_robot
+    from mds_ach.robot.daemon_status import MDS_DAEMON_STATUS
+    from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
+
+    rt = rt or runtime_dir()
+    lines = [f"runtime dir {rt}"]
+    running = running_nodes(rt)
+    for name in NODES:
+        pid = running.get(name)
+        stale = pid is None and pid_path(name, rt).exists()
+        state = f"running   pid {pid}" if pid else ("stopped   (stale pid file)" if stale else "stopped")
+        lines.append(f"  {name:<10} {state}")
+    robot, where = effective_robot()
+    lines.append(f"robot      {robot} ({where})")
+    problems = channel_problems()
+    lines += [f"channel    {name}: {text}" for name, text in problems.items()]
+    if not problems and any(ach.exists(n) for n in mds.ALL_CHANNELS):
+        lines.append(f"channels   ok ({len(mds.ALL_CHANNELS)})")
+    try:
+        measured = None if mds.MDS_CHAN_STATE_NAME in problems else state_rate(window)
+    except (ach.AchException, ValueError) as exc:
+        lines.append(f"state      unreadable: {exc}")
+    else:
+        if mds.MDS_CHAN_STATE_NAME in problems:
+            lines.append(f"state      unreadable (channel {mds.MDS_CHAN_STATE_NAME} above)")
+        elif measured is None:
+            lines.append(f"state      no {mds.MDS_CHAN_STATE_NAME} channel")
+        else:
+            rate, bad = measured
+            lines.append(f"state      {rate:.1f} frames/s on {mds.MDS_CHAN_STATE_NAME}" + ("" if rate > 0 else
+                                                                                             "  (not live)")
+                         + (f"  {bad} frame(s) of the wrong size ignored (not {ctypes.sizeof(mds.MDS_STATE)} B: "
+                            "a writer built against another mds.h?)" if bad else ""))
+    daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
+    collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+    try:
+        daemon.read()
+        live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
+        stale = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
+        lines.append("daemon     " + daemon_line(daemon.frame, None) + stale)
+        lines.append("collision  " + collision_summary(collide.read()))
+    finally:
+        daemon.close()
+        collide.close()
+    return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
+
+
+# --------------------------------------------------------------------------------------------- foreground run
+
+
+NEXT_STEPS = """\
+MDS-Ach is running{mode}. Node logs: {rt}
+In another terminal (same machine){activate}:
+  mds-ach read                 live joint table (q quits)
+  mds-ach console              goto / get / get fk / ik  (try: get fk left, goto LSP -0.3)
+  mds-ach status               nodes, loop rate, bus load, collisions
+  python examples/one_joint.py
+ROS 2 topics (/joint_states, /robot_description, ...) are inside this network namespace.
+Press Ctrl-C to stop everything."""
+
+
+def _activate_hint() -> str:
+    """How to get `mds-ach` on PATH in another shell, when it is not there already (e.g. after `make run`)."""
+    if shutil.which("mds-ach"):
+        return ""
+    activate = Path(sys.prefix) / "bin" / "activate"
+    return f", after `source {activate}`" if activate.is_file() else ""
+
+
+def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None) -> int:
+    """``mds-ach run``: start everything, print what to do next, supervise until Ctrl-C/SIGTERM, stop cleanly.
+
+    A node that dies takes the whole system down (with its log tail): a half-running pipeline would hold the
+    robot without anyone noticing."""
+    rt = runtime_dir()
+    stop_requested: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stop_requested.append(signum)
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        already = running_nodes(rt)
+        if already:
+            _err("mds-ach run: already running: " + ", ".join(f"{n} (pid {p})" for n, p in already.items())
+                 + "; stop them first with 'mds-ach stop'")
+            return 1
+        out(f"starting MDS-Ach{' on the simulated robot (nocan)' if nocan else ''} ...")
+        try:
+            procs = launch(nocan, timeout, rt=rt, abort=lambda: bool(stop_requested), out=out, group=group)
+        except LaunchError as exc:
+            if stop_requested:
+                out("interrupted; everything stopped")
+                return 0
+            _err(f"mds-ach run: {exc}")
+            return 1
+        out(NEXT_STEPS.format(mode=" on the simulated robot (nocan)" if nocan else "", rt=rt,
+                              activate=_activate_hint()))
+        failed = None
+        while not stop_requested and failed is None:
+            failed = _dead(procs)
+            if failed is None:
+                time.sleep(0.2)
+        if failed:
+            name, code = failed
+            _err(f"mds-ach run: {name} {_exit_text(code)}; last lines of {log_path(name, rt)}:\n"
+                 f"{log_tail(name, rt=rt)}\nstopping everything")
+        else:
+            out("stopping ...")
+        stop_nodes(NODES, rt=rt, procs=procs, out=out)
+        return 1 if failed else 0
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+
+
+# --------------------------------------------------------------------------------------------- CLI verbs
+
+
+def _add_nocan(p: argparse.ArgumentParser) -> None:
+    p.add_argument("mode", nargs="?", choices=["nocan"],
+                   help="'nocan': run on the simulated MDS bus instead of the CAN interface")
+    p.add_argument("--nocan", dest="nocan_flag", action="store_true", help="same as the 'nocan' word")
+    p.add_argument("--timeout", type=float, default=DEFAULT_START_TIMEOUT,
+                   help=f"seconds to wait for the state channel to go live (default {DEFAULT_START_TIMEOUT:g})")
+    p.add_argument("--group", metavar="GROUP",
+                   help="give channels created now to this group (the operators'), like 'mds-ach make --group'; "
+                        "existing channels must belong to it")
+
+
+def add_start_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Create the channels, then start each node as its own process (" + ", ".join(NODES) +
+                     "), with pid files and logs in the runtime directory ($MDS_ACH_RUNTIME_DIR). Returns once "
+                     "mds-state is live; exits 1 with the failing node's log tail otherwise.")
+    _add_nocan(p)
+    p.add_argument("--only", nargs="+", choices=NODES, metavar="NODE",
+                   help="start only these nodes (e.g. to restart one that was killed)")
+
+
+def run_start(args: argparse.Namespace) -> int:
+    nocan = args.mode == "nocan" or args.nocan_flag
+    names = args.only or NODES
+    rt = runtime_dir()
+    running = running_nodes(rt)
+    if not args.only and running:
+        _err("mds-ach start: already running: " + ", ".join(f"{n} (pid {p})" for n, p in running.items())
+             + "\n  use 'mds-ach stop' first, or 'mds-ach start --only NODE' to start missing nodes")
+        return 1
+    _out(f"starting MDS-Ach{' (nocan: simulated bus)' if nocan else ''}; runtime dir {rt}")
+    try:
+        launch(nocan, args.timeout, names, rt, group=args.group)
+    except LaunchError as exc:
+        _err(f"mds-ach start: {exc}")
+        return 1
+    except KeyboardInterrupt:
+        _err("mds-ach start: interrupted; the nodes started were stopped")
+        return 130
+    _out(f"MDS-Ach is running ({mds.MDS_CHAN_STATE_NAME} is live). 'mds-ach stop' stops it.")
+    return 0
+
+
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Start everything in the foreground, print what to do next, and stop everything cleanly "
+                     "on Ctrl-C or SIGTERM (this is what 'make run' does, with --nocan).")
+    _add_nocan(p)
+
+
+def run_run(args: argparse.Namespace) -> int:
+    return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group)
+
+
+def add_stop_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = "Stop the nodes: SIGTERM (clients and pipeline first, the daemon last), SIGKILL after a grace time."
+    p.add_argument("--grace", type=float, default=DEFAULT_STOP_GRACE,
+                   help=f"seconds to wait after SIGTERM before SIGKILL (default {DEFAULT_STOP_GRACE:g})")
+    p.add_argument("nodes", nargs="*", metavar="NODE", help=f"only these nodes ({', '.join(NODES)})")
+
+
+def run_stop(args: argparse.Namespace) -> int:
+    unknown = [n for n in args.nodes if n not in NODES]
+    if unknown:
+        _err(f"mds-ach stop: unknown node(s) {', '.join(unknown)}; nodes: {', '.join(NODES)}")
+        return 2
+    stopped = stop_nodes(args.nodes or NODES, grace=args.grace)
+    if not stopped:
+        _out("nothing was running")
+    return 0
+
+
+def add_kill_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = "SIGKILL every node (no clean shutdown; prefer 'stop')."
+
+
+def run_kill(args: argparse.Namespace) -> int:
+    if not stop_nodes(NODES, sig=signal.SIGKILL):
+        _out("nothing was running")
+    return 0
+
+
+def add_killall_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = "SIGKILL every node, then remove every MDS channel from /dev/shm."
+
+
+def run_killall(args: argparse.Namespace) -> int:
+    from mds_ach.robot.channels import remove_channels
+
+    stop_nodes(NODES, sig=signal.SIGKILL)
+    removed = remove_channels()
+    _out(f"removed {len(removed)} channels" + (": " + " ".join(removed) if removed else ""))
+    return 0
+
+
+def add_status_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Which nodes run, the health of every MDS channel (with the command that repairs a damaged "
+                     "one), the state rate, the daemon's loop rate and bus load, and the collision state. Exit "
+                     "status 0 when every node runs and every channel is sound, 1 when a channel is damaged or "
+                     "not to be trusted, 3 when a node is not running.")
+    p.add_argument("--window", type=float, default=1.0, help="seconds to measure the state rate (default 1)")
+
+
+def run_status(args: argparse.Namespace) -> int:
+    lines, status = status_report(window=args.window)
+    _out("\n".join(lines))
+    return status
+
+
+def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Ask the daemon to reset the CAN bus (recover from bus-off): sends MDS_CMD_RESET_BUS on "
+                     f"{mds.MDS_CHAN_BOARD_CMD_NAME}. The CAN link itself is configured by the operator, see "
+                     "docs/operator.md.")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the daemon's acknowledgement")
+
+
+def run_resetbus(args: argparse.Namespace) -> int:
+    from mds_ach import ach
+    from mds_ach.robot.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
+    from mds_ach.tools.monitor import Latest
+
+    status = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
+    try:
+        status.read()
+        try:
+            seq = send_command(mds.MDS_CMD_RESET_BUS)
+        except ach.AchException as exc:
+            _err(f"mds-ach resetbus: cannot write {mds.MDS_CHAN_BOARD_CMD_NAME}: {exc} (is the system started?)")
+            return 1
+        _out(f"sent MDS_CMD_RESET_BUS (seq {seq}) on {mds.MDS_CHAN_BOARD_CMD_NAME}")
+        deadline = time.monotonic() + args.timeout
+        while time.monotonic() < deadline:  # the daemon echoes the seq of each command it handled
+            st = status.wait_new(0.2)
+            if st is not None and st.cmd_seq == seq:
+                if st.cmd_result != CMD_OK:
+                    _err(f"mds-ach resetbus: the daemon could not reset the bus (result {st.cmd_result}); see "
+                         f"{log_path('daemon')}")
+                    return 1
+                _out(f"bus reset by the daemon: state {BUS_STATE_NAMES.get(st.bus_state, '?')}, "
+                     f"{st.bus_resets} reset(s) so far")
+                return 0
+    finally:
+        status.close()
+    _err(f"mds-ach resetbus: no acknowledgement from the daemon within {args.timeout:g} s (is it running? "
+         "'mds-ach status')")
+    return 1
+
+
+def add_changerobot_arguments(p: argparse.ArgumentParser) -> None:
+    from mds_ach.robot.config import available_robots
+
+    p.description = ("Choose the robot variant whose calibrated joint table the daemon loads at its next start "
+                     "(saved in $MDS_ACH_CONFIG_DIR/robot, default ~/.config/mds-ach/robot; $MDS_ACH_ROBOT "
+                     "overrides it). Restart the system for it to take effect.")
+    p.add_argument("robot", choices=available_robots(), help="robot variant")
+
+
+def run_changerobot(args: argparse.Namespace) -> int:
+    from mds_ach.robot.choice import save_robot
+    from mds_ach.robot.config import ROBOT_ENV, ConfigError, load
+
+    try:
+        load(args.robot)  # refuse a variant whose files do not load, before saving it
+        path = save_robot(args.robot)
+    except (ConfigError, ValueError, OSError) as exc:
+        _err(f"mds-ach changerobot: {exc}")
+        return 1
+    _out(f"robot variant '{args.robot}' saved in {path}")
+    if os.environ.get(ROBOT_ENV) and os.environ[ROBOT_ENV].strip().lower() != args.robot:
+        _err(f"note: ${ROBOT_ENV}={os.environ[ROBOT_ENV]} is set in this shell and overrides the saved choice")
+    if running_nodes():
+        _out("the system is running: restart it ('mds-ach stop', then 'mds-ach start') to use the new variant")
+    return 0
+
+
+# --------------------------------------------------------------------------------------------- exec entry
+
+
+def _exec(argv: list[str]) -> int:
+    """``python -m mds_ach.tools.launcher exec NODE [ARGS]``: run a node's main() when no console script exists."""
+    import importlib
+
+    if not argv or argv[0] not in ENTRY_POINTS:
+        _err(f"usage: python -m mds_ach.tools.launcher exec {{{','.join(NODES)}}} [ARGS...]")
+        return 2
+    module, _, func = ENTRY_POINTS[argv[0]].partition(":")
+    sys.argv = [argv[0], *argv[1:]]
+    return int(getattr(importlib.import_module(module), func)() or 0)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["exec"]:
+        raise SystemExit(_exec(sys.argv[2:]))
+    _err("usage: python -m mds_ach.tools.launcher exec NODE [ARGS...]  (use the 'mds-ach' command instead)")
+    raise SystemExit(2)
