@@ -19,7 +19,7 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach.robot import daemon_status, joints, msgs
 
-HEADER_PATH = Path(__file__).resolve().parent.parent / "include" / "mds.h"
+HEADER_PATH = Path(__file__).resolve().parents[2] / "include" / "mds.h"
 
 # The wire structs in dependency order (nested ones first), as the C typedef names use them.
 STRUCTS: tuple[type[ctypes.Structure], ...] = (
