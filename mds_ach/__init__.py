@@ -6,6 +6,7 @@ like the original ``mds_ach.py`` did. Heavy modules (torch, fcl, rclpy) are neve
 
 from __future__ import annotations
 
+from mds_ach.robot import joints, msgs  # noqa: F401  (mds.joints, mds.msgs: public before the sub-packages)
 from mds_ach.robot.joints import BY_ADDRESS, BY_NAME, BY_SHORT, JOINTS, Joint, getAddress, lookup
 from mds_ach.robot.msgs import (
     MDS_ARM_COUNT,
