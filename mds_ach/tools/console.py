@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import mds_ach as mds
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.tools.monitor import Latest
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
@@ -691,8 +692,6 @@ def _sigterm(signum: int, frame: object) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mds_ach.tools.cli import strip_ros_args
-
     argv = strip_ros_args(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="console")
     add_arguments(parser)

@@ -38,15 +38,15 @@ from mds_ach import ach, paths
 from mds_ach import procs as background
 from mds_ach.ach.watch import Latest
 from mds_ach.kinematics import model as kin
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import MODEL_JOINTS, lookup
-from mds_ach.tools.cli import strip_ros_args
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
 
 if TYPE_CHECKING:  # heavy imports stay out of `import mds_ach.tools.viewer` (the `mds-ach sim` start-up path)
     import trimesh
     import viser
 
-    from mds_ach.kinematics.collision import CollisionModel
+    from mds_ach.kinematics.collision import CollisionModel, WorldObject
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
@@ -300,48 +300,14 @@ class CollisionScene:
             handle.visible = hot or self._show
 
 
-@dataclass
-class WorldObject:
-    """A configured world object, posed in the base frame (on the floor)."""
-
-    name: str
-    kind: str
-    size: tuple[float, ...]
-    pose: np.ndarray
-    enabled: bool
-
-
 def load_world(path: Path, robot_zero: np.ndarray) -> list[WorldObject]:
-    """World objects from config/world.yaml (the collision gate's format; a missing file means none).
+    """World objects from config/world.yaml, parsed as the collision gate parses them (a missing file: none).
 
     ``robot_zero`` is the torso pose at WST = 0, the ``robot`` frame. Bad entries raise ValueError naming them.
     """
-    from mds_ach.kinematics.collision import load_yaml, pose_matrix, shape_from_config
+    from mds_ach.kinematics.collision import load_world as parse
 
-    if not path.is_file():
-        return []
-    data = load_yaml(path)
-    default_frame = str(data.get("frame", "robot"))
-    objects = []
-    for k, entry in enumerate(data.get("objects") or []):
-        if not isinstance(entry, Mapping):
-            raise ValueError(f"{path.name}: objects[{k}] must be a mapping")
-        name = str(entry.get("name", k))
-        where = f"{path.name}: world object {name!r}"
-        kind, size = shape_from_config(entry, where)
-        frame = str(entry.get("frame", default_frame))
-        if frame not in ("robot", "base"):
-            raise ValueError(f"{where}: frame must be 'robot' or 'base', got {frame!r}")
-        try:
-            pose = pose_matrix(entry.get("xyz", (0, 0, 0)), entry.get("rpy", (0, 0, 0)))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{where}: xyz/rpy must be lists of 3 numbers ({exc})") from None
-        if not np.all(np.isfinite(pose)):
-            raise ValueError(f"{where}: xyz/rpy must be finite")
-        if frame == "robot":
-            pose = robot_zero @ pose
-        objects.append(WorldObject(name, kind, size, pose, bool(entry.get("enabled", True))))
-    return objects
+    return parse(path, robot_zero)
 
 
 # --------------------------------------------------------------------------------------------------
