@@ -59,8 +59,8 @@ with the C twins ``_achfast`` and ``_shmguard``), the read-only watcher (``watch
 (``repair``). It re-exports the public API, so ``from mds_ach import ach; ach.Channel(...)`` is all a client
 needs.
 
-Imports: the standard library only; nothing else of mds_ach (it is the bottom layer; ``repair`` is a command
-and is given the channel list by its caller).
+Imports: the standard library only; nothing else of mds_ach (it is the bottom layer). Exception still to remove:
+``repair`` (a command) reads the channel list and the access rules from ``mds_ach`` / ``mds_ach.robot.access``.
 """
 
 from __future__ import annotations
