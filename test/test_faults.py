@@ -119,8 +119,8 @@ PUT_STAGES: dict[str, tuple[str, list[int]]] = {
     "data copied": ("seq = last + 1", [4, 5, 6]),
     "last_seq bumped": ("q[e] = n", [4, 5, 6]),
     "index entry half written": ("q[e + 2] = seq", [4, 5, 6]),
-    "entry written, heads not moved": ("q[_Q_DATA_HEAD] = (data_head + n) % dsize", [4, 5, 6, 7]),
-    "data head moved, index head not": ("q[_Q_INDEX_HEAD] = (index_head + 1) % cnt", [4, 5, 6]),
+    "entry written, heads not moved": ("q[Q_DATA_HEAD] = (data_head + n) % dsize", [4, 5, 6, 7]),
+    "data head moved, index head not": ("q[Q_INDEX_HEAD] = (index_head + 1) % cnt", [4, 5, 6]),
 }
 
 
