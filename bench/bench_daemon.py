@@ -86,9 +86,10 @@ def role_writer(rate: float, seconds: float) -> None:
 
 def role_loop(kind: str, rate: float, seconds: float) -> None:
     """Run the daemon loop (``abs``: the real scheduled thread; ``naive``: cycle + time.sleep) and print JSON."""
+    from mds_ach.ach.glibc import tune_thread
     from mds_ach.bus import canio
     from mds_ach.bus.simbus import SimNetwork
-    from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, tune_thread
+    from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
     from mds_ach.robot import config
 
     _nice()

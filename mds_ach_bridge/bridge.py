@@ -9,6 +9,7 @@ import argparse
 import sys
 
 import mds_ach as mds
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import joints
 from mds_ach_bridge import topics
 
@@ -53,21 +54,12 @@ examples:
 SWITCH_INTERVAL_S = 0.0005
 
 
-def _split_ros_args(argv: list[str]) -> list[str]:
-    """Drop ROS arguments without importing rclpy unless there are any."""
-    if "--ros-args" not in argv:
-        return argv
-    from rclpy.utilities import remove_ros_args
-
-    return remove_ros_args(argv)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv if argv is None else [sys.argv[0], *argv])
     parser = argparse.ArgumentParser(
         prog="bridge", description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.parse_args(_split_ros_args(args)[1:])
+    parser.parse_args(strip_ros_args(args)[1:])
 
     import rclpy
     from rclpy.exceptions import ParameterException

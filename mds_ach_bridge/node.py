@@ -29,7 +29,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 import mds_ach as mds
 from mds_ach import ach, paths
-from mds_ach.nodes.daemon_loop import tune_thread
+from mds_ach.ach.glibc import tune_thread
 from mds_ach.robot import joints
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE

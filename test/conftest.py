@@ -70,9 +70,10 @@ def ach_impl(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) ->
     could have been built but was not, so "fast" never silently means "pure".
     """
     from mds_ach import ach
+    from mds_ach.ach import channel
 
     if request.param == "pure":
-        monkeypatch.setattr(ach, "_achfast", None)
+        monkeypatch.setattr(channel, "_achfast", None)  # the module whose Channel consults it (at open)
         monkeypatch.setenv("MDS_ACH_PURE_PYTHON", "1")
     elif not ach.FAST_AVAILABLE:
         pytest.skip("mds_ach.ach._achfast is not built here (no C compiler); test_ach_fast.py reports why")

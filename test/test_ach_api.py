@@ -19,6 +19,7 @@ import pytest
 from conftest import wait_for
 
 from mds_ach import ach
+from mds_ach.ach import channel as ach_channel  # the wait tunables are globals of the module that waits
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
 
@@ -609,9 +610,9 @@ def test_put_wakes_waiter_without_polling(clean_shm: None, monkeypatch: pytest.M
                                           condvar_wait: bool) -> None:
     """With the re-check slices stretched to 60 s, only the writer's wake-up (futex wake / condvar broadcast)
     can end the wait before the 30 s timeout."""
-    monkeypatch.setattr(ach, "POLL_SLICE", 60.0)
-    monkeypatch.setattr(ach, "IDLE_SLICE", 60.0)
-    monkeypatch.setattr(ach, "WAIT_SLICE", 60.0)
+    monkeypatch.setattr(ach_channel, "POLL_SLICE", 60.0)
+    monkeypatch.setattr(ach_channel, "IDLE_SLICE", 60.0)
+    monkeypatch.setattr(ach_channel, "WAIT_SLICE", 60.0)
     ach.create(NAME, 4, 64)
     with ach.Channel(NAME) as w, ach.Channel(NAME, condvar_wait=condvar_wait) as r:
         result: list[tuple[int, int]] = []

@@ -19,6 +19,7 @@ import pytest
 from conftest import wait_for
 
 from mds_ach import ach
+from mds_ach.ach import channel as ach_channel  # the wait tunables are globals of the module that waits
 
 pytestmark = pytest.mark.usefixtures("ach_impl")  # every test: C fast path and pure Python
 
@@ -187,7 +188,7 @@ def test_concurrent_writers_keep_channel_consistent(children: list[Child]) -> No
 def test_blocked_get_woken_by_other_process(children: list[Child], condvar_wait: bool) -> None:
     ach.create(NAME, 10, 64)
     code = """
-        ach.POLL_SLICE = ach.WAIT_SLICE = 60.0  # only the writer's wake-up can end this wait in time
+        ach.channel.POLL_SLICE = ach.channel.WAIT_SLICE = 60.0  # only the writer's wake-up can end this wait in time
         ch = ach.Channel(sys.argv[1], create=False, condvar_wait=sys.argv[2] == "True")
         buf = bytearray(64)
         print("ready", flush=True)
@@ -207,9 +208,9 @@ def test_blocked_get_woken_by_other_process(children: list[Child], condvar_wait:
 def test_blocked_get_woken_by_other_process_put_reverse(children: list[Child], condvar_wait: bool,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """This process blocks; another process's put wakes it."""
-    monkeypatch.setattr(ach, "POLL_SLICE", 60.0)
-    monkeypatch.setattr(ach, "IDLE_SLICE", 60.0)
-    monkeypatch.setattr(ach, "WAIT_SLICE", 60.0)
+    monkeypatch.setattr(ach_channel, "POLL_SLICE", 60.0)
+    monkeypatch.setattr(ach_channel, "IDLE_SLICE", 60.0)
+    monkeypatch.setattr(ach_channel, "WAIT_SLICE", 60.0)
     ach.create(NAME, 10, 64)
     result: list[tuple[int, int]] = []
     buf = bytearray(64)

@@ -20,6 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mds_ach import ach
+from mds_ach.ach import channel as ach_channel  # the wait tunables are globals of the module that waits
 
 NAME_FAST, NAME_PURE = "test-fast-c", "test-fast-py"
 LAYOUT = ach.native_layout()
@@ -308,9 +309,9 @@ def test_frames_without_a_wake_up_switch_the_reader_to_short_slices(clean_shm: N
     """Writers of this package wake waiting readers, so idle readers look again only every IDLE_SLICE. A C libach
     writer only broadcasts the condvar: its first frame is seen within IDLE_SLICE, the next ones within
     POLL_SLICE; after enough woken frames the reader goes back to IDLE_SLICE."""
-    monkeypatch.setattr(ach, "IDLE_SLICE", 0.4)
-    monkeypatch.setattr(ach, "POLL_SLICE", 0.005)
-    monkeypatch.setattr(ach, "_SHORT_SLICE_FRAMES", 3)
+    monkeypatch.setattr(ach_channel, "IDLE_SLICE", 0.4)
+    monkeypatch.setattr(ach_channel, "POLL_SLICE", 0.005)
+    monkeypatch.setattr(ach_channel, "_SHORT_SLICE_FRAMES", 3)
     ach.create(NAME_FAST, 8, 32)
     with ach.Channel(NAME_FAST) as r, ach.Channel(NAME_FAST, fast=False) as c_like, ach.Channel(NAME_FAST) as w:
         c_like._wake_all = lambda: c_like._cond_broadcast(c_like._cond)  # libach's put: broadcast, no futex wake

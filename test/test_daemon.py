@@ -24,11 +24,13 @@ from conftest import VENV_BIN, wait_for
 from motion_audit import Audit, MemoryLog, audit
 
 import mds_ach as mds
+from mds_ach.ach.glibc import sleep_until
 from mds_ach.bus import canio, mcb
+from mds_ach.bus.constants import CAN_ERR_CRTL, CAN_ERR_CRTL_ACTIVE, CAN_ERR_CRTL_RX_PASSIVE
 from mds_ach.bus.mcb import Command, StateArg
-from mds_ach.bus.simbus import CAN_ERR_CRTL, ManualClock, SimNetwork
+from mds_ach.bus.simbus import ManualClock, SimNetwork
 from mds_ach.nodes import daemon
-from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, sleep_until
+from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
 from mds_ach.nodes.filters import filter_length
 from mds_ach.robot import config
 from mds_ach.robot import daemon_status as ds
@@ -401,7 +403,7 @@ def test_unknown_nodes_malformed_and_error_frames_are_counted(rig: Rig) -> None:
     nan_counts = mcb.pack(mcb.Response.STATE, StateArg.ACTUAL_POSITION, 0x7FC00000, 0x4C)
     rig.net.inject_frame(0x10, nan_counts)
     rig.net.inject_frame(0x10, bytes(mcb.encode_warning(0x4C, mcb.ErrorCode.TRACKING_ERROR).data))
-    rig.net.inject_error_frame(CAN_ERR_CRTL, status=0x10)
+    rig.net.inject_error_frame(CAN_ERR_CRTL, status=CAN_ERR_CRTL_RX_PASSIVE)
     st = rig.step()
     status = status_of(rig)
     assert status.unknown_node_frames == 1
@@ -409,7 +411,7 @@ def test_unknown_nodes_malformed_and_error_frames_are_counted(rig: Rig) -> None:
     assert status.node_errors == 1
     assert status.error_frames == 1 and status.bus_state == ds.BUS_STATE_PASSIVE
     assert math.isfinite(st.joint[0x4C].pos)
-    rig.net.inject_error_frame(CAN_ERR_CRTL, status=0x40)  # CAN_ERR_CRTL_ACTIVE: back to error-active
+    rig.net.inject_error_frame(CAN_ERR_CRTL, status=CAN_ERR_CRTL_ACTIVE)  # back to error-active
     rig.step()
     assert status_of(rig).bus_state == ds.BUS_STATE_ACTIVE
 

@@ -42,16 +42,16 @@ import mds_ach as mds
 from mds_ach import ach
 from mds_ach.ach import repair
 from mds_ach.bus import canio, mcb
-from mds_ach.bus.mcb import Command, StateArg
-from mds_ach.bus.simbus import (
+from mds_ach.bus.constants import (
     CAN_ERR_BUSERROR,
     CAN_ERR_CRTL,
+    CAN_ERR_CRTL_ACTIVE,
     CAN_ERR_CRTL_RX_PASSIVE,
     CAN_ERR_CRTL_TX_WARNING,
     CAN_ERR_PROT,
-    ManualClock,
-    SimNetwork,
 )
+from mds_ach.bus.mcb import Command, StateArg
+from mds_ach.bus.simbus import ManualClock, SimNetwork
 from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import config
@@ -60,7 +60,6 @@ from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_CMD, MDS_REF, MDS_STATE
 
 TABLE = config.load("default")
-CAN_ERR_CRTL_ACTIVE = 0x40  # <linux/can/error.h>: data[1] "recovered to error active state"
 
 
 # ============================================================================================ 1. crashed writers
@@ -120,8 +119,8 @@ PUT_STAGES: dict[str, tuple[str, list[int]]] = {
     "data copied": ("seq = last + 1", [4, 5, 6]),
     "last_seq bumped": ("q[e] = n", [4, 5, 6]),
     "index entry half written": ("q[e + 2] = seq", [4, 5, 6]),
-    "entry written, heads not moved": ("q[_Q_DATA_HEAD] = (data_head + n) % dsize", [4, 5, 6, 7]),
-    "data head moved, index head not": ("q[_Q_INDEX_HEAD] = (index_head + 1) % cnt", [4, 5, 6]),
+    "entry written, heads not moved": ("q[Q_DATA_HEAD] = (data_head + n) % dsize", [4, 5, 6, 7]),
+    "data head moved, index head not": ("q[Q_INDEX_HEAD] = (index_head + 1) % cnt", [4, 5, 6]),
 }
 
 

@@ -9,8 +9,9 @@ import can
 import pytest
 
 from mds_ach.bus import canio, mcb
+from mds_ach.bus.constants import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED
 from mds_ach.bus.mcb import Command, ErrorCode, Response, StateArg
-from mds_ach.bus.simbus import CAN_ERR_BUSOFF, CAN_ERR_RESTARTED, ManualClock, SimBus, SimNetwork
+from mds_ach.bus.simbus import ManualClock, SimBus, SimNetwork
 from mds_ach.robot import config
 
 

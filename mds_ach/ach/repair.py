@@ -38,18 +38,19 @@ from pathlib import Path
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.ach.glibc import FUTEX_TID_MASK, Timespec, pthread
+from mds_ach.ach.layout import (
+    OFF_DATA_FREE,
+    OFF_DATA_HEAD,
+    OFF_DATA_SIZE,
+    OFF_INDEX_CNT,
+    OFF_INDEX_FREE,
+    OFF_INDEX_HEAD,
+)
 from mds_ach.robot import access as channel_access
 
 LOCK_TIMEOUT = 1.0  # s: a healthy put or get holds the lock for microseconds
 
-# Header fields (u64) at fixed byte offsets on every architecture (see specs/ach-format.md section 2.1).
-_OFF_INDEX_CNT = 88
-_OFF_DATA_SIZE = 96
-_OFF_DATA_HEAD = 104
-_OFF_DATA_FREE = 112
-_OFF_INDEX_HEAD = 120
-_OFF_INDEX_FREE = 128
-_FUTEX_TID_MASK = 0x3FFFFFFF
 _U64 = struct.Struct("<Q")
 _I32 = struct.Struct("<i")
 
@@ -100,43 +101,6 @@ class Report:
             if self.users:
                 text += f"; restart the processes that still map the old file: pids {' '.join(map(str, self.users))}"
         return text
-
-
-# --------------------------------------------------------------------------------------------- glibc
-
-
-class _Timespec(ctypes.Structure):
-    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
-
-
-class _Libc:
-    """The pthread calls a repair needs (glibc >= 2.34 has them in libc, older ones in libpthread)."""
-
-    def __init__(self) -> None:
-        try:
-            lib = ctypes.CDLL("libc.so.6", use_errno=True)
-            lib.pthread_mutex_timedlock  # noqa: B018 - probe
-        except (OSError, AttributeError):
-            lib = ctypes.CDLL("libpthread.so.0", use_errno=True)
-        vp = [ctypes.c_void_p]
-        self.timedlock = lib.pthread_mutex_timedlock
-        self.timedlock.argtypes = [ctypes.c_void_p, ctypes.POINTER(_Timespec)]
-        self.consistent = lib.pthread_mutex_consistent
-        self.unlock = lib.pthread_mutex_unlock
-        for f in (self.consistent, self.unlock):
-            f.argtypes = vp
-        for f in (self.timedlock, self.consistent, self.unlock):
-            f.restype = ctypes.c_int
-
-
-_libc: _Libc | None = None
-
-
-def _pthread() -> _Libc:
-    global _libc
-    if _libc is None:
-        _libc = _Libc()
-    return _libc
 
 
 # --------------------------------------------------------------------------------------------- who uses it
@@ -213,7 +177,7 @@ class _Mapped:
 
     @property
     def lock_owner(self) -> int:
-        return _I32.unpack_from(self.mm, self.layout.mutex)[0] & _FUTEX_TID_MASK
+        return _I32.unpack_from(self.mm, self.layout.mutex)[0] & FUTEX_TID_MASK
 
     @property
     def lost(self) -> bool:
@@ -241,9 +205,9 @@ def _ring_problem(m: _Mapped) -> str | None:
     """Ring counters or live index entries out of range (what every get and put refuses), or None. Caller holds
     the lock."""
     h = m.layout.header_size
-    cnt, dsize, last_seq = m.u64(_OFF_INDEX_CNT), m.u64(_OFF_DATA_SIZE), m.u64(m.layout.last_seq)
-    index_head, index_free = m.u64(_OFF_INDEX_HEAD), m.u64(_OFF_INDEX_FREE)
-    data_head, data_free = m.u64(_OFF_DATA_HEAD), m.u64(_OFF_DATA_FREE)
+    cnt, dsize, last_seq = m.u64(OFF_INDEX_CNT), m.u64(OFF_DATA_SIZE), m.u64(m.layout.last_seq)
+    index_head, index_free = m.u64(OFF_INDEX_HEAD), m.u64(OFF_INDEX_FREE)
+    data_head, data_free = m.u64(OFF_DATA_HEAD), m.u64(OFF_DATA_FREE)
     if not (index_head < cnt and index_free <= cnt and data_head < dsize and data_free <= dsize):
         return (f"ring counters out of range: index_head {index_head}, index_free {index_free} ({cnt} slots), "
                 f"data_head {data_head}, data_free {data_free} ({dsize} bytes)")
@@ -256,12 +220,12 @@ def _ring_problem(m: _Mapped) -> str | None:
 
 def _lock(m: _Mapped, timeout: float) -> tuple[int, str]:
     """pthread_mutex_timedlock on the channel mutex; (0 or EOWNERDEAD when we hold it, else the error), note."""
-    fn = _pthread()
+    fn = pthread()
     deadline = time.clock_gettime(time.CLOCK_REALTIME) + timeout
-    ts = _Timespec(int(math.floor(deadline)), int((deadline - math.floor(deadline)) * 1e9))
-    r = fn.timedlock(m.mutex, ctypes.byref(ts))
+    ts = Timespec.at(deadline)
+    r = fn.mutex_timedlock(m.mutex, ctypes.byref(ts))
     if r == errno.EOWNERDEAD:
-        fn.consistent(m.mutex)
+        fn.mutex_consistent(m.mutex)
         return r, "a process died holding the lock (recovered)"
     if r == errno.ETIMEDOUT:
         return r, f"lock held for more than {timeout:g} s by {_holder(m.lock_owner)}"
@@ -275,7 +239,7 @@ def _lock(m: _Mapped, timeout: float) -> tuple[int, str]:
 def _unlock(m: _Mapped) -> None:
     """Unlock only. No condvar broadcast: a corrupt channel has no waiters (every wait returns ACH_CORRUPT), the
     next put wakes readers anyway, and a condvar wedged by a killed waiter would hang the broadcast forever."""
-    _pthread().unlock(m.mutex)
+    pthread().mutex_unlock(m.mutex)
 
 
 # --------------------------------------------------------------------------------------------- in-place rebuild
@@ -292,8 +256,8 @@ class _Entry:
 def _good_frames(m: _Mapped) -> tuple[list[_Entry], int]:
     """The frames that are certainly complete, oldest first, and how many live-looking entries were dropped."""
     h = m.layout.header_size
-    cnt, dsize = m.u64(_OFF_INDEX_CNT), m.u64(_OFF_DATA_SIZE)
-    last_seq, index_head, data_head = m.u64(m.layout.last_seq), m.u64(_OFF_INDEX_HEAD), m.u64(_OFF_DATA_HEAD)
+    cnt, dsize = m.u64(OFF_INDEX_CNT), m.u64(OFF_DATA_SIZE)
+    last_seq, index_head, data_head = m.u64(m.layout.last_seq), m.u64(OFF_INDEX_HEAD), m.u64(OFF_DATA_HEAD)
     live = []
     for slot in range(cnt):
         size, offset, seq = struct.unpack_from("<QQQ", m.mm, h + 8 + 24 * slot)
@@ -320,7 +284,7 @@ def _good_frames(m: _Mapped) -> tuple[list[_Entry], int]:
 def _rebuild(m: _Mapped) -> tuple[int, int]:
     """Rewrite index and counters around the good frames (caller holds the lock). Returns (kept, dropped)."""
     h = m.layout.header_size
-    cnt, dsize = m.u64(_OFF_INDEX_CNT), m.u64(_OFF_DATA_SIZE)
+    cnt, dsize = m.u64(OFF_INDEX_CNT), m.u64(OFF_DATA_SIZE)
     kept, dropped = _good_frames(m)
     keep = {e.slot for e in kept}
     for slot in range(cnt):
@@ -333,9 +297,9 @@ def _rebuild(m: _Mapped) -> tuple[int, int]:
         index_head = (newest.slot + 1) % cnt
         m.set_u64(m.layout.last_seq, newest.seq)
     else:  # nothing survived: an empty ring; last_seq stays, so readers that saw older frames just wait
-        data_head, data_free, index_head = 0, dsize, m.u64(_OFF_INDEX_HEAD) % cnt
-    for offset, value in ((_OFF_DATA_HEAD, data_head), (_OFF_DATA_FREE, data_free),
-                          (_OFF_INDEX_HEAD, index_head), (_OFF_INDEX_FREE, cnt - len(kept))):
+        data_head, data_free, index_head = 0, dsize, m.u64(OFF_INDEX_HEAD) % cnt
+    for offset, value in ((OFF_DATA_HEAD, data_head), (OFF_DATA_FREE, data_free),
+                          (OFF_INDEX_HEAD, index_head), (OFF_INDEX_FREE, cnt - len(kept))):
         m.set_u64(offset, value)
     m.dirty = 0
     return len(kept), dropped
@@ -407,8 +371,8 @@ def _geometry(name: str) -> tuple[int, int, int, int, int]:
     st = os.stat(path)
     try:
         with open(path, "rb") as f:
-            head = f.read(_OFF_DATA_SIZE + 8)
-        cnt, dsize = struct.unpack_from("<QQ", head, _OFF_INDEX_CNT)
+            head = f.read(OFF_DATA_SIZE + 8)
+        cnt, dsize = struct.unpack_from("<QQ", head, OFF_INDEX_CNT)
         if 0 < cnt <= 1 << 20 and 0 < dsize <= 1 << 34 and dsize % cnt == 0:
             count, size = cnt, dsize // cnt
     except (OSError, struct.error):

@@ -44,26 +44,19 @@ import can
 import numpy as np
 
 from mds_ach.bus import mcb
+from mds_ach.bus.constants import (
+    CAN_ERR_BUSERROR,
+    CAN_ERR_BUSOFF,
+    CAN_ERR_CRTL_ACTIVE,
+    CAN_ERR_CRTL_RX_PASSIVE,
+    CAN_ERR_CRTL_TX_PASSIVE,
+    CAN_ERR_PROT,
+    CAN_ERR_RESTARTED,
+)
 from mds_ach.bus.mcb import Command, ErrorCode, StateArg, TrajectoryMode
 
 _WORD = struct.Struct("<IHBB")  # value word, address, argument, command (see mds_ach.bus.mcb)
 log = logging.getLogger(__name__)
-
-# Linux <linux/can/error.h> error-frame classes (arbitration_id bits) and controller status (data[1]).
-CAN_ERR_TX_TIMEOUT = 0x001
-CAN_ERR_LOSTARB = 0x002
-CAN_ERR_CRTL = 0x004
-CAN_ERR_PROT = 0x008
-CAN_ERR_TRX = 0x010
-CAN_ERR_ACK = 0x020
-CAN_ERR_BUSOFF = 0x040
-CAN_ERR_BUSERROR = 0x080
-CAN_ERR_RESTARTED = 0x100
-CAN_ERR_CRTL_RX_WARNING = 0x04
-CAN_ERR_CRTL_TX_WARNING = 0x08
-CAN_ERR_CRTL_RX_PASSIVE = 0x10
-CAN_ERR_CRTL_TX_PASSIVE = 0x20
-CAN_ERR_CRTL_ACTIVE = 0x40  # recovered to error-active
 
 DEFAULT_MAX_VELOCITY_REV_S = 0.5  # motor revolutions/s when nothing set it (assumption: not in any source)
 DEFAULT_ACCEL_DEG_S2 = 80.0

@@ -200,6 +200,55 @@ def _pose_from_config(entry: Mapping[str, Any], where: str) -> np.ndarray:
     return pose_matrix(xyz, rpy)
 
 
+@dataclass
+class WorldObject:
+    """A configured world object, posed in the base frame (on the floor)."""
+
+    name: str
+    kind: str
+    size: tuple[float, ...]
+    pose: np.ndarray
+    enabled: bool
+    padding: float = 0.0  # m the collision gate grows it by (the viewer shows it as configured)
+
+
+def parse_world(world: Mapping[str, Any], robot_zero: np.ndarray, source: str = "") -> list[WorldObject]:
+    """The objects of a ``config/world.yaml`` mapping: the one parser, for the collision gate and the viewer.
+
+    Poses are in ``frame``: ``robot`` (the torso frame at WST = 0, ``robot_zero``: origin between the shoulders,
+    x forward, y left, z up) or ``base`` (base_link, on the floor). Bad entries raise ValueError naming them
+    (and ``source``, the file, when given)."""
+    prefix = f"{source}: " if source else ""
+    default_frame = str(world.get("frame", "robot"))
+    objects = []
+    for k, obj in enumerate(world.get("objects") or []):
+        if not isinstance(obj, Mapping):
+            raise ValueError(f"{prefix}world objects[{k}] must be a mapping")
+        name = str(obj.get("name", k))
+        where = f"{prefix}world object {name!r}"
+        kind, size = shape_from_config(obj, where)
+        frame = str(obj.get("frame", default_frame))
+        if frame not in ("robot", "base"):
+            raise ValueError(f"{where}: frame must be 'robot' or 'base', got {frame!r}")
+        pose = _pose_from_config(obj, where)
+        if frame == "robot":
+            pose = robot_zero @ pose
+        try:
+            padding = float(obj.get("padding", 0.0))
+        except (TypeError, ValueError):
+            padding = math.nan
+        if not (math.isfinite(padding) and padding >= 0):
+            raise ValueError(f"{where}: padding must be >= 0")
+        objects.append(WorldObject(name, kind, size, pose, bool(obj.get("enabled", True)), padding))
+    return objects
+
+
+def load_world(path: str | Path, robot_zero: np.ndarray) -> list[WorldObject]:
+    """:func:`parse_world` of a file; a missing file means no objects."""
+    path = Path(path)
+    return parse_world(load_yaml(path), robot_zero, path.name) if path.is_file() else []
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     import yaml
 
@@ -401,30 +450,13 @@ class CollisionModel:
         return "body"
 
     def _world_primitives(self, world: Mapping[str, Any]) -> Iterable[tuple[Primitive, int]]:
-        """World objects, fixed to the floor. Poses are in ``frame``: ``robot`` (the torso frame at WST = 0,
-        origin between the shoulders, x forward, y left, z up) or ``base`` (base_link, on the floor)."""
+        """The enabled world objects (:func:`parse_world`), grown by their ``padding``, fixed to the floor."""
         n = len(self.joint_names)
-        default_frame = str(world.get("frame", "robot"))
-        robot_zero = self.tree.link_pose("torso", np.zeros(n))
-        for k, obj in enumerate(world.get("objects") or []):
-            where = f"world object {obj.get('name', k)!r}"
-            if not isinstance(obj, Mapping):
-                raise ValueError(f"world objects[{k}] must be a mapping")
-            if not obj.get("enabled", True):
+        for obj in parse_world(world, self.tree.link_pose("torso", np.zeros(n))):
+            if not obj.enabled:
                 continue
-            kind, size = shape_from_config(obj, where)
-            frame = str(obj.get("frame", default_frame))
-            if frame not in ("robot", "base"):
-                raise ValueError(f"{where}: frame must be 'robot' or 'base', got {frame!r}")
-            pose = _pose_from_config(obj, where)
-            if frame == "robot":
-                pose = robot_zero @ pose
-            padding = float(obj.get("padding", 0.0))
-            if not (math.isfinite(padding) and padding >= 0):
-                raise ValueError(f"{where}: padding must be >= 0")
-            if padding:
-                size = inflate(kind, size, padding)
-            yield Primitive(f"world:{obj.get('name', k)}", "world", kind, size, pose, "world", -1), n
+            size = inflate(obj.kind, obj.size, obj.padding) if obj.padding else obj.size
+            yield Primitive(f"world:{obj.name}", "world", obj.kind, size, obj.pose, "world", -1), n
 
     def _pairs(self, config: Mapping[str, Any]) -> list[tuple[int, int]]:
         """Arm-arm, arm-body, arm-head, arm-world and listed same-arm pairs, minus ``ignore_pairs``."""

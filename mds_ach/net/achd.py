@@ -31,7 +31,6 @@ import fnmatch
 import ipaddress
 import logging
 import math
-import os
 import select
 import signal
 import socket
@@ -41,6 +40,8 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 
+from mds_ach import ach
+from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
 from mds_ach.robot import msgs
 
@@ -262,28 +263,20 @@ CHANNEL_CHECK_S = 1.0
 """How often a streaming loop checks that its channel file is still the one it opened."""
 
 
-def channel_replaced(chan) -> bool:
-    """True when the channel's file was removed or re-created since ``chan`` opened it (e.g. the robot's stack
-    was restarted): the handle then reads and writes an orphan nobody else sees any more."""
-    try:
-        return os.stat(_ach().shm_path(chan.name)).st_ino != os.fstat(chan.fileno()).st_ino
-    except OSError:
-        return True
+def channel_replaced(chan: ach.Channel) -> bool:
+    """True when the channel's file was removed or re-created since ``chan`` opened it."""
+    return replaced(chan)
 
 
-class _ChannelWatch:
+class _ChannelWatch(ReplacementCheck):
     """Raises :class:`ConnectionLostError` from a streaming loop once its channel has been replaced."""
 
-    def __init__(self, chan) -> None:
-        self.chan = chan
-        self.next_check = time.monotonic() + CHANNEL_CHECK_S
+    def __init__(self, chan: ach.Channel) -> None:
+        super().__init__(chan, CHANNEL_CHECK_S)
 
     def check(self) -> None:
-        now = time.monotonic()
-        if now >= self.next_check:
-            self.next_check = now + CHANNEL_CHECK_S
-            if channel_replaced(self.chan):
-                raise ConnectionLostError(f"channel {self.chan.name} was removed or re-created")
+        if self.due_and_replaced():
+            raise ConnectionLostError(f"channel {self.chan.name} was removed or re-created")
 
 
 def _count_drop(stats: LinkStats, problem: tuple[str, str], what: str) -> None:

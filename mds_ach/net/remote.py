@@ -22,7 +22,6 @@ import argparse
 import json
 import logging
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -33,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import mds_ach as mds
+from mds_ach import procs as background
 from mds_ach.net import achd
 from mds_ach.net import protocol as ap
 from mds_ach.paths import runtime_dir
@@ -289,20 +289,9 @@ def _session_status(args: argparse.Namespace, links: list[achd.Link], tunnel: Ss
 # --------------------------------------------------------------------------------------------------
 
 
-def _cmdline(pid: int) -> list[str]:
-    try:
-        return [a.decode(errors="replace") for a in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") if a]
-    except OSError:
-        return []
-
-
 def read_pid(pid_path: Path) -> int | None:
     """The pid in ``pid_path`` if that process still runs this module (a reused pid is never trusted)."""
-    try:
-        pid = int(pid_path.read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return None
-    return pid if "mds_ach.net.remote" in _cmdline(pid) else None
+    return background.running_pid(pid_path, lambda argv: "mds_ach.net.remote" in argv)
 
 
 def _child_argv(argv: list[str]) -> list[str]:
@@ -317,12 +306,8 @@ def _spawn(role: str, argv: list[str], ready, wait_s: float) -> int:
         print(f"mds-ach remote: already running (pid {running}); stop it with 'mds-ach remote kill'", file=sys.stderr)
         return 1
     status_path.unlink(missing_ok=True)
-    with open(log_path, "ab") as logf:
-        proc = subprocess.Popen(
-            _child_argv(argv), stdin=subprocess.DEVNULL, stdout=logf, stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-    pid_path.write_text(f"{proc.pid}\n")
+    proc = background.spawn_detached(_child_argv(argv), log_path)
+    background.write_pid_file(pid_path, proc.pid)
     deadline = time.monotonic() + wait_s
     status: dict = {}
     try:
@@ -354,34 +339,14 @@ def _spawn(role: str, argv: list[str], ready, wait_s: float) -> int:
             print(f"  {link['name']}: NOT connected ({link.get('last_error') or 'no answer'})", file=sys.stderr)
     if status.get("tunnel") and status["tunnel"].get("stderr"):
         print("  ssh: " + " | ".join(status["tunnel"]["stderr"]), file=sys.stderr)
-    tail = log_path.read_text(errors="replace").splitlines()[-15:]
+    tail = background.log_tail(log_path, 15)
     if tail:
         print(f"last lines of {log_path}:\n" + "\n".join(tail), file=sys.stderr)
     return 1
 
 
 def _stop_pid(pid: int, grace_s: float = 5.0) -> None:
-    try:
-        os.kill(pid, signal.SIGTERM)
-    except ProcessLookupError:
-        return
-    deadline = time.monotonic() + grace_s
-    while time.monotonic() < deadline:
-        if not Path(f"/proc/{pid}").exists() or _is_zombie(pid):
-            return
-        time.sleep(0.05)
-    try:
-        os.kill(pid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-
-
-def _is_zombie(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return True
-    return stat[stat.rfind(")") + 2 :][:1] in ("Z", "X")
+    background.stop_pid(pid, grace_s)
 
 
 def kill_all() -> int:

@@ -30,6 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mds_ach as mds
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import daemon_status as ds
 
 log = logging.getLogger("mds_ach.nodes.daemon")
@@ -335,9 +336,7 @@ def _run_plain(args: argparse.Namespace) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     parser = build_parser()
-    from rclpy.utilities import remove_ros_args
-
-    args = parser.parse_args(remove_ros_args(argv)[1:])
+    args = parser.parse_args(strip_ros_args(argv)[1:])
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
                         format="[daemon] %(levelname)s: %(message)s")
     if args.duration is not None:

@@ -58,8 +58,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import mds_ach as mds
+from mds_ach.ach.glibc import sleep_until, tune_thread
 from mds_ach.bus import mcb
 from mds_ach.bus.canio import CanIO
+from mds_ach.bus.constants import (
+    CAN_ERR_BUSOFF,
+    CAN_ERR_CRTL,
+    CAN_ERR_CRTL_ACTIVE,
+    CAN_ERR_CRTL_PASSIVE,
+    CAN_ERR_CRTL_WARNING,
+    CAN_ERR_RESTARTED,
+)
 from mds_ach.bus.mcb import Response, StateArg
 from mds_ach.nodes import filters
 from mds_ach.robot import daemon_status as ds
@@ -70,13 +79,6 @@ from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_PARAM, MDS_REF, M
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 
-CAN_ERR_CRTL = 0x004
-CAN_ERR_BUSOFF = 0x040
-CAN_ERR_RESTARTED = 0x100
-CAN_ERR_CRTL_PASSIVE = 0x30  # RX or TX passive in data[1]
-CAN_ERR_CRTL_WARNING = 0x0C
-CAN_ERR_CRTL_ACTIVE = 0x40  # recovered to error-active
-
 HOMING_TIMEOUT = 60.0  # s: stop waiting for a homing joint to settle
 COMMAND_NAMES = {mds.MDS_CMD_ENABLE: "enable", mds.MDS_CMD_DISABLE: "disable", mds.MDS_CMD_HOME: "home",
                  mds.MDS_CMD_RESET: "reset", mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET_BUS: "resetbus"}
@@ -86,13 +88,6 @@ _F32 = struct.Struct("<f")
 def f32(value: float) -> float:
     """The value as the float32 that goes on the wire (what decides whether a target 'changed')."""
     return _F32.unpack(_F32.pack(value))[0]
-
-
-# --- absolute-time sleeping -----------------------------------------------------------------------------
-
-CLOCK_MONOTONIC = 1
-TIMER_ABSTIME = 1
-PR_SET_TIMERSLACK = 29
 
 
 STALL_PERIODS = 2.0  # a cycle that starts more than this many periods after the previous one: the loop stalled
@@ -112,51 +107,6 @@ _RIGHT_PARTS = (mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREAR
                 mds.COLLIDE_R_WRIST)
 _LEFT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in LEFT_ARM)
 _RIGHT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in RIGHT_ARM)
-
-
-class _Timespec(ctypes.Structure):
-    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
-
-
-try:
-    _libc = ctypes.CDLL(None, use_errno=True)
-    _clock_nanosleep = _libc.clock_nanosleep
-    _clock_nanosleep.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Timespec), ctypes.c_void_p]
-    _clock_nanosleep.restype = ctypes.c_int
-except (OSError, AttributeError):  # not glibc: fall back to a relative sleep to the deadline
-    _libc = None
-    _clock_nanosleep = None
-
-
-def sleep_until(deadline: float) -> None:
-    """Sleep until ``deadline`` on the CLOCK_MONOTONIC timeline (``time.monotonic()``), absolute, so that
-    lateness never accumulates; restarts after signals. The GIL is released while sleeping."""
-    if _clock_nanosleep is None:
-        remaining = deadline - time.monotonic()
-        if remaining > 0:
-            time.sleep(remaining)
-        return
-    sec = math.floor(deadline)
-    ts = _Timespec(int(sec), int((deadline - sec) * 1e9))
-    while _clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, ctypes.byref(ts), None) == 4:  # EINTR
-        pass
-
-
-def tune_thread(rt_priority: int = 0) -> list[str]:
-    """Best effort for the calling thread: 1 ns timer slack, optional SCHED_FIFO. Returns what failed."""
-    problems = []
-    if _libc is not None:
-        try:
-            if _libc.prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(1), 0, 0, 0) != 0:
-                problems.append("timer slack unchanged")
-        except AttributeError:
-            problems.append("no prctl")
-    if rt_priority > 0:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
-        except (PermissionError, OSError) as exc:
-            problems.append(f"SCHED_FIFO {rt_priority} refused ({exc.strerror or exc}); running with normal priority")
-    return problems
 
 
 # --- channels --------------------------------------------------------------------------------------------

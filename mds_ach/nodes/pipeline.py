@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 import mds_ach as mds
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
 
 REF_DTYPE = np.dtype([("ref", "<f8"), ("mode", "<i2")])  # packed, itemsize 10 == sizeof(MDS_JOINT_REF)
@@ -309,11 +310,9 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
     import signal
 
     argv = list(sys.argv if argv is None else argv)
-    from rclpy.utilities import remove_ros_args
-
     from mds_ach.robot import access as channel_access
 
-    args = parser.parse_args(remove_ros_args(argv)[1:])
+    args = parser.parse_args(strip_ros_args(argv)[1:])
     channel_access.enforce_in_this_process()  # a node: refuse channel files another user planted
     stop = threading.Event()
 

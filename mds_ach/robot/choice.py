@@ -5,16 +5,31 @@ survived reboots and applied to every later start. Here the choice is one word i
 ``$MDS_ACH_CONFIG_DIR/robot`` (default ``$XDG_CONFIG_HOME/mds-ach/robot``, i.e. ``~/.config/mds-ach/robot``).
 ``$MDS_ACH_ROBOT`` still wins when set; the launcher exports the saved choice as ``$MDS_ACH_ROBOT`` to the
 nodes it starts, which is where ``mds_ach.robot.config`` reads it.
+
+This module is the one robot-choice rule (explicit name, else ``$MDS_ACH_ROBOT``, else the saved choice, else
+``default``) and the list of robots there are; :mod:`mds_ach.robot.config` builds on it, never the reverse.
+
+Imports: :mod:`mds_ach.paths` only.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
-from mds_ach.robot.config import DEFAULT_ROBOT, ROBOT_ENV, available_robots
+from mds_ach.paths import config_path
 
 CONFIG_DIR_ENV = "MDS_ACH_CONFIG_DIR"
+ROBOT_ENV = "MDS_ACH_ROBOT"
+DEFAULT_ROBOT = "default"
+
+
+def available_robots(config_dir: Path | None = None) -> tuple[str, ...]:
+    """``default`` plus every ``config/robots/<name>.yaml`` overlay of the package (or of ``config_dir``)."""
+    robots = (config_dir or config_path("")) / "robots"
+    extra = sorted(p.stem for p in robots.glob("*.yaml")) if robots.is_dir() else []
+    return tuple(dict.fromkeys((DEFAULT_ROBOT, *extra)))
 
 
 def config_dir() -> Path:
@@ -53,8 +68,11 @@ def save_robot(name: str) -> Path:
     return path
 
 
-def effective_robot(env: dict[str, str] | None = None) -> tuple[str, str]:
-    """(robot, where it came from): $MDS_ACH_ROBOT, else the saved choice, else the default."""
+def effective_robot(env: Mapping[str, str] | None = None, robot: str | None = None) -> tuple[str, str]:
+    """(robot, where it came from): ``robot`` if given, else $MDS_ACH_ROBOT, else the saved choice, else the
+    default. The name is normalised, not validated (``config.robot_name`` refuses unknown ones)."""
+    if robot:
+        return robot.strip().lower(), "argument"
     env = os.environ if env is None else env
     if env.get(ROBOT_ENV):
         return env[ROBOT_ENV].strip().lower(), f"${ROBOT_ENV}"

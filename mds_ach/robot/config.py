@@ -27,12 +27,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from mds_ach.paths import config_path
 from mds_ach.robot import joints as node_table
 from mds_ach.robot import motion
+from mds_ach.robot.choice import (  # re-exported: config.ROBOT_ENV etc. are public names
+    DEFAULT_ROBOT,
+    ROBOT_ENV,
+    available_robots,
+    effective_robot,
+)
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_JOINT_PARAM, MDS_JOINT_STATE, MDS_STATE, set_name
 
-ROBOT_ENV = "MDS_ACH_ROBOT"  # mds_ach.robot.choice (mds-ach changerobot) builds on these names
-DEFAULT_ROBOT = "default"
 ROBOTS = ("default", "isaac", "lucas", "octavia")
 TWO_PI = 2.0 * math.pi
 # The original daemon's MOVETO acceleration and trajectory period code (§b.4).
@@ -220,28 +225,14 @@ _OVERLAY_TOP_KEYS = {"format", "robot", "description", "source", "trajectory", "
 
 
 def robot_name(robot: str | None = None) -> str:
-    """The robot to load: explicit argument, else ``$MDS_ACH_ROBOT``, else the choice saved by
-    ``mds-ach changerobot`` (:mod:`mds_ach.robot.choice`), else ``default``."""
-    name = robot or os.environ.get(ROBOT_ENV)
-    if not name:
-        from mds_ach.robot.choice import saved_robot
-
-        name = saved_robot() or DEFAULT_ROBOT
-    name = name.strip().lower()
+    """The robot to load, by the one rule (:func:`mds_ach.robot.choice.effective_robot`), validated."""
+    name = effective_robot(robot=robot)[0]
     if name not in available_robots():
         raise ConfigError(f"unknown robot {name!r}; available: {', '.join(available_robots())}")
     return name
 
 
-def available_robots(config_dir: Path | None = None) -> tuple[str, ...]:
-    base = config_dir or _config_dir()
-    extra = sorted(p.stem for p in (base / "robots").glob("*.yaml")) if (base / "robots").is_dir() else []
-    return tuple(dict.fromkeys((DEFAULT_ROBOT, *extra)))
-
-
 def _config_dir() -> Path:
-    from mds_ach.paths import config_path
-
     return config_path("")
 
 

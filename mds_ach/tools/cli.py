@@ -18,6 +18,8 @@ import sys
 from collections.abc import Callable
 from typing import NamedTuple
 
+from mds_ach.nodes.rosargs import strip_ros_args  # cli.strip_ros_args stays importable
+
 PROG = "mds-ach"
 
 
@@ -98,20 +100,6 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
             _resolve(verb.add_arguments)(p)
             p.set_defaults(_handler=verb.handler)
     return parser
-
-
-def strip_ros_args(argv: list[str]) -> list[str]:
-    """Drop ``--ros-args ... [--]`` blocks like rclpy.utilities.remove_ros_args, without importing rclpy."""
-    out: list[str] = []
-    in_ros = False
-    for word in argv:
-        if word == "--ros-args":
-            in_ros = True
-        elif in_ros and word == "--":
-            in_ros = False
-        elif not in_ros:
-            out.append(word)
-    return out
 
 
 def _terminate(signum: int, frame: object) -> None:

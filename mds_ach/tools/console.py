@@ -13,7 +13,6 @@ Only numpy forward kinematics is used (``get fk``), so the console starts withou
 from __future__ import annotations
 
 import argparse
-import ctypes
 import math
 import os
 import signal
@@ -26,8 +25,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import mds_ach as mds
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.tools.monitor import Latest
+from mds_ach.tools.refwriter import RefWriteError, RefWriter
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
     from mds_ach.nodes.mux import MDS_MUX_STATE
@@ -241,23 +242,13 @@ class Console:
 
     def _put_refs(self, targets: dict[int, float], state: mds.MDS_STATE) -> None:
         """Read-modify-write ``mds-ref-filter``: the mux takes only the joints that changed as commands."""
-        from mds_ach import ach
-
-        name = mds.MDS_CHAN_REF_FILTER_NAME
-        if not ach.exists(name):
-            raise CommandError(f"channel {name} does not exist; is MDS-Ach running? (mds-ach start)", usage=False)
-        ref = mds.MDS_REF()
-        with ach.Channel(name, create=False) as chan:
-            status, size = chan.get(ref, last=True, copy=True)
-            if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME) or size != ctypes.sizeof(ref) or \
-                    not all(math.isfinite(ref.joint[i].ref) for i in range(mds.MDS_JOINT_COUNT)):
-                # nothing usable yet (the mux seeds this channel when it starts): begin from what is commanded
-                ref = mds.MDS_REF()
-                for i in range(mds.MDS_JOINT_COUNT):
-                    ref.joint[i].ref = state.joint[i].ref
-            for address, value in targets.items():
-                ref.joint[address].ref = value
-            chan.put(ref)
+        refs = RefWriter(mds.MDS_CHAN_REF_FILTER_NAME)
+        try:
+            refs.put(targets, state)
+        except RefWriteError as exc:
+            raise CommandError(str(exc), usage=False) from None
+        finally:
+            refs.close()
 
     @staticmethod
     def _mux_holders(st: MDS_MUX_STATE, addresses: list[int],
@@ -701,8 +692,6 @@ def _sigterm(signum: int, frame: object) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mds_ach.tools.cli import strip_ros_args
-
     argv = strip_ros_args(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="console")
     add_arguments(parser)

@@ -22,6 +22,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import mds_ach as mds
+from mds_ach import procs as background
 from mds_ach.paths import runtime_dir
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
@@ -72,64 +73,23 @@ def log_path(name: str, rt: Path | None = None) -> Path:
 def log_tail(name: str, lines: int = LOG_TAIL_LINES, rt: Path | None = None) -> str:
     """The last ``lines`` lines of a node's log (or a note that there is none)."""
     path = log_path(name, rt)
-    try:
-        with open(path, "rb") as f:
-            f.seek(0, os.SEEK_END)
-            size = f.tell()
-            f.seek(max(0, size - 64 * 1024))
-            text = f.read().decode("utf-8", "replace")
-    except OSError:
+    if not path.exists():
         return f"(no log at {path})"
-    tail = text.splitlines()[-lines:]
+    tail = background.log_tail(path, lines)
     return "\n".join(tail) if tail else f"(log {path} is empty)"
-
-
-def _write_pid(name: str, pid: int, rt: Path) -> None:
-    path = pid_path(name, rt)
-    tmp = path.with_suffix(".pid.tmp")
-    tmp.write_text(f"{pid}\n")
-    os.replace(tmp, path)
-
-
-def _remove_pid(name: str, rt: Path) -> None:
-    try:
-        pid_path(name, rt).unlink()
-    except FileNotFoundError:
-        pass
 
 
 # --------------------------------------------------------------------------------------------- processes
 
 
-def _proc_argv(pid: int) -> list[str]:
-    try:
-        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return []
-    return [a.decode("utf-8", "replace") for a in raw.split(b"\0") if a]
-
-
-def _alive(pid: int) -> bool:
-    """True while ``pid`` exists and is not a zombie (an exited child nobody reaped yet)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rfind(")") + 2:][:1] not in ("Z", "X")
-
-
-def _runs_node(pid: int, name: str) -> bool:
-    """Does ``pid``'s command line name node ``name`` (console script, ros2 run path or launcher exec)?"""
-    return any(Path(a).name == name for a in _proc_argv(pid)[:5])
+def _names_node(argv: list[str], name: str) -> bool:
+    """Does a command line name node ``name`` (console script, ros2 run path or launcher exec)?"""
+    return any(Path(a).name == name for a in argv[:5])
 
 
 def read_pid(name: str, rt: Path | None = None) -> int | None:
     """The pid in ``name``'s pid file if that process is alive and really is the node, else None."""
-    try:
-        pid = int(pid_path(name, rt).read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return None
-    return pid if pid > 0 and _alive(pid) and _runs_node(pid, name) else None
+    return background.running_pid(pid_path(name, rt), lambda argv: _names_node(argv, name))
 
 
 def running_nodes(rt: Path | None = None) -> dict[str, int]:
@@ -182,11 +142,9 @@ def start_node(name: str, args: Sequence[str] = (), rt: Path | None = None,
     output to ``<runtime>/<name>.log``, pid in ``<runtime>/<name>.pid``."""
     rt = rt or runtime_dir()
     rt.mkdir(parents=True, exist_ok=True)
-    with open(log_path(name, rt), "wb") as log:
-        proc = subprocess.Popen(node_command(name) + list(args), stdin=subprocess.DEVNULL, stdout=log,
-                                stderr=subprocess.STDOUT, start_new_session=True,
-                                env=env if env is not None else child_env())
-    _write_pid(name, proc.pid, rt)
+    proc = background.spawn_detached(node_command(name) + list(args), log_path(name, rt),
+                                env=env if env is not None else child_env(), append=False)
+    background.write_pid_file(pid_path(name, rt), proc.pid)
     return proc
 
 
@@ -368,20 +326,15 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
 # --------------------------------------------------------------------------------------------- stop / kill
 
 
-def _wait_gone(pids: dict[str, int], procs: dict[str, subprocess.Popen], timeout: float) -> dict[str, int]:
+def _wait_gone(pids: dict[str, int], children: dict[str, subprocess.Popen], timeout: float) -> dict[str, int]:
     """Wait until the processes exit (reaping our own children); returns those still alive."""
-    deadline = time.monotonic() + timeout
-    left = dict(pids)
-    while left:
-        for name, pid in list(left.items()):
-            if name in procs and procs[name].pid == pid:
-                procs[name].poll()
-            if not _alive(pid):
-                del left[name]
-        if not left or time.monotonic() > deadline:
-            break
-        time.sleep(0.02)
-    return left
+    def reap() -> None:
+        for name, pid in pids.items():
+            if name in children and children[name].pid == pid:
+                children[name].poll()
+
+    left = set(background.wait_gone(list(pids.values()), timeout, reap))
+    return {n: p for n, p in pids.items() if p in left}
 
 
 def stop_nodes(names: Iterable[str] = NODES, grace: float = DEFAULT_STOP_GRACE, rt: Path | None = None,
@@ -404,23 +357,17 @@ def stop_nodes(names: Iterable[str] = NODES, grace: float = DEFAULT_STOP_GRACE, 
         if not stage:
             continue
         for pid in stage.values():
-            try:
-                os.kill(pid, sig)
-            except ProcessLookupError:
-                pass
+            background.signal_pid(pid, sig)
         left = _wait_gone(stage, procs, grace if sig != signal.SIGKILL else 2.0)
         for name, pid in left.items():
             out(f"  {name:<10} did not exit {grace:g} s after {signal.Signals(sig).name}; sending SIGKILL")
-            try:
-                os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+            background.signal_pid(pid, signal.SIGKILL)
         _wait_gone(left, procs, 2.0)
         for name, pid in stage.items():
             out(f"  {name:<10} stopped (pid {pid})")
     for name in names:
         if read_pid(name, rt) is None:
-            _remove_pid(name, rt)
+            background.remove_pid_file(pid_path(name, rt))
     return list(pids)
 
 

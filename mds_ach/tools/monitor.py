@@ -1,125 +1,13 @@
-"""Read-only views of a running system, shared by the operator tools (console, read monitor, status).
-
-Why a separate reader: the tools must start and stop at any time without disturbing anything, so they only
-ever *open* existing channels (never create, flush or write them), survive channels that appear or vanish
-while they run, and judge freshness by when *they* saw a new frame arrive (the publisher may be dead while
-its last frame is still in the channel).
+"""Read-only views of a running system, shared by the operator tools (console, read monitor, status): the
+channel reader (:class:`mds_ach.ach.watch.Latest`, re-exported) and the formatting of what it reads.
 """
 
 from __future__ import annotations
 
 import ctypes
-import time
-from typing import Generic, TypeVar
 
 import mds_ach as mds
-from mds_ach import ach
-
-T = TypeVar("T", bound=ctypes.Structure)
-
-
-class Latest(Generic[T]):
-    """The newest frame of one channel, opened read-only on demand.
-
-    ``read()`` returns the newest frame (a cached copy when nothing new arrived), or None while the channel is
-    missing or empty. ``age()`` is the time since this reader last saw a *new* frame; a frame already in the
-    channel when the reader opened it has unknown age (``age()`` None) until the next one arrives.
-    """
-
-    def __init__(self, name: str, ctype: type[T]) -> None:
-        self.name = name
-        self.ctype = ctype
-        self.size = ctypes.sizeof(ctype)
-        self._chan: ach.Channel | None = None
-        self._buf: bytearray | None = None
-        self.frame: T | None = None
-        self.new_at: float | None = None  # monotonic time a new frame was last seen
-        self.frames = 0  # new frames seen since open
-        self.bad_frames = 0  # frames of the wrong size (ignored)
-        self.error = ""  # why the channel is not readable, for display
-
-    def _open(self) -> bool:
-        if self._chan is not None:
-            return True
-        if not ach.exists(self.name):
-            self.error = f"channel {self.name} does not exist"
-            return False
-        try:
-            self._chan = ach.Channel(self.name, create=False)
-        except ach.AchException as exc:
-            self.error = f"cannot open {self.name}: {exc.reason}"
-            return False
-        self._buf = bytearray(max(self._chan.data_size, self.size))
-        self.error = ""
-        return True
-
-    def _drop(self, why: str) -> None:
-        if self._chan is not None:
-            try:
-                self._chan.close()
-            except ach.AchException:
-                pass
-        self._chan = None
-        self.error = why
-
-    def _take(self, status: int, size: int, fresh: bool) -> bool:
-        """Keep the frame just read into the buffer; True if it was a new, valid frame.
-
-        ``fresh``: it certainly arrived just now (a blocking wait returned it, or it is not the first frame
-        this reader saw); the first frame of a non-blocking read may have sat in the channel for hours.
-        """
-        if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
-            return False
-        if size != self.size:
-            self.bad_frames += 1
-            return False
-        assert self._buf is not None
-        self.frame = self.ctype.from_buffer_copy(self._buf[: self.size])
-        if fresh or self.frames:
-            self.new_at = time.monotonic()
-        self.frames += 1
-        return True
-
-    def read(self) -> T | None:
-        """Newest frame (new or cached); never blocks."""
-        if not self._open():
-            return self.frame
-        assert self._chan is not None and self._buf is not None
-        try:
-            status, size = self._chan.get(self._buf, last=True)
-        except ach.AchException as exc:
-            self._drop(f"{self.name}: {exc.reason}")
-            return self.frame
-        if status == ach.ACH_CORRUPT:
-            self._drop(f"channel {self.name} is corrupt")
-            return self.frame
-        self._take(status, size, fresh=False)
-        return self.frame
-
-    def wait_new(self, timeout: float) -> T | None:
-        """Block up to ``timeout`` s for a frame newer than anything seen; None on timeout or missing channel."""
-        deadline = time.monotonic() + timeout
-        self.read()
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or not self._open():
-                return None
-            assert self._chan is not None and self._buf is not None
-            try:
-                status, size = self._chan.get(self._buf, wait=True, last=True, timeout=min(remaining, 0.2))
-            except ach.AchException as exc:
-                self._drop(f"{self.name}: {exc.reason}")
-                return None
-            if self._take(status, size, fresh=True):
-                return self.frame
-
-    def age(self) -> float | None:
-        """Seconds since a new frame was seen; None if none has been seen arriving yet."""
-        return None if self.new_at is None else time.monotonic() - self.new_at
-
-    def close(self) -> None:
-        self._drop("closed")
-
+from mds_ach.ach.watch import Latest  # noqa: F401 - the one read-only channel watcher; the tools import it here
 
 # --------------------------------------------------------------------------------------------- formatting
 

@@ -22,6 +22,7 @@ import time
 from collections.abc import Sequence
 
 import mds_ach as mds
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import BY_ADDRESS, JOINTS, lookup
 from mds_ach.robot.msgs import get_name
 from mds_ach.tools.monitor import Latest, collision_block, collision_summary, daemon_line, joint_fresh
@@ -268,8 +269,6 @@ def run(args: argparse.Namespace, parser: argparse.ArgumentParser | None = None)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from mds_ach.tools.cli import strip_ros_args
-
     argv = strip_ros_args(list(sys.argv[1:] if argv is None else argv))
     parser = argparse.ArgumentParser(prog="read")
     add_arguments(parser)

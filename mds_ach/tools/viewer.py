@@ -21,10 +21,8 @@ from __future__ import annotations
 import argparse
 import ctypes
 import math
-import os
 import signal
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -36,16 +34,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 import mds_ach as mds
-from mds_ach import paths
+from mds_ach import ach, paths
+from mds_ach import procs as background
+from mds_ach.ach.watch import Latest
 from mds_ach.kinematics import model as kin
+from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import MODEL_JOINTS, lookup
-from mds_ach.tools.cli import strip_ros_args
+from mds_ach.tools.refwriter import RefWriteError, RefWriter
 
 if TYPE_CHECKING:  # heavy imports stay out of `import mds_ach.tools.viewer` (the `mds-ach sim` start-up path)
     import trimesh
     import viser
 
-    from mds_ach.kinematics.collision import CollisionModel
+    from mds_ach.kinematics.collision import CollisionModel, WorldObject
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
@@ -299,48 +300,14 @@ class CollisionScene:
             handle.visible = hot or self._show
 
 
-@dataclass
-class WorldObject:
-    """A configured world object, posed in the base frame (on the floor)."""
-
-    name: str
-    kind: str
-    size: tuple[float, ...]
-    pose: np.ndarray
-    enabled: bool
-
-
 def load_world(path: Path, robot_zero: np.ndarray) -> list[WorldObject]:
-    """World objects from config/world.yaml (the collision gate's format; a missing file means none).
+    """World objects from config/world.yaml, parsed as the collision gate parses them (a missing file: none).
 
     ``robot_zero`` is the torso pose at WST = 0, the ``robot`` frame. Bad entries raise ValueError naming them.
     """
-    from mds_ach.kinematics.collision import load_yaml, pose_matrix, shape_from_config
+    from mds_ach.kinematics.collision import load_world as parse
 
-    if not path.is_file():
-        return []
-    data = load_yaml(path)
-    default_frame = str(data.get("frame", "robot"))
-    objects = []
-    for k, entry in enumerate(data.get("objects") or []):
-        if not isinstance(entry, Mapping):
-            raise ValueError(f"{path.name}: objects[{k}] must be a mapping")
-        name = str(entry.get("name", k))
-        where = f"{path.name}: world object {name!r}"
-        kind, size = shape_from_config(entry, where)
-        frame = str(entry.get("frame", default_frame))
-        if frame not in ("robot", "base"):
-            raise ValueError(f"{where}: frame must be 'robot' or 'base', got {frame!r}")
-        try:
-            pose = pose_matrix(entry.get("xyz", (0, 0, 0)), entry.get("rpy", (0, 0, 0)))
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{where}: xyz/rpy must be lists of 3 numbers ({exc})") from None
-        if not np.all(np.isfinite(pose)):
-            raise ValueError(f"{where}: xyz/rpy must be finite")
-        if frame == "robot":
-            pose = robot_zero @ pose
-        objects.append(WorldObject(name, kind, size, pose, bool(entry.get("enabled", True))))
-    return objects
+    return parse(path, robot_zero)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -348,72 +315,9 @@ def load_world(path: Path, robot_zero: np.ndarray) -> list[WorldObject]:
 # --------------------------------------------------------------------------------------------------
 
 
-class ChannelWatch:
-    """An Ach channel read without ever creating it.
-
-    While it is missing it is looked for again every ``retry`` s; when it has been quiet that long and the
-    file in /dev/shm is no longer the one we mapped (``mds-ach killall`` + restart), it is reopened.
-    """
-
-    def __init__(self, name: str, ctype: type[ctypes.Structure], retry: float = RETRY_S) -> None:
-        self.name = name
-        self.ctype = ctype
-        self.retry = retry
-        self._chan: Any = None
-        self._next_check = 0.0
-        self._last_frame = 0.0
-        self.error = "not opened yet"
-
-    @property
-    def available(self) -> bool:
-        return self._chan is not None
-
-    def _open(self) -> None:
-        from mds_ach import ach
-        from mds_ach.robot.channels import StructChannel
-
-        if not ach.exists(self.name):
-            self.error = "missing"
-            return
-        try:
-            self._chan = StructChannel(self.name, self.ctype, create=False)
-        except (OSError, ValueError, ach.AchException) as exc:
-            self.error = str(exc)
-            return
-        self.error = ""
-
-    def _replaced(self) -> bool:
-        from mds_ach import ach
-
-        try:
-            return os.stat(ach.shm_path(self.name)).st_ino != os.fstat(self._chan.channel.fileno()).st_ino
-        except OSError:
-            return True
-
-    def latest(self) -> Any:
-        """The newest frame if one arrived since the last call, else None (also while the channel is missing)."""
-        now = time.monotonic()
-        if self._chan is not None and now - self._last_frame > self.retry and now >= self._next_check:
-            self._next_check = now + self.retry
-            if self._replaced():
-                self.close()
-                self.error = "removed"
-        if self._chan is None:
-            if now < self._next_check:
-                return None
-            self._next_check = now + self.retry
-            self._open()
-            if self._chan is None:
-                return None
-        frame = self._chan.latest()
-        if frame is not None:
-            self._last_frame = now
-        return frame
-
-    def close(self) -> None:
-        if self._chan is not None:
-            chan, self._chan = self._chan, None
-            chan.close()
+def ChannelWatch(name: str, ctype: type[ctypes.Structure], retry: float = RETRY_S) -> Latest:  # noqa: N802
+    """The viewer's channel reader: the shared read-only watcher, re-checking a quiet channel every ``retry`` s."""
+    return Latest(name, ctype, retry=retry)
 
 
 def joint_values(state: Any, attr: str, names: Sequence[str]) -> tuple[dict[str, float], list[str]]:
@@ -537,7 +441,7 @@ class Viewer:
         self._state_rate = 0.0
         self._bad_values: list[str] = []
         self._ref_lock = threading.Lock()
-        self._ref_chan: Any = None
+        self._refs: RefWriter | None = None  # set while the sliders are on
         self._build_gui()
 
     # ---- scene setup -------------------------------------------------------------------------------
@@ -621,9 +525,9 @@ class Viewer:
     def _sliders_toggled(self) -> None:
         on = bool(self.sliders_on.value)
         with self._ref_lock:
-            if self._ref_chan is not None:
-                self._ref_chan.close()
-                self._ref_chan = None
+            if self._refs is not None:
+                self._refs.close()
+                self._refs = None
             error = self._open_ref_channel() if on else ""
         if error:
             self.sliders_on.value = False  # calls us again, with on = False
@@ -638,16 +542,14 @@ class Viewer:
 
     def _open_ref_channel(self) -> str:
         """Open mds-ref-filter for writing (never create it: no running system, no references)."""
-        from mds_ach import ach
-
         if self.last_state is None:
             return f"no `{mds.MDS_CHAN_STATE_NAME}` frame yet"
-        if not ach.exists(mds.MDS_CHAN_REF_FILTER_NAME):
-            return f"channel `{mds.MDS_CHAN_REF_FILTER_NAME}` does not exist (is the system running?)"
+        refs = RefWriter(mds.MDS_CHAN_REF_FILTER_NAME)
         try:
-            self._ref_chan = ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False)
-        except (OSError, ach.AchException) as exc:
+            refs.open()
+        except RefWriteError as exc:
             return str(exc)
+        self._refs = refs
         return ""
 
     def _slider_callback(self, name: str) -> Callable[[Any], None]:
@@ -668,22 +570,14 @@ class Viewer:
         if not (math.isfinite(value) and lower <= value <= upper):
             self.slider_status.content = f"**refused** {name} = {value!r}: outside [{lower:.3f}, {upper:.3f}]"
             return False
-        from mds_ach import ach
-
         with self._ref_lock:
-            if self._ref_chan is None or self.last_state is None:
+            if self._refs is None or self.last_state is None:
                 return False
-            ref = mds.MDS_REF()
-            buf = bytearray(self._ref_chan.data_size)
-            status, size = self._ref_chan.get(buf, last=True, copy=True)  # the newest, even if seen before
-            if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(ref):
-                ctypes.memmove(ctypes.addressof(ref), bytes(buf[:size]), size)
-            else:
-                for addr in range(mds.MDS_JOINT_COUNT):
-                    now = self.last_state.joint[addr].ref
-                    ref.joint[addr].ref = now if math.isfinite(now) else 0.0
-            ref.joint[lookup(name).address].ref = value
-            self._ref_chan.put(ref)
+            try:
+                self._refs.put({lookup(name).address: value}, self.last_state)
+            except RefWriteError as exc:
+                self.slider_status.content = f"**not sent:** {exc}"
+                return False
         self.slider_status.content = f"**sent** {name} = {value:+.3f} rad to `{mds.MDS_CHAN_REF_FILTER_NAME}`"
         return True
 
@@ -694,10 +588,10 @@ class Viewer:
         changed = False
         now = time.monotonic()
         with self.server.atomic():
-            state = self.state.latest()
+            state = self.state.read_new()
             if state is not None:
                 changed |= self._apply_state(state, now)
-            collide = self.collide.latest()
+            collide = self.collide.read_new()
             if self.collision is not None:
                 parts = None
                 if collide is not None:
@@ -707,7 +601,7 @@ class Viewer:
                 if parts is not None and parts != self.collision.highlighted_parts:
                     self.collision.highlight(parts)
                     changed = True
-            request, answer = self.ik.latest(), self.ik_state.latest()
+            request, answer = self.ik.read_new(), self.ik_state.read_new()
             for target in (request and ik_request_target(request), answer and ik_status_target(answer)):
                 if target is not None:  # the answer, read second, wins over its request
                     self._show_ik_target(target)
@@ -740,7 +634,8 @@ class Viewer:
             self._rate_window = (now, self.state_frames)
         name = mds.MDS_CHAN_STATE_NAME
         if self.last_state is None:
-            why = "no frame yet" if self.state.available else f"channel {self.state.error}; retrying"
+            why = "no frame yet" if self.state.available else (
+                "channel missing; retrying" if not ach.exists(name) else f"{self.state.error}; retrying")
             text = f"**waiting for {name}** ({why})"
         elif now - self._last_state_at > STALE_S:
             text = f"**{name} stale**: last frame {now - self._last_state_at:.0f} s ago"
@@ -777,9 +672,9 @@ class Viewer:
         for watch in (self.state, self.collide, self.ik, self.ik_state):
             watch.close()
         with self._ref_lock:
-            if self._ref_chan is not None:
-                self._ref_chan.close()
-                self._ref_chan = None
+            if self._refs is not None:
+                self._refs.close()
+                self._refs = None
         self.server.stop()
 
 
@@ -934,24 +829,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def _viewer_pid(pid: int | None) -> bool:
-    """True if ``pid`` is a running viewer (not a recycled pid of some other program)."""
-    if pid is None:
-        return False
-    try:
-        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        status = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    zombie = status.rpartition(")")[2].split()[0] == "Z"
-    return b"mds_ach.tools.viewer" in cmdline and not zombie
+def _is_viewer(argv: list[str]) -> bool:
+    return "mds_ach.tools.viewer" in argv
 
 
-def _read_pid(path: Path) -> int | None:
-    try:
-        return int(path.read_text().strip())
-    except (OSError, ValueError):
-        return None
+def running_viewer() -> int | None:
+    """The background viewer's pid, if its pid file names a live viewer (never a recycled pid, a zombie or a
+    dead task)."""
+    return background.running_pid(paths.runtime_dir() / SIM_PID, _is_viewer)
 
 
 def start_background(argv: Sequence[str], timeout: float = 60.0) -> int:
@@ -959,28 +844,32 @@ def start_background(argv: Sequence[str], timeout: float = 60.0) -> int:
     run_dir = paths.runtime_dir()
     run_dir.mkdir(parents=True, exist_ok=True)
     pid_file, log_file, url_file = run_dir / SIM_PID, run_dir / SIM_LOG, run_dir / SIM_URL
-    pid = _read_pid(pid_file)
-    if _viewer_pid(pid):
+    pid = running_viewer()
+    if pid is not None:
         url = url_file.read_text().strip() if url_file.is_file() else "(starting)"
         print(f"viewer already running (pid {pid}): {url}")
         return 0
     url_file.unlink(missing_ok=True)
     cmd = [sys.executable, "-m", "mds_ach.tools.viewer", *argv, "--url-file", str(url_file)]
-    with open(log_file, "ab") as log:
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=log, stderr=log, start_new_session=True)
-    pid_file.write_text(f"{proc.pid}\n")
+    proc = background.spawn_detached(cmd, log_file)
+    background.write_pid_file(pid_file, proc.pid)
     deadline = time.monotonic() + timeout
-    while not url_file.is_file():
-        if proc.poll() is not None:
-            pid_file.unlink(missing_ok=True)
-            tail = log_file.read_text(errors="replace").splitlines()[-15:]
-            print(f"viewer failed to start (exit {proc.returncode}); last lines of {log_file}:", file=sys.stderr)
-            print("\n".join(tail), file=sys.stderr)
-            return 1
-        if time.monotonic() > deadline:
-            print(f"viewer did not start within {timeout:.0f} s (pid {proc.pid}); see {log_file}", file=sys.stderr)
-            return 1
-        time.sleep(0.1)
+    try:
+        while not url_file.is_file():
+            if proc.poll() is not None:
+                background.remove_pid_file(pid_file)
+                print(f"viewer failed to start (exit {proc.returncode}); last lines of {log_file}:", file=sys.stderr)
+                print("\n".join(background.log_tail(log_file, 15)), file=sys.stderr)
+                return 1
+            if time.monotonic() > deadline:
+                print(f"viewer did not start within {timeout:.0f} s (pid {proc.pid}); see {log_file}",
+                      file=sys.stderr)
+                return 1
+            time.sleep(0.1)
+    except BaseException:  # Ctrl-C while waiting: never leave a half-started viewer behind
+        background.stop_pid(proc.pid, reap=proc.poll)
+        background.remove_pid_file(pid_file)
+        raise
     print(f"viewer running (pid {proc.pid}): {url_file.read_text().strip()}")
     print("stop it with: mds-ach sim kill")
     return 0
@@ -989,22 +878,12 @@ def start_background(argv: Sequence[str], timeout: float = 60.0) -> int:
 def stop_background(timeout: float = 10.0) -> int:
     """Stop the background viewer: SIGTERM, then SIGKILL if it is still there after ``timeout`` s."""
     run_dir = paths.runtime_dir()
-    pid_file = run_dir / SIM_PID
-    pid = _read_pid(pid_file)
-    if pid is None or not _viewer_pid(pid):
-        pid_file.unlink(missing_ok=True)
-        (run_dir / SIM_URL).unlink(missing_ok=True)
-        print("viewer not running")
-        return 0
-    os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + timeout
-    while _viewer_pid(pid) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    if _viewer_pid(pid):
-        os.kill(pid, signal.SIGKILL)
-    pid_file.unlink(missing_ok=True)
+    pid = running_viewer()
+    if pid is not None:
+        background.stop_pid(pid, timeout)
+    background.remove_pid_file(run_dir / SIM_PID)
     (run_dir / SIM_URL).unlink(missing_ok=True)
-    print(f"viewer stopped (pid {pid})")
+    print("viewer not running" if pid is None else f"viewer stopped (pid {pid})")
     return 0
 
 
