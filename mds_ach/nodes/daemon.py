@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mds_ach as mds
-from mds_ach.robot import daemon_status as ds
+from mds_ach.robot.msgs import daemon_status as ds
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 

@@ -30,8 +30,8 @@ from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, l
 from mds_ach.tools.monitor import Latest
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
-    from mds_ach.nodes.mux import MDS_MUX_STATE
     from mds_ach.robot.config import JointTable
+    from mds_ach.robot.msgs import MDS_MUX_STATE
 
 PROMPT = ">> mds-ach-console$ "
 ARMS = {"left": (mds.LEFT, LEFT_ARM), "right": (mds.RIGHT, RIGHT_ARM)}
@@ -290,7 +290,7 @@ class Console:
 
     def _require_mux(self) -> None:
         """CommandError unless the mux published a new state just now: a command it cannot take is not sent."""
-        from mds_ach.nodes.mux import MDS_MUX_STATE
+        from mds_ach.robot.msgs import MDS_MUX_STATE
 
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
@@ -307,7 +307,7 @@ class Console:
         A mux state published after this call started is awaited first, so a move the IK node answered a
         moment ago is already visible.
         """
-        from mds_ach.nodes.mux import MDS_MUX_STATE
+        from mds_ach.robot.msgs import MDS_MUX_STATE
 
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
@@ -338,7 +338,7 @@ class Console:
         ``channel``'s controller that arrived after ``sent_at`` (in ``mds-mux-state``), no higher-priority
         controller holds the joints, and the mux output (``mds-ref-mux``) has every target. CommandError
         ("not applied: ...") otherwise: a dead mux, or one that ignored the frame, moves nothing."""
-        from mds_ach.nodes.mux import MDS_MUX_STATE
+        from mds_ach.robot.msgs import MDS_MUX_STATE
 
         mine = _controller_for(channel)
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
