@@ -290,7 +290,7 @@ def _scalar_text(value: object) -> str:
 
 def print_fields(obj: ctypes.Structure, show_all: bool = False, prefix: str = "") -> None:
     """Every field of ``obj`` by name, one line each (``joint[0x5f].pos 0.25``). Arrays indexed by CAN address
-    (length ``MDS_JOINT_COUNT``) list only the known joints' non-zero entries unless ``show_all``."""
+    (length ``MDS_JOINT_COUNT``) list their non-zero entries, and with ``show_all`` every known joint's."""
     for name, ftype, *_ in obj._fields_:
         _print_value(f"{prefix}{name}", ftype, getattr(obj, name), show_all)
 
@@ -308,7 +308,7 @@ def _print_value(label: str, ftype: type, value: object, show_all: bool) -> None
             print(f"{label} " + " ".join(_scalar_text(item) for item in items))
             return
         for i, item in enumerate(items):
-            if per_joint and not show_all and (i not in BY_ADDRESS or not _nonzero(item)):
+            if per_joint and not (_nonzero(item) or (show_all and i in BY_ADDRESS)):
                 continue
             index = f"{i:#04x}" if per_joint else str(i)
             _print_value(f"{label}[{index}]", ftype._type_, item, show_all)  # type: ignore[attr-defined]
