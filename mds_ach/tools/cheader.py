@@ -71,7 +71,7 @@ def snake_upper(name: str) -> str:
     return re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", name).upper()
 
 
-def _c_field(name: str, ctype: type) -> str:
+def _c_field(name: str, ctype: Any) -> str:
     """One struct member declaration; arrays keep their macro length."""
     dims: list[str] = []
     while issubclass(ctype, ctypes.Array):
@@ -114,7 +114,7 @@ def _struct(cls: type[ctypes.Structure]) -> list[str]:
     size = ctypes.sizeof(cls)
     lines = [*_doc(cls), f"typedef struct MDS_PACKED {tag} {{"]
     docs = _field_docs(cls)
-    for name, ctype in cls._fields_:
+    for name, ctype, *_ in cls._fields_:
         offset = getattr(cls, name).offset
         what = f" {docs[name]}" if name in docs else ""
         lines.append(f"    {_c_field(name, ctype):<52} /* @{offset}{what} */")
