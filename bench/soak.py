@@ -311,7 +311,7 @@ def soak(minutes: float, rate: float, writer_rate: float, nodes: list[str], warm
 
 def _daemon_status() -> object | None:
     from mds_ach import ach
-    from mds_ach.robot.daemon_status import MDS_DAEMON_STATUS
+    from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 
     st = MDS_DAEMON_STATUS()
     with ach.Channel(mds.MDS_CHAN_DAEMON_STATUS_NAME, create=False) as ch:
@@ -389,7 +389,7 @@ def _report(procs: dict[str, Proc], children: list[Proc], results: list[dict], s
             if r["max_gap"] > STALL_LIMIT:
                 failures.append(f"mds-state stalled for {r['max_gap']:.2f} s")
     if status is not None:
-        from mds_ach.robot.daemon_status import summary_line
+        from mds_ach.robot.msgs.daemon_status import summary_line
 
         print(f"\ndaemon: {summary_line(status)}; cycles {status.cycle}, period error max "
               f"{status.period_error_max * 1e3:.2f} ms, cpu/cycle {status.cpu_per_cycle * 1e3:.2f} ms")

@@ -7,6 +7,30 @@ like the original ``mds_ach.py`` did. Heavy modules (torch, fcl, rclpy) are neve
 from __future__ import annotations
 
 from mds_ach.robot import joints, msgs  # noqa: F401  (mds.joints, mds.msgs: public before the sub-packages)
+
+# Channel names and geometry are declared once, with their structs and rules, in mds_ach.robot.contracts.
+from mds_ach.robot.contracts import (
+    ALL_CHANNELS,
+    CHANNEL_FRAME_COUNT,
+    CHANNEL_FRAME_SIZE,
+    LEGACY_CHANNELS,
+    MDS_CHAN_BOARD_CMD_NAME,
+    MDS_CHAN_COLLIDE_NAME,
+    MDS_CHAN_DAEMON_INPUT_NAME,
+    MDS_CHAN_DAEMON_STATUS_NAME,
+    MDS_CHAN_IK_NAME,
+    MDS_CHAN_IK_STATE_NAME,
+    MDS_CHAN_MUX_STATE_NAME,
+    MDS_CHAN_PARAM_NAME,
+    MDS_CHAN_REF_FILTER_NAME,
+    MDS_CHAN_REF_IK_NAME,
+    MDS_CHAN_REF_MUX_NAME,
+    MDS_CHAN_REF_NAME,
+    MDS_CHAN_REF_ROS_NAME,
+    MDS_CHAN_REF_SMOOTH_NAME,
+    MDS_CHAN_STATE_NAME,
+    PIPELINE_CHANNELS,
+)
 from mds_ach.robot.joints import BY_ADDRESS, BY_NAME, BY_SHORT, JOINTS, Joint, getAddress, lookup
 from mds_ach.robot.msgs import (
     MDS_ARM_COUNT,
@@ -26,59 +50,18 @@ from mds_ach.robot.msgs import (
     MDS_REF,
     MDS_STATE,
 )
+from mds_ach.robot.msgs.legacy import (
+    MDS_REF_MODE_COMPLIANT,
+    MDS_REF_MODE_ENC_FILTER,
+    MDS_REF_MODE_REF,
+    MDS_REF_MODE_REF_FILTER,
+)
 
 __version__ = "0.1.0"
-
-# --- legacy channel names (mds.h) -------------------------------------------------------------
-MDS_CHAN_REF_NAME = "mds-ref"
-MDS_CHAN_REF_FILTER_NAME = "mds-ref-filter"
-MDS_CHAN_STATE_NAME = "mds-state"
-MDS_CHAN_PARAM_NAME = "mds-param"
-MDS_CHAN_IK_NAME = "mds-ik"
-MDS_CHAN_COLLIDE_NAME = "mds-collide"
-MDS_CHAN_BOARD_CMD_NAME = "mds-cmd"  # the C name; the old Python's "mds-board-cmd" was a bug
-# --- new pipeline channels ----------------------------------------------------------------------
-MDS_CHAN_REF_IK_NAME = "mds-ref-ik"  # ik node -> mux
-MDS_CHAN_REF_ROS_NAME = "mds-ref-ros"  # bridge -> mux
-MDS_CHAN_REF_MUX_NAME = "mds-ref-mux"  # mux -> filter
-MDS_CHAN_REF_SMOOTH_NAME = "mds-ref-smooth"  # filter -> collision gate
-MDS_CHAN_IK_STATE_NAME = "mds-ik-state"  # ik node status
-MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"  # mux ownership / ages
-MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"  # loop rate, overruns, bus load, faults
-# What the daemon executes (the collision gate's output). The one name to change when it is renamed: only the
-# stack's own user may write it (mds_ach.robot.access), operators write the controller inputs above it.
-MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_NAME
-
-LEGACY_CHANNELS: tuple[str, ...] = (
-    MDS_CHAN_REF_NAME,
-    MDS_CHAN_REF_FILTER_NAME,
-    MDS_CHAN_STATE_NAME,
-    MDS_CHAN_PARAM_NAME,
-    MDS_CHAN_IK_NAME,
-    MDS_CHAN_COLLIDE_NAME,
-    MDS_CHAN_BOARD_CMD_NAME,
-)
-PIPELINE_CHANNELS: tuple[str, ...] = (
-    MDS_CHAN_REF_IK_NAME,
-    MDS_CHAN_REF_ROS_NAME,
-    MDS_CHAN_REF_MUX_NAME,
-    MDS_CHAN_REF_SMOOTH_NAME,
-    MDS_CHAN_IK_STATE_NAME,
-    MDS_CHAN_MUX_STATE_NAME,
-    MDS_CHAN_DAEMON_STATUS_NAME,
-)
-ALL_CHANNELS: tuple[str, ...] = LEGACY_CHANNELS + PIPELINE_CHANNELS
-# Original sizing: `ach -1 mk <name> -m 10 -n 3000`.
-CHANNEL_FRAME_COUNT = 10
-CHANNEL_FRAME_SIZE = 3000
 
 # --- arms and modes -----------------------------------------------------------------------------
 RIGHT = 0
 LEFT = 1
-MDS_REF_MODE_REF_FILTER = 0
-MDS_REF_MODE_REF = 1
-MDS_REF_MODE_COMPLIANT = 2
-MDS_REF_MODE_ENC_FILTER = 3
 
 # --- mds_collide_t part indices -----------------------------------------------------------------
 COLLIDE_L_HAND = 0
@@ -128,6 +111,30 @@ def _export_joint_constants() -> None:
 _export_joint_constants()
 
 __all__ = [
+    "ALL_CHANNELS",
+    "CHANNEL_FRAME_COUNT",
+    "CHANNEL_FRAME_SIZE",
+    "LEGACY_CHANNELS",
+    "PIPELINE_CHANNELS",
+    "MDS_CHAN_BOARD_CMD_NAME",
+    "MDS_CHAN_COLLIDE_NAME",
+    "MDS_CHAN_DAEMON_INPUT_NAME",
+    "MDS_CHAN_DAEMON_STATUS_NAME",
+    "MDS_CHAN_IK_NAME",
+    "MDS_CHAN_IK_STATE_NAME",
+    "MDS_CHAN_MUX_STATE_NAME",
+    "MDS_CHAN_PARAM_NAME",
+    "MDS_CHAN_REF_FILTER_NAME",
+    "MDS_CHAN_REF_IK_NAME",
+    "MDS_CHAN_REF_MUX_NAME",
+    "MDS_CHAN_REF_NAME",
+    "MDS_CHAN_REF_ROS_NAME",
+    "MDS_CHAN_REF_SMOOTH_NAME",
+    "MDS_CHAN_STATE_NAME",
+    "MDS_REF_MODE_COMPLIANT",
+    "MDS_REF_MODE_ENC_FILTER",
+    "MDS_REF_MODE_REF",
+    "MDS_REF_MODE_REF_FILTER",
     "BY_ADDRESS",
     "BY_NAME",
     "BY_SHORT",

@@ -1,9 +1,9 @@
 """include/mds.h against the Python layouts: compiled with gcc/g++, every sizeof/offsetof compared.
 
-The header is generated from mds_ach.robot.msgs, so these tests check what generation cannot promise by
-itself: that a C compiler lays the structs out byte for byte like ctypes (packing, field types), that
-the bytes a C program writes decode correctly in Python, that the constants agree, and that the
-committed file is the generated one. The C examples need libach and are not built here.
+The header is generated from mds_ach.robot.contracts and mds_ach.robot.msgs, so these tests check what
+generation cannot promise by itself: that a C compiler lays the structs out byte for byte like ctypes
+(packing, field types), that the bytes a C program writes decode correctly in Python, that the constants
+agree, and that the committed file is the generated one. The C examples need libach and are not built here.
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 
 import mds_ach as mds
-from mds_ach.robot import joints, msgs
+from mds_ach.robot import contracts, joints, msgs
+from mds_ach.robot.msgs import daemon_status, ik_status, mux_state
 from mds_ach.tools import cheader
 
 INCLUDE = cheader.HEADER_PATH.parent
@@ -35,6 +36,8 @@ SPEC_SIZES = {
     "mds_ik_arm_t": 50,
     "mds_ik_t": 102,
 }
+# The new structs (this stack's own channels); test_msgs_layout checks their offsets.
+NEW_SIZES = {"mds_cmd_t": 16, "mds_ik_status_t": 214, "mds_mux_state_t": 506, "mds_daemon_status_t": 2087}
 
 
 def _compile_and_run(tmp_path: Path, source: str, compiler: str = "gcc", std: str = "c11", extra: tuple = ()) -> str:
@@ -97,6 +100,74 @@ def test_gcc_layout_equals_ctypes(tmp_path: Path) -> None:
     sizes = {s: size for s, f, _, size in c_rows if f == "-"}
     for name, size in SPEC_SIZES.items():
         assert sizes[name] == size, f"{name}: gcc says {sizes[name]} B, the original mds.h had {size} B"
+    for name, size in NEW_SIZES.items():
+        assert sizes[name] == size, f"{name}: gcc says {sizes[name]} B, expected {size} B"
+
+
+def test_header_has_every_channel_struct() -> None:
+    """Every struct a registered channel carries (and every struct nested in one) is in the header."""
+    for c in contracts.CHANNELS:
+        assert c.struct in cheader.STRUCTS, f"{c.name}: {c.struct.__name__} missing from include/mds.h"
+    text = cheader.HEADER_PATH.read_text()
+    for cls in cheader.STRUCTS:
+        assert f"}} {cheader.c_type_name(cls)};" in text
+
+
+def test_new_structs_written_in_c_decode_in_python(tmp_path: Path) -> None:
+    """Mux state, IK status and daemon status filled by a C program read back field by field in Python."""
+    prog = r"""
+#include <stdio.h>
+#include <string.h>
+#include "mds.h"
+int main(void) {
+    mds_mux_state_t m;
+    mds_ik_status_t k;
+    mds_daemon_status_t d;
+    memset(&m, 0, sizeof m);
+    memset(&k, 0, sizeof k);
+    memset(&d, 0, sizeof d);
+    for (int a = 0; a < MDS_JOINT_COUNT; a++) m.owner[a] = MDS_MUX_NO_OWNER;
+    m.owner[MDS_JOINT_LSP] = 1;
+    m.count = 2;
+    m.priority[1] = 10;
+    m.age[1] = 0.5;
+    strcpy(m.name[1], "default");
+    m.seq = 9;
+    k.seq = 3;
+    k.status = MDS_IK_UNREACHABLE;
+    k.arm = MDS_LEFT;
+    k.q[5] = -0.25;
+    strcpy(k.message, "no solution");
+    d.version = MDS_DAEMON_STATUS_VERSION;
+    d.bus_state = MDS_DAEMON_BUS_STATE_BUS_OFF;
+    d.cmd_result = MDS_DAEMON_CMD_REFUSED;
+    d.joint_flags[MDS_JOINT_LEP] = MDS_DAEMON_JOINT_ENABLED | MDS_DAEMON_JOINT_STALE;
+    d.joint_reseed[MDS_JOINT_LEP] = 4;
+    d.lock_timeouts = 77;
+    fwrite(&m, sizeof m, 1, stdout);
+    fwrite(&k, sizeof k, 1, stdout);
+    fwrite(&d, sizeof d, 1, stdout);
+    return 0;
+}
+"""
+    exe = tmp_path / "writer"
+    src = tmp_path / "writer.c"
+    src.write_text(prog)
+    subprocess.run(["gcc", "-std=c11", "-Wall", "-Werror", f"-I{INCLUDE}", str(src), "-o", str(exe)], check=True)
+    raw = subprocess.run([str(exe)], capture_output=True, check=True).stdout
+    n_m, n_k = ctypes.sizeof(msgs.MDS_MUX_STATE), ctypes.sizeof(msgs.MDS_IK_STATUS)
+    assert len(raw) == n_m + n_k + ctypes.sizeof(msgs.MDS_DAEMON_STATUS)
+    m = msgs.MDS_MUX_STATE.from_bytes(raw[:n_m])
+    k = msgs.MDS_IK_STATUS.from_bytes(raw[n_m:n_m + n_k])
+    d = msgs.MDS_DAEMON_STATUS.from_bytes(raw[n_m + n_k:])
+    assert (m.owner[mds.LSP], m.owner[mds.LEP], m.count, m.priority[1], m.age[1], m.seq) == (1, -1, 2, 10, 0.5, 9)
+    assert msgs.get_name(bytes(m.name[1])) == "default"
+    assert (k.seq, k.status, k.arm, k.q[5]) == (3, ik_status.IK_UNREACHABLE, mds.LEFT, -0.25)
+    assert ik_status.get_message(k) == "no solution"
+    assert (d.version, d.bus_state, d.cmd_result) == (daemon_status.DAEMON_STATUS_VERSION,
+                                                      daemon_status.BUS_STATE_BUS_OFF, daemon_status.CMD_REFUSED)
+    assert d.joint_flags[mds.LEP] == daemon_status.JOINT_ENABLED | daemon_status.JOINT_STALE
+    assert (d.joint_reseed[mds.LEP], d.lock_timeouts) == (4, 77)
 
 
 def test_gxx_layout_equals_ctypes(tmp_path: Path) -> None:
@@ -180,6 +251,12 @@ def test_constants_agree_with_python(tmp_path: Path) -> None:
     }
     for prefix in ("MDS_REF_MODE_", "MDS_CMD_"):
         ints.update({k: v for k, v in vars(mds).items() if k.startswith(prefix) and type(v) is int})
+    ints.update({"MDS_MUX_MAX_CONTROLLERS": mux_state.MUX_MAX_CONTROLLERS, "MDS_MUX_NO_OWNER": mux_state.MUX_NO_OWNER,
+                 "MDS_IK_MESSAGE_SIZE": ik_status.IK_MESSAGE_SIZE})
+    ints.update({"MDS_" + k: v for k in ("IK_SOLVED", "IK_UNREACHABLE", "IK_BAD_REQUEST", "IK_NOT_READY")
+                 for v in (getattr(ik_status, k),)})
+    ints.update({"MDS_DAEMON_" + k: v for k, v in vars(daemon_status).items()
+                 if k.startswith(("BUS_STATE_", "CMD_", "JOINT_")) and type(v) is int})
     ints.update({"MDS_" + k: v for k, v in vars(mds).items() if k.startswith("COLLIDE_") and type(v) is int})
     for j in joints.JOINTS:
         ints[f"MDS_JOINT_{j.short}"] = j.address
@@ -199,6 +276,8 @@ def test_constants_agree_with_python(tmp_path: Path) -> None:
     out = _compile_and_run(tmp_path, prog).splitlines()
     got_text = dict(line.split(" ", 1) for line in out if line.startswith("MDS_CHAN_"))
     assert got_text == {k: getattr(mds, k) for k in channels}
+    assert {got_text[c.macro] for c in contracts.CHANNELS} == set(contracts.ALL_CHANNELS)
+    assert all(got_text[c.macro] == c.name for c in contracts.CHANNELS)
     got_int = {k: int(v) for k, v in (line.split(" ", 1) for line in out) if k in ints}
     assert got_int == ints
     table = [tuple(line.split()[1:]) for line in out if line.startswith("table ")]

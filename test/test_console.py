@@ -251,7 +251,7 @@ def test_goto_moves_the_joint_through_the_pipeline(system: dict[str, str]) -> No
     # the motion went through the mux: the default controller owns LSP now
     from mds_system import newest
 
-    from mds_ach.nodes.mux import MDS_MUX_STATE
+    from mds_ach.robot.msgs import MDS_MUX_STATE
 
     mux_state = newest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
     owner = mux_state.owner[mds.LSP]

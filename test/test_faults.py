@@ -55,9 +55,9 @@ from mds_ach.bus.simbus import ManualClock, SimNetwork
 from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import config
-from mds_ach.robot import daemon_status as ds
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_CMD, MDS_REF, MDS_STATE
+from mds_ach.robot.msgs import daemon_status as ds
 
 TABLE = config.load("default")
 

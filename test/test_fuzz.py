@@ -37,8 +37,8 @@ import mds_ach as mds
 from mds_ach import ach
 from mds_ach.bus import mcb
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, ref_arrays
-from mds_ach.robot import daemon_status as ds
 from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_COUNT, MDS_REF
+from mds_ach.robot.msgs import daemon_status as ds
 
 # CI runs a fixed, modest set of examples; MDS_FUZZ_EXAMPLES=2000 fuzzes deeper with fresh random examples.
 FUZZ_EXAMPLES = int(os.environ.get("MDS_FUZZ_EXAMPLES", "30"))

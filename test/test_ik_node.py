@@ -20,7 +20,8 @@ from mds_ach.kinematics import model as kinematics
 from mds_ach.nodes.ik import IkNodeConfig, IkRunner, IkService, arm_limits
 from mds_ach.nodes.ik_client import IkClient, make_request
 from mds_ach.nodes.pipeline import make_ref, ref_arrays
-from mds_ach.robot.ik_msgs import (
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
+from mds_ach.robot.msgs.ik_status import (
     IK_BAD_REQUEST,
     IK_NOT_READY,
     IK_SOLVED,
@@ -29,7 +30,6 @@ from mds_ach.robot.ik_msgs import (
     get_message,
     status_to_dict,
 )
-from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 
 N = mds.MDS_JOINT_COUNT
 LEFT_ADDR = [BY_SHORT[s].address for s in LEFT_ARM]
@@ -267,7 +267,7 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
     from std_msgs.msg import String
 
     from mds_ach.robot.channels import StructChannel
-    from mds_ach.robot.ik_msgs import IK_STATUS_TOPIC
+    from mds_ach.robot.msgs.ik_status import IK_STATUS_TOPIC
 
     put_state(current_pose())
     proc = subprocess.Popen([str(VENV_BIN / "ik")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -116,7 +116,7 @@ def test_torch_fk_and_jacobian_equal_numpy(arm: str) -> None:
 
 
 def test_kinematics_and_ik_import_without_torch() -> None:
-    code = ("import sys, mds_ach.kinematics.model, mds_ach.ik, mds_ach.nodes.ik_client, mds_ach.robot.ik_msgs; "
+    code = ("import sys, mds_ach.kinematics.model, mds_ach.ik, mds_ach.nodes.ik_client, mds_ach.robot.msgs.ik_status; "
             "print(sorted(m for m in ('torch', 'pytorch_kinematics', 'yourdfpy', 'rclpy', 'fcl') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]"

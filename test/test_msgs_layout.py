@@ -151,3 +151,47 @@ def test_mds_h_joint_constants(short: str, name: str, address: int) -> None:
     assert getattr(mds, name) == address
     assert mds.getAddress(short) == address
     assert mds.getAddress(name) == address
+
+
+# --- the new structs (not in the original mds.h): their layouts are contracts with C clients just the same ---
+
+
+def test_new_struct_sizes() -> None:
+    assert ctypes.sizeof(msgs.MDS_CMD) == 16
+    assert ctypes.sizeof(msgs.MDS_IK_STATUS) == 214
+    assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 506
+    assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2087
+
+
+def test_cmd_offsets() -> None:
+    assert offsets(msgs.MDS_CMD) == {"seq": 0, "cmd": 4, "address": 6, "value": 8}
+
+
+def test_ik_status_offsets() -> None:
+    assert offsets(msgs.MDS_IK_STATUS) == {"seq": 0, "status": 4, "arm": 6, "dof": 8, "iterations": 10, "error": 14,
+                                           "solve_time": 22, "target": 30, "q": 78, "stamp": 126, "message": 134}
+    assert field_type(msgs.MDS_IK_STATUS, "iterations") is ctypes.c_int32
+
+
+def test_mux_state_offsets() -> None:
+    assert offsets(msgs.MDS_MUX_STATE) == {"owner": 0, "count": 100, "priority": 102, "stale": 118, "age": 126,
+                                           "change_age": 190, "name": 254, "time": 494, "seq": 502}
+    assert msgs.MDS_MUX_STATE.name.size == 8 * 30
+
+
+def test_daemon_status_offsets() -> None:
+    got = offsets(msgs.MDS_DAEMON_STATUS)
+    assert {k: got[k] for k in ("version", "pid", "time", "cycle", "bus_state", "cmd_result", "joint_flags",
+                                "joint_age", "channel_errors", "joint_limited", "joint_reseed", "lock_timeouts")} == {
+        "version": 0, "pid": 2, "time": 6, "cycle": 22, "bus_state": 134, "cmd_result": 234, "joint_flags": 235,
+        "joint_age": 435, "channel_errors": 835, "joint_limited": 883, "joint_reseed": 1683, "lock_timeouts": 2083}
+
+
+def test_every_struct_is_packed_little_endian() -> None:
+    """One base for all of them: byte-packed, little-endian, exact-size decoding."""
+    for cls in (msgs.MDS_REF, msgs.MDS_STATE, msgs.MDS_JOINT_PARAM, msgs.MDS_IK, msgs.MDS_COLLIDE, msgs.MDS_CMD,
+                msgs.MDS_IK_STATUS, msgs.MDS_MUX_STATE, msgs.MDS_DAEMON_STATUS):
+        assert issubclass(cls, msgs.Packed) and cls._pack_ == 1
+        assert cls.from_bytes(bytes(ctypes.sizeof(cls))).to_bytes() == bytes(ctypes.sizeof(cls))
+        with pytest.raises(ValueError, match=cls.__name__):
+            cls.from_bytes(b"\0")

@@ -31,10 +31,10 @@ from mds_ach import ach
 from mds_ach.kinematics.collision import load_model
 from mds_ach.kinematics.model import arm_kinematics
 from mds_ach.robot import config
-from mds_ach.robot import daemon_status as ds
 from mds_ach.robot.channels import StructChannel
-from mds_ach.robot.ik_msgs import IK_SOLVED, MDS_IK_STATUS
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
+from mds_ach.robot.msgs import daemon_status as ds
+from mds_ach.robot.msgs.ik_status import IK_SOLVED, MDS_IK_STATUS
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 

@@ -21,7 +21,13 @@ import mds_ach as mds
 from mds_ach import ach
 from mds_ach.robot.channels import StructChannel, make_channels
 from mds_ach.robot.config import load
-from mds_ach.robot.daemon_status import JOINT_CONFIGURED, JOINT_ENABLED, JOINT_FRESH, JOINT_STALE, MDS_DAEMON_STATUS
+from mds_ach.robot.msgs.daemon_status import (
+    JOINT_CONFIGURED,
+    JOINT_ENABLED,
+    JOINT_FRESH,
+    JOINT_STALE,
+    MDS_DAEMON_STATUS,
+)
 from mds_ach.tools.read import ALT_OFF, ALT_ON, CURSOR_ON
 
 READ = str(VENV_BIN / "read")

@@ -18,9 +18,9 @@ from mds_ach.nodes.collision import GateConfig, GateRunner, joint_limits
 from mds_ach.nodes.filter import FilterRunner, parse_config
 from mds_ach.nodes.mux import Controller, MuxRunner
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, ReseedWatch, make_ref, ref_arrays
-from mds_ach.robot import daemon_status as ds
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT
+from mds_ach.robot.msgs import daemon_status as ds
 
 N = mds.MDS_JOINT_COUNT
 LEP = BY_SHORT["LEP"].address

@@ -11,7 +11,7 @@ from conftest import REPO, VENV_BIN, in_netns, remove_mds_channels, wait_for
 from mds_system import joint_pos, mds_ach, newest, system_env
 
 import mds_ach as mds
-from mds_ach.nodes.mux import MDS_MUX_STATE
+from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.tools.launcher import NODES, read_pid
 
 READY = [(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE), (mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE),

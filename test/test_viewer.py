@@ -171,7 +171,7 @@ def test_ik_request_places_the_marker_in_the_robot_frame(inproc: viewer.Viewer) 
 
 
 def test_ik_answer_recolours_and_captions_the_marker(inproc: viewer.Viewer) -> None:
-    from mds_ach.robot.ik_msgs import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS
+    from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS
 
     make_channels()
     answer = MDS_IK_STATUS()

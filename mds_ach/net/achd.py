@@ -39,11 +39,12 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 from mds_ach import ach
 from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
-from mds_ach.robot import msgs
+from mds_ach.robot import contracts
 
 log = logging.getLogger("mds_ach.net.achd")
 
@@ -56,8 +57,6 @@ MAX_HEADER_BYTES = 32 * ap.LINE_LENGTH
 MAX_SERVED_STATS = 256
 REFUSED_RETRY_S = 2.0
 """Back-off after the server refused a request (missing channel, not allowed): slower than a drop."""
-REF_ABS_MAX = 2 * math.pi
-"""No joint of the MDS turns more than a full turn: anything larger in a reference is garbage."""
 MAX_CLIENTS = 32
 """Connections from remote (non-loopback) peers together."""
 MAX_PER_PEER = 8
@@ -70,80 +69,35 @@ still wants the channel). Long enough that a quiet operator link is rarely rebui
 
 # Channels a client may write through our server unless told otherwise: the pipeline's inputs, so a
 # remote reference still passes the mux, filter and collision gate. Never mds-ref or mds-cmd.
-SAFE_WRITABLE: tuple[str, ...] = ("mds-ref-filter", "mds-ik")
+SAFE_WRITABLE: tuple[str, ...] = contracts.REMOTE_WRITABLE
 
 
 # --------------------------------------------------------------------------------------------------
-# What may be written: the struct each MDS channel carries, and checks of its content
+# What may be written: the channel's contract (struct and validator, mds_ach.robot.contracts)
 # --------------------------------------------------------------------------------------------------
-
-
-def _check_ref(payload: bytes) -> str | None:
-    ref = msgs.MDS_REF.from_buffer_copy(payload)
-    for address, joint in enumerate(ref.joint):
-        if not math.isfinite(joint.ref):
-            return f"non-finite reference {joint.ref} at address {address:#x}"
-        if abs(joint.ref) > REF_ABS_MAX:
-            return f"reference {joint.ref:.3f} rad at address {address:#x} beyond one turn"
-        if joint.mode not in (0, 1, 2, 3):
-            return f"unknown ref mode {joint.mode} at address {address:#x}"
-    return None
-
-
-def _check_ik(payload: bytes) -> str | None:
-    ik = msgs.MDS_IK.from_buffer_copy(payload)
-    if ik.move not in (0, 1):
-        return f"ik move {ik.move} is neither arm"
-    for arm in ik.arm:
-        values = (arm.t_x, arm.t_y, arm.t_z, arm.r_x, arm.r_y, arm.r_z)
-        if not all(math.isfinite(v) for v in values):
-            return "non-finite ik target"
-        if not 0 <= arm.ik_method <= 6:
-            return f"ik method {arm.ik_method} outside 0..6"
-    return None
-
-
-def _check_cmd(payload: bytes) -> str | None:
-    cmd = msgs.MDS_CMD.from_buffer_copy(payload)
-    if not math.isfinite(cmd.value):
-        return "non-finite command value"
-    return None
 
 
 @dataclass(frozen=True)
 class FrameRule:
-    """The struct a channel carries (``None``: any non-empty frame) and a content check."""
+    """What a frame on one channel must be: its contract's struct and validator, or for a channel that is not
+    an MDS channel (``contract`` None) any non-empty frame."""
 
-    ctype: type | None = None
-    check: Callable[[bytes], str | None] | None = None
+    contract: contracts.Contract[Any] | None = None
+
+    @property
+    def ctype(self) -> type[ctypes.Structure] | None:
+        return None if self.contract is None else self.contract.struct
 
     def problem(self, payload: bytes) -> tuple[str, str] | None:
         """``(kind, reason)`` why ``payload`` must not be written, kind ``size`` or ``invalid``; else None."""
         if not payload:
             return "size", "empty frame"
-        if self.ctype is not None and len(payload) != ctypes.sizeof(self.ctype):
-            return "size", f"{len(payload)} bytes, {self.ctype.__name__} has {ctypes.sizeof(self.ctype)}"
-        if self.check is not None:
-            reason = self.check(payload)
-            if reason:
-                return "invalid", reason
-        return None
-
-
-_RULES: dict[str, FrameRule] = {
-    "mds-state": FrameRule(msgs.MDS_STATE),
-    "mds-param": FrameRule(msgs.MDS_JOINT_PARAM),
-    "mds-collide": FrameRule(msgs.MDS_COLLIDE),
-    "mds-ik": FrameRule(msgs.MDS_IK, _check_ik),
-    "mds-cmd": FrameRule(msgs.MDS_CMD, _check_cmd),
-}
+        return None if self.contract is None else self.contract.problem(payload)
 
 
 def rule_for(channel: str) -> FrameRule:
-    """Every ``mds-ref*`` channel carries MDS_REF; the other MDS channels their legacy struct."""
-    if channel == "mds-ref" or channel.startswith("mds-ref-"):
-        return FrameRule(msgs.MDS_REF, _check_ref)
-    return _RULES.get(channel, FrameRule())
+    """The rule of ``channel`` from its contract (every ``mds-ref-*`` channel carries MDS_REF)."""
+    return FrameRule(contracts.lookup(channel))
 
 
 # --------------------------------------------------------------------------------------------------

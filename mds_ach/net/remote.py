@@ -36,19 +36,13 @@ from mds_ach import procs as background
 from mds_ach.net import achd
 from mds_ach.net import protocol as ap
 from mds_ach.paths import runtime_dir
+from mds_ach.robot import contracts
 
 log = logging.getLogger("mds_ach.net.remote")
 
 # What the robot side lets the network read (everything an operator monitors) and write (the safe inputs).
-ROBOT_READABLE: tuple[str, ...] = (
-    mds.MDS_CHAN_STATE_NAME,
-    mds.MDS_CHAN_PARAM_NAME,
-    mds.MDS_CHAN_COLLIDE_NAME,
-    mds.MDS_CHAN_DAEMON_STATUS_NAME,
-    mds.MDS_CHAN_MUX_STATE_NAME,
-    mds.MDS_CHAN_IK_STATE_NAME,
-)
-ROBOT_WRITABLE: tuple[str, ...] = achd.SAFE_WRITABLE
+ROBOT_READABLE: tuple[str, ...] = contracts.REMOTE_READABLE
+ROBOT_WRITABLE: tuple[str, ...] = contracts.REMOTE_WRITABLE
 STATUS_PERIOD_S = 0.5
 SSH_RESTART_S = 1.0
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import mds_ach as mds
 from mds_ach.nodes.rosargs import strip_ros_args
-from mds_ach.robot import daemon_status as ds
+from mds_ach.robot.msgs import daemon_status as ds
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 

@@ -54,6 +54,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -71,11 +72,11 @@ from mds_ach.bus.constants import (
 )
 from mds_ach.bus.mcb import Response, StateArg
 from mds_ach.nodes import filters
-from mds_ach.robot import daemon_status as ds
-from mds_ach.robot import motion
+from mds_ach.robot import contracts, motion
 from mds_ach.robot.config import JointConfig, JointTable
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
-from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_JOINT_PARAM, MDS_REF, MDS_STATE
+from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
+from mds_ach.robot.msgs import daemon_status as ds
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 
@@ -118,9 +119,21 @@ def lock_timeout_for(rate_hz: float) -> float:
     return min(0.005, 0.1 / rate_hz) if rate_hz > 0 else 0.005  # (a bad rate is refused by DaemonLoop)
 
 
+# The daemon's role for each channel it uses; the structs and geometry come from the contracts registry, and
+# test_contracts checks these are exactly the channels that name the daemon as a writer or reader.
+DAEMON_ROLES: dict[str, str] = {
+    "ref": mds.MDS_CHAN_DAEMON_INPUT_NAME,
+    "state": mds.MDS_CHAN_STATE_NAME,
+    "collide": mds.MDS_CHAN_COLLIDE_NAME,
+    "cmd": mds.MDS_CHAN_BOARD_CMD_NAME,
+    "status": mds.MDS_CHAN_DAEMON_STATUS_NAME,
+    "param": mds.MDS_CHAN_PARAM_NAME,
+}
+
+
 @dataclass
 class DaemonChannels:
-    """The Ach channels the daemon reads and writes (created if missing)."""
+    """The Ach channels the daemon reads and writes (created if missing): ``DAEMON_ROLES``."""
 
     ref: object
     state: object
@@ -137,18 +150,16 @@ class DaemonChannels:
         from mds_ach.robot import access as channel_access
         from mds_ach.robot.channels import StructChannel
 
-        names = {"ref": (mds.MDS_CHAN_REF_NAME, MDS_REF), "state": (mds.MDS_CHAN_STATE_NAME, MDS_STATE),
-                 "collide": (mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE),
-                 "status": (mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS),
-                 "param": (mds.MDS_CHAN_PARAM_NAME, MDS_JOINT_PARAM)}
-        opened = {}
+        opened: dict[str, Any] = {}
         try:
-            for key, (name, ctype) in names.items():
-                opened[key] = StructChannel(name, ctype, lock_timeout=lock_timeout)
-            opened["cmd"] = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE,
-                                        lock_timeout=lock_timeout)
-            if channel_access.enforced():  # as StructChannel does for the others
-                channel_access.require_trusted(opened["cmd"])
+            for key, name in DAEMON_ROLES.items():
+                if key == "cmd":  # raw: the loop counts and reports wrong-sized commands itself
+                    c = contracts.contract(name)
+                    opened[key] = ach.Channel(name, c.frame_count, c.frame_size, lock_timeout=lock_timeout)
+                    if channel_access.enforced():  # as StructChannel does for the others
+                        channel_access.require_trusted(opened[key])
+                else:
+                    opened[key] = StructChannel.of(name, lock_timeout=lock_timeout)
         except Exception:
             for ch in opened.values():
                 ch.close()

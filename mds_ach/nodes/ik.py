@@ -13,7 +13,7 @@ the order x, y, z, roll, pitch, yaw from ``t_x t_y t_z r_x r_y r_z``; robot fram
    so other joints are never touched. Never straight to ``mds-ref``: the mux, filter and collision gate
    stay in the path. An unreachable target writes nothing (the arm holds) and says so.
 
-Every request gets an answer on ``mds-ik-state`` (``MDS_IK_STATUS``, see ``mds_ach.robot.ik_msgs``) and as JSON
+Every request gets an answer on ``mds-ik-state`` (``MDS_IK_STATUS``, see ``mds_ach.robot.msgs.ik_status``) and as JSON
 on the ROS topic ``/mds/ik_status`` (std_msgs/String).
 """
 
@@ -32,7 +32,8 @@ import numpy as np
 
 import mds_ach as mds
 from mds_ach import ik
-from mds_ach.robot.ik_msgs import (
+from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
+from mds_ach.robot.msgs.ik_status import (
     IK_BAD_REQUEST,
     IK_NOT_READY,
     IK_SOLVED,
@@ -42,7 +43,6 @@ from mds_ach.robot.ik_msgs import (
     set_message,
     status_to_dict,
 )
-from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 
 ARM_JOINTS: dict[int, tuple[str, ...]] = {mds.RIGHT: RIGHT_ARM, mds.LEFT: LEFT_ARM}
 ARM_NAMES: dict[int, str] = {mds.RIGHT: "right", mds.LEFT: "left"}

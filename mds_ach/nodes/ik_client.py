@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import mds_ach as mds
 from mds_ach.kinematics.model import arm_name
-from mds_ach.robot.ik_msgs import IK_SOLVED, MDS_IK_STATUS, get_message
+from mds_ach.robot.msgs.ik_status import IK_SOLVED, MDS_IK_STATUS, get_message
 
 
 class IkTimeout(TimeoutError):  # noqa: N818 - the name the console imports

@@ -15,7 +15,8 @@ Why "modified" rather than "newest frame wins": legacy clients read-modify-write
 
 Event-based: one thread per input blocks on its channel and queues frames; the mux thread applies them in
 arrival order and publishes ``mds-ref-mux`` on every output change. Ownership and ages go to
-``mds-mux-state`` (``MDS_MUX_STATE`` below) and to the ROS topic ``/mds/mux_state`` (std_msgs/String, JSON).
+``mds-mux-state`` (``mds_ach.robot.msgs.MDS_MUX_STATE``) and to the ROS topic ``/mds/mux_state``
+(std_msgs/String, JSON).
 
 At start the output is the current reference (``mds-ref``, else ``mds-state`` joint[].ref), published once
 so the filter holds still; frames already waiting in the input channels are taken as each controller's
@@ -27,7 +28,6 @@ read-modify-write clients start from the real pose instead of zeros.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import math
 import queue
@@ -53,37 +53,9 @@ from mds_ach.nodes.pipeline import (
     select_joints,
 )
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
+from mds_ach.robot.msgs.mux_state import MDS_MUX_STATE, MUX_MAX_CONTROLLERS  # noqa: F401  (mux.MDS_MUX_STATE)
 
-MUX_MAX_CONTROLLERS = 8
 DEFAULT_STATE_RATE = 10.0
-
-
-class MDS_MUX_STATE(ctypes.LittleEndianStructure):  # noqa: N801 - legacy naming style
-    """``mds-mux-state`` frame (packed, 506 B): who owns each joint and how fresh each controller is.
-
-    owner[address]     controller index (into name[]) that owns the joint, -1 = nobody (holding)
-    count              number of configured controllers (<= 8)
-    priority[i]        controller priority (higher wins)
-    stale[i]           1 when the controller is stale (no change within its timeout) or never sent
-    age[i]             s since the controller's last frame, -1 = never
-    change_age[i]      s since its last frame that changed a joint, -1 = never
-    name[i]            controller name, char[30]
-    time               CLOCK_MONOTONIC at publish
-    seq                publish counter
-    """
-
-    _pack_ = 1
-    _fields_ = [
-        ("owner", ctypes.c_int8 * MDS_JOINT_COUNT),
-        ("count", ctypes.c_int16),
-        ("priority", ctypes.c_int16 * MUX_MAX_CONTROLLERS),
-        ("stale", ctypes.c_uint8 * MUX_MAX_CONTROLLERS),
-        ("age", ctypes.c_double * MUX_MAX_CONTROLLERS),
-        ("change_age", ctypes.c_double * MUX_MAX_CONTROLLERS),
-        ("name", Name30 * MUX_MAX_CONTROLLERS),
-        ("time", ctypes.c_double),
-        ("seq", ctypes.c_uint32),
-    ]
 
 
 # --------------------------------------------------------------------------------------------- config

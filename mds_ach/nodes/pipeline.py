@@ -25,6 +25,7 @@ import numpy as np
 
 import mds_ach as mds
 from mds_ach.nodes.rosargs import strip_ros_args
+from mds_ach.robot import contracts
 from mds_ach.robot.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
 
 REF_DTYPE = np.dtype([("ref", "<f8"), ("mode", "<i2")])  # packed, itemsize 10 == sizeof(MDS_JOINT_REF)
@@ -121,14 +122,15 @@ def current_reference(sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_C
                       ) -> tuple[np.ndarray, np.ndarray, str] | None:
     """(ref, mode, source) from the newest frame on the first source channel that has one, else None.
 
-    ``mds-ref`` gives ref and mode; ``mds-state`` gives ``joint[].ref`` (mode 0); any other name is read as an
-    ``MDS_REF`` channel. Channels are created if missing, so nodes can start in any order.
+    ``mds-ref`` gives ref and mode; ``mds-state`` gives ``joint[].ref`` (mode 0); any other channel carries an
+    ``MDS_REF`` (the contracts registry says which struct; unregistered names are read as ``MDS_REF``). Channels
+    are created if missing, so nodes can start in any order.
     """
     from mds_ach.robot.channels import StructChannel
 
     for name in sources:
-        ctype = mds.MDS_STATE if name == mds.MDS_CHAN_STATE_NAME else mds.MDS_REF
-        ch = StructChannel(name, ctype)
+        found = contracts.lookup(name)
+        ch = StructChannel(name, found.struct if found is not None else mds.MDS_REF)
         try:
             frame = ch.latest()
         finally:
@@ -178,12 +180,11 @@ class ReseedWatch:
     """
 
     def __init__(self, log: Callable[[str, str], None], stop: threading.Event) -> None:
-        from mds_ach.robot import daemon_status
         from mds_ach.robot.channels import StructChannel
 
         self._guard = ChannelGuard(log, stop)
-        self._status = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, daemon_status.MDS_DAEMON_STATUS)
-        self._state = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        self._status = StructChannel.of(mds.MDS_CHAN_DAEMON_STATUS_NAME)
+        self._state = StructChannel.of(mds.MDS_CHAN_STATE_NAME)
         self._last_state: mds.MDS_STATE | None = None
         self._seen: np.ndarray | None = None
         self._daemon: tuple[int, float] | None = None

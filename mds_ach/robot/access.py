@@ -25,14 +25,15 @@ import os
 import pwd
 import stat
 
-import mds_ach as mds
 from mds_ach import ach
+from mds_ach.robot import contracts
 
 CHANNEL_MODE = 0o660
 """Owner and group read-write: the stack's user runs the nodes, the channels' group the operator clients."""
-DAEMON_INPUT = mds.MDS_CHAN_DAEMON_INPUT_NAME
-STACK_ONLY: frozenset[str] = frozenset({DAEMON_INPUT})
-"""Channels only the stack's own processes may write: group write is removed from their mode."""
+DAEMON_INPUT = contracts.MDS_CHAN_DAEMON_INPUT_NAME
+STACK_ONLY: frozenset[str] = contracts.STACK_ONLY
+"""Channels only the stack's own processes may write (``Contract.stack_only``): group write is removed from
+their mode."""
 
 _enforced = False
 

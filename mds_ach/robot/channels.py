@@ -13,11 +13,12 @@ import grp
 import os
 import time
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.robot import access as channel_access
+from mds_ach.robot import contracts
 
 T = TypeVar("T", bound=ctypes.Structure)
 
@@ -56,6 +57,14 @@ class StructChannel(Generic[T]):
         self._buf = bytearray(self.channel.data_size)
         self.bad_frames = 0
         self.missed_frames = 0
+
+    @classmethod
+    def of(cls, name: str, create: bool = True, lock_timeout: float | None = None) -> StructChannel[Any]:
+        """Open MDS channel ``name`` with the struct and geometry its contract names (``mds_ach.robot.contracts``);
+        ``KeyError`` if it is not an MDS channel."""
+        c = contracts.contract(name)
+        return StructChannel(name, c.struct, create=create, frame_count=c.frame_count, frame_size=c.frame_size,
+                             lock_timeout=lock_timeout)
 
     def _frame(self, status: int, size: int) -> T | None:
         if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
@@ -152,13 +161,14 @@ def check_existing(name: str, frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_
 
 
 def make_channels(
-    names: tuple[str, ...] | list[str] = mds.ALL_CHANNELS,
+    names: tuple[str, ...] | list[str] = contracts.ALL_CHANNELS,
     mode: int = channel_access.CHANNEL_MODE,
     group: str | int | None = None,
     frame_count: int = mds.CHANNEL_FRAME_COUNT,
     frame_size: int = mds.CHANNEL_FRAME_SIZE,
 ) -> list[ChannelReport]:
-    """Create every channel (10 x 3000 B by default) with ``mode``; existing ones are validated, never clobbered.
+    """Create every channel of the contracts registry (10 x 3000 B by default) with ``mode``; existing ones are
+    validated, never clobbered.
 
     ``mode`` may only restrict ``CHANNEL_MODE`` (0660); the daemon's input gets it without group write
     (``channel_access.channel_mode``). ``group`` (name or gid) is given to the channels created here, so members
@@ -203,7 +213,7 @@ def _resolve_group(group: str | int | None) -> int | None:
         raise ValueError(f"no such group: {group!r}") from None
 
 
-def remove_channels(names: tuple[str, ...] | list[str] = mds.ALL_CHANNELS) -> list[str]:
+def remove_channels(names: tuple[str, ...] | list[str] = contracts.ALL_CHANNELS) -> list[str]:
     """Unlink the channels that exist; returns the names removed. Missing ones are skipped silently."""
     removed = []
     for name in names:

@@ -10,11 +10,28 @@ import argparse
 import ctypes
 import sys
 from collections.abc import Callable
+from typing import Any
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.robot import contracts
+from mds_ach.robot.channels import make_channels
 from mds_ach.robot.joints import BY_ADDRESS
-from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE, get_name
+from mds_ach.robot.msgs import (
+    MDS_CMD,
+    MDS_COLLIDE,
+    MDS_DAEMON_STATUS,
+    MDS_IK,
+    MDS_IK_STATUS,
+    MDS_JOINT_COUNT,
+    MDS_JOINT_PARAM,
+    MDS_MUX_STATE,
+    MDS_REF,
+    MDS_STATE,
+    get_name,
+    ik_status,
+)
+from mds_ach.robot.msgs import daemon_status as ds
 
 PROG = "mds-ach"
 
@@ -43,8 +60,6 @@ def add_make_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_make(args: argparse.Namespace) -> int:
-    from mds_ach.robot.channels import make_channels
-
     try:
         reports = make_channels(mode=args.mode, group=args.group)
     except ValueError as exc:
@@ -90,36 +105,31 @@ def run_rm(args: argparse.Namespace) -> int:
 
 # --- dump -------------------------------------------------------------------------------------------
 
-DECODERS: dict[str, type[ctypes.Structure]] = {
-    "state": MDS_STATE,
-    "ref": MDS_REF,
-    "param": MDS_JOINT_PARAM,
-    "ik": MDS_IK,
-    "collide": MDS_COLLIDE,
-    "cmd": MDS_CMD,
-}
-CHANNEL_TYPES: dict[str, str] = {
-    mds.MDS_CHAN_STATE_NAME: "state",
-    mds.MDS_CHAN_REF_NAME: "ref",
-    mds.MDS_CHAN_REF_FILTER_NAME: "ref",
-    mds.MDS_CHAN_REF_IK_NAME: "ref",
-    mds.MDS_CHAN_REF_ROS_NAME: "ref",
-    mds.MDS_CHAN_REF_MUX_NAME: "ref",
-    mds.MDS_CHAN_REF_SMOOTH_NAME: "ref",
-    mds.MDS_CHAN_PARAM_NAME: "param",
-    mds.MDS_CHAN_IK_NAME: "ik",
-    mds.MDS_CHAN_COLLIDE_NAME: "collide",
-    mds.MDS_CHAN_BOARD_CMD_NAME: "cmd",
-}
+def kind_of(struct: type[ctypes.Structure]) -> str:
+    """The ``--type`` name of a wire struct: ``MDS_JOINT_PARAM`` -> ``param``, ``MDS_MUX_STATE`` -> ``mux-state``."""
+    return struct.__name__.removeprefix("MDS_").removeprefix("JOINT_").lower().replace("_", "-")
+
+
+# Every struct a registered channel carries, by --type name (derived from mds_ach.robot.contracts).
+DECODERS: dict[str, type[ctypes.Structure]] = {kind_of(c.struct): c.struct for c in contracts.CHANNELS}
+
+
+def decoder_for(channel: str) -> str:
+    """The ``--type`` a channel's frames are decoded as by default: its contract's struct, else ``hex``."""
+    found = contracts.lookup(channel)
+    return kind_of(found.struct) if found is not None else "hex"
 
 
 def add_dump_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("Print the newest frame of a channel, decoded by the channel's type (mds-state: joint table, "
-                     "mds-ref*: references, mds-param, mds-ik, mds-collide, mds-cmd). Other channels, or frames "
-                     "of an unexpected size, are shown as a hex dump with the channel's header counters.")
+    p.description = ("Print the newest frame of a channel, decoded by the struct its contract names (mds-state: "
+                     "joint table, mds-ref*: references, mds-mux-state: joint owners, mds-daemon-status, "
+                     "mds-ik-state, mds-param, mds-ik, mds-collide, mds-cmd). Other channels, or frames of an "
+                     "unexpected size, are shown as a hex dump with the channel's header counters.")
     p.add_argument("channel", help="channel name, e.g. mds-state")
     p.add_argument("--type", choices=[*DECODERS, "hex"], help="decode as this type regardless of the channel name")
     p.add_argument("-a", "--all", action="store_true", help="list every known joint, not only enabled/named ones")
+    p.add_argument("--fields", action="store_true",
+                   help="print every field of the struct by its C name (nested structs and arrays expanded)")
     p.add_argument("--wait", type=float, metavar="SECONDS",
                    help="if the channel is empty, wait up to SECONDS for a first frame")
 
@@ -146,7 +156,7 @@ def run_dump(args: argparse.Namespace) -> int:
         print(f"{args.channel}: empty, no frame written yet ({counters})")
         return 0
     frame = bytes(buf[:size])
-    kind = args.type or CHANNEL_TYPES.get(args.channel, "hex")
+    kind = args.type or decoder_for(args.channel)
     ctype = DECODERS.get(kind)
     if ctype is not None and ctypes.sizeof(ctype) != size:
         _err("dump", f"channel '{args.channel}': newest frame is {size} B but {ctype.__name__} is "
@@ -155,8 +165,10 @@ def run_dump(args: argparse.Namespace) -> int:
     print(f"{args.channel}: {kind if ctype else 'raw'} frame, {size} B ({counters})")
     if ctype is None:
         print(hexdump(frame))
+    elif args.fields:
+        print_fields(ctype.from_buffer_copy(frame), args.all)
     else:
-        _PRINTERS[kind](ctype.from_buffer_copy(frame), args.all)
+        _PRINTERS.get(kind, print_fields)(ctype.from_buffer_copy(frame), args.all)
     return 0
 
 
@@ -239,11 +251,85 @@ def _print_cmd(cmd: MDS_CMD, show_all: bool) -> None:
           f"({target})  value {cmd.value:g}")
 
 
-_PRINTERS: dict[str, Callable[[ctypes.Structure, bool], None]] = {
+def _print_mux_state(st: MDS_MUX_STATE, show_all: bool) -> None:
+    count = max(0, min(int(st.count), len(st.name)))
+    names = [get_name(bytes(st.name[i])) for i in range(count)]
+    print(f"seq {st.seq}  time {st.time:.6f}  controllers {st.count}")
+    print(f"{'controller':<12} {'priority':>8} {'stale':>5} {'age':>9} {'change_age':>10}")
+    for i, name in enumerate(names):
+        age = "never" if st.age[i] < 0 else f"{st.age[i]:.3f}"
+        change = "never" if st.change_age[i] < 0 else f"{st.change_age[i]:.3f}"
+        print(f"{name:<12} {st.priority[i]:>8} {st.stale[i]:>5} {age:>9} {change:>10}")
+    print(f"{'short':<6} {'name':<22} {'addr':>6} owner")
+    for addr in range(MDS_JOINT_COUNT):
+        owner = int(st.owner[addr])
+        if owner < 0 and not (show_all and addr in BY_ADDRESS):
+            continue
+        short, name = _joint_label(addr)
+        who = names[owner] if 0 <= owner < count else ("-" if owner < 0 else f"#{owner}?")
+        print(f"{short:<6} {name:<22} {addr:#06x} {who}")
+
+
+def _print_ik_status(st: MDS_IK_STATUS, show_all: bool) -> None:
+    print(f"status {st.status} ({ik_status.STATUS_NAMES.get(st.status, 'unknown')}): {ik_status.get_message(st)}")
+    print_fields(st, show_all)
+
+
+def _print_daemon_status(st: MDS_DAEMON_STATUS, show_all: bool) -> None:
+    print(ds.summary_line(st))
+    print_fields(st, show_all)
+
+
+def _scalar_text(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.9g}"
+    if isinstance(value, bytes):
+        return repr(get_name(value))
+    return str(value)
+
+
+def print_fields(obj: ctypes.Structure, show_all: bool = False, prefix: str = "") -> None:
+    """Every field of ``obj`` by name, one line each (``joint[0x5f].pos 0.25``). Arrays indexed by CAN address
+    (length ``MDS_JOINT_COUNT``) list their non-zero entries, and with ``show_all`` every known joint's."""
+    for name, ftype, *_ in obj._fields_:
+        _print_value(f"{prefix}{name}", ftype, getattr(obj, name), show_all)
+
+
+def _print_value(label: str, ftype: type, value: object, show_all: bool) -> None:
+    if isinstance(value, ctypes.Structure):
+        print_fields(value, show_all, f"{label}.")
+    elif isinstance(value, ctypes.Array):
+        items = list(value)
+        if ftype._type_ is ctypes.c_char:  # type: ignore[attr-defined]
+            print(f"{label} {_scalar_text(bytes(value))}")
+            return
+        per_joint = len(items) == MDS_JOINT_COUNT
+        if not per_joint and not isinstance(value[0], ctypes.Structure | ctypes.Array):  # short: one line
+            print(f"{label} " + " ".join(_scalar_text(item) for item in items))
+            return
+        for i, item in enumerate(items):
+            if per_joint and not (_nonzero(item) or (show_all and i in BY_ADDRESS)):
+                continue
+            index = f"{i:#04x}" if per_joint else str(i)
+            _print_value(f"{label}[{index}]", ftype._type_, item, show_all)  # type: ignore[attr-defined]
+    else:
+        print(f"{label} {_scalar_text(value)}")
+
+
+def _nonzero(value: object) -> bool:
+    if isinstance(value, ctypes.Structure | ctypes.Array):
+        return any(bytes(value))
+    return bool(value)
+
+
+_PRINTERS: dict[str, Callable[[Any, bool], None]] = {
     "state": _print_state,
     "ref": _print_ref,
     "param": _print_param,
     "ik": _print_ik,
     "collide": _print_collide,
     "cmd": _print_cmd,
+    "mux-state": _print_mux_state,
+    "ik-status": _print_ik_status,
+    "daemon-status": _print_daemon_status,
 }

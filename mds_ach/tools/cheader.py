@@ -1,8 +1,10 @@
 """Generate ``include/mds.h`` for C/C++ clients from the Python definitions (the one source of truth).
 
-The packed structs come from the ctypes layouts in :mod:`mds_ach.robot.msgs`, the constants from
-:mod:`mds_ach` and the joint table from :mod:`mds_ach.robot.joints`, so the C header cannot drift from what
-the Python nodes put on the channels. ``python -m mds_ach.tools.cheader`` rewrites the committed header;
+The channels (names, structs, writers and readers) come from the contracts registry
+(:mod:`mds_ach.robot.contracts`), the packed structs from the ctypes layouts in :mod:`mds_ach.robot.msgs`
+(every struct a channel carries, nested ones first), the constants from :mod:`mds_ach` and the message modules,
+and the joint table from :mod:`mds_ach.robot.joints`, so the C header cannot drift from what the Python nodes
+put on the channels. ``python -m mds_ach.tools.cheader`` rewrites the committed header;
 ``--check`` exits 1 if it is out of date; test/test_cheader.py compiles it and compares every
 ``sizeof``/``offsetof`` with ctypes.
 """
@@ -15,28 +17,16 @@ import re
 import sys
 import textwrap
 from pathlib import Path
+from typing import Any
 
 import mds_ach as mds
-from mds_ach.robot import daemon_status, joints, msgs
+from mds_ach.robot import contracts, joints, msgs
+from mds_ach.robot.msgs import daemon_status, ik_status, legacy, mux_state
 
 HEADER_PATH = Path(__file__).resolve().parents[2] / "include" / "mds.h"
 
-# The wire structs in dependency order (nested ones first), as the C typedef names use them.
-STRUCTS: tuple[type[ctypes.Structure], ...] = (
-    msgs.MDS_JOINT_REF,
-    msgs.MDS_REF,
-    msgs.MDS_JOINT_STATE,
-    msgs.MDS_JNT_COLLIDE,
-    msgs.MDS_COLLIDE,
-    msgs.MDS_POWER,
-    msgs.MDS_STATE,
-    msgs.MDS_JNT_PARAM,
-    msgs.MDS_JOINT_PARAM,
-    msgs.MDS_IK_ARM,
-    msgs.MDS_IK,
-    msgs.MDS_CMD,
-    daemon_status.MDS_DAEMON_STATUS,
-)
+# Every struct a registered channel carries, in dependency order (nested ones first), as C needs them.
+STRUCTS: tuple[type[ctypes.Structure], ...] = contracts.wire_structs()
 
 # Fixed-width C spelling of every ctypes scalar the structs use (float and double: IEEE 754 binary32/64 on every
 # platform MDS runs on). Anything else (pointers, long double, bools) is refused. ctypes aliases c_int/c_long to
@@ -61,6 +51,8 @@ _LENGTH_MACROS: dict[int, str] = {
     msgs.MDS_COLLIDE_JNT_NUM: "MDS_COLLIDE_JNT_NUM",
     msgs.MDS_ARM_COUNT: "MDS_ARM_COUNT",
     msgs.MDS_CHAR_PARAM_BUFFER_SIZE: "MDS_CHAR_PARAM_BUFFER_SIZE",
+    mux_state.MUX_MAX_CONTROLLERS: "MDS_MUX_MAX_CONTROLLERS",
+    ik_status.IK_MESSAGE_SIZE: "MDS_IK_MESSAGE_SIZE",
 }
 
 # The 13 joints the original mds.h named with bare macros (``#define LSP 0x005f`` and the long name).
@@ -79,7 +71,7 @@ def snake_upper(name: str) -> str:
     return re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", name).upper()
 
 
-def _c_field(name: str, ctype: type) -> str:
+def _c_field(name: str, ctype: Any) -> str:
     """One struct member declaration; arrays keep their macro length."""
     dims: list[str] = []
     while issubclass(ctype, ctypes.Array):
@@ -94,9 +86,21 @@ def _c_field(name: str, ctype: type) -> str:
     return f"{base} {name}" + "".join(f"[{d}]" for d in dims) + ";"
 
 
+_FIELD_DOC = re.compile(r"^\s*(\w+)(?:\[[^\]]*\])?\s{2,}(\S.*)$")
+
+
+def _field_docs(cls: type) -> dict[str, str]:
+    """Field descriptions from a docstring's table (``name[i]    what it is`` lines after the summary)."""
+    _summary, _, rest = (cls.__doc__ or "").partition("\n\n")
+    found = (_FIELD_DOC.match(line) for line in rest.splitlines())
+    return {m.group(1): m.group(2).replace("``", "").strip() for m in found if m}
+
+
 def _doc(cls: type) -> list[str]:
-    """The class docstring as a C comment, without reST markup, wrapped to 100 columns."""
-    text = " ".join((cls.__doc__ or "").replace("``", "").split())
+    """The docstring's summary (its first paragraph) as a C comment, without reST markup, wrapped to 100
+    columns; a field table after it goes to the members (``_field_docs``)."""
+    summary = (cls.__doc__ or "").partition("\n\n")[0]
+    text = " ".join(summary.replace("``", "").split())
     wrapped = textwrap.wrap(text, 96)
     if not wrapped:
         return []
@@ -109,21 +113,45 @@ def _struct(cls: type[ctypes.Structure]) -> list[str]:
     tag = cls.__name__.lower()
     size = ctypes.sizeof(cls)
     lines = [*_doc(cls), f"typedef struct MDS_PACKED {tag} {{"]
-    for name, ctype in cls._fields_:
+    docs = _field_docs(cls)
+    for name, ctype, *_ in cls._fields_:
         offset = getattr(cls, name).offset
-        lines.append(f"    {_c_field(name, ctype):<52} /* @{offset} */")
+        what = f" {docs[name]}" if name in docs else ""
+        lines.append(f"    {_c_field(name, ctype):<52} /* @{offset}{what} */")
     lines.append(f"}} {c_type_name(cls)};")
     lines.append(f'MDS_STATIC_ASSERT(sizeof({c_type_name(cls)}) == {size}, "{c_type_name(cls)} must be {size} bytes");')
     return lines
 
 
-def _module_constants(prefix: str, suffix: str = "", kind: type = int) -> list[tuple[str, object]]:
-    """Public constants of ``mds_ach`` named ``prefix...suffix`` of the given type, in definition order."""
+def _module_constants(prefix: str, suffix: str = "", kind: type = int, module: object = mds) -> list[tuple[str, Any]]:
+    """Public constants of ``module`` (default ``mds_ach``) named ``prefix...suffix`` of the given type, in
+    definition order."""
     return [
         (k, v)
-        for k, v in vars(mds).items()
+        for k, v in vars(module).items()
         if k.startswith(prefix) and k.endswith(suffix) and type(v) is kind
     ]
+
+
+def _channel_section() -> list[str]:
+    """One macro per registered channel, with its struct, writers and readers (the contracts registry)."""
+    out = [
+        "/* ---- Ach channels (all made with MDS_CHANNEL_FRAME_COUNT frames of MDS_CHANNEL_FRAME_SIZE bytes) ---- */",
+        f"#define MDS_CHANNEL_FRAME_COUNT {contracts.CHANNEL_FRAME_COUNT}",
+        f"#define MDS_CHANNEL_FRAME_SIZE {contracts.CHANNEL_FRAME_SIZE}",
+    ]
+    for c in contracts.CHANNELS:
+        if (c.frame_count, c.frame_size) != (contracts.CHANNEL_FRAME_COUNT, contracts.CHANNEL_FRAME_SIZE):
+            raise ValueError(f"{c.name}: channels of their own geometry need a macro pair here")
+        origin = "" if c.legacy else ", new"
+        only = ", stack only" if c.stack_only else ""
+        out.append(f"/* {c_type_name(c.struct)}{origin}{only}: {c.purpose}. */")
+        out.append(f"/*   written by {', '.join(c.writers)}; read by {', '.join(c.readers)} */")
+        out.append(f'#define {c.macro} "{c.name}"')
+    daemon_input = contracts.BY_NAME[contracts.MDS_CHAN_DAEMON_INPUT_NAME].macro
+    out.append("/* What the daemon executes (only the stack's user writes it). */")
+    out.append(f"#define MDS_CHAN_DAEMON_INPUT_NAME {daemon_input}")
+    return out
 
 
 def _enum(tag: str, doc: str, items: list[tuple[str, int]]) -> list[str]:
@@ -196,9 +224,9 @@ def generate() -> str:
     out: list[str] = [
         "/* mds.h -- C/C++ interface to the MDS-Ach channels (packed structs, channel names, joints).",
         " *",
-        " * GENERATED by `python -m mds_ach.tools.cheader` from mds_ach/robot/msgs.py, mds_ach/__init__.py,",
-        " * mds_ach/robot/daemon_status.py and mds_ach/robot/joints.py. Do not edit by hand: change the Python",
-        " * definitions and regenerate (test/test_cheader.py fails while this file is out of date).",
+        " * GENERATED by `python -m mds_ach.tools.cheader` from mds_ach/robot/contracts.py (channels),",
+        " * mds_ach/robot/msgs/ (structs), mds_ach/__init__.py and mds_ach/robot/joints.py. Do not edit by hand:",
+        " * change the Python definitions and regenerate (test/test_cheader.py fails while this file is out of date).",
         " *",
         " * Layouts are byte-packed, little-endian (x86-64 / aarch64), identical to the original",
         " * MDS-Ach develop-branch mds.h. Arrays of joints are indexed by CAN node address.",
@@ -227,21 +255,20 @@ def generate() -> str:
         f"#define MDS_ARM_COUNT {msgs.MDS_ARM_COUNT}",
         f"#define MDS_COLLIDE_JNT_NUM {msgs.MDS_COLLIDE_JNT_NUM}",
         f"#define MDS_CHAR_PARAM_BUFFER_SIZE {msgs.MDS_CHAR_PARAM_BUFFER_SIZE}",
+        f"#define MDS_MUX_MAX_CONTROLLERS {mux_state.MUX_MAX_CONTROLLERS}  /* mds_mux_state_t per-controller arrays */",
+        f"#define MDS_IK_MESSAGE_SIZE {ik_status.IK_MESSAGE_SIZE}  /* mds_ik_status_t.message, NUL included */",
         f"#define MDS_LOOP_PERIOD {mds.MDS_LOOP_PERIOD!r}  /* s, default daemon period */",
         f"#define MDS_REF_FILTER_LENGTH {mds.MDS_REF_FILTER_LENGTH}",
         "",
-        "/* ---- Ach channels (all made with MDS_CHANNEL_FRAME_COUNT frames of MDS_CHANNEL_FRAME_SIZE bytes) ---- */",
-        f"#define MDS_CHANNEL_FRAME_COUNT {mds.CHANNEL_FRAME_COUNT}",
-        f"#define MDS_CHANNEL_FRAME_SIZE {mds.CHANNEL_FRAME_SIZE}",
     ]
-    out += [f'#define {k} "{v}"' for k, v in _module_constants("MDS_CHAN_", "_NAME", str)]
+    out += _channel_section()
     out.append("")
     out += _enum("mds_arm", "Arm index of mds_ik_t.arm[] and mds_ik_t.move.", [
         ("MDS_RIGHT", mds.RIGHT), ("MDS_LEFT", mds.LEFT),
     ])  # fmt: skip
     out.append("")
     out += _enum("mds_ref_mode", "mds_joint_ref_t.mode (the field itself is int16_t).",
-                 _module_constants("MDS_REF_MODE_"))  # fmt: skip
+                 _module_constants("MDS_REF_MODE_", module=legacy))  # fmt: skip
     out.append("")
     out += _enum("mds_collide_part", "Index into mds_collide_t.joint[].",
                  [("MDS_" + k, v) for k, v in _module_constants("COLLIDE_")])  # fmt: skip
@@ -255,6 +282,18 @@ def generate() -> str:
     out.append(f"#define MDS_DAEMON_STATUS_VERSION {daemon_status.DAEMON_STATUS_VERSION}")
     out += [f"#define MDS_DAEMON_{k} 0x{v:04x}" for k, v in vars(daemon_status).items()
             if k.startswith("JOINT_") and type(v) is int]
+    out += _enum("mds_daemon_bus_state", "mds_daemon_status_t.bus_state.",
+                 [("MDS_DAEMON_" + k, v) for k, v in _module_constants("BUS_STATE_", module=daemon_status)])
+    out += _enum("mds_daemon_cmd_result", "mds_daemon_status_t.cmd_result (for the command cmd_seq names).",
+                 [("MDS_DAEMON_" + k, v) for k, v in _module_constants("CMD_", module=daemon_status)])
+    out.append("")
+    out.append("/* ---- mds_ik_status_t (MDS_CHAN_IK_STATE_NAME): one answer per mds-ik request ---- */")
+    out += _enum("mds_ik_status_code", "mds_ik_status_t.status.",
+                 [("MDS_" + k, v) for k, v in _module_constants("IK_", module=ik_status)
+                  if k not in ("IK_MESSAGE_SIZE",)])
+    out.append("")
+    out.append("/* ---- mds_mux_state_t (MDS_CHAN_MUX_STATE_NAME) ---- */")
+    out.append(f"#define MDS_MUX_NO_OWNER ({mux_state.MUX_NO_OWNER})  /* owner[] of a joint nobody owns */")
     out.append("")
     out.append("/* ---- packed wire structs (byte offsets in the comments) ---- */")
     for cls in STRUCTS:

@@ -31,8 +31,8 @@ from mds_ach.tools.monitor import Latest
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
-    from mds_ach.nodes.mux import MDS_MUX_STATE
     from mds_ach.robot.config import JointTable
+    from mds_ach.robot.msgs import MDS_MUX_STATE
 
 PROMPT = ">> mds-ach-console$ "
 ARMS = {"left": (mds.LEFT, LEFT_ARM), "right": (mds.RIGHT, RIGHT_ARM)}
@@ -281,7 +281,7 @@ class Console:
 
     def _require_mux(self) -> None:
         """CommandError unless the mux published a new state just now: a command it cannot take is not sent."""
-        from mds_ach.nodes.mux import MDS_MUX_STATE
+        from mds_ach.robot.msgs import MDS_MUX_STATE
 
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
@@ -298,7 +298,7 @@ class Console:
         A mux state published after this call started is awaited first, so a move the IK node answered a
         moment ago is already visible.
         """
-        from mds_ach.nodes.mux import MDS_MUX_STATE
+        from mds_ach.robot.msgs import MDS_MUX_STATE
 
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
@@ -329,7 +329,7 @@ class Console:
         ``channel``'s controller that arrived after ``sent_at`` (in ``mds-mux-state``), no higher-priority
         controller holds the joints, and the mux output (``mds-ref-mux``) has every target. CommandError
         ("not applied: ...") otherwise: a dead mux, or one that ignored the frame, moves nothing."""
-        from mds_ach.nodes.mux import MDS_MUX_STATE
+        from mds_ach.robot.msgs import MDS_MUX_STATE
 
         mine = _controller_for(channel)
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)

@@ -24,6 +24,7 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach import procs as background
 from mds_ach.paths import runtime_dir
+from mds_ach.robot import contracts
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
 # the others start from), then the reference pipeline, then the clients that feed it.
@@ -228,21 +229,18 @@ class _IkProbe(_Heartbeat):
         self.requests.close()
 
 
-# How each node shows it is up: frames on its periodic output (the daemon's mds-state first of all), the IK
-# node's answer to a probe; the bridge only needs to stay alive (its output is ROS, not a channel).
-READY_CHANNELS: dict[str, str] = {
-    "daemon": mds.MDS_CHAN_STATE_NAME,
-    "mux": mds.MDS_CHAN_MUX_STATE_NAME,
-    "filter": mds.MDS_CHAN_REF_SMOOTH_NAME,
-    "collision": mds.MDS_CHAN_COLLIDE_NAME,
-}
+# How each node shows it is up (the contracts registry's ``ready`` channels): new frames on its periodic output
+# (the daemon's mds-state first of all), or the IK node's answer to a probe; the bridge only needs to stay alive
+# (its output is ROS, not a channel).
+READINESS: dict[str, tuple[str, contracts.Readiness]] = contracts.readiness()
+READY_CHANNELS: dict[str, str] = {node: channel for node, (channel, _how) in READINESS.items()}
 
 
 def _readiness(name: str) -> _Heartbeat | None:
-    if name == "ik":
+    channel, how = READINESS.get(name, ("", None))
+    if how == "answer":
         return _IkProbe()
-    channel = READY_CHANNELS.get(name)
-    return _Heartbeat(channel) if channel else None
+    return _Heartbeat(channel) if how == "stream" else None
 
 
 def _check_dead(procs: dict[str, subprocess.Popen], rt: Path) -> None:
@@ -440,7 +438,7 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     trusted, 3 a node is not running. Never raises for a damaged channel: it is reported with the repair hint."""
     from mds_ach import ach
     from mds_ach.robot.choice import effective_robot
-    from mds_ach.robot.daemon_status import MDS_DAEMON_STATUS
+    from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
     from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
 
     rt = rt or runtime_dir()
@@ -674,7 +672,7 @@ def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_resetbus(args: argparse.Namespace) -> int:
     from mds_ach import ach
-    from mds_ach.robot.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
+    from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
     from mds_ach.tools.monitor import Latest
 
     status = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)

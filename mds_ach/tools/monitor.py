@@ -61,7 +61,7 @@ def collision_block(collide: mds.MDS_COLLIDE | None) -> list[str]:
 
 def daemon_line(status: ctypes.Structure | None, age: float | None) -> str:
     """The daemon's health in one line (``mds-daemon-status``), flagged when it stopped publishing."""
-    from mds_ach.robot.daemon_status import summary_line
+    from mds_ach.robot.msgs.daemon_status import summary_line
 
     if status is None:
         return f"unknown (nothing on {mds.MDS_CHAN_DAEMON_STATUS_NAME})"
@@ -74,7 +74,7 @@ def daemon_line(status: ctypes.Structure | None, age: float | None) -> str:
 def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
     """'yes' when the daemon heard the joint's node recently, 'STALE' when not, 'BAD' when the node answers with
     implausible positions (not trusted), '-' for joints it does not poll, '?' without daemon status."""
-    from mds_ach.robot.daemon_status import JOINT_BAD_REPLY, JOINT_ENABLED, JOINT_FRESH, JOINT_STALE
+    from mds_ach.robot.msgs.daemon_status import JOINT_BAD_REPLY, JOINT_ENABLED, JOINT_FRESH, JOINT_STALE
 
     if status is None:
         return "?"

@@ -41,7 +41,7 @@ class Sources:
     """The channels the monitor shows, each opened read-only on demand."""
 
     def __init__(self) -> None:
-        from mds_ach.robot.daemon_status import MDS_DAEMON_STATUS
+        from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 
         self.state = Latest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
         self.collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)

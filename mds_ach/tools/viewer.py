@@ -365,7 +365,7 @@ def ik_request_target(ik: Any) -> IkTarget | None:
 
 def ik_status_target(status: Any) -> IkTarget | None:
     """The target of the IK node's answer (``mds-ik-state``), captioned with the outcome."""
-    from mds_ach.robot.ik_msgs import IK_SOLVED, IK_UNREACHABLE, STATUS_NAMES
+    from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, STATUS_NAMES
 
     arm = int(status.arm)
     position = np.array(status.target[:3], dtype=float)
@@ -695,7 +695,7 @@ def _use_shipped_client() -> None:
 
 
 def _ik_status_type() -> type[ctypes.Structure]:
-    from mds_ach.robot.ik_msgs import MDS_IK_STATUS
+    from mds_ach.robot.msgs.ik_status import MDS_IK_STATUS
 
     return MDS_IK_STATUS
 

@@ -11,6 +11,8 @@ import ctypes
 import math
 from typing import Any
 
+from mds_ach.robot.msgs.legacy import _Packed
+
 IK_SOLVED = 0  # solution written to the node's output channel
 IK_UNREACHABLE = 1  # no solution within the iteration cap (or every one collided); nothing moved
 IK_BAD_REQUEST = 2  # refused: move not 0/1, ik_method not 1..6, NaN/Inf target; nothing moved
@@ -21,7 +23,7 @@ IK_MESSAGE_SIZE = 80
 IK_STATUS_TOPIC = "/mds/ik_status"
 
 
-class MDS_IK_STATUS(ctypes.LittleEndianStructure):  # noqa: N801 - legacy naming style
+class MDS_IK_STATUS(_Packed):  # noqa: N801 - MDS struct naming
     """``mds-ik-state`` frame (packed, 214 B).
 
     seq          count of requests handled since the node started (1 = first)
@@ -37,7 +39,6 @@ class MDS_IK_STATUS(ctypes.LittleEndianStructure):  # noqa: N801 - legacy naming
     message      short human-readable explanation, NUL-terminated ASCII
     """
 
-    _pack_ = 1
     _fields_ = [
         ("seq", ctypes.c_uint32),
         ("status", ctypes.c_int16),
@@ -59,6 +60,7 @@ def set_message(status: MDS_IK_STATUS, text: str) -> None:
 
 
 def get_message(status: MDS_IK_STATUS) -> str:
+    """The message text up to its NUL."""
     return bytes(status.message).split(b"\0", 1)[0].decode("ascii", "replace")
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import ctypes
 
-from mds_ach.robot.msgs import MDS_JOINT_COUNT, _Packed
+from mds_ach.robot.msgs.legacy import MDS_JOINT_COUNT, _Packed
 
 DAEMON_STATUS_VERSION = 2  # 2: motion bounds, stalls, limited targets, bad replies, re-seeds, lock_timeouts
 

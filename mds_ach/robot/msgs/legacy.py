@@ -1,4 +1,5 @@
-"""Packed little-endian ctypes layouts of the original MDS-Ach messages (``mds.h``, develop branch).
+"""Packed little-endian ctypes layouts of the original MDS-Ach messages (``mds.h``, develop branch), plus
+``MDS_CMD`` for ``mds-cmd`` (a channel the original declared but never gave a struct).
 
 These are wire contracts: C clients compiled against ``mds.h`` read and write the same bytes on the
 same Ach channels, so every size and offset is asserted in the tests. Arrays are indexed by CAN address.
@@ -7,6 +8,7 @@ same Ach channels, so every size and offset is asserted in the tests. Arrays are
 from __future__ import annotations
 
 import ctypes
+from typing import Self
 
 MDS_JOINT_COUNT = 100
 MDS_ARM_COUNT = 2
@@ -23,14 +25,23 @@ class _Packed(ctypes.LittleEndianStructure):
         return bytes(self)
 
     @classmethod
-    def from_bytes(cls, data: bytes | bytearray | memoryview):
+    def from_bytes(cls, data: bytes | bytearray | memoryview) -> Self:
         """Build from exactly ``sizeof(cls)`` bytes; anything else is refused."""
         if len(data) != ctypes.sizeof(cls):
             raise ValueError(f"{cls.__name__} needs {ctypes.sizeof(cls)} bytes, got {len(data)}")
         return cls.from_buffer_copy(data)
 
 
-Name30 = ctypes.c_char * MDS_CHAR_PARAM_BUFFER_SIZE
+Name30: type[ctypes.Array[ctypes.c_char]] = ctypes.c_char * MDS_CHAR_PARAM_BUFFER_SIZE
+
+
+MDS_REF_MODE_REF_FILTER = 0
+MDS_REF_MODE_REF = 1
+MDS_REF_MODE_COMPLIANT = 2
+MDS_REF_MODE_ENC_FILTER = 3
+MDS_REF_MODES: tuple[int, ...] = (MDS_REF_MODE_REF_FILTER, MDS_REF_MODE_REF, MDS_REF_MODE_COMPLIANT,
+                                  MDS_REF_MODE_ENC_FILTER)
+"""``MDS_JOINT_REF.mode``: 0 filter (EMA), 1 pass-through, 2 compliant, 3 encoder-filter."""
 
 
 class MDS_JOINT_REF(_Packed):  # noqa: N801 - legacy name
@@ -131,7 +142,8 @@ _PARAM_DOUBLES = (
 class MDS_JNT_PARAM(_Packed):  # noqa: N801
     """``mds_jnt_param_t`` (290 B): one node's anatomy + overlay parameters."""
 
-    _fields_ = [(n, ctypes.c_double) for n in _PARAM_DOUBLES] + [
+    _fields_ = [
+        *((n, ctypes.c_double) for n in _PARAM_DOUBLES),
         ("enabled", ctypes.c_int16),
         ("address", ctypes.c_uint16),
         ("coordsys", Name30),
