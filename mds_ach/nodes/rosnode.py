@@ -86,10 +86,26 @@ class Param:
 def declare(node: Node, param: Param, default: ParamValue | None = None) -> Any:
     """Declare ``param`` on ``node`` and return its value: ``--ros-args -p`` wins, then ``default`` (a command-line
     option), then ``param.default``. A float default given as an int (``--rate 50``) is converted."""
+    from rclpy.exceptions import InvalidParameterTypeException  # rclpy is loaded by now (a node exists)
+
     value: ParamValue = param.default if default is None else default
     if isinstance(param.default, float) and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
-    return node.declare_parameter(param.name, value, param.descriptor()).value
+    try:
+        return node.declare_parameter(param.name, value, param.descriptor()).value
+    except InvalidParameterTypeException as exc:
+        if param.type_name != "double":
+            raise
+        wrong_type = exc
+    # `-p rate:=20` is an integer to ROS: accept it for a double parameter (then range-checked as usual).
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    loose = ParameterDescriptor(dynamic_typing=True)  # only to read the given value; then declared properly
+    given = node.declare_parameter(param.name, value, loose).value
+    node.undeclare_parameter(param.name)
+    if isinstance(given, bool) or not isinstance(given, int | float):
+        raise wrong_type
+    return node.declare_parameter(param.name, float(given), param.descriptor(), ignore_override=True).value
 
 
 def find(params: Iterable[Param], name: str) -> Param:
