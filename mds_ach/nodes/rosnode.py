@@ -73,13 +73,15 @@ class Param:
         if self.default_doc is not None:
             return self.default_doc
         if isinstance(self.default, str):
-            return f"`{self.default}`" if self.default else "''"
+            return f"`{self.default}`" if self.default else "`''`"
         return f"`{str(self.default).lower() if isinstance(self.default, bool) else self.default}`"
 
     def doc_range(self) -> str:
         if self.range is None:
             return ""
         lo, hi = self.range
+        if self.type_name == "integer":
+            return f"{int(lo)} … {int(hi)}"
         return f"{lo:g} … {hi:g}"
 
 
