@@ -1,8 +1,8 @@
 """Reference smoother (``ros2 run mds_ach filter``): ``mds-ref-mux`` -> per-joint filter -> ``mds-ref-smooth``.
 
-Runs at a fixed rate (config/filter.yaml ``rate``, default 40 Hz like the deployed mds-filter) on an absolute
-schedule and publishes every tick, so the collision gate sees a steady stream. Per-joint modes (the maths is
-``mds_ach.nodes.filters``, shared with the daemon):
+Runs at a fixed rate (parameter ``rate``, by default config/filter.yaml ``rate``: 40 Hz like the deployed
+mds-filter) on an absolute schedule and publishes every tick, so the collision gate sees a steady stream.
+Per-joint modes (the maths is ``mds_ach.nodes.filters``, shared with the daemon):
 
 * ``velocity_limit`` (default): constant-speed ramp, 1.57 rad/s, snapping onto the target within one step,
   what the original deployment ran (``src/mds-filter.c``). Optional ``max_accel`` (rad/s^2) adds an
