@@ -1,17 +1,22 @@
 """``bridge`` (= ``ros2 run mds_ach bridge``): the ROS 2 bridge's command line.
 
-rclpy is imported only after the arguments are parsed, so ``--help`` is instant.
+rclpy is imported only after the arguments are parsed, so ``--help`` is instant; the rest of ``main`` (rclpy
+start-up, signals, exit status 2 for bad parameters) is the nodes' shared ``mds_ach.nodes.rosnode.run_node``.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 import mds_ach as mds
-from mds_ach.nodes.rosargs import strip_ros_args
+from mds_ach.nodes.rosnode import run_node
 from mds_ach.robot import joints
 from mds_ach_bridge import topics
+
+if TYPE_CHECKING:
+    from mds_ach_bridge.node import BridgeNode
 
 DESCRIPTION = f"""\
 ROS 2 bridge for MDS-Ach. Every new {mds.MDS_CHAN_STATE_NAME} frame is published at once as
@@ -54,41 +59,24 @@ examples:
 SWITCH_INTERVAL_S = 0.0005
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = list(sys.argv if argv is None else [sys.argv[0], *argv])
-    parser = argparse.ArgumentParser(
-        prog="bridge", description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.parse_args(strip_ros_args(args)[1:])
+def build_parser() -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(prog="bridge", description=DESCRIPTION, epilog=EPILOG,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
 
-    import rclpy
-    from rclpy.exceptions import ParameterException
-    from rclpy.executors import ExternalShutdownException
 
-    from mds_ach.robot import access as channel_access
+def _make_node(args: argparse.Namespace) -> BridgeNode:
+    # Imported here, after the command line was parsed: `bridge --help` must not load rclpy (see rosnode).
     from mds_ach_bridge.node import BridgeNode
-
-    channel_access.enforce_in_this_process()  # a node of the stack: refuse channel files another user planted
 
     # The state thread must get the GIL back quickly when a frame arrives while a callback runs
     # (the default switch interval is 5 ms, longer than the whole latency budget).
     sys.setswitchinterval(SWITCH_INTERVAL_S)
-    rclpy.init(args=args)
-    node: BridgeNode | None = None
-    try:
-        node = BridgeNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, OSError, ParameterException) as exc:  # bad parameters, configuration or files: say what
-        print(f"bridge: {exc}", file=sys.stderr)
-        return 2
-    finally:
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return BridgeNode()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``argv`` without the program name (``sys.argv[1:]`` when None)."""
+    return run_node([sys.argv[0], *(sys.argv[1:] if argv is None else argv)], build_parser(), _make_node)
 
 
 if __name__ == "__main__":

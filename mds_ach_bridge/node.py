@@ -20,7 +20,7 @@ from pathlib import Path
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
@@ -30,6 +30,7 @@ from trajectory_msgs.msg import JointTrajectory
 import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.ach.glibc import tune_thread
+from mds_ach.nodes.rosnode import Param, declare
 from mds_ach.robot import joints
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
@@ -62,8 +63,41 @@ class _Counters:
     extra: dict[str, str] = field(default_factory=dict)
 
 
-def _describe(text: str, *, read_only: bool = False, **ranges: object) -> ParameterDescriptor:
-    return ParameterDescriptor(description=text, read_only=read_only, **ranges)
+SECONDS = (0.001, 3600.0)
+PARAMETERS = (
+    Param("state_channel", mds.MDS_CHAN_STATE_NAME, "Ach channel of mds_state_t frames"),
+    Param("ref_channel", mds.MDS_CHAN_REF_ROS_NAME,
+          "Ach channel the bridge writes its mds_ref_t to: its mux input (default), or mds-ref-filter when no mux "
+          "runs"),
+    Param("ik_channel", mds.MDS_CHAN_IK_NAME, "Ach channel for mds_ik_t requests"),
+    Param("allow_ungated", False,
+          "allow ref_channel = mds-ref, which bypasses mux, filter and collision gate (simulation tests only)"),
+    Param("state_qos", "sensor_data", "QoS of joint_states and mds/joint_references: sensor_data (best effort) or "
+                                      "reliable (for subscribers that insist on RELIABLE)"),
+    Param("stale_timeout", 0.5, "seconds without a new state frame before /diagnostics reports the daemon as stalled",
+          range=SECONDS, read_only=False),
+    Param("max_state_age", 1.0, "largest plausible age (s) of a state frame at receipt; older or future frames are "
+                                "stamped with the receipt time (the daemon's monotonic clock is not comparable, e.g. "
+                                "over the network)", range=SECONDS, read_only=False),
+    Param("command_mode", int(mds.MDS_REF_MODE_REF_FILTER),
+          "mds ref mode for position commands (0 filter, 1 pass-through, 2 compliant, 3 encoder filter)",
+          range=(0, 3), read_only=False),
+    Param("trajectory_mode", int(mds.MDS_REF_MODE_REF),
+          "mds ref mode for trajectory samples (default pass-through: the trajectory is already smooth)",
+          range=(0, 3), read_only=False),
+    Param("ik_dof_left", 3, "task DOF for mds/ik/left: a prefix of p-x p-y p-z t-x t-y t-z (3 = position, 6 = full "
+                            "pose)", range=(1, 6), read_only=False),
+    Param("ik_dof_right", 3, "task DOF for mds/ik/right, as ik_dof_left", range=(1, 6), read_only=False),
+    Param("ik_frame", "torso", "frame_id accepted for IK targets besides '' (the robot frame between the shoulders)",
+          read_only=False),
+    Param("urdf", "", "URDF file for robot_description; empty: the package's urdf/mds.urdf"),
+    Param("robot", "", "robot variant of the joint table for the limits; empty: $MDS_ACH_ROBOT, else default"),
+    Param("publish_robot_description", True, "publish the URDF on robot_description (transient local)"),
+    Param("rt_priority", 0, "SCHED_FIFO priority (1-99) of the state thread, which wakes on every state frame and "
+                            "publishes it; 0 = normal scheduling. Needs CAP_SYS_NICE or an rtprio limit; refused: "
+                            "logged, normal priority", range=(0, 99)),
+    Param("diagnostics_period", 1.0, "seconds between /diagnostics messages", range=SECONDS),
+)
 
 
 class BridgeNode(Node):
@@ -138,55 +172,8 @@ class BridgeNode(Node):
     # ------------------------------------------------------------------------------------ parameters
 
     def _declare_parameters(self) -> None:
-        mode_range = IntegerRange(from_value=0, to_value=3, step=1)
-        dof_range = IntegerRange(from_value=1, to_value=6, step=1)
-        seconds = FloatingPointRange(from_value=0.001, to_value=3600.0, step=0.0)
-        decl = [
-            ("state_channel", mds.MDS_CHAN_STATE_NAME, _describe("Ach channel of mds_state_t frames", read_only=True)),
-            ("ref_channel", mds.MDS_CHAN_REF_ROS_NAME, _describe(
-                "Ach channel the bridge writes its mds_ref_t to: its mux input (default), or mds-ref-filter when no "
-                "mux runs", read_only=True)),
-            ("ik_channel", mds.MDS_CHAN_IK_NAME, _describe("Ach channel for mds_ik_t requests", read_only=True)),
-            ("allow_ungated", False, _describe(
-                "allow ref_channel = mds-ref, which bypasses mux, filter and collision gate (simulation tests only)",
-                read_only=True)),
-            ("state_qos", "sensor_data", _describe(
-                "QoS of joint_states and mds/joint_references: sensor_data (best effort) or reliable "
-                "(for subscribers that insist on RELIABLE)", read_only=True)),
-            ("stale_timeout", 0.5, _describe(
-                "seconds without a new state frame before /diagnostics reports the daemon as stalled",
-                floating_point_range=[seconds])),
-            ("max_state_age", 1.0, _describe(
-                "largest plausible age (s) of a state frame at receipt; older or future frames are stamped with the "
-                "receipt time (the daemon's monotonic clock is not comparable, e.g. over the network)",
-                floating_point_range=[seconds])),
-            ("command_mode", mds.MDS_REF_MODE_REF_FILTER, _describe(
-                "mds ref mode for position commands (0 filter, 1 pass-through, 2 compliant, 3 encoder filter)",
-                integer_range=[mode_range])),
-            ("trajectory_mode", mds.MDS_REF_MODE_REF, _describe(
-                "mds ref mode for trajectory samples (default pass-through: the trajectory is already smooth)",
-                integer_range=[mode_range])),
-            ("ik_dof_left", 3, _describe(
-                "task DOF for mds/ik/left: a prefix of p-x p-y p-z t-x t-y t-z (3 = position, 6 = full pose)",
-                integer_range=[dof_range])),
-            ("ik_dof_right", 3, _describe("task DOF for mds/ik/right, as ik_dof_left", integer_range=[dof_range])),
-            ("ik_frame", "torso", _describe(
-                "frame_id accepted for IK targets besides '' (the robot frame between the shoulders)")),
-            ("urdf", "", _describe("URDF file for robot_description (default: the package's urdf/mds.urdf)",
-                                   read_only=True)),
-            ("robot", "", _describe("robot variant of the joint table for the limits (default: $MDS_ACH_ROBOT, "
-                                    "else default)", read_only=True)),
-            ("publish_robot_description", True, _describe(
-                "publish the URDF on robot_description (transient local)", read_only=True)),
-            ("rt_priority", 0, _describe(
-                "SCHED_FIFO priority (1-99) of the state thread, which wakes on every state frame and publishes it; "
-                "0 = normal scheduling. Needs CAP_SYS_NICE or an rtprio limit; refused -> logged, normal priority",
-                read_only=True, integer_range=[IntegerRange(from_value=0, to_value=99, step=1)])),
-            ("diagnostics_period", 1.0, _describe("seconds between /diagnostics messages", read_only=True,
-                                                  floating_point_range=[seconds])),
-        ]  # fmt: skip
-        for name, default, desc in decl:
-            self.declare_parameter(name, default, desc)
+        for param in PARAMETERS:
+            declare(self, param)
 
     def _on_set_parameters(self, params: list) -> SetParametersResult:
         """Runtime-changeable settings: apply them under the lock so the state thread sees them whole."""
@@ -470,6 +457,10 @@ class BridgeNode(Node):
         self._diag_pub.publish(arr)
 
     # ------------------------------------------------------------------------------------ shutdown
+
+    def shutdown(self) -> None:
+        """What ``run_node`` calls at exit: ``close()``."""
+        self.close()
 
     def close(self) -> None:
         """Stop the state thread and release the channels (idempotent)."""

@@ -63,10 +63,23 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rclpy.node import Node
+from std_msgs.msg import Float64, String
 
 import mds_ach as mds
 from mds_ach.nodes import filters
-from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, cancel_wait, labels
+from mds_ach.nodes.pipeline import (
+    KNOWN_ADDRESSES,
+    ChannelGuard,
+    ReseedWatch,
+    cancel_wait,
+    labels,
+    make_ref,
+    ref_arrays,
+    wait_current_reference,
+)
+from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
 from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
 
@@ -572,9 +585,6 @@ class GateRunner:
             self._override_requests.append(float(seconds))
 
     def run(self) -> None:
-        from mds_ach.nodes.pipeline import ChannelGuard, ReseedWatch, make_ref, ref_arrays, wait_current_reference
-        from mds_ach.robot.channels import StructChannel
-
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
@@ -709,50 +719,57 @@ def filter_speed(path: str | Path | None = None) -> float:
     return float(filter_node.load_config(path).max_velocity[MODEL_ADDRESSES].min())
 
 
-def _make_node(args: argparse.Namespace) -> Any:
-    from rclpy.node import Node
-    from std_msgs.msg import Float64, String
+PARAMETERS = (
+    Param("config", "", "gate YAML; empty: the package's config/collision.yaml (option --config)"),
+    Param("world", "", "world objects YAML; empty: the package's config/world.yaml (option --world)"),
+    Param("urdf", "", "robot URDF; empty: the package's urdf/mds.urdf (option --urdf)"),
+    Param("margin", 0.02, "minimum clearance in m: a reference bringing two parts (or a part and a world object) "
+                          "closer is held; overrides the config's margin (option --margin)",
+          range=(0.0, 0.5), default_doc="config `margin` (`0.02`)"),
+)
 
-    from mds_ach.nodes.pipeline import ros_log, start_worker
 
-    model, gate_cfg, lower, upper = build_gate_parts(args.config, args.world, args.urdf, args.margin)
+class CollisionNode(Node):
+    """The collision gate: ``GateRunner`` on its own thread; reports on ``/mds/collision``, takes expert overrides
+    (seconds) on ``/mds/collision/override``."""
 
-    class CollisionNode(Node):
-        def __init__(self) -> None:
-            super().__init__("collision")
-            self.declare_parameter("margin", model.margin)
-            self.pub = self.create_publisher(String, "/mds/collision", 10)
-            self.create_subscription(Float64, "/mds/collision/override", self._on_override, 10)
-            log = ros_log(self)
-            self._last_pub = -math.inf
-            self._last_doc: str = ""
-            self.runner = GateRunner(model, gate_cfg, lower, upper, log=log, on_report=self._on_report)
-            self.thread = start_worker(self, self.runner.run, "collision")
+    def __init__(self, config: str | None = None, world: str | None = None, urdf: str | None = None,
+                 margin: float | None = None) -> None:
+        super().__init__("collision")
+        path = declare(self, find(PARAMETERS, "config"), config) or None
+        world_path = declare(self, find(PARAMETERS, "world"), world) or None
+        urdf_path = declare(self, find(PARAMETERS, "urdf"), urdf) or None
+        configured = float(load_config(path).get("margin", find(PARAMETERS, "margin").default))
+        self.margin: float = declare(self, find(PARAMETERS, "margin"), configured if margin is None else margin)
+        model, gate_cfg, lower, upper = build_gate_parts(path, world_path, urdf_path, self.margin)
+        self.pub = self.create_publisher(String, "/mds/collision", 10)
+        self.create_subscription(Float64, "/mds/collision/override", self._on_override, 10)
+        self._last_pub = -math.inf
+        self._last_doc = ""
+        self.runner = GateRunner(model, gate_cfg, lower, upper, log=ros_log(self), on_report=self._on_report)
+        self.thread = start_worker(self, self.runner.run, "collision")
 
-        def _on_override(self, msg: Any) -> None:
-            self.get_logger().warning(f"expert override request received: {msg.data:g} s")
-            self.runner.request_override(float(msg.data))
+    def _on_override(self, msg: Float64) -> None:
+        self.get_logger().warning(f"expert override request received: {msg.data:g} s")
+        self.runner.request_override(float(msg.data))
 
-        def _on_report(self, decision: Decision | None, gate: Gate, now: float) -> None:
-            doc = decision_to_dict(decision, gate, now)
-            key = json.dumps({k: v for k, v in doc.items() if k != "time"})
-            if not self.context.ok():  # shutting down after SIGINT/SIGTERM
-                return
-            if key != self._last_doc or now - self._last_pub >= 1.0 / gate.config.report_rate:
-                self.pub.publish(String(data=json.dumps(doc)))
-                self._last_doc, self._last_pub = key, now
+    def _on_report(self, decision: Decision | None, gate: Gate, now: float) -> None:
+        doc = decision_to_dict(decision, gate, now)
+        key = json.dumps({k: v for k, v in doc.items() if k != "time"})
+        if not self.context.ok():  # shutting down after SIGINT/SIGTERM
+            return
+        if key != self._last_doc or now - self._last_pub >= 1.0 / gate.config.report_rate:
+            self.pub.publish(String(data=json.dumps(doc)))
+            self._last_doc, self._last_pub = key, now
 
-        def shutdown(self) -> None:
-            self.runner.stop()
-            self.thread.join(timeout=3.0)
-
-    return CollisionNode()
+    def shutdown(self) -> None:
+        self.runner.stop()
+        self.thread.join(timeout=3.0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from mds_ach.nodes.pipeline import run_node
-
-    return run_node(argv, _build_parser(), _make_node)
+    return run_node(argv, _build_parser(), lambda args: CollisionNode(config=args.config, world=args.world,
+                                                                      urdf=args.urdf, margin=args.margin))
 
 
 if __name__ == "__main__":

@@ -29,8 +29,14 @@ import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.srv import AddDiagnostics
+from rclpy.node import Node
+
 import mds_ach as mds
 from mds_ach.nodes.rosargs import strip_ros_args
+from mds_ach.nodes.rosnode import Param, declare, find, run_node
+from mds_ach.robot.joints import BY_ADDRESS
 from mds_ach.robot.msgs import daemon_status as ds
 
 log = logging.getLogger("mds_ach.nodes.daemon")
@@ -194,10 +200,6 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
     """The daemon's DiagnosticStatus (OK / WARN above 60 % bus load, stale joints, joints with implausible position
     replies, late loop, stalls or channel errors since the last report / ERROR bus-off or loop stopped). Targets
     the daemon had to limit are reported as values (per joint), not as a problem: the limiter did its job."""
-    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
-    from mds_ach.robot.joints import BY_ADDRESS
-
     level, problems = DiagnosticStatus.OK, []
     if st.bus_load_avg > BUS_LOAD_WARN:
         level = DiagnosticStatus.WARN
@@ -253,64 +255,67 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
                             values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
 
-def _make_node(args: argparse.Namespace):
-    from diagnostic_msgs.msg import DiagnosticArray
-    from diagnostic_msgs.srv import AddDiagnostics
-    from rclpy.node import Node
+PARAMETERS = (
+    Param("robot", "", "robot variant of the joint table (isaac, lucas, octavia, default); empty: $MDS_ACH_ROBOT "
+                       "or the choice saved by `mds-ach changerobot` (option --robot)"),
+    Param("rate", 1.0 / mds.MDS_LOOP_PERIOD, "control loop rate in Hz: one position query and one reference per "
+                                            "joint and cycle (option --rate)", range=(0.1, 1000.0)),
+    Param("nocan", False, "simulate the robot's CAN bus in this process instead of a python-can interface "
+                          "(option --nocan)"),
+)
 
-    from mds_ach.robot.joints import BY_ADDRESS
 
-    class DaemonNode(Node):
-        """Diagnostics timer and command service around the loop thread (which never waits on ROS)."""
+class DaemonNode(Node):
+    """Diagnostics timer and command service around the loop thread (which never waits on ROS).
 
-        def __init__(self) -> None:
-            super().__init__("mds_daemon")
-            # ROS parameters for launch files; the command line gives their defaults.
-            robot = self.declare_parameter("robot", args.robot or "").value
-            rate = self.declare_parameter("rate", float(args.rate)).value
-            nocan = self.declare_parameter("nocan", bool(args.nocan)).value
-            args.robot, args.rate, args.nocan = robot or None, float(rate), bool(nocan)
-            self.daemon = build(args)
-            self._channel_errors = 0
-            self._stalls = 0
-            self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-            self.create_timer(1.0, self._diagnostics)
-            self.create_service(AddDiagnostics, "~/command", self._command)
+    The command line gives the parameters' defaults; ``--ros-args -p`` values win (launch files)."""
 
-        def _diagnostics(self) -> None:
-            st = self.daemon.loop.snapshot()
-            if not self.daemon.loop.running:
-                # The loop thread died (its traceback is in the log): stop the process so a supervisor notices;
-                # the MCB nodes hold their last targets.
-                self.get_logger().fatal("control loop stopped; exiting")
-                raise SystemExit(1)
-            stale = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_STALE
-                     and st.joint_flags[a] & ds.JOINT_ENABLED]
-            bad = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_BAD_REPLY]
-            msg = DiagnosticArray()
-            msg.header.stamp = self.get_clock().now().to_msg()
-            new_errors, self._channel_errors = st.channel_errors - self._channel_errors, st.channel_errors
-            new_stalls, self._stalls = st.stalls - self._stalls, st.stalls
-            msg.status = [diagnostic_status(st, self.daemon.loop.running, stale, new_errors, bad, new_stalls)]
-            self.diag_pub.publish(msg)
+    def __init__(self, args: argparse.Namespace) -> None:
+        super().__init__("mds_daemon")
+        robot = declare(self, find(PARAMETERS, "robot"), args.robot)
+        rate = declare(self, find(PARAMETERS, "rate"), args.rate)
+        nocan = declare(self, find(PARAMETERS, "nocan"), args.nocan)
+        args = argparse.Namespace(**{**vars(args), "robot": robot or None, "rate": float(rate), "nocan": bool(nocan)})
+        self.daemon = build(args)
+        self._channel_errors = 0
+        self._stalls = 0
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(1.0, self._diagnostics)
+        self.create_service(AddDiagnostics, "~/command", self._command)
 
-        def _command(self, request, response):
-            try:
-                code, address = parse_command(request.load_namespace)
-            except ValueError as exc:
-                response.success, response.message = False, str(exc)
-                return response
-            cmd = self.daemon.loop.submit(code, address)
-            if not cmd.done.wait(max(2.0, 5 * self.daemon.loop.period)):
-                response.success, response.message = False, "the control loop did not answer in time"
-                return response
-            response.success, response.message = cmd.result == ds.CMD_OK, cmd.message
+    def _diagnostics(self) -> None:
+        st = self.daemon.loop.snapshot()
+        if not self.daemon.loop.running:
+            # The loop thread died (its traceback is in the log): stop the process so a supervisor notices;
+            # the MCB nodes hold their last targets.
+            self.get_logger().fatal("control loop stopped; exiting")
+            raise SystemExit(1)
+        stale = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_STALE
+                 and st.joint_flags[a] & ds.JOINT_ENABLED]
+        bad = [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & ds.JOINT_BAD_REPLY]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        new_errors, self._channel_errors = st.channel_errors - self._channel_errors, st.channel_errors
+        new_stalls, self._stalls = st.stalls - self._stalls, st.stalls
+        msg.status = [diagnostic_status(st, self.daemon.loop.running, stale, new_errors, bad, new_stalls)]
+        self.diag_pub.publish(msg)
+
+    def _command(self, request: AddDiagnostics.Request, response: AddDiagnostics.Response
+                 ) -> AddDiagnostics.Response:
+        try:
+            code, address = parse_command(request.load_namespace)
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
             return response
+        cmd = self.daemon.loop.submit(code, address)
+        if not cmd.done.wait(max(2.0, 5 * self.daemon.loop.period)):
+            response.success, response.message = False, "the control loop did not answer in time"
+            return response
+        response.success, response.message = cmd.result == ds.CMD_OK, cmd.message
+        return response
 
-        def shutdown(self) -> None:
-            self.daemon.close()
-
-    return DaemonNode()
+    def shutdown(self) -> None:
+        self.daemon.close()
 
 
 def _run_plain(args: argparse.Namespace) -> int:
@@ -346,11 +351,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.no_ros:
         from mds_ach.robot import access as channel_access
 
-        channel_access.enforce_in_this_process()  # refuse channel files another user planted (run_node does too)
+        channel_access.enforce_in_this_process()  # refuse planted channel files (run_node does it with ROS)
         return _run_plain(args)
-    from mds_ach.nodes.pipeline import run_node
-
-    return run_node(argv, parser, _make_node)
+    return run_node(argv, parser, DaemonNode)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """Reference smoother (``ros2 run mds_ach filter``): ``mds-ref-mux`` -> per-joint filter -> ``mds-ref-smooth``.
 
-Runs at a fixed rate (config/filter.yaml ``rate``, default 40 Hz like the deployed mds-filter) on an absolute
-schedule and publishes every tick, so the collision gate sees a steady stream. Per-joint modes (the maths is
-``mds_ach.nodes.filters``, shared with the daemon):
+Runs at a fixed rate (parameter ``rate``, by default config/filter.yaml ``rate``: 40 Hz like the deployed
+mds-filter) on an absolute schedule and publishes every tick, so the collision gate sees a steady stream.
+Per-joint modes (the maths is ``mds_ach.nodes.filters``, shared with the daemon):
 
 * ``velocity_limit`` (default): constant-speed ramp, 1.57 rad/s, snapping onto the target within one step,
   what the original deployment ran (``src/mds-filter.c``). Optional ``max_accel`` (rad/s^2) adds an
@@ -38,10 +38,25 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
+from rclpy.node import Node
 
 import mds_ach as mds
 from mds_ach.nodes import filters
-from mds_ach.nodes.pipeline import labels, make_ref, ref_arrays, select_joints
+from mds_ach.nodes.pipeline import (
+    ChannelGuard,
+    Periodic,
+    ReseedWatch,
+    labels,
+    make_ref,
+    ref_arrays,
+    select_joints,
+    state_positions,
+    wait_current_reference,
+)
+from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
+from mds_ach.paths import config_path
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT
 
 MODES = ("pass", "ema", "enc_filter", "velocity_limit")
@@ -126,10 +141,6 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
 
 
 def load_config(path: str | Path | None = None, rate: float | None = None) -> FilterParams:
-    import yaml
-
-    from mds_ach.paths import config_path
-
     path = Path(path) if path else config_path("filter.yaml")
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
@@ -227,9 +238,6 @@ class FilterRunner:
         self._stop.set()
 
     def run(self) -> None:
-        from mds_ach.nodes.pipeline import ChannelGuard, Periodic, ReseedWatch, state_positions, wait_current_reference
-        from mds_ach.robot.channels import StructChannel
-
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
@@ -294,32 +302,32 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _make_node(args: argparse.Namespace) -> Any:
-    from rclpy.node import Node
+PARAMETERS = (
+    Param("config", "", "filter YAML; empty: the package's config/filter.yaml (option --config)"),
+    Param("rate", DEFAULT_RATE, "loop and publish rate in Hz; overrides the config's rate (option --rate)",
+          range=(0.1, 1000.0), default_doc="config `rate` (`40.0`)"),
+)
 
-    from mds_ach.nodes.pipeline import ros_log, start_worker
 
-    params = load_config(args.config, args.rate)
+class FilterNode(Node):
+    """The filter: ``FilterRunner`` on its own thread; parameters ``config`` and ``rate`` are read at start."""
 
-    class FilterNode(Node):
-        def __init__(self) -> None:
-            super().__init__("filter")
-            self.declare_parameter("rate", params.rate)
-            log = ros_log(self)
-            self.runner = FilterRunner(params, log=log)
-            self.thread = start_worker(self, self.runner.run, "filter")
+    def __init__(self, config: str | None = None, rate: float | None = None) -> None:
+        super().__init__("filter")
+        path = declare(self, find(PARAMETERS, "config"), config) or None
+        configured = load_config(path).rate  # the config's own rate is the parameter's default
+        self.rate: float = declare(self, find(PARAMETERS, "rate"), configured if rate is None else rate)
+        self.params = load_config(path, self.rate)
+        self.runner = FilterRunner(self.params, log=ros_log(self))
+        self.thread = start_worker(self, self.runner.run, "filter")
 
-        def shutdown(self) -> None:
-            self.runner.stop()
-            self.thread.join(timeout=3.0)
-
-    return FilterNode()
+    def shutdown(self) -> None:
+        self.runner.stop()
+        self.thread.join(timeout=3.0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from mds_ach.nodes.pipeline import run_node
-
-    return run_node(argv, _build_parser(), _make_node)
+    return run_node(argv, _build_parser(), lambda args: FilterNode(config=args.config, rate=args.rate))
 
 
 if __name__ == "__main__":

@@ -29,9 +29,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from std_msgs.msg import String
 
 import mds_ach as mds
 from mds_ach import ik
+from mds_ach.nodes.pipeline import current_reference, make_ref
+from mds_ach.nodes.rosnode import Param, declare, ros_log, run_node, start_worker
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs.ik_status import (
     IK_BAD_REQUEST,
@@ -205,9 +211,6 @@ class IkRunner:
             self._requests.cancel()
 
     def run(self) -> None:
-        from mds_ach.nodes.pipeline import current_reference, make_ref
-        from mds_ach.robot.channels import StructChannel
-
         requests = StructChannel(mds.MDS_CHAN_IK_NAME, mds.MDS_IK)
         status_ch = StructChannel(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS)
         out = StructChannel(self.config.output, mds.MDS_REF)
@@ -288,53 +291,75 @@ def _build_parser() -> argparse.ArgumentParser:
 
 
 def build_service(args: argparse.Namespace, log: Callable[[str, str], None]) -> IkService:
-    """Config, limits and collision hook from the command line (shared by the node and the tests)."""
+    """Config, limits and collision hook from the command line (shared by the tests)."""
     config = IkNodeConfig(output=args.output, tolerance=args.tolerance, max_iterations=args.max_iterations,
                           timeout=args.timeout, collision_check=not args.no_collision_check)
     safety = collision_safety(log) if config.collision_check else None
     return IkService(config, arm_limits(args.robot), safety)
 
 
-def _make_node(args: argparse.Namespace) -> Any:
-    from rclpy.node import Node
-    from rclpy.qos import DurabilityPolicy, QoSProfile
-    from std_msgs.msg import String
+PARAMETERS = (
+    Param("output", mds.MDS_CHAN_REF_IK_NAME, "channel for the solutions: mds-ref-ik (the mux's ik input) or "
+                                              "mds-ref-filter without a mux; never mds-ref (option --output)"),
+    Param("tolerance", float(ik.DEFAULT_ERR[2]), "task error below which a request is solved (m and rad mixed, as "
+                                                 "in the original; option --tolerance)", range=(1e-9, 1.0)),
+    Param("max_iterations", int(ik.DEFAULT_ITERATIONS), "iteration cap per request (option --max-iterations)",
+          range=(1, 1_000_000)),
+    Param("timeout", 2.0, "cap on one solve in s, whatever the iteration count (option --timeout)",
+          range=(0.001, 60.0)),
+    Param("collision_check", True, "collision-check IK candidates and the path to them; the collision gate "
+                                   "checks every reference anyway (option --no-collision-check)"),
+    Param("robot", "", "robot variant whose joint table narrows the limits; empty: $MDS_ACH_ROBOT or the saved "
+                       "choice (option --robot)"),
+)
 
-    from mds_ach.nodes.pipeline import ros_log
 
-    class IkNode(Node):
-        def __init__(self) -> None:
-            super().__init__("ik")
-            log = ros_log(self)
-            service = build_service(args, log)
-            self.declare_parameter("output", service.config.output)
-            self.declare_parameter("tolerance", service.config.tolerance)
-            self.declare_parameter("max_iterations", service.config.max_iterations)
-            self.declare_parameter("collision_check", service.safety is not None)
-            self.pub: Any = None
-            self.runner = IkRunner(service, log=log, on_status=self._publish)
-            self.thread = threading.Thread(target=self.runner.run, name="ik", daemon=True)
-            self.thread.start()
-            # The status topic appears once requests are being taken: a client that sees it can ask at once.
-            self.runner.ready.wait(10.0)
-            qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-            self.pub = self.create_publisher(String, IK_STATUS_TOPIC, qos)
+class IkNode(Node):
+    """The IK service: ``IkRunner`` on its own thread; every answer also on ``/mds/ik_status`` (JSON)."""
 
-        def _publish(self, st: MDS_IK_STATUS) -> None:
-            if self.pub is not None and self.context.ok():
-                self.pub.publish(String(data=json.dumps(status_to_dict(st))))
+    def __init__(self, output: str | None = None, tolerance: float | None = None,
+                 max_iterations: int | None = None, timeout: float | None = None,
+                 collision_check: bool | None = None, robot: str | None = None) -> None:
+        super().__init__("ik")
+        log = ros_log(self)
+        given = {"output": output, "tolerance": tolerance, "max_iterations": max_iterations, "timeout": timeout,
+                 "collision_check": collision_check, "robot": robot}
+        values = {p.name: declare(self, p, given[p.name]) for p in PARAMETERS}
+        config = IkNodeConfig(output=values["output"], tolerance=values["tolerance"],
+                              max_iterations=values["max_iterations"], timeout=values["timeout"],
+                              collision_check=values["collision_check"])
+        safety = collision_safety(log) if config.collision_check else None
+        if not config.collision_check:
+            log("warn", "IK candidates are not collision-checked (collision_check false); the collision gate "
+                        "still is")
+        service = IkService(config, arm_limits(values["robot"] or None), safety)
+        log("info", f"tolerance {config.tolerance:g}, at most {config.max_iterations} iterations or "
+                    f"{config.timeout:g} s per request")
+        self.config = config
+        self.pub: Any = None
+        self.runner = IkRunner(service, log=log, on_status=self._publish)
+        self.thread = start_worker(self, self.runner.run, "ik")
+        # The status topic appears once requests are being taken: a client that sees it can ask at once.
+        self.runner.ready.wait(10.0)
+        qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub = self.create_publisher(String, IK_STATUS_TOPIC, qos)
 
-        def shutdown(self) -> None:
-            self.runner.stop()
-            self.thread.join(timeout=5.0)
+    def _publish(self, st: MDS_IK_STATUS) -> None:
+        if self.pub is not None and self.context.ok():
+            self.pub.publish(String(data=json.dumps(status_to_dict(st))))
 
-    return IkNode()
+    def shutdown(self) -> None:
+        self.runner.stop()
+        self.thread.join(timeout=5.0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from mds_ach.nodes.pipeline import run_node
+    def make(args: argparse.Namespace) -> IkNode:
+        return IkNode(output=args.output, tolerance=args.tolerance, max_iterations=args.max_iterations,
+                      timeout=args.timeout, collision_check=False if args.no_collision_check else None,
+                      robot=args.robot)
 
-    return run_node(argv, _build_parser(), _make_node)
+    return run_node(argv, _build_parser(), make)
 
 
 if __name__ == "__main__":

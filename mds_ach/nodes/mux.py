@@ -39,6 +39,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
+from rclpy.node import Node
+from std_msgs.msg import String
 
 import mds_ach as mds
 from mds_ach.nodes.pipeline import (
@@ -51,7 +54,11 @@ from mds_ach.nodes.pipeline import (
     make_ref,
     ref_arrays,
     select_joints,
+    wait_current_reference,
 )
+from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
+from mds_ach.paths import config_path
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
 from mds_ach.robot.msgs.mux_state import MDS_MUX_STATE, MUX_MAX_CONTROLLERS  # noqa: F401  (mux.MDS_MUX_STATE)
 
@@ -116,10 +123,6 @@ def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux co
 
 def load_config(path: str | Path | None = None) -> dict[str, Any]:
     """config/mux.yaml (or ``path``) -> {'controllers': [Controller...], 'state_rate': Hz}."""
-    import yaml
-
-    from mds_ach.paths import config_path
-
     path = Path(path) if path else config_path("mux.yaml")
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
@@ -276,9 +279,6 @@ class MuxRunner:
             cancel_wait(ch)
 
     def run(self) -> None:
-        from mds_ach.nodes.pipeline import wait_current_reference
-        from mds_ach.robot.channels import StructChannel
-
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
@@ -386,37 +386,38 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _make_node(args: argparse.Namespace) -> Any:
-    from rclpy.node import Node
-    from std_msgs.msg import String
+PARAMETERS = (
+    Param("config", "", "mux YAML (controllers, priorities, timeouts); empty: the package's config/mux.yaml "
+                        "(option --config)"),
+    Param("state_rate", DEFAULT_STATE_RATE, "publish rate of mds-mux-state and /mds/mux_state in Hz; overrides "
+                                            "the config's state_rate", range=(0.1, 1000.0),
+          default_doc="config `state_rate` (`10.0`)"),
+)
 
-    from mds_ach.nodes.pipeline import ros_log, start_worker
 
-    cfg = load_config(args.config)
+class MuxNode(Node):
+    """The mux: ``MuxRunner`` on its own thread, its state also on ``/mds/mux_state`` (JSON)."""
 
-    class MuxNode(Node):
-        def __init__(self) -> None:
-            super().__init__("mux")
-            self.pub = self.create_publisher(String, "/mds/mux_state", 10)
-            log = ros_log(self)
-            self.runner = MuxRunner(cfg["controllers"], cfg["state_rate"], log=log, on_state=self._on_state)
-            self.thread = start_worker(self, self.runner.run, "mux")
+    def __init__(self, config: str | None = None) -> None:
+        super().__init__("mux")
+        path = declare(self, find(PARAMETERS, "config"), config) or None
+        cfg = load_config(path)
+        self.state_rate: float = declare(self, find(PARAMETERS, "state_rate"), cfg["state_rate"])
+        self.pub = self.create_publisher(String, "/mds/mux_state", 10)
+        self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state)
+        self.thread = start_worker(self, self.runner.run, "mux")
 
-        def _on_state(self, st: MDS_MUX_STATE) -> None:
-            if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
-                self.pub.publish(String(data=json.dumps(state_to_dict(st))))
+    def _on_state(self, st: MDS_MUX_STATE) -> None:
+        if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
+            self.pub.publish(String(data=json.dumps(state_to_dict(st))))
 
-        def shutdown(self) -> None:
-            self.runner.stop()
-            self.thread.join(timeout=3.0)
-
-    return MuxNode()
+    def shutdown(self) -> None:
+        self.runner.stop()
+        self.thread.join(timeout=3.0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from mds_ach.nodes.pipeline import run_node
-
-    return run_node(argv, _build_parser(), _make_node)
+    return run_node(argv, _build_parser(), lambda args: MuxNode(config=args.config))
 
 
 if __name__ == "__main__":

@@ -5,17 +5,15 @@
 * joint selections from config (``'all'``, group names, fnmatch patterns such as ``'L*'``, addresses);
 * the *current reference* at start-up, so a node started late (or restarted) continues from what the daemon
   is already commanding instead of jumping;
-* ``run_node``: the common ``main()`` of an rclpy node with an Ach real-time thread (``--help`` without rclpy
-  start-up, ROS args, clean exit 0 on SIGINT/SIGTERM).
+* ``ChannelGuard``, ``ReseedWatch``, ``Periodic``: a broken channel, a re-seed request, an absolute schedule.
 
-No rclpy import at module level: the helpers are used by tests and tools that never start DDS.
+No rclpy here: the helpers are used by tests and tools that never start ROS (the ROS side of the nodes is
+``mds_ach.nodes.rosnode``).
 """
 
 from __future__ import annotations
 
-import argparse
 import fnmatch
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -24,7 +22,6 @@ from typing import Any
 import numpy as np
 
 import mds_ach as mds
-from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import contracts
 from mds_ach.robot.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
 
@@ -253,103 +250,6 @@ class Periodic:
             self.overruns += 1
             self.next = now + self.period
         return not stop.is_set()
-
-
-# --------------------------------------------------------------------------------------------- main()
-
-
-def ros_log(node: Any) -> Callable[[str, str], None]:
-    """``log(level, msg)`` for the Ach-side runners, backed by the node's logger.
-
-    One call site per severity: rclpy's logger refuses a call site whose severity changes between calls.
-    """
-    logger = node.get_logger()
-
-    def log(level: str, msg: str) -> None:
-        if level == "error":
-            logger.error(msg)
-        elif level == "warn":
-            logger.warning(msg)
-        else:
-            logger.info(msg)
-
-    return log
-
-
-def start_worker(node: Any, target: Callable[[], None], name: str) -> threading.Thread:
-    """Run the node's real-time loop on its own thread. If it raises, the error is logged with its traceback
-    and the node shuts down (``run_node`` then exits 1): a dead real-time loop must not look like a live node."""
-    import traceback
-
-    def body() -> None:
-        try:
-            target()
-        except Exception as exc:  # report and stop: never limp on without the loop
-            node.worker_error = exc
-            node.get_logger().fatal(f"{name} loop failed: {exc!r}\n{traceback.format_exc()}")
-            node.context.try_shutdown()
-
-    node.worker_error = None
-    thread = threading.Thread(target=body, name=name, daemon=True)
-    thread.start()
-    return thread
-
-
-
-def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
-             make_node: Callable[[argparse.Namespace], Any]) -> int:
-    """Parse CLI args (ROS args removed), start rclpy, build the node, spin until SIGINT/SIGTERM; exit 0.
-
-    ``make_node(args)`` returns an rclpy Node that has a ``shutdown()`` method stopping its real-time thread.
-    A ``ValueError`` from it (bad config) is printed as a one-line error with exit status 2; a real-time loop
-    that died (``start_worker``) gives exit status 1.
-
-    Signals: our own SIGINT/SIGTERM handlers set a flag that a ``spin_once`` loop checks every 0.1 s. rclpy's
-    handlers are not used: a signal that arrives while the node is still being built could be lost there and
-    leave the executor spinning forever.
-    """
-    import signal
-
-    argv = list(sys.argv if argv is None else argv)
-    from mds_ach.robot import access as channel_access
-
-    args = parser.parse_args(strip_ros_args(argv)[1:])
-    channel_access.enforce_in_this_process()  # a node: refuse channel files another user planted
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: object) -> None:
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
-
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    status = 0
-    try:
-        if not stop.is_set():
-            node = make_node(args)
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
-            while not stop.is_set() and rclpy.ok():
-                executor.spin_once(timeout_sec=0.1)
-    except ExternalShutdownException:
-        pass
-    except ValueError as exc:
-        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
-        status = 2
-    finally:
-        if node is not None:
-            node.shutdown()
-            if getattr(node, "worker_error", None) is not None:
-                status = 1
-            node.destroy_node()
-        rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return status
 
 
 class ChannelGuard:

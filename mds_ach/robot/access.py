@@ -127,8 +127,8 @@ def require_trusted(chan: ach.Channel) -> None:
 def enforce_in_this_process() -> None:
     """Declare this process part of the stack: from now on ``StructChannel`` refuses untrusted channel files.
 
-    Called once at start by every node's ``main`` (``pipeline.run_node``, the daemon, the bridge); clients never
-    call it."""
+    Called once at start by every node's ``main`` (``mds_ach.nodes.rosnode.run_node`` for all six, and
+    ``daemon --no-ros``); clients never call it."""
     global _enforced
     _enforced = True
 

@@ -1,0 +1,235 @@
+"""The ROS side shared by all six nodes (daemon, mux, filter, collision, ik and the bridge).
+
+* ``Param``: one declared parameter (type from its default, description, inclusive range, read-only or not).
+  Each node lists its parameters in a module-level ``PARAMETERS`` tuple; the README table is rendered from
+  them (``parameter_table``), so the documentation cannot drift from what is declared.
+* ``declare``: declare one ``Param`` on a node and return its value (a command-line option may supply the
+  default); an out-of-range or wrongly typed ``--ros-args -p`` value raises ``ParameterException``, which
+  ``run_node`` turns into one line on stderr and exit status 2.
+* ``run_node``: the common ``main()``: parse the command line (ROS arguments removed), start rclpy, build
+  the node, spin until SIGINT/SIGTERM, shut down cleanly (exit 0; 2 for bad parameters or configuration;
+  1 when the node's real-time loop died).
+* ``ros_log`` / ``start_worker``: the Ach-side loops log into the node's logger and run on their own thread.
+
+rclpy is imported inside ``run_node`` and ``Param.descriptor``, not at module top: ``<node> --help`` and usage
+errors answer without loading rclpy (measured: ~120 ms of a ~300 ms start), and the bridge's ``--help`` must not
+import it at all (test_bridge).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import traceback
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+from mds_ach.nodes.rosargs import strip_ros_args
+
+if TYPE_CHECKING:
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
+
+ParamValue = bool | int | float | str
+
+
+@dataclass(frozen=True)
+class Param:
+    """One ROS parameter of a node: what ``ros2 param describe`` shows and what the README table lists."""
+
+    name: str
+    default: ParamValue
+    description: str
+    range: tuple[float, float] | None = None  # inclusive [from, to]; int or float like the default
+    read_only: bool = True  # read once at start (changing it later would silently do nothing)
+    default_doc: str | None = None  # README default column when the real default comes from a config file
+
+    @property
+    def type_name(self) -> str:
+        """The ROS parameter type (``bool``, ``integer``, ``double``, ``string``)."""
+        if isinstance(self.default, bool):
+            return "bool"
+        if isinstance(self.default, int):
+            return "integer"
+        if isinstance(self.default, float):
+            return "double"
+        return "string"
+
+    def descriptor(self) -> ParameterDescriptor:
+        """The rcl ``ParameterDescriptor`` with the description and the range (checked by rclpy itself)."""
+        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+        desc = ParameterDescriptor(description=self.description, read_only=self.read_only)
+        if self.range is not None:
+            lo, hi = self.range
+            if self.type_name == "integer":
+                desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+            else:
+                desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        return desc
+
+    def doc_default(self) -> str:
+        if self.default_doc is not None:
+            return self.default_doc
+        if isinstance(self.default, str):
+            return f"`{self.default}`" if self.default else "`''`"
+        return f"`{str(self.default).lower() if isinstance(self.default, bool) else self.default}`"
+
+    def doc_range(self) -> str:
+        if self.range is None:
+            return ""
+        lo, hi = self.range
+        if self.type_name == "integer":
+            return f"{int(lo)} … {int(hi)}"
+        return f"{lo:g} … {hi:g}"
+
+
+def declare(node: Node, param: Param, default: ParamValue | None = None) -> Any:
+    """Declare ``param`` on ``node`` and return its value: ``--ros-args -p`` wins, then ``default`` (a command-line
+    option), then ``param.default``. A float default given as an int (``--rate 50``) is converted."""
+    from rclpy.exceptions import InvalidParameterTypeException  # rclpy is loaded by now (a node exists)
+
+    value: ParamValue = param.default if default is None else default
+    if isinstance(param.default, float) and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    try:
+        return node.declare_parameter(param.name, value, param.descriptor()).value
+    except InvalidParameterTypeException as exc:
+        if param.type_name != "double":
+            raise
+        wrong_type = exc
+    # `-p rate:=20` is an integer to ROS: accept it for a double parameter (then range-checked as usual).
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    loose = ParameterDescriptor(dynamic_typing=True)  # only to read the given value; then declared properly
+    given = node.declare_parameter(param.name, value, loose).value
+    node.undeclare_parameter(param.name)
+    if isinstance(given, bool) or not isinstance(given, int | float):
+        raise wrong_type
+    return node.declare_parameter(param.name, float(given), param.descriptor(), ignore_override=True).value
+
+
+def find(params: Iterable[Param], name: str) -> Param:
+    """The ``Param`` called ``name`` (KeyError if none)."""
+    for p in params:
+        if p.name == name:
+            return p
+    raise KeyError(name)
+
+
+def parameter_table(nodes: Sequence[tuple[str, Sequence[Param]]]) -> str:
+    """The README's parameter table (Markdown) for ``[(node name, PARAMETERS), ...]``."""
+    lines = ["| node | parameter | type | default | range | meaning |", "|---|---|---|---|---|---|"]
+    for node, params in nodes:
+        for p in params:
+            meaning = p.description if p.read_only else f"{p.description} (can be changed while running)"
+            lines.append(f"| `{node}` | `{p.name}` | {p.type_name} | {p.doc_default()} | {p.doc_range()} | "
+                         f"{meaning} |")
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------------- node helpers
+
+
+def ros_log(node: Node) -> Callable[[str, str], None]:
+    """``log(level, msg)`` for the Ach-side runners, backed by the node's logger.
+
+    One call site per severity: rclpy's logger refuses a call site whose severity changes between calls.
+    """
+    logger = node.get_logger()
+
+    def log(level: str, msg: str) -> None:
+        if level == "error":
+            logger.error(msg)
+        elif level == "warn":
+            logger.warning(msg)
+        else:
+            logger.info(msg)
+
+    return log
+
+
+def start_worker(node: Any, target: Callable[[], None], name: str) -> threading.Thread:
+    """Run the node's real-time loop on its own thread. If it raises, the error is logged with its traceback
+    and the node shuts down (``run_node`` then exits 1): a dead real-time loop must not look like a live node."""
+
+    def body() -> None:
+        try:
+            target()
+        except Exception as exc:  # report and stop: never limp on without the loop
+            node.worker_error = exc
+            node.get_logger().fatal(f"{name} loop failed: {exc!r}\n{traceback.format_exc()}")
+            node.context.try_shutdown()
+
+    node.worker_error = None
+    thread = threading.Thread(target=body, name=name, daemon=True)
+    thread.start()
+    return thread
+
+
+class StoppableNode(Protocol):
+    """What ``run_node`` needs of a node: rclpy's Node plus ``shutdown()`` stopping its own threads."""
+
+    def shutdown(self) -> None: ...
+
+    def destroy_node(self) -> None: ...
+
+
+def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
+             make_node: Callable[[argparse.Namespace], StoppableNode]) -> int:
+    """Parse the command line (ROS args removed), start rclpy, build the node, spin until SIGINT/SIGTERM; exit 0.
+
+    ``argv`` includes the program name (``sys.argv`` when None). ``make_node(args)`` returns the node. A
+    ``ValueError``, ``OSError`` or rclpy ``ParameterException`` while building it (bad configuration, a
+    parameter out of range or of the wrong type) is printed as one line with exit status 2; a real-time loop
+    that died (``start_worker``) gives exit status 1.
+
+    Signals: our own SIGINT/SIGTERM handlers set a flag that a ``spin_once`` loop checks every 0.1 s. rclpy's
+    handlers are not used: a signal that arrives while the node is still being built could be lost there and
+    leave the executor spinning forever.
+    """
+    argv = list(sys.argv if argv is None else argv)
+    args = parser.parse_args(strip_ros_args(argv)[1:])
+
+    import rclpy  # after parsing: see the module docstring
+    from rclpy.exceptions import ParameterException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from mds_ach.robot import access as channel_access
+
+    channel_access.enforce_in_this_process()  # a node: refuse channel files another user planted
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node: StoppableNode | None = None
+    status = 0
+    try:
+        if not stop.is_set():
+            node = make_node(args)
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)  # type: ignore[arg-type]  # an rclpy Node (the Protocol names what we call)
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)
+    except ExternalShutdownException:
+        pass
+    except (ValueError, OSError, ParameterException) as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        status = 2
+    finally:
+        if node is not None:
+            node.shutdown()
+            if getattr(node, "worker_error", None) is not None:
+                status = 1
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return status
