@@ -44,6 +44,7 @@ sysdeps:
 
 test: sysdeps $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
 
 bench: $(STAMP)

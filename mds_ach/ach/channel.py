@@ -18,6 +18,7 @@ import struct
 import threading
 import time
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 from mds_ach.ach.files import MappingGuard, os_error, reserve, shm_path, validate_name
 from mds_ach.ach.files import create as _create  # Channel.__init__ has a parameter called ``create``
@@ -72,6 +73,9 @@ from mds_ach.ach.status import (
     AchException,
 )
 
+if TYPE_CHECKING:  # the C extension is optional at run time (see _load_fast)
+    from mds_ach.ach._achfast import Handle as _FastHandle
+
 WAIT_SLICE = 0.1  # s per condvar wait slice (condvar_wait=True), so Ctrl-C / cancel / close are seen promptly
 POLL_SLICE = 0.005  # s per futex wait slice: how late a frame from a C writer (no futex wake) can be noticed
 IDLE_SLICE = 0.05  # C fast path: s per futex wait slice while every frame comes with a wake-up (fewer idle wakes)
@@ -108,7 +112,7 @@ def _byte_view(buf: object, writable: bool) -> memoryview:
         mv = buf
     else:
         try:
-            mv = memoryview(buf)
+            mv = memoryview(buf)  # type: ignore[arg-type]  # any object: a non-buffer raises, reworded below
         except TypeError:
             raise TypeError(f"Ach frames are bytes-like objects (bytes, bytearray, memoryview, ctypes structure), "
                             f"got {type(buf).__name__}") from None
@@ -124,7 +128,7 @@ def _byte_view(buf: object, writable: bool) -> memoryview:
             raise TypeError("Ach buffers must be contiguous") from None
         if mv.readonly:
             return memoryview(mv.tobytes())
-        return memoryview((ctypes.c_ubyte * mv.nbytes).from_buffer(buf)).cast("B")
+        return memoryview((ctypes.c_ubyte * mv.nbytes).from_buffer(buf)).cast("B")  # type: ignore[arg-type]  # mv is a view of it
 
 
 class Channel:
@@ -233,7 +237,7 @@ class Channel:
         # reader state (libach ach_open): seq_num = 0, next_index = 1; kept in the C handle when there is one
         self._seq = 0
         self._next = 1
-        self._fast = None
+        self._fast: _FastHandle | None = None
         self._short_slices = 0  # > 0: a writer that does not wake the futex was seen; wait in POLL_SLICE slices
         if _achfast is not None and self._want_fast and not self._condvar_wait:
             try:
@@ -544,7 +548,8 @@ class Channel:
         non-OK status (classic binding), e.g. ACH_OVERFLOW when the frame is larger than the channel, ACH_LOCKED
         when the mutex was not acquired within ``lock_timeout`` seconds (None: this handle's ``lock_timeout``)."""
         lock_ns = self._lock_ns if lock_timeout is None else _lock_ns(lock_timeout)
-        r = self._put_fast(buf, lock_ns) if self._fast is not None else self._put(_byte_view(buf, False), lock_ns)
+        fast = self._fast
+        r = self._put_fast(fast, buf, lock_ns) if fast is not None else self._put(_byte_view(buf, False), lock_ns)
         if r:
             detail = f"{_byte_view(buf, False).nbytes} bytes > data_size {self._dsize}" if r == ACH_OVERFLOW else ""
             raise self._error(r, detail, lock_ns=lock_ns)
@@ -552,19 +557,20 @@ class Channel:
     def put_status(self, buf: object, lock_timeout: float | None = None) -> int:
         """Like ``put`` but returns the libach status instead of raising (ACH_LOCKED for a lock timeout)."""
         lock_ns = self._lock_ns if lock_timeout is None else _lock_ns(lock_timeout)
-        r = self._put_fast(buf, lock_ns) if self._fast is not None else self._put(_byte_view(buf, False), lock_ns)
+        fast = self._fast
+        r = self._put_fast(fast, buf, lock_ns) if fast is not None else self._put(_byte_view(buf, False), lock_ns)
         return ACH_LOCKED if r == _LOCK_TIMED_OUT else r
 
-    def _put_fast(self, buf: object, lock_ns: int) -> int:
+    def _put_fast(self, fast: _FastHandle, buf: object, lock_ns: int) -> int:
         active = self._active
         active.append(1)
         try:
             if self._closed:
                 raise AchException(ACH_CLOSED, channel=self.name)
             try:
-                return self._fast.put(buf, lock_ns)
+                return fast.put(buf, lock_ns)
             except (TypeError, BufferError):  # not a plain contiguous buffer: convert it, or say what is wrong
-                return self._fast.put(_byte_view(buf, False), lock_ns)
+                return fast.put(_byte_view(buf, False), lock_ns)
         finally:
             active.pop()
             if self._closed and not active:
@@ -724,8 +730,8 @@ class Channel:
                 raise ValueError("timeout is NaN")
             if timeout != math.inf:
                 deadline = time.clock_gettime(self._clock) + max(0.0, timeout)
-        if self._fast is not None:
-            return self._get_fast(buf, options, deadline, lock_ns)
+        if (fast := self._fast) is not None:
+            return self._get_fast(fast, buf, options, deadline, lock_ns)
         return self._get(_byte_view(buf, True), options, deadline, lock_ns)
 
     def _slice(self, deadline: float | None) -> tuple[int, bool]:
@@ -740,7 +746,8 @@ class Channel:
         left = int((deadline - time.clock_gettime(self._clock)) * 1e9)
         return (full, False) if left > full else (max(0, left), True)
 
-    def _get_fast(self, buf: object, options: int, deadline: float | None, lock_ns: int = -1) -> tuple[int, int]:
+    def _get_fast(self, fast: _FastHandle, buf: object, options: int, deadline: float | None,
+                  lock_ns: int = -1) -> tuple[int, int]:
         """``_get`` through the C handle: one call per frame; waits in GIL-free futex slices."""
         active = self._active
         active.append(1)
@@ -749,7 +756,7 @@ class Channel:
                 raise AchException(ACH_CLOSED, channel=self.name)
             if self._cancel:
                 return ACH_CANCELED, 0
-            get = self._fast.get
+            get = fast.get
             wait = options & ACH_O_WAIT
             span, final = self._slice(deadline) if wait else (0, True)
             try:
@@ -765,7 +772,7 @@ class Channel:
                 span, final = self._slice(deadline)
                 status, size = get(buf, options, span, lock_ns)
             if wait and status in (ACH_OK, ACH_MISSED_FRAME):
-                woken = self._fast.woken
+                woken = fast.woken
                 if woken == _WAIT_TIMED_OUT:  # the frame came without a wake-up
                     self._short_slices = _SHORT_SLICE_FRAMES
                 elif woken == _WAIT_WOKEN and self._short_slices:
@@ -861,8 +868,8 @@ class Channel:
         (newest frame by default). Lowest latency, burns a CPU core while waiting; mind the GIL. Returns like
         ``get``; ACH_TIMEOUT when nothing arrived within ``timeout`` seconds."""
         dst = _byte_view(buf, True)
-        if self._fast is not None:
-            status, size = self._poll_fast(dst, timeout, ACH_O_LAST if last else 0)
+        if (fast := self._fast) is not None:
+            status, size = self._poll_fast(fast, dst, timeout, ACH_O_LAST if last else 0)
             if status in (ACH_OK, ACH_MISSED_FRAME, ACH_STALE_FRAMES, ACH_CANCELED, ACH_TIMEOUT):
                 return status, size
             raise self._error(status, size=size, lock_ns=self._lock_ns)
@@ -894,12 +901,12 @@ class Channel:
             return status, size
         raise self._error(status, size=size, lock_ns=self._lock_ns)
 
-    def _poll_fast(self, dst: memoryview, timeout: float | None, options: int) -> tuple[int, int]:
+    def _poll_fast(self, fast: _FastHandle, dst: memoryview, timeout: float | None, options: int) -> tuple[int, int]:
         """``poll`` through the C handle: it spins with the GIL released, in slices, then gets."""
         self._enter()
         try:
             deadline = None if timeout is None else time.monotonic() + timeout
-            poll = self._fast.poll
+            poll = fast.poll
             while True:
                 if self._cancel or self._closed:
                     return ACH_CANCELED, 0

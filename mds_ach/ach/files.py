@@ -239,7 +239,7 @@ class MappingGuard:
 
     def reason(self, name: str, length: int) -> str:
         """What happened to a lost mapping, and what to do about it."""
-        size = _shmguard.state(self._slot)[1] if self._slot >= 0 else -1
+        size = _shmguard.state(self._slot)[1] if _shmguard is not None and self._slot >= 0 else -1
         path = shm_path(name)
         if self._flag.value == getattr(_shmguard, "LOST_TRUNCATED", 1):
             what = f"{path} shrank to {size} bytes while this process had its {length} bytes mapped (truncated)"
@@ -252,7 +252,7 @@ class MappingGuard:
     def release(self, mm: mmap.mmap, fd: int) -> bool:
         """Stop guarding before ``mm`` is unmapped and ``fd`` closed. False when the mapping is lost: both are
         kept, close neither."""
-        if self._slot < 0:
+        if _shmguard is None or self._slot < 0:  # a slot is only ever taken with the guard there
             return True
         if self.lost:
             MappingGuard._kept.append((mm, fd))

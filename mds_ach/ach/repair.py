@@ -162,14 +162,16 @@ class _Mapped:
         self.mutex = ctypes.c_void_p(base + self.layout.mutex)
 
     def u64(self, offset: int) -> int:
-        return _U64.unpack_from(self.mm, offset)[0]
+        value: int = _U64.unpack_from(self.mm, offset)[0]
+        return value
 
     def set_u64(self, offset: int, value: int) -> None:
         _U64.pack_into(self.mm, offset, value)
 
     @property
     def dirty(self) -> int:
-        return _I32.unpack_from(self.mm, self.layout.dirty)[0]
+        flag: int = _I32.unpack_from(self.mm, self.layout.dirty)[0]
+        return flag
 
     @dirty.setter
     def dirty(self, value: int) -> None:
@@ -177,7 +179,8 @@ class _Mapped:
 
     @property
     def lock_owner(self) -> int:
-        return _I32.unpack_from(self.mm, self.layout.mutex)[0] & FUTEX_TID_MASK
+        word: int = _I32.unpack_from(self.mm, self.layout.mutex)[0]
+        return word & FUTEX_TID_MASK
 
     @property
     def lost(self) -> bool:
@@ -332,10 +335,10 @@ def _examine(name: str, timeout: float, fix: bool) -> Report:
             if m.dirty:
                 detail = "a writer died inside a put (dirty flag set): every get/put returns ACH_CORRUPT"
             else:
-                detail = _ring_problem(m)
-                if detail is None:
+                ring = _ring_problem(m)
+                if ring is None:
                     return Report(name, OK, note)
-                detail += ": every get/put that meets it returns ACH_CORRUPT"
+                detail = ring + ": every get/put that meets it returns ACH_CORRUPT"
             if not fix:
                 return Report(name, CORRUPT, detail)
             kept, dropped = _rebuild(m)
@@ -403,10 +406,9 @@ def _recreate(name: str, report: Report) -> Report:
 def scan(names: list[str] | tuple[str, ...] | None = None, timeout: float = LOCK_TIMEOUT,
          fix: bool = False, recreate: bool = False) -> list[Report]:
     """Check (or repair) ``names``, default: every MDS channel that exists. Other channels are not touched."""
-    explicit = names is not None
-    names = list(names) if explicit else [n for n in mds.ALL_CHANNELS if ach.exists(n)]
+    chosen = list(names) if names is not None else [n for n in mds.ALL_CHANNELS if ach.exists(n)]
     out = []
-    for name in names:
+    for name in chosen:
         out.append(repair(name, timeout, recreate) if fix else check(name, timeout))
     return out
 

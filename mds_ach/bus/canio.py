@@ -17,11 +17,14 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
 from mds_ach.bus import mcb
+
+if TYPE_CHECKING:  # imported where used: only the simulated bus needs it
+    from mds_ach.bus.simbus import SimNetwork
 
 log = logging.getLogger(__name__)
 
@@ -185,8 +188,11 @@ def read_log(path: str | Path) -> Iterator[can.Message]:
 
 def _unread(reader: can.io.generic.MessageReader) -> str | bytes | None:
     """What follows the line a text reader failed on (None when that cannot be known)."""
+    if not isinstance(reader, can.io.generic.FileIOMessageReader):
+        return None  # no file to read on (the SQLite reader)
     try:
-        return reader.file.read()
+        rest: str | bytes = reader.file.read()
+        return rest
     except Exception:  # binary readers, closed or unseekable files
         return None
 
@@ -369,9 +375,9 @@ class CanIO:
         return msg
 
 
-def make_canio(*, nocan: bool = False, network=None, interface: str | None = None, channel: str | None = None,
-               bitrate: int | None = None, config_file: str | None = None, replay: str | None = None,
-               replay_speed: float = 1.0, can_log: str | None = None) -> CanIO:
+def make_canio(*, nocan: bool = False, network: SimNetwork | None = None, interface: str | None = None,
+               channel: str | None = None, bitrate: int | None = None, config_file: str | None = None,
+               replay: str | None = None, replay_speed: float = 1.0, can_log: str | None = None) -> CanIO:
     """The bus the command line asked for: simulated (``nocan``, ``network`` = a SimNetwork), a replayed log,
     or a real python-can interface."""
     recorder = Recorder(can_log) if can_log else None

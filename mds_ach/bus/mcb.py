@@ -385,11 +385,13 @@ def value_word(argument: int, value: float | int, fmt: str | None = None) -> int
         v = float(value)
         if not math.isfinite(v):
             raise ValueError(f"refusing to encode a non-finite value ({v}) for argument 0x{argument:02X}")
-        return _STRUCTS["I"].unpack(_STRUCTS["f"].pack(v))[0]
+        bits: int = _STRUCTS["I"].unpack(_STRUCTS["f"].pack(v))[0]
+        return bits
     if isinstance(value, float) and not value.is_integer():
         raise ValueError(f"argument 0x{argument:02X} takes an integer, got {value}")
     buf = _STRUCTS[code].pack(int(value)) + bytes(4 - _STRUCTS[code].size)
-    return _STRUCTS["I"].unpack(buf)[0]
+    word: int = _STRUCTS["I"].unpack(buf)[0]
+    return word
 
 
 def decode(arbitration_id: int, data: bytes | bytearray | memoryview) -> McbFrame:
@@ -438,7 +440,8 @@ def typed_value(argument: int, word: int) -> float | int:
     code = _ARG_FORMAT.get(argument, "I")
     if code == "I":
         return word
-    return _STRUCTS[code].unpack_from(_STRUCTS["I"].pack(word))[0]
+    typed: float | int = _STRUCTS[code].unpack_from(_STRUCTS["I"].pack(word))[0]
+    return typed
 
 
 _typed = typed_value

@@ -35,10 +35,10 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import can
 import numpy as np
@@ -110,6 +110,26 @@ class _NodeFaults:
     offset_replies: int = 0  # that many of the next position replies (-1: until cleared with 0)
 
 
+class _Joint(Protocol):
+    """What ``SimNetwork.from_table`` reads of a joint (``mds_ach.robot.config.JointConfig``; the bus layer
+    must not import the robot layer)."""
+
+    @property
+    def address(self) -> int: ...
+    @property
+    def cpr(self) -> float: ...
+    @property
+    def rom(self) -> float: ...
+    def to_counts(self, q: float) -> float: ...
+
+
+class _JointTable(Protocol):
+    """What ``SimNetwork.from_table`` reads of a ``mds_ach.robot.config.JointTable``."""
+
+    def __iter__(self) -> Iterator[_Joint]: ...
+    def __getitem__(self, key: str) -> _Joint: ...
+
+
 class SimNetwork:
     """The simulated nodes and the wire between them and the host."""
 
@@ -168,8 +188,8 @@ class SimNetwork:
         self.keep_commands = 20_000
 
     @classmethod
-    def from_table(cls, table, pose: dict[str, float] | None = None, extra_nodes: Iterable[int] = (),
-                   **kwargs) -> SimNetwork:
+    def from_table(cls, table: _JointTable, pose: dict[str, float] | None = None, extra_nodes: Iterable[int] = (),
+                   **kwargs: Any) -> SimNetwork:
         """Nodes for every joint of a :class:`mds_ach.robot.config.JointTable`; ``pose``: joint rad by short name."""
         nodes = {j.address: j.cpr for j in table}
         for a in extra_nodes:
@@ -321,7 +341,8 @@ class SimNetwork:
         With a :class:`ManualClock` the wait is simulated: time jumps to the next delivery (or to the end of
         the timeout), so a test's loop runs as fast as the CPU allows and exactly as scheduled.
         """
-        manual = isinstance(self.clock, ManualClock)
+        manual_clock = self.clock if isinstance(self.clock, ManualClock) else None
+        manual = manual_clock is not None
         wall = self.clock if manual else time.monotonic
         deadline = None if timeout is None else wall() + timeout
         with self._lock:
@@ -338,10 +359,10 @@ class SimNetwork:
                 if self._queue:
                     until_due = self._queue[0][0] - now
                     wait = until_due if wait is None else min(wait, until_due)
-                if manual:
+                if manual_clock is not None:
                     if wait is None:
                         return None  # nothing will arrive in simulated time
-                    self.clock.advance(wait)
+                    manual_clock.advance(wait)
                 else:
                     self._lock.wait(wait)
 
@@ -376,7 +397,7 @@ class SimNetwork:
         if cmd == Command.QUERY_STATE:
             value = self._read(i, arg)
             f = self.faults[address]
-            if arg == StateArg.ACTUAL_POSITION and f.offset_replies != 0:
+            if arg == StateArg.ACTUAL_POSITION and f.offset_replies != 0 and value is not None:  # never None here
                 value += f.position_offset
                 if f.offset_replies > 0:
                     f.offset_replies -= 1
