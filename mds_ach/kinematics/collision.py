@@ -424,8 +424,8 @@ class CollisionModel:
                          for p in prims]
         self._raw_objects = [fcl.CollisionObject(_fcl_geometry(p.kind, p.size), fcl.Transform()) for p in prims]
         static = self._offset[~self._moving]
-        for k, T in zip(np.flatnonzero(~self._moving), static, strict=True):
-            for obj in (self._objects[k], self._raw_objects[k]):
+        for fixed, T in zip(np.flatnonzero(~self._moving), static, strict=True):
+            for obj in (self._objects[fixed], self._raw_objects[fixed]):
                 obj.setRotation(T[:3, :3])
                 obj.setTranslation(T[:3, 3])
         pairs = self._pairs(config)

@@ -29,10 +29,14 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mds_ach.kinematics.model import ArmKinematics, arm_kinematics, arm_name, euler_zyx, rotation_zyx
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 TASK_COMPONENTS: tuple[str, ...] = ("p-x", "p-y", "p-z", "t-x", "t-y", "t-z")
 # Legacy ik_method / console "dof": the first n of x, y, z, roll, pitch, yaw.
@@ -204,6 +208,7 @@ class Task:
             sq_rot = theta * theta
         ang = euler_zyx(R) if self.euler_idx or self.mode != "euler" else None
         if self.euler_idx:
+            assert ang is not None  # computed above whenever euler_idx is set
             e = wrap_angle(self.euler_target - ang[:, self._euler_sel])
             rows.append(e)
             jac.append(_euler_rate_rows(R, self.euler_idx) @ Jw)
@@ -213,6 +218,7 @@ class Task:
         if self.mode != "euler" and (self.tolerance is None or np.any(err <= _SQRT3 * self.tolerance)):
             # Else reported >= err / sqrt(3) > tol (each angle difference bounds its share of the rotation
             # angle), so err stands in for it where it cannot pass anyway.
+            assert ang is not None  # computed above whenever mode != "euler"
             d = wrap_angle(self._rotation_target - ang[:, : len(self._rotation_target)])
             reported = np.sqrt(sq_pos + (d * d).sum(1))
             reported = np.where(err <= EXACT, np.minimum(err, reported), reported)
@@ -459,7 +465,7 @@ class IKSolver:
 
     def __init__(self, arm: str | int, options: IKOptions | None = None, *, rng_seed: int | None = 0,
                  is_safe: SafetyCheck | None = None,
-                 limits: tuple[Sequence[float], Sequence[float]] | None = None) -> None:
+                 limits: tuple[ArrayLike, ArrayLike] | None = None) -> None:
         """``limits`` (lower, upper) narrow the URDF limits, e.g. to the active robot's joint table."""
         self.arm = arm_name(arm)
         self.kin: ArmKinematics = arm_kinematics(self.arm)

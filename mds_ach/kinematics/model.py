@@ -158,7 +158,8 @@ class RobotModel:
             upper = float(limit.get("upper", "0")) if limit is not None else 0.0
             if jtype == "continuous":
                 lower, upper = -math.inf, math.inf
-            axis = np.array(_floats(el.find("axis").get("xyz") if el.find("axis") is not None else "1 0 0", 3))
+            axis_el = el.find("axis")
+            axis = np.array(_floats(axis_el.get("xyz") if axis_el is not None else "1 0 0", 3))
             norm = float(np.linalg.norm(axis))
             self.joints[el.get("name", "")] = Joint(
                 name=el.get("name", ""),

@@ -39,7 +39,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, TypedDict
 
 from mds_ach import ach
 from mds_ach.ach.watch import ReplacementCheck, replaced
@@ -339,6 +339,7 @@ def _send(conn: _Conn, payload: bytes, stats: LinkStats) -> None:
         stats.last_drop = f"{len(payload)} bytes do not fit one UDP datagram"
         return
     try:
+        assert conn.udp_peer is not None  # set together with conn.udp
         conn.udp.sendto(payload, conn.udp_peer)
     except BlockingIOError:
         stats.send_errors += 1  # socket buffer full: this datagram is lost, the next one is newer anyway
@@ -441,6 +442,7 @@ def _drain_udp(conn: _Conn, sink: _Sink, stats: LinkStats) -> bool:
     got = False
     for _ in range(1000):
         try:
+            assert conn.udp is not None  # only called for a UDP link
             payload, addr = conn.udp.recvfrom(65536)
         except BlockingIOError:
             return got
@@ -861,6 +863,7 @@ class Server:
             if headers.transport == "udp":
                 conn.udp = _udp_socket(sock)
                 udp_port = conn.udp.getsockname()[1]
+                assert headers.remote_port is not None  # validated: a UDP request names its port
                 conn.udp_peer = (peer[0], headers.remote_port)
             sock.sendall(ap.encode_response(frame_count, data_size // frame_count, udp_port))
             sock.settimeout(self.dead_after_s)
@@ -935,7 +938,16 @@ def add_server_limit_arguments(p: argparse.ArgumentParser, prefix: str = "") -> 
                         f"(default {IDLE_TIMEOUT_S:g}; 0: never)")
 
 
-def server_limits(args: argparse.Namespace) -> dict[str, object]:
+class ServerLimits(TypedDict):
+    """The connection limits of ``Server`` that the command line sets."""
+
+    max_clients: int
+    max_per_peer: int
+    max_local_clients: int
+    idle_timeout_s: float | None
+
+
+def server_limits(args: argparse.Namespace) -> ServerLimits:
     """``Server`` keyword arguments from ``add_server_limit_arguments`` options."""
     return {"max_clients": args.max_clients, "max_per_peer": args.max_per_peer,
             "max_local_clients": args.max_local, "idle_timeout_s": args.idle_timeout or None}

@@ -60,7 +60,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from rclpy.node import Node
@@ -130,7 +130,7 @@ class GateConfig:
             if value is None and allow_none:
                 return None
             try:
-                value = float(value)  # type: ignore[arg-type]
+                value = float(value)
             except (TypeError, ValueError):
                 raise ValueError(f"{where}: {key} must be a number, got {data.get(key)!r}") from None
             if not math.isfinite(value) or (positive and value <= 0):
@@ -292,7 +292,7 @@ class Gate:
         if choices is None:
             options = [(False, True) if np.abs(q_pos[_UNIT_Q[u]] - q_ref[_UNIT_Q[u]]).max() > SAME_POSE else (False,)
                        for u in UNITS]
-            choices = itertools.product(*options)
+            choices = cast(Iterable[Choice], itertools.product(*options))  # one option tuple per unit: triples
         out = {}
         for c in choices:
             q = q_ref.copy()
@@ -618,10 +618,10 @@ class GateRunner:
                 state = guard.call(state_ch.name, state_ch.latest)  # a broken state: keep the last one
                 if state is not None:
                     observed = Observed.from_state(state)
-                found = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
-                if found is not None:
-                    gate.reseed(*found)
-                    self.log("info", f"re-seeded {labels(found[0])} where the joints are")
+                reseed = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
+                if reseed is not None:
+                    gate.reseed(*reseed)
+                    self.log("info", f"re-seeded {labels(reseed[0])} where the joints are")
                 decision = None
                 if frame is not None:
                     t0 = time.perf_counter()

@@ -28,6 +28,7 @@ import sys
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from diagnostic_msgs.srv import AddDiagnostics
@@ -38,6 +39,11 @@ from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.nodes.rosnode import Param, declare, find, run_node
 from mds_ach.robot.joints import BY_ADDRESS
 from mds_ach.robot.msgs import daemon_status as ds
+
+if TYPE_CHECKING:  # imported at run time by build() only
+    from mds_ach.bus.canio import CanIO
+    from mds_ach.bus.simbus import FaultControl, SimNetwork
+    from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 
@@ -115,11 +121,11 @@ def parse_pose(text: str) -> dict[str, float]:
 class Daemon:
     """Everything a running daemon owns (so tests and the node tear it down the same way)."""
 
-    loop: object
-    io: object
-    channels: object
-    network: object | None = None
-    faults: object | None = None  # simbus.FaultControl (--sim-faults)
+    loop: DaemonLoop
+    io: CanIO
+    channels: DaemonChannels
+    network: SimNetwork | None = None
+    faults: FaultControl | None = None  # --sim-faults
 
     def close(self) -> None:
         self.loop.stop()
@@ -169,7 +175,7 @@ def build(args: argparse.Namespace) -> Daemon:
     log.info("robot %s (%s), %s, %.4g Hz, filter L %.2f", table.robot, ", ".join(table.sources), io.description,
              args.rate, loop.L)
     faults = None
-    if args.sim_faults:
+    if args.sim_faults and network is not None:  # checked above: --sim-faults needs --nocan, which made a network
         from mds_ach.bus.simbus import FaultControl
 
         faults = FaultControl(args.sim_faults, network)

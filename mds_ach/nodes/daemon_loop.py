@@ -54,7 +54,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -77,6 +77,10 @@ from mds_ach.robot.config import JointConfig, JointTable
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs import daemon_status as ds
+
+if TYPE_CHECKING:  # imported at run time by DaemonChannels.open only
+    from mds_ach import ach as _ach
+    from mds_ach.robot.channels import StructChannel as _StructChannel
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 
@@ -135,12 +139,12 @@ DAEMON_ROLES: dict[str, str] = {
 class DaemonChannels:
     """The Ach channels the daemon reads and writes (created if missing): ``DAEMON_ROLES``."""
 
-    ref: object
-    state: object
-    collide: object
-    cmd: object
-    status: object
-    param: object
+    ref: _StructChannel
+    state: _StructChannel
+    collide: _StructChannel
+    cmd: _ach.Channel  # raw (see open)
+    status: _StructChannel
+    param: _StructChannel
 
     @classmethod
     def open(cls, lock_timeout: float | None = lock_timeout_for(1.0 / mds.MDS_LOOP_PERIOD)) -> DaemonChannels:
@@ -545,12 +549,12 @@ class DaemonLoop:
         if cmd.address == 0:
             targets = [jr for jr in self.joints.values() if jr.cfg.enabled]
         else:
-            jr = self.joints.get(cmd.address)
-            if jr is None:
+            one = self.joints.get(cmd.address)
+            if one is None:
                 return ds.CMD_REFUSED, f"no joint at address 0x{cmd.address:02X}"
-            if not jr.cfg.enabled:
-                return ds.CMD_REFUSED, f"{jr.cfg.short} is disabled in the joint table: no frames go to it"
-            targets = [jr]
+            if not one.cfg.enabled:
+                return ds.CMD_REFUSED, f"{one.cfg.short} is disabled in the joint table: no frames go to it"
+            targets = [one]
         build = {mds.MDS_CMD_ENABLE: mcb.encode_enable, mds.MDS_CMD_DISABLE: mcb.encode_disable,
                  mds.MDS_CMD_HOME: mcb.encode_home, mds.MDS_CMD_RESET: mcb.encode_reset,
                  mds.MDS_CMD_ZERO_ENCODER: mcb.encode_zero_encoder}[cmd.code]

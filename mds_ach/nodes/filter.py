@@ -120,7 +120,7 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
     rate = float(rate if rate is not None else data.get("rate", DEFAULT_RATE))
     if not (math.isfinite(rate) and 0 < rate <= 1000):
         raise ValueError(f"{where}: rate must be in (0, 1000] Hz, got {rate}")
-    base = {"mode": "velocity_limit", "max_velocity": filters.DEFAULT_MAX_VELOCITY, "max_accel": None,
+    base: dict[str, Any] = {"mode": "velocity_limit", "max_velocity": filters.DEFAULT_MAX_VELOCITY, "max_accel": None,
             "settle_time": filters.DEFAULT_SETTLE_TIME, "settle_fraction": filters.DEFAULT_SETTLE_FRACTION}
     base = _joint_params(data.get("default") or {}, base, f"{where}: default")
     per = [base] * MDS_JOINT_COUNT
@@ -262,10 +262,10 @@ class FilterRunner:
                     problem = core.set_target(*ref_arrays(frame))
                     if problem:
                         self.log("warn", problem)
-                found = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins
-                if found is not None:
-                    core.reseed(*found)
-                    self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or "
+                reseed = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins
+                if reseed is not None:
+                    core.reseed(*reseed)
+                    self.log("info", f"re-seeded {labels(reseed[0])} where the joints are (after HOME, reset or "
                                      f"resetbus)")
                 if needs_state:
                     st = guard.call(state_ch.name, state_ch.latest)

@@ -34,7 +34,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 
 import mds_ach as mds
-from mds_ach import ik
+from mds_ach.kinematics import ik
 from mds_ach.nodes.pipeline import current_reference, make_ref
 from mds_ach.nodes.rosnode import Param, declare, ros_log, run_node, start_worker
 from mds_ach.robot.channels import StructChannel

@@ -40,6 +40,7 @@ ANATOMY_NUMBERS = (
     "encoderconfig.tickspercount",
     "rom.margin",
 )
+REQUIRED_NUMBERS = ("rom", "encoderresolution", "gearratio", "encoderconfig.tickspercount")  # > 0 in every muscle
 ANATOMY_TEXTS = ("coordsys", "HomeType", "HomeTarget")
 
 
@@ -56,6 +57,13 @@ class Muscle:
     numbers: dict[str, float | None] = field(default_factory=dict)
     texts: dict[str, str] = field(default_factory=dict)
     homed: bool | None = None
+
+    def number(self, key: str) -> float:
+        """A number ``load_anatomy`` requires (``REQUIRED_NUMBERS``): never None in a loaded muscle."""
+        value = self.numbers[key]
+        if value is None:
+            raise XmlConfigError(f"muscle {self.name}: parameter {key} must be a positive number, got None")
+        return value
 
 
 @dataclass
@@ -143,7 +151,7 @@ def load_anatomy(path: str | Path) -> dict[int, Muscle]:
             muscle.texts[key] = params.get(key, "")
         homed = el.get("homed")
         muscle.homed = None if homed is None else homed.strip().lower() == "true"
-        for key in ("rom", "encoderresolution", "gearratio", "encoderconfig.tickspercount"):
+        for key in REQUIRED_NUMBERS:
             value = muscle.numbers[key]
             if value is None or value <= 0:
                 raise XmlConfigError(f"{where}: parameter {key} must be a positive number, got {params.get(key)!r}")
@@ -187,6 +195,14 @@ def load_overlay(path: str | Path) -> dict[str, Overlay]:
 _XML_DECL = re.compile(r"<\?xml[^>]*\?>")
 
 
+def _child(el: ET.Element, tag: str) -> ET.Element:
+    """The required ``<tag>`` of ``el``; load_node_configs reports a missing one as a bad or missing field."""
+    child = el.find(tag)
+    if child is None:
+        raise ValueError(f"no <{tag}>")
+    return child
+
+
 def load_node_configs(path: str | Path) -> dict[int, NodeConfig]:
     """The ``<node>`` documents of an nrl00x.xml file by address."""
     path = Path(path)
@@ -202,7 +218,7 @@ def load_node_configs(path: str | Path) -> dict[int, NodeConfig]:
     for el in root.findall("node"):
         where = f"{path}: node {el.get('address')}"
         try:
-            gains, ctrl, qei = el.find("gains"), el.find("controlparameters"), el.find("qei")
+            gains, ctrl, qei = _child(el, "gains"), _child(el, "controlparameters"), _child(el, "qei")
             node = NodeConfig(
                 address=int(el.get("address", ""), 0),
                 mode=int((el.findtext("mode") or "").strip(), 0),

@@ -471,12 +471,14 @@ def from_xml(anatomy_path: str | Path, mdsach_path: str | Path | None = None, ro
         offset, direction, enabled = (ov.offset, ov.direction, ov.enabled) if ov else (0.0, 1.0, False)
         n = m.numbers
         rom_margin = n["rom.margin"] if n["rom.margin"] is not None else 0.05
-        cpr = n["encoderresolution"] * n["gearratio"] * n["encoderconfig.tickspercount"]
-        lower, upper = derived_limits(n["rom"], cpr, rom_margin, offset, direction)
+        resolution, ratio = m.number("encoderresolution"), m.number("gearratio")
+        ticks, rom = m.number("encoderconfig.tickspercount"), m.number("rom")
+        cpr = resolution * ratio * ticks
+        lower, upper = derived_limits(rom, cpr, rom_margin, offset, direction)
         joints.append(JointConfig(
             address=address, name=m.name, short=short,
-            encoder_resolution=n["encoderresolution"], gear_ratio=n["gearratio"],
-            ticks_per_count=n["encoderconfig.tickspercount"], rom=n["rom"], rom_margin=rom_margin,
+            encoder_resolution=resolution, gear_ratio=ratio,
+            ticks_per_count=ticks, rom=rom, rom_margin=rom_margin,
             safety_margin=n["safetymargin"] if n["safetymargin"] is not None else 0.05,
             offset=offset, direction=direction, enabled=enabled, home=-offset * direction,
             lower=lower, upper=upper, coordsys=m.texts["coordsys"] or "semantic",
@@ -598,9 +600,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         if args.from_xml:
-            table = from_xml(*args.from_xml, robot=args.robot or DEFAULT_ROBOT, require_all=True)
+            anatomy_xml, mdsach_xml = args.from_xml
+            table = from_xml(anatomy_xml, mdsach_xml, robot=args.robot or DEFAULT_ROBOT, require_all=True)
             if args.overlay_of:
-                print(overlay_yaml(from_xml(*args.overlay_of, require_all=True), table), end="")
+                base_anatomy, base_mdsach = args.overlay_of
+                print(overlay_yaml(from_xml(base_anatomy, base_mdsach, require_all=True), table), end="")
             else:
                 print(to_yaml(table), end="")
             return 0

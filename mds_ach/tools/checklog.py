@@ -290,7 +290,7 @@ class _Auditor:
         ja = self.joints.get(dest)
         label = self._label(dest)
         self.r.targets[label] += 1
-        if not self._moves(t, dest, f"target {counts:.6g} counts"):
+        if not self._moves(t, dest, f"target {counts:.6g} counts") or ja is None:  # ja: _moves said it is a joint
             return
         if not math.isfinite(counts):
             self._find("non-finite", t, label, counts, math.nan, f"target {counts} counts")
@@ -304,33 +304,33 @@ class _Auditor:
             self._find("limit", t, label, q, bound, f"target {q:.4f} rad ({counts:.1f} counts) outside "
                                                     f"[{cfg.lower:.4f}, {cfg.upper:.4f}]")
         if self.bounds is not None:
-            self._motion(t, ja, q)
+            self._motion(t, ja, q, self.bounds)
         ja.holding = False
         if self.model is not None:
             self._set_pose(dest, q)
             self.pose_dirty = True
 
-    def _motion(self, t: float, ja: _JointAudit, q: float) -> None:
+    def _motion(self, t: float, ja: _JointAudit, q: float, bounds: motion.MotionBounds) -> None:
         candidates = ja.sent + ja.seeds
         ja.seeds = []
         if not candidates:
             self.r.unseeded_targets += 1  # nothing known before it: the sequence starts here
             ja.sent = [motion.Track(q, 0.0, t)]
             return
-        results = [(track, motion.check(track, q, t, self.bounds)) for track in candidates]
+        results = [(track, motion.check(track, q, t, bounds)) for track in candidates]
         passing = [track for track, found in results if not found]
         if not passing:
             track, found = min(results, key=lambda r: max(v.value / v.bound for v in r[1]))
             for v in found:
                 unit = "rad/s" if v.kind == "speed" else "rad/s^2"
-                h = self.bounds.interval(t - track.t)
+                h = bounds.interval(t - track.t)
                 self._find(v.kind, t, ja.cfg.short, v.value, v.bound,
                            f"{v.value:.3f} {unit} > {v.bound:g}: {track.q:.4f} -> {q:.4f} rad in "
-                           f"{h * 1e3:.1f} ms (previous velocity {track.previous_velocity(t, self.bounds):.3f} rad/s)")
+                           f"{h * 1e3:.1f} ms (previous velocity {track.previous_velocity(t, bounds):.3f} rad/s)")
             passing = [track]  # the sequence goes on from there: each offending step is reported once
         tracks: list[motion.Track] = []
         for track in passing:
-            track.advance(q, t, self.bounds)
+            track.advance(q, t, bounds)
             if not any(abs(track.v - other.v) < 1e-12 for other in tracks):
                 tracks.append(track)
         ja.sent = tracks
@@ -355,10 +355,10 @@ class _Auditor:
                 start, seen, n, arms = self.colliding
                 self.colliding = (start, seen | pairs, n + 1, arms | result.arms)
         elif self.colliding is not None:
-            self._close_collision(t)
+            self._close_collision(t, self.colliding)
 
-    def _close_collision(self, t: float) -> None:
-        start, pairs, n, arms = self.colliding
+    def _close_collision(self, t: float, colliding: tuple[float, set[str], int, set[str]]) -> None:
+        start, pairs, n, arms = colliding
         self.colliding = None
         self._find("collision", start, "+".join(sorted(arms)) or "pose", float(n), 0.0,
                    f"commanded pose collides for {n} batch(es) ({t - start:.3f} s): {', '.join(sorted(pairs))}")
@@ -366,7 +366,7 @@ class _Auditor:
     def finish(self, t: float) -> None:
         self.end_batch(t)
         if self.colliding is not None:
-            self._close_collision(t)
+            self._close_collision(t, self.colliding)
 
     # ----- helpers
 
@@ -418,7 +418,7 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
     except (canio.LogReadError, OSError) as exc:
         report.error = str(exc)
         return report
-    if report.bounds is None and sum(report.targets.values()):
+    if report.bounds is None and any(report.targets.values()):
         report.error = ("speed and acceleration not checked: fewer than two broadcast position queries, so the "
                         "daemon period is unknown; give it with --rate HZ")
     return report
@@ -455,9 +455,9 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
     if r.frames and r.start_stamp > 1e9:  # wall-clock stamps (the recorder, candump); ASC logs start at 0
         start = f", from {datetime.fromtimestamp(r.start_stamp, UTC):%Y-%m-%d %H:%M:%S.%f} UTC"
     out = [f"{r.path} ({r.format or 'unknown format'}): {r.frames} frames over {r.duration:.3f} s{start}"]
-    if r.period is not None:
-        b = r.bounds
-        out.append(f"  period {r.period * 1e3:.2f} ms {r.period_source}; stale window {r.stale_after * 1e3:.1f} ms; "
+    b, stale = r.bounds, r.stale_after
+    if r.period is not None and b is not None and stale is not None:  # set together (audit_file)
+        out.append(f"  period {r.period * 1e3:.2f} ms {r.period_source}; stale window {stale * 1e3:.1f} ms; "
                    f"bounds {b.max_velocity:g} rad/s, {b.max_acceleration:g} rad/s^2, steps count at most "
                    f"{b.max_interval * 1e3:.1f} ms")
     if r.frames:

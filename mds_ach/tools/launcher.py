@@ -475,8 +475,8 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     try:
         daemon.read()
         live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
-        stale = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
-        lines.append("daemon     " + daemon_line(daemon.frame, None) + stale)
+        stale_note = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
+        lines.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
         lines.append("collision  " + collision_summary(collide.read()))
     finally:
         daemon.close()

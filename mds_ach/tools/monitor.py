@@ -5,9 +5,13 @@ channel reader (:class:`mds_ach.ach.watch.Latest`, re-exported) and the formatti
 from __future__ import annotations
 
 import ctypes
+from typing import TYPE_CHECKING
 
 import mds_ach as mds
 from mds_ach.ach.watch import Latest  # noqa: F401 - the one read-only channel watcher; the tools import it here
+
+if TYPE_CHECKING:
+    from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 
 # --------------------------------------------------------------------------------------------- formatting
 
@@ -59,7 +63,7 @@ def collision_block(collide: mds.MDS_COLLIDE | None) -> list[str]:
     return lines
 
 
-def daemon_line(status: ctypes.Structure | None, age: float | None) -> str:
+def daemon_line(status: MDS_DAEMON_STATUS | None, age: float | None) -> str:
     """The daemon's health in one line (``mds-daemon-status``), flagged when it stopped publishing."""
     from mds_ach.robot.msgs.daemon_status import summary_line
 

@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -109,7 +109,7 @@ def geometry_mesh(geom: kin.Geometry, urdf_dir: Path) -> trimesh.Trimesh | None:
 
     path = yourdfpy.filename_handler_magic(geom.filename, dir=str(urdf_dir))
     try:
-        mesh = trimesh.load(path, force="mesh")
+        mesh = cast("trimesh.Trimesh", trimesh.load(path, force="mesh"))  # force="mesh": one Trimesh
     except Exception as exc:  # trimesh raises many types; any of them only costs this one shape
         print(f"viewer: skipping mesh {geom.filename}: {exc}", file=sys.stderr)
         return None
@@ -485,7 +485,7 @@ class Viewer:
             self.show_world = gui.add_checkbox("World objects", True)
             self.show_ik = gui.add_checkbox("IK target", True)
         self.show_ghost.on_update(lambda _: self.ghost.set_visible(self.show_ghost.value))
-        self.show_collision.on_update(lambda _: self.collision and self.collision.show(self.show_collision.value))
+        self.show_collision.on_update(lambda _: self._show_collision_changed())
         self.show_world.on_update(lambda _: setattr(self.world_frame, "visible", self.show_world.value))
         self.show_ik.on_update(lambda _: self._show_ik_changed())
         self.sliders: dict[str, Any] = {}
@@ -507,6 +507,10 @@ class Viewer:
                 slider.on_update(self._slider_callback(name))
                 self.sliders[name] = slider
         self.sliders_on.on_update(lambda _: self._sliders_toggled())
+
+    def _show_collision_changed(self) -> None:
+        if self.collision:
+            self.collision.show(self.show_collision.value)
 
     def _show_ik_changed(self) -> None:
         visible = bool(self.show_ik.value) and self.ik_shown is not None
