@@ -29,6 +29,17 @@ from mds_ach.robot.msgs import MDS_REF, MDS_STATE
 
 # ============================================================================================ 1. crashed writers
 
+def test_writer_killed_holding_the_lock_before_marking_dirty_harms_nothing(clean_shm: None) -> None:
+    """Like libach: the next locker recovers the mutex (EOWNERDEAD), and a clean channel carries on."""
+    ach.create(TEST_CHANNEL, 4, 256)
+    StuckWriter(TEST_CHANNEL, before=6, marker="self._i32[self._i_dirty] = 1").kill()
+    with ach.Channel(TEST_CHANNEL, create=False) as ch:
+        assert [check_payload(f) for f in read_all(ch)] == [3, 4, 5, 6]
+        ch.put(payload(7))
+    report = repair.repair(TEST_CHANNEL)
+    assert report.ok and report.action == ""
+
+
 WAITER = """
 from mds_ach import ach
 c = ach.Channel("test-faults", create=False)
