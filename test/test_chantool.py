@@ -358,7 +358,7 @@ def test_console_script_and_light_startup(clean_shm: None) -> None:
     assert result.returncode == 1 and "mds-nope" in result.stderr
     result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and "dump" in result.stdout
-    code = ("import sys\nfrom mds_ach import cli\n"
+    code = ("import sys\nfrom mds_ach.tools import cli\n"
             "rc = cli.main(['make', '-q'])\n"
             "heavy = sorted(m for m in sys.modules if m.split('.')[0] in "
             "('rclpy', 'torch', 'fcl', 'yourdfpy', 'pytorch_kinematics'))\n"
