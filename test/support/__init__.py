@@ -11,9 +11,9 @@ Tests import it as ``support`` (``test/`` is on ``sys.path``: pytest's ``pythonp
 * ``support.system``: the one system start-up (``running_system`` via ``mds-ach start``, ``Pipeline`` for
   node-by-node control) and the readers of the running robot;
 * ``support.faults``: writers that die inside a put (``StuckWriter``) and their checkable payloads;
-* ``support.motion_audit``, ``support.pty_session``, ``support.netsim`` (simulated hosts),
-  ``support.original_chain`` (the original IK chain, written out), ``support.torch_kinematics`` (the
-  pytorch-kinematics cross-check; the only user of torch).
+* ``support.motion_audit``, ``support.pty_session``, ``support.netsim`` (simulated hosts: tests and
+  bench/bench_network.py), ``support.reference_chain`` (the original IK chain, written out),
+  ``support.torch_kinematics`` (the pytorch-kinematics cross-check; the only user of torch).
 """
 
 from __future__ import annotations
