@@ -31,7 +31,8 @@ dev: $(DEV_STAMP)
 # (the SIGBUS guard for channel mappings) when gcc is there.
 $(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/_shmguard.c
 	@test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
+	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
+	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
 	$(PY) -m pip install -q -r requirements.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	PYTHONWARNINGS=ignore $(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	@$(PY) -c 'from mds_ach import ach; print("mds_ach.ach:", "C fast path" if ach.FAST_AVAILABLE else \
