@@ -6,12 +6,15 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mds_ach_installed
+DEV_STAMP := $(VENV)/.mds_ach_dev_installed
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 PYTEST_ARGS ?=
 
-.PHONY: all setup sysdeps run test bench soak lint clean help
+.PHONY: all setup dev sysdeps run test bench soak lint clean help
 
 help:
+	@echo "make setup  the runtime venv only (what a running system imports; no test tools, no torch)"
+	@echo "make dev    setup + the test and tooling dependencies (pytest, ruff, torch for the FK cross-check)"
 	@echo "make run    set up if needed, then start the whole system on the simulated robot (Ctrl-C stops it)"
 	@echo "make test   set up if needed, then run all tests (inside a private network namespace)"
 	@echo "make bench  run every benchmark and print one table with baselines and ratios"
@@ -22,16 +25,25 @@ all: setup
 
 setup: $(STAMP)
 
+dev: $(DEV_STAMP)
+
 # pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
-$(STAMP): requirements.txt requirements-dev.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/_shmguard.c
+$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/_shmguard.c
 	@test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
-	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
+	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
+	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
+	$(PY) -m pip install -q -r requirements.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	PYTHONWARNINGS=ignore $(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	@$(PY) -c 'from mds_ach import ach; print("mds_ach.ach:", "C fast path" if ach.FAST_AVAILABLE else \
 		"pure Python (no C compiler or Python headers: slower; see README)", \
 		"+ SIGBUS guard" if ach.GUARD_AVAILABLE else "(no SIGBUS guard: a truncated channel kills its users)")'
+	@touch $@
+
+# The test and tooling dependencies (requirements-dev.txt: pytest, ruff, torch for the FK cross-check, ...) on top
+# of the runtime ones; `make setup` / `make run` never install them.
+$(DEV_STAMP): $(STAMP) requirements-dev.txt
+	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	@touch $@
 
 run: $(STAMP)
@@ -42,22 +54,22 @@ run: $(STAMP)
 sysdeps:
 	@tools/install-system-deps
 
-test: sysdeps $(STAMP)
+test: sysdeps $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
 
-bench: $(STAMP)
+bench: $(DEV_STAMP)
 	tools/netns-run $(PY) -m bench
 
 # The soak, then the adversarial safety scenario (bench/adversary.py) for SOAK_ADVERSARY_MINUTES; both reports
 # are printed, the target fails if either fails.
 SOAK_ADVERSARY_MINUTES ?= 10
-soak: $(STAMP)
+soak: $(DEV_STAMP)
 	rc=0; tools/netns-run $(PY) -m bench.soak || rc=1; \
 	tools/netns-run $(PY) -m bench.adversary --minutes $(SOAK_ADVERSARY_MINUTES) || rc=1; exit $$rc
 
-lint: $(STAMP)
+lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:

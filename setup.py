@@ -30,14 +30,12 @@ setup(
         ("share/" + PACKAGE + "/include", glob("include/*.h")),
         ("include", glob("include/*.h")),
     ],
-    package_data={"mds_ach": ["data/*", "web/*"]},
     # The C fast path of mds_ach.ach, and the SIGBUS guard for mapped channel files (a truncated channel must not
     # kill its users); both optional: without a compiler the pure-Python code is used, unguarded.
     ext_modules=[Extension("mds_ach.ach._achfast", ["mds_ach/ach/_achfast.c"], extra_compile_args=["-O2", "-Wall"],
                            optional=True),
                  Extension("mds_ach.ach._shmguard", ["mds_ach/ach/_shmguard.c"], extra_compile_args=["-O2", "-Wall"],
                            optional=True)],
-    include_package_data=True,
     install_requires=["setuptools"],
     zip_safe=False,
     maintainer="mds_ach developers",

@@ -23,7 +23,6 @@ motion bounds, and (``collisions``) the commanded pose may never collide. ``pyth
 from __future__ import annotations
 
 import argparse
-import ctypes
 import math
 import os
 import random
@@ -38,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from support.channels import newest  # test/support/, on sys.path via bench/__init__.py
 
 import mds_ach as mds
 from mds_ach import ach
@@ -146,14 +146,6 @@ class Stack:
         launcher.stop_nodes(NODES, rt=self.rt, out=lambda _t: None)
         if self.daemon is not None:
             self.daemon.wait(10)
-
-
-def newest(name: str, ctype: type[ctypes.Structure]) -> ctypes.Structure | None:
-    """The newest frame of a channel, seen before or not."""
-    obj = ctype()
-    with ach.Channel(name, create=False) as chan:
-        status, size = chan.get(obj, last=True, copy=True)
-    return obj if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(ctype) else None
 
 
 def legacy_write(refs: dict[str, float] | None = None, modes: dict[str, int] | None = None) -> None:

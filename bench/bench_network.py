@@ -1,7 +1,7 @@
 """mds-state latency over a network link: achd protocol over UDP, over TCP, and through an SSH tunnel.
 
 A simulated robot host (its own network namespace and /dev/shm, joined to this namespace by a veth pair,
-see ``mds_ach.netsim``) runs a writer that puts ``MDS_STATE`` frames (14051 B) at 100 Hz with
+see ``test/support/netsim.py``) runs a writer that puts ``MDS_STATE`` frames (14051 B) at 100 Hz with
 CLOCK_MONOTONIC in ``time``, and our achd server. Here (the operator station) an achd client process
 (``python -m mds_ach.net.achd -l pull ...``) brings them into the local ``mds-state`` and this process reads
 each with a blocking get and subtracts the stamp (both namespaces share the clock). SSH: the same client
@@ -109,7 +109,9 @@ def _measure_pull(argv: list[str], count: int) -> list[float]:
 
 
 def run(quick: bool = False) -> list[Row]:
-    from mds_ach import ach, netsim
+    from support import netsim
+
+    from mds_ach import ach
     from mds_ach.net.remote import SshTunnel
 
     count = 60 if quick else 300

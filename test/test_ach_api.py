@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import wait_for
+from support import wait_for
 
 from mds_ach import ach
 from mds_ach.ach import channel as ach_channel  # the wait tunables are globals of the module that waits

@@ -15,9 +15,9 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support import wait_for
 
 from mds_ach import ach
 from mds_ach.ach import channel as ach_channel  # the wait tunables are globals of the module that waits

@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from conftest import REPO, in_netns
+from support import REPO, in_netns
 
 from mds_ach import ach
 from mds_ach.ach import repair

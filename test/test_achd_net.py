@@ -20,13 +20,13 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import VENV_BIN, in_netns, wait_for
+from support import VENV_BIN, in_netns, wait_for
+from support.netsim import Host, Sshd, Veth, reachable
 
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.net import achd
 from mds_ach.net import protocol as ap
-from mds_ach.netsim import Host, Sshd, Veth, reachable
 from mds_ach.robot import msgs
 
 OP_IP = "10.77.0.1"

@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import VENV_BIN, in_netns, remove_mds_channels
+from support import VENV_BIN, in_netns, remove_mds_channels
 
 import mds_ach as mds
 from mds_ach import ach, paths

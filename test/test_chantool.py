@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import NOBODY, VENV_BIN, run_as
+from support import NOBODY, VENV_BIN, run_as
 
 import mds_ach as mds
 from mds_ach import ach

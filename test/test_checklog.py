@@ -15,7 +15,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
-from conftest import VENV_BIN
+from support import VENV_BIN
 
 from mds_ach.bus import canio, mcb
 from mds_ach.robot import config, motion

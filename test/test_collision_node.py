@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import VENV_BIN, wait_for
+from support import VENV_BIN, wait_for
 
 import mds_ach as mds
 from mds_ach import ik

@@ -14,11 +14,12 @@ from unittest import mock
 
 import numpy as np
 import pytest
-from conftest import VENV_BIN, remove_mds_channels, wait_for
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mds_system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, mds_ach, running_system
-from pty_session import PtySession
+from support import VENV_BIN, remove_mds_channels, wait_for
+from support.channels import newest
+from support.pty_session import PtySession
+from support.system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, mds_ach, running_system
 
 import mds_ach as mds
 from mds_ach import ach
@@ -177,8 +178,6 @@ def test_goto_is_reported_applied_only_when_the_mux_output_has_it(fake_system: N
 
 
 def _newest_mux_output() -> mds.MDS_REF:
-    from mds_system import newest
-
     frame = newest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
     assert frame is not None
     return frame
@@ -249,7 +248,7 @@ def test_goto_moves_the_joint_through_the_pipeline(system: dict[str, str]) -> No
     assert m, proc.stdout
     assert abs(float(m.group(1)) + 0.3) < 0.011 and abs(float(m.group(2)) + 0.3) < 0.011
     # the motion went through the mux: the default controller owns LSP now
-    from mds_system import newest
+    from support.channels import newest
 
     from mds_ach.robot.msgs import MDS_MUX_STATE
 

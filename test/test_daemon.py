@@ -15,13 +15,13 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import can
 import pytest
-from conftest import VENV_BIN, wait_for
-from motion_audit import Audit, MemoryLog, audit
+from support import VENV_BIN, wait_for
+from support.motion_audit import Audit, audit, read_log
+from support.rig import TABLE, DaemonRig
 
 import mds_ach as mds
 from mds_ach.ach.glibc import sleep_until
@@ -32,114 +32,24 @@ from mds_ach.bus.simbus import ManualClock, SimNetwork
 from mds_ach.nodes import daemon
 from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
 from mds_ach.nodes.filters import filter_length
-from mds_ach.robot import config
 from mds_ach.robot.channels import StructChannel
-from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
+from mds_ach.robot.msgs import MDS_COLLIDE, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs import daemon_status as ds
-
-TABLE = config.load("default")
-
-
-@dataclass
-class Rig:
-    """A daemon loop on a simulated clock, its simulated robot, and client handles on the channels."""
-
-    clock: ManualClock
-    net: SimNetwork
-    io: canio.CanIO
-    channels: DaemonChannels
-    loop: DaemonLoop
-    ref_out: StructChannel
-    state_in: StructChannel
-    status_in: StructChannel
-    collide_out: StructChannel
-    cmd_out: StructChannel
-    log: MemoryLog
-    last_state: MDS_STATE | None = None
-
-    def step(self, n: int = 1) -> MDS_STATE:
-        for _ in range(n):
-            start = self.clock.now
-            self.loop.cycle(deadline=start, start=start)
-            self.clock.now = max(self.clock.now, start + self.loop.period)
-        return self.state()
-
-    def state(self) -> MDS_STATE:
-        """The newest mds-state a client sees (the last one again if nothing new was published)."""
-        frame = self.state_in.latest()
-        if frame is not None:
-            self.last_state = frame
-        assert self.last_state is not None, "the daemon published no mds-state"
-        return self.last_state
-
-    def put_ref(self, mode: int = mds.MDS_REF_MODE_REF, **refs: float) -> None:
-        """Like a client: start from what the daemon commands now, change some joints."""
-        ref = MDS_REF()
-        st = self.loop.state
-        for j in TABLE:
-            ref.joint[j.address].ref = st.joint[j.address].ref
-            ref.joint[j.address].mode = mds.MDS_REF_MODE_REF
-        for short, value in refs.items():
-            ref.joint[TABLE[short].address].ref = value
-            ref.joint[TABLE[short].address].mode = mode
-        self.ref_out.put(ref)
-
-    def frames_to(self, address: int) -> list[mcb.McbFrame]:
-        return [f for _, f in self.net.commands if f.arbitration_id == address]
-
-    def measured(self, short: str) -> float:
-        j = TABLE[short]
-        return j.to_joint(self.net.position(j.address))
-
-    def command(self, code: int, address: int = 0, seq: int = 1) -> None:
-        self.cmd_out.put(MDS_CMD(seq=seq, cmd=code, address=address))
-
-    def audit(self, first_reply: bool = False) -> Audit:
-        """Every MOVETO so far against the motion bounds (motion_audit)."""
-        return audit(self.log.frames, TABLE, self.loop.bounds, self.loop.stale_after, first_reply)
-
-    def targets(self, short: str) -> list[float]:
-        """The MOVETO targets the joint was sent (rad)."""
-        return [q for _, q in self.audit().targets[short]]
-
-
-def make_rig(rate: float = 10.0, pose: dict[str, float] | None = None, bitrate: int | None = 1_000_000,
-             **loop_kwargs) -> Rig:
-    clock = ManualClock()
-    net = SimNetwork.from_table(TABLE, pose=pose, clock=clock, bitrate=bitrate)
-    io = canio.make_canio(nocan=True, network=net)
-    io.recorder = MemoryLog(clock)  # every frame, stamped with the simulated time, for the motion audit
-    channels = DaemonChannels.open()
-    loop = DaemonLoop(TABLE, io, channels, rate_hz=rate, nocan=True, clock=clock, **loop_kwargs)
-    rig = Rig(clock, net, io, channels, loop, StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF),
-              StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE),
-              StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS),
-              StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE),
-              StructChannel(mds.MDS_CHAN_BOARD_CMD_NAME, MDS_CMD), io.recorder)
-    return rig
-
-
-def close_rig(rig: Rig) -> None:
-    rig.loop.stop()
-    rig.io.close()
-    rig.channels.close()
-    for ch in (rig.ref_out, rig.state_in, rig.status_in, rig.collide_out, rig.cmd_out):
-        ch.close()
 
 
 @pytest.fixture
-def rig(clean_shm) -> Iterator[Rig]:
-    r = make_rig(pose={"LEP": -1.0, "RSR": -0.6, "NKY": 0.1})
+def rig(clean_shm) -> Iterator[DaemonRig]:
+    r = DaemonRig(pose={"LEP": -1.0, "RSR": -0.6, "NKY": 0.1})
     r.loop.start_up()
     r.state()
     yield r
     try:
         assert r.audit().violations == []  # whatever a test did, every target obeyed the motion bounds
     finally:
-        close_rig(r)
+        r.close()
 
 
-def ramp_done(rig: Rig, short: str, target: float, max_cycles: int = 60) -> list[MDS_STATE]:
+def ramp_done(rig: DaemonRig, short: str, target: float, max_cycles: int = 60) -> list[MDS_STATE]:
     """Step until the joint's commanded reference reached ``target``; the states on the way."""
     a = TABLE[short].address
     states = []
@@ -150,7 +60,7 @@ def ramp_done(rig: Rig, short: str, target: float, max_cycles: int = 60) -> list
     raise AssertionError(f"{short} did not reach {target} in {max_cycles} cycles: ref {states[-1].joint[a].ref}")
 
 
-def status_of(rig: Rig) -> ds.MDS_DAEMON_STATUS:
+def status_of(rig: DaemonRig) -> ds.MDS_DAEMON_STATUS:
     frame = rig.status_in.latest()
     assert frame is not None
     return frame
@@ -159,7 +69,7 @@ def status_of(rig: Rig) -> ds.MDS_DAEMON_STATUS:
 # --- start-up ---------------------------------------------------------------------------------------------
 
 
-def test_start_up_begins_at_the_measured_pose_without_a_step(rig: Rig) -> None:
+def test_start_up_begins_at_the_measured_pose_without_a_step(rig: DaemonRig) -> None:
     st = rig.loop.state
     for short, q in (("LEP", -1.0), ("RSR", -0.6), ("NKY", 0.1), ("WST", 0.0)):
         a = TABLE[short].address
@@ -176,7 +86,7 @@ def test_start_up_begins_at_the_measured_pose_without_a_step(rig: Rig) -> None:
 
 
 def test_start_up_without_a_robot_uses_the_home_pose(clean_shm) -> None:
-    r = make_rig(pose={"LEP": -1.0})
+    r = DaemonRig(pose={"LEP": -1.0})
     try:
         for a in r.net.addresses:
             r.net.set_offline(a)
@@ -189,13 +99,13 @@ def test_start_up_without_a_robot_uses_the_home_pose(clean_shm) -> None:
         assert not [f for _, f in r.net.commands if f.command is Command.SET]
         assert status_of(r).stale_count == len(TABLE.enabled)
     finally:
-        close_rig(r)
+        r.close()
 
 
 # --- references -------------------------------------------------------------------------------------------
 
 
-def test_reference_reaches_the_joint_and_shows_in_state(rig: Rig) -> None:
+def test_reference_reaches_the_joint_and_shows_in_state(rig: DaemonRig) -> None:
     rig.put_ref(LEP=-0.6, RSP=0.2)
     st = rig.step()
     lep, rsp = TABLE["LEP"], TABLE["RSP"]
@@ -218,7 +128,7 @@ def test_reference_reaches_the_joint_and_shows_in_state(rig: Rig) -> None:
     assert st.time > 0 and abs(st.time - time.monotonic()) < 5  # CLOCK_MONOTONIC seconds
 
 
-def test_zero_order_hold(rig: Rig) -> None:
+def test_zero_order_hold(rig: DaemonRig) -> None:
     rig.put_ref(LSP=0.3)
     ramp_done(rig, "LSP", 0.3)
     n_frames = len(rig.frames_to(0x5F))
@@ -233,7 +143,7 @@ def test_zero_order_hold(rig: Rig) -> None:
     assert len(rig.frames_to(0x5F)) == n_frames + 4
 
 
-def test_limits_clamp_and_report(rig: Rig) -> None:
+def test_limits_clamp_and_report(rig: DaemonRig) -> None:
     lep = TABLE["LEP"]
     rig.put_ref(LEP=0.5)  # beyond the elbow's upper limit (about -0.0153)
     st = ramp_done(rig, "LEP", lep.upper)[-1]
@@ -250,7 +160,7 @@ def test_limits_clamp_and_report(rig: Rig) -> None:
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
-def test_non_finite_reference_is_refused(rig: Rig, bad: float) -> None:
+def test_non_finite_reference_is_refused(rig: DaemonRig, bad: float) -> None:
     rig.put_ref(LSY=0.2)
     ramp_done(rig, "LSY", 0.2)
     rig.put_ref(LSY=bad, LSP=0.1)  # the bad joint is refused, the others in the frame still apply
@@ -264,13 +174,13 @@ def test_non_finite_reference_is_refused(rig: Rig, bad: float) -> None:
     assert st.joint[0x4D].ref == pytest.approx(0.25) and not status_of(rig).joint_flags[0x4D] & ds.JOINT_REFUSED
 
 
-def test_unknown_mode_is_refused(rig: Rig) -> None:
+def test_unknown_mode_is_refused(rig: DaemonRig) -> None:
     rig.put_ref(mode=7, LSY=0.2)
     st = rig.step()
     assert st.joint[0x4D].ref != 0.2 and status_of(rig).refs_refused == 1
 
 
-def test_disabled_joints_get_no_frames(rig: Rig) -> None:
+def test_disabled_joints_get_no_frames(rig: DaemonRig) -> None:
     disabled = [j for j in TABLE if not j.enabled]
     assert len(disabled) == 26
     rig.put_ref(**{j.short: j.upper * 0.5 for j in disabled}, LEP=-0.9)
@@ -297,7 +207,7 @@ def test_mode_0_filter_reaches_95_percent_in_4_seconds(clean_shm, rate: float) -
     (the re-seed), the filter runs from the next cycle. At 10 Hz it is within the motion bounds and goes out
     exactly; at 50 Hz its first steps accelerate harder than the bound allows and are limited, which costs a
     few cycles, never more."""
-    r = make_rig(rate=rate, bitrate=None)
+    r = DaemonRig(rate=rate, bitrate=None)
     try:
         r.loop.start_up()
         r.step()  # the loop's first cycle runs right after start-up (no time passes: nothing may move yet)
@@ -325,10 +235,10 @@ def test_mode_0_filter_reaches_95_percent_in_4_seconds(clean_shm, rate: float) -
             r.step(int(rate * 10))
             assert r.measured("LSR") == pytest.approx(target, abs=1e-3)  # the robot follows the filtered ref
     finally:
-        close_rig(r)
+        r.close()
 
 
-def test_mode_2_compliant_follows_the_encoder(rig: Rig) -> None:
+def test_mode_2_compliant_follows_the_encoder(rig: DaemonRig) -> None:
     wst = TABLE["WST"]
     rig.put_ref(mode=mds.MDS_REF_MODE_COMPLIANT, WST=0.3)
     rig.step(2)
@@ -339,7 +249,7 @@ def test_mode_2_compliant_follows_the_encoder(rig: Rig) -> None:
     assert rig.measured("WST") == pytest.approx(-0.2, abs=1e-6)  # and holds there
 
 
-def test_mode_3_encoder_filter(rig: Rig) -> None:
+def test_mode_3_encoder_filter(rig: DaemonRig) -> None:
     rsr = TABLE["RSR"]
     pos = rig.state().joint[rsr.address].pos
     target = pos + 0.4
@@ -356,7 +266,7 @@ def test_mode_3_encoder_filter(rig: Rig) -> None:
 # --- freshness and faults -----------------------------------------------------------------------------------
 
 
-def test_silent_node_is_stale_never_fresh(rig: Rig) -> None:
+def test_silent_node_is_stale_never_fresh(rig: DaemonRig) -> None:
     lep = TABLE["LEP"]
     rig.step(2)
     rig.net.set_offline(lep.address)
@@ -378,7 +288,7 @@ def test_silent_node_is_stale_never_fresh(rig: Rig) -> None:
 
 
 def test_dropped_and_late_replies(clean_shm) -> None:
-    r = make_rig(bitrate=None)
+    r = DaemonRig(bitrate=None)
     try:
         r.loop.start_up()
         r.state()
@@ -393,10 +303,10 @@ def test_dropped_and_late_replies(clean_shm) -> None:
         assert s1.joint[0x5F].active == 1 and s2.joint[0x5F].active == 1
         assert status_of(r).stale_count == 0
     finally:
-        close_rig(r)
+        r.close()
 
 
-def test_unknown_nodes_malformed_and_error_frames_are_counted(rig: Rig) -> None:
+def test_unknown_nodes_malformed_and_error_frames_are_counted(rig: DaemonRig) -> None:
     rig.net.inject_frame(0x10, bytes(mcb.encode_state_reply(0xB0, StateArg.ACTUAL_POSITION, 0.0).data))
     rig.net.inject_frame(0x10, b"\x05\x04")
     rig.net.inject_frame(0x10, bytes(8), is_extended_id=True)
@@ -416,7 +326,7 @@ def test_unknown_nodes_malformed_and_error_frames_are_counted(rig: Rig) -> None:
     assert status_of(rig).bus_state == ds.BUS_STATE_ACTIVE
 
 
-def test_bus_off_and_reset_bus_command(rig: Rig) -> None:
+def test_bus_off_and_reset_bus_command(rig: DaemonRig) -> None:
     rig.net.bus_off()
     rig.step()
     status = status_of(rig)
@@ -440,7 +350,7 @@ def test_bus_off_and_reset_bus_command(rig: Rig) -> None:
     assert all(reseeds[j.address] == 1 for j in TABLE.enabled)
 
 
-def test_corrupt_input_channel_holds_the_reference(rig: Rig) -> None:
+def test_corrupt_input_channel_holds_the_reference(rig: DaemonRig) -> None:
     """A writer killed inside a put leaves mds-ref marked dirty: the daemon keeps its loop and holds."""
     from mds_ach import ach
 
@@ -457,7 +367,7 @@ def test_corrupt_input_channel_holds_the_reference(rig: Rig) -> None:
 
 
 def test_missing_acks_resend_the_target(clean_shm) -> None:
-    r = make_rig(bitrate=None)
+    r = DaemonRig(bitrate=None)
     try:
         r.loop.start_up()
         r.state()
@@ -473,10 +383,10 @@ def test_missing_acks_resend_the_target(clean_shm) -> None:
         movetos = [f for f in r.frames_to(0x4C) if f.argument is StateArg.MOVETO_TARGET][sent:]
         assert len(movetos) == 2 and movetos[0].raw == movetos[1].raw
     finally:
-        close_rig(r)
+        r.close()
 
 
-def test_collision_gate_holds_and_releases(rig: Rig) -> None:
+def test_collision_gate_holds_and_releases(rig: DaemonRig) -> None:
     collide = MDS_COLLIDE()
     collide.isCollide = 1
     collide.joint[mds.COLLIDE_L_HAND].isCollide = 1
@@ -495,7 +405,7 @@ def test_collision_gate_holds_and_releases(rig: Rig) -> None:
 def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
     """A daemon (re)started while the pipeline keeps commanding a distant reference ramps to it within the
     motion bounds, never in one step, and so does every later step of the reference."""
-    r = make_rig(pose={"LEP": -1.0})
+    r = DaemonRig(pose={"LEP": -1.0})
     try:
         r.loop.start_up()
         r.state()
@@ -511,7 +421,7 @@ def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
         assert refs[-1] == pytest.approx(-0.5, abs=1e-6) and abs(refs[0] - -0.2) <= v_max * 0.1
         assert r.audit().violations == [] and status_of(r).joint_limited[0x4C] > 0
     finally:
-        close_rig(r)
+        r.close()
 
 
 def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clean_shm) -> None:
@@ -520,7 +430,7 @@ def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clea
     from mds_ach import ach
     from mds_ach.ach import repair
 
-    rig = make_rig(pose={"LEP": -1.0})
+    rig = DaemonRig(pose={"LEP": -1.0})
     try:
         rig.loop.start_up()
         rig.state()
@@ -539,10 +449,10 @@ def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clea
         assert max(steps) <= 0.9 * TABLE.max_velocity * 0.1 + 1e-6 and refs[-1] == pytest.approx(-0.2, abs=1e-6)
         assert rig.audit().violations == []
     finally:
-        close_rig(rig)
+        rig.close()
 
 
-def test_collision_hold_is_per_arm(rig: Rig) -> None:
+def test_collision_hold_is_per_arm(rig: DaemonRig) -> None:
     """A left-arm collision report holds the left arm only: the right arm keeps moving (the gate's per-arm
     hold must not become a whole-robot stop at the daemon)."""
     collide = MDS_COLLIDE()
@@ -555,7 +465,7 @@ def test_collision_hold_is_per_arm(rig: Rig) -> None:
     assert [f for f in rig.frames_to(0x48) if f.argument is StateArg.MOVETO_TARGET]  # REP moves
 
 
-def test_collision_report_without_parts_holds_everything(rig: Rig) -> None:
+def test_collision_report_without_parts_holds_everything(rig: DaemonRig) -> None:
     collide = MDS_COLLIDE()
     collide.isCollide = 1  # e.g. an external legacy checker that flags no part
     rig.collide_out.put(collide)
@@ -565,7 +475,7 @@ def test_collision_report_without_parts_holds_everything(rig: Rig) -> None:
     assert not [f for f in rig.frames_to(0x48) if f.command is Command.SET]
 
 
-def test_collision_override_report_holds_nothing(rig: Rig) -> None:
+def test_collision_override_report_holds_nothing(rig: DaemonRig) -> None:
     collide = MDS_COLLIDE()
     collide.isCollide = 2  # the gate's expert override: logged there, not a hold here
     collide.joint[mds.COLLIDE_L_HAND].isCollide = 1
@@ -577,7 +487,7 @@ def test_collision_override_report_holds_nothing(rig: Rig) -> None:
 # --- the motion bounds on every path (every MOVETO passes the audit of motion_audit) ---------------------------
 
 
-def assert_bounded(rig: Rig, both_reseed_rules: bool = True) -> Audit:
+def assert_bounded(rig: DaemonRig, both_reseed_rules: bool = True) -> Audit:
     """Every MOVETO so far obeys the motion bounds, whichever reply a re-seed restarts from (motion_audit)."""
     result = rig.audit()
     assert result.violations == [], result.violations
@@ -586,7 +496,7 @@ def assert_bounded(rig: Rig, both_reseed_rules: bool = True) -> Audit:
     return result
 
 
-def drive(rig: Rig, cycles: int, mode: int = mds.MDS_REF_MODE_REF, **speeds: float) -> None:
+def drive(rig: DaemonRig, cycles: int, mode: int = mds.MDS_REF_MODE_REF, **speeds: float) -> None:
     """``cycles`` cycles, each after a new mds-ref frame moving the given joints at the given speeds (rad/s)."""
     a = {short: TABLE[short].address for short in speeds}
     refs = {short: rig.loop.state.joint[a[short]].ref_r for short in speeds}
@@ -597,7 +507,7 @@ def drive(rig: Rig, cycles: int, mode: int = mds.MDS_REF_MODE_REF, **speeds: flo
 
 
 @pytest.mark.parametrize("mode", [mds.MDS_REF_MODE_COMPLIANT, mds.MDS_REF_MODE_ENC_FILTER])
-def test_switching_back_to_pass_through_ramps_to_a_reference_that_moved_on(rig: Rig, mode: int) -> None:
+def test_switching_back_to_pass_through_ramps_to_a_reference_that_moved_on(rig: DaemonRig, mode: int) -> None:
     """In mode 2 the joint follows itself, in mode 3 it trails its reference; the reference moves on meanwhile.
     Back in mode 1 the joint ramps to the reference (flagged and counted as limited), it never steps there."""
     lsp = TABLE["LSP"]
@@ -617,7 +527,7 @@ def test_switching_back_to_pass_through_ramps_to_a_reference_that_moved_on(rig: 
 
 @pytest.mark.parametrize("mode", [mds.MDS_REF_MODE_COMPLIANT, mds.MDS_REF_MODE_ENC_FILTER])
 @pytest.mark.parametrize("bogus", ["out of range", "impossible jump"])
-def test_a_bogus_position_reply_is_never_a_position(rig: Rig, mode: int, bogus: str) -> None:
+def test_a_bogus_position_reply_is_never_a_position(rig: DaemonRig, mode: int, bogus: str) -> None:
     """One corrupt reply (+5 rad, or a jump to the far limit within one cycle) must not drag a joint in mode 2
     or 3 with it: it is refused, flagged and counted; mds-state keeps the last good position (not active); the
     joint holds; three consistent replies later the position is trusted again."""
@@ -644,7 +554,7 @@ def test_a_bogus_position_reply_is_never_a_position(rig: Rig, mode: int, bogus: 
     assert_bounded(rig)
 
 
-def test_a_node_back_online_ramps_from_where_it_is(rig: Rig) -> None:
+def test_a_node_back_online_ramps_from_where_it_is(rig: DaemonRig) -> None:
     """A node offline for 5 s while its reference moved 0.5 rad: the targets sent meanwhile never arrived, so
     when it answers again the first target states where the joint is, and it ramps to its reference."""
     lep = TABLE["LEP"]
@@ -664,7 +574,7 @@ def test_a_node_back_online_ramps_from_where_it_is(rig: Rig) -> None:
     assert_bounded(rig)
 
 
-def test_a_collision_hold_released_ramps(rig: Rig) -> None:
+def test_a_collision_hold_released_ramps(rig: DaemonRig) -> None:
     """While mds-collide flags the left arm its targets are withheld and its reference moves on; released, the
     arm ramps to the reference instead of receiving the accumulated distance in one frame."""
     lep = TABLE["LEP"]
@@ -685,7 +595,7 @@ def test_a_collision_hold_released_ramps(rig: Rig) -> None:
     assert_bounded(rig)
 
 
-def test_home_then_a_small_goto_ramps_from_home(rig: Rig) -> None:
+def test_home_then_a_small_goto_ramps_from_home(rig: DaemonRig) -> None:
     """After HOME the joint is at its home position while the reference still says where it was before: a
     small goto from that old reference ramps from home (and the pipeline is told to restart at home)."""
     lep = TABLE["LEP"]
@@ -703,7 +613,7 @@ def test_home_then_a_small_goto_ramps_from_home(rig: Rig) -> None:
     assert_bounded(rig, both_reseed_rules=False)
 
 
-def test_bus_off_and_resetbus_during_motion_ramps(rig: Rig) -> None:
+def test_bus_off_and_resetbus_during_motion_ramps(rig: DaemonRig) -> None:
     """Bus-off while the reference moves: nothing gets through. After `resetbus` the joints answer again and
     ramp from where they stand; the stale target of the moment is never re-sent."""
     lep = TABLE["LEP"]
@@ -727,7 +637,7 @@ def test_bus_off_and_resetbus_during_motion_ramps(rig: Rig) -> None:
 def test_a_large_step_in_pass_through_is_acceleration_limited(clean_shm) -> None:
     """A 2.5 rad step in mode 1 becomes a ramp: at most 0.9 x 2 rad/s and 0.9 x 8 rad/s^2, and it arrives in
     about the time those bounds allow."""
-    r = make_rig(pose={"LSR": 0.0})
+    r = DaemonRig(pose={"LSR": 0.0})
     try:
         r.loop.start_up()
         r.state()
@@ -742,10 +652,10 @@ def test_a_large_step_in_pass_through_is_acceleration_limited(clean_shm) -> None
         assert st.joint_limited[lsr] > 5 and st.targets_limited >= st.joint_limited[lsr]
         assert_bounded(r)
     finally:
-        close_rig(r)
+        r.close()
 
 
-def test_a_stalled_loop_is_reported_and_ramps(rig: Rig) -> None:
+def test_a_stalled_loop_is_reported_and_ramps(rig: DaemonRig) -> None:
     """The loop does not run for 3 s (here: the clock jumps) while the reference moves on: the stall is counted
     and its length reported, and the joint ramps from rest where it was."""
     drive(rig, 5, LSP=0.4)
@@ -761,7 +671,7 @@ def test_a_stalled_loop_is_reported_and_ramps(rig: Rig) -> None:
 # --- setup commands ---------------------------------------------------------------------------------------
 
 
-def test_home_command_homes_and_holds(rig: Rig) -> None:
+def test_home_command_homes_and_holds(rig: DaemonRig) -> None:
     lep = TABLE["LEP"]
     rig.command(mds.MDS_CMD_HOME, lep.address, seq=3)
     rig.step(40)
@@ -779,7 +689,7 @@ def test_home_command_homes_and_holds(rig: Rig) -> None:
     assert rig.measured("LEP") == pytest.approx(-1.1, abs=1e-5)
 
 
-def test_zero_encoder_does_not_move_the_joint(rig: Rig) -> None:
+def test_zero_encoder_does_not_move_the_joint(rig: DaemonRig) -> None:
     rsr = TABLE["RSR"]
     physical = rig.net.physical[rig.net.index[rsr.address]]
     rig.command(mds.MDS_CMD_ZERO_ENCODER, rsr.address)
@@ -790,7 +700,7 @@ def test_zero_encoder_does_not_move_the_joint(rig: Rig) -> None:
     assert [f.command for f in rig.frames_to(rsr.address)] == [Command.ZERO_ENCODER]
 
 
-def test_commands_refused_for_unknown_or_disabled_joints(rig: Rig) -> None:
+def test_commands_refused_for_unknown_or_disabled_joints(rig: DaemonRig) -> None:
     rig.command(mds.MDS_CMD_ENABLE, TABLE["LYY"].address, seq=11)
     rig.step()
     status = status_of(rig)
@@ -820,7 +730,7 @@ def test_parse_command_text() -> None:
 # --- accounting and the loop thread ------------------------------------------------------------------------
 
 
-def test_bus_load_is_counted_with_worst_case_stuffing(rig: Rig) -> None:
+def test_bus_load_is_counted_with_worst_case_stuffing(rig: DaemonRig) -> None:
     rig.step()
     quiet = status_of(rig)
     frames = 1 + len(TABLE)  # one query, one reply per node
@@ -992,8 +902,6 @@ def test_a_stopped_daemon_process_ramps_when_it_continues(clean_shm, tmp_path: P
     is reported (log line, mds-daemon-status) and every MOVETO in its CAN log obeys the motion bounds -- the
     first one after the stall too, which used to carry the whole distance the reference moved meanwhile."""
     import threading
-
-    from motion_audit import read_log
 
     can_log = tmp_path / "can.asc"
     proc = subprocess.Popen([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--can-log", str(can_log),

@@ -11,8 +11,8 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from conftest import REPO, wait_for
-from mds_system import arm_pos, chain_fk, joint_pos, running_system
+from support import REPO, wait_for
+from support.system import arm_pos, chain_fk, joint_pos, running_system
 
 import mds_ach as mds
 

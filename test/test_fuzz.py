@@ -10,7 +10,7 @@
   validation functions.
 
 "Nothing unsafe": every MOVETO the simulated bus received is inside its joint's limits in counts and addressed to
-an enabled joint (``test_faults.unsafe_commands``), and every MOVETO of the daemon rig obeys the motion bounds
+an enabled joint (``support.rig.unsafe_commands``), and every MOVETO of the daemon rig obeys the motion bounds
 (``motion_audit``: random mode switches, setup commands and position replies included). Examples are few and
 fixed and there is no deadline, so CI stays fast and repeatable; set ``MDS_FUZZ_EXAMPLES=2000`` for a deep run
 with fresh random examples.
@@ -27,11 +27,11 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from conftest import remove_mds_channels
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from motion_audit import audit
-from test_faults import TABLE, CanRig, unsafe_commands
+from support import remove_mds_channels
+from support.motion_audit import audit
+from support.rig import TABLE, DaemonRig, unsafe_commands
 
 import mds_ach as mds
 from mds_ach import ach
@@ -103,9 +103,9 @@ def fresh() -> Iterator[None]:
     remove_mds_channels()
 
 
-def assert_state_safe(rig: CanRig) -> None:
+def assert_state_safe(rig: DaemonRig) -> None:
     assert unsafe_commands(rig.net.commands) == []
-    bounded = audit(rig.io.recorder.frames, TABLE, rig.loop.bounds, rig.loop.stale_after)
+    bounded = audit(rig.log.frames, TABLE, rig.loop.bounds, rig.loop.stale_after)
     assert bounded.violations == [], bounded.violations  # any mode switch, command or reply: within the bounds
     for a in ENABLED:
         j = TABLE.get(a)
@@ -121,7 +121,7 @@ def assert_state_safe(rig: CanRig) -> None:
 def test_daemon_survives_anything_on_its_input_channels(fresh: None, caplog: pytest.LogCaptureFixture,
                                                          events: list[tuple[str, bytes]]) -> None:
     caplog.clear()
-    rig = CanRig.start()
+    rig = DaemonRig.moving()
     try:
         rig.run(0.3)  # moving
         for channel, data in events:
@@ -188,7 +188,7 @@ def test_pipeline_nodes_never_pass_on_what_they_must_refuse(fresh: None, gate_pa
     from mds_ach.nodes.pipeline import make_ref
 
     model, gate_cfg, lower, upper = gate_parts
-    rig = CanRig.start()
+    rig = DaemonRig.moving()
     try:
         start = np.array([rig.loop.state.joint[a].ref for a in range(MDS_JOINT_COUNT)])
         mode0 = np.ones(MDS_JOINT_COUNT, dtype=np.int16)
@@ -264,7 +264,7 @@ def test_random_can_frames_into_the_daemon(fresh: None, frames: list[tuple[str, 
     still hold."""
     from mds_ach.bus.constants import CAN_ERR_CRTL
 
-    rig = CanRig.start()
+    rig = DaemonRig.moving()
     mode = mds.MDS_REF_MODE_COMPLIANT if compliant else mds.MDS_REF_MODE_REF
     try:
         rig.run(0.3, mode=mode)
@@ -319,7 +319,7 @@ def console_rig(monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple]:
     for name, value in (("GOTO_TIMEOUT", 0.05), ("IK_TIMEOUT", 0.05), ("IK_MOTION_TIMEOUT", 0.05),
                         ("STATE_WAIT", 0.05), ("RELEASE_TIMEOUT", 0.05)):
         monkeypatch.setattr(console, name, value)
-    rig = CanRig.start()
+    rig = DaemonRig.moving()
     ach.create(mds.MDS_CHAN_REF_FILTER_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
     out: list[str] = []
     con = console.Console(out=out.append, err=out.append, progress=lambda: None)

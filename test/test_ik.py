@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from test_urdf import original_chain
+from support.reference_chain import original_chain
 
 from mds_ach import ik
 from mds_ach.kinematics import model as kinematics

@@ -12,7 +12,7 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import VENV_BIN, wait_for
+from support import VENV_BIN, wait_for
 
 import mds_ach as mds
 from mds_ach import ik

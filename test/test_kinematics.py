@@ -1,4 +1,5 @@
-"""mds_ach.kinematics.model: numpy FK/Jacobian of the arms and the whole tree, the torch path, light imports."""
+"""mds_ach.kinematics.model: numpy FK/Jacobian of the arms and the whole tree, light imports
+(the pytorch-kinematics cross-check is in test/support/torch_kinematics.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from test_urdf import original_chain
+from support.reference_chain import original_chain
 
 from mds_ach.kinematics import model as kinematics
 from mds_ach.robot.joints import LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
@@ -106,12 +107,15 @@ def test_euler_zyx_is_the_original_getrot_and_inverts_rotation_zyx() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("arm", ["left", "right"])
 def test_torch_fk_and_jacobian_equal_numpy(arm: str) -> None:
+    # Imported here, not at the top: torch costs ~3 s of import (measured) that collecting this module must not pay.
+    from support.torch_kinematics import torch_chain, torch_fk, torch_jacobian
+
     q = _q(64, seed=9)
     kin = kinematics.arm_kinematics(arm)
     _, _, J = kin.fk_jacobian(q)
-    assert np.abs(kinematics.torch_fk(q, arm).numpy() - kin.fk_matrix(q)).max() < 1e-12
-    assert np.abs(kinematics.torch_jacobian(q, arm).numpy() - J).max() < 1e-12
-    whole = kinematics.torch_chain()
+    assert np.abs(torch_fk(q, arm).numpy() - kin.fk_matrix(q)).max() < 1e-12
+    assert np.abs(torch_jacobian(q, arm).numpy() - J).max() < 1e-12
+    whole = torch_chain()
     assert set(whole.get_joint_parameter_names()) == set(MODEL_JOINTS)
 
 

@@ -11,8 +11,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import NOBODY, REPO, VENV_BIN, in_netns, remove_mds_channels, run_as, wait_for
-from mds_system import mds_ach, newest, running_system, system_env
+from support import NOBODY, REPO, VENV_BIN, in_netns, remove_mds_channels, run_as, wait_for
+from support.channels import newest
+from support.system import mds_ach, running_system, system_env
 
 import mds_ach as mds
 from mds_ach import ach

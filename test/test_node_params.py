@@ -13,7 +13,7 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
-from conftest import REPO, VENV_BIN, wait_for
+from support import REPO, VENV_BIN, wait_for
 
 import mds_ach as mds
 from mds_ach import ach, ik

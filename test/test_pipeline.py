@@ -17,17 +17,16 @@ MOVETO in the daemon's CAN log obeys the motion bounds (``motion_audit``).
 from __future__ import annotations
 
 import signal
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import VENV_BIN, in_netns, wait_for
-from motion_audit import audit, read_log
+from support import in_netns, wait_for
+from support.motion_audit import audit, read_log
+from support.system import Pipeline
 
 import mds_ach as mds
-from mds_ach import ach
 from mds_ach.kinematics.collision import load_model
 from mds_ach.kinematics.model import arm_kinematics
 from mds_ach.robot import config
@@ -47,16 +46,13 @@ RIGHT_PARTS = {mds.COLLIDE_R_HAND, mds.COLLIDE_R_SHOULDER, mds.COLLIDE_R_FOREARM
 MODEL = np.array([BY_SHORT[n].address for n in MODEL_JOINTS])
 FILTER_SPEED = 1.57  # rad/s, config/filter.yaml default
 GATE_SPEED = 2.0  # rad/s, config/collision.yaml max_velocity
-START_TIMEOUT = 90.0  # s: cold imports on a shared 2-core machine
-READY_LINES = {"ik": "waiting for requests"}
 
 
-class System:
-    """The pipeline processes, their logs, and readers of the channels the test watches."""
+class System(Pipeline):
+    """The pipeline processes (``support.system.Pipeline``), and readers of the channels the test watches."""
 
     def __init__(self, logs: Path) -> None:
-        self.logs = logs
-        self.procs: dict[str, subprocess.Popen] = {}
+        super().__init__(logs)
         self.state = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
         self.collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
         self.ik_req = StructChannel(mds.MDS_CHAN_IK_NAME, mds.MDS_IK)
@@ -67,59 +63,6 @@ class System:
         self.commands: StructChannel | None = None
         self.trace: list[tuple[float, np.ndarray, np.ndarray]] = []  # (state.time, ref[100], pos[100])
         self.seq = 0
-
-    # ----- processes
-
-    def start(self, name: str, *args: str) -> None:
-        log = open(self.logs / f"{name}.log", "a")  # noqa: SIM115 - closed with the process
-        log.write(f"--- start {name} {' '.join(args)}\n")
-        log.flush()
-        ready = {"mux": mds.MDS_CHAN_MUX_STATE_NAME, "filter": mds.MDS_CHAN_REF_SMOOTH_NAME,
-                 "collision": mds.MDS_CHAN_COLLIDE_NAME, "daemon": mds.MDS_CHAN_STATE_NAME}.get(name)
-        watch = ach.Channel(ready, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE) if ready else None
-        if watch is not None:
-            watch.flush()
-        buf = bytearray(watch.data_size if watch is not None else 0)
-        frames = 0
-        self.procs[name] = subprocess.Popen([str(VENV_BIN / name), *args], stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + START_TIMEOUT
-        while True:
-            assert self.procs[name].poll() is None, f"{name} exited:\n{self.log_text(name)}"
-            if watch is not None:
-                status, _ = watch.get(buf, last=True)
-                frames += status in (ach.ACH_OK, ach.ACH_MISSED_FRAME)
-                if frames >= 2:  # two new frames of the node's periodic output
-                    watch.close()
-                    return
-            elif READY_LINES[name] in self.log_text(name).rsplit("--- start", 1)[-1]:
-                return
-            assert time.monotonic() < deadline, f"{name} not up after {START_TIMEOUT} s:\n{self.log_text(name)}"
-            time.sleep(0.05)
-
-    def kill(self, name: str, sig: int) -> None:
-        """Stop a node with ``sig`` and wait for it to be gone."""
-        proc = self.procs.pop(name)
-        proc.send_signal(sig)
-        proc.wait(20)
-
-    def stop_all(self) -> dict[str, int]:
-        codes = {}
-        for name in [n for n in self.procs if n != "daemon"] + ["daemon"]:
-            proc = self.procs.get(name)
-            if proc is None:
-                continue
-            proc.send_signal(signal.SIGTERM)
-            try:
-                codes[name] = proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                codes[name] = -9
-        self.procs.clear()
-        return codes
-
-    def log_text(self, name: str) -> str:
-        path = self.logs / f"{name}.log"
-        return path.read_text(errors="replace") if path.exists() else ""
 
     # ----- observation
 

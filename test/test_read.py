@@ -14,8 +14,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import VENV_BIN, remove_mds_channels, wait_for
-from pty_session import PtySession
+from support import VENV_BIN, remove_mds_channels, wait_for
+from support.pty_session import PtySession
 
 import mds_ach as mds
 from mds_ach import ach

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from conftest import wait_for
+from support import wait_for
 
 import mds_ach as mds
 from mds_ach.kinematics.collision import load_model

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from support import REPO
 
 EXECUTABLES = ["daemon", "filter", "mux", "ik", "collision", "bridge", "console", "read", "mds-ach"]
 SOURCES = ["package.xml", "setup.py", "setup.cfg", "resource", "mds_ach", "mds_ach_bridge", "urdf", "config",

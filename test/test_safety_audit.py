@@ -16,7 +16,7 @@ from pathlib import Path
 
 import can
 import pytest
-from conftest import REPO, VENV_BIN, in_netns, remove_mds_channels
+from support import REPO, VENV_BIN, in_netns, remove_mds_channels
 
 from mds_ach.bus import mcb
 from mds_ach.bus.simbus import FaultControl, ManualClock, SimNetwork, send_fault

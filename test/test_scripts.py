@@ -7,8 +7,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import REPO, VENV_BIN, in_netns, remove_mds_channels, wait_for
-from mds_system import joint_pos, mds_ach, newest, system_env
+from support import REPO, VENV_BIN, in_netns, remove_mds_channels, wait_for
+from support.channels import newest
+from support.system import joint_pos, mds_ach, system_env
 
 import mds_ach as mds
 from mds_ach.robot.msgs import MDS_MUX_STATE

@@ -6,38 +6,14 @@ import math
 
 import numpy as np
 import pytest
+from support.reference_chain import L1, L2, L3, L4, original_chain
 
 from mds_ach.kinematics import model as kinematics
 from mds_ach.paths import urdf_path
 from mds_ach.robot.joints import LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
 
-L1, L2, L3, L4 = 0.24551, 0.282575, 0.3127375, 0.0635  # specs section e.1 (inches: 9.666, 11.125, 12.3125, 2.5)
 SHOULDER_HEIGHT = 1.2065
 ARMS = {"left": (LEFT_ARM, 1.0), "right": (RIGHT_ARM, -1.0)}
-
-
-def _rot(axis: str, a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return {
-        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
-        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
-        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
-    }[axis]
-
-
-def original_chain(q: np.ndarray, m: float) -> np.ndarray:
-    """The original getFkArm: per joint [R(theta) | p] with p applied before the rotation (specs table e.1)."""
-    steps = [("y", (0, m * L1, 0)), ("x", (0, 0, 0)), ("z", (0, 0, 0)), ("y", (0, 0, -L2)), ("z", (0, 0, -L3)),
-             ("x", (0, 0, 0))]
-    T = np.eye(4)
-    for (axis, p), angle in zip(steps, q, strict=True):
-        A = np.eye(4)
-        A[:3, :3] = _rot(axis, angle)
-        A[:3, 3] = p
-        T = T @ A
-    E = np.eye(4)
-    E[2, 3] = -L4
-    return T @ E
 
 
 @pytest.fixture(scope="module")
@@ -182,12 +158,14 @@ def test_yourdfpy_fk_equals_the_original_chain(robot, arm: str) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("arm", ["left", "right"])
 def test_pytorch_kinematics_fk_equals_the_original_chain(arm: str) -> None:
+    # Imported here, not at the top: torch costs ~3 s of import (measured) that collecting this module must not pay.
     import pytorch_kinematics as pk
     import torch
+    from support.torch_kinematics import torch_chain
 
     names, m = ARMS[arm]
     q = random_joints(64, seed=11)
-    chain = kinematics.torch_chain(arm)  # float64 chain built from the URDF
+    chain = torch_chain(arm)  # float64 chain built from the URDF
     assert chain.get_joint_parameter_names() == list(names)
     T = chain.forward_kinematics(torch.as_tensor(q)).get_matrix().numpy()
     expected = np.array([original_chain(x, m) for x in q])

@@ -9,7 +9,6 @@ mds-state / mds-collide) keeps them independent of the other nodes.
 from __future__ import annotations
 
 import base64
-import ctypes
 import io
 import json
 import math
@@ -25,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO, VENV_BIN, remove_mds_channels, wait_for
+from support import REPO, VENV_BIN, remove_mds_channels, wait_for
+from support.channels import newest
 
 import mds_ach as mds
 from mds_ach import ach
@@ -635,10 +635,7 @@ def test_browser_collision_turns_the_part_highlight_on(page: Page) -> None:
 
 def newest_state() -> mds.MDS_STATE | None:
     """The newest mds-state frame, even if seen before (read-only)."""
-    state = mds.MDS_STATE()
-    with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as chan:
-        status, size = chan.get(state, last=True, copy=True)
-    return state if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(state) else None
+    return newest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
 
 
 def goto(targets: dict[str, float]) -> None:

@@ -1,9 +1,8 @@
-"""Robot kinematics from ``urdf/mds.urdf``: numpy FK/Jacobian for the arms, whole-tree link poses, torch path.
+"""Robot kinematics from ``urdf/mds.urdf``: numpy FK/Jacobian for the arms, whole-tree link poses.
 
 The URDF is the single source of truth. It is parsed here with the standard library (no yourdfpy, no torch),
-so the console, the viewer and the collision gate get forward kinematics without torch's start-up cost.
-``torch_chain``/``torch_fk``/``torch_jacobian`` build pytorch-kinematics chains from the same file for
-batched work; torch is imported only when one of them is called.
+so the console, the viewer and the collision gate get forward kinematics without heavy imports. The tests
+cross-check it against pytorch-kinematics (test/support/torch_kinematics.py; torch is a test requirement only).
 
 Arm frames follow the original IK (specs section e.1): the arm chain runs from ``torso`` (robot frame,
 midway between the shoulders, x forward, y left, z up) to ``left_tool``/``right_tool`` (mid-hand, 0.0635 m
@@ -18,14 +17,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from mds_ach.paths import urdf_path
-
-if TYPE_CHECKING:  # pragma: no cover - typing only
-    import torch
 
 ARMS: tuple[str, str] = ("left", "right")
 ARM_ROOT = "torso"
@@ -467,70 +463,3 @@ def rotation_zyx(roll: Any, pitch: Any, yaw: Any) -> np.ndarray:
         ],
         axis=-2,
     )
-
-
-# --------------------------------------------------------------------------------------------- torch path
-
-
-def torch_chain(arm: str | int | None = None, dtype: Any = None, device: Any = "cpu") -> Any:
-    """A pytorch-kinematics chain built from the package URDF (imports torch lazily).
-
-    With ``arm`` the serial chain torso -> ``<arm>_tool`` (joint order [SP, SR, SY, EP, WY, WR]); without it
-    the whole tree (``get_joint_parameter_names()`` gives its joint order). Default dtype float64.
-    """
-    import torch
-
-    return _torch_chain_cached(None if arm is None else arm_name(arm), dtype or torch.float64, str(device))
-
-
-@lru_cache(maxsize=8)
-def _torch_chain_cached(arm: str | None, dtype: Any, device: str) -> Any:
-    # Built from our own parse rather than pk.build_chain_from_urdf: pytorch-kinematics parses origins in
-    # float32, which would cost ~1e-8 m of accuracy even after .to(float64).
-    import pytorch_kinematics as pk
-    import torch
-
-    model = _default_model()
-    children: dict[str, list[Joint]] = {}
-    for j in model.joints.values():
-        children.setdefault(j.parent, []).append(j)
-
-    def frame(link: str, joint: Joint | None) -> Any:
-        f = pk.Frame(link, link=pk.Link(link))
-        if joint is not None:
-            f.joint = pk.Joint(
-                joint.name,
-                offset=pk.Transform3d(matrix=torch.as_tensor(joint.origin, dtype=dtype), dtype=dtype, device=device),
-                joint_type="revolute" if joint.type in _REVOLUTE else joint.type,
-                axis=torch.as_tensor(joint.axis, dtype=dtype),
-                dtype=dtype,
-                device=device,
-                limits=(joint.lower, joint.upper) if joint.actuated else None,
-                velocity_limits=(-joint.velocity, joint.velocity) if joint.actuated else None,
-                effort_limits=(-joint.effort, joint.effort) if joint.actuated else None,
-            )
-        f.children = [frame(j.child, j) for j in children.get(link, ())]
-        return f
-
-    chain = pk.Chain(frame(model.root, None), dtype=dtype, device=device)
-    if arm is not None:
-        chain = pk.SerialChain(chain, f"{arm}_tool", ARM_ROOT, dtype=dtype, device=device)
-    return chain
-
-
-def torch_fk(q: torch.Tensor | np.ndarray, arm: str | int) -> torch.Tensor:
-    """Batched tool poses (B, 4, 4) of one arm in the torso frame with pytorch-kinematics."""
-    import torch
-
-    chain = torch_chain(arm)
-    th = torch.as_tensor(q, dtype=chain.dtype, device=chain.device)
-    return chain.forward_kinematics(th).get_matrix()
-
-
-def torch_jacobian(q: torch.Tensor | np.ndarray, arm: str | int) -> torch.Tensor:
-    """Batched geometric Jacobians (B, 6, 6) at the tool point, torso frame, with pytorch-kinematics."""
-    import torch
-
-    chain = torch_chain(arm)
-    th = torch.as_tensor(q, dtype=chain.dtype, device=chain.device)
-    return chain.jacobian(th)

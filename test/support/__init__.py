@@ -1,0 +1,86 @@
+"""Shared test support: one place for what more than one test module (or a benchmark) needs.
+
+Tests import it as ``support`` (``test/`` is on ``sys.path``: pytest's ``pythonpath = test`` in setup.cfg;
+``bench/__init__.py`` adds it for the benchmarks). Not ``test.support``: that name is the standard library's.
+``conftest.py`` keeps only fixtures; helpers live here, so no test module imports ``conftest``.
+
+* this module: paths (``REPO``, ``VENV_BIN``, ``SHARED``), ``wait_for``, ``in_netns``, ``remove_mds_channels``,
+  ``run_as`` (standard library only, so the benchmarks can use the package without pytest);
+* ``support.channels``: the one "newest frame" reader (``newest``, ``state``, ``Newest``);
+* ``support.rig``: the one daemon rig (``DaemonRig``: the daemon loop on a simulated clock and bus);
+* ``support.system``: the one system start-up (``running_system`` via ``mds-ach start``, ``Pipeline`` for
+  node-by-node control) and the readers of the running robot;
+* ``support.faults``: writers that die inside a put (``StuckWriter``) and their checkable payloads;
+* ``support.motion_audit``, ``support.pty_session``, ``support.netsim`` (simulated hosts: tests and
+  bench/bench_network.py), ``support.reference_chain`` (the original IK chain, written out),
+  ``support.torch_kinematics`` (the pytorch-kinematics cross-check; the only user of torch).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+VENV_BIN = Path(sys.executable).parent
+NOBODY = 65534  # uid and gid of user nobody / group nogroup
+
+
+def _shared_dir() -> Path:
+    env = os.environ.get("MDS_SHARED_DIR")
+    return Path(env) if env else REPO.parent / "shared"
+
+
+SHARED = _shared_dir()
+
+
+def remove_mds_channels() -> None:
+    """Unlink every MDS and test channel in this (private) /dev/shm."""
+    for path in glob.glob("/dev/shm/achshm-mds*") + glob.glob("/dev/shm/achshm-test*"):
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+
+
+def wait_for(predicate: Callable[[], object], timeout: float = 10.0, interval: float = 0.01, what: str = "") -> object:
+    """Poll ``predicate`` until it returns a truthy value; fail with ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what or predicate}")
+        time.sleep(interval)
+
+
+def in_netns() -> bool:
+    """Are we inside tools/netns-run (private network namespace and /dev/shm)?"""
+    return os.environ.get("MDS_NETNS_ACTIVE") == "1"
+
+
+def run_as(uid: int, gid: int, func: Callable[[], int], groups: tuple[int, ...] = ()) -> int:
+    """Run ``func`` in a forked child as another user (we are root in the test namespace); its return value,
+    or 1 after printing the traceback, is the exit status returned here. A fork, not a new interpreter:
+    the venv's Python lives under /root, which other users cannot execute."""
+    import traceback
+
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            os.setgroups(list(groups))
+            os.setgid(gid)
+            os.setuid(uid)
+            code = int(func())
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status)
