@@ -112,6 +112,13 @@ _LEFT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in LEFT_ARM)
 _RIGHT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in RIGHT_ARM)
 
 
+def reply_in_range(cfg: JointConfig, q: float) -> bool:
+    """Can a position reply of ``q`` rad be right at all: finite and within the joint's range plus the margin? The
+    daemon refuses anything else as a position; ``mds-ach check-log`` ignores it by the very same rule."""
+    margin = max(REPLY_RANGE_MARGIN * (cfg.upper - cfg.lower), REPLY_RANGE_MIN)
+    return math.isfinite(q) and cfg.lower - margin <= q <= cfg.upper + margin
+
+
 class _Timespec(ctypes.Structure):
     _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
 
@@ -837,8 +844,7 @@ class DaemonLoop:
         resumed = now - jr.last_heard > self.stale_after
         jr.last_heard = now
         cfg = jr.cfg
-        margin = max(REPLY_RANGE_MARGIN * (cfg.upper - cfg.lower), REPLY_RANGE_MIN)
-        in_range = cfg.lower - margin <= q <= cfg.upper + margin
+        in_range = reply_in_range(cfg, q)
 
         def near(q0: float, t0: float) -> bool:
             return abs(q - q0) <= REPLY_SPEED_FACTOR * self.bounds.max_velocity * max(now - t0, 0.0) + REPLY_SLACK
