@@ -10,6 +10,9 @@ upstream. Findings, each with the joint, the log time and the value against its 
   the table, or broadcast to every node;
 * ``no-position`` (only for a log of one whole daemon run, ``whole_run``): a target to a joint before any valid
   position reply of it -- the daemon never commands a joint whose position it does not know;
+* ``silent`` (``whole_run`` too): a target to a joint that has not answered at all for longer than the stale
+  window plus ``max_interval`` (slack for where the daemon and the log date a reply) -- the daemon sends a silent
+  node nothing, since the target may never arrive and the node, once back, would jump to it;
 * ``speed``, ``acceleration``: :func:`mds_ach.motion.check` on every target, per joint, exactly the definition
   the daemon's limiter enforces;
 * ``collision`` (``--collisions``): the commanded pose after a batch of targets collides, with the collision
@@ -62,7 +65,7 @@ from mds_ach.daemon_loop import reply_in_range
 from mds_ach.mcb import Command, StateArg, TrajectoryMode
 from mds_ach.msgs import MDS_JOINT_COUNT
 
-KINDS = ("non-finite", "limit", "address", "no-position", "speed", "acceleration", "collision")
+KINDS = ("non-finite", "limit", "address", "no-position", "silent", "speed", "acceleration", "collision")
 MOTION_KINDS = ("speed", "acceleration")
 STALE_PERIODS = 3.5  # the daemon's stale_after (mds_ach.daemon_loop): 3.5 periods, at least 20 ms
 MIN_STALE = 0.02
@@ -177,7 +180,8 @@ class _JointAudit:
     hi_counts: float
     sent: list[motion.Track] = field(default_factory=list)  # histories of the targets sent so far
     seed: motion.Track | None = None  # since a re-seed, until the next target: the latest valid reply, at rest
-    last_reply: float = -math.inf
+    last_reply: float = -math.inf  # the latest valid position reply
+    last_heard: float = -math.inf  # the latest finite position reply, valid or not (the daemon's last_heard)
     reseed_due: bool = False  # a command restarted the count: the next valid reply re-seeds
     holding: bool = True  # no target since the start or a setup command: the node holds where it is
 
@@ -238,6 +242,8 @@ class _Auditor:
             self.r.replies_unknown += 1
             return
         q = ja.cfg.to_joint(counts) if math.isfinite(counts) else math.nan
+        if math.isfinite(q):
+            ja.last_heard = t
         if not reply_in_range(ja.cfg, q):
             self.r.replies_ignored += 1
             return
@@ -311,8 +317,13 @@ class _Auditor:
         q = cfg.to_joint(counts)
         if self.record:
             self.r.sent.setdefault(cfg.short, []).append((t, q))
-        if math.isfinite(ja.last_reply) and t - ja.last_reply > self.stale:
+        silence = t - ja.last_heard if math.isfinite(ja.last_heard) else 0.0
+        if silence > self.stale:
             self.r.silent_targets += 1
+            if self.whole_run and self.bounds is not None and silence > self.stale + self.bounds.max_interval:
+                self._find("silent", t, label, silence, self.stale,
+                           f"target {q:.4f} rad to a joint silent for {silence:.3f} s (stale window "
+                           f"{self.stale:.3f} s): it may never arrive, and the node, once back, would jump to it")
         if not ja.sent and ja.seed is None:
             self.r.unseeded_targets += 1  # nothing known before it: its first step cannot be checked
             if self.whole_run:
@@ -407,7 +418,8 @@ def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds:
 
     ``bounds`` and ``stale_after`` are the daemon's (``None``: speed and acceleration are not checked, a reply gap
     never re-seeds). ``whole_run``: the frames start when the daemon started (its own ``--can-log``, a test's
-    recorder), so a target before its joint's first position is a ``no-position`` violation instead of a count.
+    recorder), so a target before its joint's first position (``no-position``) or to a long silent joint
+    (``silent``) is a violation instead of a count.
     ``record_targets`` keeps every target sent, per joint, in ``report.sent``. The findings go into ``report`` as
     they are found (a caller whose frames fail half-way keeps them); a new one if none is given.
     """
@@ -508,8 +520,8 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
                    f"error frames {r.error_frames}; re-seeds {r.reseeds}")
         if r.silent_targets:
             out.append(f"  {r.silent_targets} target(s) went to a joint silent for longer than the stale window: "
-                       "they may never have arrived (not a violation; the step from the last target is what is "
-                       "checked)")
+                       "they may never have arrived (a violation only with --whole-run; the step from the last "
+                       "target is what is checked)")
         if r.unseeded_targets:
             out.append(f"  {r.unseeded_targets} target(s) came before any position of their joint: their first step "
                        "is not checked")
@@ -555,7 +567,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"reply gap after which a joint re-seeds (default {STALE_PERIODS:g} periods, as the daemon)")
     p.add_argument("--whole-run", action="store_true",
                    help="each log starts when the daemon started (its --can-log, or candump started before it): a "
-                        "target to a joint before any position reply of it is a violation (no-position)")
+                        "target to a joint before any position reply of it (no-position), or to a joint silent for "
+                        "longer than the stale window (silent), is a violation")
     p.add_argument("--collisions", action="store_true",
                    help="also check every commanded pose with the collision gate's model (self and world)")
     p.add_argument("--world", metavar="FILE", help="world objects for --collisions (default: config/world.yaml)")

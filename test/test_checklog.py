@@ -295,14 +295,22 @@ def test_a_target_before_any_position_is_a_violation_of_a_whole_run(tmp_path: Pa
     assert out.returncode == 1 and "no-position 1 (LSP 1)" in out.stdout, out.stdout
 
 
-def test_targets_to_a_silent_joint_are_counted(tmp_path: Path) -> None:
+def test_targets_to_a_silent_joint_are_counted_and_in_a_whole_run_violations(tmp_path: Path) -> None:
+    """Targets to a joint silent for longer than the stale window may never arrive: counted; in a whole daemon run
+    (where the daemon sends a silent node nothing) a violation once the silence is longer than the stale window
+    plus max_interval (0.35 + 0.15 s here: slack for where the daemon and the log date a reply)."""
     b = LogBuilder(0.1)
+    b.cycle()
     b.ramp({"LSP": -0.45}, 1.0)
     b.silent.add("LSP")
-    b.ramp({"LSP": -0.2}, 1.0)  # 10 targets; the first 3 within the stale window of the last reply
-    r = audit(b.write(tmp_path / "silent.asc"))
+    b.ramp({"LSP": -0.2}, 1.0)  # 10 targets, 0.098 .. 0.998 s after the last reply
+    path = b.write(tmp_path / "silent.asc")
+    r = audit(path)
     assert r.ok and r.silent_targets == 7
     assert "7 target(s) went to a joint silent" in checklog.format_report(checklog.Report([r]), TABLE)
+    r = audit(path, whole_run=True)
+    assert [(f.kind, f.joint, round(f.value, 3)) for f in r.findings] == [
+        ("silent", "LSP", round(0.098 + 0.1 * k, 3)) for k in range(5, 10)]
 
 
 def test_implausible_replies_are_ignored_and_never_re_seed(tmp_path: Path) -> None:
