@@ -678,6 +678,50 @@ def test_a_collision_hold_released_ramps(rig: Rig) -> None:
     assert_bounded(rig)
 
 
+def test_a_held_reference_is_read_with_its_hold(rig: Rig) -> None:
+    """The gate's hand-off is ordered: it puts a hold's report on mds-collide, then the held reference on mds-ref,
+    and the daemon reads mds-ref before mds-collide. Here the gate's two puts land between the daemon's two reads
+    of one cycle (the race the order closes): LEP moves at 1.2 rad/s when the gate holds the left arm at its last
+    reference. The daemon withholds the arm in that very cycle; read the other way round it would take the held
+    reference without its hold, and its limiter, braking from 1.2 rad/s, would pass the held reference (by up to
+    v^2/2a = 0.1 rad). test_collision_node.py::test_the_hold_is_put_on_mds_collide_before_the_held_reference is the
+    gate's side."""
+    lep = TABLE["LEP"]
+    drive(rig, 8, LEP=-1.2)
+    held = rig.loop.state.joint[lep.address].ref_r  # the last reference the gate passed: where it holds the arm
+    assert rig.loop.joints[lep.address].track.v < -1.0  # moving fast
+    sent = len(rig.targets("LEP"))
+    hold = MDS_COLLIDE()
+    hold.isCollide = 1
+    hold.joint[mds.COLLIDE_L_HAND].isCollide = 1
+    reads: list[str] = []
+
+    def between_the_reads(channel: StructChannel, name: str):
+        real = channel.latest
+
+        def latest(*args, **kwargs):
+            frame = real(*args, **kwargs)
+            reads.append(name)
+            if len(reads) == 1:  # the gate publishes right after the daemon's first read
+                rig.collide_out.put(hold)
+                rig.put_ref(LEP=held)
+            return frame
+        return latest
+
+    inputs = {"mds-ref": rig.loop.ch.ref, "mds-collide": rig.loop.ch.collide}
+    for name, channel in inputs.items():
+        channel.latest = between_the_reads(channel, name)
+    try:
+        rig.step()
+    finally:
+        for channel in inputs.values():
+            del channel.latest
+    assert sorted(reads) == ["mds-collide", "mds-ref"]
+    rig.step(5)
+    assert rig.targets("LEP")[sent:] == [], f"read {reads}: the held arm was sent {rig.targets('LEP')[sent:]}"
+    assert min(rig.targets("LEP")) >= held - 1e-6  # never past where the gate stopped it
+
+
 def test_home_then_a_small_goto_ramps_from_home(rig: Rig) -> None:
     """After HOME the joint is at its home position while the reference still says where it was before: a
     small goto from that old reference ramps from home (and the pipeline is told to restart at home)."""
