@@ -579,6 +579,32 @@ def assert_bounded(rig: Rig) -> Audit:
     return result
 
 
+def test_the_audit_catches_a_jump(rig: Rig, tmp_path: Path) -> None:
+    """The tests' audit (motion_audit over mds-ach check-log) is not blind: the rig's own log of a ramp, plus one
+    MOVETO 0.5 rad past the last target a period later, has exactly that step as a speed and an acceleration
+    violation, in memory and read back from a CAN log file."""
+    from motion_audit import read_log
+
+    rig.put_ref(LEP=-0.7)
+    ramp_done(rig, "LEP", -0.7)
+    assert_bounded(rig)
+    lep = TABLE["LEP"]
+    q = rig.targets("LEP")[-1] + 0.5
+    jump = can.Message(arbitration_id=lep.address, data=mcb.encode_moveto(lep.address, lep.to_counts(q)).data,
+                       is_extended_id=False)
+    frames = [*rig.log.frames, (rig.clock.now, jump)]
+    path = tmp_path / "jump.asc"
+    with can.Logger(str(path)) as writer:
+        for t, msg in frames:
+            writer.on_message_received(can.Message(timestamp=t, arbitration_id=msg.arbitration_id, data=msg.data,
+                                                   is_extended_id=False, is_error_frame=msg.is_error_frame))
+    for found in (audit(frames, TABLE, rig.loop.bounds, rig.loop.stale_after),
+                  audit(read_log(str(path)), TABLE, rig.loop.bounds, rig.loop.stale_after)):
+        assert [v.split()[3:5] for v in found.violations] == [["speed", "LEP"], ["acceleration", "LEP"]], \
+            found.violations
+        assert found.targets["LEP"][-1][1] == pytest.approx(q, abs=1e-6)
+
+
 def drive(rig: Rig, cycles: int, mode: int = mds.MDS_REF_MODE_REF, **speeds: float) -> None:
     """``cycles`` cycles, each after a new mds-ref frame moving the given joints at the given speeds (rad/s)."""
     a = {short: TABLE[short].address for short in speeds}
