@@ -9,7 +9,8 @@ upstream. Findings, each with the joint, the log time and the value against its 
 * ``address``: a frame that can move a joint (target, HOME) sent to an address that is not an enabled joint of
   the table, or broadcast to every node;
 * ``no-position`` (only for a log of one whole daemon run, ``whole_run``): a target to a joint before any valid
-  position reply of it -- the daemon never commands a joint whose position it does not know;
+  position reply of it, or before the first one after its count restarted or it came back from a silence -- the
+  daemon never commands a joint whose position it does not know;
 * ``silent`` (``whole_run`` too): a target to a joint that has not answered at all for longer than the stale
   window plus ``max_interval`` (slack for where the daemon and the log date a reply) -- the daemon sends a silent
   node nothing, since the target may never arrive and the node, once back, would jump to it;
@@ -22,19 +23,24 @@ upstream. Findings, each with the joint, the log time and the value against its 
 
 Tracks. A joint's sequence of targets is checked against the track of its previous target. A re-seed starts a
 track at the measured position, at rest (:meth:`mds_ach.motion.Track.reseed`): at the joint's first valid
-position reply, at the first valid reply after a HOME, RESET, ZERO_ENCODER, ENABLE or encoder SET to it (its
-count restarts, or it holds where it is; a reply from before that command is no start any more), and when its
-valid replies resume after a gap longer than the stale window (3.5 periods, the daemon's ``stale_after``). Until
-the joint's next target the re-seed follows its *latest* valid reply, as the daemon's track does: the daemon's
-first target after a re-seed states that very position. The first step after a re-seed passes if it is within
-bounds from the measured position or from the last sent target (the daemon may see a silence end a moment
-earlier or later than the log shows). An earlier reply is never a start: a joint that moved by itself (homing,
-moved by hand while disabled) is no longer there. Candidates that pass all stay in play (each is a history the
-daemon could have had); when none passes, the step is a violation (against the candidate it breaks least) and
-the sequence goes on from that candidate, so every offending step is reported once: a jump and the stop right
-after it are two. A reply is valid when the daemon would take it as a position at all
-(:func:`mds_ach.daemon_loop.reply_in_range`: finite, within the joint's range plus 5 % of it, at least 0.1 rad);
-anything else is ignored, as the daemon ignores it.
+position reply; after a HOME, RESET, ZERO_ENCODER or encoder SET to it, at its first valid reply (the count
+restarted: a reply from before the command is no start any more); after an ENABLE, at its latest valid reply
+(the node holds where it is); and when its valid replies resume after a gap longer than the stale window (3.5
+periods, the daemon's ``stale_after``). Until the joint's next target the re-seed follows its *latest* valid
+reply, as the daemon's track does: the daemon's first target after a re-seed states that very position. An
+earlier reply is never a start: a joint that moved by itself (homing, moved by hand while disabled) is no longer
+there. The first step after a re-seed passes if it is within bounds from the measured position or from the
+last sent target (the daemon may see a silence end a moment earlier or later than the log shows, and other
+software may not re-seed at all). In a whole daemon run (``whole_run``) the last target is no start after any of
+those commands, nor after a silence longer than the stale window plus ``max_interval`` (one the daemon cannot
+have missed): the daemon then certainly restarts from the measured position, and a target with no measured
+position to start from is a ``no-position`` violation.
+
+Candidates that pass all stay in play (each is a history the daemon could have had); when none passes, the step
+is a violation (against the candidate it breaks least) and the sequence goes on from that candidate, so every
+offending step is reported once: a jump and the stop right after it are two. A reply is valid when the daemon
+would take it as a position at all (:func:`mds_ach.daemon_loop.reply_in_range`: finite, within the joint's range
+plus 5 % of it, at least 0.1 rad); anything else is ignored, as the daemon ignores it.
 
 :func:`audit_frames` is the audit itself, on (time, frame) pairs of one daemon run; :func:`audit_file` feeds it
 a log file, and the tests (``test/motion_audit.py``) the frames of a daemon they ran.
@@ -115,7 +121,7 @@ class FileReport:
     error_frames: int = 0
     other_frames: int = 0  # extended IDs, wrong lengths
     reseeds: int = 0
-    unseeded_targets: int = 0  # targets of a joint with no known position and no earlier target
+    unseeded_targets: int = 0  # targets of a joint with no known position (and no earlier target to go on from)
     silent_targets: int = 0  # targets to a joint silent for longer than the stale window (they may not arrive)
     sent: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # (time, rad) per joint, if recorded
     poses_checked: int = 0
@@ -180,9 +186,11 @@ class _JointAudit:
     hi_counts: float
     sent: list[motion.Track] = field(default_factory=list)  # histories of the targets sent so far
     seed: motion.Track | None = None  # since a re-seed, until the next target: the latest valid reply, at rest
-    last_reply: float = -math.inf  # the latest valid position reply
+    last_reply: float = -math.inf  # when the latest valid position reply came
+    last_q: float = math.nan  # and what it said (rad)
     last_heard: float = -math.inf  # the latest finite position reply, valid or not (the daemon's last_heard)
     reseed_due: bool = False  # a command restarted the count: the next valid reply re-seeds
+    restart: bool = False  # whole run: the daemon certainly re-seeds, so the last target is no start any more
     holding: bool = True  # no target since the start or a setup command: the node holds where it is
 
 
@@ -243,6 +251,8 @@ class _Auditor:
             return
         q = ja.cfg.to_joint(counts) if math.isfinite(counts) else math.nan
         if math.isfinite(q):
+            if self.whole_run and t - ja.last_heard > self._certain_silence():
+                ja.restart = True  # back after a silence the daemon cannot have missed: it starts where it is
             ja.last_heard = t
         if not reply_in_range(ja.cfg, q):
             self.r.replies_ignored += 1
@@ -257,7 +267,7 @@ class _Auditor:
             self.r.reseeds += 1
         elif ja.seed is not None:
             ja.seed.reseed(q, t)  # until the next target: where the joint is now
-        ja.last_reply = t
+        ja.last_reply, ja.last_q = t, q
 
     def _command(self, t: float, f: mcb.McbFrame) -> None:
         dest = f.arbitration_id
@@ -272,23 +282,34 @@ class _Auditor:
             if f.argument == StateArg.TRAJECTORY_MODE and f.value == TrajectoryMode.HOME:
                 self.r.commands["HOME"] += 1
                 self._moves(t, dest, "HOME")
-                self._reseed_due(dest)
+                self._reseed_due(dest, count_restarts=True)
             elif f.argument == StateArg.ENCODER:
-                self._reseed_due(dest)
+                self._reseed_due(dest, count_restarts=True)
             return
         if f.command == Command.SET_TARGET:
             self._target(t, dest, float(f.value))
             return
         self.r.commands[_name(f.command)] += 1
         if f.command in _RESEED_COMMANDS:
-            self._reseed_due(dest)
+            self._reseed_due(dest, count_restarts=f.command != Command.ENABLE)
 
-    def _reseed_due(self, dest: int) -> None:
+    def _reseed_due(self, dest: int, count_restarts: bool) -> None:
+        """A re-seed command: the next valid reply re-seeds; in a whole run the daemon certainly restarts the
+        joint where it is measured, so its last target is no start any more. A count that restarts (HOME, RESET,
+        ZERO_ENCODER, encoder SET) voids the replies before the command; after ENABLE the node holds where it is,
+        so the latest reply before the command is where it is until the next one comes."""
         for a in (self.joints if dest == mcb.BROADCAST_SID else [dest]):
             if a in self.joints:
                 ja = self.joints[a]
                 ja.reseed_due = ja.holding = True
-                ja.seed = None  # a reply from before the command is not where the joint is after it
+                ja.restart |= self.whole_run
+                known = not count_restarts and math.isfinite(ja.last_q)
+                ja.seed = motion.Track(ja.last_q, 0.0, ja.last_reply) if known else None
+
+    def _certain_silence(self) -> float:
+        """A reply gap longer than this is a silence the daemon saw too (the stale window plus ``max_interval``
+        of slack for where the daemon and the log date a reply)."""
+        return self.stale + self.bounds.max_interval if self.bounds is not None else math.inf
 
     def _moves(self, t: float, dest: int, what: str) -> bool:
         """Is ``dest`` an enabled joint? Else an ``address`` finding for this motion frame."""
@@ -320,15 +341,16 @@ class _Auditor:
         silence = t - ja.last_heard if math.isfinite(ja.last_heard) else 0.0
         if silence > self.stale:
             self.r.silent_targets += 1
-            if self.whole_run and self.bounds is not None and silence > self.stale + self.bounds.max_interval:
+            if self.whole_run and silence > self._certain_silence():
                 self._find("silent", t, label, silence, self.stale,
                            f"target {q:.4f} rad to a joint silent for {silence:.3f} s (stale window "
                            f"{self.stale:.3f} s): it may never arrive, and the node, once back, would jump to it")
-        if not ja.sent and ja.seed is None:
+        if ja.seed is None and (not ja.sent or ja.restart):
             self.r.unseeded_targets += 1  # nothing known before it: its first step cannot be checked
             if self.whole_run:
+                since = "since its count restarted or it came back" if ja.sent else "of the joint"
                 self._find("no-position", t, label, q, math.nan, f"target {q:.4f} rad before any valid position "
-                                                                 "reply of the joint")
+                                                                 f"reply {since}")
         if not ja.lo_counts - COUNT_TOLERANCE <= counts <= ja.hi_counts + COUNT_TOLERANCE:
             bound = cfg.upper if q > cfg.upper else cfg.lower
             self._find("limit", t, label, q, bound, f"target {q:.4f} rad ({counts:.1f} counts) outside "
@@ -341,8 +363,8 @@ class _Auditor:
             self.pose_dirty = True
 
     def _motion(self, t: float, ja: _JointAudit, q: float) -> None:
-        candidates = ja.sent + ([ja.seed] if ja.seed is not None else [])
-        ja.seed = None
+        candidates = ([] if ja.restart else ja.sent) + ([ja.seed] if ja.seed is not None else [])
+        ja.seed, ja.restart = None, False
         if not candidates:  # nothing known before it (counted by _target): the sequence starts here
             ja.sent = [motion.Track(q, 0.0, t)]
             return

@@ -295,6 +295,47 @@ def test_a_target_before_any_position_is_a_violation_of_a_whole_run(tmp_path: Pa
     assert out.returncode == 1 and "no-position 1 (LSP 1)" in out.stdout, out.stdout
 
 
+def test_in_a_whole_run_a_silence_home_or_enable_ends_the_old_track(tmp_path: Path) -> None:
+    """In a log of one whole daemon run a silence longer than the stale window plus max_interval, a HOME or an
+    ENABLE certainly made the daemon restart the joint where it is: its next target may not go on from the last
+    one. LSP is silent for 0.6 s and comes back 0.4 rad away (moved by hand); a target 0.05 rad on from the last
+    one is a 0.35 rad jump for it. After a HOME, a target before any reply is one to a position nobody knows.
+    Disabled and moved by hand to -0.05, then enabled, the node holds at -0.05: a target at -0.4 right after the
+    ENABLE is a jump, one at -0.05 is not. Each log is clean when it may come from other software (not a whole
+    run)."""
+    back = LogBuilder(0.1)
+    back.cycle()
+    back.ramp({"LSP": -0.45}, 1.0)
+    back.silent.add("LSP")
+    for _ in range(6):
+        back.cycle()
+    back.silent.clear()
+    back.cycle(replies={"LSP": -0.05})
+    back.cycle({"LSP": -0.4})
+    home = LogBuilder(0.1)
+    home.cycle()
+    home.ramp({"LSP": -0.45}, 1.0)
+    home.raw(mcb.encode_home(TABLE["LSP"].address))
+    home.cycle({"LSP": -0.45})
+    enabled = {}
+    for target in (-0.4, -0.05):
+        b = enabled[target] = LogBuilder(0.1)
+        b.cycle()
+        b.ramp({"LSP": -0.45}, 1.0)
+        b.raw(mcb.encode_disable(TABLE["LSP"].address))
+        b.cycle(replies={"LSP": -0.05})
+        b.raw(mcb.encode_enable(TABLE["LSP"].address))
+        b.target("LSP", target)
+        b.cycle()
+    cases = ((back, {"speed", "acceleration"}), (home, {"no-position"}),
+             (enabled[-0.4], {"speed", "acceleration"}), (enabled[-0.05], set()))
+    for k, (b, kinds) in enumerate(cases):
+        path = b.write(tmp_path / f"case{k}.asc")
+        assert audit(path).ok
+        r = audit(path, whole_run=True)
+        assert found_kinds(r) == {(kind, "LSP") for kind in kinds}, (k, r.findings)
+
+
 def test_targets_to_a_silent_joint_are_counted_and_in_a_whole_run_violations(tmp_path: Path) -> None:
     """Targets to a joint silent for longer than the stale window may never arrive: counted; in a whole daemon run
     (where the daemon sends a silent node nothing) a violation once the silence is longer than the stale window

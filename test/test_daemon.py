@@ -683,6 +683,53 @@ def test_a_node_back_online_ramps_from_where_it_is(rig: Rig) -> None:
     assert_bounded(rig)
 
 
+def test_a_node_back_online_with_a_bogus_first_reply_still_restarts_where_it_is(rig: Rig) -> None:
+    """A node silent for 1 s comes back 0.65 rad from its last target (moved by hand, or restarted), and its first
+    answer is garbage (+5 rad). That reply is refused, and it must not cost the re-seed: once three consistent
+    replies restore the trust, the first target states where the joint is, then it ramps. (Before, the refused
+    reply ended the silence without a re-seed, and the next target went out from the old track: a 0.7 rad jump
+    for the node. The audit catches it too: in a whole run a silence ends every old track.)"""
+    lep = TABLE["LEP"]
+    rig.put_ref(LEP=-0.95)
+    ramp_done(rig, "LEP", -0.95)
+    rig.net.set_offline(lep.address)
+    rig.step(10)
+    rig.net.set_position(lep.address, lep.to_counts(-1.6))
+    rig.net.set_offline(lep.address, False)
+    rig.net.inject_frame(mcb.HOST_SID, bytes(mcb.encode_state_reply(lep.address, StateArg.ACTUAL_POSITION,
+                                                                    lep.to_counts(5.0)).data))
+    sent = len(rig.targets("LEP"))
+    rig.step(5)
+    assert status_of(rig).joint_bad_replies[lep.address] == 1
+    rig.put_ref(LEP=-0.9)
+    ramp_done(rig, "LEP", -0.9)
+    targets = rig.targets("LEP")[sent:]
+    assert targets[0] == pytest.approx(-1.6, abs=1e-6), targets  # where it stands, not where it was told to be
+    assert max(abs(b - a) for a, b in zip(targets, targets[1:], strict=False)) <= 0.9 * TABLE.max_velocity * 0.1
+    assert_bounded(rig)
+
+
+def test_enable_with_a_new_reference_in_the_same_cycle_starts_where_the_joint_is(rig: Rig) -> None:
+    """LEP is disabled and moved by hand 0.65 rad; ENABLE and a new reference arrive in one cycle. The first target
+    states where the joint is (its latest trusted reply), then it ramps. (Before, the track was re-seeded only by
+    the next reply, so that cycle re-stated the last target sent before DISABLE: a 0.65 rad jump for the node.)"""
+    lep = TABLE["LEP"]
+    rig.put_ref(LEP=-0.95)
+    ramp_done(rig, "LEP", -0.95)
+    rig.command(mds.MDS_CMD_DISABLE, lep.address, seq=2)
+    rig.step(2)
+    rig.net.set_position(lep.address, lep.to_counts(-1.6))
+    rig.step(3)
+    sent = len(rig.targets("LEP"))
+    rig.command(mds.MDS_CMD_ENABLE, lep.address, seq=3)
+    rig.put_ref(LEP=-0.9)
+    ramp_done(rig, "LEP", -0.9)
+    targets = rig.targets("LEP")[sent:]
+    assert targets[0] == pytest.approx(-1.6, abs=1e-6), targets
+    assert max(abs(b - a) for a, b in zip(targets, targets[1:], strict=False)) <= 0.9 * TABLE.max_velocity * 0.1
+    assert_bounded(rig)
+
+
 def test_a_collision_hold_released_ramps(rig: Rig) -> None:
     """While mds-collide flags the left arm its targets are withheld and its reference moves on; released, the
     arm ramps to the reference instead of receiving the accumulated distance in one frame."""
