@@ -312,7 +312,7 @@ def run(seed: int, seconds: float, rt: Path, rate: float = 10.0, out: Callable[[
 
 def audit(result: Result, collisions: bool = True) -> checklog.Report:
     model = checklog.collision_model() if collisions else None
-    return checklog.audit(result.can_logs, TABLE, model=model)
+    return checklog.audit(result.can_logs, TABLE, model=model, whole_run=True)  # each log: one daemon from its start
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,6 +18,7 @@ import pytest
 from support import VENV_BIN
 
 from mds_ach.bus import canio, mcb
+from mds_ach.nodes import daemon_loop
 from mds_ach.robot import config, motion
 from mds_ach.tools import checklog
 
@@ -235,14 +236,125 @@ def test_a_re_seed_lets_the_next_step_start_from_the_measured_position(tmp_path:
     assert found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
 
 
-def test_targets_to_a_silent_joint_are_counted(tmp_path: Path) -> None:
+def test_after_home_a_step_counts_from_the_latest_reply_not_the_first(tmp_path: Path) -> None:
+    """HOME moves the joint by itself: the first reply after it is a point the homing passed, not where the joint
+    is. The daemon's re-seed follows every reply up to its next target, so a target back to that first reply is a
+    0.3 rad jump from where the joint stands (it used to pass: the first reply was a candidate start too)."""
+    for target, clean in ((0.4, True), (0.1, False)):
+        b = LogBuilder(0.1)
+        b.ramp({"LSP": -0.45}, 1.0)
+        b.raw(mcb.encode_home(TABLE["LSP"].address))
+        for q in (0.1, 0.25, 0.4):  # homing, by itself
+            b.cycle(replies={"LSP": q})
+        b.cycle({"LSP": target})
+        r = audit(b.write(tmp_path / f"home-{target}.asc"))
+        assert r.ok if clean else found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
+
+
+def test_a_reply_from_before_a_home_is_no_start_after_it(tmp_path: Path) -> None:
+    """A node back online re-seeds at its reply (-0.05, moved by hand); then HOME restarts its count, and a target
+    before any reply after it may only continue from the last target, not from that older reply."""
     b = LogBuilder(0.1)
     b.ramp({"LSP": -0.45}, 1.0)
     b.silent.add("LSP")
-    b.ramp({"LSP": -0.2}, 1.0)  # 10 targets; the first 3 within the stale window of the last reply
-    r = audit(b.write(tmp_path / "silent.asc"))
+    for _ in range(5):
+        b.cycle()
+    b.silent.clear()
+    b.cycle(replies={"LSP": -0.05})
+    b.raw(mcb.encode_home(TABLE["LSP"].address))
+    b.target("LSP", -0.05)
+    b.cycle()
+    r = audit(b.write(tmp_path / "home.asc"))
+    assert found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
+
+
+def test_a_reply_counts_exactly_when_the_daemon_takes_it(tmp_path: Path) -> None:
+    """The auditor ignores a position reply by the daemon's own rule (daemon_loop.reply_in_range: the range plus 5 %
+    of it, at least 0.1 rad), so it re-seeds where the daemon does. LSR's margin is 0.138 rad."""
+    lsr = TABLE["LSR"]
+    margin = max(daemon_loop.REPLY_RANGE_MARGIN * (lsr.upper - lsr.lower), daemon_loop.REPLY_RANGE_MIN)
+    inside, outside = lsr.upper + margin - 0.01, lsr.upper + margin + 0.01
+    assert margin > 0.11 and daemon_loop.reply_in_range(lsr, inside) and not daemon_loop.reply_in_range(lsr, outside)
+    b = LogBuilder(0.1)
+    b.cycle(replies={"LSR": inside})
+    b.cycle(replies={"LSR": outside})
+    r = audit(b.write(tmp_path / "replies.asc"))
+    assert r.replies_ignored == 1 and r.replies_valid == 2 * len(TABLE) - 1
+
+
+def test_a_target_before_any_position_is_a_violation_of_a_whole_run(tmp_path: Path) -> None:
+    """A log that starts with the daemon (``--whole-run``, the tests' recorders, bench.adversary): the daemon never
+    commands a joint whose position it does not know, so such a target is a ``no-position`` violation; in a log
+    that may start mid-run it is only counted."""
+    b = LogBuilder(0.1)
+    b.cycle({"LSP": -0.45})  # before the first replies
+    b.ramp({"LSP": -0.45}, 0.5)
+    path = b.write(tmp_path / "early.asc")
+    r = audit(path)
+    assert r.ok and r.unseeded_targets == 1
+    r = audit(path, whole_run=True)
+    assert found(r) == {("no-position", "LSP", 0.0)} and r.unseeded_targets == 1
+    out = cli("--whole-run", path)
+    assert out.returncode == 1 and "no-position 1 (LSP 1)" in out.stdout, out.stdout
+
+
+def test_in_a_whole_run_a_silence_home_or_enable_ends_the_old_track(tmp_path: Path) -> None:
+    """In a log of one whole daemon run a silence longer than the stale window plus max_interval, a HOME or an
+    ENABLE certainly made the daemon restart the joint where it is: its next target may not go on from the last
+    one. LSP is silent for 0.6 s and comes back 0.4 rad away (moved by hand); a target 0.05 rad on from the last
+    one is a 0.35 rad jump for it. After a HOME, a target before any reply is one to a position nobody knows.
+    Disabled and moved by hand to -0.05, then enabled, the node holds at -0.05: a target at -0.4 right after the
+    ENABLE is a jump, one at -0.05 is not. Each log is clean when it may come from other software (not a whole
+    run)."""
+    back = LogBuilder(0.1)
+    back.cycle()
+    back.ramp({"LSP": -0.45}, 1.0)
+    back.silent.add("LSP")
+    for _ in range(6):
+        back.cycle()
+    back.silent.clear()
+    back.cycle(replies={"LSP": -0.05})
+    back.cycle({"LSP": -0.4})
+    home = LogBuilder(0.1)
+    home.cycle()
+    home.ramp({"LSP": -0.45}, 1.0)
+    home.raw(mcb.encode_home(TABLE["LSP"].address))
+    home.cycle({"LSP": -0.45})
+    enabled = {}
+    for target in (-0.4, -0.05):
+        b = enabled[target] = LogBuilder(0.1)
+        b.cycle()
+        b.ramp({"LSP": -0.45}, 1.0)
+        b.raw(mcb.encode_disable(TABLE["LSP"].address))
+        b.cycle(replies={"LSP": -0.05})
+        b.raw(mcb.encode_enable(TABLE["LSP"].address))
+        b.target("LSP", target)
+        b.cycle()
+    cases = ((back, {"speed", "acceleration"}), (home, {"no-position"}),
+             (enabled[-0.4], {"speed", "acceleration"}), (enabled[-0.05], set()))
+    for k, (b, kinds) in enumerate(cases):
+        path = b.write(tmp_path / f"case{k}.asc")
+        assert audit(path).ok
+        r = audit(path, whole_run=True)
+        assert found_kinds(r) == {(kind, "LSP") for kind in kinds}, (k, r.findings)
+
+
+def test_targets_to_a_silent_joint_are_counted_and_in_a_whole_run_violations(tmp_path: Path) -> None:
+    """Targets to a joint silent for longer than the stale window may never arrive: counted; in a whole daemon run
+    (where the daemon sends a silent node nothing) a violation once the silence is longer than the stale window
+    plus max_interval (0.35 + 0.15 s here: slack for where the daemon and the log date a reply)."""
+    b = LogBuilder(0.1)
+    b.cycle()
+    b.ramp({"LSP": -0.45}, 1.0)
+    b.silent.add("LSP")
+    b.ramp({"LSP": -0.2}, 1.0)  # 10 targets, 0.098 .. 0.998 s after the last reply
+    path = b.write(tmp_path / "silent.asc")
+    r = audit(path)
     assert r.ok and r.silent_targets == 7
     assert "7 target(s) went to a joint silent" in checklog.format_report(checklog.Report([r]), TABLE)
+    r = audit(path, whole_run=True)
+    assert [(f.kind, f.joint, round(f.value, 3)) for f in r.findings] == [
+        ("silent", "LSP", round(0.098 + 0.1 * k, 3)) for k in range(5, 10)]
 
 
 def test_implausible_replies_are_ignored_and_never_re_seed(tmp_path: Path) -> None:
@@ -329,10 +441,11 @@ def test_bad_options_exit_2(tmp_path: Path) -> None:
 
 def test_the_real_captures_decode_and_what_they_contain(shared_dir: Path) -> None:
     """The June 2015 captures of the original daemon (ms time stamps): every frame decodes; each holds one
-    captured MOVETO (LEP for the LEB runs, NKY for the neck runs), inside the joint's limits; at the cadence the
-    captures show (a position query every ~5 s) nothing breaks the bounds, but each MOVETO is one 25-45 degree
-    step: at the original 10 Hz loop that is 2.9-9.2 rad/s, far over the 2 rad/s bound (the original relied on
-    the MCB's own trajectory to ramp)."""
+    captured MOVETO (LEP for the LEB runs, NKY for the neck runs), inside the joint's limits. Each MOVETO is one
+    25-45 degree step: at the original 10 Hz loop that is 2.9-9.2 rad/s, far over the 2 rad/s bound (the original
+    relied on the MCB's own trajectory to ramp). At the cadence the captures show (a position query every ~5 s)
+    a step counts from the latest position reply before it: in mds-LEB.0--45deg.r2 that reply came 85 ms before
+    the MOVETO, so the 45 degree step shows at 9.2 rad/s there too; the others pass at that cadence."""
     files = sorted((shared_dir / REAL_LOGS).iterdir())
     assert len(files) == 8
     replies = 0
@@ -341,7 +454,12 @@ def test_the_real_captures_decode_and_what_they_contain(shared_dir: Path) -> Non
         r = audit(path)
         replies += r.replies_valid + r.replies_ignored + r.replies_unknown
         joint = "NKY" if "nky" in path.name else "LEP"
-        assert dict(r.targets) == {joint: 1} and r.replies_ignored == 0 and r.findings == []
+        assert dict(r.targets) == {joint: 1} and r.replies_ignored == 0
+        if path.name == "mds-LEB.0--45deg.r2":
+            assert found_kinds(r) == {("speed", joint), ("acceleration", joint)}
+            assert [round(f.value, 2) for f in r.findings if f.kind == "speed"] == [9.21]
+        else:
+            assert r.findings == []
         assert r.commands["SET TRAJECTORY_ACCELERATION"] == 1 and r.commands["SET TRAJECTORY_PERIOD"] == 1
         if path.name == "mds-nky.0deg":  # one position query only: the period must be given
             assert "--rate" in r.error

@@ -474,6 +474,65 @@ def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
     assert not t.is_alive()
 
 
+def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: None, table_model,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """The hand-off to the daemon is ordered: the gate puts a hold's report on mds-collide before the held reference
+    on mds-ref, and the daemon reads mds-ref before mds-collide, so a daemon that reads a held reference also reads
+    its hold (test_daemon.py::test_a_held_reference_is_read_with_its_hold is the daemon's side). Every put of the
+    runner is recorded in order while the left hand is driven into the table: at each mds-ref put, the newest
+    mds-collide already flags every arm that reference holds."""
+    from mds_ach.robot.channels import StructChannel
+
+    events: list[tuple[str, object]] = []  # (channel, frame copy) per put, ("held", arms) per gated frame
+    real_put = StructChannel.put
+
+    def recording_put(self: StructChannel, obj, lock_timeout: float | None = None) -> None:
+        real_put(self, obj, lock_timeout)
+        if self.name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_COLLIDE_NAME):
+            events.append((self.name, type(obj).from_buffer_copy(obj)))
+
+    def on_report(decision, gate, now: float) -> None:
+        if decision is not None:  # called after the frame's puts
+            events.append(("held", decision.held))
+
+    monkeypatch.setattr(StructChannel, "put", recording_put)
+    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    lower, upper = joint_limits(table_model)
+    logs: list[str] = []
+    runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg),
+                        on_report=on_report)
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    try:
+        assert runner.ready.wait(10), logs
+        target = HOME.copy()
+        target[L] = solve("left", [0.40, 0.25, -0.50])
+        core = FilterCore(parse_config({"rate": 40}), HOME, ZERO_MODE)
+        core.set_target(target, ZERO_MODE)
+        for k in range(120):  # lock-step: every frame is gated
+            smooth.put(make_ref(core.step(), ZERO_MODE))
+            wait_for(lambda k=k: runner.processed > k, 10, what=f"the gate to process frame {k}")
+    finally:
+        runner.stop()
+        t.join(5)
+        smooth.close()
+    assert not t.is_alive()
+    parts = {"left": LEFT_PARTS, "right": RIGHT_PARTS, "all": LEFT_PARTS + RIGHT_PARTS}
+    newest_collide, newest_ref_flags, holds = None, None, 0
+    for name, item in events:
+        if name == mds.MDS_CHAN_COLLIDE_NAME:
+            newest_collide = item
+        elif name == mds.MDS_CHAN_REF_NAME:
+            newest_ref_flags = newest_collide  # what a daemon reading mds-ref, then mds-collide, could see at best
+        elif item:  # the arms the reference just put holds
+            holds += 1
+            report = newest_ref_flags
+            assert report is not None and report.isCollide == 1, f"held {item} without a hold on mds-collide"
+            assert all(flags(report, parts[arm]) for arm in item), f"held {item}, mds-collide flags other parts"
+    assert holds > 5, "the left hand was never held"
+
+
 # --------------------------------------------------------------------------------------------- node
 
 

@@ -98,3 +98,16 @@ def test_targets_stay_in_bounds_and_inside_the_walls_whatever_the_target_velocit
         assert check(track, q, now, BOUNDS) == [], (track, q, now)
         assert lower - 1e-9 <= q <= upper + 1e-9, (track, q)
         track.advance(q, now, BOUNDS)
+
+
+def test_an_overestimated_reference_velocity_never_carries_the_target_past_a_reachable_stop() -> None:
+    """The daemon estimates the reference's velocity from samples; when the reference stopped (e.g. held by the
+    collision gate) and stopping there is within the acceleration bound, the target stops there, not beyond."""
+    track = Track(0.0, 0.5, 0.0)  # moving at 0.5 rad/s
+    q = limit(track, 0.02, 0.1, BOUNDS, desired_velocity=1.5)  # the stale estimate says 1.5 rad/s
+    assert 0.0 <= q <= 0.02 + 1e-12, q
+    assert check(track, q, 0.1, BOUNDS) == []
+    # where stopping is not within the bound, the bound wins: passed by what braking requires, no more
+    fast = Track(0.0, 1.6, 0.0)
+    q = limit(fast, 0.0, 0.1, BOUNDS, desired_velocity=1.6)
+    assert check(fast, q, 0.1, BOUNDS) == [] and 0.0 < q <= (1.6 - 0.9 * 8.0 * 0.1) * 0.1 + 1e-12, q

@@ -54,8 +54,7 @@ def test_random_commands_and_faults_never_break_the_safety_invariants(tmp_path: 
     # The scenario really exercised the system: motion went out, and most kinds of attack happened.
     assert sum(sum(r.targets.values()) for r in report.files) > 50, text
     assert len(result.counts) >= 5 and sum(result.counts.values()) >= 15, result.counts
-    # every daemon run that commanded something had its commanded poses collision-checked (a run killed before its
-    # first target has no pose to check)
+    # Every daemon log with targets had its commanded poses checked (a run killed before the first goto has none).
     assert all(r.poses_checked for r in report.files if not r.error and sum(r.targets.values())), text
     assert report.exit_code == 0, f"seed {seed} (MDS_AUDIT_SEED={seed} repeats it):\n" + "\n".join(
         result.actions) + "\n" + text

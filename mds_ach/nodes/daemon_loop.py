@@ -114,6 +114,13 @@ _LEFT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in LEFT_ARM)
 _RIGHT_ARM_ADDRESSES = frozenset(BY_SHORT[n].address for n in RIGHT_ARM)
 
 
+def reply_in_range(cfg: JointConfig, q: float) -> bool:
+    """Can a position reply of ``q`` rad be right at all: finite and within the joint's range plus the margin? The
+    daemon refuses anything else as a position; ``mds-ach check-log`` ignores it by the very same rule."""
+    margin = max(REPLY_RANGE_MARGIN * (cfg.upper - cfg.lower), REPLY_RANGE_MIN)
+    return math.isfinite(q) and cfg.lower - margin <= q <= cfg.upper + margin
+
+
 # --- channels --------------------------------------------------------------------------------------------
 
 
@@ -574,6 +581,10 @@ class DaemonLoop:
                     # The count restarts: old readings are void.
                     jr.pos, jr.last_reply, jr.last_heard = math.nan, -math.inf, -math.inf
                     jr.trusted, jr.suspect, jr.consistent = True, None, 0
+                elif math.isfinite(jr.pos):
+                    # ENABLE: the node holds where it is, which is the latest trusted reply, not the last target
+                    # (a disabled joint may have been moved by hand). A target in this very cycle starts there.
+                    jr.track.reseed(jr.pos, jr.last_reply)
                 jr.homing_since = now if cmd.code == mds.MDS_CMD_HOME else None
         names = ", ".join(jr.cfg.short for jr in targets)
         if failed:
@@ -802,11 +813,13 @@ class DaemonLoop:
         consistent with the last good reply. After an implausible one, REPLIES_TO_TRUST in-range replies in a
         row, each consistent with the one before, make the position trusted again. Replies after a silence
         longer than ``stale_after`` re-seed the track (a node back online)."""
-        resumed = now - jr.last_heard > self.stale_after
+        if now - jr.last_heard > self.stale_after:
+            # A node back after a silence: it restarts where it is now, not from what it was told before -- even
+            # when this first reply is refused (the re-seed then waits for the replies that restore the trust).
+            jr.reseed = True
         jr.last_heard = now
         cfg = jr.cfg
-        margin = max(REPLY_RANGE_MARGIN * (cfg.upper - cfg.lower), REPLY_RANGE_MIN)
-        in_range = cfg.lower - margin <= q <= cfg.upper + margin
+        in_range = reply_in_range(cfg, q)
 
         def near(q0: float, t0: float) -> bool:
             return abs(q - q0) <= REPLY_SPEED_FACTOR * self.bounds.max_velocity * max(now - t0, 0.0) + REPLY_SLACK
@@ -831,8 +844,6 @@ class DaemonLoop:
         else:
             jr.vel = 0.0
         jr.pos, jr.last_reply = q, now
-        if resumed:
-            jr.reseed = True  # a node back after a silence: where it is now, not what it was told before
         if jr.reseed:
             jr.track.reseed(q, now)
             jr.ref, jr.goal, jr.goal_t = q, cfg.clamp(q), -math.inf

@@ -93,10 +93,10 @@ def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin
 
     Velocity-limited and acceleration-limited. ``desired_velocity`` is how fast ``desired`` itself moves (0: a
     target at rest): the limiter closes the gap relative to that motion, so a reference that moves within the
-    bounds is followed exactly instead of trailing it by the braking distance. Braking assumes the target keeps
-    that speed: a target that stops (or jumps back) more abruptly than the bounds allow is passed by at most
-    ``v^2 / (2 a)`` (never a jump), but not beyond ``lower``/``upper``: the limiter brakes for those like for a
-    target at rest (exactly so while the steps are regular; the caller clamps as a last resort).
+    bounds is followed exactly instead of trailing it by the braking distance. A step never goes past ``desired``
+    unless the acceleration bound requires it: a target that stops (or jumps back) more abruptly than the bounds
+    allow is passed by at most ``v^2 / (2 a)`` (never a jump), but not beyond ``lower``/``upper``: the limiter brakes
+    for those like for a target at rest (exactly so while the steps are regular; the caller clamps as a last resort).
     """
     h = bounds.interval(now - track.t)
     if h <= 0:
@@ -107,6 +107,11 @@ def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin
     gap = desired - track.q - v_goal * h  # what is left to close after moving along with the target
     v = v_goal + math.copysign(_stop_speed(abs(gap), h, a_max), gap)
     v = min(max(v, -v_max, -_stop_speed(track.q - lower, h, a_max)), v_max, _stop_speed(upper - track.q, h, a_max))
+    # Never plan past ``desired`` in this step: ``desired_velocity`` is an estimate (from sampled references) and the
+    # reference may have stopped where the collision gate holds it; only the acceleration bound below may carry the
+    # target past it, by what braking within the bound requires.
+    d = desired - track.q
+    v = min(v, d / h) if d >= 0 else max(v, d / h)
     # The acceleration bound wins: if the track came in faster than allowed, brake as hard as allowed.
     v = min(max(v, v0 - a_max * h), v0 + a_max * h)
     return track.q + v * h

@@ -8,6 +8,12 @@ upstream. Findings, each with the joint, the log time and the value against its 
 * ``limit``: a MOVETO (or SET_TARGET) target outside the joint's range (in counts, half a count of tolerance);
 * ``address``: a frame that can move a joint (target, HOME) sent to an address that is not an enabled joint of
   the table, or broadcast to every node;
+* ``no-position`` (only for a log of one whole daemon run, ``whole_run``): a target to a joint before any valid
+  position reply of it, or before the first one after its count restarted or it came back from a silence -- the
+  daemon never commands a joint whose position it does not know;
+* ``silent`` (``whole_run`` too): a target to a joint that has not answered at all for longer than the stale
+  window plus ``max_interval`` (slack for where the daemon and the log date a reply) -- the daemon sends a silent
+  node nothing, since the target may never arrive and the node, once back, would jump to it;
 * ``speed``, ``acceleration``: :func:`mds_ach.robot.motion.check` on every target, per joint, exactly the definition
   the daemon's limiter enforces;
 * ``collision`` (``--collisions``): the commanded pose after a batch of targets collides, with the collision
@@ -17,16 +23,27 @@ upstream. Findings, each with the joint, the log time and the value against its 
 
 Tracks. A joint's sequence of targets is checked against the track of its previous target. A re-seed starts a
 track at the measured position, at rest (:meth:`mds_ach.robot.motion.Track.reseed`): at the joint's first valid
-position reply, at the first valid reply after a HOME, RESET, ZERO_ENCODER, ENABLE or encoder SET to it (its
-count restarts, or it holds where it is), and when its valid replies resume after a gap longer than the stale
-window (3.5 periods, the daemon's ``stale_after``). The daemon may re-seed at a slightly different moment than
-the log shows, so from a re- seed until the joint's next target every valid reply is a candidate start as well,
-and the next step passes if it is within bounds from any candidate: the last sent target, the first reply, or the
-latest one. Candidates that pass all stay in play (each is a history the daemon could have had); when none
-passes, the step is a violation (against the candidate it breaks least) and the sequence goes on from that
-candidate, so every offending step is reported once: a jump and the stop right after it are two. A reply is valid
-when it is finite and within the joint's range plus 0.1 rad (anything else is implausible and ignored, as the
-daemon ignores it).
+position reply; after a HOME, RESET, ZERO_ENCODER or encoder SET to it, at its first valid reply (the count
+restarted: a reply from before the command is no start any more); after an ENABLE, at its latest valid reply
+(the node holds where it is); and when its valid replies resume after a gap longer than the stale window (3.5
+periods, the daemon's ``stale_after``). Until the joint's next target the re-seed follows its *latest* valid
+reply, as the daemon's track does: the daemon's first target after a re-seed states that very position. An
+earlier reply is never a start: a joint that moved by itself (homing, moved by hand while disabled) is no longer
+there. The first step after a re-seed passes if it is within bounds from the measured position or from the
+last sent target (the daemon may see a silence end a moment earlier or later than the log shows, and other
+software may not re-seed at all). In a whole daemon run (``whole_run``) the last target is no start after any of
+those commands, nor after a silence longer than the stale window plus ``max_interval`` (one the daemon cannot
+have missed): the daemon then certainly restarts from the measured position, and a target with no measured
+position to start from is a ``no-position`` violation.
+
+Candidates that pass all stay in play (each is a history the daemon could have had); when none passes, the step
+is a violation (against the candidate it breaks least) and the sequence goes on from that candidate, so every
+offending step is reported once: a jump and the stop right after it are two. A reply is valid when the daemon
+would take it as a position at all (:func:`mds_ach.nodes.daemon_loop.reply_in_range`: finite, within the joint's range
+plus 5 % of it, at least 0.1 rad); anything else is ignored, as the daemon ignores it.
+
+:func:`audit_frames` is the audit itself, on (time, frame) pairs of one daemon run; :func:`audit_file` feeds it
+a log file, and the tests (``test/support/motion_audit.py``) the frames of a daemon they ran.
 
 The daemon period (for ``max_interval`` = 1.5 periods and the stale window) is the median interval of the
 broadcast position query, which the daemon sends once per cycle, or ``--rate``.
@@ -50,15 +67,15 @@ import numpy as np
 
 from mds_ach.bus import canio, mcb
 from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
+from mds_ach.nodes.daemon_loop import reply_in_range
 from mds_ach.robot import motion
 from mds_ach.robot.config import ConfigError, JointConfig, JointTable
 from mds_ach.robot.msgs import MDS_JOINT_COUNT
 
-KINDS = ("non-finite", "limit", "address", "speed", "acceleration", "collision")
+KINDS = ("non-finite", "limit", "address", "no-position", "silent", "speed", "acceleration", "collision")
 MOTION_KINDS = ("speed", "acceleration")
 STALE_PERIODS = 3.5  # the daemon's stale_after (mds_ach.nodes.daemon_loop): 3.5 periods, at least 20 ms
 MIN_STALE = 0.02
-REPLY_MARGIN = 0.1  # rad beyond the joint's range: a position reply further out is implausible
 COUNT_TOLERANCE = 0.5  # counts: float32 rounding of a target at a limit is far below one encoder count
 # Commands after which a node's count restarts or it holds where it is: the next valid reply re-seeds (HOME, a
 # SET of TRAJECTORY_MODE, and encoder SETs are handled with the SETs).
@@ -105,8 +122,9 @@ class FileReport:
     error_frames: int = 0
     other_frames: int = 0  # extended IDs, wrong lengths
     reseeds: int = 0
-    unseeded_targets: int = 0  # targets of a joint with no known position and no earlier target
+    unseeded_targets: int = 0  # targets of a joint with no known position (and no earlier target to go on from)
     silent_targets: int = 0  # targets to a joint silent for longer than the stale window (they may not arrive)
+    sent: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # (time, rad) per joint, if recorded
     poses_checked: int = 0
     findings: list[Finding] = field(default_factory=list)
 
@@ -162,27 +180,35 @@ def _is_position_query(msg: Any) -> bool:
 
 @dataclass
 class _JointAudit:
-    """Per joint: the candidate tracks of its last sent target, the pending re-seed candidates, the replies."""
+    """Per joint: the candidate tracks of its last sent target, the pending re-seed, the replies."""
 
     cfg: JointConfig
     lo_counts: float
     hi_counts: float
     sent: list[motion.Track] = field(default_factory=list)  # histories of the targets sent so far
-    seeds: list[motion.Track] = field(default_factory=list)  # since a re-seed, until the next target: first, latest
-    last_reply: float = -math.inf
+    seed: motion.Track | None = None  # since a re-seed, until the next target: the latest valid reply, at rest
+    last_reply: float = -math.inf  # when the latest valid position reply came
+    last_q: float = math.nan  # and what it said (rad)
+    last_heard: float = -math.inf  # the latest finite position reply, valid or not (the daemon's last_heard)
     reseed_due: bool = False  # a command restarted the count: the next valid reply re-seeds
+    restart: bool = False  # whole run: the daemon certainly re-seeds, so the last target is no start any more
     holding: bool = True  # no target since the start or a setup command: the node holds where it is
 
 
 class _Auditor:
     """Consumes one log's frames in order and fills a FileReport."""
 
-    def __init__(self, table: JointTable, report: FileReport, model: Any | None, t0: float) -> None:
+    def __init__(self, table: JointTable, report: FileReport, model: Any | None, t0: float, whole_run: bool,
+                 record: bool) -> None:
         self.table = table
         self.r = report
         self.bounds = report.bounds
         self.stale = report.stale_after if report.stale_after is not None else math.inf
         self.t0 = t0
+        self.whole_run = whole_run
+        self.record = record
+        if record:
+            report.sent = {j.short: [] for j in table}
         self.joints: dict[int, _JointAudit] = {}
         for j in table:
             a, b = j.to_counts(j.lower), j.to_counts(j.upper)
@@ -196,8 +222,7 @@ class _Auditor:
 
     # ----- frames
 
-    def frame(self, msg: Any) -> None:
-        t = msg.timestamp
+    def frame(self, t: float, msg: Any) -> None:
         if msg.is_error_frame:
             self.r.error_frames += 1
             return
@@ -226,7 +251,11 @@ class _Auditor:
             self.r.replies_unknown += 1
             return
         q = ja.cfg.to_joint(counts) if math.isfinite(counts) else math.nan
-        if not (math.isfinite(q) and ja.cfg.lower - REPLY_MARGIN <= q <= ja.cfg.upper + REPLY_MARGIN):
+        if math.isfinite(q):
+            if self.whole_run and t - ja.last_heard > self._certain_silence():
+                ja.restart = True  # back after a silence the daemon cannot have missed: it starts where it is
+            ja.last_heard = t
+        if not reply_in_range(ja.cfg, q):
             self.r.replies_ignored += 1
             return
         self.r.replies_valid += 1
@@ -235,13 +264,11 @@ class _Auditor:
         first = ja.last_reply == -math.inf
         if first or ja.reseed_due or t - ja.last_reply > self.stale:  # after HOME/RESET/ZERO, after a gap
             ja.reseed_due = False
-            ja.seeds = [motion.Track(q, 0.0, t)]
+            ja.seed = motion.Track(q, 0.0, t)
             self.r.reseeds += 1
-        elif len(ja.seeds) == 1:
-            ja.seeds.append(motion.Track(q, 0.0, t))
-        elif ja.seeds:
-            ja.seeds[1].reseed(q, t)
-        ja.last_reply = t
+        elif ja.seed is not None:
+            ja.seed.reseed(q, t)  # until the next target: where the joint is now
+        ja.last_reply, ja.last_q = t, q
 
     def _command(self, t: float, f: mcb.McbFrame) -> None:
         dest = f.arbitration_id
@@ -256,21 +283,34 @@ class _Auditor:
             if f.argument == StateArg.TRAJECTORY_MODE and f.value == TrajectoryMode.HOME:
                 self.r.commands["HOME"] += 1
                 self._moves(t, dest, "HOME")
-                self._reseed_due(dest)
+                self._reseed_due(dest, count_restarts=True)
             elif f.argument == StateArg.ENCODER:
-                self._reseed_due(dest)
+                self._reseed_due(dest, count_restarts=True)
             return
         if f.command == Command.SET_TARGET:
             self._target(t, dest, float(f.value))
             return
         self.r.commands[_name(f.command)] += 1
         if f.command in _RESEED_COMMANDS:
-            self._reseed_due(dest)
+            self._reseed_due(dest, count_restarts=f.command != Command.ENABLE)
 
-    def _reseed_due(self, dest: int) -> None:
+    def _reseed_due(self, dest: int, count_restarts: bool) -> None:
+        """A re-seed command: the next valid reply re-seeds; in a whole run the daemon certainly restarts the
+        joint where it is measured, so its last target is no start any more. A count that restarts (HOME, RESET,
+        ZERO_ENCODER, encoder SET) voids the replies before the command; after ENABLE the node holds where it is,
+        so the latest reply before the command is where it is until the next one comes."""
         for a in (self.joints if dest == mcb.BROADCAST_SID else [dest]):
             if a in self.joints:
-                self.joints[a].reseed_due = self.joints[a].holding = True
+                ja = self.joints[a]
+                ja.reseed_due = ja.holding = True
+                ja.restart |= self.whole_run
+                known = not count_restarts and math.isfinite(ja.last_q)
+                ja.seed = motion.Track(ja.last_q, 0.0, ja.last_reply) if known else None
+
+    def _certain_silence(self) -> float:
+        """A reply gap longer than this is a silence the daemon saw too (the stale window plus ``max_interval``
+        of slack for where the daemon and the log date a reply)."""
+        return self.stale + self.bounds.max_interval if self.bounds is not None else math.inf
 
     def _moves(self, t: float, dest: int, what: str) -> bool:
         """Is ``dest`` an enabled joint? Else an ``address`` finding for this motion frame."""
@@ -297,8 +337,21 @@ class _Auditor:
             return
         cfg = ja.cfg
         q = cfg.to_joint(counts)
-        if math.isfinite(ja.last_reply) and t - ja.last_reply > self.stale:
+        if self.record:
+            self.r.sent.setdefault(cfg.short, []).append((t, q))
+        silence = t - ja.last_heard if math.isfinite(ja.last_heard) else 0.0
+        if silence > self.stale:
             self.r.silent_targets += 1
+            if self.whole_run and silence > self._certain_silence():
+                self._find("silent", t, label, silence, self.stale,
+                           f"target {q:.4f} rad to a joint silent for {silence:.3f} s (stale window "
+                           f"{self.stale:.3f} s): it may never arrive, and the node, once back, would jump to it")
+        if ja.seed is None and (not ja.sent or ja.restart):
+            self.r.unseeded_targets += 1  # nothing known before it: its first step cannot be checked
+            if self.whole_run:
+                since = "since its count restarted or it came back" if ja.sent else "of the joint"
+                self._find("no-position", t, label, q, math.nan, f"target {q:.4f} rad before any valid position "
+                                                                 f"reply {since}")
         if not ja.lo_counts - COUNT_TOLERANCE <= counts <= ja.hi_counts + COUNT_TOLERANCE:
             bound = cfg.upper if q > cfg.upper else cfg.lower
             self._find("limit", t, label, q, bound, f"target {q:.4f} rad ({counts:.1f} counts) outside "
@@ -311,10 +364,9 @@ class _Auditor:
             self.pose_dirty = True
 
     def _motion(self, t: float, ja: _JointAudit, q: float, bounds: motion.MotionBounds) -> None:
-        candidates = ja.sent + ja.seeds
-        ja.seeds = []
-        if not candidates:
-            self.r.unseeded_targets += 1  # nothing known before it: the sequence starts here
+        candidates = ([] if ja.restart else ja.sent) + ([ja.seed] if ja.seed is not None else [])
+        ja.seed, ja.restart = None, False
+        if not candidates:  # nothing known before it (counted by _target): the sequence starts here
             ja.sent = [motion.Track(q, 0.0, t)]
             return
         results = [(track, motion.check(track, q, t, bounds)) for track in candidates]
@@ -382,8 +434,36 @@ def _name(code: int) -> str:
     return code.name if hasattr(code, "name") else f"0x{code:02X}"
 
 
+def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds: motion.MotionBounds | None,
+                 stale_after: float | None, *, model: Any | None = None, whole_run: bool = False,
+                 record_targets: bool = False, report: FileReport | None = None) -> FileReport:
+    """Audit the frames (time in s, ``can.Message``) of one daemon run, host frames and node replies in order.
+
+    ``bounds`` and ``stale_after`` are the daemon's (``None``: speed and acceleration are not checked, a reply gap
+    never re-seeds). ``whole_run``: the frames start when the daemon started (its own ``--can-log``, a test's
+    recorder), so a target before its joint's first position (``no-position``) or to a long silent joint
+    (``silent``) is a violation instead of a count.
+    ``record_targets`` keeps every target sent, per joint, in ``report.sent``. The findings go into ``report`` as
+    they are found (a caller whose frames fail half-way keeps them); a new one if none is given.
+    """
+    report = report if report is not None else FileReport("")
+    report.bounds, report.stale_after = bounds, stale_after
+    auditor: _Auditor | None = None
+    t = 0.0
+    for t, msg in frames:
+        if auditor is None:
+            report.start_stamp = t
+            auditor = _Auditor(table, report, model, t, whole_run, record_targets)
+        auditor.frame(t, msg)
+        report.frames += 1
+    if auditor is not None:
+        auditor.finish(t)
+        report.duration = t - report.start_stamp
+    return report
+
+
 def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None,
-               stale_after: float | None = None, model: Any | None = None) -> FileReport:
+               stale_after: float | None = None, model: Any | None = None, whole_run: bool = False) -> FileReport:
     """Audit one log (any format :func:`mds_ach.bus.canio.read_log` reads); never raises for a bad file."""
     report = FileReport(str(path))
     try:
@@ -394,25 +474,16 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
             report.period, n = infer_period(path)
             if report.period is not None:
                 report.period_source = f"inferred from {n} position queries (median interval)"
+        bounds = stale = None
         if report.period is not None:
-            report.bounds = table.motion_bounds(report.period)
-            report.stale_after = stale_after if stale_after is not None else \
-                max(STALE_PERIODS * report.period, MIN_STALE)
-        auditor: _Auditor | None = None
-        t = 0.0
+            bounds = table.motion_bounds(report.period)
+            stale = stale_after if stale_after is not None else max(STALE_PERIODS * report.period, MIN_STALE)
         torn: list[str] = []
-        for msg in _read(path, torn):
-            t = msg.timestamp
-            if auditor is None:
-                report.start_stamp = t
-                auditor = _Auditor(table, report, model, t)
-            auditor.frame(msg)
-            report.frames += 1
-        if auditor is None:
+        audit_frames(((msg.timestamp, msg) for msg in _read(path, torn)), table, bounds, stale, model=model,
+                     whole_run=whole_run, report=report)
+        if not report.frames:
             report.error = "no CAN frames in the file"
             return report
-        auditor.finish(t)
-        report.duration = t - report.start_stamp
         if torn:
             report.warning = f"{torn[0]}: the frames before it are audited"
     except (canio.LogReadError, OSError) as exc:
@@ -425,9 +496,10 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
 
 
 def audit(paths: Sequence[str | Path], table: JointTable, *, rate: float | None = None,
-          stale_after: float | None = None, model: Any | None = None) -> Report:
+          stale_after: float | None = None, model: Any | None = None, whole_run: bool = False) -> Report:
     """Audit each log on its own (one daemon run per file: a restarted daemon re-seeds like a new log)."""
-    return Report([audit_file(p, table, rate=rate, stale_after=stale_after, model=model) for p in paths])
+    return Report([audit_file(p, table, rate=rate, stale_after=stale_after, model=model, whole_run=whole_run)
+                   for p in paths])
 
 
 # --------------------------------------------------------------------------------------------- the report
@@ -466,13 +538,13 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
         if r.commands:
             out.append("  commands: " + ", ".join(f"{k} {n}" for k, n in sorted(r.commands.items())))
         out.append(f"  position queries {r.queries}; position replies {r.replies_valid} valid, {r.replies_ignored} "
-                   f"ignored (non-finite or beyond the range + {REPLY_MARGIN} rad), {r.replies_unknown} from nodes "
+                   f"ignored (non-finite or beyond the range + 5 %, at least 0.1 rad), {r.replies_unknown} from nodes "
                    f"not in the table; other replies {r.other_replies}; "
                    f"error frames {r.error_frames}; re-seeds {r.reseeds}")
         if r.silent_targets:
             out.append(f"  {r.silent_targets} target(s) went to a joint silent for longer than the stale window: "
-                       "they may never have arrived (not a violation; the step from the last target is what is "
-                       "checked)")
+                       "they may never have arrived (a violation only with --whole-run; the step from the last "
+                       "target is what is checked)")
         if r.unseeded_targets:
             out.append(f"  {r.unseeded_targets} target(s) came before any position of their joint: their first step "
                        "is not checked")
@@ -516,6 +588,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="daemon loop rate (default: inferred from the broadcast position queries)")
     p.add_argument("--stale-after", type=float, metavar="S",
                    help=f"reply gap after which a joint re-seeds (default {STALE_PERIODS:g} periods, as the daemon)")
+    p.add_argument("--whole-run", action="store_true",
+                   help="each log starts when the daemon started (its --can-log, or candump started before it): a "
+                        "target to a joint before any position reply of it (no-position), or to a joint silent for "
+                        "longer than the stale window (silent), is a violation")
     p.add_argument("--collisions", action="store_true",
                    help="also check every commanded pose with the collision gate's model (self and world)")
     p.add_argument("--world", metavar="FILE", help="world objects for --collisions (default: config/world.yaml)")
@@ -540,7 +616,8 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, OSError, ValueError) as exc:
         print(f"mds-ach check-log: {exc}", file=sys.stderr)
         return 2
-    report = audit(args.files, table, rate=args.rate, stale_after=args.stale_after, model=model)
+    report = audit(args.files, table, rate=args.rate, stale_after=args.stale_after, model=model,
+                   whole_run=args.whole_run)
     print(format_report(report, table, args.max))
     return report.exit_code
 

@@ -1,4 +1,4 @@
-"""The original MDS IK chain (specs section e.1), written out independently of ``mds_ach.kinematics``: the
+"""The original MDS IK chain (specs section e.1), written out independently of ``mds_ach.kinematics.model``: the
 reference the URDF, the numpy kinematics, the IK and the console's ``get fk`` are checked against."""
 
 from __future__ import annotations
