@@ -25,9 +25,9 @@ import pytest
 from support import REPO, in_netns
 
 from mds_ach import ach
-from mds_ach.ach import repair
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_REF
+from mds_ach.tools import repair
 
 NAME = "test-safety"
 LAYOUT = ach.native_layout()

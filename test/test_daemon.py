@@ -428,7 +428,7 @@ def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clea
     """mds-ref left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
     `mds-ach repair` the first new reference is approached within the motion bounds, like after a restart."""
     from mds_ach import ach
-    from mds_ach.ach import repair
+    from mds_ach.tools import repair
 
     rig = DaemonRig(pose={"LEP": -1.0})
     try:

@@ -29,12 +29,11 @@ from support.system import HEARTBEATS, START_TIMEOUT, mds_ach, wait_heartbeat
 
 import mds_ach as mds
 from mds_ach import ach
-from mds_ach.ach import repair
 from mds_ach.bus import mcb
 from mds_ach.bus.mcb import StateArg
 from mds_ach.robot.channels import StructChannel, make_channels
 from mds_ach.robot.msgs import MDS_REF, MDS_STATE
-from mds_ach.tools import launcher
+from mds_ach.tools import launcher, repair
 
 # ============================================================================================ 3. the running system
 

@@ -23,9 +23,9 @@ from support.system import mds_ach
 
 import mds_ach as mds
 from mds_ach import ach
-from mds_ach.ach import repair
 from mds_ach.robot import access as channel_access
 from mds_ach.robot.msgs import MDS_REF, MDS_STATE
+from mds_ach.tools import repair
 
 # ============================================================================================ 1. crashed writers
 

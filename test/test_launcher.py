@@ -17,10 +17,10 @@ from support.system import mds_ach, running_system, system_env
 
 import mds_ach as mds
 from mds_ach import ach
-from mds_ach.ach import repair
 from mds_ach.robot.config import load
 from mds_ach.robot.msgs import get_name
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
+from mds_ach.tools import repair
 from mds_ach.tools.launcher import NODES, node_command
 
 VERBS = ["start", "run", "stop", "kill", "killall", "status", "resetbus", "changerobot", "console", "read"]

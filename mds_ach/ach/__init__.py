@@ -55,12 +55,11 @@ Why some things look the way they do:
 This package owns the channel format and everything that touches channel files: status codes
 (``status``), the byte layout (``layout``), the one glibc binding (``glibc``), read-only image parsing
 (``image``), channel files, creation and the SIGBUS guard (``files``), the ``Channel`` handle (``channel``,
-with the C twins ``_achfast`` and ``_shmguard``), the read-only watcher (``watch``) and ``mds-ach repair``
-(``repair``). It re-exports the public API, so ``from mds_ach import ach; ach.Channel(...)`` is all a client
+with the C twins ``_achfast`` and ``_shmguard``) and the read-only watcher (``watch``); ``mds-ach repair``, which
+applies the MDS channel list and access rules to these files, lives in ``mds_ach.tools.repair``. It re-exports the public API, so ``from mds_ach import ach; ach.Channel(...)`` is all a client
 needs.
 
-Imports: the standard library only; nothing else of mds_ach (it is the bottom layer). Exception still to remove:
-``repair`` (a command) reads the channel list and the access rules from ``mds_ach`` / ``mds_ach.robot.access``.
+Imports: the standard library only; nothing else of mds_ach (it is the bottom layer; ``test_layers.py`` checks).
 """
 
 from __future__ import annotations

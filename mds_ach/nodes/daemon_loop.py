@@ -328,11 +328,13 @@ class DaemonLoop:
 
     # --- start-up --------------------------------------------------------------------------------------
 
-    def start_up(self, listen: float = 0.5, queries: int = 3) -> int:
+    def start_up(self, listen: float = 2.0, queries: int = 8) -> int:
         """Publish ``mds-param``, read where the robot is and start the reference there (no step).
 
         Joints that answer start at their measured position (their tracks are re-seeded there); the others
-        show the configured home pose and get no target until they answer. No motion frame is sent until a
+        show the configured home pose and get no target until they answer. It asks ``queries`` times within
+        ``listen`` s and returns as soon as every joint answered (under CPU load replies come late: a short window
+        made a joint that was merely slow show home and then jump to where it is). No motion frame is sent until a
         reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped. Returns how many joints answered.
         """
         self._put(self.ch.param, self.table.to_param())

@@ -39,7 +39,7 @@ VERBS: dict[str, Verb] = {
     "dump": Verb("print the newest frame of a channel, decoded by its type",
                  "mds_ach.tools.chantool:add_dump_arguments", "mds_ach.tools.chantool:run_dump"),
     "repair": Verb("check the channels; repair corrupt ones in place (a writer killed inside a put)",
-                   "mds_ach.ach.repair:add_arguments", "mds_ach.ach.repair:run"),
+                   "mds_ach.tools.repair:add_arguments", "mds_ach.tools.repair:run"),
     "check-log": Verb("audit a CAN log: targets finite, in limits, to enabled joints, within speed/acceleration",
                       "mds_ach.tools.checklog:add_arguments", "mds_ach.tools.checklog:run"),
     # operator verbs (mds_ach.tools.launcher, console, read)

@@ -416,8 +416,8 @@ def channel_problems(names: Sequence[str] = mds.ALL_CHANNELS) -> dict[str, str]:
     (while others exist), owned by another user or too open, not an Ach file, truncated, corrupt, locked, or of
     the wrong size."""
     from mds_ach import ach
-    from mds_ach.ach import repair
     from mds_ach.robot.channels import check_existing
+    from mds_ach.tools import repair
 
     if not any(os.path.lexists(ach.shm_path(n)) for n in names):
         return {}  # nothing made yet: the node lines already say that nothing runs
