@@ -56,8 +56,8 @@ This package owns the channel format and everything that touches channel files: 
 (``status``), the byte layout (``layout``), the one glibc binding (``glibc``), read-only image parsing
 (``image``), channel files, creation and the SIGBUS guard (``files``), the ``Channel`` handle (``channel``,
 with the C twins ``_achfast`` and ``_shmguard``) and the read-only watcher (``watch``); ``mds-ach repair``, which
-applies the MDS channel list and access rules to these files, lives in ``mds_ach.tools.repair``. It re-exports the public API, so ``from mds_ach import ach; ach.Channel(...)`` is all a client
-needs.
+applies the MDS channel list and access rules to these files, lives in ``mds_ach.tools.repair``. It re-exports
+the public API, so ``from mds_ach import ach; ach.Channel(...)`` is all a client needs.
 
 Imports: the standard library only; nothing else of mds_ach (it is the bottom layer; ``test_layers.py`` checks).
 """
