@@ -157,9 +157,9 @@ class DaemonRig:
         values = [s.joint[a].pos for s in self.states[since:] if s.joint[a].active]
         return max(values) - min(values) if values else 0.0
 
-    def audit(self, first_reply: bool = False) -> Audit:
+    def audit(self) -> Audit:
         """Every MOVETO so far against the motion bounds (motion_audit)."""
-        return audit(self.log.frames, TABLE, self.loop.bounds, self.loop.stale_after, first_reply)
+        return audit(self.log.frames, TABLE, self.loop.bounds, self.loop.stale_after)
 
     def targets(self, short: str) -> list[float]:
         """The MOVETO targets the joint was sent (rad)."""
