@@ -146,7 +146,7 @@ def bounding_radius(kind: str, size: Sequence[float]) -> float:
 
 
 def _fcl_geometry(kind: str, size: Sequence[float]) -> Any:
-    import fcl
+    import fcl  # lazy, as in CollisionModel.__init__
 
     if kind == "sphere":
         return fcl.Sphere(float(size[0]))
@@ -368,6 +368,8 @@ class CollisionModel:
 
     def __init__(self, urdf: str | Path, config: Mapping[str, Any] | None = None,
                  world: Mapping[str, Any] | None = None) -> None:
+        # Lazy: fcl ~0.12 s, yourdfpy ~0.8 s (-X importtime); this module's world/config parsers serve the viewer,
+        # check-log and the IK node, which must start without them.
         import fcl
         import yourdfpy
 
