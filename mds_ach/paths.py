@@ -15,7 +15,7 @@ def share_dir() -> Path:
     """``<repo>`` in a checkout (it has urdf/ and config/), else ``share/mds_ach`` of the install prefix."""
     if (_SOURCE_ROOT / "urdf").is_dir() and (_SOURCE_ROOT / "config").is_dir():
         return _SOURCE_ROOT
-    try:
+    try:  # only an installed ROS package gets here; a checkout (or pip install) may lack ament_index_python
         from ament_index_python.packages import get_package_share_directory
 
         return Path(get_package_share_directory(PACKAGE))

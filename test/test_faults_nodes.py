@@ -176,12 +176,18 @@ def travel(frames: list[Frame], short: str) -> float:
 
 def assert_no_jump(frames: list[Frame], what: str) -> None:
     """Between consecutive state frames no modelled joint's reference moves faster than the gate allows, and every
-    reference is inside its joint's limits."""
+    reference is inside its joint's limits.
+
+    A state frame is stamped when it is published, after the cycle's reply window (up to half a period, shorter when
+    every node answered early), while the reference changed when the targets were sent, before that window: two
+    frames' stamps can be up to one reply window closer than the sends they report. The exact bound, on the bus, is
+    checked from the daemon's CAN log at the end of the test (``motion_audit``: speed and acceleration)."""
+    reply_window = 0.5 * mds.MDS_LOOP_PERIOD
     for f0, f1 in zip(frames, frames[1:], strict=False):
         dt = f1.time - f0.time
         step = np.abs(f1.ref[MODEL] - f0.ref[MODEL])
         k = int(np.argmax(step))
-        assert step[k] <= GATE_SPEED * dt + 0.02, \
+        assert step[k] <= GATE_SPEED * (dt + reply_window), \
             f"{what}: {mds.BY_ADDRESS[MODEL[k]].short} jumped {step[k]:.3f} rad in {dt:.3f} s"
     for f in frames:
         for j in TABLE.enabled:

@@ -91,7 +91,7 @@ def _load_fast() -> ModuleType | None:
     """The optional C extension, unless it is missing or MDS_ACH_PURE_PYTHON is set."""
     if os.environ.get("MDS_ACH_PURE_PYTHON", "") not in ("", "0"):
         return None
-    try:
+    try:  # in a function: the extension is optional and MDS_ACH_PURE_PYTHON may refuse it
         from mds_ach.ach import _achfast
     except ImportError:
         return None

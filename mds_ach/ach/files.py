@@ -48,7 +48,7 @@ _NAME_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ012
 
 def _load_guard() -> ModuleType | None:
     """The SIGBUS guard for channel mappings. Both paths use it, so MDS_ACH_PURE_PYTHON does not turn it off."""
-    try:
+    try:  # in a function: the C extension is optional (pure-Python installs lack it)
         from mds_ach.ach import _shmguard
     except ImportError:
         return None

@@ -17,14 +17,12 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import can
 
 from mds_ach.bus import mcb
-
-if TYPE_CHECKING:  # imported where used: only the simulated bus needs it
-    from mds_ach.bus.simbus import SimNetwork
+from mds_ach.bus.simbus import SimBus, SimNetwork
 
 log = logging.getLogger(__name__)
 
@@ -386,8 +384,6 @@ def make_canio(*, nocan: bool = False, network: SimNetwork | None = None, interf
             return CanIO(lambda: ReplayBus(path=replay, speed=replay_speed), bitrate or DEFAULT_BITRATE, recorder,
                          f"replay of {replay}")
         if nocan:
-            from mds_ach.bus.simbus import SimBus
-
             rate = bitrate or DEFAULT_BITRATE
             return CanIO(lambda: SimBus(network=network), rate, recorder, "simulated MDS bus")
         cfg = bus_config(interface, channel, bitrate, config_file)

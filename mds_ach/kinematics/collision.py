@@ -28,8 +28,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 import mds_ach as mds
+from mds_ach.paths import config_path, urdf_path
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM
 
 SHAPES = ("sphere", "box", "cylinder")
@@ -144,7 +146,7 @@ def bounding_radius(kind: str, size: Sequence[float]) -> float:
 
 
 def _fcl_geometry(kind: str, size: Sequence[float]) -> Any:
-    import fcl
+    import fcl  # lazy, as in CollisionModel.__init__
 
     if kind == "sphere":
         return fcl.Sphere(float(size[0]))
@@ -250,8 +252,6 @@ def load_world(path: str | Path, robot_zero: np.ndarray) -> list[WorldObject]:
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    import yaml
-
     with open(path, encoding="utf-8") as fh:
         data = yaml.safe_load(fh) or {}
     if not isinstance(data, dict):
@@ -368,6 +368,8 @@ class CollisionModel:
 
     def __init__(self, urdf: str | Path, config: Mapping[str, Any] | None = None,
                  world: Mapping[str, Any] | None = None) -> None:
+        # Lazy: fcl ~0.12 s, yourdfpy ~0.8 s (-X importtime); this module's world/config parsers serve the viewer,
+        # check-log and the IK node, which must start without them.
         import fcl
         import yourdfpy
 
@@ -587,8 +589,6 @@ def load_model(urdf: str | Path | None = None, config: str | Path | Mapping[str,
 
     ``config``/``world`` may be paths or already-loaded mappings.
     """
-    from mds_ach.paths import config_path, urdf_path
-
     def as_map(value: str | Path | Mapping[str, Any] | None, default: str) -> Mapping[str, Any]:
         if value is None:
             path = config_path(default)

@@ -146,13 +146,6 @@ class RemoteRefusedError(Exception):
 # --------------------------------------------------------------------------------------------------
 
 
-def _ach():
-    """The Ach module, imported when a link starts (keeps ``import mds_ach.net.protocol`` light)."""
-    from mds_ach import ach
-
-    return ach
-
-
 def _geometry(chan) -> tuple[int, int]:
     """``(frame_count, data_size)`` of an open channel: achd reports frame-size as data_size / count."""
     return chan.frame_count, chan.data_size
@@ -162,7 +155,6 @@ class _Source:
     """Reads new frames of a local channel for sending; keeps the newest one for a resend."""
 
     def __init__(self, chan, rule: FrameRule, get_last: bool, stats: LinkStats) -> None:
-        ach = _ach()
         self._ach = ach
         self.chan = chan
         self.rule = rule
@@ -197,7 +189,7 @@ class _Sink:
         self.chan = chan
         self.rule = rule
         self.stats = stats
-        self._ach = _ach()
+        self._ach = ach
 
     def put(self, payload: bytes) -> None:
         problem = self.rule.problem(payload)
@@ -514,7 +506,7 @@ class Link:
         self.finished = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._chan = None
+        self._chan: ach.Channel | None = None
         self._opened_once = False
         self._source: _Source | None = None
         self._lost_at = -math.inf  # monotonic time the last connection ended
@@ -540,7 +532,6 @@ class Link:
 
     def run(self) -> None:
         """Connect, stream, and (with reconnect) start over after a drop, until :meth:`stop`."""
-        ach = _ach()
         try:
             while not self._stop.is_set():
                 t0 = time.monotonic()
@@ -620,7 +611,6 @@ class Link:
         """Open (or create with the server's sizes) the local channel; flushed the first time, as achd does."""
         if self._chan is not None:
             return
-        ach = _ach()
         if not ach.exists(self.channel):
             count = headers.frame_count or 16
             size = headers.frame_size or 512
@@ -850,7 +840,6 @@ class Server:
                 log.warning("%s: refused, channel %s may not be %s from the network", who, name, verb)
                 _refuse(sock, ap.ACH_EACCES, f"channel {name} may not be {verb} from the network")
                 return
-            ach = _ach()
             try:
                 chan = ach.Channel(name, create=False)
             except ach.AchException as exc:

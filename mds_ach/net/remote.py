@@ -37,6 +37,7 @@ from mds_ach.net import achd
 from mds_ach.net import protocol as ap
 from mds_ach.paths import runtime_dir
 from mds_ach.robot import contracts
+from mds_ach.robot.channels import make_channels
 
 log = logging.getLogger("mds_ach.net.remote")
 
@@ -225,8 +226,6 @@ def _write_json(path: Path, data: dict) -> None:
 
 def run_session(args: argparse.Namespace, stop: threading.Event) -> int:
     """Foreground operator session: tunnel (if any), links, a status file every half second, until ``stop``."""
-    from mds_ach.robot.channels import make_channels
-
     for report in make_channels():
         if not report.ok:
             print(f"mds-ach remote: local channel {report.name}: {report.detail}", file=sys.stderr)

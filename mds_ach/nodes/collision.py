@@ -67,6 +67,9 @@ from rclpy.node import Node
 from std_msgs.msg import Float64, String
 
 import mds_ach as mds
+from mds_ach import paths
+from mds_ach.kinematics.collision import CheckResult, load_model, load_yaml
+from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import filters
 from mds_ach.nodes.pipeline import (
     KNOWN_ADDRESSES,
@@ -79,6 +82,7 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
+from mds_ach.robot import config as joint_config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
 from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
@@ -200,8 +204,6 @@ class _Unit:
 
 def _merge(results: Iterable[Any]) -> Any:
     """One CheckResult with every pair of ``results`` once (the smallest clearance)."""
-    from mds_ach.kinematics.collision import CheckResult
-
     best: dict[tuple[str, str], Any] = {}
     for r in results:
         for c in r.contacts:
@@ -529,8 +531,6 @@ def joint_limits(model: Any) -> tuple[np.ndarray, np.ndarray]:
     """Per-address limits: the joint table (config/joints.yaml) intersected with the URDF for modelled joints."""
     lower = np.full(MDS_JOINT_COUNT, -math.inf)
     upper = np.full(MDS_JOINT_COUNT, math.inf)
-    from mds_ach.robot import config as joint_config
-
     for j in joint_config.load():
         lower[j.address], upper[j.address] = j.lower, j.upper
     lower[model.addresses] = np.maximum(lower[model.addresses], model.lower)
@@ -539,10 +539,7 @@ def joint_limits(model: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def load_config(path: str | Path | None = None) -> dict[str, Any]:
-    from mds_ach.kinematics.collision import load_yaml
-    from mds_ach.paths import config_path
-
-    path = Path(path) if path else config_path("collision.yaml")
+    path = Path(path) if path else paths.config_path("collision.yaml")
     if not path.is_file():
         raise ValueError(f"collision config {path} not found")
     return load_yaml(path)
@@ -699,8 +696,6 @@ def _build_parser() -> argparse.ArgumentParser:
 def build_gate_parts(config_path: str | None = None, world: str | None = None, urdf: str | None = None,
                      margin: float | None = None) -> tuple[Any, GateConfig, np.ndarray, np.ndarray]:
     """Model, gate config and limits from the files (shared by the node and the tests)."""
-    from mds_ach.kinematics.collision import load_model
-
     cfg = dict(load_config(config_path))
     if margin is not None:
         cfg["margin"] = margin
@@ -714,8 +709,6 @@ def build_gate_parts(config_path: str | None = None, world: str | None = None, u
 def filter_speed(path: str | Path | None = None) -> float:
     """The slowest ``max_velocity`` of any modelled joint in the filter's config (config/filter.yaml): how fast a
     released joint comes back, so that it never outruns what the filter itself would have commanded."""
-    from mds_ach.nodes import filter as filter_node
-
     return float(filter_node.load_config(path).max_velocity[MODEL_ADDRESSES].min())
 
 

@@ -28,22 +28,22 @@ import sys
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from diagnostic_msgs.srv import AddDiagnostics
 from rclpy.node import Node
 
 import mds_ach as mds
+from mds_ach.bus import canio
+from mds_ach.bus.canio import CanIO
+from mds_ach.bus.simbus import FaultControl, SimNetwork
+from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, lock_timeout_for
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.nodes.rosnode import Param, declare, find, run_node
-from mds_ach.robot.joints import BY_ADDRESS
+from mds_ach.robot import access as channel_access
+from mds_ach.robot import config
+from mds_ach.robot.joints import BY_ADDRESS, lookup
 from mds_ach.robot.msgs import daemon_status as ds
-
-if TYPE_CHECKING:  # imported at run time by build() only
-    from mds_ach.bus.canio import CanIO
-    from mds_ach.bus.simbus import FaultControl, SimNetwork
-    from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 
@@ -101,8 +101,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_pose(text: str) -> dict[str, float]:
     """'LEP=-1.0,RSR=-0.5' -> {'LEP': -1.0, 'RSR': -0.5}; bad input raises ValueError naming the item."""
-    from mds_ach.robot.joints import lookup
-
     pose: dict[str, float] = {}
     for item in filter(None, (p.strip() for p in text.replace(" ", ",").split(","))):
         name, sep, value = item.partition("=")
@@ -137,17 +135,11 @@ class Daemon:
 
 def build(args: argparse.Namespace) -> Daemon:
     """Joint table, bus, channels and the loop (started, after reading the start pose)."""
-    from mds_ach.bus import canio
-    from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, lock_timeout_for
-    from mds_ach.robot import config
-
     table = config.load(args.robot, args.config)
     if args.sim_faults and not args.nocan:
         raise ValueError("--sim-faults needs --nocan: faults are injected into the simulated bus only")
     network = None
     if args.nocan:
-        from mds_ach.bus.simbus import SimNetwork
-
         pose = parse_pose(args.sim_pose)
         for short, q in pose.items():
             if not table[short].within_limits(q):
@@ -176,8 +168,6 @@ def build(args: argparse.Namespace) -> Daemon:
              args.rate, loop.L)
     faults = None
     if args.sim_faults and network is not None:  # checked above: --sim-faults needs --nocan, which made a network
-        from mds_ach.bus.simbus import FaultControl
-
         faults = FaultControl(args.sim_faults, network)
         log.warning("test-only fault injection on %s", args.sim_faults)
     loop.start()
@@ -186,8 +176,6 @@ def build(args: argparse.Namespace) -> Daemon:
 
 def parse_command(text: str) -> tuple[int, int]:
     """'home LEP' -> (MDS_CMD_HOME, 0x4C); 'resetbus' -> (MDS_CMD_RESET_BUS, 0); 'enable all' -> (.., 0)."""
-    from mds_ach.robot.joints import lookup
-
     words = text.split()
     if not words or words[0].lower() not in COMMAND_CODES or len(words) > 2:
         raise ValueError(f"expected '<{'|'.join(sorted(set(COMMAND_CODES) - {'zero_encoder', 'reset_bus'}))}> "
@@ -355,8 +343,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         timer.daemon = True
         timer.start()
     if args.no_ros:
-        from mds_ach.robot import access as channel_access
-
         channel_access.enforce_in_this_process()  # refuse planted channel files (run_node does it with ROS)
         return _run_plain(args)
     return run_node(argv, parser, DaemonNode)

@@ -54,11 +54,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 import mds_ach as mds
+from mds_ach import ach
 from mds_ach.ach.glibc import sleep_until, tune_thread
 from mds_ach.bus import mcb
 from mds_ach.bus.canio import CanIO
@@ -72,15 +73,13 @@ from mds_ach.bus.constants import (
 )
 from mds_ach.bus.mcb import Response, StateArg
 from mds_ach.nodes import filters
+from mds_ach.robot import access as channel_access
 from mds_ach.robot import contracts, motion
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.config import JointConfig, JointTable
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs import daemon_status as ds
-
-if TYPE_CHECKING:  # imported at run time by DaemonChannels.open only
-    from mds_ach import ach as _ach
-    from mds_ach.robot.channels import StructChannel as _StructChannel
 
 log = logging.getLogger("mds_ach.nodes.daemon")
 
@@ -146,21 +145,17 @@ DAEMON_ROLES: dict[str, str] = {
 class DaemonChannels:
     """The Ach channels the daemon reads and writes (created if missing): ``DAEMON_ROLES``."""
 
-    ref: _StructChannel
-    state: _StructChannel
-    collide: _StructChannel
-    cmd: _ach.Channel  # raw (see open)
-    status: _StructChannel
-    param: _StructChannel
+    ref: StructChannel
+    state: StructChannel
+    collide: StructChannel
+    cmd: ach.Channel  # raw (see open)
+    status: StructChannel
+    param: StructChannel
 
     @classmethod
     def open(cls, lock_timeout: float | None = lock_timeout_for(1.0 / mds.MDS_LOOP_PERIOD)) -> DaemonChannels:
         """Open (create) every channel; each get and put waits at most ``lock_timeout`` s for the channel lock
         (``lock_timeout_for`` the loop's rate; None: as long as it takes)."""
-        from mds_ach import ach
-        from mds_ach.robot import access as channel_access
-        from mds_ach.robot.channels import StructChannel
-
         opened: dict[str, Any] = {}
         try:
             for key, name in DAEMON_ROLES.items():
@@ -497,8 +492,6 @@ class DaemonLoop:
             self._channel_error(channel.name, exc)
 
     def _channel_error(self, name: str, exc: Exception) -> None:
-        from mds_ach import ach
-
         if isinstance(exc, ach.AchException) and exc.status == ach.ACH_LOCKED:  # skipped, not broken
             self.status.lock_timeouts += 1
             self._warn_rate(f"lock-{name}", f"channel {name}: {exc}; skipped this cycle ({self.status.lock_timeouts} "
@@ -509,8 +502,6 @@ class DaemonLoop:
 
     def _read_commands(self) -> None:
         """Every new mds-cmd frame in order (not just the newest: two quick commands must both count)."""
-        from mds_ach import ach
-
         for _ in range(mds.CHANNEL_FRAME_COUNT):
             try:
                 status, size = self.ch.cmd.get(self._cmd_buf)

@@ -35,8 +35,10 @@ from std_msgs.msg import String
 
 import mds_ach as mds
 from mds_ach.kinematics import ik
+from mds_ach.kinematics.collision import load_model
 from mds_ach.nodes.pipeline import current_reference, make_ref
 from mds_ach.nodes.rosnode import Param, declare, ros_log, run_node, start_worker
+from mds_ach.robot import config as joint_config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs.ik_status import (
@@ -150,8 +152,6 @@ class IkService:
 
 def arm_limits(robot: str | None = None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Per-arm (lower, upper) from the active robot's joint table (config/joints.yaml + overlay)."""
-    from mds_ach.robot import config as joint_config
-
     table = {j.short: j for j in joint_config.load(robot)}
     out = {}
     for arm, names in ARM_JOINTS.items():
@@ -166,8 +166,6 @@ def collision_safety(log: Callable[[str, str], None]) -> SafetyFactory | None:
     body is posed at the current reference.
     """
     try:
-        from mds_ach.kinematics.collision import load_model
-
         model = load_model()
     except Exception as exc:  # missing fcl, bad config: the gate downstream still checks every reference
         log("warn", f"IK candidates are not collision-checked ({exc}); the collision gate still is")

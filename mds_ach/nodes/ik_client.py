@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import mds_ach as mds
 from mds_ach.kinematics.model import arm_name
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs.ik_status import IK_SOLVED, MDS_IK_STATUS, get_message
 
 
@@ -62,8 +63,6 @@ class IkClient:
     """``with IkClient() as c: reply = c.request('left', 3, [0.3, 0.2, 0.0])``."""
 
     def __init__(self) -> None:
-        from mds_ach.robot.channels import StructChannel
-
         self.requests = StructChannel(mds.MDS_CHAN_IK_NAME, mds.MDS_IK)
         self.answers = StructChannel(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS)
 

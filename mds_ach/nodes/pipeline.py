@@ -22,7 +22,9 @@ from typing import Any
 import numpy as np
 
 import mds_ach as mds
+from mds_ach import ach
 from mds_ach.robot import contracts
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
 
 REF_DTYPE = np.dtype([("ref", "<f8"), ("mode", "<i2")])  # packed, itemsize 10 == sizeof(MDS_JOINT_REF)
@@ -123,8 +125,6 @@ def current_reference(sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_C
     ``MDS_REF`` (the contracts registry says which struct; unregistered names are read as ``MDS_REF``). Channels
     are created if missing, so nodes can start in any order.
     """
-    from mds_ach.robot.channels import StructChannel
-
     for name in sources:
         found = contracts.lookup(name)
         ch = StructChannel(name, found.struct if found is not None else mds.MDS_REF)
@@ -177,8 +177,6 @@ class ReseedWatch:
     """
 
     def __init__(self, log: Callable[[str, str], None], stop: threading.Event) -> None:
-        from mds_ach.robot.channels import StructChannel
-
         self._guard = ChannelGuard(log, stop)
         self._status = StructChannel.of(mds.MDS_CHAN_DAEMON_STATUS_NAME)
         self._state = StructChannel.of(mds.MDS_CHAN_STATE_NAME)
@@ -215,8 +213,6 @@ class ReseedWatch:
 
 def cancel_wait(channel: Any) -> None:
     """Wake a thread blocked in ``channel.wait()``; a channel that is already closed needs no waking."""
-    from mds_ach import ach
-
     try:
         channel.cancel()
     except ach.AchException as exc:
@@ -268,8 +264,6 @@ class ChannelGuard:
         self.errors = 0
 
     def call(self, name: str, fn: Callable[..., Any], *args: Any, default: Any = None, **kwargs: Any) -> Any:
-        from mds_ach import ach
-
         try:
             return fn(*args, **kwargs)
         except ach.AchException as exc:

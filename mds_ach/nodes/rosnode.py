@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from mds_ach.nodes.rosargs import strip_ros_args
+from mds_ach.robot import access as channel_access
 
 if TYPE_CHECKING:
     from rcl_interfaces.msg import ParameterDescriptor
@@ -60,7 +61,7 @@ class Param:
 
     def descriptor(self) -> ParameterDescriptor:
         """The rcl ``ParameterDescriptor`` with the description and the range (checked by rclpy itself)."""
-        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor  # lazy: module docstring
 
         desc = ParameterDescriptor(description=self.description, read_only=self.read_only)
         if self.range is not None:
@@ -102,7 +103,7 @@ def declare(node: Node, param: Param, default: ParamValue | None = None) -> Any:
             raise
         wrong_type = exc
     # `-p rate:=20` is an integer to ROS: accept it for a double parameter (then range-checked as usual).
-    from rcl_interfaces.msg import ParameterDescriptor
+    from rcl_interfaces.msg import ParameterDescriptor  # lazy: see the module docstring
 
     loose = ParameterDescriptor(dynamic_typing=True)  # only to read the given value; then declared properly
     given = node.declare_parameter(param.name, value, loose).value
@@ -198,8 +199,6 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
-
-    from mds_ach.robot import access as channel_access
 
     channel_access.enforce_in_this_process()  # a node: refuse channel files another user planted
     stop = threading.Event()

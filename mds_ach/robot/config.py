@@ -21,15 +21,18 @@ Anything malformed or inconsistent is refused with a :class:`ConfigError` naming
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from mds_ach.paths import config_path
+from mds_ach.robot import anatomy, motion
 from mds_ach.robot import joints as node_table
-from mds_ach.robot import motion
 from mds_ach.robot.choice import (  # re-exported: config.ROBOT_ENV etc. are public names
     DEFAULT_ROBOT,
     ROBOT_ENV,
@@ -287,8 +290,6 @@ def load(robot: str | None = None, path: str | Path | None = None) -> JointTable
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
-    import yaml
-
     try:
         data = yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
     except OSError as exc:
@@ -456,8 +457,6 @@ def from_xml(anatomy_path: str | Path, mdsach_path: str | Path | None = None, ro
     Muscles without an overlay entry keep offset 0, direction 1 and are disabled; overlay entries for
     muscles the anatomy lacks (head-only anatomies) are ignored.
     """
-    from mds_ach.robot import anatomy
-
     muscles = anatomy.load_anatomy(anatomy_path)
     overlay = anatomy.load_overlay(mdsach_path) if mdsach_path else {}
     joints = []
@@ -589,8 +588,6 @@ def overlay_yaml(base: JointTable, variant: JointTable, description: str = "") -
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m mds_ach.robot.config``: show the loaded table, or convert Xitome XML into project YAML."""
-    import argparse
-
     ap = argparse.ArgumentParser(prog="python -m mds_ach.robot.config", description=main.__doc__)
     ap.add_argument("--robot", help=f"robot variant (default: ${ROBOT_ENV} or 'default')")
     ap.add_argument("--from-xml", nargs=2, metavar=("ANATOMY", "MDSACH"),

@@ -67,8 +67,10 @@ import numpy as np
 
 from mds_ach.bus import canio, mcb
 from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
+from mds_ach.kinematics import collision
 from mds_ach.nodes.daemon_loop import reply_in_range
-from mds_ach.robot import motion
+from mds_ach.paths import config_path
+from mds_ach.robot import config, motion
 from mds_ach.robot.config import ConfigError, JointConfig, JointTable
 from mds_ach.robot.msgs import MDS_JOINT_COUNT
 
@@ -602,8 +604,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mds_ach.robot import config
-
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         print(f"mds-ach check-log: --rate must be > 0 Hz, got {args.rate}", file=sys.stderr)
         return 2
@@ -624,9 +624,6 @@ def run(args: argparse.Namespace) -> int:
 
 def collision_model(world: str | None = None, margin: float = 0.0) -> Any:
     """The collision gate's model (URDF, config/collision.yaml, the world file) with clearance ``margin``."""
-    from mds_ach.kinematics import collision
-    from mds_ach.paths import config_path
-
     if not (math.isfinite(margin) and margin >= 0):
         raise ValueError(f"--collision-margin must be >= 0 m, got {margin}")
     path = config_path("collision.yaml")

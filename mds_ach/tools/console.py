@@ -22,17 +22,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import mds_ach as mds
 from mds_ach.nodes.rosargs import strip_ros_args
+from mds_ach.robot.choice import effective_robot
+from mds_ach.robot.config import JointTable, load
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
-from mds_ach.tools.monitor import Latest
+from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
+from mds_ach.tools.monitor import Latest, collision_summary
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
-
-if TYPE_CHECKING:  # pragma: no cover - typing only
-    from mds_ach.robot.config import JointTable
-    from mds_ach.robot.msgs import MDS_MUX_STATE
 
 PROMPT = ">> mds-ach-console$ "
 ARMS = {"left": (mds.LEFT, LEFT_ARM), "right": (mds.RIGHT, RIGHT_ARM)}
@@ -182,7 +180,7 @@ def parse(line: str) -> Command:
 
 def fk_pose(q: Sequence[float], arm: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     """(position, Z-Y-X rotation) of the arm's tool point for q = [SP, SR, SY, EP, WY, WR] (numpy, no torch)."""
-    from mds_ach.kinematics.model import euler_zyx, fk_matrix
+    from mds_ach.kinematics.model import euler_zyx, fk_matrix  # lazy: numpy, ~90 ms of a ~120 ms console start
 
     T = fk_matrix(list(q), arm)
     rot = euler_zyx(T[:3, :3])
@@ -224,9 +222,6 @@ class Console:
 
     def _joint_table(self) -> JointTable:
         if self._table is None:
-            from mds_ach.robot.choice import effective_robot
-            from mds_ach.robot.config import load
-
             self._table = load(effective_robot()[0])
         return self._table
 
@@ -281,8 +276,6 @@ class Console:
 
     def _require_mux(self) -> None:
         """CommandError unless the mux published a new state just now: a command it cannot take is not sent."""
-        from mds_ach.robot.msgs import MDS_MUX_STATE
-
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
             if self._mux_state(time.monotonic(), chan) is None:
@@ -298,8 +291,6 @@ class Console:
         A mux state published after this call started is awaited first, so a move the IK node answered a
         moment ago is already visible.
         """
-        from mds_ach.robot.msgs import MDS_MUX_STATE
-
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         try:
             st = self._mux_state(time.monotonic(), chan)
@@ -329,8 +320,6 @@ class Console:
         ``channel``'s controller that arrived after ``sent_at`` (in ``mds-mux-state``), no higher-priority
         controller holds the joints, and the mux output (``mds-ref-mux``) has every target. CommandError
         ("not applied: ...") otherwise: a dead mux, or one that ignored the frame, moves nothing."""
-        from mds_ach.robot.msgs import MDS_MUX_STATE
-
         mine = _controller_for(channel)
         chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         out = Latest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
@@ -388,8 +377,6 @@ class Console:
             j = mds.BY_ADDRESS[a]
             if state is not None:
                 parts.append(f"{j.short} target {v:.5f}, ref {state.joint[a].ref:.5f}, pos {state.joint[a].pos:.5f}")
-        from mds_ach.tools.monitor import collision_summary
-
         collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
         try:
             summary = collision_summary(collide.read())
@@ -455,7 +442,7 @@ class Console:
             self.out(line)
 
     def ik(self, cmd: Ik) -> None:
-        from mds_ach.nodes.ik_client import IkClient, IkTimeout
+        from mds_ach.nodes.ik_client import IkClient, IkTimeout  # lazy: numpy (kinematics), ~90 ms of console start
 
         self._state()  # a clear message when the system is not running
         self._require_mux()
@@ -501,7 +488,7 @@ def _controller_for(channel: str) -> str:
     """The mux controller fed by ``channel`` (config/mux.yaml): 'default' for mds-ref-filter, 'ik' for
     mds-ref-ik unless configured otherwise."""
     try:
-        from mds_ach.nodes.mux import load_config
+        from mds_ach.nodes.mux import load_config  # lazy: the mux node module loads rclpy+numpy, ~190 ms
 
         for c in load_config()["controllers"]:
             if c.channel == channel:
@@ -512,8 +499,6 @@ def _controller_for(channel: str) -> str:
 
 
 def _mux_names(st: MDS_MUX_STATE) -> list[str]:
-    from mds_ach.robot.msgs import get_name
-
     return [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
 
 
@@ -544,7 +529,7 @@ def history_path() -> Path:
 
 
 def _completer(text: str, index: int) -> str | None:
-    import readline
+    import readline  # already loaded by _setup_readline; see there why not at module top
 
     words = readline.get_line_buffer()[: readline.get_begidx()].split()
     if not words:
@@ -563,7 +548,7 @@ def _completer(text: str, index: int) -> str | None:
 
 def _setup_readline() -> Callable[[], None]:
     """Line editing, history and tab completion; returns the function that saves the history."""
-    try:
+    try:  # not at module top: importing readline changes input() in every importer, only the console wants it
         import readline
     except ImportError:  # pragma: no cover - readline is part of CPython on Linux
         return lambda: None

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import importlib
 import os
 import shutil
 import signal
@@ -22,9 +23,16 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import mds_ach as mds
+from mds_ach import ach
 from mds_ach import procs as background
 from mds_ach.paths import runtime_dir
 from mds_ach.robot import contracts
+from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
+from mds_ach.robot.choice import effective_robot, save_robot
+from mds_ach.robot.config import ROBOT_ENV, ConfigError, available_robots, load
+from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
+from mds_ach.tools import repair
+from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
 # the others start from), then the reference pipeline, then the clients that feed it.
@@ -127,9 +135,6 @@ def node_args(name: str, nocan: bool) -> list[str]:
 
 def child_env() -> dict[str, str]:
     """The nodes' environment: ours, unbuffered output for live logs, and the saved robot choice."""
-    from mds_ach.robot.choice import effective_robot
-    from mds_ach.robot.config import ROBOT_ENV
-
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     robot, _ = effective_robot(env)
@@ -176,8 +181,6 @@ class _Heartbeat:
     from an earlier run never count)."""
 
     def __init__(self, channel: str) -> None:
-        from mds_ach import ach
-
         self.name = channel
         self.chan = ach.Channel(channel, create=False)
         self.chan.flush()
@@ -185,8 +188,6 @@ class _Heartbeat:
         self.frames = 0
 
     def ready(self) -> bool:
-        from mds_ach import ach
-
         status, _ = self.chan.get(self.buf, last=True)
         if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
             self.frames += 1
@@ -204,15 +205,11 @@ class _IkProbe(_Heartbeat):
     must refuse (``move = -1``, nothing can move) every 0.5 s until an answer appears on ``mds-ik-state``."""
 
     def __init__(self) -> None:
-        from mds_ach import ach
-
         super().__init__(mds.MDS_CHAN_IK_STATE_NAME)
         self.requests = ach.Channel(mds.MDS_CHAN_IK_NAME, create=False)
         self.next_probe = 0.0
 
     def ready(self) -> bool:
-        from mds_ach import ach
-
         status, _ = self.chan.get(self.buf, last=True)
         if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
             return True
@@ -286,8 +283,6 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
 
     On failure every node started here is stopped again and LaunchError is raised (the system is left as
     it was found)."""
-    from mds_ach.robot.channels import make_channels
-
     rt = rt or runtime_dir()
     try:
         reports = make_channels(group=group)
@@ -374,8 +369,6 @@ def stop_nodes(names: Iterable[str] = NODES, grace: float = DEFAULT_STOP_GRACE, 
 
 def send_command(cmd: int, address: int = 0, value: float = 0.0) -> int:
     """Put one ``MDS_CMD`` on ``mds-cmd`` with the next sequence number; returns that number."""
-    from mds_ach import ach
-
     chan = ach.Channel(mds.MDS_CHAN_BOARD_CMD_NAME, create=False)
     try:
         last = mds.MDS_CMD()
@@ -391,9 +384,6 @@ def send_command(cmd: int, address: int = 0, value: float = 0.0) -> int:
 def state_rate(window: float = 1.0) -> tuple[float, int] | None:
     """New ``mds-state`` frames per second over ``window`` s, and how many frames of the wrong size arrived
     (None when the channel does not exist). Raises ``ach.AchException``/``ValueError`` for a damaged channel."""
-    from mds_ach import ach
-    from mds_ach.robot.channels import StructChannel
-
     if not ach.exists(mds.MDS_CHAN_STATE_NAME):
         return None
     with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as chan:
@@ -415,10 +405,6 @@ def channel_problems(names: Sequence[str] = mds.ALL_CHANNELS) -> dict[str, str]:
     """channel -> what is wrong with it and what to do, for every MDS channel the system cannot use: missing
     (while others exist), owned by another user or too open, not an Ach file, truncated, corrupt, locked, or of
     the wrong size."""
-    from mds_ach import ach
-    from mds_ach.robot.channels import check_existing
-    from mds_ach.tools import repair
-
     if not any(os.path.lexists(ach.shm_path(n)) for n in names):
         return {}  # nothing made yet: the node lines already say that nothing runs
     problems = {}
@@ -436,11 +422,6 @@ def channel_problems(names: Sequence[str] = mds.ALL_CHANNELS) -> dict[str, str]:
 def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str], int]:
     """Lines for ``mds-ach status`` and its exit status: 0 all well, 1 a channel is damaged or not to be
     trusted, 3 a node is not running. Never raises for a damaged channel: it is reported with the repair hint."""
-    from mds_ach import ach
-    from mds_ach.robot.choice import effective_robot
-    from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
-    from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
-
     rt = rt or runtime_dir()
     lines = [f"runtime dir {rt}"]
     running = running_nodes(rt)
@@ -641,8 +622,6 @@ def add_killall_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_killall(args: argparse.Namespace) -> int:
-    from mds_ach.robot.channels import remove_channels
-
     stop_nodes(NODES, sig=signal.SIGKILL)
     removed = remove_channels()
     _out(f"removed {len(removed)} channels" + (": " + " ".join(removed) if removed else ""))
@@ -671,10 +650,6 @@ def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_resetbus(args: argparse.Namespace) -> int:
-    from mds_ach import ach
-    from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
-    from mds_ach.tools.monitor import Latest
-
     status = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     try:
         status.read()
@@ -703,8 +678,6 @@ def run_resetbus(args: argparse.Namespace) -> int:
 
 
 def add_changerobot_arguments(p: argparse.ArgumentParser) -> None:
-    from mds_ach.robot.config import available_robots
-
     p.description = ("Choose the robot variant whose calibrated joint table the daemon loads at its next start "
                      "(saved in $MDS_ACH_CONFIG_DIR/robot, default ~/.config/mds-ach/robot; $MDS_ACH_ROBOT "
                      "overrides it). Restart the system for it to take effect.")
@@ -712,9 +685,6 @@ def add_changerobot_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_changerobot(args: argparse.Namespace) -> int:
-    from mds_ach.robot.choice import save_robot
-    from mds_ach.robot.config import ROBOT_ENV, ConfigError, load
-
     try:
         load(args.robot)  # refuse a variant whose files do not load, before saving it
         path = save_robot(args.robot)
@@ -734,8 +704,6 @@ def run_changerobot(args: argparse.Namespace) -> int:
 
 def _exec(argv: list[str]) -> int:
     """``python -m mds_ach.tools.launcher exec NODE [ARGS]``: run a node's main() when no console script exists."""
-    import importlib
-
     if not argv or argv[0] not in ENTRY_POINTS:
         _err(f"usage: python -m mds_ach.tools.launcher exec {{{','.join(NODES)}}} [ARGS...]")
         return 2

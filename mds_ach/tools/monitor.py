@@ -5,13 +5,17 @@ channel reader (:class:`mds_ach.ach.watch.Latest`, re-exported) and the formatti
 from __future__ import annotations
 
 import ctypes
-from typing import TYPE_CHECKING
 
 import mds_ach as mds
 from mds_ach.ach.watch import Latest  # noqa: F401 - the one read-only channel watcher; the tools import it here
-
-if TYPE_CHECKING:
-    from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
+from mds_ach.robot.msgs.daemon_status import (
+    JOINT_BAD_REPLY,
+    JOINT_ENABLED,
+    JOINT_FRESH,
+    JOINT_STALE,
+    MDS_DAEMON_STATUS,
+    summary_line,
+)
 
 # --------------------------------------------------------------------------------------------- formatting
 
@@ -65,8 +69,6 @@ def collision_block(collide: mds.MDS_COLLIDE | None) -> list[str]:
 
 def daemon_line(status: MDS_DAEMON_STATUS | None, age: float | None) -> str:
     """The daemon's health in one line (``mds-daemon-status``), flagged when it stopped publishing."""
-    from mds_ach.robot.msgs.daemon_status import summary_line
-
     if status is None:
         return f"unknown (nothing on {mds.MDS_CHAN_DAEMON_STATUS_NAME})"
     line = summary_line(status)
@@ -78,8 +80,6 @@ def daemon_line(status: MDS_DAEMON_STATUS | None, age: float | None) -> str:
 def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
     """'yes' when the daemon heard the joint's node recently, 'STALE' when not, 'BAD' when the node answers with
     implausible positions (not trusted), '-' for joints it does not poll, '?' without daemon status."""
-    from mds_ach.robot.msgs.daemon_status import JOINT_BAD_REPLY, JOINT_ENABLED, JOINT_FRESH, JOINT_STALE
-
     if status is None:
         return "?"
     flags = status.joint_flags[address]

@@ -18,13 +18,16 @@ import select
 import shutil
 import signal
 import sys
+import termios
 import time
+import tty
 from collections.abc import Sequence
 
 import mds_ach as mds
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import BY_ADDRESS, JOINTS, lookup
 from mds_ach.robot.msgs import get_name
+from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 from mds_ach.tools.monitor import Latest, collision_block, collision_summary, daemon_line, joint_fresh
 
 REFRESH = 0.05  # s (the original's 20 Hz)
@@ -41,8 +44,6 @@ class Sources:
     """The channels the monitor shows, each opened read-only on demand."""
 
     def __init__(self) -> None:
-        from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
-
         self.state = Latest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
         self.collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
         self.daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
@@ -129,9 +130,6 @@ def live(src: Sources, show_all: bool) -> int:
     old_attrs = None
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGHUP)}
     if stdin_tty:
-        import termios
-        import tty
-
         old_attrs = termios.tcgetattr(sys.stdin.fileno())
         tty.setcbreak(sys.stdin.fileno())
     out.write(ALT_ON + CURSOR_OFF)
@@ -151,8 +149,6 @@ def live(src: Sources, show_all: bool) -> int:
         out.write(CURSOR_ON + ALT_OFF)
         out.flush()
         if old_attrs is not None:
-            import termios
-
             termios.tcsetattr(sys.stdin.fileno(), termios.TCSADRAIN, old_attrs)
         for s, handler in previous.items():
             signal.signal(s, handler)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import ipaddress
 import math
 import signal
 import socket
@@ -38,15 +39,17 @@ from mds_ach import ach, paths
 from mds_ach import procs as background
 from mds_ach.ach.watch import Latest
 from mds_ach.kinematics import model as kin
+from mds_ach.kinematics.collision import CollisionModel, WorldObject, load_model
+from mds_ach.kinematics.collision import load_world as _load_world
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import MODEL_JOINTS, lookup
+from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS, STATUS_NAMES
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
 
 if TYPE_CHECKING:  # heavy imports stay out of `import mds_ach.tools.viewer` (the `mds-ach sim` start-up path)
     import trimesh
     import viser
 
-    from mds_ach.kinematics.collision import CollisionModel, WorldObject
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
@@ -88,7 +91,7 @@ SIM_URL = "sim.url"
 
 def primitive_mesh(kind: str, size: Sequence[float]) -> trimesh.Trimesh:
     """Triangle mesh of a primitive: box (x, y, z), cylinder (radius, length) along z, sphere (radius,)."""
-    import trimesh
+    import trimesh  # lazy: ~0.5 s; `import mds_ach.tools.viewer` (the `mds-ach sim` start-up path) must not pay it
 
     if kind == "box":
         return trimesh.creation.box(extents=[float(s) for s in size])
@@ -104,8 +107,8 @@ def geometry_mesh(geom: kin.Geometry, urdf_dir: Path) -> trimesh.Trimesh | None:
     relative to the URDF) through yourdfpy. An unreadable file is reported and skipped, not fatal."""
     if geom.kind != "mesh":
         return primitive_mesh(geom.kind, geom.size)
-    import trimesh
-    import yourdfpy
+    import trimesh  # lazy, as in primitive_mesh
+    import yourdfpy  # lazy: ~0.8 s (measured, -X importtime), only a running viewer needs it
 
     path = yourdfpy.filename_handler_magic(geom.filename, dir=str(urdf_dir))
     try:
@@ -305,9 +308,7 @@ def load_world(path: Path, robot_zero: np.ndarray) -> list[WorldObject]:
 
     ``robot_zero`` is the torso pose at WST = 0, the ``robot`` frame. Bad entries raise ValueError naming them.
     """
-    from mds_ach.kinematics.collision import load_world as parse
-
-    return parse(path, robot_zero)
+    return _load_world(path, robot_zero)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -365,8 +366,6 @@ def ik_request_target(ik: Any) -> IkTarget | None:
 
 def ik_status_target(status: Any) -> IkTarget | None:
     """The target of the IK node's answer (``mds-ik-state``), captioned with the outcome."""
-    from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, STATUS_NAMES
-
     arm = int(status.arm)
     position = np.array(status.target[:3], dtype=float)
     if arm not in (mds.RIGHT, mds.LEFT) or not np.all(np.isfinite(position)):
@@ -399,7 +398,7 @@ class Viewer:
     """The viser server, the scene and the GUI; :meth:`tick` brings them up to date with the channels."""
 
     def __init__(self, options: ViewerOptions) -> None:
-        import viser
+        import viser  # lazy: ~0.4 s (measured, -X importtime), only a running viewer needs it
 
         self.options = options
         self.model = kin.load_model(options.urdf)  # None: the package's urdf/mds.urdf
@@ -448,8 +447,6 @@ class Viewer:
 
     def _collision_scene(self) -> CollisionScene | None:
         try:
-            from mds_ach.kinematics.collision import load_model
-
             return CollisionScene(self.server, load_model(self.options.urdf))
         except (ImportError, OSError, ValueError) as exc:
             self.problems.append(f"collision model not shown: {exc}")
@@ -689,7 +686,7 @@ def _use_shipped_client() -> None:
     and rebuilds the client with node/yarn, downloaded from the network, whenever its sources look newer than
     the build. Neither belongs in a robot's viewer: check that the build is there and use it.
     """
-    from viser import _client_autobuild
+    from viser import _client_autobuild  # lazy: viser, as in Viewer.__init__
 
     def check() -> None:
         if not (_client_autobuild.build_dir / "index.html").is_file():
@@ -699,8 +696,6 @@ def _use_shipped_client() -> None:
 
 
 def _ik_status_type() -> type[ctypes.Structure]:
-    from mds_ach.robot.msgs.ik_status import MDS_IK_STATUS
-
     return MDS_IK_STATUS
 
 
@@ -724,8 +719,6 @@ def _node_name(name: str) -> str:
 
 
 def is_loopback(host: str) -> bool:
-    import ipaddress
-
     if host == "localhost":
         return True
     try:
