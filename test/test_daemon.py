@@ -982,3 +982,118 @@ def test_diagnostics_levels() -> None:
     assert stalled.level == DiagnosticStatus.WARN and "stalled 1 time(s) (longest 3.10 s)" in stalled.message
     assert {kv.key: kv.value for kv in stalled.values}["limited_joints"] == "LSP:7"
     assert daemon.diagnostic_status(st, True, [], 0, [], 0).level == DiagnosticStatus.OK  # limiting is no fault
+
+
+def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
+    """The gate's hand-off is ordered: it puts a hold's report on mds-collide, then the held reference on mds-ref,
+    and the daemon reads mds-ref before mds-collide. Here the gate's two puts land between the daemon's two reads
+    of one cycle (the race the order closes): LEP moves at 1.2 rad/s when the gate holds the left arm at its last
+    reference. The daemon withholds the arm in that very cycle; read the other way round it would take the held
+    reference without its hold, and its limiter, braking from 1.2 rad/s, would pass the held reference (by up to
+    v^2/2a = 0.1 rad). test_collision_node.py::test_the_hold_is_put_on_mds_collide_before_the_held_reference is the
+    gate's side."""
+    lep = TABLE["LEP"]
+    drive(rig, 8, LEP=-1.2)
+    held = rig.loop.state.joint[lep.address].ref_r  # the last reference the gate passed: where it holds the arm
+    assert rig.loop.joints[lep.address].track.v < -1.0  # moving fast
+    sent = len(rig.targets("LEP"))
+    hold = MDS_COLLIDE()
+    hold.isCollide = 1
+    hold.joint[mds.COLLIDE_L_HAND].isCollide = 1
+    reads: list[str] = []
+
+    def between_the_reads(channel: StructChannel, name: str):
+        real = channel.latest
+
+        def latest(*args, **kwargs):
+            frame = real(*args, **kwargs)
+            reads.append(name)
+            if len(reads) == 1:  # the gate publishes right after the daemon's first read
+                rig.collide_out.put(hold)
+                rig.put_ref(LEP=held)
+            return frame
+        return latest
+
+    inputs = {"mds-ref": rig.loop.ch.ref, "mds-collide": rig.loop.ch.collide}
+    for name, channel in inputs.items():
+        channel.latest = between_the_reads(channel, name)
+    try:
+        rig.step()
+    finally:
+        for channel in inputs.values():
+            del channel.latest
+    assert sorted(reads) == ["mds-collide", "mds-ref"]
+    rig.step(5)
+    assert rig.targets("LEP")[sent:] == [], f"read {reads}: the held arm was sent {rig.targets('LEP')[sent:]}"
+    assert min(rig.targets("LEP")) >= held - 1e-6  # never past where the gate stopped it
+
+
+def test_a_node_back_online_with_a_bogus_first_reply_still_restarts_where_it_is(rig: DaemonRig) -> None:
+    """A node silent for 1 s comes back 0.65 rad from its last target (moved by hand, or restarted), and its first
+    answer is garbage (+5 rad). That reply is refused, and it must not cost the re-seed: once three consistent
+    replies restore the trust, the first target states where the joint is, then it ramps. (Before, the refused
+    reply ended the silence without a re-seed, and the next target went out from the old track: a 0.7 rad jump
+    for the node. The audit catches it too: in a whole run a silence ends every old track.)"""
+    lep = TABLE["LEP"]
+    rig.put_ref(LEP=-0.95)
+    ramp_done(rig, "LEP", -0.95)
+    rig.net.set_offline(lep.address)
+    rig.step(10)
+    rig.net.set_position(lep.address, lep.to_counts(-1.6))
+    rig.net.set_offline(lep.address, False)
+    rig.net.inject_frame(mcb.HOST_SID, bytes(mcb.encode_state_reply(lep.address, StateArg.ACTUAL_POSITION,
+                                                                    lep.to_counts(5.0)).data))
+    sent = len(rig.targets("LEP"))
+    rig.step(5)
+    assert status_of(rig).joint_bad_replies[lep.address] == 1
+    rig.put_ref(LEP=-0.9)
+    ramp_done(rig, "LEP", -0.9)
+    targets = rig.targets("LEP")[sent:]
+    assert targets[0] == pytest.approx(-1.6, abs=1e-6), targets  # where it stands, not where it was told to be
+    assert max(abs(b - a) for a, b in zip(targets, targets[1:], strict=False)) <= 0.9 * TABLE.max_velocity * 0.1
+    assert_bounded(rig)
+
+
+def test_enable_with_a_new_reference_in_the_same_cycle_starts_where_the_joint_is(rig: DaemonRig) -> None:
+    """LEP is disabled and moved by hand 0.65 rad; ENABLE and a new reference arrive in one cycle. The first target
+    states where the joint is (its latest trusted reply), then it ramps. (Before, the track was re-seeded only by
+    the next reply, so that cycle re-stated the last target sent before DISABLE: a 0.65 rad jump for the node.)"""
+    lep = TABLE["LEP"]
+    rig.put_ref(LEP=-0.95)
+    ramp_done(rig, "LEP", -0.95)
+    rig.command(mds.MDS_CMD_DISABLE, lep.address, seq=2)
+    rig.step(2)
+    rig.net.set_position(lep.address, lep.to_counts(-1.6))
+    rig.step(3)
+    sent = len(rig.targets("LEP"))
+    rig.command(mds.MDS_CMD_ENABLE, lep.address, seq=3)
+    rig.put_ref(LEP=-0.9)
+    ramp_done(rig, "LEP", -0.9)
+    targets = rig.targets("LEP")[sent:]
+    assert targets[0] == pytest.approx(-1.6, abs=1e-6), targets
+    assert max(abs(b - a) for a, b in zip(targets, targets[1:], strict=False)) <= 0.9 * TABLE.max_velocity * 0.1
+    assert_bounded(rig)
+
+
+def test_the_audit_catches_a_jump(rig: DaemonRig, tmp_path: Path) -> None:
+    """The tests' audit (motion_audit over mds-ach check-log) is not blind: the rig's own log of a ramp, plus one
+    MOVETO 0.5 rad past the last target a period later, has exactly that step as a speed and an acceleration
+    violation, in memory and read back from a CAN log file."""
+    rig.put_ref(LEP=-0.7)
+    ramp_done(rig, "LEP", -0.7)
+    assert_bounded(rig)
+    lep = TABLE["LEP"]
+    q = rig.targets("LEP")[-1] + 0.5
+    jump = can.Message(arbitration_id=lep.address, data=mcb.encode_moveto(lep.address, lep.to_counts(q)).data,
+                       is_extended_id=False)
+    frames = [*rig.log.frames, (rig.clock.now, jump)]
+    path = tmp_path / "jump.asc"
+    with can.Logger(str(path)) as writer:
+        for t, msg in frames:
+            writer.on_message_received(can.Message(timestamp=t, arbitration_id=msg.arbitration_id, data=msg.data,
+                                                   is_extended_id=False, is_error_frame=msg.is_error_frame))
+    for found in (audit(frames, TABLE, rig.loop.bounds, rig.loop.stale_after),
+                  audit(read_log(str(path)), TABLE, rig.loop.bounds, rig.loop.stale_after)):
+        assert [v.split()[3:5] for v in found.violations] == [["speed", "LEP"], ["acceleration", "LEP"]], \
+            found.violations
+        assert found.targets["LEP"][-1][1] == pytest.approx(q, abs=1e-6)
