@@ -49,6 +49,7 @@ from mds_ach.ach.layout import (
     Q_INDEX_HEAD,
     Q_LEN,
     Layout,
+    entry_ok,
     native_layout,
 )
 from mds_ach.ach.status import (
@@ -631,7 +632,7 @@ class Channel:
         if index_free == 0:  # index full: drop the oldest frame, which sits in our slot
             e = ix + 3 * index_head
             size, offset, seq = q[e], q[e + 1], q[e + 2]
-            if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+            if not entry_ok(size, offset, seq, dsize, last):
                 return ACH_CORRUPT
             data_free += q[e]
             index_free += 1
@@ -641,7 +642,7 @@ class Channel:
             while q[ix + 3 * i + 1] > data_head:
                 e = ix + 3 * i
                 size, offset, seq = q[e], q[e + 1], q[e + 2]
-                if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+                if not entry_ok(size, offset, seq, dsize, last):
                     return ACH_CORRUPT
                 data_free += size
                 index_free += 1
@@ -652,7 +653,7 @@ class Channel:
             else:
                 e = ix + 3 * ((index_head + index_free) % cnt)
                 size, offset, seq = q[e], q[e + 1], q[e + 2]
-                if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+                if not entry_ok(size, offset, seq, dsize, last):
                     return ACH_CORRUPT
                 data_free = offset
             data_head = 0
@@ -663,7 +664,7 @@ class Channel:
             else:
                 e = ix + 3 * i
                 size, offset, seq = q[e], q[e + 1], q[e + 2]
-                if not (size and offset < dsize and size <= dsize - offset and seq and seq <= last):
+                if not entry_ok(size, offset, seq, dsize, last):
                     return ACH_CORRUPT
                 data_free += size
                 index_free += 1
@@ -848,7 +849,7 @@ class Channel:
         size = q[e]
         offset = q[e + 1]
         eseq = q[e + 2]
-        if not (size and offset < dsize and size <= dsize - offset and eseq and eseq <= last_seq):
+        if not entry_ok(size, offset, eseq, dsize, last_seq):
             if size == offset == eseq == 0:  # an empty ring (a repair kept no frame): nothing to miss
                 self._seq = last_seq
                 return ACH_STALE_FRAMES, 0

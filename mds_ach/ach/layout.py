@@ -119,6 +119,14 @@ LAYOUTS = {"x86_64": LAYOUT_X86_64, "aarch64": LAYOUT_AARCH64}
 _MACHINE_ALIASES = {"amd64": "x86_64", "x86_64": "x86_64", "aarch64": "aarch64", "arm64": "aarch64"}
 
 
+def entry_ok(size: int, offset: int, seq: int, data_size: int, last_seq: int) -> bool:
+    """An index entry that may be used: a non-empty frame inside the data ring, written at or before ``last_seq``.
+
+    The one definition of a sane entry for the put/get paths and ``mds-ach repair`` (the C twin in ``_achfast.c``
+    checks the same). Anything else reads as ACH_CORRUPT: offsets from the file are never used unchecked."""
+    return 0 < size <= data_size - offset and offset < data_size and 0 < seq <= last_seq
+
+
 def native_arch() -> str | None:
     """``x86_64`` or ``aarch64`` for this machine (64-bit glibc), else None."""
     arch = _MACHINE_ALIASES.get(platform.machine().lower())

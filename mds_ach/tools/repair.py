@@ -46,6 +46,7 @@ from mds_ach.ach.layout import (
     OFF_INDEX_CNT,
     OFF_INDEX_FREE,
     OFF_INDEX_HEAD,
+    entry_ok,
 )
 from mds_ach.robot import access as channel_access
 
@@ -216,7 +217,7 @@ def _ring_problem(m: _Mapped) -> str | None:
                 f"data_head {data_head}, data_free {data_free} ({dsize} bytes)")
     for slot in range(cnt):
         size, offset, seq = struct.unpack_from("<QQQ", m.mm, h + 8 + 24 * slot)
-        if (size or offset or seq) and not (0 < size <= dsize - offset and offset < dsize and 0 < seq <= last_seq):
+        if (size or offset or seq) and not entry_ok(size, offset, seq, dsize, last_seq):
             return f"index entry {slot} out of range: size {size}, offset {offset}, seq {seq} (last_seq {last_seq})"
     return None
 
@@ -266,7 +267,7 @@ def _good_frames(m: _Mapped) -> tuple[list[_Entry], int]:
         size, offset, seq = struct.unpack_from("<QQQ", m.mm, h + 8 + 24 * slot)
         if size or offset or seq:
             live.append(_Entry(slot, size, offset, seq))
-    candidates = [e for e in live if 0 < e.seq <= last_seq and e.size > 0 and e.offset + e.size <= dsize
+    candidates = [e for e in live if entry_ok(e.size, e.offset, e.seq, dsize, last_seq)
                   and e.slot == (e.seq - 1) % cnt]
     # The interrupted put's own entry sits at index_head until the head moves on; its fields may be half written.
     candidates = [e for e in candidates if not (e.seq == last_seq and e.slot == index_head % cnt
