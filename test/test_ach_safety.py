@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pytest
 from support import REPO, in_netns
+from support.faults import LockHolder
 
 from mds_ach import ach
 from mds_ach.robot.channels import StructChannel
@@ -421,39 +422,6 @@ def test_full_dev_shm_fails_at_creation_with_the_sizes_never_later_with_sigbus()
 
 
 # --- timed locks ---------------------------------------------------------------------------------------------------
-
-HOLDER = r"""
-import sys
-from mds_ach import ach
-ch = ach.Channel(sys.argv[1], create=False)
-assert ch._lock() == 0
-print("locked", flush=True)
-sys.stdin.readline()
-ch._mutex_unlock(ch._mutex)
-print("released", flush=True)
-sys.stdin.readline()
-"""
-
-
-class LockHolder:
-    """A process that holds a channel's mutex until ``release()`` (like a client stopped inside a put)."""
-
-    def __init__(self, name: str) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-c", HOLDER, name], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
-        assert self.proc.stdout.readline().strip() == "locked"
-
-    def release(self) -> None:
-        self.proc.stdin.write("\n")
-        self.proc.stdin.flush()
-        assert self.proc.stdout.readline().strip() == "released"
-
-    def close(self) -> None:
-        self.proc.kill()
-        self.proc.wait(10)
-        self.proc.stdin.close()
-        self.proc.stdout.close()
-
 
 def image(name: str) -> bytes:
     data = bytearray(Path(ach.shm_path(name)).read_bytes())

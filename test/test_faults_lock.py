@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 
 from support import VENV_BIN, wait_for
 from support.channels import Newest
+from support.faults import LockHolder
 
 import mds_ach as mds
 from mds_ach.robot.channels import StructChannel
@@ -19,19 +19,6 @@ from mds_ach.robot.msgs import MDS_CMD, MDS_STATE
 from mds_ach.robot.msgs import daemon_status as ds
 
 # ============================================================================================ 4. a lock held too long
-
-LOCK_HOLDER = """
-import sys
-from mds_ach import ach
-ch = ach.Channel(sys.argv[1], create=False)
-assert ch._lock() == 0
-print("locked", flush=True)
-sys.stdin.readline()
-ch._mutex_unlock(ch._mutex)
-print("released", flush=True)
-sys.stdin.readline()
-"""
-
 
 def test_daemon_keeps_cycling_while_a_client_holds_the_state_lock(clean_shm: None) -> None:
     """A client stopped while it holds the ``mds-state`` lock (a reader SIGSTOPped inside its get, a debugger)
@@ -49,9 +36,7 @@ def test_daemon_keeps_cycling_while_a_client_holds_the_state_lock(clean_shm: Non
     try:
         wait_for(lambda: state_in.latest(), 30, what="mds-state from the daemon")
         wait_for(status_in.get, 10, what="mds-daemon-status")
-        holder = subprocess.Popen([sys.executable, "-c", LOCK_HOLDER, mds.MDS_CHAN_STATE_NAME],
-                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        assert holder.stdout.readline().strip() == "locked"
+        holder = LockHolder(mds.MDS_CHAN_STATE_NAME)
         held_since = time.monotonic()
         before = wait_for(status, 10)
         cmd_out.put(MDS_CMD(seq=77, cmd=mds.MDS_CMD_ENABLE, address=0))
@@ -64,10 +49,8 @@ def test_daemon_keeps_cycling_while_a_client_holds_the_state_lock(clean_shm: Non
         while time.monotonic() - held_since < 3.0:  # the whole 3 s: the loop never stops
             cycle = status().cycle
             wait_for(lambda c=cycle: status().cycle > c + 5, 5, what="cycles while the lock is held")
-        assert holder.poll() is None  # still holding the lock all this time
-        holder.stdin.write("\n")
-        holder.stdin.flush()
-        assert holder.stdout.readline().strip() == "released"
+        assert holder.holding()  # still holding the lock all this time
+        holder.release()
         released = time.monotonic()
         fresh = wait_for(lambda: (st := state_in.latest()) is not None and st.time > released and st, 10,
                          what="mds-state after the lock was released")
@@ -77,8 +60,7 @@ def test_daemon_keeps_cycling_while_a_client_holds_the_state_lock(clean_shm: Non
         assert status().lock_timeouts == skipped  # nothing skipped once the lock is free
     finally:
         if holder is not None:
-            holder.kill()
-            holder.wait(10)
+            holder.close()
         daemon.send_signal(signal.SIGTERM)
         out, _ = daemon.communicate(timeout=30)
         for ch in (status_in, state_in, cmd_out):

@@ -113,3 +113,41 @@ class StuckWriter:
         self.proc.wait(10)
         self.proc.stdout.close()
         self.proc.stderr.close()
+
+
+LOCK_HOLDER = r"""
+import sys
+from mds_ach import ach
+ch = ach.Channel(sys.argv[1], create=False)
+assert ch._lock() == 0
+print("locked", flush=True)
+sys.stdin.readline()
+ch._mutex_unlock(ch._mutex)
+print("released", flush=True)
+sys.stdin.readline()
+"""
+
+
+class LockHolder:
+    """A process that holds a channel's mutex until ``release()`` (like a client stopped inside a put)."""
+
+    def __init__(self, name: str) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-c", LOCK_HOLDER, name], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None and self.proc.stdout.readline().strip() == "locked"
+
+    def holding(self) -> bool:
+        return self.proc.poll() is None
+
+    def release(self) -> None:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write("\n")
+        self.proc.stdin.flush()
+        assert self.proc.stdout.readline().strip() == "released"
+
+    def close(self) -> None:
+        self.proc.kill()
+        self.proc.wait(10)
+        for stream in (self.proc.stdin, self.proc.stdout):
+            if stream is not None:
+                stream.close()
