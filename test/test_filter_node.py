@@ -183,12 +183,14 @@ def test_runner_starts_late_without_jump_and_resumes_the_mux_target(clean_shm: N
     t = threading.Thread(target=runner.run, daemon=True)
     t.start()
     try:
-        first = wait_for(lambda: smooth.latest(), 10, what="first smoothed frame")
+        # the runner's very first frame (in order: newest-wins would show a later one if this thread is slow)
+        first = wait_for(smooth.next, 10, what="first smoothed frame")
         got = ref_arrays(first)[0]
         step = 1.57 / 100
         assert abs(got[mds.LEP] - current[mds.LEP]) <= step + 1e-12  # starts at the current reference
         assert np.array_equal(np.delete(got, mds.LEP), np.delete(current, mds.LEP))
-        frames = []
+        newest = smooth.latest() or first  # from here on newest wins, as before
+        frames = [ref_arrays(newest)[0][mds.LEP]]
 
         def arrived() -> bool:
             while (f := smooth.latest()) is not None:
@@ -196,7 +198,7 @@ def test_runner_starts_late_without_jump_and_resumes_the_mux_target(clean_shm: N
             return bool(frames) and frames[-1] == -0.25
 
         wait_for(arrived, 10, what="the filter to reach the mux target")
-        seq = [got[mds.LEP], *frames]
+        seq = frames
         assert np.all(np.diff(seq) >= 0) and np.all(np.diff(seq) <= 2 * step + 1e-12)  # no jump (newest wins)
     finally:
         runner.stop()

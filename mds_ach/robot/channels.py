@@ -82,6 +82,11 @@ class StructChannel(Generic[T]):
         status, size = self.channel.get(self._buf, last=True, lock_timeout=lock_timeout)
         return self._frame(status, size)
 
+    def next(self, lock_timeout: float | None = None) -> T | None:
+        """The oldest frame not read yet (in order, libach's get without ACH_O_LAST), else None. Never waits."""
+        status, size = self.channel.get(self._buf, last=False, lock_timeout=lock_timeout)
+        return self._frame(status, size)
+
     def wait(self, timeout: float | None = None, lock_timeout: float | None = None) -> T | None:
         """Block until a new frame arrives (newest wins); None on timeout, cancel or close.
 
