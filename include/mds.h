@@ -33,6 +33,7 @@
 #define MDS_CHAR_PARAM_BUFFER_SIZE 30
 #define MDS_MUX_MAX_CONTROLLERS 8  /* mds_mux_state_t per-controller arrays */
 #define MDS_IK_MESSAGE_SIZE 80  /* mds_ik_status_t.message, NUL included */
+#define MDS_HOLD_REASON_SIZE 64  /* mds_hold_t.reason, NUL included */
 #define MDS_LOOP_PERIOD 0.1  /* s, default daemon period */
 #define MDS_REF_FILTER_LENGTH 40
 
@@ -81,6 +82,9 @@
 /* mds_daemon_status_t, new: the daemon's health each cycle: timing, bus load, faults, joint freshness. */
 /*   written by daemon; read by mux, filter, collision, read, mds-ach, achd, clients */
 #define MDS_CHAN_DAEMON_STATUS_NAME "mds-daemon-status"
+/* mds_hold_t, new: hold / resume / cancel requests to the mux (the command lifecycle). */
+/*   written by console, mds-ach, bridge, collision, viewer, achd, clients; read by mux */
+#define MDS_CHAN_HOLD_NAME "mds-hold"
 /* What the daemon executes (only the stack's user writes it). */
 #define MDS_CHAN_DAEMON_INPUT_NAME MDS_CHAN_REF_NAME
 
@@ -265,6 +269,14 @@ typedef enum mds_ik_status_code {
 
 /* ---- mds_mux_state_t (MDS_CHAN_MUX_STATE_NAME) ---- */
 #define MDS_MUX_NO_OWNER (-1)  /* owner[] of a joint nobody owns */
+
+/* ---- mds_hold_t (MDS_CHAN_HOLD_NAME): hold / resume / cancel requests to the mux ---- */
+/* mds_hold_t.action. */
+typedef enum mds_hold_action {
+    MDS_HOLD_HOLD = 1,
+    MDS_HOLD_RESUME = 2,
+    MDS_HOLD_CANCEL = 3,
+} mds_hold_action_t;
 
 /* ---- packed wire structs (byte offsets in the comments) ---- */
 /* One joint's reference: radians in joint space plus the legacy ref mode (10 B). */
@@ -491,6 +503,18 @@ typedef struct MDS_PACKED mds_daemon_status {
     uint32_t lock_timeouts;                              /* @2083 */
 } mds_daemon_status_t;
 MDS_STATIC_ASSERT(sizeof(mds_daemon_status_t) == 2087, "mds_daemon_status_t must be 2087 bytes");
+
+/* mds-hold frame (packed). */
+typedef struct MDS_PACKED mds_hold {
+    uint32_t seq;                                        /* @0 the writer's request counter (the mux echoes the newest it handled) */
+    int16_t action;                                      /* @4 HOLD_HOLD / HOLD_RESUME / HOLD_CANCEL */
+    uint8_t joints[MDS_JOINT_COUNT];                     /* @6 1 = the request applies to this joint; all 0 = every joint */
+    double target[MDS_JOINT_COUNT];                      /* @106 CANCEL only: the position to hold, rad; NaN = where the joint's reference is now */
+    char source[MDS_CHAR_PARAM_BUFFER_SIZE];             /* @906 who asked (console, mds-ach, ros, collision, a client's name), char[30] */
+    char reason[MDS_HOLD_REASON_SIZE];                   /* @936 why, for the logs and the status (e.g. "goto timed out"), NUL-terminated ASCII */
+    double time;                                         /* @1000 CLOCK_MONOTONIC when written */
+} mds_hold_t;
+MDS_STATIC_ASSERT(sizeof(mds_hold_t) == 1008, "mds_hold_t must be 1008 bytes");
 
 /* ---- legacy bare macros of the original mds.h: RIGHT/LEFT and the 13 arm and torso joints by
    short and long name (#define LSP 0x005f). They are common words, so define

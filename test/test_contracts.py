@@ -48,7 +48,8 @@ def test_structs_of_the_channels() -> None:
                 "mds-param": msgs.MDS_JOINT_PARAM, "mds-ik": msgs.MDS_IK, "mds-collide": msgs.MDS_COLLIDE,
                 "mds-cmd": msgs.MDS_CMD, "mds-ref-ik": msgs.MDS_REF, "mds-ref-ros": msgs.MDS_REF,
                 "mds-ref-mux": msgs.MDS_REF, "mds-ref-smooth": msgs.MDS_REF, "mds-ik-state": msgs.MDS_IK_STATUS,
-                "mds-mux-state": msgs.MDS_MUX_STATE, "mds-daemon-status": msgs.MDS_DAEMON_STATUS}
+                "mds-mux-state": msgs.MDS_MUX_STATE, "mds-daemon-status": msgs.MDS_DAEMON_STATUS,
+                "mds-hold": msgs.MDS_HOLD}
     assert {c.name: c.struct for c in contracts.CHANNELS} == expected
 
 

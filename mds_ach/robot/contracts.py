@@ -27,6 +27,7 @@ from mds_ach.robot.msgs import (
     MDS_CMD,
     MDS_COLLIDE,
     MDS_DAEMON_STATUS,
+    MDS_HOLD,
     MDS_IK,
     MDS_IK_STATUS,
     MDS_JOINT_PARAM,
@@ -35,6 +36,7 @@ from mds_ach.robot.msgs import (
     MDS_STATE,
     Packed,
 )
+from mds_ach.robot.msgs.hold import check_hold
 from mds_ach.robot.msgs.legacy import MDS_REF_MODES
 
 # --- processes (the writers and readers named below) -------------------------------------------------------
@@ -66,6 +68,7 @@ MDS_CHAN_REF_SMOOTH_NAME = "mds-ref-smooth"
 MDS_CHAN_IK_STATE_NAME = "mds-ik-state"
 MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"
 MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"
+MDS_CHAN_HOLD_NAME = "mds-hold"
 MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_NAME
 """What the daemon executes (the collision gate's output). The one name to change when it is renamed; its
 contract is ``stack_only``: operators write the controller inputs above it."""
@@ -213,6 +216,10 @@ CHANNELS: tuple[Contract[Any], ...] = (
     Contract(MDS_CHAN_DAEMON_STATUS_NAME, "MDS_CHAN_DAEMON_STATUS_NAME", MDS_DAEMON_STATUS,
              "the daemon's health each cycle: timing, bus load, faults, joint freshness",
              writers=(DAEMON,), readers=(MUX, FILTER, COLLISION, READ, CLI, REMOTE, CLIENTS), legacy=False),
+    Contract(MDS_CHAN_HOLD_NAME, "MDS_CHAN_HOLD_NAME", MDS_HOLD,
+             "hold / resume / cancel requests to the mux (the command lifecycle)",
+             writers=(CONSOLE, CLI, BRIDGE, COLLISION, VIEWER, REMOTE, CLIENTS), readers=(MUX,), legacy=False,
+             validator=check_hold),
 )
 
 BY_NAME: Mapping[str, Contract[Any]] = {c.name: c for c in CHANNELS}

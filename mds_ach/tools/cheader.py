@@ -21,7 +21,7 @@ from typing import Any
 
 import mds_ach as mds
 from mds_ach.robot import contracts, joints, msgs
-from mds_ach.robot.msgs import daemon_status, ik_status, legacy, mux_state
+from mds_ach.robot.msgs import daemon_status, hold, ik_status, legacy, mux_state
 
 HEADER_PATH = Path(__file__).resolve().parents[2] / "include" / "mds.h"
 
@@ -53,6 +53,7 @@ _LENGTH_MACROS: dict[int, str] = {
     msgs.MDS_CHAR_PARAM_BUFFER_SIZE: "MDS_CHAR_PARAM_BUFFER_SIZE",
     mux_state.MUX_MAX_CONTROLLERS: "MDS_MUX_MAX_CONTROLLERS",
     ik_status.IK_MESSAGE_SIZE: "MDS_IK_MESSAGE_SIZE",
+    hold.HOLD_REASON_SIZE: "MDS_HOLD_REASON_SIZE",
 }
 
 # The 13 joints the original mds.h named with bare macros (``#define LSP 0x005f`` and the long name).
@@ -257,6 +258,7 @@ def generate() -> str:
         f"#define MDS_CHAR_PARAM_BUFFER_SIZE {msgs.MDS_CHAR_PARAM_BUFFER_SIZE}",
         f"#define MDS_MUX_MAX_CONTROLLERS {mux_state.MUX_MAX_CONTROLLERS}  /* mds_mux_state_t per-controller arrays */",
         f"#define MDS_IK_MESSAGE_SIZE {ik_status.IK_MESSAGE_SIZE}  /* mds_ik_status_t.message, NUL included */",
+        f"#define MDS_HOLD_REASON_SIZE {hold.HOLD_REASON_SIZE}  /* mds_hold_t.reason, NUL included */",
         f"#define MDS_LOOP_PERIOD {mds.MDS_LOOP_PERIOD!r}  /* s, default daemon period */",
         f"#define MDS_REF_FILTER_LENGTH {mds.MDS_REF_FILTER_LENGTH}",
         "",
@@ -294,6 +296,11 @@ def generate() -> str:
     out.append("")
     out.append("/* ---- mds_mux_state_t (MDS_CHAN_MUX_STATE_NAME) ---- */")
     out.append(f"#define MDS_MUX_NO_OWNER ({mux_state.MUX_NO_OWNER})  /* owner[] of a joint nobody owns */")
+    out.append("")
+    out.append("/* ---- mds_hold_t (MDS_CHAN_HOLD_NAME): hold / resume / cancel requests to the mux ---- */")
+    out += _enum("mds_hold_action", "mds_hold_t.action.",
+                 [("MDS_" + k, v) for k, v in _module_constants("HOLD_", module=hold)
+                  if k not in ("HOLD_REASON_SIZE", "HOLD_ACTIONS")])
     out.append("")
     out.append("/* ---- packed wire structs (byte offsets in the comments) ---- */")
     for cls in STRUCTS:

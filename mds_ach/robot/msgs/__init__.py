@@ -4,6 +4,7 @@
   ``MDS_COLLIDE``) and ``MDS_CMD``, with the char[30] name helpers;
 * :mod:`.ik_status` -- ``MDS_IK_STATUS`` (``mds-ik-state``), the IK node's answers;
 * :mod:`.mux_state` -- ``MDS_MUX_STATE`` (``mds-mux-state``), the mux's joint owners;
+* :mod:`.hold` -- ``MDS_HOLD`` (``mds-hold``), hold / resume / cancel requests to the mux;
 * :mod:`.daemon_status` -- ``MDS_DAEMON_STATUS`` (``mds-daemon-status``), the daemon's health.
 
 Which channel carries which struct is :mod:`mds_ach.robot.contracts`; ``include/mds.h`` is generated from both.
@@ -13,6 +14,7 @@ Stdlib + ctypes only: C-like clients read these without numpy or rclpy.
 from __future__ import annotations
 
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
+from mds_ach.robot.msgs.hold import MDS_HOLD
 from mds_ach.robot.msgs.ik_status import MDS_IK_STATUS
 from mds_ach.robot.msgs.legacy import (
     MDS_ARM_COUNT,
@@ -48,6 +50,7 @@ __all__ = [
     "MDS_COLLIDE",
     "MDS_COLLIDE_JNT_NUM",
     "MDS_DAEMON_STATUS",
+    "MDS_HOLD",
     "MDS_IK",
     "MDS_IK_ARM",
     "MDS_IK_STATUS",
