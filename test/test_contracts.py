@@ -125,7 +125,7 @@ def test_achd_rules_follow_the_contracts() -> None:
 
 
 def test_network_defaults_never_reach_the_daemon() -> None:
-    assert achd.SAFE_WRITABLE == remote.ROBOT_WRITABLE == ("mds-ref-filter", "mds-ik")
+    assert achd.SAFE_WRITABLE == remote.ROBOT_WRITABLE == ("mds-ref-filter", "mds-ik", "mds-hold")
     assert mds.MDS_CHAN_DAEMON_INPUT_NAME not in achd.SAFE_WRITABLE
     assert mds.MDS_CHAN_BOARD_CMD_NAME not in achd.SAFE_WRITABLE
     assert set(remote.ROBOT_READABLE) == {"mds-state", "mds-param", "mds-collide", "mds-daemon-status",
