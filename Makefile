@@ -7,6 +7,8 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mds_ach_installed
 DEV_STAMP := $(VENV)/.mds_ach_dev_installed
+# mds_ach's libach for C clients (libach/): libach.so + ach.h + pkgconfig/ach.pc in the venv prefix
+LIBACH := $(VENV)/lib/libach.so.4.0.0
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 PYTEST_ARGS ?=
 
@@ -23,13 +25,13 @@ help:
 
 all: setup
 
-setup: $(STAMP)
+setup: $(STAMP) $(LIBACH)
 
 dev: $(DEV_STAMP)
 
 # pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
-$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/_shmguard.c
+$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/achcore.h mds_ach/ach/_shmguard.c
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
 	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
@@ -40,13 +42,20 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c
 		"+ SIGBUS guard" if ach.GUARD_AVAILABLE else "(no SIGBUS guard: a truncated channel kills its users)")'
 	@touch $@
 
+# libach.so, ach.h and ach.pc, built from the project's channel code (mds_ach/ach/achcore.h), so C clients build
+# with `cc demo.c -I$(VENV)/include -L$(VENV)/lib -lach` or `pkg-config --cflags --libs ach`.
+$(LIBACH): libach/libach.c libach/ach.h libach/ach.pc.in libach/Makefile mds_ach/ach/achcore.h
+	@test -x $(PY) || python3 -m venv $(VENV)
+	$(MAKE) -s -C libach install PREFIX=$(abspath $(VENV))
+	@echo "libach: $(abspath $(VENV))/lib/libach.so, include/ach.h, lib/pkgconfig/ach.pc"
+
 # The test and tooling dependencies (requirements-dev.txt: pytest, ruff, torch for the FK cross-check, ...) on top
 # of the runtime ones; `make setup` / `make run` never install them.
-$(DEV_STAMP): $(STAMP) requirements-dev.txt
+$(DEV_STAMP): $(STAMP) $(LIBACH) requirements-dev.txt
 	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	@touch $@
 
-run: $(STAMP)
+run: $(STAMP) $(LIBACH)
 	@# ROS nodes stay in a private network namespace; channels live on the host /dev/shm so that
 	@# `mds-ach console`, `read` and C clients in other terminals see them.
 	MDS_NETNS_SHARE_SHM=1 tools/netns-run $(VENV)/bin/mds-ach run --nocan

@@ -32,8 +32,8 @@ setup(
     ],
     # The C fast path of mds_ach.ach, and the SIGBUS guard for mapped channel files (a truncated channel must not
     # kill its users); both optional: without a compiler the pure-Python code is used, unguarded.
-    ext_modules=[Extension("mds_ach.ach._achfast", ["mds_ach/ach/_achfast.c"], extra_compile_args=["-O2", "-Wall"],
-                           optional=True),
+    ext_modules=[Extension("mds_ach.ach._achfast", ["mds_ach/ach/_achfast.c"], depends=["mds_ach/ach/achcore.h"],
+                           extra_compile_args=["-O2", "-Wall"], optional=True),
                  Extension("mds_ach.ach._shmguard", ["mds_ach/ach/_shmguard.c"], extra_compile_args=["-O2", "-Wall"],
                            optional=True)],
     install_requires=["setuptools"],

@@ -304,14 +304,15 @@ def test_poll_returns_on_cancel_and_timeout(clean_shm: None) -> None:
 
 
 @needs_fast
-def test_frames_without_a_wake_up_switch_the_reader_to_short_slices(clean_shm: None,
-                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    """Writers of this package wake waiting readers, so idle readers look again only every IDLE_SLICE. A C libach
-    writer only broadcasts the condvar: its first frame is seen within IDLE_SLICE, the next ones within
-    POLL_SLICE; after enough woken frames the reader goes back to IDLE_SLICE."""
+def test_frames_without_a_wake_up_switch_the_reader_to_polling(clean_shm: None,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Writers of this package wake waiting readers, so idle readers look again only every IDLE_SLICE. golems'
+    libach writer only broadcasts the condvar: its first frame is seen within IDLE_SLICE, the next ones within
+    UNWOKEN_POLL, also while woken frames come in between; UNWOKEN_HOLD after the last unwoken frame the reader
+    goes back to IDLE_SLICE."""
     monkeypatch.setattr(ach_channel, "IDLE_SLICE", 0.4)
-    monkeypatch.setattr(ach_channel, "POLL_SLICE", 0.005)
-    monkeypatch.setattr(ach_channel, "_SHORT_SLICE_FRAMES", 3)
+    monkeypatch.setattr(ach_channel, "UNWOKEN_POLL", 0.001)
+    monkeypatch.setattr(ach_channel, "UNWOKEN_HOLD", 1.5)
     ach.create(NAME_FAST, 8, 32)
     with ach.Channel(NAME_FAST) as r, ach.Channel(NAME_FAST, fast=False) as c_like, ach.Channel(NAME_FAST) as w:
         c_like._wake_all = lambda: c_like._cond_broadcast(c_like._cond)  # libach's put: broadcast, no futex wake
@@ -331,7 +332,9 @@ def test_frames_without_a_wake_up_switch_the_reader_to_short_slices(clean_shm: N
         assert delay(w) < 0.03  # woken
         first = delay(c_like)
         assert first > 0.2  # not woken: seen at the end of the 0.4 s slice (0.35 s after the put)
-        assert max(delay(c_like) for _ in range(3)) < 0.1  # now looking every 5 ms
+        assert max(delay(c_like) for _ in range(3)) < 0.03  # now looking every 1 ms
         for _ in range(3):
             assert delay(w) < 0.03
-        assert delay(c_like) > 0.2  # three woken frames later: long slices again
+        assert delay(c_like) < 0.03  # woken frames in between do not end the polling
+        time.sleep(1.6)  # UNWOKEN_HOLD after the last unwoken frame
+        assert delay(c_like) > 0.2  # long slices again

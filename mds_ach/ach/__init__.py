@@ -21,9 +21,11 @@ Why some things look the way they do:
   robust: a waiter SIGKILLed inside ``pthread_cond_wait`` keeps a group reference forever, and the next
   ``pthread_cond_broadcast`` (every writer's, C or Python) then waits for it -- forever. Instead a reader sleeps
   on a futex keyed on the ``last_seq`` word, which leaves nothing behind when the process dies; Python writers
-  wake it directly (``FUTEX_WAKE`` after the unlock) and still broadcast the condvar for C readers. Frames from
-  C libach writers, which only broadcast, are noticed by the reader's periodic re-check (``POLL_SLICE``; with
-  the C fast path an idle reader re-checks every ``IDLE_SLICE`` until it has seen such a frame).
+  wake it directly (``FUTEX_WAKE`` after the unlock) and still broadcast the condvar for C readers; the
+  project's libach for C clients (``libach/``, sharing ``achcore.h`` with the C fast path) does the same. Frames
+  from golems' libach writers, which only broadcast, are noticed by a re-check: with the C fast path an idle
+  reader re-checks every ``IDLE_SLICE`` until it has seen such a frame, then every ``UNWOKEN_POLL`` (inside C)
+  for ``UNWOKEN_HOLD`` seconds after the last one; the pure-Python path re-checks every ``POLL_SLICE``.
   ``Channel(..., condvar_wait=True)`` waits in the condvar exactly like libach instead (C writers wake it at
   once; the dead-waiter hazard is then libach's too).
 * Waits are cut into short timed slices so that Ctrl-C, ``cancel()`` and ``close()`` are honoured even though
@@ -69,6 +71,8 @@ from mds_ach.ach.channel import (
     FAST_AVAILABLE,
     IDLE_SLICE,
     POLL_SLICE,
+    UNWOKEN_HOLD,
+    UNWOKEN_POLL,
     WAIT_SLICE,
     Channel,
     _achfast,
@@ -145,7 +149,8 @@ __all__ = [
     "ACH_O_NONBLOCK", "ACH_O_RELTIME", "ACH_O_WAIT", "ACH_STALE_FRAMES", "ACH_TIMEOUT", "CLOCK_MONOTONIC",
     "CLOCK_REALTIME", "FAST_AVAILABLE", "GUARD_AVAILABLE", "GUARD_DATA", "GUARD_HEADER", "GUARD_INDEX",
     "IDLE_SLICE", "LAYOUTS", "LAYOUT_AARCH64", "LAYOUT_X86_64", "MAGIC", "NAME_MAX", "POLL_SLICE", "SHM_DIR",
-    "SHM_PREFIX", "WAIT_SLICE", "AchException", "Channel", "ChannelImage", "IndexEntry", "Layout", "MappingGuard",
+    "SHM_PREFIX", "UNWOKEN_HOLD", "UNWOKEN_POLL", "WAIT_SLICE", "AchException", "Channel", "ChannelImage",
+    "IndexEntry", "Layout", "MappingGuard",
     "create", "detect_layout", "exists", "explain", "native_layout", "parse_image", "result_string", "shm_path",
     "unlink", "validate_name", "_LOCK_TIMED_OUT", "_achfast", "_shmguard",
 ]

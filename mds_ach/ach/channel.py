@@ -78,10 +78,11 @@ if TYPE_CHECKING:  # the C extension is optional at run time (see _load_fast)
     from mds_ach.ach._achfast import Handle as _FastHandle
 
 WAIT_SLICE = 0.1  # s per condvar wait slice (condvar_wait=True), so Ctrl-C / cancel / close are seen promptly
-POLL_SLICE = 0.005  # s per futex wait slice: how late a frame from a C writer (no futex wake) can be noticed
+POLL_SLICE = 0.005  # pure-Python path: s per futex wait slice, how late a frame from a C libach writer can be seen
 IDLE_SLICE = 0.05  # C fast path: s per futex wait slice while every frame comes with a wake-up (fewer idle wakes)
-_SHORT_SLICE_FRAMES = 100  # after a frame that came without a wake-up, this many woken frames before IDLE_SLICE
-_WAIT_WOKEN, _WAIT_TIMED_OUT = 1, 2  # _achfast.Handle.woken: how the last get's futex wait ended (0: no wait)
+UNWOKEN_POLL = 0.0003  # C fast path: after a frame came without a wake-up, look at last_seq this often (in C) ...
+UNWOKEN_HOLD = 10.0  # ... for this many seconds after the last such frame (golems' libach writers only broadcast)
+_WAIT_WOKEN, _WAIT_UNWOKEN = 1, 2  # _achfast.Handle.woken: how the last get's futex wait ended (0: no wait)
 
 _U64 = struct.Struct("<Q")
 _U64_MAX = 2**64 - 1
@@ -239,7 +240,7 @@ class Channel:
         self._seq = 0
         self._next = 1
         self._fast: _FastHandle | None = None
-        self._short_slices = 0  # > 0: a writer that does not wake the futex was seen; wait in POLL_SLICE slices
+        self._unwoken_until = 0.0  # monotonic s: until then a writer that does not wake the futex is assumed
         if _achfast is not None and self._want_fast and not self._condvar_wait:
             try:
                 self._fast = _achfast.Handle(base, layout.mutex, layout.cond, layout.dirty, layout.last_seq,
@@ -738,14 +739,20 @@ class Channel:
     def _slice(self, deadline: float | None) -> tuple[int, bool]:
         """Nanoseconds of the next wait slice, and whether it is the last one before the deadline.
 
-        Python and C-fast-path writers wake waiting readers, so a reader only needs to look again now and then
-        (IDLE_SLICE) for cancel and close. Once a frame has turned up without a wake-up (a C libach writer, which
-        only broadcasts the condvar) the reader looks every POLL_SLICE, until that many woken frames later."""
-        full = int((POLL_SLICE if self._short_slices else IDLE_SLICE) * 1e9)
+        Writers of this package and of its libach wake waiting readers, so a reader only needs to look again now
+        and then (IDLE_SLICE) for cancel and close."""
+        full = int(IDLE_SLICE * 1e9)
         if deadline is None:
             return full, False
         left = int((deadline - time.clock_gettime(self._clock)) * 1e9)
         return (full, False) if left > full else (max(0, left), True)
+
+    def _poll_ns(self) -> int:
+        """How often (ns) the C wait also looks at last_seq by itself; 0 = only when woken. A frame that came
+        without a wake-up (golems' libach writers only broadcast the condvar, which futex sleepers do not hear)
+        makes the reader look every UNWOKEN_POLL for UNWOKEN_HOLD seconds after the last such frame, also on
+        channels where other writers do wake it."""
+        return int(UNWOKEN_POLL * 1e9) if time.monotonic() < self._unwoken_until else 0
 
     def _get_fast(self, fast: _FastHandle, buf: object, options: int, deadline: float | None,
                   lock_ns: int = -1) -> tuple[int, int]:
@@ -760,24 +767,21 @@ class Channel:
             get = fast.get
             wait = options & ACH_O_WAIT
             span, final = self._slice(deadline) if wait else (0, True)
+            poll_ns = self._poll_ns() if wait else 0
             try:
-                status, size = get(buf, options, span, lock_ns)
+                status, size = get(buf, options, span, lock_ns, poll_ns)
             except (TypeError, BufferError):  # not a plain writable buffer: convert it, or say what is wrong
                 buf = _byte_view(buf, True)
-                status, size = get(buf, options, span, lock_ns)
+                status, size = get(buf, options, span, lock_ns, poll_ns)
             while wait and status == ACH_TIMEOUT:  # a slice passed without a new frame
                 if self._cancel or self._closed:
                     return ACH_CANCELED, 0
                 if final:  # that was the last slice before the deadline
                     return ACH_TIMEOUT, 0
                 span, final = self._slice(deadline)
-                status, size = get(buf, options, span, lock_ns)
-            if wait and status in (ACH_OK, ACH_MISSED_FRAME):
-                woken = fast.woken
-                if woken == _WAIT_TIMED_OUT:  # the frame came without a wake-up
-                    self._short_slices = _SHORT_SLICE_FRAMES
-                elif woken == _WAIT_WOKEN and self._short_slices:
-                    self._short_slices -= 1
+                status, size = get(buf, options, span, lock_ns, self._poll_ns())
+            if wait and status in (ACH_OK, ACH_MISSED_FRAME) and fast.woken == _WAIT_UNWOKEN:
+                self._unwoken_until = time.monotonic() + UNWOKEN_HOLD  # the frame came without a wake-up
             return status, size
         finally:
             active.pop()
