@@ -8,10 +8,11 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
-from support import REPO, wait_for
+from support import REPO, libach, wait_for
 from support.system import arm_pos, chain_fk, joint_pos, running_system
 
 import mds_ach as mds
@@ -38,6 +39,25 @@ def test_examples_have_help() -> None:
     for path in sorted(EXAMPLES.glob("*.py")):
         proc = subprocess.run([sys.executable, str(path), "--help"], capture_output=True, text=True, timeout=60)
         assert proc.returncode == 0 and "usage" in proc.stdout, f"{path.name}: {proc.stderr}"
+
+
+@pytest.mark.slow
+def test_c_examples_build_and_move_the_robot(system: dict[str, str], tmp_path: Path) -> None:
+    """examples/c builds with its Makefile against the project's libach (make setup) and drives the robot."""
+    out = tmp_path / "c"
+    proc = subprocess.run(["make", "-C", str(EXAMPLES / "c"), f"BUILD={out}", f"ACH_PREFIX={libach.prefix()}"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    proc = subprocess.run([str(out / "mds_controller"), "-0.25", "0.15"], env=system, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    wait_for(lambda: abs(joint_pos("LEP") + 0.25) < 0.006 and abs(joint_pos("LSP") - 0.15) < 0.006, timeout=30,
+             what="LEP at -0.25 and LSP at 0.15")
+    proc = subprocess.run([str(out / "mds_ik_request"), "left", "0.3", "0.2", "0.0"], env=system,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    wait_for(lambda: np.linalg.norm(left_hand() - [0.3, 0.2, 0.0]) < 0.03, timeout=30,
+             what="left hand at (0.3, 0.2, 0.0)")
 
 
 @pytest.mark.slow

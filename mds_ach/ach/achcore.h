@@ -99,7 +99,7 @@ static inline long long achcore_mono_ns(void) {
 
 /* Point c at a mapped channel. Offsets are from the start of the file; the geometry must be the file's
  * (len = header + 24 * cnt + dsize + 24). Returns 0, or -1 for a layout this libc cannot use or a bad geometry. */
-static int achcore_attach(achcore_t *c, char *base, size_t mutex_off, size_t cond_off, size_t dirty_off,
+static inline int achcore_attach(achcore_t *c, char *base, size_t mutex_off, size_t cond_off, size_t dirty_off,
                           size_t last_off, size_t header_size, uint64_t cnt, uint64_t dsize, uint64_t len,
                           volatile int *lost) {
     memset(c, 0, sizeof *c);
@@ -158,7 +158,7 @@ static inline int achcore_entry_ok(uint64_t size, uint64_t offset, uint64_t seq,
  * locks, and between them the header is looked at again: a waiter parked in the kernel would otherwise never
  * notice that the file was truncated under it. pthread_mutex_timedlock takes a CLOCK_REALTIME deadline (POSIX);
  * a clock step only lengthens or shortens one slice. */
-static int achcore_lock(achcore_t *c, long long lock_ns) {
+static inline int achcore_lock(achcore_t *c, long long lock_ns) {
     int r = pthread_mutex_trylock(c->mutex);
     if (r == EBUSY) {
         long long end = lock_ns < 0 ? -1 : achcore_mono_ns() + lock_ns;
@@ -221,7 +221,7 @@ static inline int achcore_evict(volatile uint64_t *e, uint64_t dsize, uint64_t l
  * read once and checked before it is used. Returns with dirty = 0, except when an index entry turns out damaged
  * half-way: ACH_CORRUPT with dirty = 1, so every client sees the channel corrupt until `mds-ach repair` (as after
  * a writer died mid-put). Damaged counters are refused before anything is written. */
-static int achcore_write_locked(achcore_t *c, const char *src, uint64_t n) {
+static inline int achcore_write_locked(achcore_t *c, const char *src, uint64_t n) {
     volatile uint64_t *q = c->q, *ix = c->index;
     uint64_t cnt = c->cnt, dsize = c->dsize, last = *c->last_seq;
     uint64_t index_head = q[ACHCORE_Q_INDEX_HEAD], index_free = q[ACHCORE_Q_INDEX_FREE];
@@ -282,7 +282,7 @@ static int achcore_write_locked(achcore_t *c, const char *src, uint64_t n) {
 
 /* libach ach_get steps 3-7; caller holds the lock. Sets *size (needed size on OVERFLOW). Values from the file
  * are read once and checked before use, as in achcore_write_locked. */
-static int achcore_read_locked(achcore_t *c, char *dst, uint64_t cap, int options, uint64_t *size) {
+static inline int achcore_read_locked(achcore_t *c, char *dst, uint64_t cap, int options, uint64_t *size) {
     volatile uint64_t *q = c->q, *ix = c->index;
     uint64_t last = *c->last_seq, seq = c->seq, cnt = c->cnt, ri;
     uint64_t index_head = q[ACHCORE_Q_INDEX_HEAD], index_free = q[ACHCORE_Q_INDEX_FREE];
@@ -322,7 +322,7 @@ static int achcore_read_locked(achcore_t *c, char *dst, uint64_t cap, int option
 }
 
 /* header, lock, read, unlock: a complete non-blocking libach get. */
-static int achcore_get_once(achcore_t *c, char *dst, uint64_t cap, int options, uint64_t *size, long long lock_ns) {
+static inline int achcore_get_once(achcore_t *c, char *dst, uint64_t cap, int options, uint64_t *size, long long lock_ns) {
     *size = 0;
     if (!achcore_header_ok(c))
         return ACH_CORRUPT;
@@ -335,7 +335,7 @@ static int achcore_get_once(achcore_t *c, char *dst, uint64_t cap, int options, 
 }
 
 /* A complete libach put: checks, lock, write, unlock, wake every kind of waiter. */
-static int achcore_put(achcore_t *c, const char *src, uint64_t n, long long lock_ns) {
+static inline int achcore_put(achcore_t *c, const char *src, uint64_t n, long long lock_ns) {
     int r;
     if (n == 0)
         return ACH_EINVAL;
@@ -352,7 +352,7 @@ static int achcore_put(achcore_t *c, const char *src, uint64_t n, long long lock
 }
 
 /* libach ach_flush: mark every frame as seen, under the lock. */
-static int achcore_flush(achcore_t *c, long long lock_ns) {
+static inline int achcore_flush(achcore_t *c, long long lock_ns) {
     if (!achcore_header_ok(c))
         return ACH_CORRUPT;
     int r = achcore_lock(c, lock_ns);
@@ -384,7 +384,7 @@ static inline long long achcore_poll_ns(achcore_t *c, long long now) {
  * with poll_ns > 0 look at last_seq at least that often. Sets c->woken. Returns 1 when last_seq moved, 0 when
  * the slice ended (or a signal interrupted the sleep: the caller handles it and comes back). The look at last_seq
  * is only a hint; the get that follows decides under the lock. A process killed in here leaves nothing behind. */
-static int achcore_wait(achcore_t *c, long long slice_ns, long long poll_ns) {
+static inline int achcore_wait(achcore_t *c, long long slice_ns, long long poll_ns) {
     uint64_t seen = c->seq;
     uint64_t last = *c->last_seq;
     c->woken = WAIT_NONE;
