@@ -7,6 +7,10 @@ from functools import lru_cache
 from pathlib import Path
 
 PACKAGE = "mds_ach"
+# Executables in a bin/ directory (the venv's, a prefix's) carry this prefix so that none shadows a shell builtin or a
+# common command (`read`, `daemon`, `filter`); in <prefix>/lib/mds_ach (what `ros2 run mds_ach <node>` runs) they keep
+# the bare node name. setup.py applies the same rule.
+BIN_PREFIX = "mds-ach-"
 _SOURCE_ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -33,6 +37,11 @@ def config_path(name: str) -> Path:
 
 def urdf_path(name: str = "mds.urdf") -> Path:
     return share_dir() / "urdf" / name
+
+
+def bin_name(node: str) -> str:
+    """The name of ``node``'s executable in a bin/ directory: ``mds-ach-daemon`` for ``daemon``."""
+    return node if node.startswith("mds-ach") else BIN_PREFIX + node
 
 
 def runtime_dir() -> Path:
