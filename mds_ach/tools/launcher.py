@@ -33,6 +33,7 @@ from mds_ach.robot.config import ROBOT_ENV, ConfigError, available_robots, load
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
 from mds_ach.tools import repair
 from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
+from mds_ach.tools.rosgraph import summary as ros_graph_summary
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
 # the others start from), then the reference pipeline, then the clients that feed it.
@@ -477,7 +478,7 @@ In another terminal (same machine){activate}:
   mds-ach console              goto / get / get fk / ik  (try: get fk left, goto LSP -0.3)
   mds-ach status               nodes, loop rate, bus load, collisions
   python examples/one_joint.py
-ROS 2 topics (/joint_states, /robot_description, ...) are inside this network namespace.
+{ros}
 Press Ctrl-C to stop everything."""
 
 
@@ -517,7 +518,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
             _err(f"mds-ach run: {exc}")
             return 1
         out(NEXT_STEPS.format(mode=" on the simulated robot (nocan)" if nocan else "", rt=rt,
-                              activate=_activate_hint()))
+                              activate=_activate_hint(), ros=ros_graph_summary()))
         failed = None
         while not stop_requested and failed is None:
             failed = _dead(procs)
