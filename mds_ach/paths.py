@@ -44,10 +44,27 @@ def bin_name(node: str) -> str:
     return node if node.startswith("mds-ach") else BIN_PREFIX + node
 
 
+def host_uid() -> int:
+    """Our uid as the machine's user accounts see it. Inside the user namespace of a rootless tools/netns-run a
+    normal user appears as root (uid 0); /proc/self/uid_map maps that back, so that every terminal of that user,
+    inside or outside the namespace, agrees on the runtime directory."""
+    uid = os.getuid()
+    try:
+        with open("/proc/self/uid_map") as f:
+            for line in f:
+                inside, outside, count = (int(x) for x in line.split())
+                if inside <= uid < inside + count:
+                    return outside + uid - inside
+    except (OSError, ValueError):
+        pass
+    return uid
+
+
 def runtime_dir() -> Path:
-    """Pid files and logs of `mds-ach start`: $MDS_ACH_RUNTIME_DIR, else $XDG_RUNTIME_DIR/mds-ach, else /tmp."""
+    """Pid files and logs of `mds-ach start`: $MDS_ACH_RUNTIME_DIR, else $XDG_RUNTIME_DIR/mds-ach, else
+    /tmp/mds-ach-<uid> (the uid outside a user namespace: see host_uid)."""
     env = os.environ.get("MDS_ACH_RUNTIME_DIR")
     if env:
         return Path(env)
-    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/mds-ach-{os.getuid()}"
+    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/mds-ach-{host_uid()}"
     return Path(base) / "mds-ach" if os.environ.get("XDG_RUNTIME_DIR") else Path(base)
