@@ -23,7 +23,8 @@ from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 from mds_ach.tools import repair
 from mds_ach.tools.launcher import NODES, node_command
 
-VERBS = ["start", "run", "stop", "kill", "killall", "status", "resetbus", "changerobot", "console", "read"]
+VERBS = ["start", "run", "stop", "kill", "killall", "status", "resetbus", "changerobot", "console", "read", "ros-shell",
+         "ros"]
 
 
 @pytest.mark.parametrize("verb", VERBS)

@@ -169,7 +169,7 @@ def add_ros_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_ros(args: argparse.Namespace) -> int:
-    argv = [a for a in args.command]
+    argv = list(args.command)
     if argv[:1] == ["--"]:
         argv = argv[1:]
     if not argv:
