@@ -55,10 +55,16 @@ $(DEV_STAMP): $(STAMP) $(LIBACH) requirements-dev.txt
 	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	@touch $@
 
+# ISOLATE=1 (default): the ROS nodes stay in a private network namespace (`mds-ach ros-shell` enters it); channels
+# live on the host /dev/shm so that `mds-ach console`, `read` and C clients in other terminals see them.
+# ISOLATE=0: no namespace, the nodes join this machine's ROS graph (ROS_DOMAIN_ID from the environment, default 0).
+ISOLATE ?= 1
 run: $(STAMP) $(LIBACH)
-	@# ROS nodes stay in a private network namespace; channels live on the host /dev/shm so that
-	@# `mds-ach console`, `read` and C clients in other terminals see them.
+ifeq ($(ISOLATE),0)
+	$(VENV)/bin/mds-ach run --nocan
+else
 	MDS_NETNS_SHARE_SHM=1 tools/netns-run $(VENV)/bin/mds-ach run --nocan
+endif
 
 sysdeps:
 	@tools/install-system-deps

@@ -1,11 +1,30 @@
-"""ament_python package `mds_ach`: library, nodes and the `mds-ach` front-end."""
+"""ament_python package `mds_ach`: library, nodes and the `mds-ach` front-end.
+
+Executable names: a venv's or a prefix's ``bin/`` is on users' PATH, so there every executable carries the
+``mds-ach-`` prefix (``mds-ach-daemon``, ``mds-ach-read``: nothing that shadows the shell builtin ``read`` or a
+common command such as ``daemon``). ``lib/mds_ach/`` is private to ``ros2 run``, so there (the ament install, see
+setup.cfg) the same scripts get the node names ``ros2 run mds_ach daemon`` expects: ``AmentScripts`` strips the
+prefix.
+"""
 
 import os
 from glob import glob
 
 from setuptools import Extension, find_packages, setup
+from setuptools.command.install_scripts import install_scripts
 
 PACKAGE = "mds_ach"
+BIN_PREFIX = "mds-ach-"
+
+
+class AmentScripts(install_scripts):
+    """Entry-point scripts written into ``<prefix>/lib/mds_ach`` (colcon/ament) lose the ``mds-ach-`` prefix."""
+
+    def write_script(self, script_name: str, contents: str, mode: str = "t", *ignored: object) -> None:
+        lib_dir = os.path.normpath(self.install_dir)
+        if os.path.basename(lib_dir) == PACKAGE and os.path.basename(os.path.dirname(lib_dir)) == "lib":
+            script_name = script_name.removeprefix(BIN_PREFIX)
+        super().write_script(script_name, contents, mode, *ignored)
 
 
 def tree(src: str) -> list[tuple[str, list[str]]]:
@@ -43,16 +62,18 @@ setup(
     description="ROS 2 Jazzy + Ach-compatible middleware for the Xitome MDS humanoid upper body",
     license="BSD-3-Clause",
     extras_require={"test": ["pytest"]},
+    cmdclass={"install_scripts": AmentScripts},
     entry_points={
         "console_scripts": [
-            "daemon = mds_ach.nodes.daemon:main",
-            "filter = mds_ach.nodes.filter:main",
-            "mux = mds_ach.nodes.mux:main",
-            "ik = mds_ach.nodes.ik:main",
-            "collision = mds_ach.nodes.collision:main",
-            "bridge = mds_ach_bridge.bridge:main",
-            "console = mds_ach.tools.console:main",
-            "read = mds_ach.tools.read:main",
+            # bin/: these names; lib/mds_ach/ (ros2 run): without the prefix (daemon, filter, ...), see AmentScripts
+            "mds-ach-daemon = mds_ach.nodes.daemon:main",
+            "mds-ach-filter = mds_ach.nodes.filter:main",
+            "mds-ach-mux = mds_ach.nodes.mux:main",
+            "mds-ach-ik = mds_ach.nodes.ik:main",
+            "mds-ach-collision = mds_ach.nodes.collision:main",
+            "mds-ach-bridge = mds_ach_bridge.bridge:main",
+            "mds-ach-console = mds_ach.tools.console:main",
+            "mds-ach-read = mds_ach.tools.read:main",
             "mds-ach = mds_ach.tools.cli:main",
         ],
     },

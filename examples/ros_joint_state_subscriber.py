@@ -5,8 +5,9 @@ The bridge publishes one ``sensor_msgs/JointState`` per ``mds-state`` frame (nam
 = measured, rad) with the sensor-data QoS (best effort), so this subscriber uses ``qos_profile_sensor_data``:
 a RELIABLE subscriber would not match a best-effort publisher.
 
-Run the system first (``make run``), then in the same ROS domain / network namespace:
-``python examples/ros_joint_state_subscriber.py --count 5``
+Run the system first (``make run``), then, from another terminal, inside its ROS graph (network namespace and
+ROS_DOMAIN_ID): ``mds-ach ros python examples/ros_joint_state_subscriber.py --count 5``
+(or ``python ...`` in ``mds-ach ros-shell``).
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ def main() -> int:
             before = node.remaining
             rclpy.spin_once(node, timeout_sec=args.timeout)
             if args.count and node.remaining == before:
-                print(f"no /joint_states within {args.timeout:g} s: is the bridge running?", file=sys.stderr)
+                print(f"no /joint_states within {args.timeout:g} s: is the bridge running? (after "
+                      "'make run': run this through 'mds-ach ros' or inside 'mds-ach ros-shell')", file=sys.stderr)
                 return 1
     except KeyboardInterrupt:
         pass

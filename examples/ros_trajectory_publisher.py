@@ -6,8 +6,9 @@ still goes through the mux, filter and collision gate. Names are the URDF short 
 ``time_from_start`` counts from the header stamp (zero stamp: when the bridge receives it). A first point
 later than 0 starts from the current reference.
 
-Run the system first (``make run``), then in the same ROS domain / network namespace:
-``python examples/ros_trajectory_publisher.py``
+Run the system first (``make run``), then, from another terminal, inside its ROS graph (network namespace and
+ROS_DOMAIN_ID): ``mds-ach ros python examples/ros_trajectory_publisher.py``
+(or ``python ...`` in ``mds-ach ros-shell``).
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ def main() -> int:
         deadline = time.monotonic() + args.timeout
         while pub.get_subscription_count() == 0:  # publishing before discovery would lose the message
             if time.monotonic() > deadline:
-                print("nobody subscribes to mds/joint_trajectory: is the bridge running?", file=sys.stderr)
+                print("nobody subscribes to mds/joint_trajectory: is the bridge running? (after 'make run': run this "
+                      "through 'mds-ach ros' or inside 'mds-ach ros-shell')", file=sys.stderr)
                 return 1
             rclpy.spin_once(node, timeout_sec=0.1)
         pub.publish(make_trajectory())

@@ -7,6 +7,10 @@ from functools import lru_cache
 from pathlib import Path
 
 PACKAGE = "mds_ach"
+# Executables in a bin/ directory (the venv's, a prefix's) carry this prefix so that none shadows a shell builtin or a
+# common command (`read`, `daemon`, `filter`); in <prefix>/lib/mds_ach (what `ros2 run mds_ach <node>` runs) they keep
+# the bare node name. setup.py applies the same rule.
+BIN_PREFIX = "mds-ach-"
 _SOURCE_ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -35,10 +39,32 @@ def urdf_path(name: str = "mds.urdf") -> Path:
     return share_dir() / "urdf" / name
 
 
+def bin_name(node: str) -> str:
+    """The name of ``node``'s executable in a bin/ directory: ``mds-ach-daemon`` for ``daemon``."""
+    return node if node.startswith("mds-ach") else BIN_PREFIX + node
+
+
+def host_uid() -> int:
+    """Our uid as the machine's user accounts see it. Inside the user namespace of a rootless tools/netns-run a
+    normal user appears as root (uid 0); /proc/self/uid_map maps that back, so that every terminal of that user,
+    inside or outside the namespace, agrees on the runtime directory."""
+    uid = os.getuid()
+    try:
+        with open("/proc/self/uid_map") as f:
+            for line in f:
+                inside, outside, count = (int(x) for x in line.split())
+                if inside <= uid < inside + count:
+                    return outside + uid - inside
+    except (OSError, ValueError):
+        pass
+    return uid
+
+
 def runtime_dir() -> Path:
-    """Pid files and logs of `mds-ach start`: $MDS_ACH_RUNTIME_DIR, else $XDG_RUNTIME_DIR/mds-ach, else /tmp."""
+    """Pid files and logs of `mds-ach start`: $MDS_ACH_RUNTIME_DIR, else $XDG_RUNTIME_DIR/mds-ach, else
+    /tmp/mds-ach-<uid> (the uid outside a user namespace: see host_uid)."""
     env = os.environ.get("MDS_ACH_RUNTIME_DIR")
     if env:
         return Path(env)
-    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/mds-ach-{os.getuid()}"
+    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/mds-ach-{host_uid()}"
     return Path(base) / "mds-ach" if os.environ.get("XDG_RUNTIME_DIR") else Path(base)

@@ -23,7 +23,7 @@ node_pid() {  # node_pid NAME: the pid from NAME.pid if that process is alive an
     pid=$(cat "$rt/$1.pid")
     case "$pid" in ''|*[!0-9]*) return 1 ;; esac
     [ -r "/proc/$pid/cmdline" ] || return 1
-    tr '\0' '\n' <"/proc/$pid/cmdline" | head -n 5 | grep -q "\(^\|/\)$1\$" || return 1
+    tr '\0' '\n' <"/proc/$pid/cmdline" | head -n 5 | grep -q "\(^\|/\)\(mds-ach-\)\{0,1\}$1\$" || return 1
     grep -q '^State:[[:space:]]*Z' "/proc/$pid/status" 2>/dev/null && return 1
     echo "$pid"
 }

@@ -189,7 +189,7 @@ def test_state_stamp_subtracts_the_frame_age() -> None:
 
 
 def test_help_does_not_start_ros() -> None:
-    out = subprocess.run([str(VENV_BIN / "bridge"), "--help"], capture_output=True, text=True, timeout=30)
+    out = subprocess.run([str(VENV_BIN / "mds-ach-bridge"), "--help"], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0, out.stderr
     for text in ("joint_states", "mds/joint_trajectory", "ik_dof_left", " ".join(joints.MODEL_JOINTS)):
         assert text in out.stdout
@@ -216,7 +216,7 @@ def test_help_does_not_start_ros() -> None:
 ])
 def test_bad_parameters_are_refused_with_a_message(clean_shm: None, param: str, reason: str) -> None:
     """A bad parameter stops the bridge before it touches a channel: exit 2 and one line, no traceback."""
-    res = subprocess.run([str(VENV_BIN / "bridge"), "--ros-args", "-p", param], capture_output=True, text=True,
+    res = subprocess.run([str(VENV_BIN / "mds-ach-bridge"), "--ros-args", "-p", param], capture_output=True, text=True,
                          timeout=60)
     assert res.returncode == 2, res.stderr
     assert reason in res.stderr and "Traceback" not in res.stderr, res.stderr
@@ -250,11 +250,12 @@ class Harness:
         self.log = tmp / "bridge.log"
         self.daemon_log = tmp / "daemon.log"
         self.daemon = subprocess.Popen(
-            [str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "-r", str(RATE)],
+            [str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "-r", str(RATE)],
             stdout=self.daemon_log.open("w"), stderr=subprocess.STDOUT,
         )  # fmt: skip
         self.bridge = subprocess.Popen(
-            [str(VENV_BIN / "bridge"), "--ros-args", *NODE_PARAMS], stdout=self.log.open("w"), stderr=subprocess.STDOUT
+            [str(VENV_BIN / "mds-ach-bridge"), "--ros-args", *NODE_PARAMS], stdout=self.log.open("w"),
+            stderr=subprocess.STDOUT,
         )
         self.context = Context()
         rclpy.init(context=self.context)
@@ -604,7 +605,7 @@ def test_first_frame_keeps_the_channel_content_for_joints_not_commanded(harness:
         chan.put(previous)
         chan.flush()
         second = subprocess.Popen(
-            [str(VENV_BIN / "bridge"), "--ros-args", "-r", "__ns:=/b2", "-r", "__node:=bridge2",
+            [str(VENV_BIN / "mds-ach-bridge"), "--ros-args", "-r", "__ns:=/b2", "-r", "__node:=bridge2",
              "-p", "ref_channel:=mds-ref-filter", "-p", "publish_robot_description:=false"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
         )  # fmt: skip

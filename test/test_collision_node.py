@@ -537,7 +537,7 @@ def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: Non
 
 
 def test_collision_help() -> None:
-    proc = subprocess.run([str(VENV_BIN / "collision"), "--help"], capture_output=True, text=True, timeout=30)
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-collision"), "--help"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 0 and "usage: collision" in proc.stdout and "override" in proc.stdout
 
 
@@ -551,7 +551,7 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
     world = tmp_path / "world.yaml"
     world.write_text(json.dumps(TABLE))  # JSON is YAML
     _put(mds.MDS_CHAN_REF_NAME, HOME)
-    proc = subprocess.Popen([str(VENV_BIN / "collision"), "--world", str(world)], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-collision"), "--world", str(world)], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = Node("test_collision_client")

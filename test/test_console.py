@@ -341,7 +341,7 @@ def test_ctrl_d_and_sigterm_end_the_console_cleanly(system: dict[str, str]) -> N
         pty.expect(console.PROMPT, timeout=30)
         pty.send("\x04")
         assert pty.wait(timeout=10) == 0
-    with PtySession([str(VENV_BIN / "console")], env=system) as pty:
+    with PtySession([str(VENV_BIN / "mds-ach-console")], env=system) as pty:
         pty.expect(console.PROMPT, timeout=30)
         pty.terminate()
         assert pty.wait(timeout=10) == 0
@@ -349,7 +349,7 @@ def test_ctrl_d_and_sigterm_end_the_console_cleanly(system: dict[str, str]) -> N
 
 @pytest.mark.slow
 def test_console_reads_commands_from_a_pipe(system: dict[str, str]) -> None:
-    proc = subprocess.run([str(VENV_BIN / "console")], input="get fk left\nget LEP\n", env=system,
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-console")], input="get fk left\nget LEP\n", env=system,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "6DOF FK - for  left  arm" in proc.stdout and "LEP  State =" in proc.stdout
@@ -399,7 +399,7 @@ def test_console_does_not_import_torch(fake_system: None) -> None:
 
 
 def test_help_exits_zero() -> None:
-    for args in (["console", "--help"], ["mds-ach", "console", "--help"]):
+    for args in (["mds-ach-console", "--help"], ["mds-ach", "console", "--help"]):
         proc = subprocess.run([str(VENV_BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=60)
         assert proc.returncode == 0 and "usage" in proc.stdout.lower()
         assert "goto <joint> <rad>" in proc.stdout

@@ -804,16 +804,16 @@ def test_record_and_replay_through_the_daemon(clean_shm, tmp_path: Path) -> None
 
 
 def test_help() -> None:
-    out = subprocess.run([str(VENV_BIN / "daemon"), "--help"], capture_output=True, text=True, timeout=30)
+    out = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--help"], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0 and "--nocan" in out.stdout and "--can-log" in out.stdout
 
 
 def test_bad_configuration_is_a_clear_error(clean_shm, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAN_")} | {"HOME": str(tmp_path)}
-    out = subprocess.run([str(VENV_BIN / "daemon"), "--no-ros"], capture_output=True, text=True, timeout=30,
+    out = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--no-ros"], capture_output=True, text=True, timeout=30,
                          env=env, cwd=tmp_path)
     assert out.returncode == 2 and "no CAN interface configured" in out.stderr and "--nocan" in out.stderr
-    out = subprocess.run([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--sim-pose", "LEP=3"],
+    out = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--sim-pose", "LEP=3"],
                          capture_output=True, text=True, timeout=30, env=env)
     assert out.returncode == 2 and "LEP=3.0 is outside" in out.stderr
 
@@ -827,7 +827,7 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
     from diagnostic_msgs.msg import DiagnosticArray
     from diagnostic_msgs.srv import AddDiagnostics
 
-    proc = subprocess.Popen([str(VENV_BIN / "daemon"), "--nocan", "--rate", "20", "--sim-pose", "LEP=-1.0",
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--rate", "20", "--sim-pose", "LEP=-1.0",
                              "--ros-args", "-r", "__node:=mds_daemon"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
@@ -882,7 +882,7 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
 
 
 def test_no_ros_mode_stops_on_sigterm(clean_shm) -> None:
-    proc = subprocess.Popen([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--sim-ideal"],
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--sim-ideal"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
     try:
@@ -902,7 +902,7 @@ def test_a_stopped_daemon_process_ramps_when_it_continues(clean_shm, tmp_path: P
     import threading
 
     can_log = tmp_path / "can.asc"
-    proc = subprocess.Popen([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--can-log", str(can_log),
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--can-log", str(can_log),
                              "--sim-pose", "LSP=-0.45"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
     status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)

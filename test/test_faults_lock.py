@@ -25,7 +25,7 @@ def test_daemon_keeps_cycling_while_a_client_holds_the_state_lock(clean_shm: Non
     must not freeze the daemon: each put waits at most a tenth of the period for the lock, is skipped and counted
     (``lock_timeouts``, logged at most every 5 s); the loop goes on querying the bus, taking references and
     answering commands, and ``mds-state`` flows again as soon as the lock is free."""
-    daemon = subprocess.Popen([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--sim-ideal", "--rate", "50"],
+    daemon = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--sim-ideal", "--rate", "50"],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     status_in = Newest(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)

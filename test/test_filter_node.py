@@ -231,14 +231,14 @@ def test_runner_waits_for_a_reference_instead_of_commanding_zero(clean_shm: None
 
 
 def test_filter_help() -> None:
-    proc = subprocess.run([str(VENV_BIN / "filter"), "--help"], capture_output=True, text=True, timeout=30)
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-filter"), "--help"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 0 and "usage: filter" in proc.stdout and "1.57" in proc.stdout
 
 
 def test_filter_rejects_bad_config_with_a_clear_message(tmp_path) -> None:
     bad = tmp_path / "filter.yaml"
     bad.write_text("default: {mode: cubic}\n")
-    proc = subprocess.run([str(VENV_BIN / "filter"), "--config", str(bad)], capture_output=True, text=True,
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-filter"), "--config", str(bad)], capture_output=True, text=True,
                           timeout=30)
     assert proc.returncode == 2
     assert "mode must be one of" in proc.stderr and "Traceback" not in proc.stderr
@@ -250,7 +250,7 @@ def test_filter_node_streams_and_stops_cleanly(clean_shm: None, sig: int) -> Non
     from mds_ach.robot.channels import StructChannel
 
     _put(mds.MDS_CHAN_REF_NAME, _target(LSR=1.2))
-    proc = subprocess.Popen([str(VENV_BIN / "filter"), "--rate", "50"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-filter"), "--rate", "50"], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
         with StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF) as smooth:

@@ -250,12 +250,13 @@ def test_old_requests_are_not_commands(clean_shm: None) -> None:
 
 
 def test_ik_help() -> None:
-    proc = subprocess.run([str(VENV_BIN / "ik"), "--help"], capture_output=True, text=True, timeout=30)
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-ik"), "--help"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 0 and "usage: ik" in proc.stdout and "mds-ref-ik" in proc.stdout
 
 
 def test_ik_refuses_mds_ref_as_output() -> None:
-    proc = subprocess.run([str(VENV_BIN / "ik"), "--output", "mds-ref"], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-ik"), "--output", "mds-ref"], capture_output=True, text=True,
+                          timeout=60)
     assert proc.returncode == 2 and "never writes mds-ref" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -270,7 +271,7 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
     from mds_ach.robot.msgs.ik_status import IK_STATUS_TOPIC
 
     put_state(current_pose())
-    proc = subprocess.Popen([str(VENV_BIN / "ik")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-ik")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = rclpy.create_node("ik_test")
     got: list[dict] = []

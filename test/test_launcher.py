@@ -23,7 +23,8 @@ from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 from mds_ach.tools import repair
 from mds_ach.tools.launcher import NODES, node_command
 
-VERBS = ["start", "run", "stop", "kill", "killall", "status", "resetbus", "changerobot", "console", "read"]
+VERBS = ["start", "run", "stop", "kill", "killall", "status", "resetbus", "changerobot", "console", "read", "ros-shell",
+         "ros"]
 
 
 @pytest.mark.parametrize("verb", VERBS)
@@ -36,7 +37,7 @@ def test_every_verb_has_help(verb: str) -> None:
 def test_node_commands_are_this_packages_scripts() -> None:
     for name in NODES:
         cmd = node_command(name)
-        assert Path(cmd[0]).name == name and "mds_ach" in Path(cmd[0]).read_text(errors="replace"), cmd
+        assert Path(cmd[0]).name == f"mds-ach-{name}" and "mds_ach" in Path(cmd[0]).read_text(errors="replace"), cmd
 
 
 def _pid_alive(pid: int) -> bool:
@@ -128,12 +129,12 @@ def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path) -> None
     """Started by hand (not through 'mds-ach start', which checks first), a node still refuses the file."""
     _plant((mds.MDS_CHAN_DAEMON_INPUT_NAME,))
     env = system_env(tmp_path)
-    daemon = subprocess.run([str(VENV_BIN / "daemon"), "--nocan", "--no-ros", "--duration", "30"], env=env,
+    daemon = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--duration", "30"], env=env,
                             capture_output=True, text=True, timeout=120)
     assert daemon.returncode == 2, daemon.stderr
     assert f"refusing channel 'mds-ref': /dev/shm/achshm-mds-ref is owned by uid {NOBODY}" in daemon.stderr
     assert "mds-ach repair --recreate mds-ref" in daemon.stderr
-    mux = subprocess.run([str(VENV_BIN / "mux")], env=env, capture_output=True, text=True, timeout=120)
+    mux = subprocess.run([str(VENV_BIN / "mds-ach-mux")], env=env, capture_output=True, text=True, timeout=120)
     assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref for its start reference
     assert "refusing channel 'mds-ref'" in mux.stdout + mux.stderr
     assert os.stat(ach.shm_path(mds.MDS_CHAN_DAEMON_INPUT_NAME)).st_uid == NOBODY, "the file was left alone"
@@ -225,7 +226,7 @@ def test_start_runs_each_node_as_its_own_process(system: dict[str, str]) -> None
     for name, pid in pids.items():
         assert _pid_alive(pid), f"{name} is not running"
         argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        assert any(Path(a.decode()).name == name for a in argv[:3]), argv
+        assert any(Path(a.decode()).name == f"mds-ach-{name}" for a in argv[:3]), argv
         assert os.getsid(pid) == pid, f"{name} runs in its own session"
         assert (rt / f"{name}.log").exists()
         environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
@@ -277,7 +278,7 @@ def test_resetbus_reaches_the_daemon(system: dict[str, str]) -> None:
 
 @pytest.mark.slow
 def test_read_once_against_the_running_system(system: dict[str, str]) -> None:
-    proc = subprocess.run([str(VENV_BIN / "read"), "--once"], env=system, capture_output=True, text=True,
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-read"), "--once"], env=system, capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     rows = re.findall(r"^(\w+)\s+\w+\s+1\s+0x00[0-9a-f]{2}\s+(\S+)\s+(\S+)\s+(\S+)$", proc.stdout, re.M)

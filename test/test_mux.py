@@ -288,7 +288,7 @@ def test_runner_refuses_nan_frames_with_a_message(runner) -> None:
 
 
 def test_mux_help() -> None:
-    proc = subprocess.run([str(VENV_BIN / "mux"), "--help"], capture_output=True, text=True, timeout=30)
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-mux"), "--help"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 0 and "usage: mux" in proc.stdout and "priority" in proc.stdout
 
 
@@ -302,7 +302,7 @@ def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -
 
     ref, _ = _start_ref()
     _put(mds.MDS_CHAN_REF_NAME, ref)
-    proc = subprocess.Popen([str(VENV_BIN / "mux"), "--ros-args", "--log-level", "warn"],
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-mux"), "--ros-args", "--log-level", "warn"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = Node("test_mux_listener")

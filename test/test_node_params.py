@@ -26,6 +26,7 @@ from mds_ach.nodes.ik_client import IkClient
 from mds_ach.nodes.mux import MDS_MUX_STATE
 from mds_ach.nodes.pipeline import make_ref, ref_arrays
 from mds_ach.nodes.rosnode import Param, parameter_table
+from mds_ach.paths import bin_name
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs import daemon_status as ds
@@ -49,7 +50,7 @@ def _put(name: str, ref: np.ndarray) -> None:
 @contextmanager
 def running(*argv: str) -> Iterator[subprocess.Popen[str]]:
     """A node executable; stopped with SIGINT afterwards, which must end it cleanly (exit 0)."""
-    proc = subprocess.Popen([str(VENV_BIN / argv[0]), *argv[1:]], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([str(VENV_BIN / bin_name(argv[0])), *argv[1:]], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
         yield proc
@@ -91,7 +92,7 @@ def test_every_parameter_is_described_and_numbers_have_ranges() -> None:
     (["bridge"], "ik_dof_left:=9"),
 ])
 def test_out_of_range_parameters_stop_the_node_with_one_line(clean_shm: None, argv: list[str], param: str) -> None:
-    res = subprocess.run([str(VENV_BIN / argv[0]), *argv[1:], "--ros-args", "-p", param], capture_output=True,
+    res = subprocess.run([str(VENV_BIN / bin_name(argv[0])), *argv[1:], "--ros-args", "-p", param], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 2, res.stdout + res.stderr
     lines = res.stderr.strip().splitlines()

@@ -30,7 +30,7 @@ from mds_ach.robot.msgs.daemon_status import (
 )
 from mds_ach.tools.read import ALT_OFF, ALT_ON, CURSOR_ON
 
-READ = str(VENV_BIN / "read")
+READ = str(VENV_BIN / "mds-ach-read")
 
 
 class Publisher:

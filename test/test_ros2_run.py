@@ -10,10 +10,11 @@ import os
 import shutil
 import subprocess
 import sys
+from importlib.metadata import distribution
 from pathlib import Path
 
 import pytest
-from support import REPO
+from support import REPO, VENV_BIN
 
 EXECUTABLES = ["daemon", "filter", "mux", "ik", "collision", "bridge", "console", "read", "mds-ach"]
 SOURCES = ["package.xml", "setup.py", "setup.cfg", "resource", "mds_ach", "mds_ach_bridge", "urdf", "config",
@@ -97,3 +98,24 @@ def test_ros2_run_help(colcon_install: Path, exe: str) -> None:
                           timeout=60, cwd="/")
     assert proc.returncode == 0, f"{exe} --help failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
     assert "usage" in proc.stdout.lower(), proc.stdout
+
+
+def test_ros2_run_names_only_in_lib(colcon_install: Path) -> None:
+    """lib/mds_ach/ holds the ros2 run names and nothing else (no mds-ach-daemon next to daemon)."""
+    lib = colcon_install / "mds_ach" / "lib" / "mds_ach"
+    assert sorted(p.name for p in lib.iterdir() if p.is_file()) == sorted(EXECUTABLES)
+
+
+def test_bin_names_shadow_no_builtin_or_command() -> None:
+    """The venv's bin/ (on PATH after `source .venv/bin/activate`) gets only mds-ach and mds-ach-<node>: a `read`
+    there is hidden by the shell builtin, a `daemon` or `filter` hides or is hidden by a system command."""
+    scripts = sorted(ep.name for ep in distribution("mds_ach").entry_points if ep.group == "console_scripts")
+    assert scripts == sorted(f"mds-ach-{e}" if e != "mds-ach" else e for e in EXECUTABLES)
+    builtins = subprocess.run(["bash", "-c", "compgen -b; compgen -k"], capture_output=True, text=True,
+                              check=True).stdout.split()
+    for name in scripts:
+        assert (VENV_BIN / name).is_file(), f"{name} not installed in {VENV_BIN}"
+        assert name not in builtins and shutil.which(name, path="/usr/local/bin:/usr/bin:/bin") is None, name
+    for exe in EXECUTABLES:
+        if exe != "mds-ach":
+            assert not (VENV_BIN / exe).exists(), f"{VENV_BIN / exe} shadows or is shadowed by a common command"

@@ -98,6 +98,6 @@ def test_fault_control_reaches_the_simulated_bus(tmp_path: Path) -> None:
 
 def test_fault_control_exists_only_on_the_simulated_bus(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("CAN_")} | {"HOME": str(tmp_path)}
-    out = subprocess.run([str(VENV_BIN / "daemon"), "--no-ros", "--sim-faults", str(tmp_path / "s")],
+    out = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--no-ros", "--sim-faults", str(tmp_path / "s")],
                          capture_output=True, text=True, timeout=60, env=env, cwd=tmp_path)
     assert out.returncode == 2 and "--sim-faults needs --nocan" in out.stderr, out.stderr

@@ -46,7 +46,7 @@ def test_start_nodes_runs_the_system_and_stop_nodes_ends_it(clean_shm: None, tmp
         assert status.returncode == 0, status.stdout + status.stderr
         # the pipeline works end to end once the nodes are up (the script does not wait for them)
         wait_for(lambda: all(newest(n, t) is not None for n, t in READY), timeout=120, what="pipeline up")
-        move = subprocess.run([str(VENV_BIN / "console"), "-c", "goto RSP -0.2 wait"], env=env,
+        move = subprocess.run([str(VENV_BIN / "mds-ach-console"), "-c", "goto RSP -0.2 wait"], env=env,
                               capture_output=True, text=True, timeout=120)
         assert move.returncode == 0, move.stdout + move.stderr
         assert abs(joint_pos("RSP") + 0.2) < 0.011

@@ -664,7 +664,7 @@ def test_browser_follows_the_real_daemon_nocan(page: Page, tmp_path: Path) -> No
     back (same protocol as the fake-daemon test, against the daemon's own mds-state)."""
     log = open(tmp_path / "daemon.log", "wb")  # noqa: SIM115 - closed below
     daemon = subprocess.Popen(
-        [str(VENV_BIN / "daemon"), "--nocan"],
+        [str(VENV_BIN / "mds-ach-daemon"), "--nocan"],
         stdout=log,
         stderr=subprocess.STDOUT,
         env={**os.environ, "MDS_ACH_RUNTIME_DIR": str(tmp_path / "run")},

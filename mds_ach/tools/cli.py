@@ -64,10 +64,16 @@ VERBS: dict[str, Verb] = {
                  "mds_ach.tools.read:add_arguments", "mds_ach.tools.read:run"),
     "remote": Verb("share the robot over the network: 'remote HOST' (operator), 'remote serve' (robot), 'remote kill'",
                    "mds_ach.net.remote:add_arguments", "mds_ach.net.remote:run"),
+    "ros-shell": Verb("a shell inside the running system's ROS 2 graph (its network namespace and ROS_DOMAIN_ID)",
+                      "mds_ach.tools.rosgraph:add_shell_arguments", "mds_ach.tools.rosgraph:run_shell"),
+    "ros": Verb("run one command inside the running system's ROS 2 graph: 'mds-ach ros python examples/...'",
+                "mds_ach.tools.rosgraph:add_ros_arguments", "mds_ach.tools.rosgraph:run_ros"),
     "sim": Verb("3-D viewer in the browser, in the background (prints the URL); 'sim kill' stops it",
                 "mds_ach.tools.viewer:add_sim_arguments", "mds_ach.tools.viewer:run_sim"),
 }
 ALIASES: dict[str, str] = {"mk": "make", "create": "make", "remove": "rm", "unlink": "rm"}
+# Verbs whose arguments are another program's command line: its --ros-args belong to that program.
+PASS_THROUGH: frozenset[str] = frozenset({"ros"})
 
 
 def _resolve(target: str) -> Callable:
@@ -107,7 +113,9 @@ def _terminate(signum: int, frame: object) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = strip_ros_args(sys.argv[1:] if argv is None else argv)
+    argv = sys.argv[1:] if argv is None else argv
+    if _selected_verb(argv) not in PASS_THROUGH:
+        argv = strip_ros_args(argv)
     signal.signal(signal.SIGTERM, _terminate)  # SIGTERM ends a blocking verb as cleanly as Ctrl-C
     selected = _selected_verb(argv)
     parser = build_parser(selected)

@@ -25,7 +25,7 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach import procs as background
-from mds_ach.paths import runtime_dir
+from mds_ach.paths import bin_name, runtime_dir
 from mds_ach.robot import contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
 from mds_ach.robot.choice import effective_robot, save_robot
@@ -33,6 +33,7 @@ from mds_ach.robot.config import ROBOT_ENV, ConfigError, available_robots, load
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
 from mds_ach.tools import repair
 from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
+from mds_ach.tools.rosgraph import summary as ros_graph_summary
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
 # the others start from), then the reference pipeline, then the clients that feed it.
@@ -92,8 +93,9 @@ def log_tail(name: str, lines: int = LOG_TAIL_LINES, rt: Path | None = None) -> 
 
 
 def _names_node(argv: list[str], name: str) -> bool:
-    """Does a command line name node ``name`` (console script, ros2 run path or launcher exec)?"""
-    return any(Path(a).name == name for a in argv[:5])
+    """Does a command line name node ``name`` (bin/ script ``mds-ach-NAME``, ros2 run path ``lib/mds_ach/NAME`` or
+    launcher exec)?"""
+    return any(Path(a).name in (name, bin_name(name)) for a in argv[:5])
 
 
 def read_pid(name: str, rt: Path | None = None) -> int | None:
@@ -117,11 +119,12 @@ def _is_mds_script(path: Path) -> bool:
 
 
 def node_command(name: str) -> list[str]:
-    """How to run node ``name``: the console script beside this interpreter, else ``<ament prefix>/lib/mds_ach``
-    (what ``ros2 run`` executes), else this module's ``exec`` entry (always works from a source checkout)."""
+    """How to run node ``name``: the console script ``mds-ach-NAME`` beside this interpreter, else
+    ``<ament prefix>/lib/mds_ach/NAME`` (what ``ros2 run`` executes), else this module's ``exec`` entry (always works
+    from a source checkout)."""
     if name not in ENTRY_POINTS:
         raise ValueError(f"unknown node {name!r}; nodes: {', '.join(NODES)}")
-    candidates = [Path(sys.executable).parent / name]
+    candidates = [Path(sys.executable).parent / bin_name(name)]
     candidates += [Path(p) / "lib" / "mds_ach" / name for p in os.environ.get("AMENT_PREFIX_PATH", "").split(":") if p]
     for path in candidates:
         if path.is_file() and _is_mds_script(path):
@@ -475,7 +478,7 @@ In another terminal (same machine){activate}:
   mds-ach console              goto / get / get fk / ik  (try: get fk left, goto LSP -0.3)
   mds-ach status               nodes, loop rate, bus load, collisions
   python examples/one_joint.py
-ROS 2 topics (/joint_states, /robot_description, ...) are inside this network namespace.
+{ros}
 Press Ctrl-C to stop everything."""
 
 
@@ -515,7 +518,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
             _err(f"mds-ach run: {exc}")
             return 1
         out(NEXT_STEPS.format(mode=" on the simulated robot (nocan)" if nocan else "", rt=rt,
-                              activate=_activate_hint()))
+                              activate=_activate_hint(), ros=ros_graph_summary()))
         failed = None
         while not stop_requested and failed is None:
             failed = _dead(procs)

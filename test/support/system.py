@@ -5,6 +5,8 @@ them, and the readers of the running robot.
   stop`` + ``killall`` afterwards (operator-tool tests; each module starts it once to keep the suite fast).
 * ``Pipeline``: the nodes one by one, each its own process started by its console script (= ``ros2 run
   mds_ach <exe>``), for tests that kill and restart single nodes.
+* ``isolated_run(env, python)``: ``tools/netns-run ... mds-ach run --nocan`` in namespaces of its own (nested in the
+  tests' one), as ``make run`` starts it; for the tests that reach it from outside (``mds-ach ros``).
 * ``wait_heartbeat``: the one readiness rule both use for a node process: two new frames on the channel it
   writes periodically (``HEARTBEATS``), or a line in its log for a node without one.
 """
@@ -21,13 +23,14 @@ from pathlib import Path
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.paths import bin_name
 
-from . import VENV_BIN, in_netns, remove_mds_channels
+from . import REPO, VENV_BIN, in_netns, remove_mds_channels
 from .channels import newest, state
 from .reference_chain import chain_fk
 
 __all__ = ["HEARTBEATS", "START_TIMEOUT", "Pipeline", "arm_pos", "arm_refs", "chain_fk", "joint_pos", "joint_ref",
-           "mds_ach", "newest", "running_system", "state", "system_env", "wait_heartbeat"]
+           "isolated_run", "mds_ach", "newest", "running_system", "state", "system_env", "wait_heartbeat"]
 
 START_TIMEOUT = 150.0  # s: cold start imports fcl and rclpy on a shared 2-core machine (5 engineers' tests)
 HEARTBEATS = {  # node -> a channel it writes periodically (mds-collide: reports at 10 Hz even without input)
@@ -101,6 +104,36 @@ def running_system(runtime: Path, robot: str | None = None) -> Iterator[dict[str
         remove_mds_channels()
 
 
+@contextmanager
+def isolated_run(env: dict[str, str], prefix: tuple[str, ...] = (), python: str | None = None,
+                 ) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """``[prefix] tools/netns-run PYTHON -m mds_ach.tools.cli run --nocan`` in new namespaces (``MDS_NETNS_ACTIVE``
+    dropped, so netns-run makes them even inside the tests' own); yields the process and what it printed up to
+    "Press Ctrl-C"; SIGINT (as Ctrl-C) afterwards, which must stop it cleanly."""
+    env = {k: v for k, v in env.items() if k != "MDS_NETNS_ACTIVE"}
+    argv = [*prefix, str(REPO / "tools" / "netns-run"), python or str(VENV_BIN / "python"), "-m", "mds_ach.tools.cli",
+            "run", "--nocan", "--timeout", str(START_TIMEOUT)]
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
+    assert proc.stdout is not None
+    lines: list[str] = []
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if "Press Ctrl-C" in line:
+                break
+        assert proc.poll() is None, "mds-ach run ended:\n" + "".join(lines)
+        yield proc, "".join(lines)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+        try:
+            rest, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            rest, _ = proc.communicate()
+    assert proc.returncode == 0, "mds-ach run did not stop cleanly:\n" + "".join(lines) + rest
+
+
 class Pipeline:
     """Node processes started one by one from their console scripts, each logging to ``logs/<name>.log``."""
 
@@ -115,7 +148,7 @@ class Pipeline:
         log.flush()
         channel = HEARTBEATS.get(name)
         watch = _flushed(channel) if channel else None
-        proc = self.procs[name] = subprocess.Popen([str(VENV_BIN / name), *args], stdout=log,
+        proc = self.procs[name] = subprocess.Popen([str(VENV_BIN / bin_name(name)), *args], stdout=log,
                                                    stderr=subprocess.STDOUT)
         if watch is not None:
             wait_heartbeat(channel, lambda: proc.poll() is None, lambda: self.log_text(name), name, flushed=watch)

@@ -1,0 +1,93 @@
+"""A reachable ROS 2 graph (issue 19, item 5): ``make run`` prints its ROS_DOMAIN_ID and how to get in, and
+``mds-ach ros CMD`` / ``mds-ach ros-shell`` run inside the system's namespaces with its domain, from a shell
+that is neither in its network namespace nor on its domain."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from support import REPO, VENV_BIN
+from support.system import isolated_run, system_env
+
+from mds_ach.tools import rosgraph
+
+
+def _ros(env: dict[str, str], *argv: str, stdin: str | None = None, verb: str = "ros",
+         timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(VENV_BIN / "mds-ach"), verb, *argv], env=env, input=stdin, capture_output=True,
+                          text=True, timeout=timeout, cwd=REPO)
+
+
+@pytest.fixture(scope="module")
+def graph(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[dict[str, str], str]]:
+    """The system as ``make run`` starts it (own network and mount namespace), on another ROS domain than ours;
+    yields our environment (its runtime dir) and what ``mds-ach run`` printed."""
+    env = system_env(tmp_path_factory.mktemp("rosgraph"))
+    ours = int(os.environ.get("ROS_DOMAIN_ID", "0"))
+    with isolated_run(env | {"ROS_DOMAIN_ID": str(ours % 100 + 101)}) as (_proc, printed):
+        yield env, printed
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_make_run_prints_its_domain_and_the_way_in(graph: tuple[dict[str, str], str]) -> None:
+    env, printed = graph
+    domain = re.search(r"ROS_DOMAIN_ID=(\d+)", printed)
+    assert domain and domain.group(1) != os.environ.get("ROS_DOMAIN_ID"), printed
+    assert "mds-ach ros-shell" in printed and "mds-ach ros python examples/ros_joint_state_subscriber.py" in printed
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_the_example_subscriber_gets_joint_states_through_mds_ach_ros(graph: tuple[dict[str, str], str]) -> None:
+    env, _ = graph
+    found = rosgraph.find_graph(Path(env["MDS_ACH_RUNTIME_DIR"]))
+    assert "net" in found.join, "the system must run in a network namespace of its own (else this proves nothing)"
+    proc = _ros(env, "python", "examples/ros_joint_state_subscriber.py", "--count", "3", "--timeout", "30")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = [line for line in proc.stdout.splitlines() if "LSP=" in line]
+    assert len(rows) == 3, proc.stdout
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_mds_ach_ros_has_the_systems_environment_and_keeps_ros_args(graph: tuple[dict[str, str], str]) -> None:
+    env, printed = graph
+    domain = re.search(r"ROS_DOMAIN_ID=(\d+)", printed).group(1)  # type: ignore[union-attr]
+    code = ("import os, socket, sys; print(os.environ['ROS_DOMAIN_ID'], os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'], "
+            "[n for _, n in socket.if_nameindex()], sys.prefix, sys.argv[1:])")
+    proc = _ros(env, "python", "-c", code, "--ros-args", "-r", "__node:=x")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split(maxsplit=2)[:2] == [domain, "LOCALHOST"], proc.stdout
+    assert "['lo']" in proc.stdout, "only loopback inside the system's namespace"
+    assert str(VENV_BIN.parent) in proc.stdout and "['--ros-args', '-r', '__node:=x']" in proc.stdout, proc.stdout
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_ros_shell_is_a_shell_in_the_graph(graph: tuple[dict[str, str], str]) -> None:
+    env, printed = graph
+    domain = re.search(r"ROS_DOMAIN_ID=(\d+)", printed).group(1)  # type: ignore[union-attr]
+    proc = _ros(env, "--shell", "/bin/sh", verb="ros-shell", stdin='echo "domain=$ROS_DOMAIN_ID"; exit 3\n')
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    assert f"domain={domain}" in proc.stdout, proc.stdout
+    assert f"ROS_DOMAIN_ID={domain}" in proc.stderr and "'exit' leaves it" in proc.stderr, proc.stderr
+
+
+def test_ros_without_a_running_system_says_how_to_start_one(tmp_path: Path) -> None:
+    proc = _ros(system_env(tmp_path), "true")
+    assert proc.returncode == 1
+    assert "no running MDS-Ach node" in proc.stderr and "make run" in proc.stderr, proc.stderr
+    usage = _ros(system_env(tmp_path))
+    assert usage.returncode == 2 and "give a command" in usage.stderr, usage.stderr
+
+
+def test_summary_without_isolation_tells_the_domain() -> None:
+    text = rosgraph.summary({"ROS_DOMAIN_ID": "42"})
+    assert "ROS_DOMAIN_ID=42 on this machine's network" in text and "export ROS_DOMAIN_ID=42" in text
+    assert "private network namespace" in rosgraph.summary({"ROS_DOMAIN_ID": "7", "MDS_NETNS_ACTIVE": "1"})
