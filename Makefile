@@ -7,6 +7,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.mds_ach_installed
 DEV_STAMP := $(VENV)/.mds_ach_dev_installed
+BENCH_STAMP := $(VENV)/.mds_ach_bench_installed
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 PYTEST_ARGS ?=
 
@@ -29,7 +30,8 @@ dev: $(DEV_STAMP)
 
 # pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
-$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/_shmguard.c
+$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/_shmguard.c \
+		mds_ach/kinematics/_collfast.c
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
 	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
@@ -59,7 +61,13 @@ test: sysdeps $(DEV_STAMP)
 	$(VENV)/bin/mypy
 	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
 
-bench: $(DEV_STAMP)
+# The peers the benchmarks measure ours against (bench/requirements.txt: Pinocchio + coal, iceoryx2, ...), on top of
+# the dev venv; never part of the runtime (`make setup`).
+$(BENCH_STAMP): $(DEV_STAMP) bench/requirements.txt
+	$(PY) -m pip install -q -r bench/requirements.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
+	@touch $@
+
+bench: $(BENCH_STAMP)
 	tools/netns-run $(PY) -m bench
 
 # The soak, then the adversarial safety scenario (bench/adversary.py) for SOAK_ADVERSARY_MINUTES; both reports
@@ -73,4 +81,5 @@ lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf build install log .pytest_cache mds_ach/ach/_achfast.*.so mds_ach/ach/_shmguard.*.so
+	rm -rf build install log .pytest_cache mds_ach/ach/_achfast.*.so mds_ach/ach/_shmguard.*.so \
+		mds_ach/kinematics/_collfast.*.so
