@@ -9,6 +9,7 @@ STAMP := $(VENV)/.mds_ach_installed
 DEV_STAMP := $(VENV)/.mds_ach_dev_installed
 # mds_ach's libach for C clients (libach/): libach.so + ach.h + pkgconfig/ach.pc in the venv prefix
 LIBACH := $(VENV)/lib/libach.so.4.0.0
+BENCH_STAMP := $(VENV)/.mds_ach_bench_installed
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 PYTEST_ARGS ?=
 
@@ -19,7 +20,7 @@ help:
 	@echo "make dev    setup + the test and tooling dependencies (pytest, ruff, torch for the FK cross-check)"
 	@echo "make run    set up if needed, then start the whole system on the simulated robot (Ctrl-C stops it)"
 	@echo "make test   set up if needed, then run all tests (inside a private network namespace)"
-	@echo "make bench  run every benchmark and print one table with baselines and ratios"
+	@echo "make bench  run every benchmark against its peers (bench/requirements.txt) and print one table"
 	@echo "make soak   multi-minute soak, then the adversarial safety scenario (not part of make test)"
 	@echo "make lint   ruff"
 
@@ -31,7 +32,8 @@ dev: $(DEV_STAMP)
 
 # pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
-$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/achcore.h mds_ach/ach/_shmguard.c
+$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/achcore.h \
+		mds_ach/ach/_shmguard.c mds_ach/kinematics/_collfast.c
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
 	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
@@ -74,8 +76,16 @@ test: sysdeps $(DEV_STAMP)
 	$(VENV)/bin/mypy
 	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
 
-bench: $(DEV_STAMP)
-	tools/netns-run $(PY) -m bench
+# The peers the benchmarks measure ours against (bench/requirements.txt: Pinocchio + coal, iceoryx2, ...), on top of
+# the dev venv; never part of the runtime (`make setup`).
+$(BENCH_STAMP): $(DEV_STAMP) bench/requirements.txt
+	$(PY) -m pip install -q -r bench/requirements.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
+	@touch $@
+
+# Set-up cost (make setup into a temporary venv) needs the package registry: measured outside the namespace first.
+bench: $(BENCH_STAMP)
+	$(PY) -m bench.bench_setup measure $(VENV)/bench-setup.json
+	MDS_BENCH_SETUP_RESULT=$(abspath $(VENV))/bench-setup.json tools/netns-run $(PY) -m bench
 
 # The soak, then the adversarial safety scenario (bench/adversary.py) for SOAK_ADVERSARY_MINUTES; both reports
 # are printed, the target fails if either fails.
@@ -88,4 +98,5 @@ lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf build install log .pytest_cache mds_ach/ach/_achfast.*.so mds_ach/ach/_shmguard.*.so
+	rm -rf build install log .pytest_cache mds_ach/ach/_achfast.*.so mds_ach/ach/_shmguard.*.so \
+		mds_ach/kinematics/_collfast.*.so

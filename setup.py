@@ -49,12 +49,16 @@ setup(
         ("share/" + PACKAGE + "/include", glob("include/*.h")),
         ("include", glob("include/*.h")),
     ],
-    # The C fast path of mds_ach.ach, and the SIGBUS guard for mapped channel files (a truncated channel must not
+    # The C fast path of mds_ach.ach, the SIGBUS guard for mapped channel files (a truncated channel must not
     # kill its users); both optional: without a compiler the pure-Python code is used, unguarded.
     ext_modules=[Extension("mds_ach.ach._achfast", ["mds_ach/ach/_achfast.c"], depends=["mds_ach/ach/achcore.h"],
                            extra_compile_args=["-O2", "-Wall"], optional=True),
                  Extension("mds_ach.ach._shmguard", ["mds_ach/ach/_shmguard.c"], extra_compile_args=["-O2", "-Wall"],
-                           optional=True)],
+                           optional=True),
+                 # The collision gate's per-configuration screen (FK, poses, exact/conservative pair tests);
+                 # without it mds_ach.kinematics.collision runs the numpy path, with the same answers.
+                 Extension("mds_ach.kinematics._collfast", ["mds_ach/kinematics/_collfast.c"],
+                           extra_compile_args=["-O2", "-Wall"], optional=True)],
     install_requires=["setuptools"],
     zip_safe=False,
     maintainer="mds_ach developers",

@@ -10,18 +10,25 @@ Measured (each for a 1 KB frame and a 14051 B ``MDS_STATE`` frame):
 * baseline: rclpy ``sensor_msgs/JointState`` (17 joints) publish -> receive across two processes, the same
   stamp-in-message method, same rate, default QoS. This needs the private network namespace of
   ``tools/netns-run`` (``make bench`` provides it); outside it the baseline is skipped.
+* peer: iceoryx2's Python binding (``bench/requirements.txt``), the same 14 KB frame at 1 kHz with a blocking
+  newest-frame wait: the writer loans a sample, copies the frame in, sends it and notifies an event service;
+  the reader blocks on the event's listener, takes the newest sample (subscriber buffer 1, safe overflow) and
+  copies the frame out, as ``get(WAIT | LAST)`` does. Ach and iceoryx2 run in alternating rounds so that a
+  busy machine slows both alike.
 
 Every role runs in a fresh child process (``python -m bench.bench_ach ROLE ...``), so the numbers do not
 depend on what other benchmarks loaded into the parent. All children (Ach and rclpy alike) raise their
 priority to nice -20 when allowed, as a robot's real-time processes would run; on a shared, loaded machine this
 keeps other load from dominating either side.
 Targets (issue 2): blocking >= 5x lower median than rclpy, busy-poll >= 20x lower, in-process put+get of
-MDS_STATE <= 10 us median. They apply to the default implementation (the C fast path ``mds_ach.ach._achfast`` when
+MDS_STATE <= 10 us median. Issue 20: blocking newest-frame 14 KB >= 1.5x lower median than iceoryx2 and p99 at or
+below iceoryx2's. They apply to the default implementation (the C fast path ``mds_ach.ach._achfast`` when
 built); the pure-Python path (``MDS_ACH_PURE_PYTHON=1``) is measured in the same run and printed for reference.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import struct
@@ -118,6 +125,73 @@ def role_ach_reader(name: str, size: int, mode: str) -> None:
                 break
             if i >= WARMUP:
                 lat.append(now - stamp)
+    print(json.dumps({"latency_ns": lat}), flush=True)
+
+
+def _iox_frame(size: int):  # noqa: ANN202 - a ctypes Structure class built for the frame size
+    import ctypes
+
+    class BenchFrame(ctypes.Structure):
+        _fields_ = [("data", ctypes.c_uint8 * size)]
+
+    return BenchFrame
+
+
+def _iox_ports(name: str, size: int):  # noqa: ANN202 - iceoryx2 objects (not typed)
+    import iceoryx2 as iox2
+
+    iox2.set_log_level_from_env_or(iox2.LogLevel.Warn)
+    node = iox2.NodeBuilder.new().create(iox2.ServiceType.Ipc)
+    service = iox2.ServiceName.new(name)
+    pubsub = (node.service_builder(service).publish_subscribe(_iox_frame(size)).subscriber_max_buffer_size(1)
+              .history_size(0).enable_safe_overflow(True).open_or_create())
+    event = node.service_builder(service).event().open_or_create()
+    return iox2, node, pubsub, event
+
+
+def role_iox_writer(name: str, size: int, count: int, rate: float) -> None:
+    """iceoryx2 twin of ``role_ach_writer``: loan, copy the stamped frame in, send, notify."""
+    import ctypes
+
+    _iox2, _node, pubsub, event = _iox_ports(name, size)
+    publisher = pubsub.publisher_builder().create()
+    notifier = event.notifier_builder().create()
+    buf = (ctypes.c_uint8 * size)()
+    sys.stdin.readline()  # the reader is ready
+    time.sleep(0.2)  # let the publisher see the subscriber
+    for i in itertools.chain(_pace(1.0 / rate, WARMUP + count), [-1]):
+        STAMP.pack_into(buf, 0, time.monotonic_ns(), i)
+        sample = publisher.loan_uninit()
+        ctypes.memmove(sample.payload_ptr, buf, size)
+        sample.assume_init().send()
+        notifier.notify()
+    time.sleep(0.2)
+
+
+def role_iox_reader(name: str, size: int) -> None:
+    """iceoryx2 twin of the blocking ``role_ach_reader``: wait for the event, take the newest sample, copy out."""
+    import ctypes
+
+    _iox2, _node, pubsub, event = _iox_ports(name, size)
+    subscriber = pubsub.subscriber_builder().buffer_size(1).create()
+    listener = event.listener_builder().create()
+    buf = (ctypes.c_uint8 * size)()
+    print("ready", flush=True)
+    lat: list[int] = []
+    while True:
+        listener.blocking_wait()
+        newest = None
+        while (sample := subscriber.receive()) is not None:
+            newest = sample
+        if newest is None:
+            continue
+        ctypes.memmove(buf, newest.payload_ptr, size)
+        now = time.monotonic_ns()
+        stamp, i = STAMP.unpack_from(buf, 0)
+        if i < 0:
+            break
+        if i >= WARMUP:
+            lat.append(now - stamp)
     print(json.dumps({"latency_ns": lat}), flush=True)
 
 
@@ -223,6 +297,48 @@ def cross_process(name: str, size: int, mode: str, count: int, rate: float, pure
         ach.unlink(name)
 
 
+def iceoryx_latency(size: int, count: int, rate: float) -> list[float]:
+    name = f"mds-bench/ach-vs-iox/{os.getpid()}/{time.monotonic_ns()}"
+    reader = _spawn("iox-reader", name, size)
+    _expect_ready(reader)
+    writer = _spawn("iox-writer", name, size, count, rate)
+    assert writer.stdin is not None
+    writer.stdin.write("go\n")
+    writer.stdin.flush()
+    result = _result(reader)
+    writer.communicate(timeout=60)
+    return [x / 1e3 for x in result["latency_ns"]]
+
+
+def peer_rows(ros: list[float], n_lat: int) -> list[Row]:
+    """Ach's blocking newest-frame wait (14 KB, 1 kHz) against iceoryx2's, in alternating rounds."""
+    size, rounds = SIZES["14 KB MDS_STATE"], 4
+    ours: list[float] = []
+    iox: list[float] = []
+    try:
+        for _ in range(rounds):
+            ours += [x / 1e3 for x in cross_process("bench-ach-vs-iox", size, "block", n_lat // rounds,
+                                                    RATE_HZ)["latency_ns"]]
+            iox += iceoryx_latency(size, n_lat // rounds, RATE_HZ)
+    except (ImportError, RuntimeError, subprocess.TimeoutExpired, json.JSONDecodeError) as exc:
+        print(f"[bench_ach] iceoryx2 peer failed (make bench installs bench/requirements.txt): {exc}",
+              file=sys.stderr)
+        iox = []
+    label = f"x-proc blocking newest 14 KB @1 kHz ({rounds} rounds)"
+    rows = []
+    med, p99 = median(ours), percentile(ours, 99)
+    iox_med = median(iox) if iox else None
+    iox_p99 = percentile(iox, 99) if iox else None
+    rows.append(Row(GROUP, f"{label} median", med, "us", "iceoryx2 (Python), same rounds", iox_med,
+                    ">= 1.5x lower", (iox_med / med >= 1.5) if iox_med else False))
+    rows.append(Row(GROUP, f"{label} p99", p99, "us", "iceoryx2 (Python) p99", iox_p99, "<= iceoryx2",
+                    (p99 <= iox_p99) if iox_p99 else False))
+    if ros:
+        rows.append(Row(GROUP, f"{label} median", med, "us", "rclpy JointState (17 joints)", median(ros),
+                        ">= 5x lower", median(ros) / med >= 5))
+    return rows
+
+
 def rclpy_latency(count: int, rate: float) -> list[float]:
     sub = _spawn("ros-subscriber")
     _expect_ready(sub)
@@ -288,6 +404,8 @@ def run(quick: bool = False) -> list[Row]:
         rows.append(Row(GROUP, "rclpy JointState x-proc median (baseline)", ros_med, "us"))
         rows.append(Row(GROUP, "rclpy JointState x-proc p99", percentile(ros, 99), "us"))
 
+    rows += peer_rows(ros, n_lat)
+
     from mds_ach import ach
 
     impls = [False, True] if ach.FAST_AVAILABLE else [True]
@@ -349,6 +467,10 @@ def main(argv: list[str]) -> int:
         role_ach_writer(args[0], int(args[1]), int(args[2]), float(args[3]))
     elif role == "ach-reader":
         role_ach_reader(args[0], int(args[1]), args[2])
+    elif role == "iox-writer":
+        role_iox_writer(args[0], int(args[1]), int(args[2]), float(args[3]))
+    elif role == "iox-reader":
+        role_iox_reader(args[0], int(args[1]))
     elif role == "ros-publisher":
         role_ros_publisher(int(args[0]), float(args[1]))
     elif role == "ros-subscriber":

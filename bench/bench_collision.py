@@ -1,71 +1,123 @@
-"""Collision-gate benchmark: time to decide whether one reference is safe (full self + world check).
+"""Collision-gate benchmark against Pinocchio + coal and a persistent python-fcl set, same primitives and pairs.
 
-Workload: random joint vectors within the URDF limits (about a third of them collide) with the default
-collision config and a table in front of the robot, so every check covers arm-arm, arm-body, arm-head and
-arm-world pairs. Measured:
+Workload: 400 random joint vectors within the URDF limits (about a third of them collide) with the default
+collision config and a table in front of the robot (arm-arm, arm-body, arm-head and arm-world pairs), plus two
+scenes where contacts are the rule: hands together in front of the chest, and the hands over the table. Every
+contender answers every configuration; the answers (colliding pairs) must be identical.
 
-* ``check``: ``CollisionModel.check`` (batched numpy FK of the 17 joint frames, bounding-sphere broad phase,
-  python-fcl narrow phase on the close pairs);
-* ``gate``: ``Gate.process`` on the same references (validation, speed bound, check, hold logic), i.e. what
-  the collision node spends per mds-ref-smooth frame;
-* ``gate with the measured pose``: the same, with a measured pose that lags the reference by 4 frames (0.1 s,
-  as the robot follows), so every unit differs and all 8 {reference, measured} configurations are checked.
+Contenders, interleaved configuration by configuration so that a busy machine slows all of them alike:
 
-Baseline (same run, same configurations): the straightforward way - yourdfpy scene-graph FK
-(``update_cfg`` + ``get_transform`` per collision link) and fresh fcl objects for every primitive, then
-``fcl.collide`` on every pair. Both answers are compared on every configuration.
+* ours, ``CollisionModel.collides`` (the yes/no gate decision: C screen, python-fcl on the pairs it cannot
+  decide, stops at the first collision) and ``CollisionModel.check`` (the pair list the gate acts on, with the
+  signed clearance of every colliding pair, which the peers do not compute);
+* Pinocchio + coal (``bench/requirements.txt``): the URDF model's FK, geometry placements and coal's narrow
+  phase on the same (inflated) primitives attached to the same joints and the same pair list, all in C++:
+  ``pin.computeCollisions(..., stop_at_first_collision=True)`` for yes/no, ``False`` for the pair list (the
+  pair list is read from ``collisionResults`` outside the timed region: only the C++ call is timed);
+* a persistent python-fcl set: fcl objects built once, the numpy FK, every pair (``check_exhaustive`` of the
+  numpy path).
 
-Targets (issue 5): median <= 0.5 ms, p99 <= 2 ms for the full check; one daemon tick is 100 ms. With the
-measured pose (issue 15): median <= 2 ms, p99 <= 5 ms, well within one filter period (25 ms).
-Run: ``python -m bench --only bench_collision [--quick]`` or ``python -m bench.bench_collision``.
+Also measured: ``Gate.process`` per frame on a realistic stream (the filter's ramps at 40 Hz between random
+targets), without and with the measured pose (8 configurations per frame).
+
+Targets (issue 20): gate decision median and p99 <= Pinocchio + coal's; answers identical on every
+configuration. Issue 5/15: full check median <= 0.5 ms, p99 <= 2 ms; gate with the measured pose median
+<= 2 ms, p99 <= 5 ms. Run: ``python -m bench --only bench_collision [--quick]``.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from bench.common import Row, median, percentile
 
 TABLE = {"objects": [{"name": "table", "shape": "box", "size": [0.6, 1.4, 0.04], "xyz": [0.6, 0.0, -0.42]}]}
+HOME = {"RSP": -0.445, "RSR": -1.18, "REP": -1.25, "RSY": 0.15, "LSP": -0.45, "LSR": 1.2, "LEP": -1.25,
+        "LSY": -0.25, "LWR": -0.28}
 
 
-class NaiveChecker:
-    """The baseline: yourdfpy FK of the scene graph and new fcl objects on every check, all pairs."""
+def _home(model: Any, n: int) -> np.ndarray:
+    q = np.zeros(len(model.joint_names))
+    for name, value in HOME.items():
+        q[model.joint_names.index(name)] = value
+    return np.tile(q, (n, 1))
 
-    def __init__(self, model) -> None:
-        import fcl
-        import yourdfpy
 
-        from mds_ach.kinematics.collision import _fcl_geometry, inflate
-        from mds_ach.paths import urdf_path
+def hands_together(model: Any, n: int, seed: int = 11) -> np.ndarray:
+    """Both hands in front of the chest, often touching (the hands-together scene)."""
+    rng = np.random.default_rng(seed)
+    out, col = _home(model, n), model.joint_names.index
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        out[:, col(f"{side}SP")] = rng.uniform(-1.6, -0.6, n)
+        out[:, col(f"{side}SR")] = sign * rng.uniform(0.0, 0.4, n)
+        out[:, col(f"{side}SY")] = -sign * rng.uniform(0.3, 1.0, n)
+        out[:, col(f"{side}EP")] = rng.uniform(-2.0, -1.0, n)
+    return np.clip(out, model.lower, model.upper)
 
-        self.fcl = fcl
-        self.urdf = yourdfpy.URDF.load(str(urdf_path()), load_meshes=False, build_collision_scene_graph=False)
-        self.model = model
+
+def hand_over_table(model: Any, n: int, seed: int = 12) -> np.ndarray:
+    """Arms reaching forward and down over the table (the hand-over-table scene): hands, wrists and forearms
+    graze, touch or go into the table top."""
+    rng = np.random.default_rng(seed)
+    out, col = _home(model, n), model.joint_names.index
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        out[:, col(f"{side}SP")] = rng.uniform(-1.4, -0.2, n)
+        out[:, col(f"{side}SR")] = sign * rng.uniform(0.0, 0.5, n)
+        out[:, col(f"{side}SY")] = rng.uniform(-0.6, 0.6, n)
+        out[:, col(f"{side}EP")] = rng.uniform(-1.6, 0.0, n)
+        out[:, col(f"{side}WY")] = rng.uniform(-1.0, 1.0, n)
+        out[:, col(f"{side}WR")] = rng.uniform(-0.8, 0.8, n)
+    out[:, col("WST")] = rng.uniform(-0.5, 0.5, n)
+    return np.clip(out, model.lower, model.upper)
+
+
+class PinocchioCoal:
+    """The peer: Pinocchio's FK and geometry placements, coal's narrow phase, on our primitives and pairs."""
+
+    def __init__(self, model: Any) -> None:
+        import coal
+        import pinocchio as pin
+
+        from mds_ach.kinematics.collision import inflate
+
+        self.pin = pin
+        self.model = pin.buildModelFromUrdf(model.urdf)
+        self.data = self.model.createData()
+        self.perm = np.array([self.model.joints[self.model.getJointId(n)].idx_q for n in model.joint_names])
+        self.geom = pin.GeometryModel()
         pad = model.margin / 2
-        self.geoms = [_fcl_geometry(p.kind, inflate(p.kind, p.size, pad)) for p in model.primitives]
-
-    def check(self, q: np.ndarray) -> frozenset[tuple[str, str]]:
-        fcl, model = self.fcl, self.model
-        self.urdf.update_cfg(dict(zip(model.joint_names, q, strict=True)))
-        objects = []
-        for prim, geom in zip(model.primitives, self.geoms, strict=True):
-            if prim.group == "world":
-                T = prim.offset
-            else:
-                link = self.urdf.get_transform(prim.link)
-                owner_frame_to_link = model.tree.owner(prim.link)[1]
-                # prim.offset = (fixed chain from the owning joint frame to the link) @ (collision origin)
-                T = link @ np.linalg.inv(owner_frame_to_link) @ prim.offset
-            objects.append(fcl.CollisionObject(geom, fcl.Transform(T[:3, :3], T[:3, 3])))
-        hits = set()
+        n = len(model.joint_names)
+        for k, prim in enumerate(model.primitives):
+            size = inflate(prim.kind, prim.size, pad)
+            shape = {"sphere": lambda s: coal.Sphere(s[0]), "box": lambda s: coal.Box(*s),
+                     "cylinder": lambda s: coal.Cylinder(s[0], s[1])}[prim.kind](size)
+            owner = int(model._owner[k])
+            joint = 0 if owner == n else self.model.getJointId(model.joint_names[owner])
+            self.geom.addGeometryObject(pin.GeometryObject(prim.name, joint, pin.SE3(prim.offset), shape))
         for i, j in model.pairs:
-            if fcl.collide(objects[i], objects[j]) > 0:
-                hits.add((model.primitives[i].name, model.primitives[j].name))
-        return frozenset(hits)
+            self.geom.addCollisionPair(pin.CollisionPair(int(i), int(j)))
+        self.gdata = pin.GeometryData(self.geom)
+        self.names = [(model.primitives[i].name, model.primitives[j].name) for i, j in model.pairs]
+        self.q = np.zeros(self.model.nq)
+
+    def _q(self, q: np.ndarray) -> np.ndarray:
+        self.q[self.perm] = q
+        return self.q
+
+    def collides(self, q: np.ndarray) -> bool:
+        return bool(self.pin.computeCollisions(self.model, self.data, self.geom, self.gdata, self._q(q), True))
+
+    def pair_list(self, q: np.ndarray) -> None:
+        self.pin.computeCollisions(self.model, self.data, self.geom, self.gdata, self._q(q), False)
+
+    def pairs(self) -> frozenset[tuple[str, str]]:
+        """The pairs of the last ``pair_list`` call (read outside the timed region)."""
+        return frozenset(n for n, r in zip(self.names, self.gdata.collisionResults, strict=True) if r.isCollision())
 
 
 def _times(fn, items) -> list[float]:
@@ -77,33 +129,95 @@ def _times(fn, items) -> list[float]:
     return out
 
 
+def _interleaved(contenders: dict[str, Callable[[np.ndarray], Any]], qs: np.ndarray, repeat: int) -> dict[str, list]:
+    """Time every contender on every configuration, one after the other per configuration (µs)."""
+    out: dict[str, list[float]] = {name: [] for name in contenders}
+    for _ in range(repeat):
+        for q in qs:
+            for name, fn in contenders.items():
+                t0 = time.perf_counter()
+                fn(q)
+                out[name].append((time.perf_counter() - t0) * 1e6)
+    return out
+
+
 def run(quick: bool = False) -> list[Row]:
     import mds_ach as mds
-    from mds_ach.kinematics.collision import load_model
+    from mds_ach.kinematics.collision import FAST_AVAILABLE, load_model
     from mds_ach.nodes.collision import Gate, GateConfig, Observed, joint_limits
 
     model = load_model(world=TABLE)
+    slow = load_model(world=TABLE)
+    slow._fast = None  # the persistent python-fcl set: numpy FK, fcl objects built once, every pair
+    try:
+        peer: PinocchioCoal | None = PinocchioCoal(model)
+    except ImportError as exc:
+        print(f"[bench_collision] Pinocchio + coal not installed (make bench installs bench/requirements.txt): "
+              f"{exc}", file=sys.stderr)
+        peer = None
     rng = np.random.default_rng(5)
-    n = 300 if quick else 3000
-    n_base = 60 if quick else 400
-    qs = rng.uniform(model.lower, model.upper, size=(n, len(model.joint_names)))
+    n_cfg, n_scene, repeat = (100, 60, 2) if quick else (400, 300, 5)
+    scenes = {"random": rng.uniform(model.lower, model.upper, size=(n_cfg, len(model.joint_names))),
+              "hands together": hands_together(model, n_scene), "hand over table": hand_over_table(model, n_scene)}
 
-    for q in qs[:50]:  # warm-up (allocations, fcl first calls)
-        model.check(q)
-    fast = _times(model.check, qs)
-    colliding = sum(model.check(q).collides for q in qs)
+    # Answers: every contender, every configuration.
+    mismatch = {"coal": 0, "fcl": 0}
+    hits = {}
+    for scene, qs in scenes.items():
+        hits[scene] = 0
+        for q in qs:
+            ours = model.check(q)
+            hits[scene] += ours.collides
+            if model.collides(q) != ours.collides:
+                mismatch["coal" if peer else "fcl"] += 1
+            if slow.check_exhaustive(q).pairs != ours.pairs:
+                mismatch["fcl"] += 1
+            if peer is not None:
+                peer.pair_list(q)
+                if peer.pairs() != ours.pairs or peer.collides(q) != ours.collides:
+                    mismatch["coal"] += 1
+    if any(mismatch.values()):
+        print(f"bench_collision: answers differ: {mismatch}", file=sys.stderr)
 
-    naive = NaiveChecker(model)
-    for q in qs[:5]:
-        naive.check(q)
-    base = _times(naive.check, qs[:n_base])
-    mismatches = sum(naive.check(q) != model.check(q).pairs for q in qs[:n_base])
-    if mismatches:
-        print(f"bench_collision: {mismatches} of {n_base} configurations disagree with the baseline",
-              file=sys.stderr)
+    group = "collision"
+    rows: list[Row] = []
+    screen = "C screen + fcl" if FAST_AVAILABLE else "numpy + fcl (no C screen built)"
+    for scene, qs in scenes.items():
+        contenders: dict[str, Callable[[np.ndarray], Any]] = {"yes": model.collides, "list": model.check,
+                                                              "fcl": slow.check_exhaustive}
+        if peer is not None:
+            contenders |= {"coal yes": peer.collides, "coal list": peer.pair_list}
+        for q in qs[:20]:  # warm-up
+            for fn in contenders.values():
+                fn(q)
+        t = _interleaved(contenders, qs, repeat if scene == "random" else max(1, repeat // 2))
+        label = f"{scene}, {len(qs)}x{len(t['yes']) // len(qs)}, {hits[scene]} hit"
+        coal_name = "Pinocchio + coal, stop at first" if peer else "Pinocchio + coal: not installed"
+        for stat, fn in (("median", median), ("p99", lambda x: percentile(x, 99))):
+            ours, base = fn(t["yes"]), fn(t["coal yes"]) if peer else None
+            rows.append(Row(group, f"gate yes/no {stat} ({label})", ours, "us", coal_name, base,
+                            "<= coal", None if base is None else ours <= base))
+        for stat, fn in (("median", median), ("p99", lambda x: percentile(x, 99))):
+            ours = fn(t["list"])
+            base = fn(t["coal list"]) if peer else None
+            rows.append(Row(group, f"pair list + clearances {stat} ({scene})", ours, "us",
+                            "Pinocchio + coal, pair list" if peer else coal_name, base,
+                            "<= 500 us" if stat == "median" else "<= 2000 us",
+                            ours <= (500 if stat == "median" else 2000)))
+            if scene == "random":
+                rows.append(Row(group, f"pair list + clearances {stat} ({scene})", ours, "us",
+                                "persistent python-fcl set, all pairs", fn(t["fcl"]), "<= fcl",
+                                ours <= fn(t["fcl"])))
+    total = sum(len(qs) for qs in scenes.values())
+    rows.append(Row(group, f"answers equal to Pinocchio + coal ({screen})", float(total - mismatch["coal"]),
+                    f"of {total}", "", None, f"{total} of {total}", peer is not None and mismatch["coal"] == 0,
+                    higher_is_better=True))
+    rows.append(Row(group, "answers equal to python-fcl on every pair", float(total - mismatch["fcl"]),
+                    f"of {total}", "", None, f"{total} of {total}", mismatch["fcl"] == 0, higher_is_better=True))
 
     # The gate on a realistic stream: the filter's 1.57 rad/s ramps (40 Hz) between random targets inside the
     # gate's limits; some of them collide, so holds and the per-arm re-check are part of the measurement.
+    n = 300 if quick else 3000
     lower, upper = joint_limits(model)
     lo, hi = lower[model.addresses], upper[model.addresses]
     stream: list[np.ndarray] = []
@@ -128,25 +242,17 @@ def run(quick: bool = False) -> list[Row]:
         outputs.append(gate.process(r, zero_mode, now, Observed(lagging, now, now)).ref)
 
     measured_ms = _times(with_measured, refs)
-
-    group = "collision"
-    base_name = f"yourdfpy FK + fcl rebuild, all pairs (n={n_base})"
-    return [
-        Row(group, f"full check median ({len(model.pairs)} pairs, n={n}, {colliding} hit)", median(fast), "ms",
-            base_name, median(base), "<= 0.5 ms", median(fast) <= 0.5),
-        Row(group, "full check p99", percentile(fast, 99), "ms", base_name, percentile(base, 99), "<= 2 ms",
-            percentile(fast, 99) <= 2.0),
-        Row(group, "gate decision per frame median", median(gate_ms), "ms", base_name, median(base),
+    rows += [
+        Row(group, f"Gate.process per frame median (stream, n={n})", median(gate_ms), "ms", "", None,
             "<= 0.5 ms", median(gate_ms) <= 0.5),
-        Row(group, "gate decision per frame p99", percentile(gate_ms, 99), "ms", base_name, percentile(base, 99),
-            "<= 2 ms", percentile(gate_ms, 99) <= 2.0),
-        Row(group, "gate with the measured pose (8 configurations) median", median(measured_ms), "ms", base_name,
-            median(base), "<= 2 ms", median(measured_ms) <= 2.0),
-        Row(group, "gate with the measured pose p99", percentile(measured_ms, 99), "ms", base_name,
-            percentile(base, 99), "<= 5 ms", percentile(measured_ms, 99) <= 5.0),
-        Row(group, "answers equal to the baseline", float(n_base - mismatches), f"of {n_base}", "", None,
-            f"{n_base} of {n_base}", mismatches == 0, higher_is_better=True),
+        Row(group, "Gate.process per frame p99", percentile(gate_ms, 99), "ms", "", None, "<= 2 ms",
+            percentile(gate_ms, 99) <= 2.0),
+        Row(group, "Gate.process with the measured pose (8 cfg) median", median(measured_ms), "ms", "", None,
+            "<= 2 ms", median(measured_ms) <= 2.0),
+        Row(group, "Gate.process with the measured pose p99", percentile(measured_ms, 99), "ms", "", None,
+            "<= 5 ms", percentile(measured_ms, 99) <= 5.0),
     ]
+    return rows
 
 
 if __name__ == "__main__":

@@ -6,8 +6,12 @@ Why this shape:
 * Every primitive is attached to the *last actuated joint* above its link with a precomputed fixed offset, so
   a check needs only the 17 joint frames. They are computed with a batched numpy FK (one matrix product per
   tree level), not with yourdfpy's scene graph, which is ~10x slower.
-* A numpy bounding-sphere broad phase keeps python-fcl calls to the few pairs that are actually close; the
-  narrow phase is ``fcl.collide`` per pair on our own object list, so each result is tied to a known pair.
+* A screen keeps python-fcl calls to the few pairs that are actually close; the narrow phase is
+  ``fcl.collide`` per pair on our own object list, so each result is tied to a known pair. The screen is the C
+  extension ``_collfast`` when it was built (FK, poses and per-pair tests in ~2 us: exact for sphere-sphere,
+  sphere-box, sphere-cylinder and box-box, bounding boxes / capsules otherwise; pairs it proves overlapping skip
+  ``fcl.collide``), else a numpy bounding-sphere broad phase. Both give python-fcl's answers: the screen only
+  decides pairs apart or overlapping by more than ``SCREEN_EPS`` (1 um) and leaves the rest to fcl.
   (python-fcl swallows exceptions raised in collision-manager callbacks and hands back new wrapper objects,
   so a manager-based check could silently drop a collision.)
 * The minimum clearance margin is applied by inflating every primitive by half the margin: two objects are
@@ -34,6 +38,14 @@ import mds_ach as mds
 from mds_ach.paths import config_path, urdf_path
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM
 
+_collfast: Any
+try:  # the optional C screen (setup.py builds it when a compiler is there)
+    from mds_ach.kinematics import _collfast  # type: ignore[attr-defined, no-redef]
+except ImportError:  # pragma: no cover - depends on the build
+    _collfast = None
+
+FAST_AVAILABLE = _collfast is not None
+SCREEN_EPS = 1e-6  # m: the C screen leaves pairs this close to touching to fcl (rounding differs between them)
 SHAPES = ("sphere", "box", "cylinder")
 GROUPS = ("left", "right", "body", "head", "world")
 ARM_GROUPS = ("left", "right")
@@ -100,6 +112,8 @@ class CheckResult:
     def pairs(self) -> frozenset[tuple[str, str]]:
         return frozenset((c.a, c.b) for c in self.contacts)
 
+
+_FREE = CheckResult()
 
 # --------------------------------------------------------------------------------------------- helpers
 
@@ -438,6 +452,30 @@ class CollisionModel:
         self._request = fcl.CollisionRequest()
         self._signed = fcl.DistanceRequest(enable_signed_distance=True)
         self._fcl = fcl
+        self._fast: Any = self._build_screen(pad) if FAST_AVAILABLE else None
+        self._pose_buffer = np.zeros((len(prims), 4, 4))
+
+    def _build_screen(self, pad: float) -> Any:
+        """The C screen's copy of the model: joint chain, primitives (inflated, as half extents), pairs."""
+        assert _collfast is not None
+        tree, n = self.tree, len(self.joint_names)
+        A = np.stack([tree._A0[:, :3], tree._A1[:, :3], tree._A2[:, :3]], axis=1)  # (n, 3, 3, 4)
+        order = np.concatenate([idx for idx, _ in tree._levels]).astype(np.int64)
+        kinds = {"sphere": 0, "box": 1, "cylinder": 2}
+        dims = np.zeros((len(self.primitives), 3))
+        for k, p in enumerate(self.primitives):
+            size = inflate(p.kind, p.size, pad)
+            if p.kind == "sphere":
+                dims[k, 0] = size[0]
+            elif p.kind == "box":
+                dims[k] = np.asarray(size) / 2
+            else:
+                dims[k, :2] = size[0], size[1] / 2
+        return _collfast.build(
+            n, len(self.primitives), len(self.pairs), SCREEN_EPS, np.ascontiguousarray(A),
+            tree.parent.astype(np.int64), order, self._owner.astype(np.int64),
+            np.ascontiguousarray(self._offset[:, :3]), np.array([kinds[p.kind] for p in self.primitives], np.int64),
+            dims, np.ascontiguousarray(self._radius), self._I.astype(np.int64), self._J.astype(np.int64))
 
     # ----- construction helpers
 
@@ -501,28 +539,62 @@ class CollisionModel:
         return self.check_many(np.asarray(q, dtype=float)[None])[0]
 
     def check_many(self, qs: np.ndarray) -> list[CheckResult]:
-        """``check`` for each row of ``qs`` (K, 17), with one batched FK and broad phase."""
-        poses = self.primitive_poses(np.atleast_2d(np.asarray(qs, dtype=float)))
+        """``check`` for each row of ``qs`` (K, 17): the C screen per row, else one batched numpy FK and broad
+        phase."""
+        qs = np.atleast_2d(np.asarray(qs, dtype=float))
+        if self._fast is not None:
+            return [self._check_screened(q) for q in qs]
+        poses = self.primitive_poses(qs)
         centres = poses[..., :3, 3]
         gap = np.linalg.norm(centres[:, self._I] - centres[:, self._J], axis=2) - self._rsum
         return [self._narrow(p, np.flatnonzero(g < 0.0)) for p, g in zip(poses, gap, strict=True)]
+
+    def _check_screened(self, q: np.ndarray) -> CheckResult:
+        poses = self._pose_buffer
+        candidates = _collfast.screen(self._fast, np.ascontiguousarray(q, dtype=float), poses)
+        return self._narrow(poses, candidates) if candidates else _FREE
+
+    def collides(self, q: np.ndarray) -> bool:
+        """Whether ``check(q)`` would report a collision, without the pair list and clearances: stops at the first
+        colliding pair (the yes/no question, cheaper than ``check`` on colliding configurations)."""
+        if self._fast is None:
+            return self.check(q).collides
+        poses = self._pose_buffer
+        candidates = _collfast.screen(self._fast, np.ascontiguousarray(q, dtype=float), poses, True)
+        if candidates and candidates[-1] < 0:
+            return True
+        fcl, objs = self._fcl, self._objects
+        for k in candidates:
+            i, j = int(self._I[k]), int(self._J[k])
+            for m in (i, j):
+                if self._moving[m]:
+                    objs[m].setRotation(poses[m, :3, :3])
+                    objs[m].setTranslation(poses[m, :3, 3])
+            if fcl.collide(objs[i], objs[j], self._request, fcl.CollisionResult()) > 0:
+                return True
+        return False
 
     def check_exhaustive(self, q: np.ndarray) -> CheckResult:
         """Same answer as ``check`` without the broad phase: fcl on every pair (for tests and as a baseline)."""
         return self._narrow(self.primitive_poses(q), range(len(self.pairs)))
 
     def _narrow(self, poses: np.ndarray, candidates: Iterable[int]) -> CheckResult:
+        """fcl on the candidate pairs (``-1 - k``: pair k proven overlapping by the screen, no ``fcl.collide``);
+        the signed distance of the un-inflated shapes for each colliding pair."""
         fcl, objs, raw, prims = self._fcl, self._objects, self._raw_objects, self.primitives
         placed = np.zeros(len(prims), dtype=bool)
         contacts = []
         for k in candidates:
+            sure = k < 0
+            k = -1 - k if sure else k
             i, j = int(self._I[k]), int(self._J[k])
-            for m in (i, j):
-                if self._moving[m] and not placed[m]:
-                    objs[m].setRotation(poses[m, :3, :3])
-                    objs[m].setTranslation(poses[m, :3, 3])
-                    placed[m] = True
-            if fcl.collide(objs[i], objs[j], self._request, fcl.CollisionResult()) > 0:
+            if not sure:
+                for m in (i, j):
+                    if self._moving[m] and not placed[m]:
+                        objs[m].setRotation(poses[m, :3, :3])
+                        objs[m].setTranslation(poses[m, :3, 3])
+                        placed[m] = True
+            if sure or fcl.collide(objs[i], objs[j], self._request, fcl.CollisionResult()) > 0:
                 for m in (i, j):
                     if self._moving[m]:
                         raw[m].setRotation(poses[m, :3, :3])
