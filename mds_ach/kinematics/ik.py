@@ -11,8 +11,12 @@ tool position in the torso frame and the tool orientation as the original's Z-Y-
 (roll = t-x, pitch = t-y, yaw = t-z; ``getRot``). The DOFs a task leaves free are used in the null
 space to stay close to the seed. Joint limits come from the URDF and are never left.
 
-Success is the original's test: the Euclidean norm of the target-minus-current components (m and rad
-mixed, angles wrapped to +-pi) within the tolerance. The steps are steered differently where the Z-Y-X
+Success (``Tolerance``) is what users mean by "solved": the task's position components within 1 mm (their
+Euclidean norm) and its angles within 0.01 rad, each checked separately (a full pose: the rotation angle
+between target and answer; otherwise the norm of the wrapped Z-Y-X angle differences). The original's test,
+the norm of all target-minus-current components with m and rad mixed (1 cm by default), is kept as
+``Tolerance.mixed``: the legacy ``getIK(..., err=[dtheta, step, tol])`` still means exactly that, and
+``IKResult.error`` always reports that mixed norm. The steps are steered differently where the Z-Y-X
 angles are singular (pitch = +-pi/2, which is the arm raised forward): a roll+pitch+yaw target is
 approached as a rotation, a roll+pitch target as the direction of the world z axis seen from the tool;
 single angles (and roll/yaw or pitch/yaw pairs) use the analytic rates of the angles themselves. At
@@ -41,7 +45,9 @@ if TYPE_CHECKING:
 TASK_COMPONENTS: tuple[str, ...] = ("p-x", "p-y", "p-z", "t-x", "t-y", "t-z")
 # Legacy ik_method / console "dof": the first n of x, y, z, roll, pitch, yaw.
 DOF_ORDERS: dict[int, tuple[str, ...]] = {n: TASK_COMPONENTS[:n] for n in range(1, 7)}
-DEFAULT_ERR: tuple[float, float, float] = (0.01, 0.01, 0.01)
+DEFAULT_ERR: tuple[float, float, float] = (0.01, 0.01, 0.01)  # legacy getIK err: steps, mixed m+rad tolerance
+DEFAULT_TOLERANCE = 1e-3  # m, position components (their Euclidean norm)
+DEFAULT_ANGLE_TOLERANCE = 0.01  # rad, orientation components
 DEFAULT_ITERATIONS = 1000
 _SQRT3 = math.sqrt(3.0)
 _TWO_PI = 2.0 * math.pi
@@ -104,13 +110,40 @@ def _rotvec(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rv, theta
 
 
+@dataclass(frozen=True)
+class Tolerance:
+    """When a pose counts as reached: position within ``position`` (m) and angles within ``angle`` (rad),
+    checked separately; or, when ``mixed`` is set, the original's single test instead (the norm of all
+    target-minus-current components, m and rad mixed, e.g. the legacy ``getIK`` err[2])."""
+
+    position: float = DEFAULT_TOLERANCE
+    angle: float = DEFAULT_ANGLE_TOLERANCE
+    mixed: float | None = None
+
+    def __post_init__(self) -> None:
+        values = (self.position, self.angle) + (() if self.mixed is None else (self.mixed,))
+        if not all(math.isfinite(v) and v > 0 for v in values):
+            raise ValueError(f"tolerances must be finite and > 0, got {self}")
+
+    @property
+    def bound(self) -> float:
+        """The angle (or mixed error) beyond which the Euler differences cannot pass: no need to work them out."""
+        return _SQRT3 * (self.angle if self.mixed is None else self.mixed)
+
+
 class Task:
     """A parsed target: which components, canonical target values, and the residual / Jacobian rows."""
 
     def __init__(self, target: Sequence[float] | np.ndarray, order: Sequence[str] | str,
-                 tolerance: float | None = None) -> None:
-        """``tolerance``: when given, the reported error is only worked out where it can be below it."""
+                 tolerance: Tolerance | float | None = None) -> None:
+        """``tolerance``: the success test (a float: the original's mixed one); default 1 mm / 0.01 rad."""
+        if tolerance is None:
+            tolerance = Tolerance()
+        elif not isinstance(tolerance, Tolerance):
+            tolerance = Tolerance(mixed=float(tolerance))
         self.tolerance = tolerance
+        self._legacy: Task | None = None  # the same target under the original's test, for ``error``
+        self._always_exact = False  # work out the Euler differences even where they cannot pass
         self.idx = parse_order(order)
         values = np.asarray(target, dtype=float).reshape(-1)
         if values.size != len(self.idx):
@@ -165,12 +198,13 @@ class Task:
 
     def residual(self, R: np.ndarray, p: np.ndarray, J: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Batched error rows e (K, r), their Jacobian (K, r, n), the solver's error and the reported error (K,).
+        """Batched error rows e (K, r), their Jacobian (K, r, n), the solver's error and the score (K,).
 
-        Both errors are sqrt(sum of squared position errors and orientation angles), m and rad mixed like the
-        original's tolerance. The solver's measures a roll+pitch(+yaw) target by the rotation angle (smooth
-        everywhere); the reported one is the original's: wrapped differences of the Z-Y-X angles. At gimbal
-        lock those angles are not unique, so a pose within 1e-6 of the target reports the solver's error.
+        The solver's error is sqrt(sum of squared position errors and orientation angles), m and rad mixed; it
+        measures a roll+pitch(+yaw) target by the rotation angle (smooth everywhere). The score is the success
+        test scaled so that <= 1 passes (see ``Tolerance``); its angles are wrapped differences of the Z-Y-X
+        angles except for a full pose under the separate test (the rotation angle). At gimbal lock those
+        angles are not unique, so a pose within 1e-6 of the target counts with the solver's error.
         """
         rows: list[np.ndarray] = []
         jac: list[np.ndarray] = []
@@ -184,7 +218,7 @@ class Task:
             sq_pos = np.zeros(p.shape[0])
         if self.mode == "position":
             err = np.sqrt(sq_pos)
-            return rows[0], jac[0], err, err
+            return rows[0], jac[0], err, err / (self.tolerance.mixed or self.tolerance.position)
         Jw = J[:, 3:, :]
         sq_rot = 0.0  # the solver's orientation error, squared
         if self.mode == "full":
@@ -207,26 +241,41 @@ class Task:
             jac.append(Jw - u[:, :, None] * (u[:, None, :] @ Jw))
             sq_rot = theta * theta
         ang = euler_zyx(R) if self.euler_idx or self.mode != "euler" else None
+        sq_ang = np.zeros_like(sq_pos)
         if self.euler_idx:
             assert ang is not None  # computed above whenever euler_idx is set
             e = wrap_angle(self.euler_target - ang[:, self._euler_sel])
             rows.append(e)
             jac.append(_euler_rate_rows(R, self.euler_idx) @ Jw)
-            sq_pos = sq_pos + (e * e).sum(1)  # identical in both errors
-        err = np.sqrt(sq_pos + sq_rot)
-        reported = err
-        if self.mode != "euler" and (self.tolerance is None or np.any(err <= _SQRT3 * self.tolerance)):
-            # Else reported >= err / sqrt(3) > tol (each angle difference bounds its share of the rotation
-            # angle), so err stands in for it where it cannot pass anyway.
-            assert ang is not None  # computed above whenever mode != "euler"
-            d = wrap_angle(self._rotation_target - ang[:, : len(self._rotation_target)])
-            reported = np.sqrt(sq_pos + (d * d).sum(1))
-            reported = np.where(err <= EXACT, np.minimum(err, reported), reported)
-        return np.concatenate(rows, axis=1), np.concatenate(jac, axis=1), err, reported
+            sq_ang = (e * e).sum(1)
+        tol = self.tolerance
+        err = np.sqrt(sq_pos + sq_ang + sq_rot)
+        if tol.mixed is None and self.mode in ("euler", "full"):
+            score = np.maximum(np.sqrt(sq_pos) / tol.position, np.sqrt(sq_ang + sq_rot) / tol.angle)
+        else:
+            mixed = tol.mixed is not None
+            angle = err if mixed else np.sqrt(sq_ang + sq_rot)  # what the Euler differences replace, if near
+            if self.mode != "euler" and (self._always_exact or np.any(angle <= tol.bound)):
+                # Else the Euler differences' norm >= angle / sqrt(3) > tolerance (each bounds its share of
+                # the rotation angle), so ``angle`` stands in for it where it cannot pass anyway.
+                assert ang is not None  # computed above whenever mode != "euler"
+                d = wrap_angle(self._rotation_target - ang[:, : len(self._rotation_target)])
+                exact = np.sqrt((sq_pos if mixed else 0.0) + sq_ang + (d * d).sum(1))
+                angle = np.where(err <= EXACT, np.minimum(angle, exact), exact)
+            score = angle / tol.mixed if tol.mixed is not None else np.maximum(np.sqrt(sq_pos) / tol.position,
+                                                                                angle / tol.angle)
+        return np.concatenate(rows, axis=1), np.concatenate(jac, axis=1), err, score
+
+    def score(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The success measure (K,) of tool poses: <= 1 passes the tolerance."""
+        return self.residual(R, p, np.zeros(p.shape[:1] + (6, 1)))[3]
 
     def error(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """The reported error (K,) of tool poses: the success metric."""
-        return self.residual(R, p, np.zeros(p.shape[:1] + (6, 1)))[3]
+        """The original's error (K,) of tool poses: the norm of all component differences, m and rad mixed."""
+        if self._legacy is None:
+            self._legacy = Task(self.requested, [TASK_COMPONENTS[i] for i in self.idx], 1.0)
+            self._legacy._always_exact = True
+        return self._legacy.score(R, p)
 
     def residual_scalar(self, R: list[float], p: list[float], cols: list[list[float]]
                         ) -> tuple[list[float], list[list[float]], float, float]:
@@ -239,9 +288,10 @@ class Task:
             e.append(d)
             rows.append([c[i] for c in cols])
             sq_pos += d * d
+        tol = self.tolerance
         if self.mode == "position":
             err = math.sqrt(sq_pos)
-            return e, rows, err, err
+            return e, rows, err, err / (tol.mixed or tol.position)
         sq_rot = 0.0
         if self.mode == "full":
             T = self._R_target_list  # M = R_target @ R^T
@@ -272,10 +322,11 @@ class Task:
             rows += [[c[3 + k] - u * a for c, a in zip(cols, along, strict=True)] for k, u in enumerate((u0, u1, u2))]
             sq_rot = theta * theta
         angles = (math.atan2(R[7], R[8]), math.atan2(-R[6], math.hypot(R[7], R[8])), math.atan2(R[3], R[0]))
+        sq_ang = 0.0
         for i, t in zip(self.euler_idx, self._euler_list, strict=True):
             d = math.remainder(t - angles[i - 3], _TWO_PI)
             e.append(d)
-            sq_pos += d * d
+            sq_ang += d * d
             if i == 3:  # roll rate = (R00 wx + R10 wy) / cos^2(pitch)
                 c2 = max(R[7] * R[7] + R[8] * R[8], 1e-12)
                 g = (R[0] / c2, R[3] / c2, 0.0)
@@ -286,14 +337,18 @@ class Task:
                 dd = max(R[0] * R[0] + R[3] * R[3], 1e-12)
                 g = (-R[0] * R[6] / dd, -R[3] * R[6] / dd, 1.0)
             rows.append([g[0] * c[3] + g[1] * c[4] + g[2] * c[5] for c in cols])
-        err = math.sqrt(sq_pos + sq_rot)
-        reported = err
-        if self.mode != "euler" and (self.tolerance is None or err <= _SQRT3 * self.tolerance):
+        err = math.sqrt(sq_pos + sq_ang + sq_rot)
+        if tol.mixed is None and self.mode in ("euler", "full"):
+            return e, rows, err, max(math.sqrt(sq_pos) / tol.position, math.sqrt(sq_ang + sq_rot) / tol.angle)
+        mixed = tol.mixed is not None
+        angle = err if mixed else math.sqrt(sq_ang + sq_rot)
+        if self.mode != "euler" and (self._always_exact or angle <= tol.bound):  # else it cannot pass: see ``residual``
             d2 = sum(math.remainder(t - a, _TWO_PI) ** 2 for t, a in zip(self._rotation_list, angles, strict=False))
-            reported = math.sqrt(sq_pos + d2)
-            if err <= EXACT:
-                reported = min(err, reported)
-        return e, rows, err, reported
+            exact = math.sqrt((sq_pos if mixed else 0.0) + sq_ang + d2)
+            angle = min(angle, exact) if err <= EXACT else exact
+        if tol.mixed is not None:
+            return e, rows, err, angle / tol.mixed
+        return e, rows, err, max(math.sqrt(sq_pos) / tol.position, angle / tol.angle)
 
 
 def _euler_rate_rows(R: np.ndarray, which: list[int]) -> np.ndarray:
@@ -320,7 +375,10 @@ def _euler_rate_rows(R: np.ndarray, which: list[int]) -> np.ndarray:
 
 @dataclass
 class IKResult:
-    """What the solver found. ``q`` is always within the joint limits; on failure it is the best attempt."""
+    """What the solver found. ``q`` is always within the joint limits; on failure it is the best attempt.
+
+    ``error`` is the original's measure whatever the tolerance: the norm of all target-minus-achieved
+    components, m and rad mixed (so 0.005 can be a 5 mm miss that a 1 mm tolerance rejects)."""
 
     q: np.ndarray
     success: bool
@@ -352,9 +410,14 @@ class IKOptions:
     ``grace_iterations`` more to finish (its answer is nearer the current pose). ``path_samples`` points on
     the joint-space line from the seed to a candidate are collision-checked along with it. A solution then
     gets up to ``polish_iterations`` more steps toward 1/1000 of the tolerance (kept only if better and safe).
+
+    Success: position within ``tolerance`` (m) and angles within ``angle_tolerance`` (rad), each checked
+    separately; ``mixed_tolerance``, when set, replaces both with the original's single m+rad test.
     """
 
-    tolerance: float = 0.01
+    tolerance: float = DEFAULT_TOLERANCE
+    angle_tolerance: float = DEFAULT_ANGLE_TOLERANCE
+    mixed_tolerance: float | None = None
     max_iterations: int = DEFAULT_ITERATIONS
     joint_step: float = 0.01
     task_step: float = 0.01
@@ -500,10 +563,9 @@ class IKSolver:
         """Solve for ``target`` (values in ``order``) starting from ``q0`` (default: the zero pose, clamped)."""
         t_start = time.perf_counter()
         opt = options or self.options
-        if not (opt.tolerance > 0 and opt.joint_step > 0 and opt.task_step > 0 and opt.max_iterations >= 1
-                and opt.seeds >= 1):
-            raise ValueError("tolerance and step limits must be > 0, max_iterations and seeds >= 1")
-        task = Task(target, order, opt.tolerance)
+        if not (opt.joint_step > 0 and opt.task_step > 0 and opt.max_iterations >= 1 and opt.seeds >= 1):
+            raise ValueError("step limits must be > 0, max_iterations and seeds >= 1")
+        task = Task(target, order, Tolerance(opt.tolerance, opt.angle_tolerance, opt.mixed_tolerance))
         n = self.kin.dof
         seed = np.zeros(n) if q0 is None else np.asarray(q0, dtype=float).reshape(-1)
         if seed.size != n or not np.all(np.isfinite(seed)):
@@ -519,7 +581,7 @@ class IKSolver:
             q1, reported, err1, iterations, converged = self._fast_search(task, seed, opt)
             if converged and self._safe(q1, seed, samples):
                 q1, reported, used = self._polish(task, seed, q1, reported, opt)
-                return self._result(task, seed, q1, reported, True, iterations + used, t_start, 0, 0, "")
+                return self._result(task, seed, q1, True, iterations + used, t_start, 0, 0, "")
             unsafe += int(converged)
             # The batched searches take over: slot 0 from where the fast one stalled (or afresh if it collided).
             start[0] = self.random_configurations(1)[0] if converged else q1
@@ -532,7 +594,7 @@ class IKSolver:
         first_found = 0
         message = ""
         while True:
-            converged_now = st.reported <= opt.tolerance
+            converged_now = st.reported <= 1.0
             if converged_now.any():
                 done = np.flatnonzero(converged_now)
                 for k in done:
@@ -559,7 +621,7 @@ class IKSolver:
             iterations += 1
             st.step(seed, self.lower, self.upper)
             if iterations % 5 == 0:  # a stall is counted in tens of iterations: no need to look every time
-                stuck = np.flatnonzero((st.since_progress > opt.stall_iterations) & (st.reported > opt.tolerance))
+                stuck = np.flatnonzero((st.since_progress > opt.stall_iterations) & (st.reported > 1.0))
                 if len(stuck):
                     st.restart(stuck, self.random_configurations(len(stuck)))
                     restarts += len(stuck)
@@ -567,15 +629,14 @@ class IKSolver:
         if candidates:
             _, q, err = min(candidates, key=lambda c: c[0])
             q, err, used = self._polish(task, seed, q, err, opt)
-            return self._result(task, seed, q, err, True, iterations + used, t_start, restarts, unsafe, "")
+            return self._result(task, seed, q, True, iterations + used, t_start, restarts, unsafe, "")
         st.note_best()
-        return self._result(task, seed, st.best_q, None, False, iterations, t_start, restarts, unsafe, message)
+        return self._result(task, seed, st.best_q, False, iterations, t_start, restarts, unsafe, message)
 
-    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, err: float | None, success: bool,
+    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, success: bool,
                 iterations: int, t_start: float, restarts: int, unsafe: int, message: str) -> IKResult:
         R, p = self.kin.fk(q[None])
-        if err is None:
-            err = float(task.error(R, p)[0])
+        err = float(task.error(R, p)[0])
         if not success:
             message += f" (best error {err:.4g})"
             if unsafe:
@@ -593,15 +654,15 @@ class IKSolver:
         pull toward ``seed``), FK and errors in plain floats: numpy's per-call cost would dominate for one arm.
 
         Starts at ``start`` (default ``seed``) with step limits ``scale`` times the initial ones; stops when the
-        error is within ``tolerance`` (default the options'), after ``budget`` iterations (default
+        score is within ``tolerance`` (default 1: the options' tolerance), after ``budget`` iterations (default
         ``opt.fast_iterations``) or when stalled or creeping (the batched searches do better from there).
-        Returns (q, reported error, solver error, iterations, converged).
+        Returns (q, score, solver error, iterations, converged).
         """
         kin = self.kin
         lower, upper = self._lower_list, self._upper_list
         n = kin.dof
         rest = seed
-        tol = opt.tolerance if tolerance is None else tolerance
+        tol = 1.0 if tolerance is None else tolerance
         q = (seed if start is None else start).tolist()
         e, rows, err, reported = task.residual_scalar(*kin.fk_jacobian_scalar(q))
         lam = opt.damping
@@ -651,11 +712,11 @@ class IKSolver:
                 ) -> tuple[np.ndarray, float, int]:
         """A few more steps from a solution already within the tolerance, toward 1000x tighter: the original
         stopped at 1 cm, the robot deserves better when it costs a fraction of a millisecond."""
-        if opt.polish_iterations <= 0 or self.kin.scalar_chain is None or reported <= opt.tolerance * 1e-3:
+        if opt.polish_iterations <= 0 or self.kin.scalar_chain is None or reported <= 1e-3:
             return q, reported, 0
         full = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)  # already close
         q2, reported2, _, used, _ = self._fast_search(task, seed, opt, start=q, budget=opt.polish_iterations,
-                                                      tolerance=opt.tolerance * 1e-3, scale=full)
+                                                      tolerance=1e-3, scale=full)
         if reported2 < reported and (self.is_safe is None or self.is_safe(q2.copy(), self.arm)):
             return q2, reported2, used
         return q, reported, used
@@ -746,13 +807,19 @@ def getIK(q0: Sequence[float] | np.ndarray, target: Sequence[float] | np.ndarray
           arm: str | int, err: Sequence[float] | None = None, itr: int | None = None) -> tuple[np.ndarray, int]:
     """Legacy IK: ``(q, 0)`` on success, ``(q_last, -1)`` on failure.
 
-    ``err = [dθ, step, tol]`` (default [0.01, 0.01, 0.01]): initial joint step limit, initial task step
-    limit and tolerance. ``itr`` caps the iterations (default 1000; the original's itr=None failed at once).
+    ``err = [dθ, step, tol]``: initial joint step limit, initial task step limit and the original's tolerance,
+    the norm of all target-minus-achieved components with m and rad mixed (as in the original). Without
+    ``err`` the steps are the original's 0.01 and success is the default ``Tolerance``: position within 1 mm,
+    angles within 0.01 rad, each checked separately (the original's default, 0.01 mixed, accepted 1 cm).
+    ``itr`` caps the iterations (default 1000; the original's itr=None failed at once).
     """
-    e = DEFAULT_ERR if err is None else tuple(float(x) for x in err)
-    if len(e) != 3 or not all(math.isfinite(x) and x > 0 for x in e):
-        raise ValueError(f"err must be three positive numbers [dtheta, step, tolerance], got {err!r}")
-    opt = IKOptions(tolerance=e[2], joint_step=e[0], task_step=e[1],
-                    max_iterations=DEFAULT_ITERATIONS if itr is None else int(itr))
+    iterations = DEFAULT_ITERATIONS if itr is None else int(itr)
+    if err is None:
+        opt = IKOptions(joint_step=DEFAULT_ERR[0], task_step=DEFAULT_ERR[1], max_iterations=iterations)
+    else:
+        e = tuple(float(x) for x in err)
+        if len(e) != 3 or not all(math.isfinite(x) and x > 0 for x in e):
+            raise ValueError(f"err must be three positive numbers [dtheta, step, tolerance], got {err!r}")
+        opt = IKOptions(mixed_tolerance=e[2], joint_step=e[0], task_step=e[1], max_iterations=iterations)
     result = solver(arm).solve(target, order, q0, opt)
     return result.q, (0 if result.success else -1)
