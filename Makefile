@@ -59,7 +59,9 @@ test: sysdeps $(DEV_STAMP)
 	$(VENV)/bin/mypy
 	tools/netns-run $(PY) -m pytest -q -ra $(PYTEST_ARGS)
 
+# The peers the benchmarks compare against (bench/requirements.txt) go into the dev venv, never the runtime one.
 bench: $(DEV_STAMP)
+	$(PY) -m pip install -q -r bench/requirements.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	tools/netns-run $(PY) -m bench
 
 # The soak, then the adversarial safety scenario (bench/adversary.py) for SOAK_ADVERSARY_MINUTES; both reports

@@ -37,7 +37,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mds_ach.kinematics.model import ArmKinematics, arm_kinematics, arm_name, euler_zyx, rotation_zyx
+from mds_ach.kinematics.analytic import ArmGeometry, within
+from mds_ach.kinematics.model import ArmKinematics, arm_kinematics, arm_name, euler_zyx
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -145,13 +146,14 @@ class Task:
         self._legacy: Task | None = None  # the same target under the original's test, for ``error``
         self._always_exact = False  # work out the Euler differences even where they cannot pass
         self.idx = parse_order(order)
-        values = np.asarray(target, dtype=float).reshape(-1)
+        values = np.array(target, dtype=float).reshape(-1)
         if values.size != len(self.idx):
             raise ValueError(f"target has {values.size} values but the order has {len(self.idx)} components")
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"target contains NaN or Inf: {values.tolist()}")
-        self.requested = values.copy()
-        given = dict(zip(self.idx, values.tolist(), strict=True))
+        given_list = values.tolist()
+        if not all(math.isfinite(v) for v in given_list):
+            raise ValueError(f"target contains NaN or Inf: {given_list}")
+        self.requested = values
+        given = dict(zip(self.idx, given_list, strict=True))
         self.pos_idx = [i for i in self.idx if i < 3]
         self.pos_target = np.array([given[i] for i in self.pos_idx])
         angles = {i for i in self.idx if i >= 3}
@@ -161,8 +163,9 @@ class Task:
         self.euler_idx: list[int] = []
         if angles == {3, 4, 5}:
             self.mode = "full"
-            self.R_target = rotation_zyx(given[3], given[4], given[5])
-            canonical.update(zip((3, 4, 5), euler_zyx(self.R_target).tolist(), strict=True))
+            R_list = _rotation_zyx_list(given[3], given[4], given[5])
+            self.R_target = np.array(R_list).reshape(3, 3)
+            canonical.update(zip((3, 4, 5), _euler_zyx_list(R_list), strict=True))
         elif {3, 4} <= angles:
             self.mode = "tilt"
             r, p = given[3], given[4]
@@ -176,7 +179,8 @@ class Task:
             self.mode = "euler" if angles else "position"
             self.euler_idx = sorted(angles)
         for i in self.euler_idx:
-            canonical[i] = float(wrap_angle(given[i]))
+            w = math.remainder(given[i], _TWO_PI)
+            canonical[i] = math.pi if w <= -math.pi else w  # (-pi, pi] like wrap_angle
         self.target = np.array([canonical[i] for i in self.idx])
         self.euler_target = np.array([canonical[i] for i in self.euler_idx])
         # Canonical roll, pitch (and yaw) compared component-wise for the reported error in full/tilt mode.
@@ -351,6 +355,20 @@ class Task:
         return e, rows, err, max(math.sqrt(sq_pos) / tol.position, angle / tol.angle)
 
 
+def _rotation_zyx_list(roll: float, pitch: float, yaw: float) -> list[float]:
+    """``rotation_zyx`` of one angle triple in plain floats, row-major (numpy costs more than it saves here)."""
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
+                              math.cos(yaw), math.sin(yaw))
+    return [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+            -sp, cp * sr, cp * cr]
+
+
+def _euler_zyx_list(R: list[float]) -> list[float]:
+    """``euler_zyx`` of one row-major rotation in plain floats."""
+    return [math.atan2(R[7], R[8]), math.atan2(-R[6], math.hypot(R[7], R[8])), math.atan2(R[3], R[0])]
+
+
 def _euler_rate_rows(R: np.ndarray, which: list[int]) -> np.ndarray:
     """Rows g (K, len(which), 3) with d(angle)/dt = g . omega for the Z-Y-X angles (omega in the world frame)."""
     out = np.empty((R.shape[0], len(which), 3))
@@ -411,6 +429,10 @@ class IKOptions:
     the joint-space line from the seed to a candidate are collision-checked along with it. A solution then
     gets up to ``polish_iterations`` more steps toward 1/1000 of the tolerance (kept only if better and safe).
 
+    A full pose (all six components) is first solved in closed form (``analytic``, when the arm has the MDS
+    shape and ``closed_form``): the exact solution within the limits nearest the seed that passes ``is_safe``;
+    the searches run only when there is none.
+
     Success: position within ``tolerance`` (m) and angles within ``angle_tolerance`` (rad), each checked
     separately; ``mixed_tolerance``, when set, replaces both with the original's single m+rad test.
     """
@@ -433,6 +455,7 @@ class IKOptions:
     fast_iterations: int = 20
     polish_iterations: int = 2
     timeout: float | None = None
+    closed_form: bool = True
 
 
 class _Searches:
@@ -535,6 +558,7 @@ class IKSolver:
         self.options = options or IKOptions()
         self.rng = np.random.default_rng(rng_seed)
         self.is_safe = is_safe
+        self.geometry = ArmGeometry.of(self.kin)
         self.lower = self.kin.lower.copy()
         self.upper = self.kin.upper.copy()
         if limits is not None:
@@ -573,8 +597,12 @@ class IKSolver:
         seed = np.clip(seed, self.lower, self.upper)
         # If the arm already is in a (predicted) collision, any path out starts in one: check only the goal.
         samples = opt.path_samples if self.is_safe is not None and self.is_safe(seed.copy(), self.arm) else 0
-        start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
         iterations = restarts = unsafe = 0
+        if opt.closed_form and self.geometry is not None and task.dof == 6:
+            q_exact, unsafe = self._closed_form(task, seed, samples)
+            if q_exact is not None:
+                return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "")
+        start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
         fast: tuple[np.ndarray, float] | None = None
         if opt.adaptive and opt.fast_iterations > 0 and self.kin.scalar_chain is not None:
             # Fast path: the caller's seed alone, in plain floats. Most requests end here.
@@ -635,8 +663,18 @@ class IKSolver:
 
     def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, success: bool,
                 iterations: int, t_start: float, restarts: int, unsafe: int, message: str) -> IKResult:
-        R, p = self.kin.fk(q[None])
-        err = float(task.error(R, p)[0])
+        if self.kin.scalar_chain is not None:  # plain floats: numpy's per-call cost would dominate a quick solve
+            if task._legacy is None:
+                task._legacy = Task(task.requested, [TASK_COMPONENTS[i] for i in task.idx], 1.0)
+                task._legacy._always_exact = True
+            Rs, ps, cols = self.kin.fk_jacobian_scalar(q.tolist())
+            err = task._legacy.residual_scalar(Rs, ps, cols)[3]
+            full = ps + _euler_zyx_list(Rs)
+            achieved = np.array([full[i] for i in task.idx])
+        else:
+            R, p = self.kin.fk(q[None])
+            err = float(task.error(R, p)[0])
+            achieved = _components(R[0], p[0], task.idx)
         if not success:
             message += f" (best error {err:.4g})"
             if unsafe:
@@ -644,8 +682,31 @@ class IKSolver:
         return IKResult(q=q, success=success, error=err, iterations=iterations,
                         time=time.perf_counter() - t_start, arm=self.arm,
                         order=tuple(TASK_COMPONENTS[i] for i in task.idx), target=task.target,
-                        achieved=_components(R[0], p[0], task.idx), restarts=restarts, rejected_unsafe=unsafe,
+                        achieved=achieved, restarts=restarts, rejected_unsafe=unsafe,
                         message=message or "solved", seed=seed)
+
+    def _closed_form(self, task: Task, seed: np.ndarray, samples: int) -> tuple[np.ndarray | None, int]:
+        """The exact solution within the limits nearest ``seed`` (max joint distance) that passes the collision
+        hook, checked by FK against the task; (None, solutions rejected as unsafe) when there is none."""
+        assert self.geometry is not None and task.R_target is not None
+        p = [0.0, 0.0, 0.0]
+        for i, v in zip(task.pos_idx, task.pos_target.tolist(), strict=True):
+            p[i] = v
+        lower, upper = self._lower_list, self._upper_list
+        found = [q for q in (within(s, lower, upper) for s in self.geometry.solve(task._R_target_list, p))
+                 if q is not None]
+        seed_list = seed.tolist()
+        found.sort(key=lambda q: max(abs(a - b) for a, b in zip(q, seed_list, strict=True)))
+        found.insert(0, seed_list)  # already there (to round-off): move nothing, not even by the closed form's 1e-8
+        unsafe = 0
+        for q in found:
+            if task.residual_scalar(*self.kin.fk_jacobian_scalar(q))[3] > 1e-3:
+                continue  # clamped at a limit beyond the tolerance (or a round-off case): not this one
+            qa = np.array(q)
+            if self._safe(qa, seed, samples):
+                return qa, unsafe
+            unsafe += 1
+        return None, unsafe
 
     def _fast_search(self, task: Task, seed: np.ndarray, opt: IKOptions, start: np.ndarray | None = None,
                      budget: int | None = None, tolerance: float | None = None, scale: float = 1.0
