@@ -11,8 +11,12 @@ tool position in the torso frame and the tool orientation as the original's Z-Y-
 (roll = t-x, pitch = t-y, yaw = t-z; ``getRot``). The DOFs a task leaves free are used in the null
 space to stay close to the seed. Joint limits come from the URDF and are never left.
 
-Success is the original's test: the Euclidean norm of the target-minus-current components (m and rad
-mixed, angles wrapped to +-pi) within the tolerance. The steps are steered differently where the Z-Y-X
+Success (``Tolerance``) is what users mean by "solved": the task's position components within 1 mm (their
+Euclidean norm) and its angles within 0.01 rad, each checked separately (a full pose: the rotation angle
+between target and answer; otherwise the norm of the wrapped Z-Y-X angle differences). The original's test,
+the norm of all target-minus-current components with m and rad mixed (1 cm by default), is kept as
+``Tolerance.mixed``: the legacy ``getIK(..., err=[dtheta, step, tol])`` still means exactly that, and
+``IKResult.error`` always reports that mixed norm. The steps are steered differently where the Z-Y-X
 angles are singular (pitch = +-pi/2, which is the arm raised forward): a roll+pitch+yaw target is
 approached as a rotation, a roll+pitch target as the direction of the world z axis seen from the tool;
 single angles (and roll/yaw or pitch/yaw pairs) use the analytic rates of the angles themselves. At
@@ -33,7 +37,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mds_ach.kinematics.model import ArmKinematics, arm_kinematics, arm_name, euler_zyx, rotation_zyx
+from mds_ach.kinematics.analytic import ArmGeometry, within
+from mds_ach.kinematics.model import ArmKinematics, arm_kinematics, arm_name, euler_zyx
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
@@ -41,7 +46,9 @@ if TYPE_CHECKING:
 TASK_COMPONENTS: tuple[str, ...] = ("p-x", "p-y", "p-z", "t-x", "t-y", "t-z")
 # Legacy ik_method / console "dof": the first n of x, y, z, roll, pitch, yaw.
 DOF_ORDERS: dict[int, tuple[str, ...]] = {n: TASK_COMPONENTS[:n] for n in range(1, 7)}
-DEFAULT_ERR: tuple[float, float, float] = (0.01, 0.01, 0.01)
+DEFAULT_ERR: tuple[float, float, float] = (0.01, 0.01, 0.01)  # legacy getIK err: steps, mixed m+rad tolerance
+DEFAULT_TOLERANCE = 1e-3  # m, position components (their Euclidean norm)
+DEFAULT_ANGLE_TOLERANCE = 0.01  # rad, orientation components
 DEFAULT_ITERATIONS = 1000
 _SQRT3 = math.sqrt(3.0)
 _TWO_PI = 2.0 * math.pi
@@ -104,21 +111,49 @@ def _rotvec(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rv, theta
 
 
+@dataclass(frozen=True)
+class Tolerance:
+    """When a pose counts as reached: position within ``position`` (m) and angles within ``angle`` (rad),
+    checked separately; or, when ``mixed`` is set, the original's single test instead (the norm of all
+    target-minus-current components, m and rad mixed, e.g. the legacy ``getIK`` err[2])."""
+
+    position: float = DEFAULT_TOLERANCE
+    angle: float = DEFAULT_ANGLE_TOLERANCE
+    mixed: float | None = None
+
+    def __post_init__(self) -> None:
+        values = (self.position, self.angle) + (() if self.mixed is None else (self.mixed,))
+        if not all(math.isfinite(v) and v > 0 for v in values):
+            raise ValueError(f"tolerances must be finite and > 0, got {self}")
+
+    @property
+    def bound(self) -> float:
+        """The angle (or mixed error) beyond which the Euler differences cannot pass: no need to work them out."""
+        return _SQRT3 * (self.angle if self.mixed is None else self.mixed)
+
+
 class Task:
     """A parsed target: which components, canonical target values, and the residual / Jacobian rows."""
 
     def __init__(self, target: Sequence[float] | np.ndarray, order: Sequence[str] | str,
-                 tolerance: float | None = None) -> None:
-        """``tolerance``: when given, the reported error is only worked out where it can be below it."""
+                 tolerance: Tolerance | float | None = None) -> None:
+        """``tolerance``: the success test (a float: the original's mixed one); default 1 mm / 0.01 rad."""
+        if tolerance is None:
+            tolerance = Tolerance()
+        elif not isinstance(tolerance, Tolerance):
+            tolerance = Tolerance(mixed=float(tolerance))
         self.tolerance = tolerance
+        self._legacy: Task | None = None  # the same target under the original's test, for ``error``
+        self._always_exact = False  # work out the Euler differences even where they cannot pass
         self.idx = parse_order(order)
-        values = np.asarray(target, dtype=float).reshape(-1)
+        values = np.array(target, dtype=float).reshape(-1)
         if values.size != len(self.idx):
             raise ValueError(f"target has {values.size} values but the order has {len(self.idx)} components")
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"target contains NaN or Inf: {values.tolist()}")
-        self.requested = values.copy()
-        given = dict(zip(self.idx, values.tolist(), strict=True))
+        given_list = values.tolist()
+        if not all(math.isfinite(v) for v in given_list):
+            raise ValueError(f"target contains NaN or Inf: {given_list}")
+        self.requested = values
+        given = dict(zip(self.idx, given_list, strict=True))
         self.pos_idx = [i for i in self.idx if i < 3]
         self.pos_target = np.array([given[i] for i in self.pos_idx])
         angles = {i for i in self.idx if i >= 3}
@@ -128,8 +163,9 @@ class Task:
         self.euler_idx: list[int] = []
         if angles == {3, 4, 5}:
             self.mode = "full"
-            self.R_target = rotation_zyx(given[3], given[4], given[5])
-            canonical.update(zip((3, 4, 5), euler_zyx(self.R_target).tolist(), strict=True))
+            R_list = _rotation_zyx_list(given[3], given[4], given[5])
+            self.R_target = np.array(R_list).reshape(3, 3)
+            canonical.update(zip((3, 4, 5), _euler_zyx_list(R_list), strict=True))
         elif {3, 4} <= angles:
             self.mode = "tilt"
             r, p = given[3], given[4]
@@ -143,7 +179,8 @@ class Task:
             self.mode = "euler" if angles else "position"
             self.euler_idx = sorted(angles)
         for i in self.euler_idx:
-            canonical[i] = float(wrap_angle(given[i]))
+            w = math.remainder(given[i], _TWO_PI)
+            canonical[i] = math.pi if w <= -math.pi else w  # (-pi, pi] like wrap_angle
         self.target = np.array([canonical[i] for i in self.idx])
         self.euler_target = np.array([canonical[i] for i in self.euler_idx])
         # Canonical roll, pitch (and yaw) compared component-wise for the reported error in full/tilt mode.
@@ -165,12 +202,13 @@ class Task:
 
     def residual(self, R: np.ndarray, p: np.ndarray, J: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Batched error rows e (K, r), their Jacobian (K, r, n), the solver's error and the reported error (K,).
+        """Batched error rows e (K, r), their Jacobian (K, r, n), the solver's error and the score (K,).
 
-        Both errors are sqrt(sum of squared position errors and orientation angles), m and rad mixed like the
-        original's tolerance. The solver's measures a roll+pitch(+yaw) target by the rotation angle (smooth
-        everywhere); the reported one is the original's: wrapped differences of the Z-Y-X angles. At gimbal
-        lock those angles are not unique, so a pose within 1e-6 of the target reports the solver's error.
+        The solver's error is sqrt(sum of squared position errors and orientation angles), m and rad mixed; it
+        measures a roll+pitch(+yaw) target by the rotation angle (smooth everywhere). The score is the success
+        test scaled so that <= 1 passes (see ``Tolerance``); its angles are wrapped differences of the Z-Y-X
+        angles except for a full pose under the separate test (the rotation angle). At gimbal lock those
+        angles are not unique, so a pose within 1e-6 of the target counts with the solver's error.
         """
         rows: list[np.ndarray] = []
         jac: list[np.ndarray] = []
@@ -184,7 +222,7 @@ class Task:
             sq_pos = np.zeros(p.shape[0])
         if self.mode == "position":
             err = np.sqrt(sq_pos)
-            return rows[0], jac[0], err, err
+            return rows[0], jac[0], err, err / (self.tolerance.mixed or self.tolerance.position)
         Jw = J[:, 3:, :]
         sq_rot = 0.0  # the solver's orientation error, squared
         if self.mode == "full":
@@ -207,26 +245,41 @@ class Task:
             jac.append(Jw - u[:, :, None] * (u[:, None, :] @ Jw))
             sq_rot = theta * theta
         ang = euler_zyx(R) if self.euler_idx or self.mode != "euler" else None
+        sq_ang = np.zeros_like(sq_pos)
         if self.euler_idx:
             assert ang is not None  # computed above whenever euler_idx is set
             e = wrap_angle(self.euler_target - ang[:, self._euler_sel])
             rows.append(e)
             jac.append(_euler_rate_rows(R, self.euler_idx) @ Jw)
-            sq_pos = sq_pos + (e * e).sum(1)  # identical in both errors
-        err = np.sqrt(sq_pos + sq_rot)
-        reported = err
-        if self.mode != "euler" and (self.tolerance is None or np.any(err <= _SQRT3 * self.tolerance)):
-            # Else reported >= err / sqrt(3) > tol (each angle difference bounds its share of the rotation
-            # angle), so err stands in for it where it cannot pass anyway.
-            assert ang is not None  # computed above whenever mode != "euler"
-            d = wrap_angle(self._rotation_target - ang[:, : len(self._rotation_target)])
-            reported = np.sqrt(sq_pos + (d * d).sum(1))
-            reported = np.where(err <= EXACT, np.minimum(err, reported), reported)
-        return np.concatenate(rows, axis=1), np.concatenate(jac, axis=1), err, reported
+            sq_ang = (e * e).sum(1)
+        tol = self.tolerance
+        err = np.sqrt(sq_pos + sq_ang + sq_rot)
+        if tol.mixed is None and self.mode in ("euler", "full"):
+            score = np.maximum(np.sqrt(sq_pos) / tol.position, np.sqrt(sq_ang + sq_rot) / tol.angle)
+        else:
+            mixed = tol.mixed is not None
+            angle = err if mixed else np.sqrt(sq_ang + sq_rot)  # what the Euler differences replace, if near
+            if self.mode != "euler" and (self._always_exact or np.any(angle <= tol.bound)):
+                # Else the Euler differences' norm >= angle / sqrt(3) > tolerance (each bounds its share of
+                # the rotation angle), so ``angle`` stands in for it where it cannot pass anyway.
+                assert ang is not None  # computed above whenever mode != "euler"
+                d = wrap_angle(self._rotation_target - ang[:, : len(self._rotation_target)])
+                exact = np.sqrt((sq_pos if mixed else 0.0) + sq_ang + (d * d).sum(1))
+                angle = np.where(err <= EXACT, np.minimum(angle, exact), exact)
+            score = angle / tol.mixed if tol.mixed is not None else np.maximum(np.sqrt(sq_pos) / tol.position,
+                                                                                angle / tol.angle)
+        return np.concatenate(rows, axis=1), np.concatenate(jac, axis=1), err, score
+
+    def score(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The success measure (K,) of tool poses: <= 1 passes the tolerance."""
+        return self.residual(R, p, np.zeros(p.shape[:1] + (6, 1)))[3]
 
     def error(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """The reported error (K,) of tool poses: the success metric."""
-        return self.residual(R, p, np.zeros(p.shape[:1] + (6, 1)))[3]
+        """The original's error (K,) of tool poses: the norm of all component differences, m and rad mixed."""
+        if self._legacy is None:
+            self._legacy = Task(self.requested, [TASK_COMPONENTS[i] for i in self.idx], 1.0)
+            self._legacy._always_exact = True
+        return self._legacy.score(R, p)
 
     def residual_scalar(self, R: list[float], p: list[float], cols: list[list[float]]
                         ) -> tuple[list[float], list[list[float]], float, float]:
@@ -239,9 +292,10 @@ class Task:
             e.append(d)
             rows.append([c[i] for c in cols])
             sq_pos += d * d
+        tol = self.tolerance
         if self.mode == "position":
             err = math.sqrt(sq_pos)
-            return e, rows, err, err
+            return e, rows, err, err / (tol.mixed or tol.position)
         sq_rot = 0.0
         if self.mode == "full":
             T = self._R_target_list  # M = R_target @ R^T
@@ -272,10 +326,11 @@ class Task:
             rows += [[c[3 + k] - u * a for c, a in zip(cols, along, strict=True)] for k, u in enumerate((u0, u1, u2))]
             sq_rot = theta * theta
         angles = (math.atan2(R[7], R[8]), math.atan2(-R[6], math.hypot(R[7], R[8])), math.atan2(R[3], R[0]))
+        sq_ang = 0.0
         for i, t in zip(self.euler_idx, self._euler_list, strict=True):
             d = math.remainder(t - angles[i - 3], _TWO_PI)
             e.append(d)
-            sq_pos += d * d
+            sq_ang += d * d
             if i == 3:  # roll rate = (R00 wx + R10 wy) / cos^2(pitch)
                 c2 = max(R[7] * R[7] + R[8] * R[8], 1e-12)
                 g = (R[0] / c2, R[3] / c2, 0.0)
@@ -286,14 +341,32 @@ class Task:
                 dd = max(R[0] * R[0] + R[3] * R[3], 1e-12)
                 g = (-R[0] * R[6] / dd, -R[3] * R[6] / dd, 1.0)
             rows.append([g[0] * c[3] + g[1] * c[4] + g[2] * c[5] for c in cols])
-        err = math.sqrt(sq_pos + sq_rot)
-        reported = err
-        if self.mode != "euler" and (self.tolerance is None or err <= _SQRT3 * self.tolerance):
+        err = math.sqrt(sq_pos + sq_ang + sq_rot)
+        if tol.mixed is None and self.mode in ("euler", "full"):
+            return e, rows, err, max(math.sqrt(sq_pos) / tol.position, math.sqrt(sq_ang + sq_rot) / tol.angle)
+        mixed = tol.mixed is not None
+        angle = err if mixed else math.sqrt(sq_ang + sq_rot)
+        if self.mode != "euler" and (self._always_exact or angle <= tol.bound):  # else it cannot pass: see ``residual``
             d2 = sum(math.remainder(t - a, _TWO_PI) ** 2 for t, a in zip(self._rotation_list, angles, strict=False))
-            reported = math.sqrt(sq_pos + d2)
-            if err <= EXACT:
-                reported = min(err, reported)
-        return e, rows, err, reported
+            exact = math.sqrt((sq_pos if mixed else 0.0) + sq_ang + d2)
+            angle = min(angle, exact) if err <= EXACT else exact
+        if tol.mixed is not None:
+            return e, rows, err, angle / tol.mixed
+        return e, rows, err, max(math.sqrt(sq_pos) / tol.position, angle / tol.angle)
+
+
+def _rotation_zyx_list(roll: float, pitch: float, yaw: float) -> list[float]:
+    """``rotation_zyx`` of one angle triple in plain floats, row-major (numpy costs more than it saves here)."""
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
+                              math.cos(yaw), math.sin(yaw))
+    return [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+            -sp, cp * sr, cp * cr]
+
+
+def _euler_zyx_list(R: list[float]) -> list[float]:
+    """``euler_zyx`` of one row-major rotation in plain floats."""
+    return [math.atan2(R[7], R[8]), math.atan2(-R[6], math.hypot(R[7], R[8])), math.atan2(R[3], R[0])]
 
 
 def _euler_rate_rows(R: np.ndarray, which: list[int]) -> np.ndarray:
@@ -320,7 +393,10 @@ def _euler_rate_rows(R: np.ndarray, which: list[int]) -> np.ndarray:
 
 @dataclass
 class IKResult:
-    """What the solver found. ``q`` is always within the joint limits; on failure it is the best attempt."""
+    """What the solver found. ``q`` is always within the joint limits; on failure it is the best attempt.
+
+    ``error`` is the original's measure whatever the tolerance: the norm of all target-minus-achieved
+    components, m and rad mixed (so 0.005 can be a 5 mm miss that a 1 mm tolerance rejects)."""
 
     q: np.ndarray
     success: bool
@@ -352,9 +428,18 @@ class IKOptions:
     ``grace_iterations`` more to finish (its answer is nearer the current pose). ``path_samples`` points on
     the joint-space line from the seed to a candidate are collision-checked along with it. A solution then
     gets up to ``polish_iterations`` more steps toward 1/1000 of the tolerance (kept only if better and safe).
+
+    A full pose (all six components) is first solved in closed form (``analytic``, when the arm has the MDS
+    shape and ``closed_form``): the exact solution within the limits nearest the seed that passes ``is_safe``;
+    the searches run only when there is none.
+
+    Success: position within ``tolerance`` (m) and angles within ``angle_tolerance`` (rad), each checked
+    separately; ``mixed_tolerance``, when set, replaces both with the original's single m+rad test.
     """
 
-    tolerance: float = 0.01
+    tolerance: float = DEFAULT_TOLERANCE
+    angle_tolerance: float = DEFAULT_ANGLE_TOLERANCE
+    mixed_tolerance: float | None = None
     max_iterations: int = DEFAULT_ITERATIONS
     joint_step: float = 0.01
     task_step: float = 0.01
@@ -370,6 +455,7 @@ class IKOptions:
     fast_iterations: int = 20
     polish_iterations: int = 2
     timeout: float | None = None
+    closed_form: bool = True
 
 
 class _Searches:
@@ -472,6 +558,7 @@ class IKSolver:
         self.options = options or IKOptions()
         self.rng = np.random.default_rng(rng_seed)
         self.is_safe = is_safe
+        self.geometry = ArmGeometry.of(self.kin)
         self.lower = self.kin.lower.copy()
         self.upper = self.kin.upper.copy()
         if limits is not None:
@@ -500,10 +587,9 @@ class IKSolver:
         """Solve for ``target`` (values in ``order``) starting from ``q0`` (default: the zero pose, clamped)."""
         t_start = time.perf_counter()
         opt = options or self.options
-        if not (opt.tolerance > 0 and opt.joint_step > 0 and opt.task_step > 0 and opt.max_iterations >= 1
-                and opt.seeds >= 1):
-            raise ValueError("tolerance and step limits must be > 0, max_iterations and seeds >= 1")
-        task = Task(target, order, opt.tolerance)
+        if not (opt.joint_step > 0 and opt.task_step > 0 and opt.max_iterations >= 1 and opt.seeds >= 1):
+            raise ValueError("step limits must be > 0, max_iterations and seeds >= 1")
+        task = Task(target, order, Tolerance(opt.tolerance, opt.angle_tolerance, opt.mixed_tolerance))
         n = self.kin.dof
         seed = np.zeros(n) if q0 is None else np.asarray(q0, dtype=float).reshape(-1)
         if seed.size != n or not np.all(np.isfinite(seed)):
@@ -511,15 +597,19 @@ class IKSolver:
         seed = np.clip(seed, self.lower, self.upper)
         # If the arm already is in a (predicted) collision, any path out starts in one: check only the goal.
         samples = opt.path_samples if self.is_safe is not None and self.is_safe(seed.copy(), self.arm) else 0
-        start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
         iterations = restarts = unsafe = 0
+        if opt.closed_form and self.geometry is not None and task.dof == 6:
+            q_exact, unsafe = self._closed_form(task, seed, samples)
+            if q_exact is not None:
+                return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "")
+        start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
         fast: tuple[np.ndarray, float] | None = None
         if opt.adaptive and opt.fast_iterations > 0 and self.kin.scalar_chain is not None:
             # Fast path: the caller's seed alone, in plain floats. Most requests end here.
             q1, reported, err1, iterations, converged = self._fast_search(task, seed, opt)
             if converged and self._safe(q1, seed, samples):
                 q1, reported, used = self._polish(task, seed, q1, reported, opt)
-                return self._result(task, seed, q1, reported, True, iterations + used, t_start, 0, 0, "")
+                return self._result(task, seed, q1, True, iterations + used, t_start, 0, 0, "")
             unsafe += int(converged)
             # The batched searches take over: slot 0 from where the fast one stalled (or afresh if it collided).
             start[0] = self.random_configurations(1)[0] if converged else q1
@@ -532,7 +622,7 @@ class IKSolver:
         first_found = 0
         message = ""
         while True:
-            converged_now = st.reported <= opt.tolerance
+            converged_now = st.reported <= 1.0
             if converged_now.any():
                 done = np.flatnonzero(converged_now)
                 for k in done:
@@ -559,7 +649,7 @@ class IKSolver:
             iterations += 1
             st.step(seed, self.lower, self.upper)
             if iterations % 5 == 0:  # a stall is counted in tens of iterations: no need to look every time
-                stuck = np.flatnonzero((st.since_progress > opt.stall_iterations) & (st.reported > opt.tolerance))
+                stuck = np.flatnonzero((st.since_progress > opt.stall_iterations) & (st.reported > 1.0))
                 if len(stuck):
                     st.restart(stuck, self.random_configurations(len(stuck)))
                     restarts += len(stuck)
@@ -567,15 +657,24 @@ class IKSolver:
         if candidates:
             _, q, err = min(candidates, key=lambda c: c[0])
             q, err, used = self._polish(task, seed, q, err, opt)
-            return self._result(task, seed, q, err, True, iterations + used, t_start, restarts, unsafe, "")
+            return self._result(task, seed, q, True, iterations + used, t_start, restarts, unsafe, "")
         st.note_best()
-        return self._result(task, seed, st.best_q, None, False, iterations, t_start, restarts, unsafe, message)
+        return self._result(task, seed, st.best_q, False, iterations, t_start, restarts, unsafe, message)
 
-    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, err: float | None, success: bool,
+    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, success: bool,
                 iterations: int, t_start: float, restarts: int, unsafe: int, message: str) -> IKResult:
-        R, p = self.kin.fk(q[None])
-        if err is None:
+        if self.kin.scalar_chain is not None:  # plain floats: numpy's per-call cost would dominate a quick solve
+            if task._legacy is None:
+                task._legacy = Task(task.requested, [TASK_COMPONENTS[i] for i in task.idx], 1.0)
+                task._legacy._always_exact = True
+            Rs, ps, cols = self.kin.fk_jacobian_scalar(q.tolist())
+            err = task._legacy.residual_scalar(Rs, ps, cols)[3]
+            full = ps + _euler_zyx_list(Rs)
+            achieved = np.array([full[i] for i in task.idx])
+        else:
+            R, p = self.kin.fk(q[None])
             err = float(task.error(R, p)[0])
+            achieved = _components(R[0], p[0], task.idx)
         if not success:
             message += f" (best error {err:.4g})"
             if unsafe:
@@ -583,8 +682,31 @@ class IKSolver:
         return IKResult(q=q, success=success, error=err, iterations=iterations,
                         time=time.perf_counter() - t_start, arm=self.arm,
                         order=tuple(TASK_COMPONENTS[i] for i in task.idx), target=task.target,
-                        achieved=_components(R[0], p[0], task.idx), restarts=restarts, rejected_unsafe=unsafe,
+                        achieved=achieved, restarts=restarts, rejected_unsafe=unsafe,
                         message=message or "solved", seed=seed)
+
+    def _closed_form(self, task: Task, seed: np.ndarray, samples: int) -> tuple[np.ndarray | None, int]:
+        """The exact solution within the limits nearest ``seed`` (max joint distance) that passes the collision
+        hook, checked by FK against the task; (None, solutions rejected as unsafe) when there is none."""
+        assert self.geometry is not None and task.R_target is not None
+        p = [0.0, 0.0, 0.0]
+        for i, v in zip(task.pos_idx, task.pos_target.tolist(), strict=True):
+            p[i] = v
+        lower, upper = self._lower_list, self._upper_list
+        found = [q for q in (within(s, lower, upper) for s in self.geometry.solve(task._R_target_list, p))
+                 if q is not None]
+        seed_list = seed.tolist()
+        found.sort(key=lambda q: max(abs(a - b) for a, b in zip(q, seed_list, strict=True)))
+        found.insert(0, seed_list)  # already there (to round-off): move nothing, not even by the closed form's 1e-8
+        unsafe = 0
+        for q in found:
+            if task.residual_scalar(*self.kin.fk_jacobian_scalar(q))[3] > 1e-3:
+                continue  # clamped at a limit beyond the tolerance (or a round-off case): not this one
+            qa = np.array(q)
+            if self._safe(qa, seed, samples):
+                return qa, unsafe
+            unsafe += 1
+        return None, unsafe
 
     def _fast_search(self, task: Task, seed: np.ndarray, opt: IKOptions, start: np.ndarray | None = None,
                      budget: int | None = None, tolerance: float | None = None, scale: float = 1.0
@@ -593,15 +715,15 @@ class IKSolver:
         pull toward ``seed``), FK and errors in plain floats: numpy's per-call cost would dominate for one arm.
 
         Starts at ``start`` (default ``seed``) with step limits ``scale`` times the initial ones; stops when the
-        error is within ``tolerance`` (default the options'), after ``budget`` iterations (default
+        score is within ``tolerance`` (default 1: the options' tolerance), after ``budget`` iterations (default
         ``opt.fast_iterations``) or when stalled or creeping (the batched searches do better from there).
-        Returns (q, reported error, solver error, iterations, converged).
+        Returns (q, score, solver error, iterations, converged).
         """
         kin = self.kin
         lower, upper = self._lower_list, self._upper_list
         n = kin.dof
         rest = seed
-        tol = opt.tolerance if tolerance is None else tolerance
+        tol = 1.0 if tolerance is None else tolerance
         q = (seed if start is None else start).tolist()
         e, rows, err, reported = task.residual_scalar(*kin.fk_jacobian_scalar(q))
         lam = opt.damping
@@ -651,11 +773,11 @@ class IKSolver:
                 ) -> tuple[np.ndarray, float, int]:
         """A few more steps from a solution already within the tolerance, toward 1000x tighter: the original
         stopped at 1 cm, the robot deserves better when it costs a fraction of a millisecond."""
-        if opt.polish_iterations <= 0 or self.kin.scalar_chain is None or reported <= opt.tolerance * 1e-3:
+        if opt.polish_iterations <= 0 or self.kin.scalar_chain is None or reported <= 1e-3:
             return q, reported, 0
         full = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)  # already close
         q2, reported2, _, used, _ = self._fast_search(task, seed, opt, start=q, budget=opt.polish_iterations,
-                                                      tolerance=opt.tolerance * 1e-3, scale=full)
+                                                      tolerance=1e-3, scale=full)
         if reported2 < reported and (self.is_safe is None or self.is_safe(q2.copy(), self.arm)):
             return q2, reported2, used
         return q, reported, used
@@ -746,13 +868,19 @@ def getIK(q0: Sequence[float] | np.ndarray, target: Sequence[float] | np.ndarray
           arm: str | int, err: Sequence[float] | None = None, itr: int | None = None) -> tuple[np.ndarray, int]:
     """Legacy IK: ``(q, 0)`` on success, ``(q_last, -1)`` on failure.
 
-    ``err = [dθ, step, tol]`` (default [0.01, 0.01, 0.01]): initial joint step limit, initial task step
-    limit and tolerance. ``itr`` caps the iterations (default 1000; the original's itr=None failed at once).
+    ``err = [dθ, step, tol]``: initial joint step limit, initial task step limit and the original's tolerance,
+    the norm of all target-minus-achieved components with m and rad mixed (as in the original). Without
+    ``err`` the steps are the original's 0.01 and success is the default ``Tolerance``: position within 1 mm,
+    angles within 0.01 rad, each checked separately (the original's default, 0.01 mixed, accepted 1 cm).
+    ``itr`` caps the iterations (default 1000; the original's itr=None failed at once).
     """
-    e = DEFAULT_ERR if err is None else tuple(float(x) for x in err)
-    if len(e) != 3 or not all(math.isfinite(x) and x > 0 for x in e):
-        raise ValueError(f"err must be three positive numbers [dtheta, step, tolerance], got {err!r}")
-    opt = IKOptions(tolerance=e[2], joint_step=e[0], task_step=e[1],
-                    max_iterations=DEFAULT_ITERATIONS if itr is None else int(itr))
+    iterations = DEFAULT_ITERATIONS if itr is None else int(itr)
+    if err is None:
+        opt = IKOptions(joint_step=DEFAULT_ERR[0], task_step=DEFAULT_ERR[1], max_iterations=iterations)
+    else:
+        e = tuple(float(x) for x in err)
+        if len(e) != 3 or not all(math.isfinite(x) and x > 0 for x in e):
+            raise ValueError(f"err must be three positive numbers [dtheta, step, tolerance], got {err!r}")
+        opt = IKOptions(mixed_tolerance=e[2], joint_step=e[0], task_step=e[1], max_iterations=iterations)
     result = solver(arm).solve(target, order, q0, opt)
     return result.q, (0 if result.success else -1)

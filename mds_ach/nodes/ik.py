@@ -60,7 +60,7 @@ SafetyFactory = Callable[[np.ndarray], ik.SafetyCheck]
 @dataclass
 class IkNodeConfig:
     output: str = mds.MDS_CHAN_REF_IK_NAME
-    tolerance: float = ik.DEFAULT_ERR[2]
+    tolerance: float = ik.DEFAULT_TOLERANCE  # m; angles within ik.DEFAULT_ANGLE_TOLERANCE, checked separately
     max_iterations: int = ik.DEFAULT_ITERATIONS
     timeout: float = 2.0  # s, cap on one solve whatever the iteration count
     collision_check: bool = True
@@ -277,8 +277,8 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--output", default=mds.MDS_CHAN_REF_IK_NAME,
                    help="channel for the solutions (default: mds-ref-ik; mds-ref-filter without the mux)")
-    p.add_argument("--tolerance", type=float, default=ik.DEFAULT_ERR[2],
-                   help="task error tolerance, m and rad mixed as in the original (default 0.01)")
+    p.add_argument("--tolerance", type=float, default=ik.DEFAULT_TOLERANCE,
+                   help="position tolerance in m (default 0.001); angles must be within 0.01 rad, checked separately")
     p.add_argument("--max-iterations", type=int, default=ik.DEFAULT_ITERATIONS,
                    help="iteration cap per request (default 1000)")
     p.add_argument("--timeout", type=float, default=2.0, help="cap on one solve in s (default 2)")
@@ -299,8 +299,9 @@ def build_service(args: argparse.Namespace, log: Callable[[str, str], None]) -> 
 PARAMETERS = (
     Param("output", mds.MDS_CHAN_REF_IK_NAME, "channel for the solutions: mds-ref-ik (the mux's ik input) or "
                                               "mds-ref-filter without a mux; never mds-ref (option --output)"),
-    Param("tolerance", float(ik.DEFAULT_ERR[2]), "task error below which a request is solved (m and rad mixed, as "
-                                                 "in the original; option --tolerance)", range=(1e-9, 1.0)),
+    Param("tolerance", float(ik.DEFAULT_TOLERANCE), "position error (m) below which a request is solved; angles "
+                                                    "within 0.01 rad, checked separately (option --tolerance)",
+          range=(1e-9, 1.0)),
     Param("max_iterations", int(ik.DEFAULT_ITERATIONS), "iteration cap per request (option --max-iterations)",
           range=(1, 1_000_000)),
     Param("timeout", 2.0, "cap on one solve in s, whatever the iteration count (option --timeout)",
