@@ -183,3 +183,60 @@ def test_filter_restarts_a_joint_the_gate_held_back_where_the_robot_is_sent() ->
     f.hold(held, reference)
     for _ in range(10):
         assert f.step()[mds.LSP] == 0.3
+
+
+# --------------------------------------------------------------------------------------------- with channels
+
+
+def test_ik_says_not_applied_when_the_mux_refuses_its_solution(clean_shm: None) -> None:
+    """Symptom 3 end to end: a ROS joint command on LSP, then an IK pose for the left arm 0.8 s later. The mux
+    refuses the whole solution and the IK status says IK_NOT_APPLIED with the owner, not "solved"."""
+    import threading
+    import time
+
+    from support import wait_for
+
+    from mds_ach.nodes.ik import IkNodeConfig, IkRunner, IkService, arm_limits
+    from mds_ach.nodes.ik_client import IkClient
+    from mds_ach.nodes.mux import MuxRunner, load_config
+    from mds_ach.nodes.pipeline import make_ref
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs.ik_status import IK_NOT_APPLIED, IK_SOLVED
+
+    pose = np.zeros(MDS_JOINT_COUNT)
+    pose[list(LEFT_ARM)] = [-0.2, 0.3, 0.0, -1.0, 0.0, 0.0]
+    pose[list(select_joints("right_arm"))] = [-0.2, -0.3, 0.0, -1.0, 0.0, 0.0]
+    st = mds.MDS_STATE()
+    for a in range(MDS_JOINT_COUNT):
+        st.joint[a].ref = st.joint[a].pos = pose[a]
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as ch:
+        ch.put(st)
+    with StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF) as ch:
+        ch.put(make_ref(pose, ZERO_MODE))
+    mux = MuxRunner(load_config()["controllers"], state_rate=10.0, log=lambda level, msg: None)
+    ikr = IkRunner(IkService(IkNodeConfig(max_iterations=300), arm_limits("default")), log=lambda level, msg: None)
+    threads = [threading.Thread(target=r.run, daemon=True) for r in (mux, ikr)]
+    for t in threads:
+        t.start()
+    try:
+        assert mux.ready.wait(20) and ikr.ready.wait(20)
+        with IkClient() as client:
+            reply = client.request("left", 3, [0.3, 0.25, 0.0], timeout=20)  # nobody owns the arm: applied
+            assert reply.status == IK_SOLVED, reply.message
+            with StructChannel(mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_REF) as ros:
+                assert mux.core is not None
+                frame = mux.core.ref.copy()  # the bridge's first frame starts from the mux output
+                frame[mds.LSP] = -0.35
+                ros.put(make_ref(frame, ZERO_MODE))  # the bridge's joint command: ros owns LSP only
+                wait_for(lambda: mux.core.owner[mds.LSP] == 0, 5, what="ros owning LSP")
+                time.sleep(0.3)  # the symptom's timing: the IK pose 0.3-0.8 s after the joint command
+                before = mux.core.ref.copy()
+                reply = client.request("left", 3, [0.32, 0.22, 0.02], timeout=20)
+        assert reply.status == IK_NOT_APPLIED and not reply.success
+        assert "owned by 'ros' (priority 30)" in reply.message and "LSP" in reply.message
+        assert np.array_equal(mux.core.ref, before)  # none of the six joints changed
+    finally:
+        mux.stop()
+        ikr.stop()
+        for t in threads:
+            t.join(5)

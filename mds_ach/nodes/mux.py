@@ -153,6 +153,17 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
     return {"controllers": parse_controllers(data.get("controllers") or [], str(path)), "state_rate": rate}
 
 
+def controller_for(channel: str, path: str | Path | None = None) -> str:
+    """The mux controller that reads ``channel`` (config/mux.yaml); the channel name itself if none does."""
+    try:
+        for c in load_config(path)["controllers"]:
+            if c.channel == channel:
+                return str(c.name)
+    except (ValueError, OSError):
+        pass
+    return channel
+
+
 # --------------------------------------------------------------------------------------------- merge logic
 
 
