@@ -240,3 +240,151 @@ def test_ik_says_not_applied_when_the_mux_refuses_its_solution(clean_shm: None) 
         ikr.stop()
         for t in threads:
             t.join(5)
+
+
+class _Gate:
+    """A stand-in collision gate: copies mds-ref-smooth to mds-ref, optionally capping LSP (an arm it holds)."""
+
+    def __init__(self, start: np.ndarray) -> None:
+        import threading
+
+        from mds_ach.nodes.pipeline import make_ref
+        from mds_ach.robot.channels import StructChannel
+
+        self.cap: float | None = None
+        self.sent: list[np.ndarray] = []
+        self.times: list[float] = []
+        self.smooth: list[np.ndarray] = []
+        self._stop = threading.Event()
+        self._in = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+        self._out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+        self._out.put(make_ref(start, ZERO_MODE))
+        self._make_ref = make_ref
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        import time
+
+        from mds_ach.nodes.pipeline import ref_arrays
+
+        while not self._stop.is_set():
+            frame = self._in.wait(0.2)
+            if frame is None:
+                continue
+            ref, mode = ref_arrays(frame)
+            self.smooth.append(ref.copy())
+            if self.cap is not None:
+                ref[mds.LSP] = min(ref[mds.LSP], self.cap)
+            self.sent.append(ref.copy())
+            self.times.append(time.monotonic())
+            self._out.put(self._make_ref(ref, mode))
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(5)
+        self._in.close()
+        self._out.close()
+
+
+def test_hold_resume_cancel_through_mux_and_filter(clean_shm: None) -> None:
+    """Hold stops the reference (no further advance toward the old target beyond braking, no reversal, then rest);
+    nothing moves until resume; resume restarts the held target; a timed-out goto cancelled while the gate
+    holds the arm never moves it when the gate clears; resume does not revive a cancelled target."""
+    import threading
+    import time
+
+    from support import wait_for
+
+    from mds_ach.nodes.filter import FilterRunner
+    from mds_ach.nodes.filter import load_config as filter_config
+    from mds_ach.nodes.mux import MuxRunner, load_config
+    from mds_ach.nodes.pipeline import make_ref
+    from mds_ach.robot import lifecycle
+    from mds_ach.robot.channels import StructChannel
+
+    start = np.zeros(MDS_JOINT_COUNT)
+    gate = _Gate(start)
+    mux = MuxRunner(load_config()["controllers"], state_rate=10.0, log=lambda level, msg: None)
+    filt = FilterRunner(filter_config(), log=lambda level, msg: None)
+    threads = [threading.Thread(target=r.run, daemon=True) for r in (mux, filt)]
+    for t in threads:
+        t.start()
+    legacy = StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF)
+    try:
+        assert mux.ready.wait(20) and filt.ready.wait(20)
+        period = 1.0 / filt.params.rate
+
+        def lsp() -> float:
+            return float(gate.sent[-1][mds.LSP]) if gate.sent else 0.0
+
+        legacy.put(make_ref(_frame(LSP=1.2), ZERO_MODE))  # goto LSP 1.2
+        wait_for(lambda: lsp() > 0.5, 10, what="LSP moving")
+        n = len(gate.sent)
+        ack = lifecycle.request(lifecycle.HOLD_HOLD, source="test", reason="test hold")
+        assert ack.ok, ack.message
+        t_ack = time.monotonic()
+        time.sleep(0.8)  # braking takes <= 0.4 s at 1.57 rad/s and 4 rad/s^2; then it must rest
+        seq = [s[mds.LSP] for s in gate.sent[n:]]
+        steps = np.diff(seq)
+        assert (steps >= -1e-12).all(), "the held reference reversed"
+        assert (np.abs(np.diff(steps)) <= 4.0 * period * period + 1e-9).all(), "braking beyond the filter's bound"
+        rest = lsp()
+        assert rest < 1.2 - 0.05 and seq[-1] == seq[-5]  # stopped short of the target and resting
+        # from the first filter output after the acknowledgement on (allowing one period for the filter to read
+        # it and one for delivery), the reference decelerates: no step larger than the one before it
+        times = gate.times[n + 1:]
+        first = next(k for k, t in enumerate(times) if t > t_ack + 2 * period)
+        assert (np.diff(steps[first:]) <= 1e-12).all() and steps[first] < 1.57 * period - 1e-6
+        time.sleep(0.5)
+        assert lsp() == rest, "moved while held"
+        assert time.monotonic() - t_ack > 1.0
+        ack = lifecycle.request(lifecycle.HOLD_RESUME, source="test")
+        assert ack.ok
+        wait_for(lambda: abs(lsp() - 1.2) < 1e-9, 10, what="resume: LSP reaches its held target")
+
+        # a goto the gate holds back, timing out: cancelled where the reference is
+        gate.cap = 0.8
+        legacy.put(make_ref(_frame(LSP=0.2), ZERO_MODE))
+        wait_for(lambda: abs(lsp() - 0.2) < 1e-9, 10, what="LSP back at 0.2")
+        legacy.put(make_ref(_frame(LSP=1.5), ZERO_MODE))  # goto LSP 1.5 wait: the gate stops it at 0.8
+        wait_for(lambda: gate.smooth and abs(gate.smooth[-1][mds.LSP] - 1.5) < 1e-9, 10, what="filter at 1.5")
+        assert lsp() == 0.8
+        ack = lifecycle.request(lifecycle.HOLD_CANCEL, [mds.LSP], source="console", reason="goto timed out")
+        assert ack.ok and ack.state is not None and ack.state.held[mds.LSP] == MUX_CANCELLED
+        wait_for(lambda: gate.smooth and abs(gate.smooth[-1][mds.LSP] - 0.8) < 1e-9, 5, what="filter restarted")
+        gate.cap = None  # the gate clears
+        assert lifecycle.request(lifecycle.HOLD_RESUME, source="test").ok  # resume does not revive it
+        legacy.put(make_ref(_frame(LSP=1.5, NKY=0.1), ZERO_MODE))  # read-modify-write client: another joint
+        wait_for(lambda: abs(gate.sent[-1][mds.NKY] - 0.1) < 1e-9, 10, what="NKY moved")
+        time.sleep(0.5)
+        assert max(s[mds.LSP] for s in gate.sent[-20:]) == 0.8, "a cancelled goto moved the arm later"
+    finally:
+        legacy.close()
+        mux.stop()
+        filt.stop()
+        for t in threads:
+            t.join(5)
+        gate.close()
+
+
+def test_cli_hold_fails_when_the_mux_does_not_acknowledge(clean_shm: None) -> None:
+    import subprocess
+
+    from support import VENV_BIN
+
+    proc = subprocess.run([str(VENV_BIN / "mds-ach"), "hold", "left", "--timeout", "0.3"], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 1 and "not acknowledged" in proc.stderr and "mux" in proc.stderr
+    proc = subprocess.run([str(VENV_BIN / "mds-ach"), "resume", "ELBOW"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "ELBOW" in proc.stderr
+
+
+def test_console_parses_hold_and_resume() -> None:
+    from mds_ach.tools.console import Hold, parse
+
+    cmd = parse("hold left NKY")
+    assert isinstance(cmd, Hold) and cmd.action == HOLD_HOLD
+    assert set(cmd.addresses) == set(LEFT_ARM) | {mds.NKY}
+    cmd = parse("resume")
+    assert isinstance(cmd, Hold) and cmd.action == HOLD_RESUME and cmd.addresses == ()
