@@ -6,6 +6,9 @@ Port of the original ``examples/mds_simple_demo_python.py``. Like the original i
 collision gate before the daemon sends it. The frame is read first and only LSP is changed: the mux treats a
 changed joint as a command, so every other joint keeps what it was doing.
 
+If the joint does not arrive in time, the target is cancelled (``mds_ach.robot.lifecycle``, ``mds-hold``), so
+it never moves there later.
+
 Run the system first (``make run`` or ``mds-ach start nocan``), then: ``python examples/one_joint.py``
 """
 
@@ -18,6 +21,7 @@ import time
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.robot import lifecycle
 
 
 def main() -> int:
@@ -54,7 +58,11 @@ def main() -> int:
                 return 0
     finally:
         s.close()
-    print("LSP did not arrive in time (see 'mds-ach status' and 'mds-ach read')", file=sys.stderr)
+    # A command that failed must not stay a target (the arm would move to it later, e.g. when the collision gate
+    # clears): cancel it where the reference is now, and say whether the mux acknowledged that.
+    ack = lifecycle.request(lifecycle.HOLD_CANCEL, [mds.LSP], source="one_joint.py", reason="timed out")
+    print("LSP did not arrive in time (see 'mds-ach status' and 'mds-ach read'); "
+          + ("target cancelled: LSP holds where it is" if ack.ok else ack.message), file=sys.stderr)
     return 1
 
 

@@ -76,8 +76,8 @@
 /* mds_ik_status_t, new: the IK node's answer to each mds-ik request. */
 /*   written by ik; read by console, viewer, bridge, mds-ach, achd, clients */
 #define MDS_CHAN_IK_STATE_NAME "mds-ik-state"
-/* mds_mux_state_t, new: which controller owns each joint, and how fresh each controller is. */
-/*   written by mux; read by console, mds-ach, achd, clients */
+/* mds_mux_state_t, new: joint owners, controller freshness and verdicts, held joints, the newest hold request handled. */
+/*   written by mux; read by filter, ik, bridge, console, mds-ach, achd, clients */
 #define MDS_CHAN_MUX_STATE_NAME "mds-mux-state"
 /* mds_daemon_status_t, new: the daemon's health each cycle: timing, bus load, faults, joint freshness. */
 /*   written by daemon; read by mux, filter, collision, read, mds-ach, achd, clients */
@@ -265,10 +265,30 @@ typedef enum mds_ik_status_code {
     MDS_IK_UNREACHABLE = 1,
     MDS_IK_BAD_REQUEST = 2,
     MDS_IK_NOT_READY = 3,
+    MDS_IK_NOT_APPLIED = 4,
 } mds_ik_status_code_t;
 
 /* ---- mds_mux_state_t (MDS_CHAN_MUX_STATE_NAME) ---- */
 #define MDS_MUX_NO_OWNER (-1)  /* owner[] of a joint nobody owns */
+/* mds_mux_state_t.held[]. */
+typedef enum mds_mux_held {
+    MDS_MUX_FREE = 0,
+    MDS_MUX_HELD = 1,
+    MDS_MUX_CANCELLED = 2,
+} mds_mux_held_t;
+/* mds_mux_state_t.verdict[]: what the mux did with a controller's newest frame. */
+typedef enum mds_mux_verdict {
+    MDS_MUX_VERDICT_NONE = 0,
+    MDS_MUX_VERDICT_APPLIED = 1,
+    MDS_MUX_VERDICT_OWNED = 2,
+    MDS_MUX_VERDICT_NOT_PERMITTED = 3,
+    MDS_MUX_VERDICT_INVALID = 4,
+} mds_mux_verdict_t;
+/* mds_mux_state_t.hold_status. */
+typedef enum mds_mux_hold_status {
+    MDS_MUX_HOLD_DONE = 0,
+    MDS_MUX_HOLD_REFUSED = 1,
+} mds_mux_hold_status_t;
 
 /* ---- mds_hold_t (MDS_CHAN_HOLD_NAME): hold / resume / cancel requests to the mux ---- */
 /* mds_hold_t.action. */
@@ -415,7 +435,7 @@ MDS_STATIC_ASSERT(sizeof(mds_cmd_t) == 16, "mds_cmd_t must be 16 bytes");
 /* mds-ik-state frame (packed, 214 B). */
 typedef struct MDS_PACKED mds_ik_status {
     uint32_t seq;                                        /* @0 count of requests handled since the node started (1 = first) */
-    int16_t status;                                      /* @4 IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY */
+    int16_t status;                                      /* @4 IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY / IK_NOT_APPLIED */
     int16_t arm;                                         /* @6 0 right, 1 left (as MDS_IK.move; -1 if the request named no valid arm) */
     int16_t dof;                                         /* @8 task DOF (ik_method), components x, y, z, roll, pitch, yaw in that order */
     int32_t iterations;                                  /* @10 solver iterations used */
@@ -428,7 +448,8 @@ typedef struct MDS_PACKED mds_ik_status {
 } mds_ik_status_t;
 MDS_STATIC_ASSERT(sizeof(mds_ik_status_t) == 214, "mds_ik_status_t must be 214 bytes");
 
-/* mds-mux-state frame (packed, 506 B): who owns each joint and how fresh each controller is. */
+/* mds-mux-state frame (packed, 700 B): who owns each joint, how fresh each controller is, what was
+   held and what each controller's newest frame got. */
 typedef struct MDS_PACKED mds_mux_state {
     int8_t owner[MDS_JOINT_COUNT];                       /* @0 controller index (into name[]) that owns the joint, -1 = nobody (holding) */
     int16_t count;                                       /* @100 number of configured controllers (<= 8) */
@@ -439,8 +460,17 @@ typedef struct MDS_PACKED mds_mux_state {
     char name[MDS_MUX_MAX_CONTROLLERS][MDS_CHAR_PARAM_BUFFER_SIZE]; /* @254 controller name, char[30] */
     double time;                                         /* @494 CLOCK_MONOTONIC at publish */
     uint32_t seq;                                        /* @502 publish counter */
+    uint8_t held[MDS_JOINT_COUNT];                       /* @506 MUX_FREE / MUX_HELD / MUX_CANCELLED */
+    uint32_t hold_seq;                                   /* @606 seq of the newest mds-hold request handled (the acknowledgement), 0 = none yet */
+    int16_t hold_action;                                 /* @610 its action (HOLD_HOLD / HOLD_RESUME / HOLD_CANCEL) */
+    int16_t hold_status;                                 /* @612 MUX_HOLD_DONE, or MUX_HOLD_REFUSED (invalid request) */
+    char hold_source[MDS_CHAR_PARAM_BUFFER_SIZE];        /* @614 its source, char[30] */
+    int8_t verdict[MDS_MUX_MAX_CONTROLLERS];             /* @644 what the mux did with controller i's newest frame (VERDICT_*) */
+    int8_t blocker[MDS_MUX_MAX_CONTROLLERS];             /* @652 VERDICT_OWNED: index of the owning controller, else -1 */
+    int8_t blocked_joint[MDS_MUX_MAX_CONTROLLERS];       /* @660 the first joint (address) that made the frame refused, -1 = none */
+    uint32_t refused[MDS_MUX_MAX_CONTROLLERS];           /* @668 frames of controller i refused since the mux started */
 } mds_mux_state_t;
-MDS_STATIC_ASSERT(sizeof(mds_mux_state_t) == 506, "mds_mux_state_t must be 506 bytes");
+MDS_STATIC_ASSERT(sizeof(mds_mux_state_t) == 700, "mds_mux_state_t must be 700 bytes");
 
 /* Loop timing, bus load and faults, per-joint freshness (all times in seconds, CLOCK_MONOTONIC). */
 typedef struct MDS_PACKED mds_daemon_status {

@@ -159,7 +159,7 @@ def test_mds_h_joint_constants(short: str, name: str, address: int) -> None:
 def test_new_struct_sizes() -> None:
     assert ctypes.sizeof(msgs.MDS_CMD) == 16
     assert ctypes.sizeof(msgs.MDS_IK_STATUS) == 214
-    assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 506
+    assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 700
     assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2087
 
 
@@ -175,7 +175,11 @@ def test_ik_status_offsets() -> None:
 
 def test_mux_state_offsets() -> None:
     assert offsets(msgs.MDS_MUX_STATE) == {"owner": 0, "count": 100, "priority": 102, "stale": 118, "age": 126,
-                                           "change_age": 190, "name": 254, "time": 494, "seq": 502}
+                                           "change_age": 190, "name": 254, "time": 494, "seq": 502,
+                                           # appended with the command lifecycle (issue 17)
+                                           "held": 506, "hold_seq": 606, "hold_action": 610, "hold_status": 612,
+                                           "hold_source": 614, "verdict": 644, "blocker": 652, "blocked_joint": 660,
+                                           "refused": 668}
     assert msgs.MDS_MUX_STATE.name.size == 8 * 30
 
 

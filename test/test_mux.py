@@ -24,6 +24,7 @@ from mds_ach.nodes.mux import (
     state_to_dict,
 )
 from mds_ach.nodes.pipeline import make_ref, ref_arrays, select_joints
+from mds_ach.robot.msgs.mux_state import VERDICT_APPLIED, VERDICT_NOT_PERMITTED
 
 ARMS = select_joints(["left_arm", "right_arm"])
 ALL = select_joints("all")
@@ -98,9 +99,9 @@ def test_bad_controller_config_is_refused(entries: list, message: str) -> None:
 
 
 def test_state_struct_layout() -> None:
-    assert ctypes.sizeof(MDS_MUX_STATE) == 506
+    assert ctypes.sizeof(MDS_MUX_STATE) == 700
     assert MDS_MUX_STATE.owner.offset == 0
-    assert MDS_MUX_STATE.time.offset == 506 - 12
+    assert MDS_MUX_STATE.time.offset == 494 and MDS_MUX_STATE.held.offset == 506
 
 
 # --------------------------------------------------------------------------------------------- merge rule
@@ -127,13 +128,18 @@ def test_first_frame_is_compared_with_the_output() -> None:
     assert np.array_equal(np.delete(core.ref, mds.LSP), np.delete(ref, mds.LSP))
 
 
-def test_permission_is_required() -> None:
+def test_permission_is_required_and_a_frame_with_a_forbidden_joint_is_refused_whole() -> None:
+    """Atomic goals (issue 17): a frame that also modifies a joint its controller may not move is refused as a
+    whole (nothing of it applied), with the joint named; a frame within the permission is applied."""
     ref, mode = _start_ref()
     core = MuxCore(_controllers(), ref, mode)
-    changed, _ = core.update(1, _frame(ref, NKY=0.4, LSP=-0.2), ZERO_MODE, now=1.0)  # ik may not move the neck
-    assert changed
-    assert core.ref[mds.NKY] == ref[mds.NKY] and core.ref[mds.LSP] == -0.2
-    assert core.owner[mds.NKY] == -1
+    changed, problem = core.update(1, _frame(ref, NKY=0.4, LSP=-0.2), ZERO_MODE, now=1.0)  # ik may not move NKY
+    assert not changed and problem is not None and "NKY" in problem and "may not move" in problem
+    assert core.ref[mds.NKY] == ref[mds.NKY] and core.ref[mds.LSP] == ref[mds.LSP]
+    assert core.owner[mds.NKY] == -1 and core.owner[mds.LSP] == -1
+    assert core.verdict[1] == VERDICT_NOT_PERMITTED and core.refused[1] == 1
+    changed, problem = core.update(1, _frame(ref, NKY=0.4, LSP=-0.3), ZERO_MODE, now=1.1)  # only LSP modified now
+    assert changed and problem is None and core.ref[mds.LSP] == -0.3 and core.verdict[1] == VERDICT_APPLIED
 
 
 def test_priority_then_fallback_after_staleness_without_jump() -> None:
@@ -258,19 +264,24 @@ def test_runner_starts_from_current_reference_and_seeds_legacy_channel(runner) -
 def test_runner_merges_inputs_event_driven(runner) -> None:
     from mds_ach.robot.channels import StructChannel
 
-    r, out, ref, _ = runner
+    r, out, ref, logs = runner
     _newest(out)
     _put(mds.MDS_CHAN_REF_IK_NAME, _frame(ref, LSP=-0.6))  # compared with the absorbed old frame: LSP changed
     got = _newest(out)
     assert got[mds.LSP] == -0.6
-    _put(mds.MDS_CHAN_REF_FILTER_NAME, _frame(ref, NKY=0.2, LSP=0.4))  # legacy client: neck ok, LSP owned by ik
-    wait_for(lambda: r.core.ref[mds.NKY] == 0.2, 5, what="neck change")
+    # legacy client: neck free, but LSP owned by ik: atomic goals refuse the whole frame, naming the owner
+    _put(mds.MDS_CHAN_REF_FILTER_NAME, _frame(ref, NKY=0.2, LSP=0.4))
+    wait_for(lambda: any("owned by 'ik'" in m and "LSP" in m for m in logs), 5, what="refusal naming the owner")
+    assert r.core.ref[mds.NKY] == ref[mds.NKY] and out.latest() is None
+    _put(mds.MDS_CHAN_REF_FILTER_NAME, _frame(ref, NKY=0.25, LSP=0.4))  # vs its previous frame: only NKY
+    wait_for(lambda: r.core.ref[mds.NKY] == 0.25, 5, what="neck change")
     got = _newest(out)
-    assert got[mds.NKY] == 0.2 and got[mds.LSP] == -0.6
+    assert got[mds.NKY] == 0.25 and got[mds.LSP] == -0.6
     with StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE) as state_ch:
         def owners():
             st = state_ch.latest()
-            return st is not None and st.owner[mds.LSP] == 1 and st.owner[mds.NKY] == 2
+            return (st is not None and st.owner[mds.LSP] == 1 and st.owner[mds.NKY] == 2
+                    and st.verdict[2] == VERDICT_APPLIED)
 
         wait_for(owners, 5, what="mux state with the owners")
 

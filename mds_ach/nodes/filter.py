@@ -57,7 +57,7 @@ from mds_ach.nodes.pipeline import (
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.paths import config_path
 from mds_ach.robot.channels import StructChannel
-from mds_ach.robot.msgs import MDS_JOINT_COUNT
+from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
 
 MODES = ("pass", "ema", "enc_filter", "velocity_limit")
 PASS, EMA, ENC, VEL = range(4)
@@ -162,23 +162,58 @@ class FilterCore:
         self.out = np.array(ref, dtype=float)
         self.vel = np.zeros(MDS_JOINT_COUNT)
         self.target = self.out.copy()
+        self.wanted = self.out.copy()  # the mux's target; ``target`` differs from it while a joint is held
         self.mode = np.array(mode, dtype=np.int16)
         self._accel = np.isfinite(params.max_accel)
+        self.held = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+        self.braking = np.zeros(MDS_JOINT_COUNT, dtype=bool)
 
     def set_target(self, ref: np.ndarray, mode: np.ndarray) -> str | None:
-        """New desired reference; non-finite entries keep their old target. Returns a warning or None."""
+        """New desired reference; non-finite entries keep their old target; held joints keep their rest point
+        (the new value waits for their release). Returns a warning or None."""
         ref = np.asarray(ref, dtype=float)
         ok = np.isfinite(ref)
-        self.target[ok] = ref[ok]
+        self.wanted[ok] = ref[ok]
+        take = ok & ~self.held
+        self.target[take] = ref[take]
         self.mode[ok] = np.asarray(mode, dtype=np.int16)[ok]
         if not ok.all():
             return f"ignored non-finite targets for {labels(np.flatnonzero(~ok))}"
         return None
 
+    def hold(self, held: np.ndarray, reference: np.ndarray | None = None) -> None:
+        """The mux's held mask (``mds-mux-state`` held[]). Newly held joints stop advancing toward their target
+        at once: acceleration-limited joints brake at ``max_accel`` (never reversing, so no overshoot-and-return
+        and no step), the other modes stop where their output is. A newly held joint whose output is more
+        than two steps away from ``reference`` (``mds-ref``: the collision gate or a limit held it back) restarts
+        at ``reference`` instead, where the robot is sent, so it never moves on when the gate clears. Released
+        joints go back to the mux's target."""
+        held = np.asarray(held, dtype=bool)
+        new = held & ~self.held
+        released = ~held & self.held
+        self.held = held.copy()
+        if released.any():
+            self.braking[released] = False
+            self.target[released] = self.wanted[released]
+        if not new.any():
+            return
+        if reference is not None:
+            lag = np.abs(self.out - reference)
+            behind = new & np.isfinite(reference) & (lag > 2.0 * self.p.max_velocity * self.p.dt + 1e-6)
+            if behind.any():
+                self.reseed(np.flatnonzero(behind), np.asarray(reference)[behind])
+                new &= ~behind
+        brake = new & (self.p.mode == VEL) & self._accel & (self.vel != 0.0)
+        self.braking |= brake
+        stop = new & ~brake
+        self.target[stop] = self.out[stop]
+        self.vel[stop] = 0.0
+
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
         """Restart these joints where they are, at rest (``pipeline.ReseedWatch``): output and target."""
         self.out[addresses] = self.target[addresses] = positions
         self.vel[addresses] = 0.0
+        self.braking[addresses] = False
 
     def step(self, measured: np.ndarray | None = None) -> np.ndarray:
         """Advance one tick. ``measured``: mds-state joint[].pos for the enc_filter joints (None = unknown)."""
@@ -199,13 +234,23 @@ class FilterCore:
         plain = vel & ~self._accel
         if plain.any():
             new[plain] = filters.velocity_limit_step(out[plain], tgt[plain], p.max_velocity[plain], p.dt)
-        acc = vel & self._accel
+        acc = vel & self._accel & ~self.braking
+        brk = self.braking.copy()
+        if brk.any():  # held while moving: decelerate at max_accel to rest, never reversing
+            speed = np.maximum(np.abs(self.vel[brk]) - p.max_accel[brk] * p.dt, 0.0)
+            v = np.sign(self.vel[brk]) * speed
+            new[brk] = out[brk] + v * p.dt
+            self.vel[brk] = v
+            stopped = np.flatnonzero(brk)[speed == 0.0]
+            self.braking[stopped] = False
+            self.target[stopped] = new[stopped]
         if acc.any():
             pos, v = filters.accel_limit_step(out[acc], self.vel[acc], tgt[acc], p.max_velocity[acc],
                                               p.max_accel[acc], p.dt)
             new[acc] = pos
             self.vel[acc] = v
-        self.vel[~acc] = (new[~acc] - out[~acc]) * p.rate
+        rest = ~acc & ~self.braking & ~brk
+        self.vel[rest] = (new[rest] - out[rest]) * p.rate
         self.out = new
         return new
 
@@ -246,6 +291,9 @@ class FilterRunner:
         inp = StructChannel(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
         out = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        mux_state = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        gate_out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+        reference: np.ndarray | None = None
         needs_state = bool(np.any(self.params.mode == ENC))
         measured: np.ndarray | None = None
         warned_state = False
@@ -262,6 +310,13 @@ class FilterRunner:
                     problem = core.set_target(*ref_arrays(frame))
                     if problem:
                         self.log("warn", problem)
+                sent = guard.call(gate_out.name, gate_out.latest)
+                if sent is not None:
+                    reference = ref_arrays(sent)[0]
+                mux = guard.call(mux_state.name, mux_state.latest)
+                if mux is not None:  # the mux's hold mask: brake newly held joints, release the others
+                    held = np.frombuffer(bytes(mux.held), dtype=np.uint8) != 0
+                    core.hold(held, reference)
                 reseed = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins
                 if reseed is not None:
                     core.reseed(*reseed)
@@ -283,6 +338,8 @@ class FilterRunner:
             inp.close()
             out.close()
             state_ch.close()
+            mux_state.close()
+            gate_out.close()
             watch.close()
 
 

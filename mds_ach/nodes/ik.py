@@ -36,6 +36,7 @@ from std_msgs.msg import String
 import mds_ach as mds
 from mds_ach.kinematics import ik
 from mds_ach.kinematics.collision import load_model
+from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import current_reference, make_ref
 from mds_ach.nodes.rosnode import Param, declare, ros_log, run_node, start_worker
 from mds_ach.robot import config as joint_config
@@ -43,6 +44,7 @@ from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs.ik_status import (
     IK_BAD_REQUEST,
+    IK_NOT_APPLIED,
     IK_NOT_READY,
     IK_SOLVED,
     IK_STATUS_TOPIC,
@@ -51,6 +53,7 @@ from mds_ach.robot.msgs.ik_status import (
     set_message,
     status_to_dict,
 )
+from mds_ach.robot.muxverdict import VerdictWatch
 
 ARM_JOINTS: dict[int, tuple[str, ...]] = {mds.RIGHT: RIGHT_ARM, mds.LEFT: LEFT_ARM}
 ARM_NAMES: dict[int, str] = {mds.RIGHT: "right", mds.LEFT: "left"}
@@ -200,6 +203,7 @@ class IkRunner:
         self.on_status = on_status
         self._stop = threading.Event()
         self._requests: Any = None
+        self._verdicts: VerdictWatch | None = None
         self.ready = threading.Event()
         self.handled = 0
 
@@ -213,6 +217,7 @@ class IkRunner:
         status_ch = StructChannel(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS)
         out = StructChannel(self.config.output, mds.MDS_REF)
         self._requests = requests
+        self._verdicts = VerdictWatch(controller_for(self.config.output))
         try:
             requests.flush()  # requests from before the start are not commands (the original flushed too)
             self.log("info", f"waiting for requests on {mds.MDS_CHAN_IK_NAME}; solutions go to {self.config.output}")
@@ -235,6 +240,7 @@ class IkRunner:
             requests.close()
             status_ch.close()
             out.close()
+            self._verdicts.close()
 
     def _handle(self, request: mds.MDS_IK, out: Any, current_reference: Callable[..., Any],
                 make_ref: Callable[..., Any]) -> MDS_IK_STATUS:
@@ -250,7 +256,14 @@ class IkRunner:
                 ref, mode, _ = base
                 for address, value in outcome.refs.items():
                     ref[address] = value
+                live = self._verdicts is not None and self._verdicts.live()
+                sent_at = time.monotonic()
                 out.put(make_ref(ref, mode))
+                if live and self._verdicts is not None:  # "solved" only once the mux took the whole solution
+                    verdict = self._verdicts.wait(sent_at)
+                    if not verdict.applied:
+                        st.status = IK_NOT_APPLIED
+                        set_message(st, verdict.message + "; nothing moved")
         return st
 
     def _report(self, st: MDS_IK_STATUS) -> None:

@@ -60,9 +60,26 @@ from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start
 from mds_ach.paths import config_path
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
-from mds_ach.robot.msgs.mux_state import MDS_MUX_STATE, MUX_MAX_CONTROLLERS  # noqa: F401  (mux.MDS_MUX_STATE)
+from mds_ach.robot.msgs.hold import HOLD_ACTIONS, HOLD_HOLD, HOLD_RESUME, MDS_HOLD, check_hold
+from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
+    MDS_MUX_STATE,
+    MUX_CANCELLED,
+    MUX_FREE,
+    MUX_HELD,
+    MUX_HOLD_DONE,
+    MUX_HOLD_REFUSED,
+    MUX_MAX_CONTROLLERS,
+    VERDICT_APPLIED,
+    VERDICT_INVALID,
+    VERDICT_NAMES,
+    VERDICT_NONE,
+    VERDICT_NOT_PERMITTED,
+    VERDICT_OWNED,
+)
 
 DEFAULT_STATE_RATE = 10.0
+HOLD_INPUT = -1
+"""Queue index of an ``mds-hold`` request (controller inputs are 0..n-1)."""
 
 
 # --------------------------------------------------------------------------------------------- config
@@ -136,11 +153,23 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
     return {"controllers": parse_controllers(data.get("controllers") or [], str(path)), "state_rate": rate}
 
 
+def controller_for(channel: str, path: str | Path | None = None) -> str:
+    """The mux controller that reads ``channel`` (config/mux.yaml); the channel name itself if none does."""
+    try:
+        for c in load_config(path)["controllers"]:
+            if c.channel == channel:
+                return str(c.name)
+    except (ValueError, OSError):
+        pass
+    return channel
+
+
 # --------------------------------------------------------------------------------------------- merge logic
 
 
 class MuxCore:
-    """The merge rule, without channels or threads (so it can be tested exactly). Times are wall seconds."""
+    """The merge rule and the hold state, without channels or threads (so it can be tested exactly). Times are
+    wall seconds."""
 
     def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray) -> None:
         self.controllers = list(controllers)
@@ -158,6 +187,15 @@ class MuxCore:
         self.last_frame = np.full(n, -math.inf)
         self.last_change = np.full(n, -math.inf)
         self.refused = np.zeros(n, dtype=int)
+        self.verdict = np.full(n, VERDICT_NONE, dtype=np.int8)
+        self.blocker = np.full(n, -1, dtype=np.int8)
+        self.blocked_joint = np.full(n, -1, dtype=np.int8)
+        self.held = np.full(MDS_JOINT_COUNT, MUX_FREE, dtype=np.uint8)
+        self.hold_seq = 0
+        self.hold_action = 0
+        self.hold_status = MUX_HOLD_DONE
+        self.hold_source = ""
+        self.dirty = False  # the held mask or a verdict changed: publish mds-mux-state now, not at the next tick
 
     def absorb(self, index: int, ref: np.ndarray, mode: np.ndarray) -> None:
         """Take a frame as the controller's previous frame without applying it (old frames at start-up)."""
@@ -169,19 +207,30 @@ class MuxCore:
             return True
         return timeout is not None and now - self.last_change[index] > timeout
 
+    def _verdict(self, index: int, verdict: int, blocker: int = -1, joint: int = -1) -> None:
+        if (self.verdict[index], self.blocker[index], self.blocked_joint[index]) != (verdict, blocker, joint):
+            self.dirty = True
+        self.verdict[index], self.blocker[index], self.blocked_joint[index] = verdict, blocker, joint
+        if verdict in (VERDICT_OWNED, VERDICT_NOT_PERMITTED, VERDICT_INVALID):
+            self.refused[index] += 1
+            self.dirty = True
+
     def update(self, index: int, ref: np.ndarray, mode: np.ndarray, now: float) -> tuple[bool, str | None]:
         """Apply one frame of controller ``index``. Returns (output changed, refusal message or None).
 
-        A frame with NaN/Inf in a known joint is refused as a whole (the controller is broken).
+        Atomic: the frame is applied to all of its modified joints or to none. Refused as a whole when it has
+        NaN/Inf in a known joint, when it modifies a joint the controller is not permitted (config ``joints``),
+        or when a fresh, higher-priority controller owns one of the modified joints (the message names it).
+        A modified joint that was held or cancelled is released: a new command for it.
         """
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
+        name = self.controllers[index].name
         self.last_frame[index] = now
         bad = self._known & ~np.isfinite(ref)
         if bad.any():
-            self.refused[index] += 1
-            return False, (f"refused a frame from '{self.controllers[index].name}': non-finite reference for "
-                           f"{labels(np.flatnonzero(bad))}")
+            self._verdict(index, VERDICT_INVALID, joint=int(np.flatnonzero(bad)[0]))
+            return False, f"refused a frame from '{name}': non-finite reference for {labels(np.flatnonzero(bad))}"
         prev = self._prev[index]
         base_ref, base_mode = prev if prev is not None else (self.ref, self.mode)
         modified = self._known & ((ref != base_ref) | (mode != base_mode))
@@ -190,17 +239,78 @@ class MuxCore:
             return False, None
         self.last_change[index] = now
         self.release_stale(now)
+        forbidden = modified & ~self._permit[index]
+        if forbidden.any():
+            self._verdict(index, VERDICT_NOT_PERMITTED, joint=int(np.flatnonzero(forbidden)[0]))
+            return False, (f"refused a frame from '{name}' as a whole: it may not move "
+                           f"{labels(np.flatnonzero(forbidden))} (config/mux.yaml joints); nothing applied")
         owner = self.owner.astype(int)
         owned = owner >= 0
         owner_prio = np.where(owned, self._prio[np.maximum(owner, 0)], np.iinfo(np.int64).min)
-        may = modified & self._permit[index] & ((~owned) | (owner == index) | (owner_prio < self._prio[index]))
-        if not may.any():
-            return False, None
-        self.owner[may] = index
-        changed = may & ((self.ref != ref) | (self.mode != mode))
-        self.ref[may] = ref[may]
-        self.mode[may] = mode[may]
+        blocked = modified & owned & (owner != index) & (owner_prio > self._prio[index])
+        if blocked.any():
+            first = int(np.flatnonzero(blocked)[0])
+            by = int(owner[first])
+            self._verdict(index, VERDICT_OWNED, blocker=by, joint=first)
+            blocker = self.controllers[by]
+            return False, (f"refused a frame from '{name}' as a whole: {labels(np.flatnonzero(blocked))} owned by "
+                           f"'{blocker.name}' (priority {blocker.priority}); nothing applied")
+        self._verdict(index, VERDICT_APPLIED)
+        self.owner[modified] = index
+        if (self.held[modified] != MUX_FREE).any():
+            self.held[modified] = MUX_FREE
+            self.dirty = True
+        changed = modified & ((self.ref != ref) | (self.mode != mode))
+        self.ref[modified] = ref[modified]
+        self.mode[modified] = mode[modified]
         return bool(changed.any()), None
+
+    def hold(self, request: MDS_HOLD, current: np.ndarray | None = None) -> tuple[bool, str]:
+        """Handle one ``mds-hold`` request. ``current``: the reference now (``mds-ref``) by address, what a CANCEL
+        with NaN targets leaves as the output (None: the mux output). Returns (output changed, log message).
+
+        HOLD marks the joints held: the filter brakes them to rest and keeps them there (the output keeps the
+        controllers' targets, for RESUME). RESUME releases held joints, never cancelled ones. CANCEL drops
+        ownership and replaces the targets: explicit values become the output (the filter ramps there); NaN
+        joints stay held as cancelled, their output becomes ``current`` and no RESUME releases them; only a
+        controller frame that modifies them (a new command) does.
+        """
+        self.hold_seq = int(request.seq)
+        self.hold_action = int(request.action)
+        self.hold_source = get_name(bytes(request.source))
+        self.dirty = True
+        who = f"{HOLD_ACTIONS.get(self.hold_action, str(self.hold_action))} #{self.hold_seq} from " \
+              f"'{self.hold_source or '?'}'"
+        problem = check_hold(request)
+        if problem:
+            self.hold_status = MUX_HOLD_REFUSED
+            return False, f"refused {who}: {problem}"
+        self.hold_status = MUX_HOLD_DONE
+        mask = np.frombuffer(bytes(request.joints), dtype=np.uint8).astype(bool) & self._known
+        if not mask.any():
+            mask = self._known.copy()
+        reason = request.reason.decode("ascii", "replace")
+        text = f"{who}: {labels(np.flatnonzero(mask))}" + (f" ({reason})" if reason else "")
+        changed = False
+        if self.hold_action == HOLD_HOLD:
+            self.held[mask & (self.held == MUX_FREE)] = MUX_HELD
+        elif self.hold_action == HOLD_RESUME:
+            self.held[mask & (self.held == MUX_HELD)] = MUX_FREE
+        else:
+            target = np.array(request.target, dtype=float)
+            self.owner[mask] = -1
+            given = mask & np.isfinite(target)
+            here = mask & ~given
+            new = self.ref.copy()
+            new[given] = target[given]
+            if current is not None:
+                found = here & np.isfinite(current)
+                new[found] = np.asarray(current)[found]
+            changed = bool((new != self.ref).any())
+            self.ref = new
+            self.held[given] = MUX_FREE
+            self.held[here] = MUX_CANCELLED
+        return changed, text
 
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
         """Restart these joints' output where they are (``pipeline.ReseedWatch``); ownership is unchanged."""
@@ -221,6 +331,7 @@ class MuxCore:
         st = MDS_MUX_STATE()
         for a in range(MDS_JOINT_COUNT):
             st.owner[a] = int(self.owner[a])
+            st.held[a] = int(self.held[a])
         st.count = len(self.controllers)
         for i, c in enumerate(self.controllers):
             st.priority[i] = c.priority
@@ -228,23 +339,49 @@ class MuxCore:
             st.age[i] = now - self.last_frame[i] if self.last_frame[i] > -math.inf else -1.0
             st.change_age[i] = now - self.last_change[i] if self.last_change[i] > -math.inf else -1.0
             st.name[i] = Name30.from_buffer_copy(c.name.encode("ascii").ljust(30, b"\0"))
+            st.verdict[i] = int(self.verdict[i])
+            st.blocker[i] = int(self.blocker[i])
+            st.blocked_joint[i] = int(self.blocked_joint[i])
+            st.refused[i] = int(self.refused[i]) & 0xFFFFFFFF
+        st.hold_seq = self.hold_seq
+        st.hold_action = self.hold_action
+        st.hold_status = self.hold_status
+        st.hold_source = self.hold_source.encode("ascii", "replace")[:29]
         st.time = now
         st.seq = seq
+        self.dirty = False
         return st
 
 
 def state_to_dict(st: MDS_MUX_STATE) -> dict[str, Any]:
-    """The JSON document of /mds/mux_state: controllers (name, priority, stale, ages) and joint owners."""
+    """The JSON document of /mds/mux_state: controllers (name, priority, stale, ages, newest verdict, refusals),
+    joint owners, held joints and the newest hold request handled."""
     names = [get_name(bytes(st.name[i])) for i in range(st.count)]
+    held = {MUX_HELD: "held", MUX_CANCELLED: "cancelled"}
+
+    def blocked(i: int) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if st.blocker[i] >= 0 and st.blocker[i] < st.count:
+            out["blocker"] = names[st.blocker[i]]
+        if st.blocked_joint[i] >= 0:
+            out["blocked_joint"] = joint_label(st.blocked_joint[i])
+        return out
+
     return {
         "time": st.time,
         "controllers": [
             {"name": names[i], "priority": st.priority[i], "stale": bool(st.stale[i]),
              "age": None if st.age[i] < 0 else round(st.age[i], 4),
-             "change_age": None if st.change_age[i] < 0 else round(st.change_age[i], 4)}
+             "change_age": None if st.change_age[i] < 0 else round(st.change_age[i], 4),
+             "verdict": VERDICT_NAMES.get(st.verdict[i], str(st.verdict[i])), "refused": st.refused[i],
+             **blocked(i)}
             for i in range(st.count)
         ],
         "owners": {joint_label(a): names[st.owner[a]] for a in KNOWN_ADDRESSES if st.owner[a] >= 0},
+        "held": {joint_label(a): held[st.held[a]] for a in KNOWN_ADDRESSES if st.held[a] in held},
+        "hold": {"seq": st.hold_seq, "action": HOLD_ACTIONS.get(st.hold_action, ""),
+                 "source": get_name(bytes(st.hold_source)),
+                 "status": "refused" if st.hold_status == MUX_HOLD_REFUSED else "done"},
     }
 
 
@@ -266,10 +403,13 @@ class MuxRunner:
         self.output_name = output
         self.sources = tuple(sources)
         self._stop = threading.Event()
-        self._queue: queue.Queue[tuple[int, mds.MDS_REF, float]] = queue.Queue()
+        self._queue: queue.Queue[tuple[int, Any, float]] = queue.Queue()  # index HOLD_INPUT: an MDS_HOLD
         self._inputs: list[Any] = []
         self._threads: list[threading.Thread] = []
         self.core: MuxCore | None = None
+        self._hold_ch: Any = None
+        self._current: Any = None
+        self._current_ref: np.ndarray | None = None
         self.ready = threading.Event()
         self.published = 0
 
@@ -277,6 +417,8 @@ class MuxRunner:
         self._stop.set()
         for ch in self._inputs:
             cancel_wait(ch)
+        if self._hold_ch is not None:
+            cancel_wait(self._hold_ch)
 
     def run(self) -> None:
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
@@ -287,6 +429,10 @@ class MuxRunner:
         state_ch = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         watch = ReseedWatch(self.log, self._stop)
         core = MuxCore(self.controllers, ref, mode)
+        hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
+        hold_ch.flush()  # requests from before this start are old: the output restarts from the reference anyway
+        self._hold_ch = hold_ch
+        self._current = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
         try:
             for i, c in enumerate(self.controllers):
                 ch = StructChannel(c.channel, mds.MDS_REF)
@@ -307,15 +453,18 @@ class MuxRunner:
                                      daemon=True)
                 t.start()
                 self._threads.append(t)
+            t = threading.Thread(target=self._hold_reader, name="mux-hold", daemon=True)
+            t.start()
+            self._threads.append(t)
             self.ready.set()
             self._loop(core, out, state_ch, watch)
         finally:
             self._stop.set()
-            for ch in self._inputs:
+            for ch in (*self._inputs, hold_ch):
                 cancel_wait(ch)
             for t in self._threads:
                 t.join(timeout=2.0)
-            for ch in self._inputs:
+            for ch in (*self._inputs, hold_ch, self._current):
                 ch.close()
             out.close()
             state_ch.close()
@@ -332,6 +481,21 @@ class MuxRunner:
             if frame is not None:
                 self._queue.put((index, frame, time.monotonic()))
 
+    def _hold_reader(self) -> None:
+        """Every ``mds-hold`` request in order (StructChannel.wait_next): each one counts, none is skipped."""
+        guard = ChannelGuard(self.log, self._stop)
+        while not self._stop.is_set():
+            frame = guard.call(self._hold_ch.name, self._hold_ch.wait_next, timeout=0.5)
+            if frame is not None:
+                self._queue.put((HOLD_INPUT, frame, time.monotonic()))
+
+    def _reference_now(self) -> np.ndarray | None:
+        """The newest ``mds-ref`` (what the daemon is sent): where a CANCEL without target leaves a joint."""
+        frame = self._current.latest()
+        if frame is not None:
+            self._current_ref = ref_arrays(frame)[0]
+        return self._current_ref
+
     def _loop(self, core: MuxCore, out: Any, state_ch: Any, watch: ReseedWatch) -> None:
         seq = 0
         next_state = time.monotonic()
@@ -343,13 +507,19 @@ class MuxRunner:
                 self._reseed(core, out, watch)
             else:
                 self._reseed(core, out, watch)  # before the frame: a command after HOME starts at the joint
-                changed, problem = core.update(index, *ref_arrays(frame), t)
-                if problem:
-                    self.log("error", problem)
+                if index == HOLD_INPUT:
+                    changed, text = core.hold(frame, self._reference_now())
+                    self.log("error" if core.hold_status == MUX_HOLD_REFUSED else "info", text)
+                else:
+                    changed, problem = core.update(index, *ref_arrays(frame), t)
+                    if problem:
+                        self.log("error", problem)
                 if changed:
                     out.put(make_ref(core.ref, core.mode))
                     self.published += 1
-                if not self._queue.empty():
+                if core.dirty:  # a hold or a verdict: the filter and the requester hear it now
+                    next_state = time.monotonic()
+                elif not self._queue.empty():
                     continue
             now = time.monotonic()
             if now >= next_state:

@@ -87,6 +87,14 @@ class StructChannel(Generic[T]):
         status, size = self.channel.get(self._buf, last=False, lock_timeout=lock_timeout)
         return self._frame(status, size)
 
+    def wait_next(self, timeout: float | None = None, lock_timeout: float | None = None) -> T | None:
+        """Block until a frame not read yet exists and return the *oldest* one (in order, for request channels
+        where every frame counts, e.g. ``mds-hold``); None on timeout, cancel or close."""
+        status, size = self.channel.get(self._buf, wait=True, last=False, timeout=timeout, lock_timeout=lock_timeout)
+        if status in (ach.ACH_TIMEOUT, ach.ACH_CANCELED):
+            return None
+        return self._frame(status, size)
+
     def wait(self, timeout: float | None = None, lock_timeout: float | None = None) -> T | None:
         """Block until a new frame arrives (newest wins); None on timeout, cancel or close.
 

@@ -296,6 +296,14 @@ def generate() -> str:
     out.append("")
     out.append("/* ---- mds_mux_state_t (MDS_CHAN_MUX_STATE_NAME) ---- */")
     out.append(f"#define MDS_MUX_NO_OWNER ({mux_state.MUX_NO_OWNER})  /* owner[] of a joint nobody owns */")
+    out += _enum("mds_mux_held", "mds_mux_state_t.held[].",
+                 [("MDS_" + k, v) for k, v in _module_constants("MUX_", module=mux_state)
+                  if k in ("MUX_FREE", "MUX_HELD", "MUX_CANCELLED")])
+    out += _enum("mds_mux_verdict", "mds_mux_state_t.verdict[]: what the mux did with a controller's newest frame.",
+                 [("MDS_MUX_" + k, v) for k, v in _module_constants("VERDICT_", module=mux_state)
+                  if k != "VERDICT_NAMES"])
+    out += _enum("mds_mux_hold_status", "mds_mux_state_t.hold_status.",
+                 [("MDS_" + k, v) for k, v in _module_constants("MUX_HOLD_", module=mux_state)])
     out.append("")
     out.append("/* ---- mds_hold_t (MDS_CHAN_HOLD_NAME): hold / resume / cancel requests to the mux ---- */")
     out += _enum("mds_hold_action", "mds_hold_t.action.",

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import mds_ach as mds
 from mds_ach.nodes.rosargs import strip_ros_args
+from mds_ach.robot import lifecycle
 from mds_ach.robot.choice import effective_robot
 from mds_ach.robot.config import JointTable, load
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
@@ -57,6 +58,12 @@ commands (joint names: short or long, e.g. LSP or LeftShoulderExt, any case):
                                      of x y z (m) rx ry rz (rad, Z-Y-X angles), robot frame: x forward,
                                      y left, z up, origin midway between the shoulders
   zeroall                            every enabled joint to 0 rad through the smoothing path
+  hold [<joints>|left|right|arms|all]
+                                     stop the joints where the pipeline has them (braking within the
+                                     filter's bounds); nothing moves until 'resume' or a new command
+                                     for them (default: all)
+  resume [<joints>|left|right|arms|all]
+                                     held joints go on to their controllers' targets (default: all)
   help                               this text
   exit                               quit (also 'quit' or Ctrl-D)"""
 
@@ -98,11 +105,18 @@ class Ik:
 
 
 @dataclass(frozen=True)
+class Hold:
+    action: int  # lifecycle.HOLD_HOLD or HOLD_RESUME
+    addresses: tuple[int, ...]  # empty: every joint
+    what: str
+
+
+@dataclass(frozen=True)
 class Simple:
     name: str  # help, exit, zeroall, empty
 
 
-Command = Goto | Get | GetFk | Ik | Simple
+Command = Goto | Get | GetFk | Ik | Hold | Simple
 
 
 def _number(text: str, what: str) -> float:
@@ -129,6 +143,22 @@ def _arm(text: str) -> str:
     return arm
 
 
+def _hold(verb: str, args: list[str]) -> Hold:
+    """``hold``/``resume`` [joints | left | right | arms | all]: the joints a lifecycle request names."""
+    action = lifecycle.HOLD_HOLD if verb == "hold" else lifecycle.HOLD_RESUME
+    if not args or [a.lower() for a in args] == ["all"]:
+        return Hold(action, (), "all joints")
+    addresses: list[int] = []
+    for word in args:
+        key = word.lower()
+        if key in ("left", "right", "arms"):
+            for arm in (("left", "right") if key == "arms" else (key,)):
+                addresses += [BY_SHORT[s].address for s in ARMS[arm][1]]
+        else:
+            addresses.append(_joint(word).address)
+    return Hold(action, tuple(dict.fromkeys(addresses)), " ".join(args))
+
+
 def parse(line: str) -> Command:
     """One console line -> a command; CommandError says what is wrong with it."""
     words = line.split()
@@ -148,6 +178,8 @@ def parse(line: str) -> Command:
         if len(args) != 2:
             raise CommandError("usage: goto <joint> <rad> [wait]")
         return Goto(_joint(args[0]), _number(args[1], "the position"), wait)
+    if verb in ("hold", "resume"):
+        return _hold(verb, args)
     if verb == "get":
         if len(args) == 2 and args[0].lower() == "fk":
             return GetFk(_arm(args[1]))
@@ -396,6 +428,8 @@ class Console:
             self.get_fk(cmd.arm)
         elif isinstance(cmd, Ik):
             self.ik(cmd)
+        elif isinstance(cmd, Hold):
+            self.hold(cmd)
         elif cmd.name == "help":
             self.out(USAGE)
         elif cmd.name == "zeroall":
@@ -411,9 +445,28 @@ class Console:
         self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
         if cmd.wait:
             if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT):
-                raise CommandError(f"{cmd.joint.short} did not arrive within {GOTO_TIMEOUT:g} s: "
-                                   + self._not_arrived({cmd.joint.address: cmd.value}), usage=False)
+                why = self._not_arrived({cmd.joint.address: cmd.value})
+                raise CommandError(f"{cmd.joint.short} did not arrive within {GOTO_TIMEOUT:g} s: {why}; "
+                                   + self._cancel([cmd.joint.address], "goto timed out"), usage=False)
             self.out("done")
+
+    def _cancel(self, addresses: list[int], reason: str) -> str:
+        """A command that timed out stops being a target: CANCEL it where the reference is (the mux drops it
+        for good, so the arm does not move on to it later, e.g. when the collision gate clears)."""
+        ack = lifecycle.request(lifecycle.HOLD_CANCEL, addresses, source="console", reason=reason)
+        if ack.ok:
+            return "cancelled: the joints hold where they are"
+        return f"could not cancel the target ({ack.message}): use 'hold'"
+
+    def hold(self, cmd: Hold) -> None:
+        ack = lifecycle.request(cmd.action, cmd.addresses, source="console",
+                                reason=f"console {'hold' if cmd.action == lifecycle.HOLD_HOLD else 'resume'}")
+        if not ack.ok:
+            raise CommandError(ack.message, usage=False)
+        st = ack.state
+        held = [j.short for j in JOINTS if st is not None and st.held[j.address]]
+        verb = "held" if cmd.action == lifecycle.HOLD_HOLD else "resumed"
+        self.out(f"{verb}: {cmd.what}; held now: {', '.join(held) if held else 'none'}")
 
     def zeroall(self) -> None:
         state = self._state()
@@ -464,8 +517,9 @@ class Console:
         self._confirm_applied(targets, sent_at, mds.MDS_CHAN_REF_IK_NAME)  # the IK node's output, a mux input
         if cmd.wait:
             if not self._wait_arrival(targets, IK_MOTION_TIMEOUT):
-                raise CommandError(f"the {cmd.arm} arm did not arrive within {IK_MOTION_TIMEOUT:g} s: "
-                                   + self._not_arrived(targets), usage=False)
+                why = self._not_arrived(targets)
+                raise CommandError(f"the {cmd.arm} arm did not arrive within {IK_MOTION_TIMEOUT:g} s: {why}; "
+                                   + self._cancel(list(targets), "ik timed out"), usage=False)
             self.out("done")
 
     def run_line(self, line: str) -> bool:
@@ -533,7 +587,7 @@ def _completer(text: str, index: int) -> str | None:
 
     words = readline.get_line_buffer()[: readline.get_begidx()].split()
     if not words:
-        options = ["goto", "get", "ik", "zeroall", "help", "exit"]
+        options = ["goto", "get", "ik", "hold", "resume", "zeroall", "help", "exit"]
     elif words[0] == "get" and len(words) == 1:
         options = ["fk"] + [j.short for j in JOINTS]
     elif (words[0] == "ik" and len(words) == 1) or (words[:2] == ["get", "fk"] and len(words) == 2):

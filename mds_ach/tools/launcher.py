@@ -30,8 +30,10 @@ from mds_ach.robot import contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
 from mds_ach.robot.choice import effective_robot, save_robot
 from mds_ach.robot.config import ROBOT_ENV, ConfigError, available_robots, load
+from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
 from mds_ach.tools import repair
+from mds_ach.tools.holdcmd import held_summary
 from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
 from mds_ach.tools.rosgraph import summary as ros_graph_summary
 
@@ -456,15 +458,18 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
                             "a writer built against another mds.h?)" if bad else ""))
     daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+    mux = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
     try:
         daemon.read()
         live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
         stale_note = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
         lines.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
         lines.append("collision  " + collision_summary(collide.read()))
+        lines.append("held       " + held_summary(mux.read()))
     finally:
         daemon.close()
         collide.close()
+        mux.close()
     return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
 
 

@@ -17,8 +17,9 @@ IK_SOLVED = 0  # solution written to the node's output channel
 IK_UNREACHABLE = 1  # no solution within the iteration cap (or every one collided); nothing moved
 IK_BAD_REQUEST = 2  # refused: move not 0/1, ik_method not 1..6, NaN/Inf target; nothing moved
 IK_NOT_READY = 3  # no current reference to start from (is the daemon running?); nothing moved
+IK_NOT_APPLIED = 4  # solved, but the mux refused the whole solution (another controller owns a joint); nothing moved
 STATUS_NAMES: dict[int, str] = {IK_SOLVED: "solved", IK_UNREACHABLE: "unreachable", IK_BAD_REQUEST: "bad request",
-                                IK_NOT_READY: "not ready"}
+                                IK_NOT_READY: "not ready", IK_NOT_APPLIED: "not applied"}
 IK_MESSAGE_SIZE = 80
 IK_STATUS_TOPIC = "/mds/ik_status"
 
@@ -27,7 +28,7 @@ class MDS_IK_STATUS(_Packed):  # noqa: N801 - MDS struct naming
     """``mds-ik-state`` frame (packed, 214 B).
 
     seq          count of requests handled since the node started (1 = first)
-    status       IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY
+    status       IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY / IK_NOT_APPLIED
     arm          0 right, 1 left (as ``MDS_IK.move``; -1 if the request named no valid arm)
     dof          task DOF (``ik_method``), components x, y, z, roll, pitch, yaw in that order
     iterations   solver iterations used

@@ -15,9 +15,37 @@ MUX_MAX_CONTROLLERS = 8
 MUX_NO_OWNER = -1
 """``owner[address]`` of a joint nobody owns (the mux holds its last value)."""
 
+# held[address]
+MUX_FREE = 0
+"""The joint follows its output (``mds-ref-mux``)."""
+MUX_HELD = 1
+"""HOLD: the filter brakes the joint to rest and keeps it there until RESUME or a new command for it."""
+MUX_CANCELLED = 2
+"""CANCEL: held like HOLD, but RESUME does not release it; once it rests, its output becomes where it rests."""
+
+# verdict[i]: what the mux did with controller i's newest frame
+VERDICT_NONE = 0
+"""No frame yet, or the frame changed nothing (an unchanged re-send)."""
+VERDICT_APPLIED = 1
+"""Every modified joint of the frame was taken (the frame is now the output for them)."""
+VERDICT_OWNED = 2
+"""Refused as a whole: a fresher, higher-priority controller (``blocker[i]``) owns one of its joints."""
+VERDICT_NOT_PERMITTED = 3
+"""Refused as a whole: it modifies joints the controller may not move (config/mux.yaml ``joints``)."""
+VERDICT_INVALID = 4
+"""Refused as a whole: NaN/Inf in a known joint."""
+VERDICT_NAMES: dict[int, str] = {VERDICT_NONE: "none", VERDICT_APPLIED: "applied", VERDICT_OWNED: "owned",
+                                 VERDICT_NOT_PERMITTED: "not permitted", VERDICT_INVALID: "invalid"}
+
+# hold_status: the mux's answer to the newest mds-hold request
+MUX_HOLD_DONE = 0
+MUX_HOLD_REFUSED = 1
+"""The request was invalid (``check_hold``); nothing changed."""
+
 
 class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
-    """``mds-mux-state`` frame (packed, 506 B): who owns each joint and how fresh each controller is.
+    """``mds-mux-state`` frame (packed, 700 B): who owns each joint, how fresh each controller is, what
+    was held and what each controller's newest frame got.
 
     owner[address]     controller index (into name[]) that owns the joint, -1 = nobody (holding)
     count              number of configured controllers (<= 8)
@@ -28,6 +56,16 @@ class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
     name[i]            controller name, char[30]
     time               CLOCK_MONOTONIC at publish
     seq                publish counter
+    --- appended with the command lifecycle (issue 17); the fields above keep their offsets ---
+    held[address]      MUX_FREE / MUX_HELD / MUX_CANCELLED
+    hold_seq           seq of the newest mds-hold request handled (the acknowledgement), 0 = none yet
+    hold_action        its action (HOLD_HOLD / HOLD_RESUME / HOLD_CANCEL)
+    hold_status        MUX_HOLD_DONE, or MUX_HOLD_REFUSED (invalid request)
+    hold_source        its source, char[30]
+    verdict[i]         what the mux did with controller i's newest frame (VERDICT_*)
+    blocker[i]         VERDICT_OWNED: index of the owning controller, else -1
+    blocked_joint[i]   the first joint (address) that made the frame refused, -1 = none
+    refused[i]         frames of controller i refused since the mux started
     """
 
     _fields_ = [
@@ -40,4 +78,13 @@ class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
         ("name", Name30 * MUX_MAX_CONTROLLERS),
         ("time", ctypes.c_double),
         ("seq", ctypes.c_uint32),
+        ("held", ctypes.c_uint8 * MDS_JOINT_COUNT),
+        ("hold_seq", ctypes.c_uint32),
+        ("hold_action", ctypes.c_int16),
+        ("hold_status", ctypes.c_int16),
+        ("hold_source", Name30),
+        ("verdict", ctypes.c_int8 * MUX_MAX_CONTROLLERS),
+        ("blocker", ctypes.c_int8 * MUX_MAX_CONTROLLERS),
+        ("blocked_joint", ctypes.c_int8 * MUX_MAX_CONTROLLERS),
+        ("refused", ctypes.c_uint32 * MUX_MAX_CONTROLLERS),
     ]
