@@ -637,7 +637,8 @@ def run_start(args: argparse.Namespace) -> int:
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Start everything in the foreground, print what to do next, and stop everything cleanly "
-                     "on Ctrl-C or SIGTERM (this is what 'make run' does, with --nocan).")
+                     "on Ctrl-C, SIGTERM or SIGHUP (terminal closed), when its output pipe breaks and when its parent "
+                     "exits: nothing is left running (this is what 'make run' does, with --nocan).")
     _add_nocan(p)
 
 
