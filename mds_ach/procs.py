@@ -15,6 +15,7 @@ Imports: the standard library only (a leaf module usable from every layer).
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import subprocess
@@ -112,13 +113,34 @@ def stop_pid(pid: int, grace: float = 5.0, sig: int = signal.SIGTERM,
     return True
 
 
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _parent_death_signal(sig: int) -> Callable[[], None]:
+    """A ``preexec_fn`` that has the kernel send ``sig`` to the child when the process that started it dies (even
+    by SIGKILL), and ends the child at once if that already happened between fork and exec. ``prctl`` is looked up
+    here, in the parent: the child only calls it."""
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    parent = os.getpid()
+
+    def arm() -> None:
+        prctl(PR_SET_PDEATHSIG, ctypes.c_ulong(sig), 0, 0, 0)
+        if os.getppid() != parent:
+            os._exit(1)
+
+    return arm
+
+
 def spawn_detached(argv: Sequence[str], log_path: Path, env: dict[str, str] | None = None,
-                   append: bool = True) -> subprocess.Popen[bytes]:
+                   append: bool = True, die_with_parent: bool = False) -> subprocess.Popen[bytes]:
     """Start ``argv`` in its own session (a terminal's Ctrl-C does not reach it), stdout and stderr to the log
-    (appended, or a fresh log with ``append=False``)."""
+    (appended, or a fresh log with ``append=False``). ``die_with_parent``: the child gets SIGTERM when this process
+    dies, however it dies (a foreground supervisor killed by SIGKILL leaves no orphan); otherwise it outlives it
+    (a background service)."""
+    preexec = _parent_death_signal(signal.SIGTERM) if die_with_parent else None
     with open(log_path, "ab" if append else "wb") as log:
         return subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                                start_new_session=True, env=env)
+                                start_new_session=True, env=env, preexec_fn=preexec)
 
 
 def log_tail(path: Path, lines: int) -> list[str]:

@@ -6,6 +6,7 @@ import os
 import re
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -392,4 +393,99 @@ def test_run_reports_a_node_that_dies_and_stops_the_rest(clean_shm: None, tmp_pa
     assert proc.returncode == 1
     assert "filter was killed by SIGKILL" in rest and "stopping everything" in rest
     assert not any(_pid_alive(p) for p in pids.values())
+    remove_mds_channels()
+
+
+# --------------------------------------------------------------------------------------------- no orphans (#17 item 6)
+
+
+def _nodes_gone(env: dict[str, str], pids: dict[str, int], what: str) -> None:
+    """Every node of ``pids`` exits (SIGTERM, the daemon last) and leaves no pid file; the daemon's log shows no
+    crash (it finished its cycle and closed the bus)."""
+    rt = Path(env["MDS_ACH_RUNTIME_DIR"])
+    assert set(pids) == set(NODES), pids
+    wait_for(lambda: not any(_pid_alive(p) for p in pids.values()), 60, what=f"every node to stop ({what})")
+    wait_for(lambda: not list(rt.glob("*.pid")), 10, what=f"the pid files to go ({what})")
+    assert "Traceback" not in (rt / "daemon.log").read_text(errors="replace"), f"{what}: the daemon crashed"
+
+
+def _run_again_starts(env: dict[str, str]) -> None:
+    """The next `mds-ach run` starts (nothing left running blocks it), and stops on Ctrl-C."""
+    proc, _ = _start_run(env)
+    proc.send_signal(signal.SIGINT)
+    rest, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0, rest
+
+
+@pytest.mark.slow
+def test_run_stops_everything_when_its_terminal_is_closed(clean_shm: None, tmp_path: Path) -> None:
+    """`make run` in a terminal, then the terminal window is closed: the kernel hangs the terminal up (SIGHUP, and
+    every later write to it fails with EIO). Before #17 the launcher died on its "stopping" line and left all six
+    nodes running."""
+    from support.pty_session import PtySession
+
+    assert in_netns()
+    env = system_env(tmp_path)
+    session = PtySession([str(VENV_BIN / "mds-ach"), "run", "--nocan", "--timeout", "150"], env=env)
+    try:
+        session.expect("Press Ctrl-C to stop everything.", timeout=240)
+        pids = _pids(env)
+        os.close(session.fd)  # the terminal closes: hang-up
+        wait_for(lambda: session.poll() is not None, 120, what="the launcher to exit after the hang-up")
+        _nodes_gone(env, pids, "terminal closed")
+    finally:
+        session.close()
+    _run_again_starts(env)
+    remove_mds_channels()
+
+
+@pytest.mark.slow
+def test_run_piped_into_a_reader_that_dies_still_stops_everything(clean_shm: None, tmp_path: Path) -> None:
+    """`make run | tee log` and Ctrl-C: tee dies first, so every print of the launcher fails (EPIPE); it must still
+    stop every node."""
+    assert in_netns()
+    env = system_env(tmp_path)
+    proc, _ = _start_run(env)  # stdout is a pipe to this test: the test is the `tee`
+    try:
+        pids = _pids(env)
+        proc.stdout.close()  # the reader dies
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=120)
+        _nodes_gone(env, pids, "reader gone, then Ctrl-C")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0
+    _run_again_starts(env)
+    remove_mds_channels()
+
+
+@pytest.mark.slow
+def test_run_stops_everything_when_its_parent_dies(clean_shm: None, tmp_path: Path) -> None:
+    """The launcher's parent (``make``) is killed outright: the launcher notices it was re-parented and stops
+    every node; the next `mds-ach run` starts."""
+    assert in_netns()
+    env = system_env(tmp_path)
+    out = tmp_path / "run.out"
+    parent_code = "import subprocess, sys; sys.exit(subprocess.call(sys.argv[1:]))"
+    with open(out, "wb") as f:
+        parent = subprocess.Popen([sys.executable, "-c", parent_code, str(VENV_BIN / "mds-ach"), "run", "--nocan",
+                                   "--timeout", "150"], env=env, stdout=f, stderr=subprocess.STDOUT)
+    try:
+        wait_for(lambda: "Press Ctrl-C to stop everything." in out.read_text(errors="replace")
+                 or parent.poll() is not None, 240, interval=0.2, what="the system to start")
+        assert parent.poll() is None, out.read_text(errors="replace")
+        launcher = int(Path(f"/proc/{parent.pid}/task/{parent.pid}/children").read_text().split()[0])
+        pids = _pids(env)
+        parent.kill()
+        parent.wait()
+        wait_for(lambda: not _pid_alive(launcher), 120, what="the launcher to exit after its parent died")
+        _nodes_gone(env, pids, "parent killed")
+        assert "its parent" in out.read_text(errors="replace")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+    _run_again_starts(env)
     remove_mds_channels()

@@ -289,9 +289,12 @@ class CanIO:
     recorder: Recorder | None = None
     description: str = ""
     counters: BusCounters = field(default_factory=BusCounters)
+    # The sender's clock (CLOCK_MONOTONIC; the daemon sets its own): ``last_sent`` and the log's stamps use it.
+    clock: Callable[[], float] = time.monotonic
 
     def __post_init__(self) -> None:
         self.bus: can.BusABC | None = None
+        self.last_sent = -float("inf")  # ``clock()`` right after the last frame the interface accepted
         # Wall time minus CLOCK_MONOTONIC, fixed once: sent frames stamped with a monotonic time keep its spacing.
         self._wall_offset = time.time() - time.monotonic()
         self.open()
@@ -329,10 +332,10 @@ class CanIO:
     def send(self, raw: mcb.RawFrame, at: float | None = None) -> bool:
         """Send one MCB frame; False (and counted) when the interface refuses it.
 
-        ``at``: the CLOCK_MONOTONIC time the sender computed the frame for; the log records that (as wall time)
-        instead of when the call returned. The daemon's targets are limited for the time it reads right before
-        sending, so the log shows exactly the spacing they were planned with: scheduling jitter between that
-        reading and the send is not recorded as a change of speed or acceleration.
+        The frame is stamped (``last_sent``, and the log) with ``clock()`` read right after the interface took it:
+        never earlier than it went out, so the spacing a log shows between two frames is never longer than the real
+        one (a sender preempted between computing a frame and sending it cannot hide the delay). ``at`` overrides
+        the log's stamp (a CLOCK_MONOTONIC time; for replaying recorded traffic with its own times).
         """
         msg = can.Message(arbitration_id=raw.arbitration_id, data=raw.data, is_extended_id=False, is_rx=False)
         try:
@@ -343,10 +346,11 @@ class CanIO:
             self.counters.tx_errors += 1
             self.counters.last_error = f"send: {exc}"
             return False
+        self.last_sent = self.clock()
         self.counters.tx_frames += 1
         self.counters.bits += mcb.FRAME_BITS
         if self.recorder is not None:
-            msg.timestamp = time.time() if at is None else at + self._wall_offset
+            msg.timestamp = (self.last_sent if at is None else at) + self._wall_offset
             self.recorder(msg)
         return True
 

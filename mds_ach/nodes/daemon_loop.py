@@ -94,6 +94,17 @@ def f32(value: float) -> float:
     return _F32.unpack(_F32.pack(value))[0]
 
 
+def late_send_tolerance(bounds: motion.MotionBounds, period: float) -> float:
+    """How late (s) a MOVETO may go out after the time its step was limited for.
+
+    Sent late by ``d``, a step of speed ``v`` planned over ``h`` shows as ``v h / (h + d)``: its acceleration is off
+    by at most ``v_max d / h^2``. Half of the limiter's acceleration margin (``1 - LIMIT_MARGIN``) may go to that, at
+    the loop period (2 ms at 10 Hz with the default bounds); at least 0.2 ms (what one send costs under load).
+    """
+    share = 0.5 * (1.0 - motion.LIMIT_MARGIN) * bounds.max_acceleration * period * period / bounds.max_velocity
+    return max(share, 2e-4)
+
+
 STALL_PERIODS = 2.0  # a cycle that starts more than this many periods after the previous one: the loop stalled
 # Position replies: a reply further than REPLY_RANGE_MARGIN of the joint's range (at least REPLY_RANGE_MIN) beyond
 # its limits, or implying more than REPLY_SPEED_FACTOR times the velocity bound since the last good reply (plus
@@ -286,6 +297,9 @@ class DaemonLoop:
         self.nocan = nocan
         self.rt_priority = rt_priority
         self.clock = clock
+        io.clock = clock  # what went out is stamped on the loop's clock (see ``_send``)
+        # The longest a MOVETO may go out after the time it was limited for (see ``_send``).
+        self.late_send = late_send_tolerance(self.bounds, self.period)
         self.joints: dict[int, JointRuntime] = {
             j.address: JointRuntime(j, ref_r=j.home, goal=j.home, track=motion.Track(j.home), ref=j.home,
                                     enabled=j.enabled)
@@ -694,7 +708,15 @@ class DaemonLoop:
         return q
 
     def _send(self, a: int, jr: JointRuntime, q: float, t: float) -> None:
-        """The 4-frame SET sequence for target ``q`` if its float32 counts changed (or a re-send is due)."""
+        """The 4-frame SET sequence for target ``q`` (limited for time ``t``) if its float32 counts changed (or a
+        re-send is due).
+
+        The track records the MOVETO at the time the interface took it (``io.last_sent``, also the log's stamp),
+        not at ``t``: the next step is limited for the time really elapsed since this frame went out, so a loop
+        preempted between limiting and sending can never put two targets on the bus closer in time than their
+        step allows. A MOVETO that would go out more than ``late_send`` after ``t`` (this thread was preempted or
+        stopped meanwhile) is not sent: its step was sized for a moment long past; the next cycle limits afresh.
+        """
         jr.ref = q
         c32 = f32(jr.cfg.to_counts(q))
         if c32 == jr.sent_counts and not jr.reseed:
@@ -703,16 +725,27 @@ class DaemonLoop:
         # The original daemon's sequence (mcb.encode_position_sequence), three of its frames precomputed.
         moveto = mcb.encode_moveto(a, c32)
         for frame in (accel, moveto, mode, period):
-            if not self.io.send(frame, at=t):
+            if frame is moveto and self.clock() - t > self.late_send:
+                self._late_send(jr, self.clock() - t)
+                return
+            if not self.io.send(frame):
                 return  # counted as a tx error; the target goes out again next cycle
             if frame is moveto:  # it is on the bus (and in the log): this is what the node was told
+                sent_at = self.io.last_sent
                 sent = jr.cfg.to_joint(c32)
-                jr.track.advance(sent, t, self.bounds)
+                jr.track.advance(sent, sent_at, self.bounds)
                 jr.reseed = False
                 jr.ref_c_send = sent
-                jr.ack_due = t + self.ack_timeout
+                jr.ack_due = sent_at + self.ack_timeout
                 jr.flags |= ds.JOINT_MOVING
         jr.sent_counts = c32
+
+    def _late_send(self, jr: JointRuntime, late: float) -> None:
+        """A target withheld because this thread was held up between limiting it and sending it."""
+        jr.ref = jr.track.q  # the joint is still told the last target (the state shows what was sent)
+        self.status.stalls += 1
+        self._warn_rate("late-send", f"{jr.cfg.short}: target withheld, {1e3 * late:.1f} ms late (the loop was "
+                                     f"preempted between limiting and sending it); the next cycle limits it afresh")
 
     def _check_acks(self, now: float) -> None:
         for jr in self.joints.values():

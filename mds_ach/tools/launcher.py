@@ -63,12 +63,35 @@ class LaunchError(RuntimeError):
         self.node = node
 
 
+def _write(stream_name: str, text: str) -> None:
+    """Print, and survive a reader that went away: EPIPE (``make run | tee log``, tee killed by the same Ctrl-C) or
+    EIO (the terminal was closed). The stream is then pointed at /dev/null, so the caller carries on (it must
+    still stop the nodes) and nothing fails again at exit when Python flushes it."""
+    stream = getattr(sys, stream_name)
+    try:
+        print(text, file=stream, flush=True)
+    except (OSError, ValueError):  # ValueError: the stream was closed
+        _to_devnull(stream)
+
+
+def _to_devnull(stream: object) -> None:
+    try:
+        fd = stream.fileno()  # type: ignore[attr-defined]
+    except (OSError, ValueError, AttributeError):
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, fd)
+    finally:
+        os.close(null)
+
+
 def _err(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
+    _write("stderr", text)
 
 
 def _out(text: str) -> None:
-    print(text, flush=True)
+    _write("stdout", text)
 
 
 # --------------------------------------------------------------------------------------------- files
@@ -148,13 +171,15 @@ def child_env() -> dict[str, str]:
 
 
 def start_node(name: str, args: Sequence[str] = (), rt: Path | None = None,
-               env: dict[str, str] | None = None) -> subprocess.Popen:
+               env: dict[str, str] | None = None, die_with_launcher: bool = False) -> subprocess.Popen:
     """Start one node in its own session (a Ctrl-C meant for the launcher never reaches it directly),
-    output to ``<runtime>/<name>.log``, pid in ``<runtime>/<name>.pid``."""
+    output to ``<runtime>/<name>.log``, pid in ``<runtime>/<name>.pid``. ``die_with_launcher``: SIGTERM to the
+    node when this process dies, however (``mds-ach run``); otherwise the node outlives it (``mds-ach start``)."""
     rt = rt or runtime_dir()
     rt.mkdir(parents=True, exist_ok=True)
     proc = background.spawn_detached(node_command(name) + list(args), log_path(name, rt),
-                                env=env if env is not None else child_env(), append=False)
+                                     env=env if env is not None else child_env(), append=False,
+                                     die_with_parent=die_with_launcher)
     background.write_pid_file(pid_path(name, rt), proc.pid)
     return proc
 
@@ -279,9 +304,10 @@ def wait_ready(procs: dict[str, subprocess.Popen], checks: dict[str, _Heartbeat]
 
 def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[str] = NODES,
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
-           out: Printer = _out, group: str | None = None) -> dict[str, subprocess.Popen]:
+           out: Printer = _out, group: str | None = None, foreground: bool = False) -> dict[str, subprocess.Popen]:
     """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
-    until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``).
+    until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``). ``foreground``: the nodes
+    die with this process (``start_node``'s ``die_with_launcher``).
 
     Existing channels must be ones the stack may trust (``channel_access``: owner, mode, group); otherwise
     nothing is started.
@@ -309,7 +335,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
             check = _readiness(name)
             if check is not None:
                 checks[name] = check
-            procs[name] = start_node(name, node_args(name, nocan), rt, env)
+            procs[name] = start_node(name, node_args(name, nocan), rt, env, die_with_launcher=foreground)
             out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
         wait_ready(procs, checks, timeout, rt, abort)
     except BaseException:
@@ -495,18 +521,42 @@ def _activate_hint() -> str:
     return f", after `source {activate}`" if activate.is_file() else ""
 
 
-def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None) -> int:
-    """``mds-ach run``: start everything, print what to do next, supervise until Ctrl-C/SIGTERM, stop cleanly.
+def _surviving(out: Printer) -> Printer:
+    """``out``, but a write error (the reader or the terminal is gone) never stops the caller."""
+    def safe(text: str) -> None:
+        try:
+            out(text)
+        except (OSError, ValueError):
+            pass
 
-    A node that dies takes the whole system down (with its log tail): a half-running pipeline would hold the
-    robot without anyone noticing."""
+    return safe
+
+
+def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None) -> int:
+    """``mds-ach run``: start everything, print what to do next, supervise, stop cleanly. Leaves no orphans.
+
+    It stops every node on Ctrl-C, SIGTERM and SIGHUP (the terminal closed), when its output is gone (``make run |
+    tee log``: the Ctrl-C kills tee first, every print then fails with EPIPE), and when its parent exits (it is
+    re-parented: ``make`` killed). The nodes get SIGTERM from the kernel if this process dies without stopping them
+    (SIGKILL). A node that dies takes the whole system down (with its log tail): a half-running pipeline would hold
+    the robot without anyone noticing."""
     rt = runtime_dir()
+    out = _surviving(out)
     stop_requested: list[int] = []
+    parent = os.getppid()
 
     def on_signal(signum: int, _frame: object) -> None:
         stop_requested.append(signum)
 
+    def parent_gone() -> bool:
+        return os.getppid() != parent
+
+    def abort() -> bool:
+        return bool(stop_requested) or parent_gone()
+
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    procs: dict[str, subprocess.Popen] = {}
+    started = False
     try:
         already = running_nodes(rt)
         if already:
@@ -514,10 +564,11 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
                  + "; stop them first with 'mds-ach stop'")
             return 1
         out(f"starting MDS-Ach{' on the simulated robot (nocan)' if nocan else ''} ...")
+        started = True
         try:
-            procs = launch(nocan, timeout, rt=rt, abort=lambda: bool(stop_requested), out=out, group=group)
+            procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True)
         except LaunchError as exc:
-            if stop_requested:
+            if abort():
                 out("interrupted; everything stopped")
                 return 0
             _err(f"mds-ach run: {exc}")
@@ -525,7 +576,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
         out(NEXT_STEPS.format(mode=" on the simulated robot (nocan)" if nocan else "", rt=rt,
                               activate=_activate_hint(), ros=ros_graph_summary()))
         failed = None
-        while not stop_requested and failed is None:
+        while not abort() and failed is None:
             failed = _dead(procs)
             if failed is None:
                 time.sleep(0.2)
@@ -533,11 +584,15 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
             name, code = failed
             _err(f"mds-ach run: {name} {_exit_text(code)}; last lines of {log_path(name, rt)}:\n"
                  f"{log_tail(name, rt=rt)}\nstopping everything")
+        elif parent_gone() and not stop_requested:
+            out(f"mds-ach run: its parent (pid {parent}) exited; stopping everything")
         else:
-            out("stopping ...")
-        stop_nodes(NODES, rt=rt, procs=procs, out=out)
+            why = {signal.SIGHUP: " (SIGHUP: the terminal was closed)"}.get(signal.Signals(stop_requested[0]), "")
+            out(f"stopping{why} ...")
         return 1 if failed else 0
     finally:
+        if started:  # whatever happened above (an error included), nothing this run started is left behind
+            stop_nodes(NODES, rt=rt, procs=procs, out=out)
         for s, handler in old.items():
             signal.signal(s, handler)
 
@@ -583,13 +638,15 @@ def run_start(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         _err("mds-ach start: interrupted; the nodes started were stopped")
         return 130
-    _out(f"MDS-Ach is running ({mds.MDS_CHAN_STATE_NAME} is live). 'mds-ach stop' stops it.")
+    _out(f"MDS-Ach is running in the background ({mds.MDS_CHAN_STATE_NAME} is live): it keeps running after this "
+         "command and this terminal end; 'mds-ach stop' stops it ('mds-ach run' runs it in the foreground instead).")
     return 0
 
 
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Start everything in the foreground, print what to do next, and stop everything cleanly "
-                     "on Ctrl-C or SIGTERM (this is what 'make run' does, with --nocan).")
+                     "on Ctrl-C, SIGTERM or SIGHUP (terminal closed), when its output pipe breaks and when its parent "
+                     "exits: nothing is left running (this is what 'make run' does, with --nocan).")
     _add_nocan(p)
 
 

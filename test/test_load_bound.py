@@ -1,0 +1,191 @@
+"""Issue #17 item 5: the daemon, as the last stage, never puts a step on the bus larger than the velocity bound times
+the real time since the joint's previous target went out -- whatever upstream did, and when the daemon itself is
+starved.
+
+The time base is the bus's own: the simulated bus stamps every frame when it reaches the wire, the CAN log with the
+time the interface took it. A daemon preempted between limiting a target and sending it used to size the next step
+for the time since it had *planned* the previous one (and log that time), so two targets could reach the wire a few
+milliseconds apart with a whole period's step between them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+from support import in_netns
+from support.motion_audit import audit, read_log
+from support.rig import TABLE, DaemonRig
+from support.system import Pipeline
+
+import mds_ach as mds
+from mds_ach.bus import mcb
+from mds_ach.bus.mcb import Command, StateArg
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_REF
+
+LSP = TABLE["LSP"]
+PREEMPTED = 0.09  # s the daemon's thread is held up, within one 0.1 s period
+
+
+def wire_speeds(rig: DaemonRig, short: str) -> list[tuple[float, float, float]]:
+    """(time on the wire, step, step / real time since the previous target) of every MOVETO the joint received."""
+    j = TABLE[short]
+    sent = [(t, j.to_joint(f.value)) for t, f in rig.net.commands
+            if f.arbitration_id == j.address and f.command == Command.SET and f.argument == StateArg.MOVETO_TARGET]
+    out = []
+    for (t0, q0), (t1, q1) in zip(sent, sent[1:], strict=False):
+        dt = t1 - t0
+        out.append((t1, abs(q1 - q0), abs(q1 - q0) / dt if dt > 0 else math.inf))
+    return out
+
+
+class Preempt:
+    """Holds the daemon's thread up (advances the simulated clock) once, around LSP's next SET sequence: after its
+    acceleration frame (between limiting the target and sending its MOVETO) or inside the MOVETO's send."""
+
+    def __init__(self, rig: DaemonRig, where: str) -> None:
+        self.rig, self.where, self.armed, self.fired = rig, where, False, 0
+        self._send = rig.net.host_send
+        rig.net.host_send = self  # type: ignore[method-assign]
+
+    def __call__(self, msg: can.Message) -> None:
+        if self.armed and msg.arbitration_id == LSP.address:
+            frame = mcb.decode(msg.arbitration_id, bytes(msg.data))
+            moveto = frame.command == Command.SET and frame.argument == StateArg.MOVETO_TARGET
+            if self.where == "inside the MOVETO send" and moveto:
+                self.armed, self.fired = False, self.fired + 1
+                self.rig.clock.advance(PREEMPTED)  # the frame reaches the wire only now
+            elif self.where == "between limiting and sending" and not moveto:
+                self._send(msg)  # the acceleration frame goes out, then the thread loses the CPU
+                self.armed, self.fired = False, self.fired + 1
+                self.rig.clock.advance(PREEMPTED)
+                return
+        self._send(msg)
+
+
+@pytest.fixture
+def rig(clean_shm) -> Iterator[DaemonRig]:
+    r = DaemonRig(pose={"LSP": -1.2, "LEP": -1.0})
+    r.loop.start_up()
+    r.state()
+    yield r
+    r.close()
+
+
+@pytest.mark.parametrize("where", ["between limiting and sending", "inside the MOVETO send"])
+def test_a_daemon_preempted_mid_send_never_steps_faster_than_the_bound(rig: DaemonRig, where: str) -> None:
+    """LSP cruises at the limiter's speed towards a far goal; the daemon's thread is held up 90 ms while it sends one
+    target. On the wire, every step stays within 2 rad/s of the real time since the previous one (before #17 the
+    next target followed 10 ms later with a 0.18 rad step: 18 rad/s), and the CAN log's audit agrees."""
+    rig.put_ref(LSP=1.0)
+    preempt = Preempt(rig, where)
+    for cycle in range(30):
+        preempt.armed = preempt.armed or cycle in (8, 15)  # twice, at full speed
+        rig.step()
+    assert preempt.fired == 2
+    speeds = wire_speeds(rig, "LSP")
+    assert max(step for _, step, _ in speeds) > 0.15, "LSP did not cruise"
+    fast = [f"{step:.3f} rad in {step / v * 1e3:.1f} ms ({v:.1f} rad/s) at t={t:.3f}"
+            for t, step, v in speeds if v > LSP_BOUND + 1e-6]
+    assert fast == [], f"steps faster than {LSP_BOUND} rad/s on the wire: {fast}"
+    assert rig.audit().violations == []
+
+
+LSP_BOUND = TABLE.motion_bounds(mds.MDS_LOOP_PERIOD).max_velocity
+
+# ============================================================================================ the running pipeline
+
+STARVED = ("filter", "mux", "collision", "daemon")  # SIGSTOPped in turn while the arms move, the daemon last
+SWING = {"LSP": (-1.0, 0.6), "RSP": (-1.0, 0.6), "LEP": (-1.4, -0.3)}  # far goals: the filter and limiter cruise
+
+
+class Hogs:
+    """Busy-loop processes at normal priority, one more than there are cores: every node waits for a CPU."""
+
+    def __init__(self) -> None:
+        n = (os.cpu_count() or 2) + 1
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+    def close(self) -> None:
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.wait()
+
+
+class Swinger:
+    """A legacy client on mds-ref-filter: every 1.2 s the arms' goals switch between the ends of ``SWING``."""
+
+    def __init__(self) -> None:
+        self.chan = StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF)
+        self.ref = MDS_REF()
+        for j in TABLE:
+            self.ref.joint[j.address].ref, self.ref.joint[j.address].mode = j.home, mds.MDS_REF_MODE_REF
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        t0 = time.monotonic()
+        while not self._stop.wait(0.05):
+            end = int((time.monotonic() - t0) / 1.2) % 2
+            for short, ends in SWING.items():
+                self.ref.joint[TABLE[short].address].ref = ends[end]
+            self.chan.put(self.ref)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.chan.close()
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_every_target_obeys_the_bound_while_the_pipeline_and_the_daemon_are_starved(clean_shm: None,
+                                                                                      tmp_path: Path) -> None:
+    """The arms swing between far goals while CPU hogs load both cores and each pipeline node, then the daemon
+    itself, is SIGSTOPped for a second mid-motion. Every MOVETO in the daemon's CAN log (stamped when the interface
+    took it) obeys the motion bounds from the previous one, and the arms really moved meanwhile."""
+    assert in_netns(), "run through tools/netns-run"
+    can_log = tmp_path / "can.asc"
+    nodes = Pipeline(tmp_path)
+    hogs = swinger = None
+    try:
+        nodes.start("daemon", "--nocan", "--can-log", str(can_log))
+        for name in ("collision", "filter", "mux"):
+            nodes.start(name)
+        swinger = Swinger()
+        time.sleep(2.0)
+        hogs = Hogs()
+        for name in STARVED:
+            time.sleep(1.5)
+            proc = nodes.procs[name]
+            proc.send_signal(signal.SIGSTOP)
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGCONT)
+        time.sleep(2.0)
+    finally:
+        for obj in (hogs, swinger):
+            if obj is not None:
+                obj.close()
+        for proc in nodes.procs.values():
+            proc.send_signal(signal.SIGCONT)
+        codes = nodes.stop_all()
+    assert all(c == 0 for c in codes.values()), codes
+    table = TABLE
+    result = audit(read_log(str(can_log)), table, table.motion_bounds(mds.MDS_LOOP_PERIOD), 3.5 * mds.MDS_LOOP_PERIOD)
+    lsp = result.targets["LSP"]
+    assert len(lsp) > 50 and max(q for _, q in lsp) - min(q for _, q in lsp) > 1.0, "LSP hardly moved"
+    speeds = [abs(q1 - q0) / (t1 - t0) for (t0, q0), (t1, q1) in zip(lsp, lsp[1:], strict=False) if t1 > t0]
+    print(f"LSP: {len(lsp)} targets, fastest step {max(speeds):.3f} rad/s (bound {LSP_BOUND} rad/s)")
+    assert result.violations == [], result.violations
