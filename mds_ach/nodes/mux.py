@@ -44,6 +44,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 import mds_ach as mds
+from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes.pipeline import (
     KNOWN_ADDRESSES,
     ChannelGuard,
@@ -142,8 +143,13 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
 class MuxCore:
     """The merge rule, without channels or threads (so it can be tested exactly). Times are wall seconds."""
 
-    def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray) -> None:
+    def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray,
+                 limits: EffectiveLimits | None = None) -> None:
         self.controllers = list(controllers)
+        self.limits = limits  # the one limit authority (mds-limits): a modified joint outside refuses the frame
+        bounds = limits.arrays() if limits is not None else (np.empty(0), np.empty(0))
+        self._lower: np.ndarray = bounds[0]
+        self._upper: np.ndarray = bounds[1]
         n = len(self.controllers)
         self.ref = np.array(ref, dtype=float)
         self.mode = np.array(mode, dtype=np.int16)
@@ -172,7 +178,8 @@ class MuxCore:
     def update(self, index: int, ref: np.ndarray, mode: np.ndarray, now: float) -> tuple[bool, str | None]:
         """Apply one frame of controller ``index``. Returns (output changed, refusal message or None).
 
-        A frame with NaN/Inf in a known joint is refused as a whole (the controller is broken).
+        A frame with NaN/Inf in a known joint is refused as a whole (the controller is broken), and so is a frame
+        that modifies a joint to a value outside the effective limits (nothing of it is applied).
         """
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
@@ -188,6 +195,12 @@ class MuxCore:
         self._prev[index] = (ref.copy(), mode.copy())
         if not modified.any():
             return False, None
+        if self.limits is not None:
+            outside = modified & ((ref < self._lower) | (ref > self._upper))
+            if outside.any():
+                self.refused[index] += 1
+                why = "; ".join(self.limits.problems({int(a): float(ref[a]) for a in np.flatnonzero(outside)}))
+                return False, f"refused a frame from '{self.controllers[index].name}' (nothing applied): {why}"
         self.last_change[index] = now
         self.release_stale(now)
         owner = self.owner.astype(int)
@@ -286,7 +299,7 @@ class MuxRunner:
         out = StructChannel(self.output_name, mds.MDS_REF)
         state_ch = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         watch = ReseedWatch(self.log, self._stop)
-        core = MuxCore(self.controllers, ref, mode)
+        core = MuxCore(self.controllers, ref, mode, current_limits())
         try:
             for i, c in enumerate(self.controllers):
                 ch = StructChannel(c.channel, mds.MDS_REF)
