@@ -25,6 +25,7 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach import procs as background
+from mds_ach.kinematics.limits import current_limits
 from mds_ach.paths import runtime_dir
 from mds_ach.robot import contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
@@ -32,7 +33,7 @@ from mds_ach.robot.choice import effective_robot, save_robot
 from mds_ach.robot.config import ROBOT_ENV, ConfigError, available_robots, load
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
 from mds_ach.tools import repair
-from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
+from mds_ach.tools.monitor import Latest, collision_summary, daemon_line, limits_line
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
 # the others start from), then the reference pipeline, then the clients that feed it.
@@ -453,15 +454,21 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
                             "a writer built against another mds.h?)" if bad else ""))
     daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+    gate_input = Latest(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)  # what the gate checks against the limits
     try:
         daemon.read()
         live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
         stale_note = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
         lines.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
         lines.append("collision  " + collision_summary(collide.read()))
+        try:
+            lines.append("limits     " + limits_line(current_limits(), gate_input.read()))
+        except ValueError as exc:  # a broken joint table or URDF: say so, the rest of the status still counts
+            lines.append(f"limits     unknown: {exc}")
     finally:
         daemon.close()
         collide.close()
+        gate_input.close()
     return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
 
 
