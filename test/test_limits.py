@@ -175,3 +175,13 @@ def test_status_line_names_what_the_gate_refuses() -> None:
     assert "the gate REFUSES" in line and "-1.00000 rad is outside LWR's range [-0.47120, 0.47120]" in line
     ref.joint[mds.LWR].ref = math.nan
     assert "LWR: nan is not a finite position" in limits_line(limits, ref)
+
+
+def test_viewer_sliders_span_the_effective_limits() -> None:
+    from mds_ach.kinematics.model import load_model
+    from mds_ach.tools.viewer import _slider_range
+
+    model, limits = load_model(), compute(config.load("isaac"))
+    for name in BY_SHORT:
+        if name in model.joints and model.joints[name].actuated:
+            assert _slider_range(model.joints[name], limits.range(name)) == limits.range(name), name
