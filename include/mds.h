@@ -34,6 +34,7 @@
 #define MDS_MUX_MAX_CONTROLLERS 8  /* mds_mux_state_t per-controller arrays */
 #define MDS_IK_MESSAGE_SIZE 80  /* mds_ik_status_t.message, NUL included */
 #define MDS_HOLD_REASON_SIZE 64  /* mds_hold_t.reason, NUL included */
+#define MDS_LIMITS_SOURCE_SIZE 128  /* mds_limits_t.source, NUL included */
 #define MDS_LOOP_PERIOD 0.1  /* s, default daemon period */
 #define MDS_REF_FILTER_LENGTH 40
 
@@ -85,6 +86,9 @@
 /* mds_hold_t, new: hold / resume / cancel requests to the mux (the command lifecycle). */
 /*   written by console, mds-ach, bridge, collision, viewer, achd, clients; read by mux */
 #define MDS_CHAN_HOLD_NAME "mds-hold"
+/* mds_limits_t, new, stack only: the effective joint limits (URDF and joint table), published once when the daemon starts. */
+/*   written by daemon; read by mux, collision, ik, bridge, console, viewer, read, mds-ach, achd, clients */
+#define MDS_CHAN_LIMITS_NAME "mds-limits"
 /* What the daemon executes (only the stack's user writes it). */
 #define MDS_CHAN_DAEMON_INPUT_NAME MDS_CHAN_REF_NAME
 
@@ -545,6 +549,18 @@ typedef struct MDS_PACKED mds_hold {
     double time;                                         /* @1000 CLOCK_MONOTONIC when written */
 } mds_hold_t;
 MDS_STATIC_ASSERT(sizeof(mds_hold_t) == 1008, "mds_hold_t must be 1008 bytes");
+
+/* mds-limits frame (packed). */
+typedef struct MDS_PACKED mds_limits {
+    uint32_t seq;                                        /* @0 the writer's publication counter (1 for the daemon's start-up frame) */
+    uint8_t valid[MDS_JOINT_COUNT];                      /* @4 1 = the joint has limits (every joint of the table); 0 = no such joint */
+    double lower[MDS_JOINT_COUNT];                       /* @104 lowest allowed reference, rad (joint space) */
+    double upper[MDS_JOINT_COUNT];                       /* @904 highest allowed reference, rad */
+    char robot[MDS_CHAR_PARAM_BUFFER_SIZE];              /* @1704 the joint table's robot variant (default, isaac, ...), char[30] */
+    char source[MDS_LIMITS_SOURCE_SIZE];                 /* @1734 where the numbers come from (files), NUL-terminated ASCII */
+    double time;                                         /* @1862 CLOCK_MONOTONIC when written */
+} mds_limits_t;
+MDS_STATIC_ASSERT(sizeof(mds_limits_t) == 1870, "mds_limits_t must be 1870 bytes");
 
 /* ---- legacy bare macros of the original mds.h: RIGHT/LEFT and the 13 arm and torso joints by
    short and long name (#define LSP 0x005f). They are common words, so define

@@ -31,6 +31,7 @@ from trajectory_msgs.msg import JointTrajectory
 import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.ach.glibc import tune_thread
+from mds_ach.kinematics.limits import current_limits, urdf_with_limits
 from mds_ach.nodes.rosnode import Param, declare
 from mds_ach.robot import joints
 from mds_ach.robot.channels import StructChannel
@@ -127,7 +128,8 @@ class BridgeNode(Node):
         self._ik_dof = {"left": p("ik_dof_left").value, "right": p("ik_dof_right").value}
         self._ik_frames = {"", p("ik_frame").value}
         urdf = p("urdf").value or str(paths.urdf_path())
-        self._limits = load_limits(joints.MODEL_JOINTS, robot=p("robot").value or None)
+        self._effective = current_limits(p("robot").value or None)
+        self._limits = load_limits(joints.MODEL_JOINTS, effective=self._effective)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._names = list(joints.MODEL_JOINTS)
@@ -154,7 +156,8 @@ class BridgeNode(Node):
         self._ref_msg = JointState(name=self._names)
         if p("publish_robot_description").value:
             self._desc_pub = self.create_publisher(String, topics.ROBOT_DESCRIPTION, LATCHED_QOS)
-            self._desc_pub.publish(String(data=Path(urdf).read_text()))
+            # The URDF with the effective limits, so MoveIt, RViz sliders and planners use what the robot accepts.
+            self._desc_pub.publish(String(data=urdf_with_limits(Path(urdf).read_text(), self._effective)))
         self.create_subscription(JointState, topics.JOINT_COMMAND, self._on_joint_command, COMMAND_QOS)
         self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, COMMAND_QOS)
         self.create_subscription(Float64MultiArray, topics.JOINT_POSITIONS, self._on_positions, COMMAND_QOS)

@@ -68,14 +68,26 @@ def test_positions_from_array_uses_the_documented_order() -> None:
         positions_from_array(values[:-1], limits)
 
 
-def test_limits_come_from_the_joint_table() -> None:
+def test_limits_are_the_effective_limits() -> None:
+    """Issue #17: the joint table intersected with the URDF (mds_ach.kinematics.limits), not the table alone."""
+    from mds_ach.kinematics.limits import compute
+    from mds_ach.kinematics.model import load_model
     from mds_ach.robot import config
 
     table = config.load()
+    urdf = load_model()
+    effective = compute(table)
     limits = load_limits()
     assert set(limits) == {n for n in joints.MODEL_JOINTS if table[n].enabled}
     for name, (lower, upper) in limits.items():
-        assert (lower, upper) == (table[name].lower, table[name].upper)
+        assert (lower, upper) == effective.range(name)
+        assert (lower, upper) == (max(table[name].lower, urdf.joints[name].lower),
+                                  min(table[name].upper, urdf.joints[name].upper))
+    for name, value in (("LSR", -0.15), ("RSR", 0.15), ("LEP", -2.45), ("REP", -2.45), ("LWR", -1.0),
+                        ("RWR", 1.0)):  # the table allows these, the URDF does not
+        assert table[name].within_limits(value)
+        with pytest.raises(CommandError, match=f"{name}: position .* is outside the limits"):
+            positions_by_name([name], [value], limits)
 
 
 # --------------------------------------------------------------------------------------------- trajectories
@@ -420,11 +432,43 @@ def test_state_thread_gets_the_requested_realtime_priority(harness: Harness) -> 
         assert fifo == [] and "SCHED_FIFO 7 refused" in harness.bridge_log()
 
 
+def assert_description_limits(text: str, limits) -> None:
+    """Every actuated joint of the URDF text carries exactly the effective limits."""
+    import xml.etree.ElementTree as ET
+
+    seen = set()
+    for joint in ET.fromstring(text).findall("joint"):
+        limit = joint.find("limit")
+        if joint.get("type") == "fixed" or limit is None:
+            continue
+        name = joint.get("name")
+        assert (float(limit.get("lower")), float(limit.get("upper"))) == limits.range(name), name
+        seen.add(name)
+    assert seen == set(joints.MODEL_JOINTS)
+
+
+def test_urdf_with_limits_carries_the_effective_limits() -> None:
+    from mds_ach.kinematics.limits import compute, urdf_with_limits
+
+    limits = compute()
+    raw = paths.urdf_path().read_text()
+    text = urdf_with_limits(raw, limits)
+    assert_description_limits(text, limits)
+    assert 'name="LSR"' in text and text.count("<limit") == raw.count("<limit")  # nothing else rewritten
+    assert limits.range("LSR")[0] == 0.0 and limits.range("LWR") == (-0.4712, 0.4712)
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 def test_robot_description_is_latched(harness: Harness) -> None:
     harness.spin_until(lambda: harness.descriptions, 10.0, "/robot_description")
-    assert harness.descriptions[-1].data == paths.urdf_path().read_text()
+    from mds_ach.kinematics.limits import current_limits, urdf_with_limits
+
+    published = current_limits()
+    assert published.published  # the harness runs a daemon: mds-limits is there
+    text = harness.descriptions[-1].data
+    assert text == urdf_with_limits(paths.urdf_path().read_text(), published)
+    assert_description_limits(text, published)
 
 
 @pytest.mark.ros

@@ -50,7 +50,7 @@ def test_make_creates_every_channel(run) -> None:
     rc, out, err = run("make")
     assert (rc, err) == (0, "")
     for name in mds.ALL_CHANNELS:
-        assert mode_of(name) == (0o640 if name == mds.MDS_CHAN_DAEMON_INPUT_NAME else 0o660)
+        assert mode_of(name) == (0o640 if name in channel_access.STACK_ONLY else 0o660)
         with ach.Channel(name, create=False) as ch:
             assert (ch.frame_count, ch.frame_size) == (10, 3000)
         assert f"{name} " in out

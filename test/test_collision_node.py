@@ -533,6 +533,45 @@ def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: Non
     assert holds > 5, "the left hand was never held"
 
 
+def test_runner_logs_a_refusal_once_per_change_and_counts_it(clean_shm: None, model) -> None:
+    """Issue #17: the gate refused an out-of-limit input every frame and logged it every second, forever, while
+    nothing said so elsewhere. Now: one message per change of what is refused (values and limits named), a
+    counter in the runner and in /mds/collision's JSON."""
+    from mds_ach.robot.channels import StructChannel
+
+    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    lower, upper = joint_limits(model)
+    logs: list[tuple[str, str]] = []
+    docs: list[dict] = []
+    runner = GateRunner(model, GateConfig(), lower, upper, log=lambda level, msg: logs.append((level, msg)),
+                        on_report=lambda d, g, now: docs.append(decision_to_dict(d, g, now, runner.refused_count)))
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    bad = HOME.copy()
+    bad[mds.LWR] = -1.0  # inside the joint table's range, outside the URDF's (+-0.4712)
+    worse = bad.copy()
+    worse[mds.LSR] = -0.15  # the table allows -0.18, the URDF stops at 0
+    frames = [HOME] + [bad] * 30 + [worse] * 30 + [HOME] * 5
+    try:
+        assert runner.ready.wait(10), logs
+        for k, ref in enumerate(frames):  # lock-step: every frame is gated (30 frames of one refusal)
+            smooth.put(make_ref(ref, ZERO_MODE))
+            wait_for(lambda k=k: runner.processed > k, 10, what=f"the gate to process frame {k}")
+    finally:
+        runner.stop()
+        t.join(5)
+        smooth.close()
+    refusals = [m for level, m in logs if "refus" in m]
+    assert len(refusals) == 3, refusals  # LWR, then LWR + LSR, then accepted again
+    assert "LWR: -1.00000 rad outside [-0.47120, 0.47120]" in refusals[0]
+    assert "LSR: -0.15000 rad outside [0.00000," in refusals[1]
+    assert "accepted again (60 refused so far)" in refusals[2]
+    assert runner.refused_count == 60
+    assert docs[-1]["refused_count"] == 60 and docs[-1]["refused"] == []
+    assert any(d["refused"] == ["LSR", "LWR"] and d["refused_count"] >= 31 for d in docs)
+
+
 # --------------------------------------------------------------------------------------------- node
 
 

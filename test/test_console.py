@@ -278,6 +278,22 @@ def test_goto_refuses_out_of_range_and_disabled_joints(system: dict[str, str]) -
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(("short", "value"), [("LSR", -0.15), ("RSR", 0.15), ("LEP", -2.45), ("REP", -2.45),
+                                              ("LWR", -1.0), ("RWR", 1.0)])
+def test_goto_refuses_what_the_urdf_refuses_at_once(system: dict[str, str], short: str, value: float) -> None:
+    """Issue #17: the joint table allows these, the URDF does not. `goto LSR -0.15` was accepted and stopped at
+    0.023 ("did not arrive ... collision gate: clear"); now it is refused before anything is sent, naming the
+    limits the daemon published."""
+    before = joint_ref(short)
+    proc = run_console(system, f"goto {short} {value} wait")
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert f"refused, nothing sent: {value:.5f} rad is outside {short}'s range" in proc.stderr
+    assert "effective limits: URDF & joint table, robot" in proc.stderr
+    time.sleep(0.3)  # a refused command must not move anything: give a wrong one time to show
+    assert joint_ref(short) == pytest.approx(before, abs=1e-9)
+
+
+@pytest.mark.slow
 def test_bad_input_prints_the_problem_and_the_usage(system: dict[str, str]) -> None:
     proc = run_console(system, "get LSP", "goto LSP", "get LSP")
     assert proc.returncode == 1

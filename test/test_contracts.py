@@ -49,7 +49,7 @@ def test_structs_of_the_channels() -> None:
                 "mds-cmd": msgs.MDS_CMD, "mds-ref-ik": msgs.MDS_REF, "mds-ref-ros": msgs.MDS_REF,
                 "mds-ref-mux": msgs.MDS_REF, "mds-ref-smooth": msgs.MDS_REF, "mds-ik-state": msgs.MDS_IK_STATUS,
                 "mds-mux-state": msgs.MDS_MUX_STATE, "mds-daemon-status": msgs.MDS_DAEMON_STATUS,
-                "mds-hold": msgs.MDS_HOLD}
+                "mds-hold": msgs.MDS_HOLD, "mds-limits": msgs.MDS_LIMITS}
     assert {c.name: c.struct for c in contracts.CHANNELS} == expected
 
 
@@ -129,11 +129,15 @@ def test_network_defaults_never_reach_the_daemon() -> None:
     assert mds.MDS_CHAN_DAEMON_INPUT_NAME not in achd.SAFE_WRITABLE
     assert mds.MDS_CHAN_BOARD_CMD_NAME not in achd.SAFE_WRITABLE
     assert set(remote.ROBOT_READABLE) == {"mds-state", "mds-param", "mds-collide", "mds-daemon-status",
-                                          "mds-mux-state", "mds-ik-state"}
+                                          "mds-mux-state", "mds-ik-state", "mds-limits"}
 
 
 def test_stack_only_is_the_daemon_input() -> None:
-    assert contracts.STACK_ONLY == access.STACK_ONLY == frozenset({mds.MDS_CHAN_DAEMON_INPUT_NAME})
+    # mds-limits too: the limit authority every entry point checks against is the daemon's alone (issue #17)
+    assert contracts.STACK_ONLY == access.STACK_ONLY == frozenset({mds.MDS_CHAN_DAEMON_INPUT_NAME,
+                                                                   mds.MDS_CHAN_LIMITS_NAME})
+    assert contracts.BY_NAME[mds.MDS_CHAN_LIMITS_NAME].writers == (contracts.DAEMON,)
+    assert access.channel_mode(mds.MDS_CHAN_LIMITS_NAME) == 0o640
     assert contracts.BY_NAME[mds.MDS_CHAN_DAEMON_INPUT_NAME].writers == (contracts.COLLISION,)
     assert access.channel_mode(mds.MDS_CHAN_DAEMON_INPUT_NAME) == 0o640
     assert access.channel_mode(mds.MDS_CHAN_REF_FILTER_NAME) == 0o660

@@ -29,6 +29,7 @@ from mds_ach.bus import canio, mcb
 from mds_ach.bus.constants import CAN_ERR_CRTL, CAN_ERR_CRTL_ACTIVE, CAN_ERR_CRTL_RX_PASSIVE
 from mds_ach.bus.mcb import Command, StateArg
 from mds_ach.bus.simbus import ManualClock, SimNetwork
+from mds_ach.kinematics import limits as effective_limits
 from mds_ach.nodes import daemon
 from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
 from mds_ach.nodes.filters import filter_length
@@ -144,7 +145,8 @@ def test_zero_order_hold(rig: DaemonRig) -> None:
 
 
 def test_limits_clamp_and_report(rig: DaemonRig) -> None:
-    lep = TABLE["LEP"]
+    lep = rig.loop.table["LEP"]  # the effective limits (URDF & joint table, mds_ach.kinematics.limits)
+    assert lep.upper == effective_limits.compute(TABLE).range("LEP")[1]
     rig.put_ref(LEP=0.5)  # beyond the elbow's upper limit (about -0.0153)
     st = ramp_done(rig, "LEP", lep.upper)[-1]
     s = st.joint[lep.address]
@@ -157,6 +159,24 @@ def test_limits_clamp_and_report(rig: DaemonRig) -> None:
     rig.step(40)
     assert rig.measured("LEP") <= lep.upper + 1e-6
     assert status_of(rig).refs_clamped == 1  # counted once per received value, not per held cycle
+
+
+@pytest.mark.parametrize(("short", "value", "limit"), [("LWR", -1.0, -0.4712), ("LSR", -0.15, 0.0),
+                                                       ("REP", -2.45, -2.4)])
+def test_the_daemon_clamps_to_the_urdf_and_publishes_mds_limits(rig: DaemonRig, short: str, value: float,
+                                                                 limit: float) -> None:
+    """Issue #17: the joint table allows these, the URDF does not; the daemon clamps to the same effective limits
+    it publishes on mds-limits (where every entry point reads them)."""
+    assert TABLE[short].within_limits(value)
+    with StructChannel.of(mds.MDS_CHAN_LIMITS_NAME) as chan:
+        published = chan.latest()
+    assert published is not None
+    limits = effective_limits.EffectiveLimits.from_msg(published)
+    assert limits.robot == TABLE.robot and limits.range(short) == effective_limits.compute(TABLE).range(short)
+    rig.put_ref(**{short: value})
+    st = ramp_done(rig, short, limit, max_cycles=200)[-1]
+    assert st.joint[TABLE[short].address].ref == pytest.approx(limit, abs=1e-6)
+    assert status_of(rig).joint_flags[TABLE[short].address] & ds.JOINT_CLAMPED
 
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])

@@ -255,6 +255,9 @@ def test_status_reports_nodes_rate_bus_load_and_collisions(system: dict[str, str
     assert re.search(r"^daemon\s+[\d.]+/10 Hz, .*bus active \d+% \(nocan\)", proc.stdout, re.M), proc.stdout
     assert re.search(r"^collision\s+clear$", proc.stdout, re.M), proc.stdout
     assert "robot      isaac" in proc.stdout
+    # issue #17: where the limits come from (the daemon's, for its robot) and whether the gate refuses anything
+    assert re.search(r"^limits\s+URDF & joint table, robot isaac from mds-limits \(the daemon's\); nothing refused$",
+                     proc.stdout, re.M), proc.stdout
 
 
 @pytest.mark.slow

@@ -45,6 +45,7 @@ from mds_ach import ach
 from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
 from mds_ach.robot import contracts
+from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_REF
 
 log = logging.getLogger("mds_ach.net.achd")
 
@@ -182,17 +183,63 @@ class _Source:
         return frame
 
 
-class _Sink:
-    """Writes received frames into a local channel, after the size and content checks."""
+class RefLimitCheck:
+    """The one limit authority at the network door (issue #17): a reference frame a peer writes into one of our
+    ``mds-ref-*`` inputs is refused when a joint it *changes* is outside the effective limits (``mds-limits``).
 
-    def __init__(self, chan, rule: FrameRule, stats: LinkStats) -> None:
+    Changed, as the mux counts it: compared with the previous frame this link wrote, the first one with the
+    channel's newest frame (read when the link starts), so a read-modify-write client re-sending a pose the robot
+    is at (perhaps outside the limits after power-on) is not refused for joints it does not move. Into a channel
+    that never had a frame (no mux ran: the mux takes frames waiting at its start as old, never applies them)
+    the first frame is only the base."""
+
+    def __init__(self, chan, limits: Any) -> None:
+        self.limits = limits
+        self.base: Any = None
+        buf = bytearray(max(1, _geometry(chan)[1]))
+        status, size = chan.get(buf, last=True)
+        if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME) and size == ctypes.sizeof(MDS_REF):
+            self.base = MDS_REF.from_buffer_copy(buf)
+
+    @classmethod
+    def for_channel(cls, chan, name: str) -> RefLimitCheck | None:
+        """A check for the controller inputs (``mds-ref-*`` but the daemon's own input), else None."""
+        found = contracts.lookup(name)
+        if found is None or found.struct is not MDS_REF or name == contracts.MDS_CHAN_DAEMON_INPUT_NAME:
+            return None
+        from mds_ach.kinematics.limits import current_limits  # numpy and the URDF only where references come in
+
+        return cls(chan, current_limits())
+
+    def problem(self, payload: bytes) -> tuple[str, str] | None:
+        """``("invalid", reason)`` when the frame changes a joint to a value outside its limits, else None (then
+        the frame is the new base)."""
+        ref = MDS_REF.from_buffer_copy(payload)
+        base = self.base if self.base is not None else ref
+        changed = {a: ref.joint[a].ref for a in range(MDS_JOINT_COUNT)
+                   if self.limits.valid[a] and ref.joint[a].ref != base.joint[a].ref}
+        problems = self.limits.problems(changed)
+        if problems:
+            return "invalid", "refused by the joint limits: " + "; ".join(problems)
+        self.base = ref
+        return None
+
+
+class _Sink:
+    """Writes received frames into a local channel, after the size and content checks (and, for the reference
+    inputs a peer writes into our server, the limit check)."""
+
+    def __init__(self, chan, rule: FrameRule, stats: LinkStats, limits: RefLimitCheck | None = None) -> None:
         self.chan = chan
         self.rule = rule
         self.stats = stats
+        self.limits = limits
         self._ach = ach
 
     def put(self, payload: bytes) -> None:
         problem = self.rule.problem(payload)
+        if problem is None and self.limits is not None:
+            problem = self.limits.problem(payload)
         if problem:
             _count_drop(self.stats, problem, "received frame dropped")
             return
@@ -873,8 +920,10 @@ class Server:
                     chan.flush()
                 _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first, self.idle_timeout_s)
             else:
+                limits = RefLimitCheck.for_channel(chan, name)  # reads the channel's newest frame: before the flush
                 chan.flush()
-                _run_receiver(conn, _Sink(chan, rule, stats), stats, self._stop, self.max_frame, self.idle_timeout_s)
+                _run_receiver(conn, _Sink(chan, rule, stats, limits), stats, self._stop, self.max_frame,
+                              self.idle_timeout_s)
         except (OSError, ConnectionLostError) as exc:
             self.idle_closed += isinstance(exc, IdleConnectionError)
             log.info("%s: finished: %s", who, exc)

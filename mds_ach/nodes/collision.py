@@ -2,9 +2,10 @@
 
 Every reference is checked before it can reach the daemon, in this order:
 
-1. **Validation.** NaN/Inf or out-of-limit values (URDF limits intersected with the joint table) and unknown
-   ref modes (not 0..3) are never passed on: those joints keep their last sent value and mode, and the
-   refusal is logged (throttled).
+1. **Validation.** NaN/Inf or out-of-limit values (the effective limits, ``mds_ach.kinematics.limits``: URDF
+   & joint table, the numbers every entry point refuses) and unknown ref modes (not 0..3) are never passed on:
+   those joints keep their last sent value and mode. The refusal is logged once per change of what is refused
+   and counted (``refused_count`` in ``/mds/collision``).
 2. **Speed bound.** No joint moves faster than ``max_velocity`` between two outputs (wall time; a pause
    credits at most ``max_dt``; the first reference after start moves nothing). Joints that were held come
    back at ``release_velocity`` (the filter's speed) until they have caught up with the input.
@@ -69,6 +70,7 @@ from std_msgs.msg import Float64, String
 import mds_ach as mds
 from mds_ach import paths
 from mds_ach.kinematics.collision import CheckResult, load_model, load_yaml
+from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import filters
 from mds_ach.nodes.pipeline import (
@@ -82,7 +84,6 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
-from mds_ach.robot import config as joint_config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
 from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
@@ -506,8 +507,8 @@ class Gate:
         return c
 
 
-def decision_to_dict(d: Decision | None, gate: Gate, now: float) -> dict[str, Any]:
-    """The JSON document of /mds/collision."""
+def decision_to_dict(d: Decision | None, gate: Gate, now: float, refused_count: int = 0) -> dict[str, Any]:
+    """The JSON document of /mds/collision (``refused_count``: references refused by validation so far)."""
     res = d.result if d is not None else gate.current
     now_contacts = d.contacts if d is not None else gate.current
     return {
@@ -521,18 +522,17 @@ def decision_to_dict(d: Decision | None, gate: Gate, now: float) -> dict[str, An
         "escaping": list(d.escaping) if d is not None else [],
         "measured": bool(d.measured) if d is not None else False,
         "refused": [labels([a]) for a in d.refused] if d is not None else [],
+        "refused_count": refused_count,
         "overridden": bool(d.overridden) if d is not None else False,
         "override_remaining": round(gate.override_remaining(now), 3),
         "margin": gate.model.margin,
     }
 
 
-def joint_limits(model: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Per-address limits: the joint table (config/joints.yaml) intersected with the URDF for modelled joints."""
-    lower = np.full(MDS_JOINT_COUNT, -math.inf)
-    upper = np.full(MDS_JOINT_COUNT, math.inf)
-    for j in joint_config.load():
-        lower[j.address], upper[j.address] = j.lower, j.upper
+def joint_limits(model: Any, limits: EffectiveLimits | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-address limits: the effective limits (``mds_ach.kinematics.limits``: URDF & joint table, ``mds-limits``
+    when the daemon published them), narrowed further by this gate's model when it was given another URDF."""
+    lower, upper = (limits or current_limits()).arrays()
     lower[model.addresses] = np.maximum(lower[model.addresses], model.lower)
     upper[model.addresses] = np.minimum(upper[model.addresses], model.upper)
     return lower, upper
@@ -569,6 +569,7 @@ class GateRunner:
         self.gate: Gate | None = None
         self.ready = threading.Event()
         self.processed = 0
+        self.refused_count = 0  # references with at least one refused joint (/mds/collision "refused_count")
         self.check_times: list[float] = []
 
     def stop(self) -> None:
@@ -596,7 +597,8 @@ class GateRunner:
         self.gate = gate
         report_period = 1.0 / self.config.report_rate
         override_log = 0.0
-        last_refusal_log = last_override_log = -math.inf
+        last_override_log = -math.inf
+        refusing: tuple[int, ...] = ()  # what the last reference had refused: logged once per change
         guard = ChannelGuard(self.log, self._stop)
         watch = ReseedWatch(self.log, self._stop)
         try:
@@ -631,10 +633,10 @@ class GateRunner:
                     guard.call(collide.name, collide.put, gate.report(now))
                     guard.call(out.name, out.put, make_ref(decision.ref, decision.mode))
                     self.processed += 1
-                    if decision.refused and now - last_refusal_log > 1.0:
-                        self.log("error", f"refused out-of-limit/non-finite references or bad modes for "
-                                          f"{labels(decision.refused)} (held at their last value)")
-                        last_refusal_log = now
+                    self.refused_count += bool(decision.refused)
+                    if decision.refused != refusing:
+                        self._log_refusal(decision.refused, refusing, frame)
+                        refusing = decision.refused
                     if decision.overridden and now - last_override_log > 1.0:
                         self.log("error", f"EXPERT OVERRIDE passed a predicted collision: "
                                           f"{sorted(decision.result.pairs)}")
@@ -652,6 +654,25 @@ class GateRunner:
                 ms = np.array(self.check_times) * 1e3
                 self.log("info", f"{self.processed} references gated; decision time median {np.median(ms):.2f} ms, "
                                  f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.2f} ms")
+
+    def _log_refusal(self, refused: tuple[int, ...], before: tuple[int, ...], frame: Any) -> None:
+        """One message per change of what is refused (not one per reference: a refusal lasts while the input
+        does), with the values and the limits they broke."""
+        if not refused:
+            self.log("info", f"references for {labels(before)} accepted again ({self.refused_count} refused so far)")
+            return
+        ref, mode = ref_arrays(frame)
+        why = []
+        for a in refused:
+            value, lo, hi = float(ref[a]), float(self.lower[a]), float(self.upper[a])
+            if not 0 <= int(mode[a]) <= 3:
+                why.append(f"{labels([a])}: unknown mode {int(mode[a])}")
+            elif not math.isfinite(value):
+                why.append(f"{labels([a])}: non-finite {value}")
+            else:
+                why.append(f"{labels([a])}: {value:.5f} rad outside [{lo:.5f}, {hi:.5f}]")
+        self.log("error", f"refusing references (held at their last value until the input is valid again): "
+                          f"{'; '.join(why)}")
 
     def _apply_overrides(self, gate: Gate, now: float, last_log: float) -> float:
         with self._lock:
@@ -747,7 +768,7 @@ class CollisionNode(Node):
         self.runner.request_override(float(msg.data))
 
     def _on_report(self, decision: Decision | None, gate: Gate, now: float) -> None:
-        doc = decision_to_dict(decision, gate, now)
+        doc = decision_to_dict(decision, gate, now, self.runner.refused_count)
         key = json.dumps({k: v for k, v in doc.items() if k != "time"})
         if not self.context.ok():  # shutting down after SIGINT/SIGTERM
             return

@@ -5,9 +5,9 @@ One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread
 1. setup commands queued from ``mds-cmd`` or the ROS service (enable, disable, home, reset, zero, reset bus);
 2. newest ``mds-collide`` (copied into ``state.collide``) and newest ``mds-ref`` -- nothing new means the
    previous reference holds (zero-order hold); NaN/Inf or an unknown mode refuses that joint's value;
-3. per joint: clamp to the joint limits, then the legacy mode (0 first-order filter with L giving 95 % of a
-   step in 4.0 s at the loop rate, 1 pass-through, 2 compliant (follow the encoder), 3 encoder filter): the
-   joint's *goal*;
+3. per joint: clamp to the effective limits (URDF & joint table, ``mds_ach.kinematics.limits``), then the legacy
+   mode (0 first-order filter with L giving 95 % of a step in 4.0 s at the loop rate, 1 pass-through, 2 compliant
+   (follow the encoder), 3 encoder filter): the joint's *goal*;
 4. for enabled joints, unless ``mds-collide`` says a collision is predicted for that arm (``_collision_held``):
    the goal through ``motion.limit`` at the moment the joint's frames go out, then, if the target (float32
    counts) changed, the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
@@ -72,6 +72,8 @@ from mds_ach.bus.constants import (
     CAN_ERR_RESTARTED,
 )
 from mds_ach.bus.mcb import Response, StateArg
+from mds_ach.kinematics import limits as effective_limits
+from mds_ach.kinematics.limits import EffectiveLimits
 from mds_ach.nodes import filters
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import contracts, motion
@@ -149,6 +151,7 @@ DAEMON_ROLES: dict[str, str] = {
     "cmd": mds.MDS_CHAN_BOARD_CMD_NAME,
     "status": mds.MDS_CHAN_DAEMON_STATUS_NAME,
     "param": mds.MDS_CHAN_PARAM_NAME,
+    "limits": mds.MDS_CHAN_LIMITS_NAME,
 }
 
 
@@ -162,6 +165,7 @@ class DaemonChannels:
     cmd: ach.Channel  # raw (see open)
     status: StructChannel
     param: StructChannel
+    limits: StructChannel
 
     @classmethod
     def open(cls, lock_timeout: float | None = lock_timeout_for(1.0 / mds.MDS_LOOP_PERIOD)) -> DaemonChannels:
@@ -184,7 +188,7 @@ class DaemonChannels:
         return cls(**opened)
 
     def close(self) -> None:
-        for ch in (self.ref, self.state, self.collide, self.cmd, self.status, self.param):
+        for ch in (self.ref, self.state, self.collide, self.cmd, self.status, self.param, self.limits):
             ch.close()
 
 
@@ -280,9 +284,15 @@ class DaemonLoop:
         nocan: bool = False,
         rt_priority: int = 0,
         clock: Callable[[], float] = time.monotonic,
+        limits: EffectiveLimits | None = None,
     ) -> None:
         if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
             raise ValueError(f"loop rate must be in (0, 1000] Hz, got {rate_hz}")
+        # The one limit authority (issue #17): URDF & joint table, published on mds-limits at start and the
+        # range every target is clamped to here, so the daemon clamps exactly what every entry point refuses.
+        self.limits = effective_limits.compute(table) if limits is None else limits
+        self.physical: dict[int, JointConfig] = {j.address: j for j in table}  # the ROM: replies are judged on it
+        table = effective_limits.narrow_table(table, self.limits)
         self.table = table
         self.io = io
         self.ch = channels
@@ -338,7 +348,7 @@ class DaemonLoop:
     # --- start-up --------------------------------------------------------------------------------------
 
     def start_up(self, listen: float = 2.0, queries: int = 8) -> int:
-        """Publish ``mds-param``, read where the robot is and start the reference there (no step).
+        """Publish ``mds-param`` and ``mds-limits``, read where the robot is and start the reference there (no step).
 
         Joints that answer start at their measured position (their tracks are re-seeded there); the others
         show the configured home pose and get no target until they answer. It asks ``queries`` times within
@@ -347,6 +357,7 @@ class DaemonLoop:
         reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped. Returns how many joints answered.
         """
         self._put(self.ch.param, self.table.to_param())
+        self._put(self.ch.limits, self.limits.to_msg(now=self.clock()))
         for ch in (self.ch.ref, self.ch.cmd):
             try:
                 ch.flush()
@@ -845,7 +856,7 @@ class DaemonLoop:
             jr.reseed = True
         jr.last_heard = now
         cfg = jr.cfg
-        in_range = reply_in_range(cfg, q)
+        in_range = reply_in_range(self.physical[cfg.address], q)  # where the joint can be, not where it is sent
 
         def near(q0: float, t0: float) -> bool:
             return abs(q - q0) <= REPLY_SPEED_FACTOR * self.bounds.max_velocity * max(now - t0, 0.0) + REPLY_SLACK

@@ -5,7 +5,7 @@ the order x, y, z, roll, pitch, yaw from ``t_x t_y t_z r_x r_y r_z``; robot fram
 
 1. refuse bad requests (arm not 0/1, DOF not 1..6, NaN/Inf among the used values) with a message;
 2. seed from the current reference (``mds-state`` joint[].ref, as the original did; else ``mds-ref``);
-3. solve with ``mds_ach.ik`` inside the URDF limits narrowed to the active robot's joint table; candidate
+3. solve with ``mds_ach.ik`` inside the effective limits (``mds_ach.kinematics.limits``: URDF & joint table); candidate
    poses and the joint-space path to them are collision-checked (``mds_ach.kinematics.collision``) when available;
 4. on success write the arm's six references into the node's output channel: ``mds-ref-ik``, the ik input
    of the mux (``--output mds-ref-filter`` for the legacy set-up without a mux). The frame is the newest one
@@ -36,10 +36,10 @@ from std_msgs.msg import String
 import mds_ach as mds
 from mds_ach.kinematics import ik
 from mds_ach.kinematics.collision import load_model
+from mds_ach.kinematics.limits import current_limits
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import current_reference, make_ref
 from mds_ach.nodes.rosnode import Param, declare, ros_log, run_node, start_worker
-from mds_ach.robot import config as joint_config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs.ik_status import (
@@ -154,12 +154,10 @@ class IkService:
 
 
 def arm_limits(robot: str | None = None) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Per-arm (lower, upper) from the active robot's joint table (config/joints.yaml + overlay)."""
-    table = {j.short: j for j in joint_config.load(robot)}
-    out = {}
-    for arm, names in ARM_JOINTS.items():
-        out[arm] = (np.array([table[n].lower for n in names]), np.array([table[n].upper for n in names]))
-    return out
+    """Per-arm (lower, upper): the effective limits (URDF & the active robot's joint table, ``mds-limits`` when
+    the daemon published them), so a solution is never one the mux or the gate would refuse."""
+    limits = current_limits(robot)
+    return {arm: limits.of(names) for arm, names in ARM_JOINTS.items()}
 
 
 def collision_safety(log: Callable[[str, str], None]) -> SafetyFactory | None:

@@ -44,6 +44,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 import mds_ach as mds
+from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes.pipeline import (
     KNOWN_ADDRESSES,
     ChannelGuard,
@@ -171,8 +172,13 @@ class MuxCore:
     """The merge rule and the hold state, without channels or threads (so it can be tested exactly). Times are
     wall seconds."""
 
-    def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray) -> None:
+    def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray,
+                 limits: EffectiveLimits | None = None) -> None:
         self.controllers = list(controllers)
+        self.limits = limits  # the one limit authority (mds-limits): a modified joint outside refuses the frame
+        bounds = limits.arrays() if limits is not None else (np.empty(0), np.empty(0))
+        self._lower: np.ndarray = bounds[0]
+        self._upper: np.ndarray = bounds[1]
         n = len(self.controllers)
         self.ref = np.array(ref, dtype=float)
         self.mode = np.array(mode, dtype=np.int16)
@@ -222,6 +228,7 @@ class MuxCore:
         NaN/Inf in a known joint, when it modifies a joint the controller is not permitted (config ``joints``),
         or when a fresh, higher-priority controller owns one of the modified joints (the message names it).
         A modified joint that was held or cancelled is released: a new command for it.
+        A frame that modifies a joint to a value outside the effective limits (mds-limits) is refused too.
         """
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
@@ -237,6 +244,12 @@ class MuxCore:
         self._prev[index] = (ref.copy(), mode.copy())
         if not modified.any():
             return False, None
+        if self.limits is not None:
+            outside = modified & ((ref < self._lower) | (ref > self._upper))
+            if outside.any():
+                self._verdict(index, VERDICT_INVALID, joint=int(np.flatnonzero(outside)[0]))
+                why = "; ".join(self.limits.problems({int(a): float(ref[a]) for a in np.flatnonzero(outside)}))
+                return False, f"refused a frame from '{name}' as a whole: {why}; nothing applied"
         self.last_change[index] = now
         self.release_stale(now)
         forbidden = modified & ~self._permit[index]
@@ -428,7 +441,7 @@ class MuxRunner:
         out = StructChannel(self.output_name, mds.MDS_REF)
         state_ch = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         watch = ReseedWatch(self.log, self._stop)
-        core = MuxCore(self.controllers, ref, mode)
+        core = MuxCore(self.controllers, ref, mode, current_limits())
         hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
         hold_ch.flush()  # requests from before this start are old: the output restarts from the reference anyway
         self._hold_ch = hold_ch

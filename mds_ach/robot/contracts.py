@@ -31,6 +31,7 @@ from mds_ach.robot.msgs import (
     MDS_IK,
     MDS_IK_STATUS,
     MDS_JOINT_PARAM,
+    MDS_LIMITS,
     MDS_MUX_STATE,
     MDS_REF,
     MDS_STATE,
@@ -38,6 +39,7 @@ from mds_ach.robot.msgs import (
 )
 from mds_ach.robot.msgs.hold import check_hold
 from mds_ach.robot.msgs.legacy import MDS_REF_MODES
+from mds_ach.robot.msgs.limits import check_limits
 
 # --- processes (the writers and readers named below) -------------------------------------------------------
 DAEMON = "daemon"
@@ -69,6 +71,7 @@ MDS_CHAN_IK_STATE_NAME = "mds-ik-state"
 MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"
 MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"
 MDS_CHAN_HOLD_NAME = "mds-hold"
+MDS_CHAN_LIMITS_NAME = "mds-limits"
 MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_NAME
 """What the daemon executes (the collision gate's output). The one name to change when it is renamed; its
 contract is ``stack_only``: operators write the controller inputs above it."""
@@ -221,6 +224,10 @@ CHANNELS: tuple[Contract[Any], ...] = (
              "hold / resume / cancel requests to the mux (the command lifecycle)",
              writers=(CONSOLE, CLI, BRIDGE, COLLISION, VIEWER, REMOTE, CLIENTS), readers=(MUX,), legacy=False,
              validator=check_hold),
+    Contract(MDS_CHAN_LIMITS_NAME, "MDS_CHAN_LIMITS_NAME", MDS_LIMITS,
+             "the effective joint limits (URDF and joint table), published once when the daemon starts",
+             writers=(DAEMON,), readers=(MUX, COLLISION, IK, BRIDGE, CONSOLE, VIEWER, READ, CLI, REMOTE, CLIENTS),
+             legacy=False, validator=check_limits, stack_only=True),
 )
 
 BY_NAME: Mapping[str, Contract[Any]] = {c.name: c for c in CHANNELS}

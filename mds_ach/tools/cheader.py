@@ -21,7 +21,7 @@ from typing import Any
 
 import mds_ach as mds
 from mds_ach.robot import contracts, joints, msgs
-from mds_ach.robot.msgs import daemon_status, hold, ik_status, legacy, mux_state
+from mds_ach.robot.msgs import daemon_status, hold, ik_status, legacy, limits, mux_state
 
 HEADER_PATH = Path(__file__).resolve().parents[2] / "include" / "mds.h"
 
@@ -54,6 +54,7 @@ _LENGTH_MACROS: dict[int, str] = {
     mux_state.MUX_MAX_CONTROLLERS: "MDS_MUX_MAX_CONTROLLERS",
     ik_status.IK_MESSAGE_SIZE: "MDS_IK_MESSAGE_SIZE",
     hold.HOLD_REASON_SIZE: "MDS_HOLD_REASON_SIZE",
+    limits.LIMITS_SOURCE_SIZE: "MDS_LIMITS_SOURCE_SIZE",
 }
 
 # The 13 joints the original mds.h named with bare macros (``#define LSP 0x005f`` and the long name).
@@ -259,6 +260,7 @@ def generate() -> str:
         f"#define MDS_MUX_MAX_CONTROLLERS {mux_state.MUX_MAX_CONTROLLERS}  /* mds_mux_state_t per-controller arrays */",
         f"#define MDS_IK_MESSAGE_SIZE {ik_status.IK_MESSAGE_SIZE}  /* mds_ik_status_t.message, NUL included */",
         f"#define MDS_HOLD_REASON_SIZE {hold.HOLD_REASON_SIZE}  /* mds_hold_t.reason, NUL included */",
+        f"#define MDS_LIMITS_SOURCE_SIZE {limits.LIMITS_SOURCE_SIZE}  /* mds_limits_t.source, NUL included */",
         f"#define MDS_LOOP_PERIOD {mds.MDS_LOOP_PERIOD!r}  /* s, default daemon period */",
         f"#define MDS_REF_FILTER_LENGTH {mds.MDS_REF_FILTER_LENGTH}",
         "",

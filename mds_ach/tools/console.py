@@ -24,10 +24,9 @@ from functools import lru_cache
 from pathlib import Path
 
 import mds_ach as mds
+from mds_ach.kinematics.limits import current_limits
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import lifecycle
-from mds_ach.robot.choice import effective_robot
-from mds_ach.robot.config import JointTable, load
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
 from mds_ach.tools.monitor import Latest, collision_summary
@@ -236,7 +235,6 @@ class Console:
         self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
         self.progress = progress or (lambda: print(".", end="", flush=True))
         self.state = Latest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
-        self._table: JointTable | None = None
 
     def close(self) -> None:
         self.state.close()
@@ -252,20 +250,14 @@ class Console:
                                "is MDS-Ach running? (mds-ach start)", usage=False)
         return state
 
-    def _joint_table(self) -> JointTable:
-        if self._table is None:
-            self._table = load(effective_robot()[0])
-        return self._table
-
     def _check_target(self, joint: Joint, value: float, state: mds.MDS_STATE) -> None:
         """Refuse what the daemon would refuse, with a message: disabled joints, targets beyond the limits."""
         if not state.joint[joint.address].enabled:
             raise CommandError(f"{joint.short} ({joint.name}) is disabled in the joint table; it cannot move",
                                usage=False)
-        cfg = self._joint_table().get(joint.address)
-        if cfg is not None and not cfg.within_limits(value):
-            raise CommandError(f"{value:.5f} rad is outside {joint.short}'s range "
-                               f"[{cfg.lower:.5f}, {cfg.upper:.5f}] rad", usage=False)
+        problem = current_limits().problem(joint.address, value)  # what the mux, gate and daemon accept
+        if problem is not None:
+            raise CommandError(f"refused, nothing sent: {problem}", usage=False)
 
     def _put_refs(self, targets: dict[int, float], state: mds.MDS_STATE) -> None:
         """Read-modify-write ``mds-ref-filter``: the mux takes only the joints that changed as commands."""

@@ -25,6 +25,7 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach import procs as background
+from mds_ach.kinematics.limits import current_limits
 from mds_ach.paths import bin_name, runtime_dir
 from mds_ach.robot import contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
@@ -34,7 +35,7 @@ from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
 from mds_ach.tools import repair
 from mds_ach.tools.holdcmd import held_summary
-from mds_ach.tools.monitor import Latest, collision_summary, daemon_line
+from mds_ach.tools.monitor import Latest, collision_summary, daemon_line, limits_line
 from mds_ach.tools.rosgraph import summary as ros_graph_summary
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
@@ -485,6 +486,7 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
     mux = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+    gate_input = Latest(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)  # what the gate checks against the limits
     try:
         daemon.read()
         live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
@@ -492,10 +494,15 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
         lines.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
         lines.append("collision  " + collision_summary(collide.read()))
         lines.append("held       " + held_summary(mux.read()))
+        try:
+            lines.append("limits     " + limits_line(current_limits(), gate_input.read()))
+        except ValueError as exc:  # a broken joint table or URDF: say so, the rest of the status still counts
+            lines.append(f"limits     unknown: {exc}")
     finally:
         daemon.close()
         collide.close()
         mux.close()
+        gate_input.close()
     return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
 
 

@@ -8,6 +8,7 @@ import ctypes
 
 import mds_ach as mds
 from mds_ach.ach.watch import Latest  # noqa: F401 - the one read-only channel watcher; the tools import it here
+from mds_ach.kinematics.limits import EffectiveLimits
 from mds_ach.robot.msgs.daemon_status import (
     JOINT_BAD_REPLY,
     JOINT_ENABLED,
@@ -90,3 +91,25 @@ def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
     if flags & JOINT_BAD_REPLY:
         return "BAD"
     return "-" if not flags & JOINT_ENABLED else "?"
+
+
+def gate_refusals(gate_input: mds.MDS_REF | None, limits: EffectiveLimits) -> list[str]:
+    """What the collision gate refuses now (it holds those joints at their last value): the joints of its input
+    (``mds-ref-smooth``) outside the effective limits, or not finite. The gate's counter is on /mds/collision."""
+    if gate_input is None:
+        return []
+    out = []
+    for a in range(mds.MDS_JOINT_COUNT):
+        if limits.valid[a]:
+            problem = limits.problem(a, gate_input.joint[a].ref)
+            if problem is not None:
+                out.append(problem.split(" (the effective limits")[0])
+    return out
+
+
+def limits_line(limits: EffectiveLimits, gate_input: mds.MDS_REF | None) -> str:
+    """Where the limits come from and whether the gate refuses anything against them, in one line."""
+    where = "mds-limits (the daemon's)" if limits.published else "computed here: no daemon published mds-limits"
+    refused = gate_refusals(gate_input, limits)
+    verdict = ("the gate REFUSES (held at the last value): " + "; ".join(refused)) if refused else "nothing refused"
+    return f"{limits.describe()} from {where}; {verdict}"

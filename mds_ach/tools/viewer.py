@@ -41,6 +41,7 @@ from mds_ach.ach.watch import Latest
 from mds_ach.kinematics import model as kin
 from mds_ach.kinematics.collision import CollisionModel, WorldObject, load_model
 from mds_ach.kinematics.collision import load_world as _load_world
+from mds_ach.kinematics.limits import current_limits
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import MODEL_JOINTS, lookup
 from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS, STATUS_NAMES
@@ -418,7 +419,8 @@ class Viewer:
         self.ghost = RobotScene(self.server, self.model, GHOST_PATH, color=GHOST_RGB, opacity=GHOST_OPACITY)
         self.ghost.show_only_where_apart(self.solid)
         self.names = [n for n in MODEL_JOINTS if n in self.model.joints]
-        self.limits = {n: _slider_range(self.model.joints[n]) for n in self.names}
+        effective = current_limits()  # the one limit authority: what the mux, the gate and the daemon accept
+        self.limits = {n: _slider_range(self.model.joints[n], effective.range(n)) for n in self.names}
         self.problems: list[str] = []  # shown under the status line
         self.collision = self._collision_scene()
         self.world_frame = self.server.scene.add_frame(WORLD_PATH, show_axes=False)
@@ -703,10 +705,13 @@ def _refuse_share(*_args: object, **_kwargs: object) -> None:
     print("viewer: share links are disabled", file=sys.stderr)
 
 
-def _slider_range(joint: kin.Joint) -> tuple[float, float]:
-    """The URDF limits (continuous joints get one turn each way)."""
+def _slider_range(joint: kin.Joint, effective: tuple[float, float] | None = None) -> tuple[float, float]:
+    """The URDF limits (continuous joints get one turn each way), narrowed to the ``effective`` limits
+    (``mds_ach.kinematics.limits``), so a slider never offers a value the pipeline refuses."""
     lower = joint.lower if math.isfinite(joint.lower) else -math.pi
     upper = joint.upper if math.isfinite(joint.upper) else math.pi
+    if effective is not None:
+        lower, upper = max(lower, effective[0]), min(upper, effective[1])
     return lower, upper
 
 

@@ -5,6 +5,7 @@
 * :mod:`.ik_status` -- ``MDS_IK_STATUS`` (``mds-ik-state``), the IK node's answers;
 * :mod:`.mux_state` -- ``MDS_MUX_STATE`` (``mds-mux-state``), the mux's joint owners;
 * :mod:`.hold` -- ``MDS_HOLD`` (``mds-hold``), hold / resume / cancel requests to the mux;
+* :mod:`.limits` -- ``MDS_LIMITS`` (``mds-limits``), the effective joint limits (the one limit authority);
 * :mod:`.daemon_status` -- ``MDS_DAEMON_STATUS`` (``mds-daemon-status``), the daemon's health.
 
 Which channel carries which struct is :mod:`mds_ach.robot.contracts`; ``include/mds.h`` is generated from both.
@@ -38,6 +39,7 @@ from mds_ach.robot.msgs.legacy import (
     get_name,
     set_name,
 )
+from mds_ach.robot.msgs.limits import MDS_LIMITS
 from mds_ach.robot.msgs.mux_state import MDS_MUX_STATE
 
 Packed = _Packed
@@ -60,6 +62,7 @@ __all__ = [
     "MDS_JOINT_PARAM",
     "MDS_JOINT_REF",
     "MDS_JOINT_STATE",
+    "MDS_LIMITS",
     "MDS_MUX_STATE",
     "MDS_POWER",
     "MDS_REF",

@@ -33,7 +33,7 @@ VERDICT_OWNED = 2
 VERDICT_NOT_PERMITTED = 3
 """Refused as a whole: it modifies joints the controller may not move (config/mux.yaml ``joints``)."""
 VERDICT_INVALID = 4
-"""Refused as a whole: NaN/Inf in a known joint."""
+"""Refused as a whole: NaN/Inf in a known joint, or a modified joint outside the effective limits (mds-limits)."""
 VERDICT_NAMES: dict[int, str] = {VERDICT_NONE: "none", VERDICT_APPLIED: "applied", VERDICT_OWNED: "owned",
                                  VERDICT_NOT_PERMITTED: "not permitted", VERDICT_INVALID: "invalid"}
 
