@@ -318,8 +318,8 @@ def test_hold_resume_cancel_through_mux_and_filter(clean_shm: None) -> None:
         def lsp() -> float:
             return float(gate.sent[-1][mds.LSP]) if gate.sent else 0.0
 
-        legacy.put(make_ref(_frame(LSP=1.2), ZERO_MODE))  # goto LSP 1.2
-        wait_for(lambda: lsp() > 0.5, 10, what="LSP moving")
+        legacy.put(make_ref(_frame(LSP=1.0), ZERO_MODE))  # goto LSP 1.0 (its upper limit is 1.0185)
+        wait_for(lambda: lsp() > 0.4, 10, what="LSP moving")
         n = len(gate.sent)
         ack = lifecycle.request(lifecycle.HOLD_HOLD, source="test", reason="test hold")
         assert ack.ok, ack.message
@@ -330,7 +330,7 @@ def test_hold_resume_cancel_through_mux_and_filter(clean_shm: None) -> None:
         assert (steps >= -1e-12).all(), "the held reference reversed"
         assert (np.abs(np.diff(steps)) <= 4.0 * period * period + 1e-9).all(), "braking beyond the filter's bound"
         rest = lsp()
-        assert rest < 1.2 - 0.05 and seq[-1] == seq[-5]  # stopped short of the target and resting
+        assert rest < 1.0 - 0.05 and seq[-1] == seq[-5]  # stopped short of the target and resting
         # from the first filter output after the acknowledgement on (allowing one period for the filter to read
         # it and one for delivery), the reference decelerates: no step larger than the one before it
         times = gate.times[n + 1:]
@@ -341,24 +341,24 @@ def test_hold_resume_cancel_through_mux_and_filter(clean_shm: None) -> None:
         assert time.monotonic() - t_ack > 1.0
         ack = lifecycle.request(lifecycle.HOLD_RESUME, source="test")
         assert ack.ok
-        wait_for(lambda: abs(lsp() - 1.2) < 1e-9, 10, what="resume: LSP reaches its held target")
+        wait_for(lambda: abs(lsp() - 1.0) < 1e-9, 10, what="resume: LSP reaches its held target")
 
         # a goto the gate holds back, timing out: cancelled where the reference is
-        gate.cap = 0.8
+        gate.cap = 0.6
         legacy.put(make_ref(_frame(LSP=0.2), ZERO_MODE))
         wait_for(lambda: abs(lsp() - 0.2) < 1e-9, 10, what="LSP back at 0.2")
-        legacy.put(make_ref(_frame(LSP=1.5), ZERO_MODE))  # goto LSP 1.5 wait: the gate stops it at 0.8
-        wait_for(lambda: gate.smooth and abs(gate.smooth[-1][mds.LSP] - 1.5) < 1e-9, 10, what="filter at 1.5")
-        assert lsp() == 0.8
+        legacy.put(make_ref(_frame(LSP=0.95), ZERO_MODE))  # goto LSP 0.95 wait: the gate stops it at 0.6
+        wait_for(lambda: gate.smooth and abs(gate.smooth[-1][mds.LSP] - 0.95) < 1e-9, 10, what="filter at 0.95")
+        assert lsp() == 0.6
         ack = lifecycle.request(lifecycle.HOLD_CANCEL, [mds.LSP], source="console", reason="goto timed out")
         assert ack.ok and ack.state is not None and ack.state.held[mds.LSP] == MUX_CANCELLED
-        wait_for(lambda: gate.smooth and abs(gate.smooth[-1][mds.LSP] - 0.8) < 1e-9, 5, what="filter restarted")
+        wait_for(lambda: gate.smooth and abs(gate.smooth[-1][mds.LSP] - 0.6) < 1e-9, 5, what="filter restarted")
         gate.cap = None  # the gate clears
         assert lifecycle.request(lifecycle.HOLD_RESUME, source="test").ok  # resume does not revive it
-        legacy.put(make_ref(_frame(LSP=1.5, NKY=0.1), ZERO_MODE))  # read-modify-write client: another joint
+        legacy.put(make_ref(_frame(LSP=0.95, NKY=0.1), ZERO_MODE))  # read-modify-write client: another joint
         wait_for(lambda: abs(gate.sent[-1][mds.NKY] - 0.1) < 1e-9, 10, what="NKY moved")
         time.sleep(0.5)
-        assert max(s[mds.LSP] for s in gate.sent[-20:]) == 0.8, "a cancelled goto moved the arm later"
+        assert max(s[mds.LSP] for s in gate.sent[-20:]) == 0.6, "a cancelled goto moved the arm later"
     finally:
         legacy.close()
         mux.stop()
