@@ -421,6 +421,84 @@ def test_moving_out_of_a_contact_is_reported_as_contact_not_as_a_hold(model) -> 
     assert codes[0] == 1 and escaping > 0 and codes[-1] == 0
 
 
+# --------------------------------------------------------------------------------------------- approach to contact
+
+# "Touching" on the gate's collision model: every primitive is inflated by margin / 2, so two parts touch when the
+# clearance of the un-inflated shapes equals the margin. Stopped at contact = margin <= clearance <= margin + 5 mm:
+# the inflated parts are at most 5 mm apart and never overlap.
+TOUCH = 0.005
+
+
+def hand_clearance(model, q100: np.ndarray) -> float:
+    return model.distances(model.q_from_ref(q100))[("left_hand_link", "right_hand_link")]
+
+
+def test_both_hands_to_the_same_point_stop_at_contact(model) -> None:
+    """Paper §4.2: both hands sent to the same point stop when the two parts of the collision model touch
+    (within 5 mm), never interpenetrating; both arms moved into the contact, so both commands end there."""
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    decisions = drive(gate, target, 4.0)
+    gap = hand_clearance(model, gate.ref)
+    assert model.margin - 1e-9 <= gap <= model.margin + TOUCH, f"hands stopped {gap * 1e3:.1f} mm apart"
+    assert set(decisions[-1].held) == {"left", "right"}
+    stops = [d.stopped for d in decisions if d.stopped]
+    assert stops == [{"left": "left hand / right hand", "right": "right hand / left hand"}]  # once per episode
+    doc = decision_to_dict(decisions[-1], gate, gate.last_time)
+    assert doc["stopped"] == {"left": "stopped at contact: left hand / right hand",
+                              "right": "stopped at contact: right hand / left hand"}
+    for d in decisions:  # never a reference into the contact on the way
+        assert not model.check(model.q_from_ref(d.ref)).collides
+
+
+def test_a_hand_sent_to_a_resting_hand_stops_there_and_only_its_command_ends(model) -> None:
+    """Only the arm whose own reference moved into the contact is stopped (and cancelled); the resting arm it came
+    to is held while they touch, but its command (none) is not the one that failed."""
+    gate = make_gate(model)
+    target = HOME.copy()
+    target[L] = solve("left", [0.40, 0.05, -0.10])
+    drive(gate, target, 3.0)
+    np.testing.assert_allclose(gate.ref[L], target[L], atol=1e-12)
+    target[R] = solve("right", [0.40, 0.05, -0.10])
+    decisions = drive(gate, target, 4.0)
+    gap = hand_clearance(model, gate.ref)
+    assert model.margin - 1e-9 <= gap <= model.margin + TOUCH, f"hands stopped {gap * 1e3:.1f} mm apart"
+    assert [d.stopped for d in decisions if d.stopped] == [{"right": "right hand / left hand"}]
+    np.testing.assert_allclose(gate.ref[L], target[L], atol=1e-12)  # the left arm never moved
+    # The right arm's target is cancelled (the mux then sends it the held reference): it rests, is released, and
+    # its stop stays reported until it moves again.
+    held = gate.ref.copy()
+    decisions = drive(gate, held, 1.0)
+    assert not decisions[-1].held and gate.stopped == {"right": "right hand / left hand"}
+    decisions = drive(gate, HOME, 1.0)
+    assert not decisions[-1].stopped and gate.stopped == {}
+
+
+def test_the_hand_driven_down_stops_on_the_table(table_model) -> None:
+    """Paper §4.3: the hand driven down toward the table does not move farther than the collision point."""
+    gate = make_gate(table_model)
+    target = HOME.copy()
+    target[L] = solve("left", [0.40, 0.25, -0.50])  # 10 cm below the table top
+    decisions = drive(gate, target, 5.0)
+    gap = table_model.distances(table_model.q_from_ref(gate.ref))[("left_hand_link", "world:table")]
+    assert table_model.margin - 1e-9 <= gap <= table_model.margin + TOUCH, f"{gap * 1e3:.1f} mm above the table"
+    assert [d.stopped for d in decisions if d.stopped] == [{"left": "left hand / table"}]
+
+
+def test_approach_can_be_switched_off(model) -> None:
+    """approach_iterations 0: the blocked step is not passed at all (the arm stops up to a whole step short)."""
+    gate = make_gate(model, approach_iterations=0)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    drive(gate, target, 4.0)
+    assert hand_clearance(model, gate.ref) > model.margin + TOUCH
+    with pytest.raises(ValueError, match="approach_iterations"):
+        GateConfig.from_mapping({"approach_iterations": -1})
+
+
 # --------------------------------------------------------------------------------------------- channels
 
 
@@ -531,6 +609,53 @@ def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: Non
             assert report is not None and report.isCollide == 1, f"held {item} without a hold on mds-collide"
             assert all(flags(report, parts[arm]) for arm in item), f"held {item}, mds-collide flags other parts"
     assert holds > 5, "the left hand was never held"
+
+
+def test_an_arm_stopped_at_contact_gets_its_command_cancelled_on_mds_hold(clean_shm: None, table_model) -> None:
+    """The gate ends the command of an arm it stopped at contact: one HOLD_CANCEL on mds-hold for that arm's joints at
+    the reference it holds, source 'collision', reason 'stopped at contact: <pair>' (the mux drops the target, so
+    the arm does not go on later when the obstacle is moved away)."""
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
+
+    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    lower, upper = joint_limits(table_model)
+    logs: list[str] = []
+    runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+    holds = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
+    try:
+        assert runner.ready.wait(10), logs
+        holds.put(MDS_HOLD(seq=41, action=1))  # another writer's request: the gate's seq follows it
+        holds.next()
+        target = HOME.copy()
+        target[L] = solve("left", [0.40, 0.25, -0.50])
+        core = FilterCore(parse_config({"rate": 40}), HOME, ZERO_MODE)
+        core.set_target(target, ZERO_MODE)
+        for k in range(200):  # lock-step: every frame is gated
+            smooth.put(make_ref(core.step(), ZERO_MODE))
+            wait_for(lambda k=k: runner.processed > k, 10, what=f"the gate to process frame {k}")
+        held = ref_arrays(out.latest())[0]
+        frames = []
+        while (f := holds.next()) is not None:
+            frames.append(f)
+    finally:
+        runner.stop()
+        t.join(5)
+        for ch in (smooth, out, holds):
+            ch.close()
+    assert len(frames) == 1 and runner.cancels == 1, [bytes(f.reason) for f in frames]
+    f = frames[0]
+    assert f.action == HOLD_CANCEL and f.seq == 42
+    assert bytes(f.source).rstrip(b"\0") == b"collision"
+    assert bytes(f.reason).split(b"\0")[0] == b"stopped at contact: left hand / table"
+    assert [a for a in range(N) if f.joints[a]] == sorted(L.tolist())
+    np.testing.assert_array_equal([f.target[a] for a in L], held[L])
+    assert all(np.isnan(f.target[a]) for a in range(N) if a not in L)
+    assert any("left arm stopped at contact: left hand / table" in m for m in logs)
 
 
 # --------------------------------------------------------------------------------------------- node

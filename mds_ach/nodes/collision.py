@@ -21,6 +21,22 @@ Every reference is checked before it can reach the daemon, in this order:
    is held. So an arm in contact, measured or commanded, can always be moved out of it (such a move is
    reported as *escaping*), never further in. An arm in contact whose input does not ask it to move is held
    too.
+4. **Approach to contact** (paper §4.2/§4.3: the hands stop when the parts of the collision model touch). When
+   only arms moved into a blocking contact and none of them is held yet, they are not held a whole step short:
+   they move by the largest fraction of their step (the same for all of them) that blocks nothing, found by
+   bisection (``approach_iterations``, default 6: within step / 64, under 1 mm at the filter's speed). Such a
+   frame blocks nothing, so nothing is held or flagged; the next ones creep closer until even step / 64 blocks,
+   and then the arms are held as in 3. "Touching" is on the gate's model: the shapes inflated by ``margin / 2``
+   touch, i.e. the un-inflated clearance is the margin; they never overlap.
+
+**Stopped at contact: the command ends.** An arm held because its *own* reference moved into the contact (the
+arm taken at its reference in a blocking configuration and its input moved this frame) is *stopped at contact*:
+once per hold episode the runner puts a ``HOLD_CANCEL`` on ``mds-hold`` for its joints at the reference it is
+held at (source ``collision``, reason ``stopped at contact: right hand / left hand``), so the mux ends that
+target and the arm does not go on to it later when the obstacle moves away; only a new command moves it. An arm
+held because the other arm (or the waist, or its measured pose) came to it is not cancelled: its command did not
+fail. ``/mds/collision`` reports ``stopped`` (arm -> ``stopped at contact: <its part> / <the other part>``) until
+that arm's reference moves again.
 
 **Holding and releasing agree with ``mds-collide``.** The daemon withholds the targets of an arm whose parts
 ``mds-collide`` flags (``daemon_loop._collision_held``). So the gate flags exactly the arms it holds, keeps an
@@ -31,8 +47,8 @@ bounds the wait), and only then moves the arm on, at ``release_velocity``. The d
 arm's reference move while it withholds that arm, and never sends accumulated distance in one frame.
 
 Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``/mds/collision``
-(std_msgs/String, JSON with predicted pairs, current contacts, parts, held/releasing/escaping arms, refusals
-and the override state). Top-level ``isCollide``: **1** = the gate holds an arm: the flagged parts are those
+(std_msgs/String, JSON with predicted pairs, current contacts, parts, held/releasing/escaping/stopped arms,
+refusals and the override state). Top-level ``isCollide``: **1** = the gate holds an arm: the flagged parts are those
 of the held arms, and the daemon holds exactly those arms; **2** = a predicted collision was passed by the
 expert override; **3** = in contact (measured or commanded) but nothing held: only moves out of it are passed,
 the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part: ``isCollide``
@@ -52,6 +68,7 @@ while it passes a collision and ``/mds/collision`` carries ``override_remaining`
 from __future__ import annotations
 
 import argparse
+import ctypes
 import itertools
 import json
 import math
@@ -67,7 +84,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64, String
 
 import mds_ach as mds
-from mds_ach import paths
+from mds_ach import ach, paths
 from mds_ach.kinematics.collision import CheckResult, load_model, load_yaml
 from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import filters
@@ -86,6 +103,7 @@ from mds_ach.robot import config as joint_config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
 from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
+from mds_ach.robot.msgs.hold import HOLD_CANCEL, HOLD_REASON_SIZE, MDS_HOLD
 
 ARM_ADDRESSES: dict[str, np.ndarray] = {
     "left": np.array([BY_SHORT[n].address for n in LEFT_ARM]),
@@ -113,6 +131,7 @@ CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than thi
 
 Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
 FREE, HELD, RELEASING = "free", "held", "releasing"
+STOPPED_AT_CONTACT = "stopped at contact"
 
 
 @dataclass(frozen=True)
@@ -126,6 +145,7 @@ class GateConfig:
     release_velocity: float | None = None  # rad/s of a released joint; None = filters.DEFAULT_MAX_VELOCITY
     state_timeout: float = 0.5  # s: an older mds-state gives no measured pose
     release_wait: float = 1.0  # s: longest wait for the daemon to echo a cleared report
+    approach_iterations: int = 6  # bisection steps toward a contact (resolution: step / 2**n); 0 = hold at once
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], where: str = "collision config") -> GateConfig:
@@ -151,7 +171,15 @@ class GateConfig:
             release_velocity=num("release_velocity", None, allow_none=True),
             state_timeout=num("state_timeout", 0.5),  # type: ignore[arg-type]
             release_wait=num("release_wait", 1.0),  # type: ignore[arg-type]
+            approach_iterations=_count(data, "approach_iterations", 6, where),
         )
+
+
+def _count(data: Mapping[str, Any], key: str, default: int, where: str) -> int:
+    value = data.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 20:
+        raise ValueError(f"{where}: {key} must be an integer 0..20, got {value!r}")
+    return value
 
 
 @dataclass(frozen=True)
@@ -184,6 +212,7 @@ class Decision:
     escaping: tuple[str, ...] = ()  # arms in contact whose reference moves them out of it (passed)
     contacts: Any = None  # CheckResult: contacts of the output (with the measured pose) -- in contact now
     measured: bool = False  # the measured pose was part of the check
+    stopped: dict[str, str] = field(default_factory=dict)  # arms stopped at contact in THIS frame -> the pair
 
 
 @dataclass
@@ -242,6 +271,7 @@ class Gate:
         self._contact_time = -math.inf
         self._known = np.zeros(MDS_JOINT_COUNT, dtype=bool)
         self._known[list(KNOWN_ADDRESSES)] = True
+        self.stopped: dict[str, str] = {}  # arm -> "right hand / left hand" while it rests where it was stopped
 
     # ----- override
 
@@ -353,6 +383,38 @@ class Gate:
                     out.add("body")
         return set(UNITS) if "body" in out or not out else out
 
+    def _own_contacts(self, blocking: list[tuple[Choice, Any]], x: np.ndarray) -> dict[str, Any]:
+        """Arm -> the closest blocking contact its OWN reference moved into (the arm taken at its reference in
+        that configuration, and its reference moved this frame). Contacts another unit brought to a resting arm,
+        or that only its measured pose is in, are not its own."""
+        out: dict[str, Any] = {}
+        for arm in ("left", "right"):
+            if np.array_equal(x[UNIT_ADDRESSES[arm]], self.ref[UNIT_ADDRESSES[arm]]):
+                continue
+            mine = [k for c, k in blocking if not c[UNITS.index(arm)] and arm in (k.group_a, k.group_b)]
+            if mine:
+                out[arm] = min(mine, key=lambda k: k.clearance)
+        return out
+
+    def _approach(self, cand: np.ndarray, cand_mode: np.ndarray, frozen: set[str], arms: set[str],
+                  pos: np.ndarray | None) -> np.ndarray | None:
+        """The blocked ``arms`` moved by the largest fraction of their step (the same for all of them) that blocks
+        nothing, found by bisection in ``approach_iterations`` steps; frozen units stay, the rest moves as input.
+        None when even the smallest fraction tried blocks: the arms are at the contact, hold them."""
+        base, _ = self._freeze(cand, cand_mode, frozen)
+        idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(arms)])
+        start, step = self.ref[idx], cand[idx] - self.ref[idx]
+        lo, hi, best = 0.0, 1.0, None
+        for _ in range(self.config.approach_iterations):
+            mid = 0.5 * (lo + hi)
+            x = base.copy()
+            x[idx] = start + mid * step
+            if self._analyze(x, pos)[1]:
+                hi = mid
+            else:
+                lo, best = mid, x
+        return best
+
     def _freeze(self, cand: np.ndarray, cand_mode: np.ndarray, units: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
         out, out_mode = cand.copy(), cand_mode.copy()
         for u in units:
@@ -407,6 +469,19 @@ class Gate:
             res_out = self._analyze(out, pos)[0]
         elif not overridden:
             blocked = self._movers(blocking, cand) if blocking else set()
+            own = self._own_contacts(blocking, cand) if blocking else {}
+            approach = blocked - frozen
+            if approach and "body" not in blocked and self.config.approach_iterations > 0:
+                # Approach to contact: the arms that moved into it go the safe part of their step.
+                part = self._approach(cand, cand_mode, frozen, approach, pos)
+                if part is not None:  # that part replaces their input; the rules below apply as to any input
+                    idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(approach)])
+                    cand = cand.copy()
+                    cand[idx] = part[idx]
+                    res_out, blocking = self._analyze(cand, pos)
+                    out, seen = cand, list(blocking)
+                    blocked = self._movers(blocking, cand) if blocking else set()
+                    own = self._own_contacts(blocking, cand) if blocking else {}
             held = frozen | blocked
             if held:
                 out, out_mode = self._freeze(cand, cand_mode, held)
@@ -429,6 +504,7 @@ class Gate:
         renewed = set() if overridden else blocked | (static & touching)
         if renewed - blocked:
             out, out_mode = self._freeze(out, out_mode, renewed - blocked)  # the mode stays too
+        stopped = self._stop_at_contact(own if not overridden else {}, renewed, out)
         self._hold(renewed, now)
         for n, u in self.units.items():
             if u.state != FREE:
@@ -439,7 +515,21 @@ class Gate:
         self._first = False
         releasing = tuple(n for n, u in self.units.items() if u.state == RELEASING)
         return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
-                        escaping, contacts, pos is not None)
+                        escaping, contacts, pos is not None, stopped)
+
+    def _stop_at_contact(self, own: Mapping[str, Any], renewed: set[str], out: np.ndarray) -> dict[str, str]:
+        """Arms stopped at contact in this frame: held now because their own reference moved into the contact,
+        not yet stopped in this hold episode. Their command ends there (the runner cancels it on ``mds-hold``).
+        ``self.stopped`` keeps the pair for the reports until the arm's output moves again."""
+        for arm in list(self.stopped):
+            if self.units[arm].state == FREE and arm not in renewed and \
+                    not np.array_equal(out[UNIT_ADDRESSES[arm]], self.ref[UNIT_ADDRESSES[arm]]):
+                del self.stopped[arm]
+        new = {}
+        for arm, contact in own.items():
+            if arm in renewed and (arm not in self.stopped or self.units[arm].state == FREE):
+                new[arm] = self.stopped[arm] = contact_pair(contact, arm)
+        return new
 
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
         """Restart these joints' output where they are (``pipeline.ReseedWatch``: after HOME, reset, resetbus)."""
@@ -506,6 +596,18 @@ class Gate:
         return c
 
 
+def part_label(primitive: str) -> str:
+    """A primitive's name for people: 'right_hand_link' -> 'right hand', 'world:table' -> 'table'."""
+    name = primitive.removeprefix("world:").split("#", 1)[0].removesuffix("_link")
+    return name.replace("_", " ")
+
+
+def contact_pair(contact: Any, arm: str) -> str:
+    """'right hand / left hand': the stopped arm's part first, then what it touches."""
+    a, b = part_label(contact.a), part_label(contact.b)
+    return f"{a} / {b}" if contact.group_a == arm else f"{b} / {a}"
+
+
 def decision_to_dict(d: Decision | None, gate: Gate, now: float) -> dict[str, Any]:
     """The JSON document of /mds/collision."""
     res = d.result if d is not None else gate.current
@@ -524,6 +626,7 @@ def decision_to_dict(d: Decision | None, gate: Gate, now: float) -> dict[str, An
         "overridden": bool(d.overridden) if d is not None else False,
         "override_remaining": round(gate.override_remaining(now), 3),
         "margin": gate.model.margin,
+        "stopped": {arm: f"{STOPPED_AT_CONTACT}: {pair}" for arm, pair in sorted(gate.stopped.items())},
     }
 
 
@@ -536,6 +639,31 @@ def joint_limits(model: Any) -> tuple[np.ndarray, np.ndarray]:
     lower[model.addresses] = np.maximum(lower[model.addresses], model.lower)
     upper[model.addresses] = np.minimum(upper[model.addresses], model.upper)
     return lower, upper
+
+
+def cancel_frame(addresses: np.ndarray, ref: np.ndarray, reason: str, now: float, seq: int) -> MDS_HOLD:
+    """The ``HOLD_CANCEL`` request for an arm stopped at contact: its joints, held at ``ref``, source 'collision'."""
+    frame = MDS_HOLD(seq=seq, action=HOLD_CANCEL, time=now)
+    for k in range(MDS_JOINT_COUNT):
+        frame.target[k] = math.nan
+    for a in addresses:
+        frame.joints[int(a)] = 1
+        frame.target[int(a)] = float(ref[int(a)])
+    frame.source = b"collision"
+    frame.reason = reason.encode("ascii", "replace")[: HOLD_REASON_SIZE - 1]
+    return frame
+
+
+def next_hold_seq(hold_ch: StructChannel[MDS_HOLD]) -> int:
+    """One more than the newest ``seq`` on ``mds-hold`` (any writer's), so the mux's acknowledgement is unambiguous."""
+    last = MDS_HOLD()
+    try:
+        status, size = hold_ch.channel.get(last, last=True, copy=True)
+    except ach.AchException:  # an unreadable channel: start at 1, the put reports the real problem
+        return 1
+    if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME) or size != ctypes.sizeof(MDS_HOLD):
+        return 1
+    return (int(last.seq) + 1) & 0xFFFFFFFF or 1
 
 
 def load_config(path: str | Path | None = None) -> dict[str, Any]:
@@ -569,6 +697,7 @@ class GateRunner:
         self.gate: Gate | None = None
         self.ready = threading.Event()
         self.processed = 0
+        self.cancels = 0  # HOLD_CANCEL frames sent for arms stopped at contact
         self.check_times: list[float] = []
 
     def stop(self) -> None:
@@ -591,6 +720,7 @@ class GateRunner:
         out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
         collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+        hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
         observed: Observed | None = None
         inp.latest()  # a frame already waiting is an old command: act only on frames that arrive from now on
         self.gate = gate
@@ -631,6 +761,8 @@ class GateRunner:
                     guard.call(collide.name, collide.put, gate.report(now))
                     guard.call(out.name, out.put, make_ref(decision.ref, decision.mode))
                     self.processed += 1
+                    for arm, pair in decision.stopped.items():
+                        self._cancel(hold_ch, guard, arm, decision.ref, pair, now)
                     if decision.refused and now - last_refusal_log > 1.0:
                         self.log("error", f"refused out-of-limit/non-finite references or bad modes for "
                                           f"{labels(decision.refused)} (held at their last value)")
@@ -646,12 +778,23 @@ class GateRunner:
                 if reported and self.on_report is not None:
                     self.on_report(decision, gate, now)
         finally:
-            for ch in (inp, out, collide, state_ch, watch):
+            for ch in (inp, out, collide, state_ch, hold_ch, watch):
                 ch.close()
             if self.check_times:
                 ms = np.array(self.check_times) * 1e3
                 self.log("info", f"{self.processed} references gated; decision time median {np.median(ms):.2f} ms, "
                                  f"p99 {np.percentile(ms, 99):.2f} ms, max {ms.max():.2f} ms")
+
+    def _cancel(self, hold_ch: StructChannel[MDS_HOLD], guard: ChannelGuard, arm: str, ref: np.ndarray, pair: str,
+                now: float) -> None:
+        """End the command of an arm stopped at contact: ``HOLD_CANCEL`` on ``mds-hold`` for its joints at the
+        reference it was stopped at, so the mux drops that target and the arm does not go on to it later when
+        the obstacle moves away (only a new command moves it)."""
+        reason = f"{STOPPED_AT_CONTACT}: {pair}"
+        frame = cancel_frame(UNIT_ADDRESSES[arm], ref, reason, now, next_hold_seq(hold_ch))
+        guard.call(hold_ch.name, hold_ch.put, frame)
+        self.cancels += 1
+        self.log("warn", f"{arm} arm {reason}; its command is cancelled (held at {labels(UNIT_ADDRESSES[arm])})")
 
     def _apply_overrides(self, gate: Gate, now: float, last_log: float) -> float:
         with self._lock:
