@@ -85,7 +85,7 @@ from std_msgs.msg import Float64, String
 
 import mds_ach as mds
 from mds_ach import ach, paths
-from mds_ach.kinematics.collision import CheckResult, load_model, load_yaml
+from mds_ach.kinematics.collision import CheckResult, check_world_file, load_model, load_yaml
 from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import filters
 from mds_ach.nodes.pipeline import (
@@ -875,6 +875,8 @@ class CollisionNode(Node):
         path = declare(self, find(PARAMETERS, "config"), config) or None
         world_path = declare(self, find(PARAMETERS, "world"), world) or None
         urdf_path = declare(self, find(PARAMETERS, "urdf"), urdf) or None
+        if world_path is not None:
+            check_world_file(world_path)  # a bad file stops the node with its reason (exit 2)
         configured = float(load_config(path).get("margin", find(PARAMETERS, "margin").default))
         self.margin: float = declare(self, find(PARAMETERS, "margin"), configured if margin is None else margin)
         model, gate_cfg, lower, upper = build_gate_parts(path, world_path, urdf_path, self.margin)

@@ -218,7 +218,7 @@ CHANNELS: tuple[Contract[Any], ...] = (
              writers=(DAEMON,), readers=(MUX, FILTER, COLLISION, READ, CLI, REMOTE, CLIENTS), legacy=False),
     Contract(MDS_CHAN_HOLD_NAME, "MDS_CHAN_HOLD_NAME", MDS_HOLD,
              "hold / resume / cancel requests to the mux (the command lifecycle)",
-             writers=(CONSOLE, CLI, BRIDGE, COLLISION, VIEWER, REMOTE, CLIENTS), readers=(MUX,), legacy=False,
+             writers=(CONSOLE, CLI, BRIDGE, COLLISION, VIEWER, REMOTE, CLIENTS), readers=(MUX, IK), legacy=False,
              validator=check_hold),
 )
 
