@@ -189,13 +189,15 @@ class Observed:
     pos: np.ndarray  # (100) measured position, NaN where the joint is not fresh (state.joint[].active == 0)
     time: float  # state.time (CLOCK_MONOTONIC)
     collide_time: float  # state.collide.time: the stamp of the newest gate report the daemon has taken
+    sent: np.ndarray | None = None  # (100) state.joint[].ref: the daemon's last target sent (None: not known)
 
     @classmethod
     def from_state(cls, state: MDS_STATE) -> Observed:
         """Stale joints (``active`` 0) count as unknown: the gate then takes them where they are commanded."""
         pos = np.array([state.joint[a].pos if state.joint[a].active else math.nan
                         for a in range(MDS_JOINT_COUNT)], dtype=float)
-        return cls(pos, float(state.time), float(state.collide.time))
+        sent = np.array([state.joint[a].ref for a in range(MDS_JOINT_COUNT)], dtype=float)
+        return cls(pos, float(state.time), float(state.collide.time), sent)
 
 
 @dataclass
@@ -272,6 +274,7 @@ class Gate:
         self._known = np.zeros(MDS_JOINT_COUNT, dtype=bool)
         self._known[list(KNOWN_ADDRESSES)] = True
         self.stopped: dict[str, str] = {}  # arm -> "right hand / left hand" while it rests where it was stopped
+        self._settle_since: dict[str, float] = {}  # arm -> when it came to rest at a contact, unflagged
 
     # ----- override
 
@@ -464,6 +467,9 @@ class Gate:
         out, out_mode, res_out, blocked = cand, cand_mode, res, set()
         overridden = bool(blocking) and overriding
         seen = list(blocking)  # contacts that decide holds and flags
+        stopping: dict[str, Any] = {}  # arm -> the contact its own reference is stopped at in this frame
+        own: dict[str, Any] = {}  # arm -> the blocking contact its own reference moved into
+        settle: set[str] = set()  # arms resting at the contact, unflagged, until the daemon's target is there
         if overridden and frozen:  # released by the override: still waiting for the daemon's echo
             out, out_mode = self._freeze(cand, cand_mode, frozen)
             res_out = self._analyze(out, pos)[0]
@@ -474,12 +480,18 @@ class Gate:
             if approach and "body" not in blocked and self.config.approach_iterations > 0:
                 # Approach to contact: the arms that moved into it go the safe part of their step.
                 part = self._approach(cand, cand_mode, frozen, approach, pos)
-                if part is not None:  # that part replaces their input; the rules below apply as to any input
-                    idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(approach)])
-                    cand = cand.copy()
-                    cand[idx] = part[idx]
+                settle = set() if part is not None else self._settling(approach, observed, now)
+                if part is not None or settle:  # replaces their input; the rules below apply as to any input
+                    moving = approach if part is not None else settle
+                    idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(moving)])
+                    cand, cand_mode = cand.copy(), cand_mode.copy()
+                    if part is not None:
+                        cand[idx] = part[idx]
+                    else:  # at the contact: rest there, unflagged, until the daemon's target has arrived
+                        cand[idx], cand_mode[idx] = self.ref[idx], self.mode[idx]
+                        stopping = {a: k for a, k in own.items() if a in settle}
                     res_out, blocking = self._analyze(cand, pos)
-                    out, seen = cand, list(blocking)
+                    out, out_mode, seen = cand, cand_mode, list(blocking)
                     blocked = self._movers(blocking, cand) if blocking else set()
                     own = self._own_contacts(blocking, cand) if blocking else {}
             held = frozen | blocked
@@ -504,7 +516,9 @@ class Gate:
         renewed = set() if overridden else blocked | (static & touching)
         if renewed - blocked:
             out, out_mode = self._freeze(out, out_mode, renewed - blocked)  # the mode stays too
-        stopped = self._stop_at_contact(own if not overridden else {}, renewed, out)
+        stopping.update({a: k for a, k in own.items() if a in renewed})
+        stopped = self._stop_at_contact({} if overridden else stopping)
+        self._settle_since = {a: t for a, t in self._settle_since.items() if a in settle}
         self._hold(renewed, now)
         for n, u in self.units.items():
             if u.state != FREE:
@@ -517,17 +531,32 @@ class Gate:
         return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
                         escaping, contacts, pos is not None, stopped)
 
-    def _stop_at_contact(self, own: Mapping[str, Any], renewed: set[str], out: np.ndarray) -> dict[str, str]:
-        """Arms stopped at contact in this frame: held now because their own reference moved into the contact,
-        not yet stopped in this hold episode. Their command ends there (the runner cancels it on ``mds-hold``).
-        ``self.stopped`` keeps the pair for the reports until the arm's output moves again."""
+    def _settling(self, arms: set[str], observed: Observed | None, now: float) -> set[str]:
+        """Arms at the contact whose daemon target has not arrived there yet: they rest at the contact unflagged
+        (a flag would make the daemon withhold them where its rate-limited target happens to be, short of the
+        contact), for at most ``release_wait`` s; then, or when nothing echoes, they are held as usual."""
+        out = set()
+        for arm in arms:
+            if observed is None or observed.sent is None or now - observed.time > self.config.state_timeout:
+                continue
+            start = self._settle_since.setdefault(arm, now)
+            idx = UNIT_ADDRESSES[arm]
+            if now - start <= self.config.release_wait and \
+                    np.abs(observed.sent[idx] - self.ref[idx]).max() > SAME_POSE:
+                out.add(arm)
+        return out
+
+    def _stop_at_contact(self, stopping: Mapping[str, Any]) -> dict[str, str]:
+        """Arms stopped at contact in this frame (held or settling there because their own reference moved into
+        the contact) that were not stopped already: their command ends there (the runner cancels it on
+        ``mds-hold``). ``self.stopped`` keeps the pair for the reports until the arm is free again and not
+        pushing on (after the cancel the mux sends it the held reference: it rests, is released, and clears)."""
         for arm in list(self.stopped):
-            if self.units[arm].state == FREE and arm not in renewed and \
-                    not np.array_equal(out[UNIT_ADDRESSES[arm]], self.ref[UNIT_ADDRESSES[arm]]):
+            if arm not in stopping and self.units[arm].state == FREE:
                 del self.stopped[arm]
         new = {}
-        for arm, contact in own.items():
-            if arm in renewed and (arm not in self.stopped or self.units[arm].state == FREE):
+        for arm, contact in stopping.items():
+            if arm not in self.stopped:
                 new[arm] = self.stopped[arm] = contact_pair(contact, arm)
         return new
 
