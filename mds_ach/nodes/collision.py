@@ -25,9 +25,13 @@ Every reference is checked before it can reach the daemon, in this order:
    only arms moved into a blocking contact and none of them is held yet, they are not held a whole step short:
    they move by the largest fraction of their step (the same for all of them) that blocks nothing, found by
    bisection (``approach_iterations``, default 6: within step / 64, under 1 mm at the filter's speed). Such a
-   frame blocks nothing, so nothing is held or flagged; the next ones creep closer until even step / 64 blocks,
-   and then the arms are held as in 3. "Touching" is on the gate's model: the shapes inflated by ``margin / 2``
-   touch, i.e. the un-inflated clearance is the margin; they never overlap.
+   frame blocks nothing, so nothing is held or flagged; the next ones creep closer until even step / 64 blocks.
+   There an arm first *rests*: its reference frozen but not flagged (not a hold: the daemon withholds nothing
+   and sees no reference move) until ``mds-state`` shows the daemon's rate-limited target there (at most
+   ``release_wait``), because a flag would stop the arm where that target lags, up to a daemon step short. Then
+   it is held as in 3. Only at a contact between references; one with a measured pose is held at once.
+   "Touching" is on the gate's model: the shapes inflated by ``margin / 2`` touch, i.e. the un-inflated
+   clearance is the margin; they never overlap.
 
 **Stopped at contact: the command ends.** An arm held because its *own* reference moved into the contact (the
 arm taken at its reference in a blocking configuration and its input moved this frame) is *stopped at contact*:
@@ -480,7 +484,7 @@ class Gate:
             if approach and "body" not in blocked and self.config.approach_iterations > 0:
                 # Approach to contact: the arms that moved into it go the safe part of their step.
                 part = self._approach(cand, cand_mode, frozen, approach, pos)
-                settle = set() if part is not None else self._settling(approach, observed, now)
+                settle = set() if part is not None else self._settling(approach, blocking, observed, now)
                 if part is not None or settle:  # replaces their input; the rules below apply as to any input
                     moving = approach if part is not None else settle
                     idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(moving)])
@@ -531,13 +535,17 @@ class Gate:
         return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
                         escaping, contacts, pos is not None, stopped)
 
-    def _settling(self, arms: set[str], observed: Observed | None, now: float) -> set[str]:
-        """Arms at the contact whose daemon target has not arrived there yet: they rest at the contact unflagged
-        (a flag would make the daemon withhold them where its rate-limited target happens to be, short of the
-        contact), for at most ``release_wait`` s; then, or when nothing echoes, they are held as usual."""
+    def _settling(self, arms: set[str], blocking: list[tuple[Choice, Any]], observed: Observed | None,
+                  now: float) -> set[str]:
+        """Arms at a contact between references whose daemon target has not arrived there yet: they rest at the
+        contact unflagged (a flag would make the daemon withhold them where its rate-limited target happens to
+        be, short of the contact), for at most ``release_wait`` s; then, or when nothing echoes, they are held as
+        usual. A contact with a measured pose (a compliant arm, an arm moved by hand) is held at once."""
         out = set()
         for arm in arms:
             if observed is None or observed.sent is None or now - observed.time > self.config.state_timeout:
+                continue
+            if any(any(c) for c, k in blocking if arm in (k.group_a, k.group_b)):
                 continue
             start = self._settle_since.setdefault(arm, now)
             idx = UNIT_ADDRESSES[arm]
