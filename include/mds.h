@@ -84,7 +84,7 @@
 /*   written by daemon; read by mux, filter, collision, read, mds-ach, achd, clients */
 #define MDS_CHAN_DAEMON_STATUS_NAME "mds-daemon-status"
 /* mds_hold_t, new: hold / resume / cancel requests to the mux (the command lifecycle). */
-/*   written by console, mds-ach, bridge, collision, viewer, achd, clients; read by mux */
+/*   written by console, mds-ach, bridge, collision, viewer, achd, clients; read by mux, ik */
 #define MDS_CHAN_HOLD_NAME "mds-hold"
 /* mds_limits_t, new, stack only: the effective joint limits (URDF and joint table), published once when the daemon starts. */
 /*   written by daemon; read by mux, collision, ik, bridge, console, viewer, read, mds-ach, achd, clients */
@@ -270,6 +270,7 @@ typedef enum mds_ik_status_code {
     MDS_IK_BAD_REQUEST = 2,
     MDS_IK_NOT_READY = 3,
     MDS_IK_NOT_APPLIED = 4,
+    MDS_IK_STOPPED_AT_CONTACT = 5,
 } mds_ik_status_code_t;
 
 /* ---- mds_mux_state_t (MDS_CHAN_MUX_STATE_NAME) ---- */
@@ -438,8 +439,8 @@ MDS_STATIC_ASSERT(sizeof(mds_cmd_t) == 16, "mds_cmd_t must be 16 bytes");
 
 /* mds-ik-state frame (packed, 214 B). */
 typedef struct MDS_PACKED mds_ik_status {
-    uint32_t seq;                                        /* @0 count of requests handled since the node started (1 = first) */
-    int16_t status;                                      /* @4 IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY / IK_NOT_APPLIED */
+    uint32_t seq;                                        /* @0 count of requests handled since the node started (1 = first; a follow-up repeats its request's) */
+    int16_t status;                                      /* @4 IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY / IK_NOT_APPLIED / */
     int16_t arm;                                         /* @6 0 right, 1 left (as MDS_IK.move; -1 if the request named no valid arm) */
     int16_t dof;                                         /* @8 task DOF (ik_method), components x, y, z, roll, pitch, yaw in that order */
     int32_t iterations;                                  /* @10 solver iterations used */

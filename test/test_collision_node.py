@@ -421,6 +421,117 @@ def test_moving_out_of_a_contact_is_reported_as_contact_not_as_a_hold(model) -> 
     assert codes[0] == 1 and escaping > 0 and codes[-1] == 0
 
 
+# --------------------------------------------------------------------------------------------- approach to contact
+
+# "Touching" on the gate's collision model: every primitive is inflated by margin / 2, so two parts touch when the
+# clearance of the un-inflated shapes equals the margin. Stopped at contact = margin <= clearance <= margin + 5 mm:
+# the inflated parts are at most 5 mm apart and never overlap.
+TOUCH = 0.005
+
+
+def hand_clearance(model, q100: np.ndarray) -> float:
+    return model.distances(model.q_from_ref(q100))[("left_hand_link", "right_hand_link")]
+
+
+def test_both_hands_to_the_same_point_stop_at_contact(model) -> None:
+    """Paper §4.2: both hands sent to the same point stop when the two parts of the collision model touch
+    (within 5 mm), never interpenetrating; both arms moved into the contact, so both commands end there."""
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    decisions = drive(gate, target, 4.0)
+    gap = hand_clearance(model, gate.ref)
+    assert model.margin - 1e-9 <= gap <= model.margin + TOUCH, f"hands stopped {gap * 1e3:.1f} mm apart"
+    assert set(decisions[-1].held) == {"left", "right"}
+    stops = [d.stopped for d in decisions if d.stopped]
+    assert stops == [{"left": "left hand / right hand", "right": "right hand / left hand"}]  # once per episode
+    doc = decision_to_dict(decisions[-1], gate, gate.last_time)
+    assert doc["stopped"] == {"left": "stopped at contact: left hand / right hand",
+                              "right": "stopped at contact: right hand / left hand"}
+    for d in decisions:  # never a reference into the contact on the way
+        assert not model.check(model.q_from_ref(d.ref)).collides
+
+
+def test_a_hand_sent_to_a_resting_hand_stops_there_and_only_its_command_ends(model) -> None:
+    """Only the arm whose own reference moved into the contact is stopped (and cancelled); the resting arm it came
+    to is held while they touch, but its command (none) is not the one that failed."""
+    gate = make_gate(model)
+    target = HOME.copy()
+    target[L] = solve("left", [0.40, 0.05, -0.10])
+    drive(gate, target, 3.0)
+    np.testing.assert_allclose(gate.ref[L], target[L], atol=1e-12)
+    target[R] = solve("right", [0.40, 0.05, -0.10])
+    decisions = drive(gate, target, 4.0)
+    gap = hand_clearance(model, gate.ref)
+    assert model.margin - 1e-9 <= gap <= model.margin + TOUCH, f"hands stopped {gap * 1e3:.1f} mm apart"
+    assert [d.stopped for d in decisions if d.stopped] == [{"right": "right hand / left hand"}]
+    np.testing.assert_allclose(gate.ref[L], target[L], atol=1e-12)  # the left arm never moved
+    # The right arm's target is cancelled (the mux then sends it the held reference): it rests, is released, and
+    # its stop is no longer reported; no second stop on the way.
+    assert gate.stopped == {"right": "right hand / left hand"}
+    held = gate.ref.copy()
+    decisions = drive(gate, held, 1.0)
+    assert not decisions[-1].held and gate.stopped == {} and not any(d.stopped for d in decisions)
+    decisions = drive(gate, HOME, 2.0)
+    assert not any(d.stopped for d in decisions) and np.allclose(gate.ref, HOME)
+
+
+def test_the_hand_driven_down_stops_on_the_table(table_model) -> None:
+    """Paper §4.3: the hand driven down toward the table does not move farther than the collision point."""
+    gate = make_gate(table_model)
+    target = HOME.copy()
+    target[L] = solve("left", [0.40, 0.25, -0.50])  # 10 cm below the table top
+    decisions = drive(gate, target, 5.0)
+    gap = table_model.distances(table_model.q_from_ref(gate.ref))[("left_hand_link", "world:table")]
+    assert table_model.margin - 1e-9 <= gap <= table_model.margin + TOUCH, f"{gap * 1e3:.1f} mm above the table"
+    assert [d.stopped for d in decisions if d.stopped] == [{"left": "left hand / table"}]
+
+
+def test_at_the_contact_the_daemons_target_arrives_before_the_arm_is_flagged(model) -> None:
+    """A flag makes the daemon withhold the arm where its rate-limited target is, which lags the reference: so at
+    the contact the arm first rests there unflagged (its reference frozen) until mds-state shows the daemon's
+    target there, then it is held and flagged as before. The stop (and the cancel) comes at the first frame."""
+    from mds_ach.nodes.collision import Observed
+
+    gate = make_gate(model)
+    target = HOME.copy()
+    target[L] = solve("left", [0.40, 0.05, -0.10])
+    drive(gate, target, 3.0)
+    target[R] = solve("right", [0.40, 0.05, -0.10])
+    core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
+    core.set_target(target, ZERO_MODE)
+    now, sent = gate.last_time, gate.ref.copy()
+    stops, rested, flagged_early = [], 0, False
+    for k in range(int(4.0 / DT)):
+        now += DT
+        if k % 4 == 0:  # the daemon's 10 Hz cycle: its target moves at most 0.1 rad toward the reference
+            sent = sent + np.clip(gate.ref - sent, -0.1, 0.1)
+        before = gate.ref.copy()
+        d = gate.process(core.step(), core.mode, now, Observed(sent.copy(), now, now, sent.copy()))
+        stops += [d.stopped] if d.stopped else []
+        if gate.stopped and not d.held:
+            rested += 1
+            assert np.array_equal(d.ref[R], before[R])  # resting at the contact: the reference does not move
+            flagged_early |= flags(gate.report(now), RIGHT_PARTS)
+    assert stops == [{"right": "right hand / left hand"}] and rested > 0 and not flagged_early
+    assert "right" in d.held and np.abs(sent[R] - d.ref[R]).max() <= 1e-4  # held once the daemon got there
+    gap = hand_clearance(model, gate.ref)
+    assert model.margin - 1e-9 <= gap <= model.margin + TOUCH
+
+
+def test_approach_can_be_switched_off(model) -> None:
+    """approach_iterations 0: the blocked step is not passed at all (the arm stops up to a whole step short)."""
+    gate = make_gate(model, approach_iterations=0)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    drive(gate, target, 4.0)
+    assert hand_clearance(model, gate.ref) > model.margin + TOUCH
+    with pytest.raises(ValueError, match="approach_iterations"):
+        GateConfig.from_mapping({"approach_iterations": -1})
+
+
 # --------------------------------------------------------------------------------------------- channels
 
 
@@ -570,6 +681,53 @@ def test_runner_logs_a_refusal_once_per_change_and_counts_it(clean_shm: None, mo
     assert runner.refused_count == 60
     assert docs[-1]["refused_count"] == 60 and docs[-1]["refused"] == []
     assert any(d["refused"] == ["LSR", "LWR"] and d["refused_count"] >= 31 for d in docs)
+
+
+def test_an_arm_stopped_at_contact_gets_its_command_cancelled_on_mds_hold(clean_shm: None, table_model) -> None:
+    """The gate ends the command of an arm it stopped at contact: one HOLD_CANCEL on mds-hold for that arm's joints at
+    the reference it holds, source 'collision', reason 'stopped at contact: <pair>' (the mux drops the target, so
+    the arm does not go on later when the obstacle is moved away)."""
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
+
+    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    lower, upper = joint_limits(table_model)
+    logs: list[str] = []
+    runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+    holds = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
+    try:
+        assert runner.ready.wait(10), logs
+        holds.put(MDS_HOLD(seq=41, action=1))  # another writer's request: the gate's seq follows it
+        holds.next()
+        target = HOME.copy()
+        target[L] = solve("left", [0.40, 0.25, -0.50])
+        core = FilterCore(parse_config({"rate": 40}), HOME, ZERO_MODE)
+        core.set_target(target, ZERO_MODE)
+        for k in range(200):  # lock-step: every frame is gated
+            smooth.put(make_ref(core.step(), ZERO_MODE))
+            wait_for(lambda k=k: runner.processed > k, 10, what=f"the gate to process frame {k}")
+        held = ref_arrays(out.latest())[0]
+        frames = []
+        while (f := holds.next()) is not None:
+            frames.append(f)
+    finally:
+        runner.stop()
+        t.join(5)
+        for ch in (smooth, out, holds):
+            ch.close()
+    assert len(frames) == 1 and runner.cancels == 1, [bytes(f.reason) for f in frames]
+    f = frames[0]
+    assert f.action == HOLD_CANCEL and f.seq not in (0, 41)
+    assert bytes(f.source).rstrip(b"\0") == b"collision"
+    assert bytes(f.reason).split(b"\0")[0] == b"stopped at contact: left hand / table"
+    assert [a for a in range(N) if f.joints[a]] == sorted(L.tolist())
+    np.testing.assert_array_equal([f.target[a] for a in L], held[L])
+    assert all(np.isnan(f.target[a]) for a in range(N) if a not in L)
+    assert any("left arm stopped at contact: left hand / table" in m for m in logs)
 
 
 # --------------------------------------------------------------------------------------------- node

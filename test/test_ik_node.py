@@ -316,3 +316,94 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
         rclpy.try_shutdown()
     assert proc.returncode == 0, text
     assert "Traceback" not in text, text
+
+
+# --------------------------------------------------------------------------------------------- approach to contact
+
+
+@pytest.fixture(scope="module")
+def safety():
+    from mds_ach.nodes.ik import collision_safety
+
+    return collision_safety(lambda level, msg: None)
+
+
+def _at(arm: str, point: list[float], base: np.ndarray) -> np.ndarray:
+    idx = LEFT_ADDR if arm == "left" else RIGHT_ADDR
+    res = ik.solve(point, "p-x p-y p-z", arm, base[idx])
+    assert res.success
+    out = base.copy()
+    out[idx] = res.q
+    return out
+
+
+def test_a_colliding_goal_is_sent_in_approach_mode_and_refused_in_refuse_mode(safety) -> None:
+    """Paper §4.2: the right hand sent to where the left hand is. approach (default): solved and sent, the gate
+    stops it at contact; refuse: today's 'unreachable ... colliding; nothing moved'."""
+    cur = _at("left", [0.40, 0.0, -0.10], current_pose())
+    req = make_request("right", 3, [0.40, 0.0, -0.10])
+    assert IkNodeConfig().on_collision == "approach"
+    approach = IkService(IkNodeConfig(), arm_limits("default"), safety).handle(req, cur)
+    assert approach.status.status == IK_SOLVED and approach.collides and approach.refs is not None
+    assert "stops at contact" in get_message(approach.status)
+    refuse = IkService(IkNodeConfig(on_collision="refuse"), arm_limits("default"), safety).handle(req, cur)
+    assert refuse.status.status == IK_UNREACHABLE and refuse.refs is None and "colliding" in get_message(refuse.status)
+    with pytest.raises(ValueError, match="on_collision"):
+        IkNodeConfig(on_collision="ignore")
+
+
+def test_the_other_arms_commanded_target_counts(safety) -> None:
+    """The left arm is still at its current pose but commanded to the point: a right-hand goal there collides with
+    where the left hand is heading (mds-ref-mux), not only with where it is."""
+    cur = current_pose()
+    commanded = _at("left", [0.40, 0.0, -0.10], cur)
+    req = make_request("right", 3, [0.40, 0.0, -0.10])
+    refuse = IkService(IkNodeConfig(on_collision="refuse"), arm_limits("default"), safety)
+    assert refuse.handle(req, cur).status.status == IK_SOLVED  # against the current pose alone: clear
+    assert refuse.handle(req, cur, commanded).status.status == IK_UNREACHABLE
+    approach = IkService(IkNodeConfig(), arm_limits("default"), safety).handle(req, cur, commanded)
+    assert approach.status.status == IK_SOLVED and approach.collides
+
+
+def test_a_stop_at_contact_gets_a_second_answer(clean_shm: None) -> None:
+    """After a solution was written, the gate's HOLD_CANCEL (source collision) for that arm gives the request a
+    second status frame with the same seq: IK_STOPPED_AT_CONTACT, 'stopped at contact: right hand / left hand'.
+    Another writer's cancel, or one for the other arm, is not a stop at contact of this request."""
+    from mds_ach.nodes.collision import UNIT_ADDRESSES
+    from mds_ach.robot import lifecycle
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs.hold import MDS_HOLD
+    from mds_ach.robot.msgs.ik_status import IK_STOPPED_AT_CONTACT
+
+    cur = current_pose()
+    put_state(cur)
+    runner = IkRunner(IkService(IkNodeConfig(max_iterations=200), arm_limits("default")),
+                      log=lambda level, msg: None)
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    holds = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
+    try:
+        assert runner.ready.wait(10)
+        with IkClient() as client:
+            reply = client.request("right", 3, [0.3, -0.2, 0.0], timeout=10)
+            assert reply.status == IK_SOLVED and client.stopped(reply) is None
+
+            def cancel(arm: str, reason: str, source: str = "collision") -> MDS_HOLD:
+                targets = {int(a): float(cur[a]) for a in UNIT_ADDRESSES[arm]}
+                return lifecycle.make(lifecycle.HOLD_CANCEL, targets=targets, source=source, reason=reason)
+
+            other = cancel("left", "stopped at contact: left hand / table")
+            console = cancel("right", "goto timed out", source="console")
+            for frame in (other, console):  # read in order before the gate's: a wrong match would answer first
+                holds.put(frame)
+            holds.put(cancel("right", "stopped at contact: right hand / left hand"))
+            msg = wait_for(lambda: client.stopped(reply), 5, what="the follow-up answer")
+            assert msg == "stopped at contact: right hand / left hand"
+        assert runner.watches == {}
+    finally:
+        runner.stop()
+        t.join(5)
+        holds.close()
+    assert not t.is_alive()
+    assert IK_STOPPED_AT_CONTACT == 5 and status_to_dict(MDS_IK_STATUS(status=5))["status_name"] == \
+        "stopped at contact"

@@ -265,6 +265,19 @@ def load_world(path: str | Path, robot_zero: np.ndarray) -> list[WorldObject]:
     return parse_world(load_yaml(path), robot_zero, path.name) if path.is_file() else []
 
 
+def check_world_file(path: str | Path) -> int:
+    """Validate a world file before a node or the launcher uses it: ValueError naming the file and the problem
+    (missing, not YAML, a bad object); returns how many objects are enabled."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"world file {path} not found")
+    try:
+        data = load_yaml(path)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"world file {path} is not valid YAML: {exc}") from None
+    return sum(obj.enabled for obj in parse_world(data, np.eye(4), str(path)))
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     with open(path, encoding="utf-8") as fh:
         data = yaml.safe_load(fh) or {}

@@ -22,6 +22,26 @@ Every reference is checked before it can reach the daemon, in this order:
    is held. So an arm in contact, measured or commanded, can always be moved out of it (such a move is
    reported as *escaping*), never further in. An arm in contact whose input does not ask it to move is held
    too.
+4. **Approach to contact** (paper §4.2/§4.3: the hands stop when the parts of the collision model touch). When
+   only arms moved into a blocking contact and none of them is held yet, they are not held a whole step short:
+   they move by the largest fraction of their step (the same for all of them) that blocks nothing, found by
+   bisection (``approach_iterations``, default 6: within step / 64, under 1 mm at the filter's speed). Such a
+   frame blocks nothing, so nothing is held or flagged; the next ones creep closer until even step / 64 blocks.
+   There an arm first *rests*: its reference frozen but not flagged (not a hold: the daemon withholds nothing
+   and sees no reference move) until ``mds-state`` shows the daemon's rate-limited target there (at most
+   ``release_wait``), because a flag would stop the arm where that target lags, up to a daemon step short. Then
+   it is held as in 3. Only at a contact between references; one with a measured pose is held at once.
+   "Touching" is on the gate's model: the shapes inflated by ``margin / 2`` touch, i.e. the un-inflated
+   clearance is the margin; they never overlap.
+
+**Stopped at contact: the command ends.** An arm held because its *own* reference moved into the contact (the
+arm taken at its reference in a blocking configuration and its input moved this frame) is *stopped at contact*:
+once per hold episode the runner puts a ``HOLD_CANCEL`` on ``mds-hold`` for its joints at the reference it is
+held at (source ``collision``, reason ``stopped at contact: right hand / left hand``), so the mux ends that
+target and the arm does not go on to it later when the obstacle moves away; only a new command moves it. An arm
+held because the other arm (or the waist, or its measured pose) came to it is not cancelled: its command did not
+fail. ``/mds/collision`` reports ``stopped`` (arm -> ``stopped at contact: <its part> / <the other part>``) until
+that arm's reference moves again.
 
 **Holding and releasing agree with ``mds-collide``.** The daemon withholds the targets of an arm whose parts
 ``mds-collide`` flags (``daemon_loop._collision_held``). So the gate flags exactly the arms it holds, keeps an
@@ -32,8 +52,8 @@ bounds the wait), and only then moves the arm on, at ``release_velocity``. The d
 arm's reference move while it withholds that arm, and never sends accumulated distance in one frame.
 
 Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``/mds/collision``
-(std_msgs/String, JSON with predicted pairs, current contacts, parts, held/releasing/escaping arms, refusals
-and the override state). Top-level ``isCollide``: **1** = the gate holds an arm: the flagged parts are those
+(std_msgs/String, JSON with predicted pairs, current contacts, parts, held/releasing/escaping/stopped arms,
+refusals and the override state). Top-level ``isCollide``: **1** = the gate holds an arm: the flagged parts are those
 of the held arms, and the daemon holds exactly those arms; **2** = a predicted collision was passed by the
 expert override; **3** = in contact (measured or commanded) but nothing held: only moves out of it are passed,
 the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part: ``isCollide``
@@ -69,7 +89,7 @@ from std_msgs.msg import Float64, String
 
 import mds_ach as mds
 from mds_ach import paths
-from mds_ach.kinematics.collision import CheckResult, load_model, load_yaml
+from mds_ach.kinematics.collision import CheckResult, check_world_file, load_model, load_yaml
 from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import filters
@@ -84,9 +104,11 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
+from mds_ach.robot import lifecycle
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
 from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
+from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
 
 ARM_ADDRESSES: dict[str, np.ndarray] = {
     "left": np.array([BY_SHORT[n].address for n in LEFT_ARM]),
@@ -114,6 +136,7 @@ CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than thi
 
 Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
 FREE, HELD, RELEASING = "free", "held", "releasing"
+STOPPED_AT_CONTACT = "stopped at contact"
 
 
 @dataclass(frozen=True)
@@ -127,6 +150,7 @@ class GateConfig:
     release_velocity: float | None = None  # rad/s of a released joint; None = filters.DEFAULT_MAX_VELOCITY
     state_timeout: float = 0.5  # s: an older mds-state gives no measured pose
     release_wait: float = 1.0  # s: longest wait for the daemon to echo a cleared report
+    approach_iterations: int = 6  # bisection steps toward a contact (resolution: step / 2**n); 0 = hold at once
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], where: str = "collision config") -> GateConfig:
@@ -152,7 +176,15 @@ class GateConfig:
             release_velocity=num("release_velocity", None, allow_none=True),
             state_timeout=num("state_timeout", 0.5),  # type: ignore[arg-type]
             release_wait=num("release_wait", 1.0),  # type: ignore[arg-type]
+            approach_iterations=_count(data, "approach_iterations", 6, where),
         )
+
+
+def _count(data: Mapping[str, Any], key: str, default: int, where: str) -> int:
+    value = data.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 20:
+        raise ValueError(f"{where}: {key} must be an integer 0..20, got {value!r}")
+    return value
 
 
 @dataclass(frozen=True)
@@ -162,13 +194,15 @@ class Observed:
     pos: np.ndarray  # (100) measured position, NaN where the joint is not fresh (state.joint[].active == 0)
     time: float  # state.time (CLOCK_MONOTONIC)
     collide_time: float  # state.collide.time: the stamp of the newest gate report the daemon has taken
+    sent: np.ndarray | None = None  # (100) state.joint[].ref: the daemon's last target sent (None: not known)
 
     @classmethod
     def from_state(cls, state: MDS_STATE) -> Observed:
         """Stale joints (``active`` 0) count as unknown: the gate then takes them where they are commanded."""
         pos = np.array([state.joint[a].pos if state.joint[a].active else math.nan
                         for a in range(MDS_JOINT_COUNT)], dtype=float)
-        return cls(pos, float(state.time), float(state.collide.time))
+        sent = np.array([state.joint[a].ref for a in range(MDS_JOINT_COUNT)], dtype=float)
+        return cls(pos, float(state.time), float(state.collide.time), sent)
 
 
 @dataclass
@@ -185,6 +219,7 @@ class Decision:
     escaping: tuple[str, ...] = ()  # arms in contact whose reference moves them out of it (passed)
     contacts: Any = None  # CheckResult: contacts of the output (with the measured pose) -- in contact now
     measured: bool = False  # the measured pose was part of the check
+    stopped: dict[str, str] = field(default_factory=dict)  # arms stopped at contact in THIS frame -> the pair
 
 
 @dataclass
@@ -243,6 +278,8 @@ class Gate:
         self._contact_time = -math.inf
         self._known = np.zeros(MDS_JOINT_COUNT, dtype=bool)
         self._known[list(KNOWN_ADDRESSES)] = True
+        self.stopped: dict[str, str] = {}  # arm -> "right hand / left hand" while it rests where it was stopped
+        self._settle_since: dict[str, float] = {}  # arm -> when it came to rest at a contact, unflagged
 
     # ----- override
 
@@ -354,6 +391,38 @@ class Gate:
                     out.add("body")
         return set(UNITS) if "body" in out or not out else out
 
+    def _own_contacts(self, blocking: list[tuple[Choice, Any]], x: np.ndarray) -> dict[str, Any]:
+        """Arm -> the closest blocking contact its OWN reference moved into (the arm taken at its reference in
+        that configuration, and its reference moved this frame). Contacts another unit brought to a resting arm,
+        or that only its measured pose is in, are not its own."""
+        out: dict[str, Any] = {}
+        for arm in ("left", "right"):
+            if np.array_equal(x[UNIT_ADDRESSES[arm]], self.ref[UNIT_ADDRESSES[arm]]):
+                continue
+            mine = [k for c, k in blocking if not c[UNITS.index(arm)] and arm in (k.group_a, k.group_b)]
+            if mine:
+                out[arm] = min(mine, key=lambda k: k.clearance)
+        return out
+
+    def _approach(self, cand: np.ndarray, cand_mode: np.ndarray, frozen: set[str], arms: set[str],
+                  pos: np.ndarray | None) -> np.ndarray | None:
+        """The blocked ``arms`` moved by the largest fraction of their step (the same for all of them) that blocks
+        nothing, found by bisection in ``approach_iterations`` steps; frozen units stay, the rest moves as input.
+        None when even the smallest fraction tried blocks: the arms are at the contact, hold them."""
+        base, _ = self._freeze(cand, cand_mode, frozen)
+        idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(arms)])
+        start, step = self.ref[idx], cand[idx] - self.ref[idx]
+        lo, hi, best = 0.0, 1.0, None
+        for _ in range(self.config.approach_iterations):
+            mid = 0.5 * (lo + hi)
+            x = base.copy()
+            x[idx] = start + mid * step
+            if self._analyze(x, pos)[1]:
+                hi = mid
+            else:
+                lo, best = mid, x
+        return best
+
     def _freeze(self, cand: np.ndarray, cand_mode: np.ndarray, units: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
         out, out_mode = cand.copy(), cand_mode.copy()
         for u in units:
@@ -403,11 +472,33 @@ class Gate:
         out, out_mode, res_out, blocked = cand, cand_mode, res, set()
         overridden = bool(blocking) and overriding
         seen = list(blocking)  # contacts that decide holds and flags
+        stopping: dict[str, Any] = {}  # arm -> the contact its own reference is stopped at in this frame
+        own: dict[str, Any] = {}  # arm -> the blocking contact its own reference moved into
+        settle: set[str] = set()  # arms resting at the contact, unflagged, until the daemon's target is there
         if overridden and frozen:  # released by the override: still waiting for the daemon's echo
             out, out_mode = self._freeze(cand, cand_mode, frozen)
             res_out = self._analyze(out, pos)[0]
         elif not overridden:
             blocked = self._movers(blocking, cand) if blocking else set()
+            own = self._own_contacts(blocking, cand) if blocking else {}
+            approach = blocked - frozen
+            if approach and "body" not in blocked and self.config.approach_iterations > 0:
+                # Approach to contact: the arms that moved into it go the safe part of their step.
+                part = self._approach(cand, cand_mode, frozen, approach, pos)
+                settle = set() if part is not None else self._settling(approach, blocking, observed, now)
+                if part is not None or settle:  # replaces their input; the rules below apply as to any input
+                    moving = approach if part is not None else settle
+                    idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(moving)])
+                    cand, cand_mode = cand.copy(), cand_mode.copy()
+                    if part is not None:
+                        cand[idx] = part[idx]
+                    else:  # at the contact: rest there, unflagged, until the daemon's target has arrived
+                        cand[idx], cand_mode[idx] = self.ref[idx], self.mode[idx]
+                        stopping = {a: k for a, k in own.items() if a in settle}
+                    res_out, blocking = self._analyze(cand, pos)
+                    out, out_mode, seen = cand, cand_mode, list(blocking)
+                    blocked = self._movers(blocking, cand) if blocking else set()
+                    own = self._own_contacts(blocking, cand) if blocking else {}
             held = frozen | blocked
             if held:
                 out, out_mode = self._freeze(cand, cand_mode, held)
@@ -430,6 +521,9 @@ class Gate:
         renewed = set() if overridden else blocked | (static & touching)
         if renewed - blocked:
             out, out_mode = self._freeze(out, out_mode, renewed - blocked)  # the mode stays too
+        stopping.update({a: k for a, k in own.items() if a in renewed})
+        stopped = self._stop_at_contact({} if overridden else stopping)
+        self._settle_since = {a: t for a, t in self._settle_since.items() if a in settle}
         self._hold(renewed, now)
         for n, u in self.units.items():
             if u.state != FREE:
@@ -440,7 +534,40 @@ class Gate:
         self._first = False
         releasing = tuple(n for n, u in self.units.items() if u.state == RELEASING)
         return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
-                        escaping, contacts, pos is not None)
+                        escaping, contacts, pos is not None, stopped)
+
+    def _settling(self, arms: set[str], blocking: list[tuple[Choice, Any]], observed: Observed | None,
+                  now: float) -> set[str]:
+        """Arms at a contact between references whose daemon target has not arrived there yet: they rest at the
+        contact unflagged (a flag would make the daemon withhold them where its rate-limited target happens to
+        be, short of the contact), for at most ``release_wait`` s; then, or when nothing echoes, they are held as
+        usual. A contact with a measured pose (a compliant arm, an arm moved by hand) is held at once."""
+        out = set()
+        for arm in arms:
+            if observed is None or observed.sent is None or now - observed.time > self.config.state_timeout:
+                continue
+            if any(any(c) for c, k in blocking if arm in (k.group_a, k.group_b)):
+                continue
+            start = self._settle_since.setdefault(arm, now)
+            idx = UNIT_ADDRESSES[arm]
+            if now - start <= self.config.release_wait and \
+                    np.abs(observed.sent[idx] - self.ref[idx]).max() > SAME_POSE:
+                out.add(arm)
+        return out
+
+    def _stop_at_contact(self, stopping: Mapping[str, Any]) -> dict[str, str]:
+        """Arms stopped at contact in this frame (held or settling there because their own reference moved into
+        the contact) that were not stopped already: their command ends there (the runner cancels it on
+        ``mds-hold``). ``self.stopped`` keeps the pair for the reports until the arm is free again and not
+        pushing on (after the cancel the mux sends it the held reference: it rests, is released, and clears)."""
+        for arm in list(self.stopped):
+            if arm not in stopping and self.units[arm].state == FREE:
+                del self.stopped[arm]
+        new = {}
+        for arm, contact in stopping.items():
+            if arm not in self.stopped:
+                new[arm] = self.stopped[arm] = contact_pair(contact, arm)
+        return new
 
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
         """Restart these joints' output where they are (``pipeline.ReseedWatch``: after HOME, reset, resetbus)."""
@@ -507,6 +634,18 @@ class Gate:
         return c
 
 
+def part_label(primitive: str) -> str:
+    """A primitive's name for people: 'right_hand_link' -> 'right hand', 'world:table' -> 'table'."""
+    name = primitive.removeprefix("world:").split("#", 1)[0].removesuffix("_link")
+    return name.replace("_", " ")
+
+
+def contact_pair(contact: Any, arm: str) -> str:
+    """'right hand / left hand': the stopped arm's part first, then what it touches."""
+    a, b = part_label(contact.a), part_label(contact.b)
+    return f"{a} / {b}" if contact.group_a == arm else f"{b} / {a}"
+
+
 def decision_to_dict(d: Decision | None, gate: Gate, now: float, refused_count: int = 0) -> dict[str, Any]:
     """The JSON document of /mds/collision (``refused_count``: references refused by validation so far)."""
     res = d.result if d is not None else gate.current
@@ -526,6 +665,7 @@ def decision_to_dict(d: Decision | None, gate: Gate, now: float, refused_count: 
         "overridden": bool(d.overridden) if d is not None else False,
         "override_remaining": round(gate.override_remaining(now), 3),
         "margin": gate.model.margin,
+        "stopped": {arm: f"{STOPPED_AT_CONTACT}: {pair}" for arm, pair in sorted(gate.stopped.items())},
     }
 
 
@@ -570,6 +710,7 @@ class GateRunner:
         self.ready = threading.Event()
         self.processed = 0
         self.refused_count = 0  # references with at least one refused joint (/mds/collision "refused_count")
+        self.cancels = 0  # HOLD_CANCEL frames sent for arms stopped at contact
         self.check_times: list[float] = []
 
     def stop(self) -> None:
@@ -592,6 +733,7 @@ class GateRunner:
         out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
         collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+        hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
         observed: Observed | None = None
         inp.latest()  # a frame already waiting is an old command: act only on frames that arrive from now on
         self.gate = gate
@@ -637,6 +779,8 @@ class GateRunner:
                     if decision.refused != refusing:
                         self._log_refusal(decision.refused, refusing, frame)
                         refusing = decision.refused
+                    for arm, pair in decision.stopped.items():
+                        self._cancel(hold_ch, guard, arm, decision.ref, pair, now)
                     if decision.overridden and now - last_override_log > 1.0:
                         self.log("error", f"EXPERT OVERRIDE passed a predicted collision: "
                                           f"{sorted(decision.result.pairs)}")
@@ -648,7 +792,7 @@ class GateRunner:
                 if reported and self.on_report is not None:
                     self.on_report(decision, gate, now)
         finally:
-            for ch in (inp, out, collide, state_ch, watch):
+            for ch in (inp, out, collide, state_ch, hold_ch, watch):
                 ch.close()
             if self.check_times:
                 ms = np.array(self.check_times) * 1e3
@@ -673,6 +817,18 @@ class GateRunner:
                 why.append(f"{labels([a])}: {value:.5f} rad outside [{lo:.5f}, {hi:.5f}]")
         self.log("error", f"refusing references (held at their last value until the input is valid again): "
                           f"{'; '.join(why)}")
+
+    def _cancel(self, hold_ch: StructChannel[MDS_HOLD], guard: ChannelGuard, arm: str, ref: np.ndarray, pair: str,
+                now: float) -> None:
+        """End the command of an arm stopped at contact: ``HOLD_CANCEL`` on ``mds-hold`` for its joints at the
+        reference it was stopped at, so the mux drops that target and the arm does not go on to it later when
+        the obstacle moves away (only a new command moves it)."""
+        reason = f"{STOPPED_AT_CONTACT}: {pair}"
+        frame = lifecycle.make(HOLD_CANCEL, targets={int(a): float(ref[a]) for a in UNIT_ADDRESSES[arm]},
+                               source="collision", reason=reason)
+        guard.call(hold_ch.name, hold_ch.put, frame)
+        self.cancels += 1
+        self.log("warn", f"{arm} arm {reason}; its command is cancelled (held at {labels(UNIT_ADDRESSES[arm])})")
 
     def _apply_overrides(self, gate: Gate, now: float, last_log: float) -> float:
         with self._lock:
@@ -753,6 +909,8 @@ class CollisionNode(Node):
         path = declare(self, find(PARAMETERS, "config"), config) or None
         world_path = declare(self, find(PARAMETERS, "world"), world) or None
         urdf_path = declare(self, find(PARAMETERS, "urdf"), urdf) or None
+        if world_path is not None:
+            check_world_file(world_path)  # a bad file stops the node with its reason (exit 2)
         configured = float(load_config(path).get("margin", find(PARAMETERS, "margin").default))
         self.margin: float = declare(self, find(PARAMETERS, "margin"), configured if margin is None else margin)
         model, gate_cfg, lower, upper = build_gate_parts(path, world_path, urdf_path, self.margin)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import mds_ach as mds
 from mds_ach.kinematics.model import arm_name
 from mds_ach.robot.channels import StructChannel
-from mds_ach.robot.msgs.ik_status import IK_SOLVED, MDS_IK_STATUS, get_message
+from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_STOPPED_AT_CONTACT, MDS_IK_STATUS, get_message
 
 
 class IkTimeout(TimeoutError):  # noqa: N818 - the name the console imports
@@ -86,6 +86,14 @@ class IkClient:
                 return IkReply(seq=int(st.seq), status=int(st.status), arm=arm_name(index), dof=int(st.dof),
                                iterations=int(st.iterations), error=float(st.error), time=float(st.solve_time),
                                target=tuple(st.target), q=tuple(st.q), message=get_message(st))
+
+    def stopped(self, reply: IkReply) -> str | None:
+        """Never waits: the node's follow-up to ``reply`` if one arrived (IK_STOPPED_AT_CONTACT, same seq: the
+        collision gate stopped the arm at contact and cancelled the command), as its message, else None."""
+        while (st := self.answers.next()) is not None:
+            if int(st.seq) == reply.seq and int(st.status) == IK_STOPPED_AT_CONTACT:
+                return get_message(st)
+        return None
 
     def close(self) -> None:
         self.requests.close()

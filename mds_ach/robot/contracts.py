@@ -222,7 +222,7 @@ CHANNELS: tuple[Contract[Any], ...] = (
              writers=(DAEMON,), readers=(MUX, FILTER, COLLISION, READ, CLI, REMOTE, CLIENTS), legacy=False),
     Contract(MDS_CHAN_HOLD_NAME, "MDS_CHAN_HOLD_NAME", MDS_HOLD,
              "hold / resume / cancel requests to the mux (the command lifecycle)",
-             writers=(CONSOLE, CLI, BRIDGE, COLLISION, VIEWER, REMOTE, CLIENTS), readers=(MUX,), legacy=False,
+             writers=(CONSOLE, CLI, BRIDGE, COLLISION, VIEWER, REMOTE, CLIENTS), readers=(MUX, IK), legacy=False,
              validator=check_hold),
     Contract(MDS_CHAN_LIMITS_NAME, "MDS_CHAN_LIMITS_NAME", MDS_LIMITS,
              "the effective joint limits (URDF and joint table), published once when the daemon starts",

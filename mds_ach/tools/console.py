@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import mds_ach as mds
 from mds_ach.kinematics.limits import current_limits
@@ -31,6 +32,9 @@ from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, l
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
 from mds_ach.tools.monitor import Latest, collision_summary
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
+
+if TYPE_CHECKING:  # imported lazily at run time (numpy)
+    from mds_ach.nodes.ik_client import IkClient, IkReply
 
 PROMPT = ">> mds-ach-console$ "
 ARMS = {"left": (mds.LEFT, LEFT_ARM), "right": (mds.RIGHT, RIGHT_ARM)}
@@ -375,12 +379,14 @@ class Console:
                                f"takes only changes from '{mine}': send another value first, then this one",
                                usage=False)
 
-    def _wait_arrival(self, targets: dict[int, float], timeout: float) -> bool:
-        """Print a dot per half second until every target joint's measured position is within tolerance."""
+    def _wait_arrival(self, targets: dict[int, float], timeout: float,
+                      gave_up: Callable[[], bool] = lambda: False) -> bool:
+        """Print a dot per half second until every target joint's measured position is within tolerance (False
+        after ``timeout`` s, or as soon as ``gave_up()``)."""
         deadline = time.monotonic() + timeout
         next_dot = time.monotonic() + 0.5
         dots = False
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not gave_up():
             state = self.state.wait_new(0.2) or self.state.read()
             if state is not None and all(abs(state.joint[a].pos - v) <= GOTO_TOLERANCE for a, v in targets.items()):
                 if dots:
@@ -493,11 +499,15 @@ class Console:
         self._require_mux()
         values = list(cmd.values) + [0.0] * (6 - cmd.dof)
         sent_at = time.monotonic()
-        try:
-            with IkClient() as client:
+        with IkClient() as client:
+            try:
                 reply = client.request(cmd.arm, cmd.dof, values, timeout=IK_TIMEOUT)
-        except IkTimeout as exc:
-            raise CommandError(str(exc), usage=False) from None
+            except IkTimeout as exc:
+                raise CommandError(str(exc), usage=False) from None
+            self._ik_result(cmd, reply, sent_at, client)
+
+    def _ik_result(self, cmd: Ik, reply: IkReply, sent_at: float, client: IkClient) -> None:
+        """Print the answer; with ``wait``, follow the arm until it arrives or the gate stops it at contact."""
         if not reply.success:
             self.out(reply.message or "unreachable; nothing moved")
             raise CommandError(f"ik {cmd.arm} {cmd.dof}: target not reachable", usage=False)
@@ -508,7 +518,16 @@ class Console:
         targets = {BY_SHORT[s].address: float(v) for s, v in zip(ARMS[cmd.arm][1], reply.q, strict=True)}
         self._confirm_applied(targets, sent_at, mds.MDS_CHAN_REF_IK_NAME)  # the IK node's output, a mux input
         if cmd.wait:
-            if not self._wait_arrival(targets, IK_MOTION_TIMEOUT):
+            stop: list[str] = []
+
+            def stopped() -> bool:
+                if not stop and (msg := client.stopped(reply)) is not None:
+                    stop.append(msg)
+                return bool(stop)
+
+            if not self._wait_arrival(targets, IK_MOTION_TIMEOUT, stopped):
+                if stop:  # the collision gate stopped the arm at contact; its command is cancelled
+                    raise CommandError(f"the {cmd.arm} arm {stop[0]}", usage=False)
                 why = self._not_arrived(targets)
                 raise CommandError(f"the {cmd.arm} arm did not arrive within {IK_MOTION_TIMEOUT:g} s: {why}; "
                                    + self._cancel(list(targets), "ik timed out"), usage=False)

@@ -158,8 +158,27 @@ def node_command(name: str) -> list[str]:
     return [sys.executable, "-m", "mds_ach.tools.launcher", "exec", name]
 
 
-def node_args(name: str, nocan: bool) -> list[str]:
-    return ["--nocan"] if name == "daemon" and nocan else []
+WORLD_NODES = ("collision", "ik")  # the nodes that check collisions, so take the world file
+
+
+def node_args(name: str, nocan: bool, world: str | None = None) -> list[str]:
+    args = ["--nocan"] if name == "daemon" and nocan else []
+    if world and name in WORLD_NODES:
+        args += ["--world", world]
+    return args
+
+
+def world_file(path: str | None) -> str | None:
+    """The absolute path of a valid world file (``--world``), None for none; LaunchError saying what is wrong."""
+    if not path:
+        return None
+    from mds_ach.kinematics.collision import check_world_file  # lazy: numpy/yaml only when a world is given
+
+    try:
+        check_world_file(path)
+    except ValueError as exc:
+        raise LaunchError("", f"--world: {exc}") from None
+    return str(Path(path).resolve())
 
 
 def child_env() -> dict[str, str]:
@@ -305,10 +324,12 @@ def wait_ready(procs: dict[str, subprocess.Popen], checks: dict[str, _Heartbeat]
 
 def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[str] = NODES,
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
-           out: Printer = _out, group: str | None = None, foreground: bool = False) -> dict[str, subprocess.Popen]:
+           out: Printer = _out, group: str | None = None, foreground: bool = False,
+           world: str | None = None) -> dict[str, subprocess.Popen]:
     """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
     until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``). ``foreground``: the nodes
-    die with this process (``start_node``'s ``die_with_launcher``).
+    die with this process (``start_node``'s ``die_with_launcher``). ``world``: a world objects file for the
+    collision gate and the IK node (checked first; the package's config/world.yaml otherwise).
 
     Existing channels must be ones the stack may trust (``channel_access``: owner, mode, group); otherwise
     nothing is started.
@@ -316,6 +337,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
     On failure every node started here is stopped again and LaunchError is raised (the system is left as
     it was found)."""
     rt = rt or runtime_dir()
+    world = world_file(world)
     try:
         reports = make_channels(group=group)
     except ValueError as exc:  # unknown group
@@ -336,7 +358,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
             check = _readiness(name)
             if check is not None:
                 checks[name] = check
-            procs[name] = start_node(name, node_args(name, nocan), rt, env, die_with_launcher=foreground)
+            procs[name] = start_node(name, node_args(name, nocan, world), rt, env, die_with_launcher=foreground)
             out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
         wait_ready(procs, checks, timeout, rt, abort)
     except BaseException:
@@ -539,7 +561,8 @@ def _surviving(out: Printer) -> Printer:
     return safe
 
 
-def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None) -> int:
+def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None,
+                   world: str | None = None) -> int:
     """``mds-ach run``: start everything, print what to do next, supervise, stop cleanly. Leaves no orphans.
 
     It stops every node on Ctrl-C, SIGTERM and SIGHUP (the terminal closed), when its output is gone (``make run |
@@ -573,7 +596,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
         out(f"starting MDS-Ach{' on the simulated robot (nocan)' if nocan else ''} ...")
         started = True
         try:
-            procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True)
+            procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True, world=world)
         except LaunchError as exc:
             if abort():
                 out("interrupted; everything stopped")
@@ -616,6 +639,9 @@ def _add_nocan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--group", metavar="GROUP",
                    help="give channels created now to this group (the operators'), like 'mds-ach make --group'; "
                         "existing channels must belong to it")
+    p.add_argument("--world", metavar="FILE",
+                   help="world objects YAML (e.g. a table, see config/world.yaml) for the collision gate and the IK "
+                        "node; default: the package's config/world.yaml")
 
 
 def add_start_arguments(p: argparse.ArgumentParser) -> None:
@@ -638,7 +664,7 @@ def run_start(args: argparse.Namespace) -> int:
         return 1
     _out(f"starting MDS-Ach{' (nocan: simulated bus)' if nocan else ''}; runtime dir {rt}")
     try:
-        launch(nocan, args.timeout, names, rt, group=args.group)
+        launch(nocan, args.timeout, names, rt, group=args.group, world=args.world)
     except LaunchError as exc:
         _err(f"mds-ach start: {exc}")
         return 1
@@ -658,7 +684,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_run(args: argparse.Namespace) -> int:
-    return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group)
+    return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group,
+                          world=args.world)
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:

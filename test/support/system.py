@@ -17,7 +17,7 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -85,8 +85,8 @@ def _flushed(channel: str) -> ach.Channel:
 
 
 @contextmanager
-def running_system(runtime: Path, robot: str | None = None) -> Iterator[dict[str, str]]:
-    """``mds-ach start nocan`` in a clean /dev/shm (after ``changerobot robot`` if given); yields the
+def running_system(runtime: Path, robot: str | None = None, extra: Sequence[str] = ()) -> Iterator[dict[str, str]]:
+    """``mds-ach start nocan [extra...]`` in a clean /dev/shm (after ``changerobot robot`` if given); yields the
     environment; ``mds-ach stop`` and ``killall`` afterwards."""
     assert in_netns(), "run the tests through tools/netns-run (private /dev/shm and network namespace)"
     remove_mds_channels()
@@ -94,7 +94,7 @@ def running_system(runtime: Path, robot: str | None = None) -> Iterator[dict[str
     if robot:
         proc = mds_ach("changerobot", robot, env=env)
         assert proc.returncode == 0, proc.stderr
-    proc = mds_ach("start", "nocan", "--timeout", str(START_TIMEOUT), env=env, timeout=START_TIMEOUT + 60)
+    proc = mds_ach("start", "nocan", "--timeout", str(START_TIMEOUT), *extra, env=env, timeout=START_TIMEOUT + 60)
     assert proc.returncode == 0, f"mds-ach start nocan failed:\n{proc.stdout}\n{proc.stderr}"
     try:
         yield env

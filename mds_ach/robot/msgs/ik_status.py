@@ -18,8 +18,10 @@ IK_UNREACHABLE = 1  # no solution within the iteration cap (or every one collide
 IK_BAD_REQUEST = 2  # refused: move not 0/1, ik_method not 1..6, NaN/Inf target; nothing moved
 IK_NOT_READY = 3  # no current reference to start from (is the daemon running?); nothing moved
 IK_NOT_APPLIED = 4  # solved, but the mux refused the whole solution (another controller owns a joint); nothing moved
+IK_STOPPED_AT_CONTACT = 5  # a second answer (same seq) to a solved request: the gate stopped the arm at contact
 STATUS_NAMES: dict[int, str] = {IK_SOLVED: "solved", IK_UNREACHABLE: "unreachable", IK_BAD_REQUEST: "bad request",
-                                IK_NOT_READY: "not ready", IK_NOT_APPLIED: "not applied"}
+                                IK_NOT_READY: "not ready", IK_NOT_APPLIED: "not applied",
+                                IK_STOPPED_AT_CONTACT: "stopped at contact"}
 IK_MESSAGE_SIZE = 80
 IK_STATUS_TOPIC = "/mds/ik_status"
 
@@ -27,8 +29,11 @@ IK_STATUS_TOPIC = "/mds/ik_status"
 class MDS_IK_STATUS(_Packed):  # noqa: N801 - MDS struct naming
     """``mds-ik-state`` frame (packed, 214 B).
 
-    seq          count of requests handled since the node started (1 = first)
-    status       IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY / IK_NOT_APPLIED
+    seq          count of requests handled since the node started (1 = first; a follow-up repeats its request's)
+    status       IK_SOLVED / IK_UNREACHABLE / IK_BAD_REQUEST / IK_NOT_READY / IK_NOT_APPLIED /
+                 IK_STOPPED_AT_CONTACT (follow-up): a second frame for a solved request, when the collision gate
+                 stopped that arm at contact (message "stopped at contact: right hand / left hand"; the command is
+                 cancelled, the arm holds there)
     arm          0 right, 1 left (as ``MDS_IK.move``; -1 if the request named no valid arm)
     dof          task DOF (``ik_method``), components x, y, z, roll, pitch, yaw in that order
     iterations   solver iterations used
