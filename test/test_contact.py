@@ -139,6 +139,19 @@ def test_the_papers_scenes_stop_at_contact(system: dict[str, str], monkeypatch: 
                 gap = _clearance(model, q, ("left_hand_link", "right_hand_link"))
                 assert margin - 1e-6 <= gap <= margin + TOUCH, f"hand spheres {gap * 1e3:.1f} mm from touching"
             commanded.append(_refs(st))
+
+            # The stop ended the right arm's command (the gate's CANCEL, honoured by the mux): when the left hand
+            # moves out of the way, the right arm stays where it stopped instead of going on to the old goal.
+            stopped_at = _refs(st)[RIGHT]
+            reply = client.request("left", 3, [0.40, 0.30, -0.10], timeout=30)
+            assert reply.status == IK_SOLVED and "contact" not in reply.message, reply.message
+            _settled(state, LEFT)
+            t_end = time.monotonic() + 2.0
+            while time.monotonic() < t_end:
+                now = state.wait(5.0)
+                assert now is not None, "no mds-state"
+                np.testing.assert_allclose(_refs(now)[RIGHT], stopped_at, atol=1e-6,
+                                           err_msg="a command stopped at contact moved the arm later")
     finally:
         state.close()
         holds.close()
