@@ -32,12 +32,19 @@ topics (relative: remap with --ros-args -r old:=new, or move with -r __ns:=/robo
   {topics.JOINT_REFERENCES:<24} out  sensor_msgs/JointState      the daemon's reference (state.ref)
   {topics.ROBOT_DESCRIPTION:<24} out  std_msgs/String             the URDF (transient local)
   {topics.DIAGNOSTICS:<24} out  diagnostic_msgs/DiagnosticArray  stream health, command counters
+  {topics.COMMAND_STATUS:<24} out  std_msgs/String             JSON per command event (accepted, rejected,
+                                   refused by the mux + owner, stopped, finished)
   {topics.JOINT_COMMAND:<24} in   sensor_msgs/JointState      positions by joint name
   {topics.JOINT_POSITIONS:<24} in   std_msgs/Float64MultiArray  {len(joints.MODEL_JOINTS)} positions in this order:
                                    {' '.join(joints.MODEL_JOINTS)}
   {topics.JOINT_TRAJECTORY:<24} in   trajectory_msgs/JointTrajectory  sampled on every state cycle
   {topics.IK_LEFT:<24} in   geometry_msgs/PoseStamped   left hand target -> {mds.MDS_CHAN_IK_NAME}
   {topics.IK_RIGHT:<24} in   geometry_msgs/PoseStamped   right hand target -> {mds.MDS_CHAN_IK_NAME}
+services:
+  {topics.HOLD_SERVICE:<24} std_srvs/Trigger  hold every joint (mux); stops the bridge's trajectory for good
+  {topics.RESUME_SERVICE:<24} std_srvs/Trigger  release held joints; a stopped trajectory is not restarted
+A frame the mux refuses (another controller owns a joint) is logged once with the owner; a trajectory that
+is refused, held, aborted or preempted stops and its joints are cancelled where they are.
 IK targets are in the robot frame (frame_id '' or 'torso': between the shoulders, x forward, y left,
 z up); the task DOF per arm are the parameters ik_dof_left / ik_dof_right (a prefix of
 p-x p-y p-z t-x t-y t-z: 3 = position only, 6 = full pose).

@@ -4,15 +4,24 @@ Threads: a dedicated state thread blocks on the state channel (newest frame wins
 frame, writes the bridge's reference if there is something new (the newest accepted command, or the
 running trajectory sampled at this cycle) and publishes ``joint_states`` and ``mds/joint_references``.
 The executor thread only runs subscription callbacks, which validate a command completely and hand it
-over under a lock, and the diagnostics timer. A frame is never published twice; when the daemon stalls
-the topics fall silent and /diagnostics reports it.
+over under a lock, the diagnostics timer and the /mds/hold, /mds/resume services. A frame is never published
+twice; when the daemon stalls the topics fall silent and /diagnostics reports it.
+
+Lifecycle (issue 17): before each write the state thread reads what the mux did since the last cycle
+(``muxwatch``). A frame of the bridge the mux refused (another controller owns a joint, a joint not permitted)
+is logged once per command with the owner and reported on /diagnostics and ``mds/command_status``; a trajectory
+that is refused, stopped by a HOLD or CANCEL from anyone, aborted (stall) or preempted stops being a target:
+the bridge stops streaming it and CANCELs its joints the other controllers do not own, so they hold where they
+are. RESUME never restarts it.
 """
 
 from __future__ import annotations
 
 import array
+import json
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,25 +35,32 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.ach.glibc import tune_thread
 from mds_ach.kinematics.limits import current_limits, urdf_with_limits
+from mds_ach.nodes.mux import controller_for
+from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
 from mds_ach.nodes.rosnode import Param, declare
-from mds_ach.robot import joints
+from mds_ach.robot import joints, lifecycle
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
+from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
 from mds_ach_bridge import topics, trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
 from mds_ach_bridge.ik_request import make_request
 from mds_ach_bridge.limits import load_limits
+from mds_ach_bridge.muxwatch import MuxNews, MuxWatch
 from mds_ach_bridge.stamps import state_stamp_ns
 
 NODE_NAME = "mds_bridge"
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+WRITE_RECORDS = 64
+"""Recent writes remembered to tell which command a refused frame carried (the mux answers within a cycle)."""
 STATE_QOS = {
     "sensor_data": qos_profile_sensor_data,  # best effort, keep last 5
     "reliable": QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
@@ -62,7 +78,31 @@ class _Counters:
     last_rejection: str = ""
     references_written: int = 0
     ik_forwarded: int = 0
+    mux_refused: int = 0
+    mux_refused_at_last_diag: int = 0
+    last_mux_refusal: str = ""
+    stopped: int = 0
+    stopped_at_last_diag: int = 0
+    last_stop: str = ""
     extra: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _Write:
+    """One frame the bridge wrote: when (just before the put) and which commands it carried, by serial."""
+
+    time: float
+    trajectory: int  # the trajectory sampled in it, 0 = none
+    commands: tuple[int, ...]  # the position commands applied in it
+
+
+@dataclass(frozen=True)
+class _Event:
+    """Something to log and publish on mds/command_status once the lock is released."""
+
+    level: str  # "info" or "warn"
+    text: str
+    doc: dict[str, Any]
 
 
 SECONDS = (0.001, 3600.0)
@@ -140,6 +180,19 @@ class BridgeNode(Node):
         self._trajectory: trajectory.Trajectory | None = None
         self._frame: MDS_REF | None = None  # the bridge's reference, created on the first write
         self._late_rejections: list[tuple[str, str]] = []  # found on the state thread under the lock, logged after it
+        # Lifecycle: commands get a serial; the state thread remembers which ones each write carried.
+        self._controller = controller_for(self._ref_name)  # the bridge's name in the mux (config/mux.yaml)
+        self._serial = 0
+        self._what: dict[int, str] = {}  # serial -> "trajectory #3 (LSP, LEP)" for the messages
+        self._pending_cmds: list[int] = []  # serials of the commands in _pending
+        self._traj_serial = 0
+        self._traj_written: float | None = None  # monotonic time of the running trajectory's first write
+        self._carried: tuple[int, tuple[int, ...]] = (0, ())  # what the frame _next_reference built carries
+        self._writes: deque[_Write] = deque(maxlen=WRITE_RECORDS)  # state thread only
+        self._reported: deque[int] = deque(maxlen=WRITE_RECORDS)  # serials whose refusal was logged already
+        self._cancels: list[tuple[tuple[str, ...], str]] = []  # (joints, reason) to CANCEL, sent outside the lock
+        self._resync: set[str] = set()  # joints of a stopped trajectory: the frame's value is not where they hold
+        self._events: list[_Event] = []
         self._started = time.monotonic()
         self._last_frame_mono: float | None = None
         self._stalled = False
@@ -147,11 +200,13 @@ class BridgeNode(Node):
         self._state_chan = StructChannel(self._state_name, MDS_STATE)
         self._ref_chan = StructChannel(self._ref_name, MDS_REF)
         self._ik_chan = StructChannel(self._ik_name, MDS_IK)
+        self._mux = MuxWatch(self._controller)
 
         state_qos = STATE_QOS[qos_name]
         self._js_pub = self.create_publisher(JointState, topics.JOINT_STATES, state_qos)
         self._ref_pub = self.create_publisher(JointState, topics.JOINT_REFERENCES, state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        self._status_pub = self.create_publisher(String, topics.COMMAND_STATUS, COMMAND_QOS)
         self._js_msg = JointState(name=self._names)
         self._ref_msg = JointState(name=self._names)
         if p("publish_robot_description").value:
@@ -164,13 +219,15 @@ class BridgeNode(Node):
         self.create_subscription(PoseStamped, topics.IK_LEFT, lambda m: self._on_ik("left", m), COMMAND_QOS)
         self.create_subscription(PoseStamped, topics.IK_RIGHT, lambda m: self._on_ik("right", m), COMMAND_QOS)
         self.create_timer(p("diagnostics_period").value, self._publish_diagnostics)
+        self.create_service(Trigger, topics.HOLD_SERVICE, self._on_hold)
+        self.create_service(Trigger, topics.RESUME_SERVICE, self._on_resume)
 
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._state_loop, name="mds-bridge-state", daemon=True)
         self._thread.start()
         self.get_logger().info(
             f"bridging {self._state_name} -> {self.resolve_topic_name(topics.JOINT_STATES)}, "
-            f"commands -> {self._ref_name}, IK -> {self._ik_name}"
+            f"commands -> {self._ref_name} (mux controller '{self._controller}'), IK -> {self._ik_name}"
         )
 
     # ------------------------------------------------------------------------------------ parameters
@@ -211,8 +268,10 @@ class BridgeNode(Node):
                 state = self._state_chan.wait(timeout=max(0.01, min(0.25, self._stale_timeout / 4)))
                 if state is None:
                     self._check_stall()
+                    self._flush_cancels()
                     continue
                 self._on_state(state)
+                self._flush_cancels()
         except Exception as exc:  # a dead state thread must be loud, not a silently frozen bridge
             self.get_logger().fatal(f"state thread stopped: {exc!r}")
             self._counters.extra["state thread"] = f"stopped: {exc!r}"
@@ -222,20 +281,25 @@ class BridgeNode(Node):
         mono = time.clock_gettime(time.CLOCK_MONOTONIC)
         now_ns = self.get_clock().now().nanoseconds
         js = [state.joint[a] for a in self._addresses]
+        news = self._mux.poll()  # what the mux did since the last cycle: before anything else is written
         # The reference first: it is one put, and a pending command should not wait for two publishes.
         with self._lock:
             was_stalled = self._stalled
             self._stalled = False
             self._last_frame_mono = mono
             self._counters.frames += 1
+            self._take_mux_news(news)
             ref = self._next_reference(state, now_ns * 1e-9)
+            carried = self._carried
             late, self._late_rejections = self._late_rejections, []
         if ref is not None:
+            self._writes.append(_Write(time.monotonic(), *carried))
             self._ref_chan.put(ref)
             with self._lock:
                 self._counters.references_written += 1
         for topic, reason in late:
             self._reject(topic, reason)
+        self._emit()
 
         stamp_ns, comparable = state_stamp_ns(now_ns, mono, state.time, self._max_age)
         stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
@@ -261,37 +325,55 @@ class BridgeNode(Node):
                 return
             self._stalled = True
             # A trajectory must not jump ahead when the state comes back: drop it and hold.
-            dropped = self._trajectory is not None
-            self._trajectory = None
+            dropped = self._stop_trajectory("aborted: the state stream stalled") is not None
         what = "no state frame yet" if self._last_frame_mono is None else f"no new state frame for {now - since:.2f} s"
         self.get_logger().warning(
             f"{self._state_name}: {what}; is the daemon running?" + (" Trajectory aborted." if dropped else "")
         )
+        self._emit()
         self._publish_diagnostics()
 
     # ------------------------------------------------------------------------------------ ROS -> reference
 
     def _next_reference(self, state: MDS_STATE, now_s: float) -> MDS_REF | None:
-        """The frame to write this cycle, or None when nothing changed (caller holds the lock)."""
+        """The frame to write this cycle, or None when nothing changed (caller holds the lock).
+
+        Sets ``_carried``: the serials of the trajectory and commands in the frame, to name them if it is refused.
+        """
+        self._carried = (0, ())
         if self._trajectory is None and not self._pending:
             return None  # nothing new: the mux holds the last frame (an unchanged frame would not count anyway)
         if self._frame is None:
             self._frame = self._base_frame(state)
         if self._trajectory is not None and not self._trajectory.anchored:
-            current = {n: self._frame.joint[joints.BY_SHORT[n].address].ref for n in self._trajectory.names}
+            # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample.
+            current = {
+                n: state.joint[a].ref_r if n in self._resync else self._frame.joint[a].ref
+                for n in self._trajectory.names for a in (joints.BY_SHORT[n].address,)
+            }  # fmt: skip
             try:
                 self._trajectory = self._trajectory.anchor(current, self._limits)
             except CommandError as exc:
                 self._late_rejections.append((topics.JOINT_TRAJECTORY, str(exc)))
                 self._trajectory = None
+        traj_serial = 0
         if self._trajectory is not None:
             values, done = self._trajectory.sample(now_s)
             self._apply(values, self._trajectory_mode)
+            traj_serial = self._traj_serial
+            if self._traj_written is None:
+                self._traj_written = time.monotonic()
             if done:
                 self._trajectory = None
+                self._traj_written = None
+                self._events.append(_Event("info", f"{self._what.get(traj_serial, 'trajectory')} finished",
+                                           {"event": "finished", "command": self._what.get(traj_serial, "")}))
+        commands: tuple[int, ...] = ()
         if self._pending:
             self._apply(self._pending, self._command_mode)
             self._pending = {}
+            commands, self._pending_cmds = tuple(self._pending_cmds), []
+        self._carried = (traj_serial, commands)
         return self._frame
 
     def _base_frame(self, state: MDS_STATE) -> MDS_REF:
@@ -325,6 +407,7 @@ class BridgeNode(Node):
             j = self._frame.joint[joints.BY_SHORT[name].address]
             j.ref = value
             j.mode = mode
+            self._resync.discard(name)
 
     def _refuse_reason(self) -> str | None:
         """Commands need a live state stream: the bridge writes in step with it (caller holds the lock)."""
@@ -339,6 +422,7 @@ class BridgeNode(Node):
             self._counters.rejected += 1
             self._counters.last_rejection = f"{topic}: {reason}"
         self.get_logger().warning(f"rejected message on {self.resolve_topic_name(topic)}: {reason}")
+        self._publish_status({"event": "rejected", "command": topic, "message": reason})
 
     def _accept_positions(self, topic: str, make: Callable[[], dict[str, float]]) -> None:
         try:
@@ -349,13 +433,14 @@ class BridgeNode(Node):
         with self._lock:
             reason = self._refuse_reason()
             if reason is None:
+                serial = self._new_command(f"{topic} command #{{}} ({', '.join(values)})")
                 self._pending.update(values)
-                if self._trajectory is not None:
-                    self.get_logger().info("position command preempts the running trajectory")
-                    self._trajectory = None
+                self._pending_cmds.append(serial)
+                self._stop_trajectory(f"preempted by {self._what[serial]}", keep=tuple(values))
                 self._counters.accepted += 1
         if reason is not None:
             self._reject(topic, reason)
+        self._emit()
 
     def _on_joint_command(self, msg: JointState) -> None:
         self._accept_positions(topics.JOINT_COMMAND, lambda: positions_by_name(msg.name, msg.position, self._limits))
@@ -380,18 +465,21 @@ class BridgeNode(Node):
         with self._lock:
             reason = self._refuse_reason()
             if reason is None:
-                replaced = self._trajectory is not None
+                serial = self._new_command(f"trajectory #{{}} ({', '.join(traj.names)})")
+                replaced = self._stop_trajectory(f"preempted by {self._what[serial]}", keep=traj.names) is not None
                 for n in traj.names:
                     self._pending.pop(n, None)
                 self._trajectory = traj  # anchored at the current reference on the next state cycle
+                self._traj_serial, self._traj_written = serial, None
                 self._counters.accepted += 1
         if reason is not None:
             self._reject(topics.JOINT_TRAJECTORY, reason)
             return
-        self.get_logger().info(
-            f"trajectory accepted{' (replaces the running one)' if replaced else ''}: {len(traj.names)} joints, "
-            f"{len(traj.times)} points, {traj.times[-1]:.3f} s"
-        )
+        self._emit()
+        text = (f"{self._what[serial]} accepted{' (replaces the running one)' if replaced else ''}: "
+                f"{len(traj.names)} joints, {len(traj.times)} points, {traj.times[-1]:.3f} s")
+        self.get_logger().info(text)
+        self._publish_status({"event": "accepted", "command": self._what[serial], "message": text})
 
     def _on_ik(self, arm: str, msg: PoseStamped) -> None:
         topic = topics.IK_LEFT if arm == "left" else topics.IK_RIGHT
@@ -412,6 +500,150 @@ class BridgeNode(Node):
             self._counters.accepted += 1
             self._counters.ik_forwarded += 1
 
+    # ------------------------------------------------------------------------------------ lifecycle
+
+    def _new_command(self, template: str) -> int:
+        """A serial for an accepted command, described by ``template`` with ``{}`` for it (caller holds the lock)."""
+        self._serial += 1
+        self._what[self._serial] = template.format(self._serial)
+        while len(self._what) > 4 * WRITE_RECORDS:
+            del self._what[next(iter(self._what))]
+        return self._serial
+
+    def _stop_trajectory(self, reason: str, keep: tuple[str, ...] = (), cancel: bool = True) -> str | None:
+        """Stop streaming the running trajectory for good and queue a CANCEL for its joints not in ``keep`` (a
+        new command takes those); ``cancel`` False when nothing of it was applied. Returns its description, None
+        if none ran (caller holds the lock)."""
+        traj = self._trajectory
+        if traj is None:
+            return None
+        what = self._what.get(self._traj_serial, "trajectory")
+        self._trajectory = None
+        names = tuple(n for n in traj.names if n not in keep)
+        self._resync.update(names)
+        if cancel and self._traj_written is not None and names:  # it moved them: end their targets where they are
+            self._cancels.append((names, f"{what} stopped: {reason}"))
+        self._traj_written = None
+        self._counters.stopped += 1
+        self._counters.last_stop = f"{what}: {reason}"
+        level = "info" if reason.startswith("preempted") else "warn"
+        self._events.append(_Event(level, f"{what} stopped ({reason}); it will not continue: send it again",
+                                   {"event": "stopped", "command": what, "message": reason}))
+        return what
+
+    def _take_mux_news(self, news: MuxNews) -> None:
+        """Refusals of the bridge's frames and new holds: report them, stop the trajectory they hit (caller holds
+        the lock; the state thread)."""
+        for r in news.refusals:
+            self._counters.mux_refused += r.count
+            self._counters.last_mux_refusal = r.message
+            write = next((w for w in reversed(self._writes) if w.time <= r.frame_time + 1e-6), None)
+            serials = [] if write is None else [s for s in (write.trajectory, *write.commands) if s]
+            new = [s for s in serials if s not in self._reported]
+            self._reported.extend(new)
+            if new or not serials:  # once per command
+                what = " and ".join(self._what.get(s, f"command #{s}") for s in new) or "a frame"
+                text = f"the mux refused {what} of the bridge as a whole: {r.message}; nothing of that frame applied"
+                self._events.append(_Event("warn", text, {"event": "refused", "command": what, "message": r.message,
+                                                          "owner": r.owner, "frames": r.count}))
+            if write is not None and write.trajectory and write.trajectory == self._traj_serial:
+                # Refused at its first frame: nothing of it was applied, nothing to cancel.
+                first = not any(w.trajectory == write.trajectory and w.time < write.time for w in self._writes)
+                self._stop_trajectory(f"refused by the mux: {r.message}", cancel=not first)
+        if self._trajectory is None or self._traj_written is None:
+            return
+        mine = {joints.BY_SHORT[n].address for n in self._trajectory.names}
+        for h in news.holds:
+            hit = h.addresses & mine
+            if h.time >= self._traj_written - 1e-6 and hit:
+                self._stop_trajectory(f"{labels(sorted(hit))} {'held' if h.action == 'hold' else h.action + 'led'} "
+                                      f"by '{h.source}'")
+                return
+
+    def _flush_cancels(self) -> None:
+        """Send the queued CANCELs: the joints of a stopped trajectory hold where they are. Joints another
+        controller owns are left to it (a CANCEL would end its target)."""
+        with self._lock:
+            todo, self._cancels = self._cancels, []
+        for names, reason in todo:
+            addresses = [joints.BY_SHORT[n].address for n in names]
+            theirs = self._mux.others_own(addresses)
+            mine = [a for a in addresses if a not in theirs]
+            if not mine:
+                continue
+            try:
+                lifecycle.send(lifecycle.HOLD_CANCEL, mine, source=self._controller, reason=reason)
+            except Exception as exc:  # a broken hold channel must not stop the state thread
+                self.get_logger().error(f"could not cancel {labels(mine)} on {mds.MDS_CHAN_HOLD_NAME}: {exc!r}")
+                continue
+            self.get_logger().info(f"cancelled {labels(mine)}: they hold where they are ({reason})")
+
+    def _emit(self) -> None:
+        """Log and publish the events noted under the lock."""
+        with self._lock:
+            events, self._events = self._events, []
+        for e in events:
+            # One call site per severity: rclpy refuses a call site whose severity changes.
+            if e.level == "warn":
+                self.get_logger().warning(e.text)
+            else:
+                self.get_logger().info(e.text)
+            self._publish_status(e.doc | {"message": e.doc.get("message", e.text)})
+
+    def _publish_status(self, doc: dict[str, Any]) -> None:
+        """One event on mds/command_status (JSON): what happened to a command, and why."""
+        try:
+            self._status_pub.publish(String(data=json.dumps({"time": time.time(), **doc})))
+        except Exception:  # noqa: BLE001 - the context is shutting down; the log has the event already
+            pass
+
+    def _on_hold(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """/mds/hold: stop the bridge's trajectory first (its next frame would release a held joint), then HOLD
+        every joint through the mux; success only when the mux acknowledged it."""
+        with self._lock:
+            stopped = self._stop_trajectory("hold requested on /mds/hold")
+        self._emit()
+        self._flush_cancels()
+        ack = lifecycle.request(lifecycle.HOLD_HOLD, source=self._controller, reason="ROS /mds/hold")
+        response.success = ack.ok
+        if ack.ok and ack.state is not None:
+            held = [a for a in range(mds.MDS_JOINT_COUNT) if ack.state.held[a] == MUX_HELD]
+            cancelled = [a for a in range(mds.MDS_JOINT_COUNT) if ack.state.held[a] == MUX_CANCELLED]
+            every = set(KNOWN_ADDRESSES) <= set(held) | set(cancelled)
+            response.message = f"held by the mux: {'every joint' if every else labels(held) or 'no joint'}" + (
+                f"; cancelled (only a new command moves them): {labels(cancelled)}" if cancelled else "")
+        else:
+            response.message = ack.message
+        if stopped:
+            response.message += f"; {stopped} stopped and will not continue (resume does not restart it)"
+        self._log_answer("/mds/hold", ack.ok, response.message)
+        self._publish_status({"event": "hold" if ack.ok else "hold failed", "command": "/mds/hold",
+                              "message": response.message})
+        return response
+
+    def _log_answer(self, service: str, ok: bool, message: str) -> None:
+        if ok:
+            self.get_logger().info(f"{service}: {message}")
+        else:
+            self.get_logger().warning(f"{service}: {message}")
+
+    def _on_resume(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """/mds/resume: release held joints through the mux. A trajectory the bridge stopped is not restarted, and
+        cancelled joints stay where they are until a new command."""
+        ack = lifecycle.request(lifecycle.HOLD_RESUME, source=self._controller, reason="ROS /mds/resume")
+        response.success = ack.ok
+        if ack.ok and ack.state is not None:
+            still = [a for a in range(mds.MDS_JOINT_COUNT) if ack.state.held[a] != MUX_FREE]
+            response.message = "resumed: held joints go on to their controllers' targets" + (
+                f"; {labels(still)} stay where they are (cancelled: a new command moves them)" if still else "")
+            response.message += "; a stopped trajectory is not restarted (send it again)"
+        else:
+            response.message = ack.message
+        self._log_answer("/mds/resume", ack.ok, response.message)
+        self._publish_status({"event": "resume" if ack.ok else "resume failed", "command": "/mds/resume",
+                              "message": response.message})
+        return response
+
     # ------------------------------------------------------------------------------------ diagnostics
 
     def _publish_diagnostics(self) -> None:
@@ -421,10 +653,24 @@ class BridgeNode(Node):
             frames_new = c.frames - c.frames_at_last_diag
             rejected_new = c.rejected - c.rejected_at_last_diag
             c.frames_at_last_diag, c.rejected_at_last_diag = c.frames, c.rejected
+            traj_active = self._trajectory is not None
+            refused_new, stopped_new = c.mux_refused - c.mux_refused_at_last_diag, c.stopped - c.stopped_at_last_diag
+            c.mux_refused_at_last_diag, c.stopped_at_last_diag = c.mux_refused, c.stopped
+            held, cancelled = self._mux.held()
+            lifecycle_values = {
+                "mux controller": self._controller,
+                "mux refusals": str(c.mux_refused),
+                "last mux refusal": c.last_mux_refusal,
+                "trajectory": self._what.get(self._traj_serial, "") if traj_active else "none",
+                "trajectories stopped": str(c.stopped),
+                "last trajectory stop": c.last_stop,
+                "held joints": labels(held),
+                "cancelled joints": labels(cancelled),
+            }
+            last_refusal, last_stop = c.last_mux_refusal, c.last_stop
             last = self._last_frame_mono
             stalled = self._stalled
-            traj_active = self._trajectory is not None
-            values = {
+            values: dict[str, str] = {
                 "state channel": self._state_name,
                 "reference channel": self._ref_name,
                 "frames published": str(c.frames),
@@ -451,10 +697,18 @@ class BridgeNode(Node):
             level=level, name=f"{self.get_name()}: state stream", message=message, hardware_id="mds",
             values=[KeyValue(key=k, value=v) for k, v in values.items()],
         )  # fmt: skip
-        cmd_level = DiagnosticStatus.WARN if rejected_new else DiagnosticStatus.OK
+        problems = []
+        if rejected_new:
+            problems.append(f"{rejected_new} rejected")
+        if refused_new:
+            problems.append(f"{refused_new} refused by the mux ({last_refusal})")
+        if stopped_new:
+            problems.append(f"trajectory stopped ({last_stop})")
+        cmd_level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
         commands = DiagnosticStatus(
             level=cmd_level, name=f"{self.get_name()}: commands", hardware_id="mds",
-            message=f"{rejected_new} rejected since the last report" if rejected_new else "ok",
+            message="; ".join(problems) + " since the last report" if problems else "ok",
+            values=[KeyValue(key=k, value=v) for k, v in lifecycle_values.items()],
         )  # fmt: skip
         arr = DiagnosticArray(status=[stream, commands])
         arr.header.stamp = self.get_clock().now().to_msg()
@@ -474,4 +728,5 @@ class BridgeNode(Node):
             self._thread.join(timeout=2.0)
         for chan in (self._state_chan, self._ref_chan, self._ik_chan):
             chan.close()
+        self._mux.close()
 
