@@ -42,12 +42,14 @@ from support.channels import newest  # test/support/, on sys.path via bench/__in
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.bus import simbus
+from mds_ach.kinematics.limits import compute as effective_limits
 from mds_ach.robot import config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import LEFT_ARM, NECK, RIGHT_ARM, TORSO
 from mds_ach.tools import checklog, launcher
 
 TABLE = config.load("default")
+LIMITS = effective_limits(TABLE)  # what every entry point accepts (URDF & joint table): valid gotos stay inside
 NODES = ("daemon", "mux", "filter", "collision", "ik", "bridge")
 STOPPABLE = ("mux", "filter", "collision")
 MOVABLE = tuple(n for n in LEFT_ARM + RIGHT_ARM + NECK + TORSO if TABLE[n].enabled)
@@ -220,8 +222,8 @@ class Adversary:
 
     def do_goto(self) -> None:
         short = self.joint()
-        j = TABLE[short]
-        q = round(self.rng.uniform(j.lower + 0.1 * (j.upper - j.lower), j.upper - 0.1 * (j.upper - j.lower)), 4)
+        (lower,), (upper,) = LIMITS.of([short])
+        q = round(self.rng.uniform(lower + 0.1 * (upper - lower), upper - 0.1 * (upper - lower)), 4)
         if self.rng.random() < 0.3:
             self.log(f"goto {short} {q} (console)")
             proc = cli("console", "-c", f"goto {short} {q}")

@@ -335,8 +335,8 @@ def moveto_steps(log: Path) -> dict[int, list[tuple[float, float]]]:
 
 
 def test_gate_release_never_steps_the_motors(gate_system: System) -> None:
-    """Both hands to the same point stop apart (held); then the right arm goes home and the left one, released,
-    comes on to the point. On the daemon's CAN log no MOVETO target differs from the joint's previous one by more
+    """Both hands to the same point stop apart (held, their commands cancelled); then the right arm goes home and
+    the left one, released and sent to the point again, comes on. On the daemon's CAN log no MOVETO target differs from the joint's previous one by more
     than the filter's speed allows since the daemon's previous cycle (+ SAMPLING_SLACK for the filter's 25 ms
     frames): a release never sends the distance the arm missed while it was held."""
     from mds_ach.nodes import filter as filter_node
@@ -363,8 +363,15 @@ def test_gate_release_never_steps_the_motors(gate_system: System) -> None:
 
     ref[RIGHT] = home[RIGHT]
     s.command(ref, mode)
-    s.follow(lambda r, p: np.abs(r[LEFT] - ref[LEFT]).max() < 1e-9 and np.abs(r[RIGHT] - home[RIGHT]).max() < 1e-9,
-             timeout=20)
+    s.follow(lambda r, p: np.abs(r[RIGHT] - home[RIGHT]).max() < 1e-9, timeout=20)
+    # Both commands ended at the contact (the gate's cancel, #17): the left arm stays where it stopped when the
+    # right one leaves, and comes on only with a new command (the point again, 1 mm over: a changed target).
+    end = time.monotonic() + 2.0  # longer than the gate's release time and release wait
+    while time.monotonic() < end:
+        assert np.abs(s.frame()[1][LEFT] - left_held).max() < 1e-6, "a command stopped at contact went on later"
+    ref[LEFT] = arm_solution("left", [0.40, 0.001, -0.10], home[LEFT])
+    s.command(ref, mode)
+    s.follow(lambda r, p: np.abs(r[LEFT] - ref[LEFT]).max() < 1e-9, timeout=20)
     codes = s.stop_all()  # flushes the CAN log
     assert not any(codes.values()), codes
 

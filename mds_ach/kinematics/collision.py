@@ -635,6 +635,22 @@ class CollisionModel:
             out[(self.primitives[i].name, self.primitives[j].name)] = d
         return out
 
+    def clearance(self, q: np.ndarray, a: str, b: str) -> float:
+        """Clearance (m) of the one pair of primitives ``a``, ``b`` on the un-inflated shapes; 0.0 when they
+        overlap. Cheap enough for the gate to follow one contact per frame (an arm resting where it stopped)."""
+        fcl = self._fcl
+        names = [p.name for p in self.primitives]
+        i, j = names.index(a), names.index(b)
+        poses = self.primitive_poses(q)
+        for m in (i, j):
+            if self._moving[m]:
+                self._raw_objects[m].setRotation(poses[m, :3, :3])
+                self._raw_objects[m].setTranslation(poses[m, :3, 3])
+        oa, ob = self._raw_objects[i], self._raw_objects[j]
+        if fcl.collide(oa, ob) > 0:
+            return 0.0
+        return max(0.0, float(fcl.distance(oa, ob)))
+
     def within_limits(self, q: np.ndarray) -> np.ndarray:
         q = np.asarray(q, dtype=float)
         return (q >= self.lower) & (q <= self.upper)

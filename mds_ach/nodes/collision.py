@@ -137,6 +137,7 @@ CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than thi
 Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
+STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
 
 
 @dataclass(frozen=True)
@@ -279,6 +280,7 @@ class Gate:
         self._known = np.zeros(MDS_JOINT_COUNT, dtype=bool)
         self._known[list(KNOWN_ADDRESSES)] = True
         self.stopped: dict[str, str] = {}  # arm -> "right hand / left hand" while it rests where it was stopped
+        self._stop_contact: dict[str, Any] = {}  # arm -> the contact it was stopped at (followed while it rests)
         self._settle_since: dict[str, float] = {}  # arm -> when it came to rest at a contact, unflagged
 
     # ----- override
@@ -517,8 +519,10 @@ class Gate:
         involved = [(c, k) for c, r in res_out.items() for k in r.contacts] + seen
         static = {u for u in ("left", "right")
                   if np.array_equal(cand[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]])}
+        resting = {} if overridden else self._resting(static, out, pos)
+        involved += [((False, False, False), k) for k in resting.values()]
         touching = {_UNIT_OF_GROUP.get(g) for _, k in involved for g in (k.group_a, k.group_b)}
-        renewed = set() if overridden else blocked | (static & touching)
+        renewed = set() if overridden else blocked | (static & touching) | set(resting)
         if renewed - blocked:
             out, out_mode = self._freeze(out, out_mode, renewed - blocked)  # the mode stays too
         stopping.update({a: k for a, k in own.items() if a in renewed})
@@ -563,11 +567,33 @@ class Gate:
         for arm in list(self.stopped):
             if arm not in stopping and self.units[arm].state == FREE:
                 del self.stopped[arm]
+                self._stop_contact.pop(arm, None)
         new = {}
         for arm, contact in stopping.items():
             if arm not in self.stopped:
                 new[arm] = self.stopped[arm] = contact_pair(contact, arm)
+                self._stop_contact[arm] = contact
         return new
+
+    def _resting(self, static: set[str], out: np.ndarray, pos: np.ndarray | None) -> dict[str, Any]:
+        """Arms stopped at contact that still rest there: input unchanged and the stop's pair still touching
+        (clearance within ``margin`` + ``STOP_TOUCH``, with the rest of the robot at its reference or measured).
+        They stay held and flagged with that pair, so ``mds-collide`` reports the stop for as long as it lasts
+        (the cancel made their input the held reference, which by itself would no longer collide)."""
+        out_of_reach = self.model.margin + STOP_TOUCH
+        resting = {}
+        for arm, contact in self._stop_contact.items():
+            if arm not in static:
+                continue
+            poses = [out]
+            if pos is not None:
+                mixed = pos.copy()
+                mixed[UNIT_ADDRESSES[arm]] = out[UNIT_ADDRESSES[arm]]
+                poses.append(mixed)
+            if min(self.model.clearance(self.model.q_from_ref(q), contact.a, contact.b) for q in poses) \
+                    <= out_of_reach:
+                resting[arm] = contact
+        return resting
 
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
         """Restart these joints' output where they are (``pipeline.ReseedWatch``: after HOME, reset, resetbus)."""
