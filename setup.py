@@ -41,6 +41,10 @@ setup(
     name=PACKAGE,
     version="0.1.0",
     packages=find_packages(include=["mds_ach", "mds_ach.*", "mds_ach_bridge", "mds_ach_bridge.*"]),
+    # The original's module name for the IK functions (`import mds_ik as ik`), an alias of mds_ach.kinematics.ik.
+    # There is deliberately no top-level `ach`: the Ach binding is `from mds_ach import ach`, so a real py_ach
+    # installed next to this package is never shadowed.
+    py_modules=["mds_ik"],
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         ("share/" + PACKAGE, ["package.xml"]),

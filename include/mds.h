@@ -7,14 +7,36 @@
  * Layouts are byte-packed, little-endian (x86-64 / aarch64), identical to the original
  * MDS-Ach develop-branch mds.h. Arrays of joints are indexed by CAN node address.
  * Link your program with -lach and ach_put()/ach_get() these structs on the named channels.
+ *
+ * Like the original it includes <ach.h> (the project's libach: `pkg-config --cflags --libs ach`) and the
+ * libc headers the original included, so the original clients build unchanged; define MDS_NO_ACH
+ * before including it to leave <ach.h> out (e.g. to decode recorded frames without libach).
  */
-#ifndef MDS_H
+#ifndef MDS_PRIMARY_H /* the original header's guard */
+#define MDS_PRIMARY_H
 #define MDS_H
 
 #include <stdint.h>
+#include <time.h>
+#include <string.h>
+#include <pthread.h>
+#include <sys/stat.h>
+#include <sys/types.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <assert.h>
+#include <unistd.h>
+#include <ctype.h>
+#include <stdbool.h>
+#include <math.h>
+#include <inttypes.h>
+#ifndef MDS_NO_ACH
+#include <ach.h>
+#endif
 
 #if defined(__GNUC__) || defined(__clang__)
 #define MDS_PACKED __attribute__((packed))
+#define MDS_UNUSED __attribute__((unused))
 #else
 #error "mds.h needs __attribute__((packed)) (gcc or clang)"
 #endif
@@ -37,6 +59,18 @@
 #define MDS_LIMITS_SOURCE_SIZE 128  /* mds_limits_t.source, NUL included */
 #define MDS_LOOP_PERIOD 0.1  /* s, default daemon period */
 #define MDS_REF_FILTER_LENGTH 40
+/* Declared by the original header and used by nothing (kept for its clients). */
+#define MDS_CAN_CHAN_NUM 4
+#define MDS_CAN_TIMEOUT_DEFAULT 0.00018  /* s */
+#define MDS_CAN_BUFFER_CLEAR_I 1000
+#define MDS_STARTUP_SEND_REF_DELAY 0.8  /* s */
+#ifdef __cplusplus
+extern "C" {
+#endif
+extern int mds_debug; /* declared by the original header; define it if you use it */
+#ifdef __cplusplus
+}
+#endif
 
 /* ---- Ach channels (all made with MDS_CHANNEL_FRAME_COUNT frames of MDS_CHANNEL_FRAME_SIZE bytes) ---- */
 #define MDS_CHANNEL_FRAME_COUNT 10
@@ -91,6 +125,12 @@
 #define MDS_CHAN_LIMITS_NAME "mds-limits"
 /* What the daemon executes (only the stack's user writes it). */
 #define MDS_CHAN_DAEMON_INPUT_NAME MDS_CHAN_REF_NAME
+/* Names the original header declared for channels nothing made or used (kept for its clients; no
+   channel of that name exists), and the original mds_ach.py's spelling of MDS_CHAN_COLLIDE_NAME. */
+#define MDS_CHAN_CAN_DAEMON_NAME "mds-can-daemon"
+#define MDS_CHAN_VIRTUAL_TO_SIM_NAME "mds-virtual-to-sim"
+#define MDS_CHAN_VIRTUAL_FROM_SIM_NAME "mds-virtual-from-sim"
+#define MDS_CHAN_COLLLIDE_NAME "mds-collide"
 
 /* Arm index of mds_ik_t.arm[] and mds_ik_t.move. */
 typedef enum mds_arm {
@@ -563,8 +603,9 @@ typedef struct MDS_PACKED mds_limits {
 } mds_limits_t;
 MDS_STATIC_ASSERT(sizeof(mds_limits_t) == 1870, "mds_limits_t must be 1870 bytes");
 
-/* ---- legacy bare macros of the original mds.h: RIGHT/LEFT and the 13 arm and torso joints by
-   short and long name (#define LSP 0x005f). They are common words, so define
+/* ---- legacy bare names of the original mds.h: RIGHT/LEFT, the 13 arm and torso joints by short and
+   long name (#define LSP 0x005f), IK1..IK6 (the original wrote them malformed, `#define IK1 = 1`),
+   COLLISION_*, TRUE/FALSE, MAX_SAFE_STACK and jointNames[]. They are common words, so define
    MDS_NO_LEGACY_MACROS before including mds.h to leave them out; a clash with an existing
    macro is a compile error rather than a silent redefinition. ---- */
 #ifndef MDS_NO_LEGACY_MACROS
@@ -680,6 +721,88 @@ MDS_STATIC_ASSERT(sizeof(mds_limits_t) == 1870, "mds_limits_t must be 1870 bytes
 #error "mds.h: LeftShoulderExt is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_JOINT_LSP"
 #endif
 #define LeftShoulderExt 0x005f
+#ifdef IK1
+#error "mds.h: IK1 is already a macro; define MDS_NO_LEGACY_MACROS and use the number 1"
+#endif
+#define IK1 1
+#ifdef IK2
+#error "mds.h: IK2 is already a macro; define MDS_NO_LEGACY_MACROS and use the number 2"
+#endif
+#define IK2 2
+#ifdef IK3
+#error "mds.h: IK3 is already a macro; define MDS_NO_LEGACY_MACROS and use the number 3"
+#endif
+#define IK3 3
+#ifdef IK4
+#error "mds.h: IK4 is already a macro; define MDS_NO_LEGACY_MACROS and use the number 4"
+#endif
+#define IK4 4
+#ifdef IK5
+#error "mds.h: IK5 is already a macro; define MDS_NO_LEGACY_MACROS and use the number 5"
+#endif
+#define IK5 5
+#ifdef IK6
+#error "mds.h: IK6 is already a macro; define MDS_NO_LEGACY_MACROS and use the number 6"
+#endif
+#define IK6 6
+#ifdef COLLISION_L_HAND
+#error "mds.h: COLLISION_L_HAND is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_L_HAND"
+#endif
+#define COLLISION_L_HAND 0
+#ifdef COLLISION_R_HAND
+#error "mds.h: COLLISION_R_HAND is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_R_HAND"
+#endif
+#define COLLISION_R_HAND 1
+#ifdef COLLISION_R_SHOULDER
+#error "mds.h: COLLISION_R_SHOULDER is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_R_SHOULDER"
+#endif
+#define COLLISION_R_SHOULDER 2
+#ifdef COLLISION_L_SHOULDER
+#error "mds.h: COLLISION_L_SHOULDER is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_L_SHOULDER"
+#endif
+#define COLLISION_L_SHOULDER 3
+#ifdef COLLISION_R_FOREARM
+#error "mds.h: COLLISION_R_FOREARM is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_R_FOREARM"
+#endif
+#define COLLISION_R_FOREARM 4
+#ifdef COLLISION_L_FOREARM
+#error "mds.h: COLLISION_L_FOREARM is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_L_FOREARM"
+#endif
+#define COLLISION_L_FOREARM 5
+#ifdef COLLISION_R_ELBOW
+#error "mds.h: COLLISION_R_ELBOW is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_R_ELBOW"
+#endif
+#define COLLISION_R_ELBOW 6
+#ifdef COLLISION_L_ELBOW
+#error "mds.h: COLLISION_L_ELBOW is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_L_ELBOW"
+#endif
+#define COLLISION_L_ELBOW 7
+#ifdef COLLISION_R_WRIST
+#error "mds.h: COLLISION_R_WRIST is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_R_WRIST"
+#endif
+#define COLLISION_R_WRIST 8
+#ifdef COLLISION_L_WRIST
+#error "mds.h: COLLISION_L_WRIST is already a macro; define MDS_NO_LEGACY_MACROS and use MDS_COLLIDE_L_WRIST"
+#endif
+#define COLLISION_L_WRIST 9
+/* Generic names other headers define too (glib's TRUE, the RT examples' MAX_SAFE_STACK): theirs
+   win. */
+#ifndef TRUE
+#define TRUE 1
+#endif
+#ifndef FALSE
+#define FALSE 0
+#endif
+#ifndef MAX_SAFE_STACK
+#define MAX_SAFE_STACK 1048576
+#endif
+/* The original's jointNames[]: a Hubo leftover, 42 names indexed 0..41 (NOT by CAN address; use
+   MDS_JOINT_TABLE for the MDS names). */
+static const char *jointNames[MDS_JOINT_COUNT] MDS_UNUSED = {
+    "WST", "NKY", "NK1", "NK2", "LSP", "LSR", "LSY", "LEB", "LWY", "LWR", "LWP",
+    "RSP", "RSR", "RSY", "REB", "RWY", "RWR", "RWP", "N/A", "LHY", "LHR", "LHP",
+    "LKN", "LAP", "LAR", "N/A", "RHY", "RHR", "RHP", "RKN", "RAP", "RAR", "RF1",
+    "RF2", "RF3", "RF4", "RF5", "LF1", "LF2", "LF3", "LF4", "LF5"};
 #endif /* MDS_NO_LEGACY_MACROS */
 
-#endif /* MDS_H */
+#endif /* MDS_PRIMARY_H */

@@ -3,7 +3,9 @@
 The header is generated from mds_ach.robot.contracts and mds_ach.robot.msgs, so these tests check what
 generation cannot promise by itself: that a C compiler lays the structs out byte for byte like ctypes
 (packing, field types), that the bytes a C program writes decode correctly in Python, that the constants
-agree, and that the committed file is the generated one. The C examples need libach and are not built here.
+agree, and that the committed file is the generated one. mds.h includes <ach.h> like the original, so the
+project's libach headers are on the include path; the C examples and an original-style client are linked and
+run in test_examples.py.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from support import libach
 
 import mds_ach as mds
 from mds_ach.robot import contracts, joints, msgs
@@ -21,6 +24,11 @@ from mds_ach.robot.msgs import daemon_status, ik_status, mux_state
 from mds_ach.tools import cheader
 
 INCLUDE = cheader.HEADER_PATH.parent
+
+
+def include_flags() -> list[str]:
+    """mds.h includes <ach.h> like the original: the project's libach headers (installed by make setup)."""
+    return [f"-I{INCLUDE}", f"-I{libach.prefix() / 'include'}"]
 
 # Sizes from the original develop-branch mds.h (specs/mds-original.md §a.5), independent of msgs.py.
 SPEC_SIZES = {
@@ -48,7 +56,7 @@ def _compile_and_run(tmp_path: Path, source: str, compiler: str = "gcc", std: st
     src = tmp_path / f"prog{suffix}"
     src.write_text(source)
     binary = tmp_path / "prog"
-    cmd = [exe, f"-std={std}", "-Wall", "-Wextra", "-Werror", f"-I{INCLUDE}", *extra, str(src), "-o", str(binary)]
+    cmd = [exe, f"-std={std}", "-Wall", "-Wextra", "-Werror", *include_flags(), *extra, str(src), "-o", str(binary)]
     build = subprocess.run(cmd, capture_output=True, text=True)
     assert build.returncode == 0, f"{' '.join(cmd)} failed:\n{build.stderr}"
     run = subprocess.run([str(binary)], capture_output=True, text=True, timeout=30)
@@ -153,7 +161,7 @@ int main(void) {
     exe = tmp_path / "writer"
     src = tmp_path / "writer.c"
     src.write_text(prog)
-    subprocess.run(["gcc", "-std=c11", "-Wall", "-Werror", f"-I{INCLUDE}", str(src), "-o", str(exe)], check=True)
+    subprocess.run(["gcc", "-std=c11", "-Wall", "-Werror", *include_flags(), str(src), "-o", str(exe)], check=True)
     raw = subprocess.run([str(exe)], capture_output=True, check=True).stdout
     n_m, n_k = ctypes.sizeof(msgs.MDS_MUX_STATE), ctypes.sizeof(msgs.MDS_IK_STATUS)
     assert len(raw) == n_m + n_k + ctypes.sizeof(msgs.MDS_DAEMON_STATUS)
@@ -177,9 +185,78 @@ def test_gxx_layout_equals_ctypes(tmp_path: Path) -> None:
 
 
 def test_header_compiles_as_c99_pedantic(tmp_path: Path) -> None:
-    """The C99 fallback of MDS_STATIC_ASSERT must still build (old controllers use -std=c99)."""
-    prog = '#include "mds.h"\nint main(void) { mds_state_t s = {0}; return (int)s.refWait; }\n'
+    """The C99 fallback of MDS_STATIC_ASSERT must still build (old controllers use -std=c99). mds.h's own text
+    is pedantic C99; libach's ach.h is not (anonymous unions, as in golems' libach), so it is left out here and
+    built in C99 without -pedantic below."""
+    prog = '#define MDS_NO_ACH\n#include "mds.h"\nint main(void) { mds_state_t s = {0}; return (int)s.refWait; }\n'
     _compile_and_run(tmp_path, prog, std="c99", extra=("-pedantic",))
+    prog = ('#include "mds.h"\n'
+            "int main(void) { mds_state_t s = {0}; ach_channel_t c; (void)c; return (int)s.refWait; }\n")
+    _compile_and_run(tmp_path, prog, std="c99")
+
+
+# The original develop-branch mds.h's own names and values (specs/mds-original.md §a; read from the original
+# header), written out here independently of the generator.
+ORIGINAL_INTS = {
+    "MDS_CAN_CHAN_NUM": 4, "MDS_JOINT_COUNT": 100, "MDS_COLLIDE_JNT_NUM": 10, "MDS_ARM_COUNT": 2,
+    "MDS_REF_FILTER_LENGTH": 40, "MDS_CAN_BUFFER_CLEAR_I": 1000, "MDS_CHAR_PARAM_BUFFER_SIZE": 30,
+    "MAX_SAFE_STACK": 1024 * 1024, "FALSE": 0, "TRUE": 1, "IK1": 1, "IK2": 2, "IK3": 3, "IK4": 4, "IK5": 5, "IK6": 6,
+    "MDS_REF_MODE_REF_FILTER": 0, "MDS_REF_MODE_REF": 1, "MDS_REF_MODE_COMPLIANT": 2, "MDS_REF_MODE_ENC_FILTER": 3,
+    "RIGHT": 0, "LEFT": 1, "COLLISION_L_HAND": 0, "COLLISION_R_HAND": 1, "COLLISION_R_SHOULDER": 2,
+    "COLLISION_L_SHOULDER": 3, "COLLISION_R_FOREARM": 4, "COLLISION_L_FOREARM": 5, "COLLISION_R_ELBOW": 6,
+    "COLLISION_L_ELBOW": 7, "COLLISION_R_WRIST": 8, "COLLISION_L_WRIST": 9,
+    "REP": 0x48, "RSY": 0x49, "RSR": 0x4B, "LEP": 0x4C, "LSY": 0x4D, "LSR": 0x4F, "RWR": 0x50, "RWY": 0x52,
+    "LWR": 0x54, "LWY": 0x56, "RSP": 0x5B, "WST": 0x5C, "LSP": 0x5F, "RightElbowFlex": 0x48,
+    "RightUpperArmRoll": 0x49, "RightShoulderAbd": 0x4B, "LeftElbowFlex": 0x4C, "LeftUpperArmRoll": 0x4D,
+    "LeftShoulderAbd": 0x4F, "RightWristFlex": 0x50, "RightWristRoll": 0x52, "LeftWristFlex": 0x54,
+    "LeftWristRoll": 0x56, "RightShoulderExt": 0x5B, "TorsoPan": 0x5C, "LeftShoulderExt": 0x5F,
+}  # fmt: skip
+ORIGINAL_DOUBLES = {"MDS_CAN_TIMEOUT_DEFAULT": 0.00018, "MDS_LOOP_PERIOD": 0.1, "MDS_STARTUP_SEND_REF_DELAY": 0.8}
+ORIGINAL_CHANNELS = {
+    "MDS_CHAN_REF_NAME": "mds-ref", "MDS_CHAN_BOARD_CMD_NAME": "mds-cmd", "MDS_CHAN_PARAM_NAME": "mds-param",
+    "MDS_CHAN_IK_NAME": "mds-ik", "MDS_CHAN_COLLIDE_NAME": "mds-collide", "MDS_CHAN_CAN_DAEMON_NAME": "mds-can-daemon",
+    "MDS_CHAN_STATE_NAME": "mds-state", "MDS_CHAN_REF_FILTER_NAME": "mds-ref-filter",
+    "MDS_CHAN_VIRTUAL_TO_SIM_NAME": "mds-virtual-to-sim", "MDS_CHAN_VIRTUAL_FROM_SIM_NAME": "mds-virtual-from-sim",
+}  # fmt: skip
+ORIGINAL_JOINT_NAMES = ["WST", "NKY", "NK1", "NK2", "LSP", "LSR", "LSY", "LEB", "LWY", "LWR", "LWP", "RSP", "RSR",
+                        "RSY", "REB", "RWY", "RWR", "RWP", "N/A", "LHY", "LHR", "LHP", "LKN", "LAP", "LAR", "N/A",
+                        "RHY", "RHR", "RHP", "RKN", "RAP", "RAR", "RF1", "RF2", "RF3", "RF4", "RF5", "LF1", "LF2",
+                        "LF3", "LF4", "LF5"]
+
+
+@pytest.mark.parametrize(("compiler", "std"), [("gcc", "gnu99"), ("gcc", "c11"), ("g++", "c++11")])
+def test_every_name_of_the_original_header_with_its_value(tmp_path: Path, compiler: str, std: str) -> None:
+    """Issue #18 §3: what the original mds.h gave its clients is here under the same names with the same values:
+    the guard, <ach.h> and the libc headers (used below without including them), the constants, the channel
+    names, jointNames[], the ref-mode enum, the typedefs and the struct tags."""
+    body = ["#ifndef MDS_PRIMARY_H", "#error MDS_PRIMARY_H", "#endif"]
+    body += ["int main(void) {"]
+    body += [f'    printf("{k} %ld\\n", (long)({k}));' for k in ORIGINAL_INTS]
+    body += [f'    printf("{k} %.17g\\n", (double)({k}));' for k in ORIGINAL_DOUBLES]
+    body += [f'    printf("{k} %s\\n", {k});' for k in ORIGINAL_CHANNELS]
+    body += ['    for (int i = 0; i < MDS_JOINT_COUNT; i++) printf("jointNames %d %s\\n", i, jointNames[i] ? '
+             'jointNames[i] : "(null)");']
+    # libc and libach through mds.h alone, as the original's clients used them
+    body += ["    ach_channel_t chan; memset(&chan, 0, sizeof chan); (void)chan;",
+             "    (void)sizeof(&ach_open); (void)sizeof(&ach_get); (void)sizeof(&ach_put); /* declared, not linked */",
+             "    enum ach_status st0 = ACH_OK; (void)st0;",
+             "    struct mds_ref ref; mds_ref_t *r = &ref; r->joint[LEP].ref = -0.2; (void)r;",
+             "    struct mds_state st; struct mds_joint_state *js = &st.joint[LSP]; (void)js;",
+             "    struct mds_ik ik; struct mds_ik_arm *arm = &ik.arm[LEFT]; arm->ik_method = IK3; (void)arm;",
+             "    struct mds_joint_param p; struct mds_jnt_param *jp = &p.joint[RSP]; (void)jp;",
+             "    struct mds_collide c; struct mds_jnt_collide *jc = &c.joint[COLLISION_L_HAND]; (void)jc;",
+             "    struct mds_power pw; (void)pw; bool ok = TRUE; assert(ok); (void)isdigit('1'); (void)getpid();",
+             "    int mode = MDS_REF_MODE_REF; (void)mode; (void)sqrt(2.0); (void)strlen(\"x\"); (void)errno;",
+             '    printf("%" PRId16 "\\n", (int16_t)0);',
+             "    return 0;", "}"]
+    prog = "#include <stdio.h>\n#include \"mds.h\"\n" + "\n".join(body) + "\n"
+    out = _compile_and_run(tmp_path, prog, compiler=compiler, std=std).splitlines()
+    values = dict(line.split(" ", 1) for line in out if not line.startswith("jointNames") and " " in line)
+    assert {k: int(values[k]) for k in ORIGINAL_INTS} == ORIGINAL_INTS
+    assert {k: float(values[k]) for k in ORIGINAL_DOUBLES} == ORIGINAL_DOUBLES
+    assert {k: values[k] for k in ORIGINAL_CHANNELS} == ORIGINAL_CHANNELS
+    names = [line.split(" ", 2)[2] for line in out if line.startswith("jointNames")]
+    assert names == ORIGINAL_JOINT_NAMES + ["(null)"] * (100 - len(ORIGINAL_JOINT_NAMES))
 
 
 def test_bytes_written_in_c_decode_in_python(tmp_path: Path) -> None:
@@ -215,7 +292,7 @@ int main(void) {
     exe = tmp_path / "writer"
     src = tmp_path / "writer.c"
     src.write_text(prog)
-    subprocess.run(["gcc", "-std=c11", "-Wall", "-Werror", f"-I{INCLUDE}", str(src), "-o", str(exe)], check=True)
+    subprocess.run(["gcc", "-std=c11", "-Wall", "-Werror", *include_flags(), str(src), "-o", str(exe)], check=True)
     raw = subprocess.run([str(exe)], capture_output=True, check=True).stdout
     n_state = ctypes.sizeof(msgs.MDS_STATE)
     assert len(raw) == n_state + ctypes.sizeof(msgs.MDS_IK)
@@ -291,7 +368,8 @@ def test_constants_agree_with_python(tmp_path: Path) -> None:
 def test_legacy_macro_clash_is_a_compile_error(tmp_path: Path) -> None:
     src = tmp_path / "clash.c"
     src.write_text('#define LSP 4\n#include "mds.h"\nint main(void) { return 0; }\n')
-    res = subprocess.run(["gcc", "-std=c11", f"-I{INCLUDE}", "-fsyntax-only", str(src)], capture_output=True, text=True)
+    res = subprocess.run(["gcc", "-std=c11", *include_flags(), "-fsyntax-only", str(src)], capture_output=True,
+                         text=True)
     assert res.returncode != 0
     assert "LSP is already a macro" in res.stderr and "MDS_NO_LEGACY_MACROS" in res.stderr
 

@@ -46,6 +46,13 @@ from mds_ach.tools.console import CommandError, Get, GetFk, Goto, Ik, Simple, pa
     ("exit", Simple("exit")),
     ("quit", Simple("exit")),
     ("zeroall", Simple("zeroall")),
+    ("goto LSP -0.3 step", Goto(mds.BY_SHORT["LSP"], -0.3, step=True)),
+    ("goto LSP -0.3 wait STEP", Goto(mds.BY_SHORT["LSP"], -0.3, wait=True, step=True)),
+    ("ik3 left 0.3 0.2 0", Ik("left", 3, (0.3, 0.2, 0.0), send=False)),
+    ("ik3 right 0.3 -0.2 0 set", Ik("right", 3, (0.3, -0.2, 0.0))),
+    ("ik3 left 0.3 0.2 0 set wait", Ik("left", 3, (0.3, 0.2, 0.0), wait=True)),
+    ("ik5 left 0.3 0.2 0 0 0", Ik("left", 5, (0.3, 0.2, 0.0, 0.0, 0.0), send=False)),
+    ("ik5 left 0.3 0.2 0 0 0.1 filter set", Ik("left", 5, (0.3, 0.2, 0.0, 0.0, 0.1))),
     ("", Simple("empty")),
     ("   # a comment", Simple("empty")),
 ])
@@ -75,6 +82,13 @@ def test_parse_valid(line: str, expected: object) -> None:
     ("ik left 2 0.3 0.2 0.1", "needs 2 value(s) (x y), got 3"),
     ("ik left 3 0.3 nan 0", "y must be finite"),
     ("help me", "'help' takes no arguments"),
+    ("goto LSP step", "usage: goto <joint> <rad> [step] [wait]"),
+    ("ik3 left 0.3 0.2", "usage: ik3 <left|right> <x> <y> <z> [set] [wait]"),
+    ("ik3 left 0.3 0.2 0 filter", "usage: ik3"),
+    ("ik3 left 0.3 0.2 0 wait", "'wait' needs 'set'"),
+    ("ik5 left 0.3 0.2 0 0", "usage: ik5 <left|right> <x> <y> <z> <rx> <ry> [filter] [set] [wait]"),
+    ("ik5 up 0.3 0.2 0 0 0", "arm must be 'left' or 'right'"),
+    ("ik3 left 0.3 nan 0", "y must be finite"),
 ])
 def test_parse_errors_say_what_is_wrong(line: str, message: str) -> None:
     with pytest.raises(CommandError) as info:
@@ -93,7 +107,8 @@ def test_parse_never_raises_anything_but_command_error(line: str) -> None:
 
 # --------------------------------------------------------------------------------------------- fuzz against channels
 
-TOKENS = ["goto", "get", "fk", "ik", "left", "right", "wait", "filter", "help", "zeroall", "exit", "LSP", "lsp",
+TOKENS = ["goto", "get", "fk", "ik", "ik3", "ik5", "set", "step", "left", "right", "wait", "filter", "help", "zeroall",
+          "exit", "LSP", "lsp",
           "LeftElbowFlex", "RSR", "NKY", "LF1", "0x5f", "0x00", "3", "6", "0", "-0.3", "0.2", "1e308", "-1e308",
           "nan", "inf", "-inf", "1e-320", "x", "", "#", "\x00", "é", "--", "-c"]
 LINES = st.one_of(
@@ -244,7 +259,9 @@ def test_goto_moves_the_joint_through_the_pipeline(system: dict[str, str]) -> No
     assert "LSP -> -0.30000 rad (sent to mds-ref-filter)" in proc.stdout
     assert "done" in proc.stdout
     assert abs(joint_pos("LSP") + 0.3) < 0.011
-    m = re.search(r"^LSP  State =  (-?\d+\.\d{5})  rad\nLSP  Ref   =  (-?\d+\.\d{5})  rad$", proc.stdout, re.M)
+    # the original printed the joint's long (anatomy) name
+    m = re.search(r"^LeftShoulderExt  State =  (-?\d+\.\d{5})  rad\nLeftShoulderExt  Ref   =  (-?\d+\.\d{5})  rad$",
+                  proc.stdout, re.M)
     assert m, proc.stdout
     assert abs(float(m.group(1)) + 0.3) < 0.011 and abs(float(m.group(2)) + 0.3) < 0.011
     # the motion went through the mux: the default controller owns LSP now
@@ -336,7 +353,7 @@ def test_interactive_prompt_history_and_exit(system: dict[str, str], tmp_path: P
     with PtySession([str(VENV_BIN / "mds-ach"), "console"], env=env) as pty:
         pty.expect(console.PROMPT, timeout=30)
         pty.send("get LSP\r")
-        pty.expect(re.compile(r"LSP  Ref   =  -?\d+\.\d{5}  rad"), timeout=10)
+        pty.expect(re.compile(r"LeftShoulderExt  Ref   =  -?\d+\.\d{5}  rad"), timeout=10)
         pty.expect(console.PROMPT, timeout=10)
         pty.send("goto nowhere 1\r")
         pty.expect("unknown joint 'nowhere'", timeout=10)
@@ -368,7 +385,7 @@ def test_console_reads_commands_from_a_pipe(system: dict[str, str]) -> None:
     proc = subprocess.run([str(VENV_BIN / "mds-ach-console")], input="get fk left\nget LEP\n", env=system,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
-    assert "6DOF FK - for  left  arm" in proc.stdout and "LEP  State =" in proc.stdout
+    assert "6DOF FK - for  left  arm" in proc.stdout and "LeftElbowFlex  State =" in proc.stdout
 
 
 def _alive(pid: int) -> bool:
@@ -406,6 +423,59 @@ def test_commands_are_not_applied_while_the_mux_is_down(system: dict[str, str]) 
     assert "LSP -> -0.20000 rad (sent to mds-ref-filter)" in proc.stdout and abs(joint_pos("LSP") + 0.2) < 0.011
 
 
+@pytest.mark.slow
+def test_goto_step_ramps_like_the_original(system: dict[str, str]) -> None:
+    """`goto <joint> <rad> step`: 0.1 rad every 0.1 s from the current reference, one dot per step, each step a
+    frame on mds-ref-filter, the last one on the target."""
+    proc = run_console(system, "goto LEP -0.1 wait")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    start = joint_ref("LEP")
+    with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan:
+        seq0 = chan.last_seq
+        t0 = time.monotonic()
+        proc = run_console(system, "goto LEP -0.75 step wait", "get LEP")
+        elapsed = time.monotonic() - t0
+        written = chan.last_seq - seq0
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    m = re.search(r"^(\.+)\nLEP -> -0\.75000 rad in (\d+) steps of 0\.1 rad every 0\.1 s \(sent to mds-ref-filter\)$",
+                  proc.stdout, re.M)
+    assert m, proc.stdout
+    steps = int(m.group(2))
+    assert len(m.group(1)) == steps
+    assert abs(start + 0.75) / 0.1 <= steps <= abs(start + 0.75) / 0.1 + 1, (start, steps)
+    assert steps >= 6 and written >= steps and elapsed >= (steps - 1) * 0.1
+    assert "done" in proc.stdout and abs(joint_pos("LEP") + 0.75) < 0.011
+    assert "LeftElbowFlex  Ref   =  -0.75000  rad" in proc.stdout
+
+
+@pytest.mark.slow
+def test_ik3_without_set_solves_and_prints_only(system: dict[str, str]) -> None:
+    """The original's ik3/ik5 only printed the solution unless told 'set': nothing may move."""
+    before = arm_refs("left")
+    with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan, \
+            ach.Channel(mds.MDS_CHAN_IK_NAME, create=False) as ikch:
+        seqs = (chan.last_seq, ikch.last_seq)
+        proc = run_console(system, "ik3 left 0.3 0.2 0.0", "ik5 left 0.3 0.2 0.0 1.2 -0.3")
+        assert (chan.last_seq, ikch.last_seq) == seqs, "nothing was sent"
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for dof in (3, 5):
+        assert f"N-{dof} DOF IK Solution - for  left  arm" in proc.stdout, proc.stdout
+    m = re.search(r"^ret:\tx = (\S+) \ty = (\S+) \tz = (\S+)$", proc.stdout, re.M)
+    assert m, proc.stdout
+    np.testing.assert_allclose([float(v) for v in m.groups()], [0.3, 0.2, 0.0], atol=1e-3)
+    assert proc.stdout.count("not sent: add 'set'") == 2
+    time.sleep(0.3)  # give a wrong motion time to show
+    np.testing.assert_allclose(arm_refs("left"), before, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_ik3_set_moves_the_arm_through_the_ik_node(system: dict[str, str]) -> None:
+    proc = run_console(system, "ik3 left 0.35 0.25 -0.05 set wait", timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "solved:" in proc.stdout and "done" in proc.stdout
+    np.testing.assert_allclose(chain_fk(arm_pos("left"), "left")[0], [0.35, 0.25, -0.05], atol=0.02)
+
+
 def test_console_does_not_import_torch(fake_system: None) -> None:
     code = ("import sys; from mds_ach.tools.console import main; rc = main(['-c', 'get fk left']); "
             "assert 'torch' not in sys.modules, 'console imported torch'; sys.exit(rc)")
@@ -419,3 +489,29 @@ def test_help_exits_zero() -> None:
         proc = subprocess.run([str(VENV_BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=60)
         assert proc.returncode == 0 and "usage" in proc.stdout.lower()
         assert "goto <joint> <rad>" in proc.stdout
+
+
+@pytest.mark.slow
+def test_zeroall_goes_to_the_nearest_in_range_value_and_says_so(system: dict[str, str]) -> None:
+    """0 rad is outside both elbows' effective limits: each goes to its nearest in-range value instead of the whole
+    command being refused, and the console names them. Last in the module: the arms end down at the body."""
+    from mds_ach.kinematics.limits import current_limits
+    from mds_ach.robot.config import load
+
+    limits = current_limits()
+    expected = {}
+    for j in load():
+        if j.enabled and (rng := limits.range(j.address)) is not None:
+            expected[j.short] = min(max(0.0, rng[0]), rng[1])
+    clamped = {s: v for s, v in expected.items() if v != 0.0}
+    assert {"LEP", "REP"} <= set(clamped), clamped  # otherwise this test shows nothing
+    proc = run_console(system, "zeroall", timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert f"{len(expected)} enabled joints -> 0 rad (sent to mds-ref-filter)" in proc.stdout
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("0 rad is outside the limits"))
+    for short, value in clamped.items():
+        assert f"{short} {value:.5f} (range [" in line, line
+    assert f"of {len(clamped)}; nearest in range" in line
+    out = newest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
+    for short, value in expected.items():
+        assert out.joint[mds.BY_SHORT[short].address].ref == value, short

@@ -18,7 +18,7 @@ from support import REPO, VENV_BIN
 
 EXECUTABLES = ["daemon", "filter", "mux", "ik", "collision", "bridge", "console", "read", "mds-ach"]
 SOURCES = ["package.xml", "setup.py", "setup.cfg", "resource", "mds_ach", "mds_ach_bridge", "urdf", "config",
-           "include"]
+           "include", "mds_ik.py"]
 
 
 @pytest.fixture(scope="module")
@@ -63,6 +63,19 @@ def test_colcon_builds_the_ach_fast_path(colcon_install: Path) -> None:
     where, fast = out.stdout.split()
     assert where.startswith(str(colcon_install))
     assert fast == str(ach.FAST_AVAILABLE)
+
+
+def test_colcon_installs_the_original_mds_ik_module(colcon_install: Path) -> None:
+    """`import mds_ik as ik` (the original module name) works from the install prefix and is the package's IK."""
+    code = ("import mds_ik, mds_ach.kinematics.ik as k; assert mds_ik is k; import mds_ik as ik; "
+            "print(ik.getFkArm([0] * 6, 'left')[2, 3])")
+    out = subprocess.run([sys.executable, "-c", code], env=_env(colcon_install), capture_output=True, text=True,
+                         cwd="/")
+    assert out.returncode == 0, out.stderr
+    assert abs(float(out.stdout) + 0.6588125) < 1e-6  # the zero-pose tool point (specs/mds-original.md §e.1)
+    site = next((colcon_install / "mds_ach" / "lib").glob("python3*/site-packages"))
+    assert (site / "mds_ik.py").is_file()
+    assert not (site / "ach").exists() and not (site / "ach.py").exists(), "a top-level ach would shadow py_ach"
 
 
 def _resolve(install: Path, exe: str) -> Path:

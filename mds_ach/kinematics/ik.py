@@ -884,3 +884,29 @@ def getIK(q0: Sequence[float] | np.ndarray, target: Sequence[float] | np.ndarray
         opt = IKOptions(mixed_tolerance=e[2], joint_step=e[0], task_step=e[1], max_iterations=iterations)
     result = solver(arm).solve(target, order, q0, opt)
     return result.q, (0 if result.success else -1)
+
+
+def getDist2End(eff_current: Sequence[float] | np.ndarray, eff_end: Sequence[float] | np.ndarray) -> float:  # noqa: N802
+    """Euclidean distance of the first three components (the original's position error)."""
+    d = np.asarray(eff_end, dtype=float).reshape(-1)[:3] - np.asarray(eff_current, dtype=float).reshape(-1)[:3]
+    return float(np.linalg.norm(d))
+
+
+def getDist2End2(eff_current: Sequence[float] | np.ndarray, eff_end: Sequence[float] | np.ndarray) -> float:  # noqa: N802
+    """Euclidean norm of all components, m and rad mixed (the original's error for any task)."""
+    d = np.asarray(eff_end, dtype=float).reshape(-1) - np.asarray(eff_current, dtype=float).reshape(-1)
+    return float(np.linalg.norm(d))
+
+
+def getIK3dof(q0: Sequence[float] | np.ndarray, eff_end: Sequence[float] | np.ndarray,  # noqa: N802
+              arm: str | int) -> np.ndarray:
+    """Legacy: joints putting the tool point at [x, y, z] (the original looped without an iteration cap; this
+    is ``getIK`` with the default 1000 and returns its last pose either way, as the original returned q)."""
+    return getIK(q0, eff_end, ("p_x", "p_y", "p_z"), arm)[0]
+
+
+def getIK6dof(q0: Sequence[float] | np.ndarray, eff_end: Sequence[float] | np.ndarray,  # noqa: N802
+              arm: str | int) -> np.ndarray:
+    """Legacy: joints for the full pose [x, y, z, rx, ry, rz] (see ``getIK3dof``)."""
+    return getIK(q0, eff_end, ("p_x", "p_y", "p_z", "t_x", "t_y", "t_z"), arm)[0]
+

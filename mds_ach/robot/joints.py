@@ -101,8 +101,12 @@ def lookup(name: str) -> Joint:
 
 
 def getAddress(name: str, state: object = None) -> int:  # noqa: N802 - legacy API
-    """Legacy helper: the array index (= CAN address) of a joint given by short or long name.
+    """Legacy helper: the array index (= CAN address) of a joint given by short or long name (any case, or an
+    address such as '0x5f'); -1 for an unknown name, like the original (``lookup`` raises, naming valid ones).
 
     ``state`` is accepted for compatibility with the original signature and not needed.
     """
-    return lookup(name).address
+    try:
+        return lookup(str(name)).address
+    except KeyError:
+        return -1

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import mds_ach as mds
-from mds_ach.robot import contracts, joints, msgs
+from mds_ach.robot import contracts, joints, legacy_names, msgs
 from mds_ach.robot.msgs import daemon_status, hold, ik_status, legacy, limits, mux_state
 
 HEADER_PATH = Path(__file__).resolve().parents[2] / "include" / "mds.h"
@@ -60,6 +60,13 @@ _LENGTH_MACROS: dict[int, str] = {
 # The 13 joints the original mds.h named with bare macros (``#define LSP 0x005f`` and the long name).
 LEGACY_BARE_JOINTS: tuple[str, ...] = (
     "REP", "RSY", "RSR", "LEP", "LSY", "LSR", "RWR", "RWY", "LWR", "LWY", "RSP", "WST", "LSP",
+)  # fmt: skip
+
+
+# What the original mds.h included before <ach.h>, in its order (its clients call libc through it).
+ORIGINAL_LIBC_HEADERS: tuple[str, ...] = (
+    "stdint.h", "time.h", "string.h", "pthread.h", "sys/stat.h", "sys/types.h", "errno.h", "fcntl.h", "assert.h",
+    "unistd.h", "ctype.h", "stdbool.h", "math.h", "inttypes.h",
 )  # fmt: skip
 
 
@@ -153,6 +160,11 @@ def _channel_section() -> list[str]:
     daemon_input = contracts.BY_NAME[contracts.MDS_CHAN_DAEMON_INPUT_NAME].macro
     out.append("/* What the daemon executes (only the stack's user writes it). */")
     out.append(f"#define MDS_CHAN_DAEMON_INPUT_NAME {daemon_input}")
+    out.append("/* Names the original header declared for channels nothing made or used (kept for its clients; no")
+    out.append("   channel of that name exists), and the original mds_ach.py's spelling of MDS_CHAN_COLLIDE_NAME. */")
+    for name in ("MDS_CHAN_CAN_DAEMON_NAME", "MDS_CHAN_VIRTUAL_TO_SIM_NAME", "MDS_CHAN_VIRTUAL_FROM_SIM_NAME",
+                 "MDS_CHAN_COLLLIDE_NAME"):
+        out.append(f'#define {name} "{getattr(legacy_names, name)}"')
     return out
 
 
@@ -200,8 +212,9 @@ def _joint_section() -> list[str]:
 def _legacy_macros() -> list[str]:
     """The original header's bare names, last in the file so they cannot touch anything above."""
     out = [
-        "/* ---- legacy bare macros of the original mds.h: RIGHT/LEFT and the 13 arm and torso joints by",
-        "   short and long name (#define LSP 0x005f). They are common words, so define",
+        "/* ---- legacy bare names of the original mds.h: RIGHT/LEFT, the 13 arm and torso joints by short and",
+        "   long name (#define LSP 0x005f), IK1..IK6 (the original wrote them malformed, `#define IK1 = 1`),",
+        "   COLLISION_*, TRUE/FALSE, MAX_SAFE_STACK and jointNames[]. They are common words, so define",
         "   MDS_NO_LEGACY_MACROS before including mds.h to leave them out; a clash with an existing",
         "   macro is a compile error rather than a silent redefinition. ---- */",
         "#ifndef MDS_NO_LEGACY_MACROS",
@@ -210,6 +223,9 @@ def _legacy_macros() -> list[str]:
     for short in LEGACY_BARE_JOINTS:
         j = joints.BY_SHORT[short]
         bare += [(name, f"0x{j.address:04x}", f"MDS_JOINT_{j.short}") for name in (j.short, j.name)]
+    bare += [(f"IK{n}", str(getattr(legacy_names, f"IK{n}")), f"the number {n}") for n in range(1, 7)]
+    bare += [(k, str(v), "MDS_" + k.replace("COLLISION_", "COLLIDE_"))
+             for k, v in _module_constants("COLLISION_", module=legacy_names)]
     for name, value, modern in bare:
         out += [
             f"#ifdef {name}",
@@ -217,6 +233,18 @@ def _legacy_macros() -> list[str]:
             "#endif",
             f"#define {name} {value}",
         ]
+    out.append("/* Generic names other headers define too (glib's TRUE, the RT examples' MAX_SAFE_STACK): theirs")
+    out.append("   win. */")
+    generic: tuple[tuple[str, int], ...] = (("TRUE", legacy_names.TRUE), ("FALSE", legacy_names.FALSE),
+                                            ("MAX_SAFE_STACK", legacy_names.MAX_SAFE_STACK))
+    for generic_name, generic_value in generic:
+        out += [f"#ifndef {generic_name}", f"#define {generic_name} {generic_value}", "#endif"]
+    out.append("/* The original's jointNames[]: a Hubo leftover, 42 names indexed 0..41 (NOT by CAN address; use")
+    out.append("   MDS_JOINT_TABLE for the MDS names). */")
+    names = legacy_names.HUBO_JOINT_NAMES
+    rows = [", ".join(f'"{n}"' for n in names[i:i + 11]) for i in range(0, len(names), 11)]
+    out.append("static const char *jointNames[MDS_JOINT_COUNT] MDS_UNUSED = {")
+    out += [f"    {r}," if i < len(rows) - 1 else f"    {r}}};" for i, r in enumerate(rows)]
     out.append("#endif /* MDS_NO_LEGACY_MACROS */")
     return out
 
@@ -233,14 +261,23 @@ def generate() -> str:
         " * Layouts are byte-packed, little-endian (x86-64 / aarch64), identical to the original",
         " * MDS-Ach develop-branch mds.h. Arrays of joints are indexed by CAN node address.",
         " * Link your program with -lach and ach_put()/ach_get() these structs on the named channels.",
+        " *",
+        " * Like the original it includes <ach.h> (the project's libach: `pkg-config --cflags --libs ach`) and the",
+        " * libc headers the original included, so the original clients build unchanged; define MDS_NO_ACH",
+        " * before including it to leave <ach.h> out (e.g. to decode recorded frames without libach).",
         " */",
-        "#ifndef MDS_H",
+        "#ifndef MDS_PRIMARY_H /* the original header's guard */",
+        "#define MDS_PRIMARY_H",
         "#define MDS_H",
         "",
-        "#include <stdint.h>",
+        *[f"#include <{h}>" for h in ORIGINAL_LIBC_HEADERS],
+        "#ifndef MDS_NO_ACH",
+        "#include <ach.h>",
+        "#endif",
         "",
         "#if defined(__GNUC__) || defined(__clang__)",
         "#define MDS_PACKED __attribute__((packed))",
+        "#define MDS_UNUSED __attribute__((unused))",
         "#else",
         '#error "mds.h needs __attribute__((packed)) (gcc or clang)"',
         "#endif",
@@ -263,6 +300,18 @@ def generate() -> str:
         f"#define MDS_LIMITS_SOURCE_SIZE {limits.LIMITS_SOURCE_SIZE}  /* mds_limits_t.source, NUL included */",
         f"#define MDS_LOOP_PERIOD {mds.MDS_LOOP_PERIOD!r}  /* s, default daemon period */",
         f"#define MDS_REF_FILTER_LENGTH {mds.MDS_REF_FILTER_LENGTH}",
+        "/* Declared by the original header and used by nothing (kept for its clients). */",
+        f"#define MDS_CAN_CHAN_NUM {legacy_names.MDS_CAN_CHAN_NUM}",
+        f"#define MDS_CAN_TIMEOUT_DEFAULT {legacy_names.MDS_CAN_TIMEOUT_DEFAULT!r}  /* s */",
+        f"#define MDS_CAN_BUFFER_CLEAR_I {legacy_names.MDS_CAN_BUFFER_CLEAR_I}",
+        f"#define MDS_STARTUP_SEND_REF_DELAY {legacy_names.MDS_STARTUP_SEND_REF_DELAY!r}  /* s */",
+        "#ifdef __cplusplus",
+        'extern "C" {',
+        "#endif",
+        "extern int mds_debug; /* declared by the original header; define it if you use it */",
+        "#ifdef __cplusplus",
+        "}",
+        "#endif",
         "",
     ]
     out += _channel_section()
@@ -318,7 +367,7 @@ def generate() -> str:
         out.append("")
     out += _legacy_macros()
     out.append("")
-    out.append("#endif /* MDS_H */")
+    out.append("#endif /* MDS_PRIMARY_H */")
     return "\n".join(out) + "\n"
 
 

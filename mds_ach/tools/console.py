@@ -41,6 +41,8 @@ ARMS = {"left": (mds.LEFT, LEFT_ARM), "right": (mds.RIGHT, RIGHT_ARM)}
 IK_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
 GOTO_TOLERANCE = 0.01  # rad, "arrived" for goto ... wait
 GOTO_TIMEOUT = 20.0  # s
+GOTO_STEP = 0.1  # rad per step of 'goto ... step' (the original console's ramp)
+GOTO_STEP_PERIOD = 0.1  # s between those steps
 IK_TIMEOUT = 10.0  # s for the IK node's answer
 IK_MOTION_TIMEOUT = 20.0  # s for the arm to arrive (ik ... wait)
 STATE_WAIT = 1.0  # s to wait for a first state frame
@@ -52,15 +54,22 @@ NOT_RUNNING = (f"not applied: mux not running (no new frame on {mds.MDS_CHAN_MUX
 
 USAGE = f"""\
 commands (joint names: short or long, e.g. LSP or LeftShoulderExt, any case):
-  goto <joint> <rad> [wait]          move one joint through the mux, smoothing filter and collision gate
-                                     (writes {mds.MDS_CHAN_REF_FILTER_NAME}); 'wait': until it arrives
-  get <joint>                        measured state and reference of one joint
+  goto <joint> <rad> [step] [wait]   move one joint through the mux, smoothing filter and collision gate
+                                     (writes {mds.MDS_CHAN_REF_FILTER_NAME}); 'step': ramp there like the original
+                                     console, {GOTO_STEP:g} rad every {GOTO_STEP_PERIOD:g} s with a dot per step;
+                                     'wait': until it arrives
+  get <joint>                        measured state and reference of one joint (by its long name)
   get fk <left|right>                6-DOF pose of the arm's tool point from the current references
   ik <left|right> <dof> <p1> ... <pN> [wait]
                                      move the tool point through the IK node; dof 1..6 takes the first N
                                      of x y z (m) rx ry rz (rad, Z-Y-X angles), robot frame: x forward,
                                      y left, z up, origin midway between the shoulders
-  zeroall                            every enabled joint to 0 rad through the smoothing path
+  ik3 <left|right> <x> <y> <z> [set] [wait]
+  ik5 <left|right> <x> <y> <z> <rx> <ry> [filter] [set] [wait]
+                                     the original shorthands (3-DOF position, 5-DOF): without 'set' only
+                                     solve and print (nothing moves); with 'set' as 'ik <arm> 3|5 ...'
+  zeroall                            every enabled joint to 0 rad through the smoothing path, or to the
+                                     value nearest 0 within its limits (it says which)
   hold [<joints>|left|right|arms|all]
                                      stop the joints where the pipeline has them (braking within the
                                      filter's bounds); nothing moves until 'resume' or a new command
@@ -87,6 +96,7 @@ class Goto:
     joint: Joint
     value: float
     wait: bool = False
+    step: bool = False  # ramp like the original console (GOTO_STEP every GOTO_STEP_PERIOD)
 
 
 @dataclass(frozen=True)
@@ -105,6 +115,7 @@ class Ik:
     dof: int
     values: tuple[float, ...]
     wait: bool = False
+    send: bool = True  # False: the original ik3/ik5 without 'set' (solve and print only)
 
 
 @dataclass(frozen=True)
@@ -162,6 +173,31 @@ def _hold(verb: str, args: list[str]) -> Hold:
     return Hold(action, tuple(dict.fromkeys(addresses)), " ".join(args))
 
 
+def _trailing_flags(args: list[str], allowed: Sequence[str]) -> tuple[set[str], list[str]]:
+    """Split trailing option words (any order, any case) off ``args``: (flags found, the rest)."""
+    flags: set[str] = set()
+    while args and args[-1].lower() in allowed and args[-1].lower() not in flags:
+        flags.add(args[-1].lower())
+        args = args[:-1]
+    return flags, args
+
+
+def _ik_shorthand(dof: int, args: list[str]) -> Ik:
+    """The original ``ik3 <arm> x y z [set]`` / ``ik5 <arm> x y z rx ry [filter] [set]``: without ``set`` the
+    original only solved and printed, so nothing is sent; ``filter`` chose the original's smoothed channel,
+    which every command here goes through anyway."""
+    names = " ".join(f"<{c}>" for c in IK_COMPONENTS[:dof])
+    usage = f"usage: ik{dof} <left|right> {names} {'[filter] ' if dof == 5 else ''}[set] [wait]"
+    flags, args = _trailing_flags(args, ("set", "wait", "filter") if dof == 5 else ("set", "wait"))
+    if len(args) != dof + 1:
+        raise CommandError(usage)
+    if "wait" in flags and "set" not in flags:
+        raise CommandError(f"'wait' needs 'set' (without it ik{dof} only solves and prints); {usage}")
+    arm = _arm(args[0])
+    values = tuple(_number(v, IK_COMPONENTS[i]) for i, v in enumerate(args[1:]))
+    return Ik(arm, dof, values, wait="wait" in flags, send="set" in flags)
+
+
 def parse(line: str) -> Command:
     """One console line -> a command; CommandError says what is wrong with it."""
     words = line.split()
@@ -175,12 +211,10 @@ def parse(line: str) -> Command:
     if verb == "goto":
         if args and args[0].lower() == "filter":  # the original's 'goto filter <JNT> <rad>'
             args = args[1:]
-        wait = bool(args) and args[-1].lower() == "wait"
-        if wait:
-            args = args[:-1]
+        flags, args = _trailing_flags(args, ("wait", "step"))
         if len(args) != 2:
-            raise CommandError("usage: goto <joint> <rad> [wait]")
-        return Goto(_joint(args[0]), _number(args[1], "the position"), wait)
+            raise CommandError("usage: goto <joint> <rad> [step] [wait]")
+        return Goto(_joint(args[0]), _number(args[1], "the position"), "wait" in flags, "step" in flags)
     if verb in ("hold", "resume"):
         return _hold(verb, args)
     if verb == "get":
@@ -189,6 +223,8 @@ def parse(line: str) -> Command:
         if len(args) == 1 and args[0].lower() != "fk":
             return Get(_joint(args[0]))
         raise CommandError("usage: get <joint> | get fk <left|right>")
+    if verb in ("ik3", "ik5"):
+        return _ik_shorthand(int(verb[2]), args)
     if verb == "ik":
         wait = bool(args) and args[-1].lower() == "wait"
         if wait:
@@ -438,15 +474,42 @@ class Console:
         self._check_target(cmd.joint, cmd.value, state)
         self._wait_until_free([cmd.joint.address])
         sent_at = time.monotonic()
-        self._put_refs({cmd.joint.address: cmd.value}, state)
+        steps = 0
+        if cmd.step:
+            steps, sent_at = self._ramp(cmd.joint.address, cmd.value, state)
+        else:
+            self._put_refs({cmd.joint.address: cmd.value}, state)
         self._confirm_applied({cmd.joint.address: cmd.value}, sent_at)
-        self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
+        how = f" in {steps} steps of {GOTO_STEP:g} rad every {GOTO_STEP_PERIOD:g} s" if cmd.step else ""
+        self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad{how} (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
         if cmd.wait:
             if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT):
                 why = self._not_arrived({cmd.joint.address: cmd.value})
                 raise CommandError(f"{cmd.joint.short} did not arrive within {GOTO_TIMEOUT:g} s: {why}; "
                                    + self._cancel([cmd.joint.address], "goto timed out"), usage=False)
             self.out("done")
+
+    def _ramp(self, address: int, target: float, state: mds.MDS_STATE) -> tuple[int, float]:
+        """The original console's goto: from the joint's current reference toward ``target`` in ``GOTO_STEP``
+        steps every ``GOTO_STEP_PERIOD`` s (absolute schedule), a dot per step, the last step exactly on the
+        target. Every intermediate value lies between two in-range values, so it is in range too. Returns the
+        number of steps written and when the last (the target) was sent, for ``_confirm_applied``."""
+        pos = float(state.joint[address].ref)
+        steps = 0
+        next_at = time.monotonic()
+        while True:
+            delta = target - pos
+            pos = target if abs(delta) <= GOTO_STEP else pos + math.copysign(GOTO_STEP, delta)
+            sent_at = time.monotonic()
+            self._put_refs({address: pos}, state)
+            steps += 1
+            self.progress()
+            if pos == target:
+                break
+            next_at += GOTO_STEP_PERIOD
+            time.sleep(max(0.0, next_at - time.monotonic()))
+        self.out("")
+        return steps, sent_at
 
     def _cancel(self, addresses: list[int], reason: str) -> str:
         """A command that timed out stops being a target: CANCEL it where the reference is (the mux drops it
@@ -467,21 +530,41 @@ class Console:
         self.out(f"{verb}: {cmd.what}; held now: {', '.join(held) if held else 'none'}")
 
     def zeroall(self) -> None:
+        """Every enabled joint to 0 rad, or to the value nearest 0 inside its effective limits (the original
+        wrote 0 everywhere, unchecked; refusing all of them for one joint whose range excludes 0 helped nobody)."""
         state = self._state()
-        targets = {j.address: 0.0 for j in JOINTS if state.joint[j.address].enabled}
-        for a in targets:
-            self._check_target(mds.BY_ADDRESS[a], 0.0, state)
+        limits = current_limits()
+        targets: dict[int, float] = {}
+        nearest: list[str] = []
+        for j in JOINTS:
+            if not state.joint[j.address].enabled:
+                continue
+            rng = limits.range(j.address)
+            if rng is None:  # no limits: nothing may be commanded (what _check_target says)
+                self._check_target(j, 0.0, state)
+                continue
+            value = min(max(0.0, rng[0]), rng[1])
+            targets[j.address] = value
+            if value != 0.0:
+                nearest.append(f"{j.short} {value:.5f} (range [{rng[0]:.5f}, {rng[1]:.5f}])")
+        for a, v in targets.items():
+            self._check_target(mds.BY_ADDRESS[a], v, state)
         self._wait_until_free(list(targets))
         sent_at = time.monotonic()
         self._put_refs(targets, state)
         self._confirm_applied(targets, sent_at)
         self.out(f"{len(targets)} enabled joints -> 0 rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
+        if nearest:
+            self.out(f"0 rad is outside the limits ({limits.describe()}) of {len(nearest)}; nearest in range: "
+                     + ", ".join(nearest))
 
     def get(self, joint: Joint) -> None:
+        """The original's two lines, under the joint's long (anatomy) name as the original printed it."""
         state = self._state()
         js = state.joint[joint.address]
-        self.out(f"{joint.short}  State =  {js.pos:.5f}  rad")
-        self.out(f"{joint.short}  Ref   =  {js.ref:.5f}  rad")
+        name = get_name(bytes(js.name)) or joint.name
+        self.out(f"{name}  State =  {js.pos:.5f}  rad")
+        self.out(f"{name}  Ref   =  {js.ref:.5f}  rad")
         age = self.state.age()
         if age is not None and age > 1.0:
             self.out(f"(state is {age:.1f} s old: is the daemon running?)")
@@ -495,6 +578,9 @@ class Console:
     def ik(self, cmd: Ik) -> None:
         from mds_ach.nodes.ik_client import IkClient, IkTimeout  # lazy: numpy (kinematics), ~90 ms of console start
 
+        if not cmd.send:
+            self._ik_preview(cmd)
+            return
         self._state()  # a clear message when the system is not running
         self._require_mux()
         values = list(cmd.values) + [0.0] * (6 - cmd.dof)
@@ -505,6 +591,29 @@ class Console:
             except IkTimeout as exc:
                 raise CommandError(str(exc), usage=False) from None
             self._ik_result(cmd, reply, sent_at, client)
+
+    def _ik_preview(self, cmd: Ik) -> None:
+        """ik3/ik5 without 'set': solve from the current references with the IK library (within the effective
+        limits) and print the original's lines; nothing is sent."""
+        from mds_ach.kinematics.ik import getFkArm, getPosCurrentFromOrder, order_for_dof, solve  # lazy: numpy
+
+        state = self._state()
+        shorts = ARMS[cmd.arm][1]
+        q0 = [state.joint[BY_SHORT[s].address].ref for s in shorts]
+        order = order_for_dof(cmd.dof)
+        result = solve(list(cmd.values), order, cmd.arm, q0)
+        got = getPosCurrentFromOrder(getFkArm(result.q, cmd.arm), order)
+        des = list(cmd.values)
+        dif = [d - g for d, g in zip(des, got, strict=True)]
+        self.out(f"N-{cmd.dof} DOF IK Solution - for  {cmd.arm}  arm")
+        for label, v in (("des", des), ("ret", got), ("dif", dif)):
+            self.out(f"{label}:\tx = {v[0]:.5f} \ty = {v[1]:.5f} \tz = {v[2]:.5f}")
+        joints = ", ".join(f"{s} {v:.5f}" for s, v in zip(shorts, result.q, strict=True))
+        if not result.success:
+            self.out(f"no solution within {result.iterations} iterations (closest: {joints}); nothing sent")
+            raise CommandError(f"ik{cmd.dof} {cmd.arm}: target not reachable", usage=False)
+        self.out(f"joints: {joints}")
+        self.out(f"not sent: add 'set' to move the arm (ik{cmd.dof} {cmd.arm} ... set)")
 
     def _ik_result(self, cmd: Ik, reply: IkReply, sent_at: float, client: IkClient) -> None:
         """Print the answer; with ``wait``, follow the arm until it arrives or the gate stops it at contact."""
@@ -598,10 +707,10 @@ def _completer(text: str, index: int) -> str | None:
 
     words = readline.get_line_buffer()[: readline.get_begidx()].split()
     if not words:
-        options = ["goto", "get", "ik", "hold", "resume", "zeroall", "help", "exit"]
+        options = ["goto", "get", "ik", "ik3", "ik5", "hold", "resume", "zeroall", "help", "exit"]
     elif words[0] == "get" and len(words) == 1:
         options = ["fk"] + [j.short for j in JOINTS]
-    elif (words[0] == "ik" and len(words) == 1) or (words[:2] == ["get", "fk"] and len(words) == 2):
+    elif (words[0] in ("ik", "ik3", "ik5") and len(words) == 1) or (words[:2] == ["get", "fk"] and len(words) == 2):
         options = list(ARMS)
     elif words[0] == "goto" and len(words) == 1:
         options = [j.short for j in JOINTS]
