@@ -207,11 +207,17 @@ def child_env(anatomy: str | None = None, overlay: str | None = None) -> dict[st
 
 
 def check_table(anatomy: str | None = None, overlay: str | None = None, out: Printer = _out) -> str:
-    """Load the joint table the nodes will load (same rule, same files) and say where it comes from; a bad one is
-    a LaunchError before anything starts. Returns that description."""
+    """Load the joint table the nodes will load (same rule, same files) and say where it comes from; returns that
+    line. Calibration XML that does not load is a LaunchError before anything starts (its message names file and
+    line); a YAML problem (e.g. an unknown $MDS_ACH_ROBOT) is left to the nodes, whose log tail explains it."""
     try:
+        files = calibfiles.resolve(anatomy, overlay)
         table = load(None, None, anatomy, overlay)
-    except ValueError as exc:  # ConfigError, XmlConfigError: the message names file and line
+    except calibfiles.CalibrationError as exc:
+        raise LaunchError("", f"joint table: {exc}") from None
+    except ValueError as exc:  # ConfigError (XML: with file and line)
+        if files is None:
+            return ""
         raise LaunchError("", f"joint table: {exc}") from None
     out(f"  joint table {describe(table)}")
     return describe(table)
