@@ -9,10 +9,11 @@ from __future__ import annotations
 import logging
 import re
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
-from support import SHARED, in_netns
+from support import SHARED, VENV_BIN, in_netns
 from support.system import START_TIMEOUT, mds_ach, running_system, system_env
 
 import mds_ach as mds
@@ -177,3 +178,16 @@ def test_head_only_robot_runs_and_every_tool_names_the_files(tmp_path: Path,
         log = (runtime / "daemon.log").read_text()
         assert f"joint table: robot xml from {files} (calibration XML, " in log
         assert "head only (20 of 43 nodes): arms and torso absent, disabled (never driven)" in log
+
+
+def test_daemon_reads_anatomy_and_overlay_options(tmp_path: Path, clean_shm: None) -> None:
+    """`daemon --anatomy/--overlay` (what `ros2 run mds_ach daemon` users give): a bad file is refused with file and
+    line before the daemon touches a channel."""
+    bad = tmp_path / "Lucas.anatomy.xml"
+    bad.write_text(re.sub(r'address="0x004[cC]"', 'address="0x004B"', (CONFIGS / "Lucas.anatomy.xml").read_text()))
+    proc = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--no-ros", "--nocan", "--anatomy", str(bad),
+                           "--overlay", str(CONFIGS / "mdsach.xml")], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stderr
+    line = _line_of(bad, 'name="LeftElbowFlex"')
+    assert f"{bad}:{line}: muscle LeftElbowFlex: duplicate address 0x4B" in proc.stderr, proc.stderr
+    assert not any(ach.exists(n) for n in mds.ALL_CHANNELS)

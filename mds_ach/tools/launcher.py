@@ -845,7 +845,8 @@ def run_resetbus(args: argparse.Namespace) -> int:
         try:
             _out(canlink.restart(*link))
         except canlink.CanLinkError as exc:
-            _err(f"mds-ach resetbus: {exc}")
+            _err(f"mds-ach resetbus: {exc}\n  (after restarting the link yourself, 'mds-ach resetbus --no-link' resets "
+                 "the daemon's side)")
             return 1
     status = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     try:
