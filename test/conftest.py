@@ -3,6 +3,7 @@ they use, and every other shared helper, live in ``support`` (test/support/)."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -10,6 +11,12 @@ import pytest
 from support import SHARED, remove_mds_channels
 
 from mds_ach import ach
+
+# The tests never read this machine's calibration files (a lab PC has /etc/mds-ach): no original installation
+# unless a test makes one in a temporary directory (MDS_ACH_ETC), no anatomy from the caller's shell.
+os.environ["MDS_ACH_ETC"] = "/nonexistent/mds-ach-etc-of-the-tests"
+os.environ.pop("MDS_ACH_ANATOMY", None)
+os.environ.pop("MDS_ACH_OVERLAY", None)
 
 
 @pytest.fixture(scope="session")

@@ -207,7 +207,7 @@ def test_bad_xml_is_refused(tmp_path: Path, xml_dir: Path) -> None:
     text = (xml_dir / "anatomy.xml").read_text()
     bad = tmp_path / "anatomy.xml"
     bad.write_text(re.sub(r'(name="LeftElbowFlex">\s*<parameter name="rom" value=")\d+', r"\1abc", text))
-    with pytest.raises(anatomy.XmlConfigError, match=r"anatomy.xml: muscle LeftElbowFlex: parameter rom"):
+    with pytest.raises(anatomy.XmlConfigError, match=r"anatomy.xml:\d+: muscle LeftElbowFlex: parameter rom"):
         anatomy.load_anatomy(bad)
     bad.write_text(text.replace('address="0x004c"', 'address="0x004b"').replace('address="0x004C"',
                                                                                   'address="0x004B"'))

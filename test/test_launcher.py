@@ -94,7 +94,7 @@ def test_changerobot_saves_the_variant_and_refuses_unknown_ones(tmp_path: Path) 
     status = mds_ach("status", "--window", "0.1", env=env_override)
     assert re.search(r"robot\s+lucas \(\$MDS_ACH_ROBOT\)", status.stdout), status.stdout
     bad = mds_ach("changerobot", "marvin", env=env)
-    assert bad.returncode == 2 and "invalid choice: 'marvin'" in bad.stderr
+    assert bad.returncode == 2 and bad.stdout.strip() == "-- No Change to Robot --" and "'marvin'" in bad.stderr
     assert (tmp_path / "config" / "robot").read_text().strip() == "octavia"
 
 

@@ -336,9 +336,10 @@ def moveto_steps(log: Path) -> dict[int, list[tuple[float, float]]]:
 
 def test_gate_release_never_steps_the_motors(gate_system: System) -> None:
     """Both hands to the same point stop apart (held, their commands cancelled); then the right arm goes home and
-    the left one, released and sent to the point again, comes on. On the daemon's CAN log no MOVETO target differs from the joint's previous one by more
-    than the filter's speed allows since the daemon's previous cycle (+ SAMPLING_SLACK for the filter's 25 ms
-    frames): a release never sends the distance the arm missed while it was held."""
+    the left one, released and sent to the point again, comes on. On the daemon's CAN log no MOVETO target differs
+    from the joint's previous one by more than the filter's speed allows since the daemon's previous cycle
+    (+ SAMPLING_SLACK for the filter's 25 ms frames): a release never sends the distance the arm missed while it
+    was held."""
     from mds_ach.nodes import filter as filter_node
     from mds_ach.nodes.pipeline import joint_label
 

@@ -392,7 +392,11 @@ def make_canio(*, nocan: bool = False, network: SimNetwork | None = None, interf
             return CanIO(lambda: SimBus(network=network), rate, recorder, "simulated MDS bus")
         cfg = bus_config(interface, channel, bitrate, config_file)
         rate = int(cfg.get("bitrate") or DEFAULT_BITRATE)
-        return CanIO(lambda: can.Bus(**cfg), rate, recorder, f"{cfg.get('interface')}:{cfg.get('channel')}")
+        try:
+            return CanIO(lambda: can.Bus(**cfg), rate, recorder, f"{cfg.get('interface')}:{cfg.get('channel')}")
+        except (OSError, can.CanError) as exc:  # say which interface: "[Errno 19] No such device" alone does not
+            raise BusConfigError(f"cannot open CAN interface {cfg.get('interface')} {cfg.get('channel')}: {exc}"
+                                 ) from None
     except Exception:
         if recorder is not None:
             recorder.close()

@@ -78,7 +78,13 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("-r", "--rate", type=float, default=1.0 / mds.MDS_LOOP_PERIOD, help="loop rate in Hz (10)")
     loop.add_argument("--robot", help="robot variant (isaac, lucas, octavia, default); else $MDS_ACH_ROBOT or the "
                                       "choice saved by `mds-ach changerobot`")
-    loop.add_argument("--config", metavar="FILE", help="joint table YAML (default: config/joints.yaml)")
+    loop.add_argument("--config", metavar="FILE", help="joint table YAML (default: the calibration XML when there "
+                                                       "is one, else config/joints.yaml)")
+    loop.add_argument("--anatomy", metavar="FILE", help="Xitome anatomy.xml to read the joint table from (default: "
+                                                        "$MDS_ACH_ANATOMY, else /etc/mds-ach's, else the YAML)")
+    loop.add_argument("--overlay", metavar="FILE", help="MDS-Ach mdsach.xml for the anatomy (default: "
+                                                        "$MDS_ACH_OVERLAY, else /etc/mds-ach/configs/mdsach.xml, "
+                                                        "else the one beside the anatomy)")
     loop.add_argument("--reply-wait", type=float, help="s to wait for position replies per cycle (half a period)")
     loop.add_argument("--stale-after", type=float, help="s without a reply before a joint is stale (3.5 periods)")
     loop.add_argument("--filter-length", type=float, help="L of the mode-0 filter (default: 95%% in 4.0 s)")
@@ -135,7 +141,8 @@ class Daemon:
 
 def build(args: argparse.Namespace) -> Daemon:
     """Joint table, bus, channels and the loop (started, after reading the start pose)."""
-    table = config.load(args.robot, args.config)
+    table = config.load(args.robot, args.config, getattr(args, "anatomy", None), getattr(args, "overlay", None))
+    log.info("joint table: %s", config.describe(table))
     if args.sim_faults and not args.nocan:
         raise ValueError("--sim-faults needs --nocan: faults are injected into the simulated bus only")
     network = None
@@ -164,7 +171,7 @@ def build(args: argparse.Namespace) -> Daemon:
         io.close()
         channels.close()
         raise
-    log.info("robot %s (%s), %s, %.4g Hz, filter L %.2f", table.robot, ", ".join(table.sources), io.description,
+    log.info("robot %s (%s), %s, %.4g Hz, filter L %.2f", table.robot, " + ".join(table.sources), io.description,
              args.rate, loop.L)
     faults = None
     if args.sim_faults and network is not None:  # checked above: --sim-faults needs --nocan, which made a network

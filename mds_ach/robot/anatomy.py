@@ -6,6 +6,9 @@
 * ``mdsach.xml``: the MDS-Ach overlay matched **by muscle name**: short name, offset, direction, enabled.
 * ``nrl00x.xml``: MCB node settings, a concatenation of ``<node>`` documents (not one well-formed file).
 
+Every refusal names the file and the line (``anatomy.xml:212: muscle LeftElbowFlex: parameter rom: not a
+number``), so an operator can fix a hand-edited calibration file without guessing.
+
 The original overlay gave the short name LYP to two eye joints and RYP to the right eye pan; those are
 mapped to the unique names of :mod:`mds_ach.robot.joints` (LYY, EYP, RYY) with a logged note.
 """
@@ -16,8 +19,10 @@ import logging
 import math
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
+from xml.parsers import expat
 
 from mds_ach.robot import joints as joint_table
 
@@ -110,31 +115,80 @@ def parse_number(text: str | None, where: str) -> float | None:
     return value
 
 
-def _parse(path: Path) -> ET.Element:
+class _Lines(dict[int, int]):
+    """Source line of each element of a parsed file (by ``id``; the tree keeps the elements alive)."""
+
+    def at(self, path: Path, el: ET.Element) -> str:
+        return f"{path}:{self.get(id(el), 0)}"
+
+
+def _parse(path: Path) -> tuple[ET.Element, _Lines]:
+    """The file's tree and its elements' line numbers (ElementTree alone does not keep them)."""
     try:
-        return ET.parse(path).getroot()
-    except ET.ParseError as exc:
-        raise XmlConfigError(f"{path}: malformed XML: {exc}") from None
+        data = path.read_bytes()
     except OSError as exc:
         raise XmlConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    builder = ET.TreeBuilder()
+    lines = _Lines()
+    parser = expat.ParserCreate()
+
+    def start(tag: str, attrs: dict[str, str]) -> None:
+        lines[id(builder.start(tag, attrs))] = parser.CurrentLineNumber
+
+    parser.StartElementHandler = start
+    parser.EndElementHandler = builder.end
+    parser.CharacterDataHandler = builder.data
+    try:
+        parser.Parse(data, True)
+    except expat.ExpatError as exc:
+        raise XmlConfigError(f"{path}:{exc.lineno}: malformed XML: {expat.ErrorString(exc.code)} "
+                             f"(column {exc.offset + 1})") from None
+    return builder.close(), lines
 
 
-def _params(muscle: ET.Element) -> dict[str, str]:
-    """Parameters of a muscle; later duplicates override earlier ones, as in the original parser."""
-    return {p.get("name", ""): p.get("value", "") for p in muscle.findall("parameter")}
+def _params(muscle: ET.Element) -> dict[str, ET.Element]:
+    """Parameters of a muscle by name; later duplicates override earlier ones, as in the original parser."""
+    return {p.get("name", ""): p for p in muscle.findall("parameter")}
+
+
+def _muscle(path: Path, lines: _Lines, el: ET.Element, address: int, name: str) -> Muscle:
+    """One ``<muscle>``'s numbers and texts; a bad parameter is refused naming its own line."""
+    params = _params(el)
+
+    def text(key: str) -> str | None:
+        p = params.get(key)
+        return None if p is None else p.get("value", "")
+
+    def where(key: str) -> str:
+        p = params.get(key)
+        return f"{lines.at(path, p if p is not None else el)}: muscle {name}: parameter {key}"
+
+    muscle = Muscle(address, name)
+    for key in ANATOMY_NUMBERS:
+        muscle.numbers[key] = parse_number(text(key), where(key))
+    for key in ANATOMY_TEXTS:
+        muscle.texts[key] = text(key) or ""
+    homed = el.get("homed")
+    muscle.homed = None if homed is None else homed.strip().lower() == "true"
+    for key in REQUIRED_NUMBERS:
+        value = muscle.numbers[key]
+        if value is None or value <= 0:
+            raise XmlConfigError(f"{where(key)} must be a positive number, got {text(key)!r}")
+    return muscle
 
 
 def load_anatomy(path: str | Path) -> dict[int, Muscle]:
     """All muscles of an anatomy file by address."""
     path = Path(path)
-    root = _parse(path)
+    root, lines = _parse(path)
     if root.tag != "anatomy":
-        raise XmlConfigError(f"{path}: root element is <{root.tag}>, expected <anatomy>")
+        raise XmlConfigError(f"{lines.at(path, root)}: root element is <{root.tag}>, expected <anatomy>")
     out: dict[int, Muscle] = {}
+    seen_at: dict[int, int] = {}
     for el in root.findall("muscle"):
         name = el.get("name", "")
         addr_text = el.get("address")
-        where = f"{path}: muscle {name or '?'}"
+        where = f"{lines.at(path, el)}: muscle {name or '?'}"
         if not name or addr_text is None:
             raise XmlConfigError(f"{where}: needs both 'name' and 'address' attributes")
         try:
@@ -142,36 +196,52 @@ def load_anatomy(path: str | Path) -> dict[int, Muscle]:
         except ValueError:
             raise XmlConfigError(f"{where}: address {addr_text!r} is not an integer") from None
         if address in out:
-            raise XmlConfigError(f"{where}: duplicate address 0x{address:02X} (also {out[address].name})")
-        params = _params(el)
-        muscle = Muscle(address, name)
-        for key in ANATOMY_NUMBERS:
-            muscle.numbers[key] = parse_number(params.get(key), f"{where}: parameter {key}")
-        for key in ANATOMY_TEXTS:
-            muscle.texts[key] = params.get(key, "")
-        homed = el.get("homed")
-        muscle.homed = None if homed is None else homed.strip().lower() == "true"
-        for key in REQUIRED_NUMBERS:
-            value = muscle.numbers[key]
-            if value is None or value <= 0:
-                raise XmlConfigError(f"{where}: parameter {key} must be a positive number, got {params.get(key)!r}")
+            raise XmlConfigError(f"{where}: duplicate address 0x{address:02X} (also {out[address].name}, line "
+                                 f"{seen_at[address]})")
+        muscle = _muscle(path, lines, el, address, name)
         out[address] = muscle
+        seen_at[address] = lines.get(id(el), 0)
     if not out:
         raise XmlConfigError(f"{path}: no <muscle> elements")
+    _check_parts(out, lines.at(path, root))
     return out
+
+
+# Nodes that an anatomy holds all of or none of: the head (the Xitome head-only anatomies, 0x30-0x43) and the
+# body (arms, hands, torso). A part with some of its nodes missing is a damaged file, not a smaller robot.
+PARTS = {"head": tuple(j for j in joint_table.JOINTS if j.address <= 0x43),
+         "arms and torso": tuple(j for j in joint_table.JOINTS if j.address > 0x43)}
+
+
+def _check_parts(muscles: dict[int, Muscle], where: str) -> None:
+    for part, nodes in PARTS.items():
+        present = [j for j in nodes if j.address in muscles]
+        if present and len(present) < len(nodes):
+            missing = [j for j in nodes if j.address not in muscles]
+            raise XmlConfigError(
+                f"{where}: missing muscle {missing[0].name} (0x{missing[0].address:02X}): the anatomy has "
+                f"{len(present)} of the {len(nodes)} {part} nodes (missing: "
+                f"{', '.join(f'{j.name} 0x{j.address:02X}' for j in missing)})")
+
+
+def missing_parts(addresses: Collection[int]) -> list[str]:
+    """The parts (``PARTS``) a set of nodes leaves out entirely, e.g. ``['arms and torso']`` for a head-only one."""
+    return [part for part, nodes in PARTS.items() if not any(j.address in addresses for j in nodes)]
 
 
 def load_overlay(path: str | Path) -> dict[str, Overlay]:
     """mdsach.xml entries by anatomy (long) name, with short names made unique (see module doc)."""
     path = Path(path)
-    root = _parse(path)
+    root, lines = _parse(path)
     out: dict[str, Overlay] = {}
     for el in root.findall("muscle"):
         name = el.get("name", "")
-        where = f"{path}: muscle {name or '?'}"
+        where = f"{lines.at(path, el)}: muscle {name or '?'}"
         if not name:
             raise XmlConfigError(f"{where}: missing 'name' attribute")
-        params = _params(el)
+        if name in out:
+            raise XmlConfigError(f"{where}: duplicate muscle {name}")
+        params = {k: p.get("value", "") for k, p in _params(el).items()}
         short = params.get("mdsachname", "").strip()
         canonical = joint_table.BY_NAME.get(name)
         if canonical is not None and canonical.short != short:

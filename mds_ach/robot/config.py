@@ -1,5 +1,11 @@
 """The project's joint table: YAML config, robot variants, limits and the rad <-> motor-count conversion.
 
+Where the table comes from (:func:`load`): an explicit YAML file (``--config``); else the original installation's
+calibration XML when there is one (``/etc/mds-ach``, ``$MDS_ACH_ANATOMY``, ``--anatomy``: the rule is
+:mod:`mds_ach.robot.calibfiles`), unless a robot variant is named explicitly (``--robot``); else the packaged YAML.
+A table read from XML is labelled robot ``xml`` (``XML_ROBOT``), so every process that asks for ``xml`` reads
+the same files. ``JointTable.sources`` names the files; ``describe`` says it in one line for logs and tools.
+
 ``config/joints.yaml`` holds all 43 MDS nodes (numbers from the default ``anatomy.xml`` + ``mdsach.xml``);
 ``config/robots/<robot>.yaml`` overrides what the per-robot calibrated anatomies change (ROM counts,
 margins, homing tolerances). The robot is chosen by argument, else ``$MDS_ACH_ROBOT``, else ``default``.
@@ -22,6 +28,7 @@ Anything malformed or inconsistent is refused with a :class:`ConfigError` naming
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -31,7 +38,7 @@ from typing import Any
 import yaml
 
 from mds_ach.paths import config_path
-from mds_ach.robot import anatomy, motion
+from mds_ach.robot import anatomy, calibfiles, motion
 from mds_ach.robot import joints as node_table
 from mds_ach.robot.choice import (  # re-exported: config.ROBOT_ENV etc. are public names
     DEFAULT_ROBOT,
@@ -41,7 +48,10 @@ from mds_ach.robot.choice import (  # re-exported: config.ROBOT_ENV etc. are pub
 )
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_JOINT_PARAM, MDS_JOINT_STATE, MDS_STATE, set_name
 
+log = logging.getLogger(__name__)
+
 ROBOTS = ("default", "isaac", "lucas", "octavia")
+XML_ROBOT = "xml"  # the label of a table read from the calibration XML (mds_ach.robot.calibfiles)
 TWO_PI = 2.0 * math.pi
 # The original daemon's MOVETO acceleration and trajectory period code (§b.4).
 DEFAULT_ACCEL_DEG_S2 = 80.0
@@ -239,8 +249,58 @@ def _config_dir() -> Path:
     return config_path("")
 
 
-def load(robot: str | None = None, path: str | Path | None = None) -> JointTable:
-    """Load ``joints.yaml`` (or ``path``) with the chosen robot's overlay applied and everything validated."""
+def load(robot: str | None = None, path: str | Path | None = None, anatomy_path: str | Path | None = None,
+         overlay_path: str | Path | None = None) -> JointTable:
+    """The joint table by the rule of the module doc: ``path`` (YAML), else the calibration XML (``anatomy_path``/
+    ``overlay_path`` first, see :func:`mds_ach.robot.calibfiles.resolve`) unless ``robot`` names a YAML variant
+    explicitly, else ``joints.yaml`` with the chosen robot's overlay; everything validated."""
+    if path is None:
+        explicit_yaml = bool(robot and robot.strip().lower() != XML_ROBOT) and anatomy_path is None
+        try:
+            files = None if explicit_yaml else calibfiles.resolve(anatomy_path, overlay_path)
+        except calibfiles.CalibrationError as exc:
+            raise ConfigError(str(exc)) from None
+        if files is not None:
+            return load_xml(files)
+        if (robot or effective_robot()[0]).strip().lower() == XML_ROBOT:
+            raise ConfigError(f"robot {XML_ROBOT!r} is a table read from calibration XML, and there is none here "
+                              f"(no {calibfiles.etc_dir()}/anatomy.xml, ${calibfiles.ANATOMY_ENV} unset)")
+    return _load_yaml(robot, path)
+
+
+def load_xml(files: calibfiles.CalibrationFiles) -> JointTable:
+    """The table of an anatomy + mdsach.xml pair, as the original loaded it. A head-only anatomy: the nodes it
+    lacks are disabled (:func:`complete`), said in one log line."""
+    try:
+        table = from_xml(files.anatomy, files.overlay, robot=XML_ROBOT)
+    except anatomy.XmlConfigError as exc:
+        raise ConfigError(str(exc)) from None
+    if len(table) < len(node_table.JOINTS):
+        parts = anatomy.missing_parts(table.addresses)
+        log.info("%s: %s only (%d of %d nodes): %s absent, disabled (never driven)", files.anatomy,
+                 " and ".join(p for p in anatomy.PARTS if p not in parts), len(table), len(node_table.JOINTS),
+                 " and ".join(parts))
+        table = complete(table)
+    return table
+
+
+def complete(table: JointTable) -> JointTable:
+    """``table`` plus every MDS node it lacks, disabled, with the packaged default numbers. Why not leave them out:
+    every stage works on the whole robot (limits, collision model, IK); a disabled joint is never commanded, and
+    one that never answers shows its home pose (the ROM middle), which is in range and collision-free."""
+    base = _load_yaml(DEFAULT_ROBOT, None)
+    extra = [replace(j, enabled=False) for j in base if table.get(j.address) is None]
+    return replace(table, joints=tuple(sorted((*table.joints, *extra), key=lambda j: j.address)))
+
+
+def describe(table: JointTable) -> str:
+    """Where ``table`` came from, in one line: ``robot xml from /etc/mds-ach/configs/anatomy.xml + ...``."""
+    kind = "calibration XML" if table.robot == XML_ROBOT else "YAML"
+    return (f"robot {table.robot} from {' + '.join(table.sources) or 'defaults'} ({kind}, {len(table.enabled)} of "
+            f"{len(table)} nodes enabled)")
+
+
+def _load_yaml(robot: str | None, path: str | Path | None) -> JointTable:
     base_path = Path(path) if path else _config_dir() / "joints.yaml"
     name = robot_name(robot) if path is None else (robot or os.environ.get(ROBOT_ENV) or DEFAULT_ROBOT).lower()
     base = _read_yaml(base_path)
@@ -468,6 +528,9 @@ def from_xml(anatomy_path: str | Path, mdsach_path: str | Path | None = None, ro
         if not short:
             raise ConfigError(f"{where}: no short name (not in {mdsach_path} nor the MDS node table)")
         offset, direction, enabled = (ov.offset, ov.direction, ov.enabled) if ov else (0.0, 1.0, False)
+        if ov is None and mdsach_path:
+            log.warning("%s: %s has no entry for muscle %s: disabled (offset 0, direction 1)", where, mdsach_path,
+                        m.name)
         n = m.numbers
         rom_margin = n["rom.margin"] if n["rom.margin"] is not None else 0.05
         resolution, ratio = m.number("encoderresolution"), m.number("gearratio")
@@ -591,14 +654,15 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mds_ach.robot.config", description=main.__doc__)
     ap.add_argument("--robot", help=f"robot variant (default: ${ROBOT_ENV} or 'default')")
     ap.add_argument("--from-xml", nargs=2, metavar=("ANATOMY", "MDSACH"),
-                    help="print joints.yaml text converted from an anatomy.xml and mdsach.xml")
+                    help="print joints.yaml text converted from an anatomy.xml and mdsach.xml (a head-only anatomy: "
+                         "the other nodes disabled, with the packaged numbers)")
     ap.add_argument("--overlay-of", nargs=2, metavar=("BASE_ANATOMY", "MDSACH"),
                     help="with --from-xml: print a robots/<robot>.yaml overlay relative to BASE_ANATOMY")
     args = ap.parse_args(argv)
     try:
         if args.from_xml:
             anatomy_xml, mdsach_xml = args.from_xml
-            table = from_xml(anatomy_xml, mdsach_xml, robot=args.robot or DEFAULT_ROBOT, require_all=True)
+            table = complete(from_xml(anatomy_xml, mdsach_xml, robot=args.robot or DEFAULT_ROBOT))
             if args.overlay_of:
                 base_anatomy, base_mdsach = args.overlay_of
                 print(overlay_yaml(from_xml(base_anatomy, base_mdsach, require_all=True), table), end="")

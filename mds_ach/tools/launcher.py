@@ -14,6 +14,7 @@ import argparse
 import ctypes
 import importlib
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -25,17 +26,25 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach import procs as background
-from mds_ach.kinematics.limits import current_limits
+from mds_ach.kinematics.limits import current_limits, read_published
 from mds_ach.paths import bin_name, runtime_dir
-from mds_ach.robot import contracts
+from mds_ach.robot import calibfiles, contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
 from mds_ach.robot.choice import effective_robot, save_robot
-from mds_ach.robot.config import ROBOT_ENV, ConfigError, available_robots, load
+from mds_ach.robot.config import ROBOT_ENV, XML_ROBOT, ConfigError, available_robots, describe, load
 from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
-from mds_ach.tools import repair
+from mds_ach.tools import canlink, repair
 from mds_ach.tools.holdcmd import held_summary
-from mds_ach.tools.monitor import Latest, collision_summary, daemon_line, limits_line
+from mds_ach.tools.monitor import (
+    TABLE_FILE,
+    Latest,
+    collision_summary,
+    daemon_line,
+    limits_line,
+    recorded_table,
+    table_line,
+)
 from mds_ach.tools.rosgraph import summary as ros_graph_summary
 
 # Start order follows the data flow back from the bus: the daemon first (it publishes mds-state, which
@@ -161,8 +170,10 @@ def node_command(name: str) -> list[str]:
 WORLD_NODES = ("collision", "ik")  # the nodes that check collisions, so take the world file
 
 
-def node_args(name: str, nocan: bool, world: str | None = None) -> list[str]:
+def node_args(name: str, nocan: bool, world: str | None = None, can_args: Sequence[str] = ()) -> list[str]:
     args = ["--nocan"] if name == "daemon" and nocan else []
+    if name == "daemon" and not nocan:
+        args += list(can_args)
     if world and name in WORLD_NODES:
         args += ["--world", world]
     return args
@@ -181,13 +192,54 @@ def world_file(path: str | None) -> str | None:
     return str(Path(path).resolve())
 
 
-def child_env() -> dict[str, str]:
-    """The nodes' environment: ours, unbuffered output for live logs, and the saved robot choice."""
+def child_env(anatomy: str | None = None, overlay: str | None = None) -> dict[str, str]:
+    """The nodes' environment: ours, unbuffered output for live logs, the saved robot choice, and the calibration
+    files of ``--anatomy``/``--overlay`` (as $MDS_ACH_ANATOMY/$MDS_ACH_OVERLAY: every node reads the same table)."""
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     robot, _ = effective_robot(env)
     env[ROBOT_ENV] = robot
+    if anatomy:
+        env[calibfiles.ANATOMY_ENV] = str(Path(anatomy).absolute())
+    if overlay:
+        env[calibfiles.OVERLAY_ENV] = str(Path(overlay).absolute())
     return env
+
+
+def check_table(anatomy: str | None = None, overlay: str | None = None, out: Printer = _out) -> str:
+    """Load the joint table the nodes will load (same rule, same files) and say where it comes from; returns that
+    line. Calibration XML that does not load is a LaunchError before anything starts (its message names file and
+    line); a YAML problem (e.g. an unknown $MDS_ACH_ROBOT) is left to the nodes, whose log tail explains it."""
+    try:
+        files = calibfiles.resolve(anatomy, overlay)
+        table = load(None, None, anatomy, overlay)
+    except calibfiles.CalibrationError as exc:
+        raise LaunchError("", f"joint table: {exc}") from None
+    except ValueError as exc:  # ConfigError (XML: with file and line)
+        if files is None:
+            return ""
+        raise LaunchError("", f"joint table: {exc}") from None
+    out(f"  joint table {describe(table)}")
+    return describe(table)
+
+
+def can_plan(nocan: bool) -> tuple[list[str], tuple[str, int] | None]:
+    """The daemon's bus arguments and the SocketCAN link (channel, bitrate) to bring up, for a start: none with
+    ``nocan``; python-can's configuration when there is one; else SocketCAN can0 at 1 Mbit/s, as the original."""
+    if nocan:
+        return [], None
+    from mds_ach.bus.canio import BusConfigError, bus_config  # lazy: python-can only for a real start
+
+    try:
+        cfg = bus_config()
+    except BusConfigError as exc:
+        if "no CAN interface configured" not in str(exc):
+            raise LaunchError("daemon", str(exc)) from None
+        channel, bitrate = canlink.DEFAULT_CHANNEL, canlink.DEFAULT_BITRATE
+        return ["-i", "socketcan", "-c", channel, "-b", str(bitrate)], (channel, bitrate)
+    if cfg.get("interface") == "socketcan" and cfg.get("channel"):
+        return [], (str(cfg["channel"]), int(cfg.get("bitrate") or canlink.DEFAULT_BITRATE))
+    return [], None
 
 
 def start_node(name: str, args: Sequence[str] = (), rt: Path | None = None,
@@ -325,7 +377,8 @@ def wait_ready(procs: dict[str, subprocess.Popen], checks: dict[str, _Heartbeat]
 def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[str] = NODES,
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
            out: Printer = _out, group: str | None = None, foreground: bool = False,
-           world: str | None = None) -> dict[str, subprocess.Popen]:
+           world: str | None = None, anatomy: str | None = None,
+           overlay: str | None = None) -> dict[str, subprocess.Popen]:
     """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
     until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``). ``foreground``: the nodes
     die with this process (``start_node``'s ``die_with_launcher``). ``world``: a world objects file for the
@@ -335,9 +388,21 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
     nothing is started.
 
     On failure every node started here is stopped again and LaunchError is raised (the system is left as
-    it was found)."""
+    it was found).
+
+    ``anatomy``/``overlay``: calibration XML for every node (``mds_ach.robot.calibfiles``); the joint table is
+    loaded here first, so a bad file starts nothing. A real start (not ``nocan``) without any CAN configuration
+    uses SocketCAN can0 at 1 Mbit/s and brings a SocketCAN link up first (``canlink``)."""
     rt = rt or runtime_dir()
     world = world_file(world)
+    starts_daemon = "daemon" in names and read_pid("daemon", rt) is None
+    table_text = check_table(anatomy, overlay, out) if starts_daemon else ""
+    can_args, link = can_plan(nocan) if starts_daemon else ([], None)
+    if link is not None:
+        try:
+            out("  CAN link " + canlink.ensure_up(*link))
+        except canlink.CanLinkError as exc:
+            raise LaunchError("daemon", f"CAN link: {exc}") from None
     try:
         reports = make_channels(group=group)
     except ValueError as exc:  # unknown group
@@ -347,7 +412,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
         raise LaunchError("", "refusing to start, channel problems:\n"
                           + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
     already = running_nodes(rt)
-    env = child_env()
+    env = child_env(anatomy, overlay)
     procs: dict[str, subprocess.Popen] = {}
     checks: dict[str, _Heartbeat] = {}
     try:
@@ -358,9 +423,16 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
             check = _readiness(name)
             if check is not None:
                 checks[name] = check
-            procs[name] = start_node(name, node_args(name, nocan, world), rt, env, die_with_launcher=foreground)
+            procs[name] = start_node(name, node_args(name, nocan, world, can_args), rt, env,
+                                     die_with_launcher=foreground)
             out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
         wait_ready(procs, checks, timeout, rt, abort)
+        if starts_daemon:
+            (rt / TABLE_FILE).write_text(table_text + "\n")
+            if link is not None:
+                canlink.save_link(rt, *link)
+            else:
+                canlink.clear_link(rt)
     except BaseException:
         stop_nodes(list(procs), rt=rt, procs=procs, out=lambda _t: None)
         raise
@@ -485,7 +557,13 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
         state = f"running   pid {pid}" if pid else ("stopped   (stale pid file)" if stale else "stopped")
         lines.append(f"  {name:<10} {state}")
     robot, where = effective_robot()
-    lines.append(f"robot      {robot} ({where})")
+    try:
+        xml = calibfiles.resolve() is not None
+    except calibfiles.CalibrationError:
+        xml = True  # the table line below says what is wrong
+    lines.append(f"robot      {robot} ({where})" + ("  (the variant is not used: the calibration XML wins)"
+                                                    if xml and robot != XML_ROBOT else ""))
+    lines.append("table      " + table_line(read_published(), recorded_table(rt)))
     problems = channel_problems()
     lines += [f"channel    {name}: {text}" for name, text in problems.items()]
     if not problems and any(ach.exists(n) for n in mds.ALL_CHANNELS):
@@ -562,7 +640,7 @@ def _surviving(out: Printer) -> Printer:
 
 
 def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None,
-                   world: str | None = None) -> int:
+                   world: str | None = None, anatomy: str | None = None, overlay: str | None = None) -> int:
     """``mds-ach run``: start everything, print what to do next, supervise, stop cleanly. Leaves no orphans.
 
     It stops every node on Ctrl-C, SIGTERM and SIGHUP (the terminal closed), when its output is gone (``make run |
@@ -596,7 +674,8 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
         out(f"starting MDS-Ach{' on the simulated robot (nocan)' if nocan else ''} ...")
         started = True
         try:
-            procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True, world=world)
+            procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True, world=world,
+                           anatomy=anatomy, overlay=overlay)
         except LaunchError as exc:
             if abort():
                 out("interrupted; everything stopped")
@@ -642,6 +721,12 @@ def _add_nocan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", metavar="FILE",
                    help="world objects YAML (e.g. a table, see config/world.yaml) for the collision gate and the IK "
                         "node; default: the package's config/world.yaml")
+    p.add_argument("--anatomy", metavar="FILE",
+                   help="Xitome anatomy.xml to read the joint table from (default: $MDS_ACH_ANATOMY, else "
+                        "/etc/mds-ach/anatomy.xml or /etc/mds-ach/configs/anatomy.xml, else the packaged YAML)")
+    p.add_argument("--overlay", metavar="FILE",
+                   help="MDS-Ach mdsach.xml for the anatomy (default: $MDS_ACH_OVERLAY, else "
+                        "/etc/mds-ach/configs/mdsach.xml, else the mdsach.xml beside the anatomy)")
 
 
 def add_start_arguments(p: argparse.ArgumentParser) -> None:
@@ -664,7 +749,8 @@ def run_start(args: argparse.Namespace) -> int:
         return 1
     _out(f"starting MDS-Ach{' (nocan: simulated bus)' if nocan else ''}; runtime dir {rt}")
     try:
-        launch(nocan, args.timeout, names, rt, group=args.group, world=args.world)
+        launch(nocan, args.timeout, names, rt, group=args.group, world=args.world, anatomy=args.anatomy,
+               overlay=args.overlay)
     except LaunchError as exc:
         _err(f"mds-ach start: {exc}")
         return 1
@@ -685,7 +771,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_run(args: argparse.Namespace) -> int:
     return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group,
-                          world=args.world)
+                          world=args.world, anatomy=args.anatomy, overlay=args.overlay)
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:
@@ -742,13 +828,26 @@ def run_status(args: argparse.Namespace) -> int:
 
 
 def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("Ask the daemon to reset the CAN bus (recover from bus-off): sends MDS_CMD_RESET_BUS on "
-                     f"{mds.MDS_CHAN_BOARD_CMD_NAME}. The CAN link itself is configured by the operator, see "
-                     "docs/operator.md.")
+    p.description = ("Reset the CAN bus (recover from bus-off), like the original: restart the SocketCAN link the "
+                     "system was started on (ip link set CHANNEL down / type can bitrate ... / up; or print those "
+                     "commands when this user may not run them), then ask the daemon to re-open its bus: "
+                     f"MDS_CMD_RESET_BUS on {mds.MDS_CHAN_BOARD_CMD_NAME}.")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the daemon's acknowledgement")
+    p.add_argument("--channel", help="SocketCAN link to restart (default: the one 'mds-ach start' brought up; none "
+                                     "for the simulated bus or another interface)")
+    p.add_argument("--no-link", action="store_true", help="only reset the daemon's side, not the link")
 
 
 def run_resetbus(args: argparse.Namespace) -> int:
+    link = None if args.no_link else (
+        (args.channel, canlink.DEFAULT_BITRATE) if args.channel else canlink.saved_link(runtime_dir()))
+    if link is not None:
+        try:
+            _out(canlink.restart(*link))
+        except canlink.CanLinkError as exc:
+            _err(f"mds-ach resetbus: {exc}\n  (after restarting the link yourself, 'mds-ach resetbus --no-link' resets "
+                 "the daemon's side)")
+            return 1
     status = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
     try:
         status.read()
@@ -777,25 +876,74 @@ def run_resetbus(args: argparse.Namespace) -> int:
 
 
 def add_changerobot_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("Choose the robot variant whose calibrated joint table the daemon loads at its next start "
-                     "(saved in $MDS_ACH_CONFIG_DIR/robot, default ~/.config/mds-ach/robot; $MDS_ACH_ROBOT "
-                     "overrides it). Restart the system for it to take effect.")
-    p.add_argument("robot", choices=available_robots(), help="robot variant")
+    p.description = ("Choose the robot for the next start. With an original installation (/etc/mds-ach, or "
+                     f"${calibfiles.ETC_ENV}), like the original: copy configs/<Robot>.anatomy.xml (isaac, lucas, "
+                     "octavia) or the anatomy file given as a path over its anatomy.xml. Otherwise: save the "
+                     "packaged robot variant whose joint table the daemon loads (in $MDS_ACH_CONFIG_DIR/robot, "
+                     "default ~/.config/mds-ach/robot; $MDS_ACH_ROBOT overrides it). Restart the system for it to "
+                     "take effect. An unknown name changes nothing (exit status 2).")
+    p.add_argument("robot", help=f"robot ({', '.join(available_robots())}) or, with /etc/mds-ach, a path to an "
+                                 "anatomy file")
+
+
+NO_CHANGE = "-- No Change to Robot --"  # the original's words for an unknown robot
+
+
+def _changerobot_etc(name: str, etc: Path) -> int:
+    """The original's ChangeRobot: copy the robot's anatomy (or the file ``name``) over ``etc``'s anatomy.xml,
+    after checking that it loads with the installation's overlay."""
+    path = Path(name).expanduser()
+    source = path if path.is_file() else calibfiles.robot_anatomy(name, etc)
+    if source is None:
+        _out(NO_CHANGE)
+        _err(f"mds-ach changerobot: unknown robot {name!r}: give one of {', '.join(calibfiles.ROBOT_ANATOMIES)} "
+             f"(an anatomy in {etc / 'configs'}) or the path of an anatomy file")
+        return 2
+    try:
+        current = calibfiles.resolve(env={calibfiles.ETC_ENV: str(etc)})
+        overlay = current.overlay if current else None
+        load(None, None, source, overlay)  # refuse a file that does not load, before copying it
+        written = calibfiles.install_anatomy(source, etc)
+    except (ConfigError, ValueError) as exc:
+        _out(NO_CHANGE)
+        _err(f"mds-ach changerobot: {exc}")
+        return 1
+    except OSError as exc:
+        _out(NO_CHANGE)
+        _err(f"mds-ach changerobot: cannot write in {etc}: {exc.strerror} (run it as root: sudo mds-ach "
+             f"changerobot {shlex.quote(name)})")
+        return 1
+    label = name.strip().capitalize() if source != path else str(source)
+    _out(f"-- Robot Changed to {label} -- ({source} copied to {', '.join(map(str, written))})")
+    return 0
 
 
 def run_changerobot(args: argparse.Namespace) -> int:
-    try:
-        load(args.robot)  # refuse a variant whose files do not load, before saving it
-        path = save_robot(args.robot)
-    except (ConfigError, ValueError, OSError) as exc:
-        _err(f"mds-ach changerobot: {exc}")
-        return 1
-    _out(f"robot variant '{args.robot}' saved in {path}")
-    if os.environ.get(ROBOT_ENV) and os.environ[ROBOT_ENV].strip().lower() != args.robot:
-        _err(f"note: ${ROBOT_ENV}={os.environ[ROBOT_ENV]} is set in this shell and overrides the saved choice")
-    if running_nodes():
-        _out("the system is running: restart it ('mds-ach stop', then 'mds-ach start') to use the new variant")
-    return 0
+    etc = calibfiles.etc_dir()
+    if etc.is_dir():
+        status = _changerobot_etc(args.robot, etc)
+    else:
+        name = args.robot.strip().lower()
+        if name not in available_robots():
+            _out(NO_CHANGE)
+            hint = (f"; an anatomy file is used with 'mds-ach start --anatomy FILE' or ${calibfiles.ANATOMY_ENV} "
+                    f"(no {etc} here to copy it into)" if Path(args.robot).is_file() else "")
+            _err(f"mds-ach changerobot: unknown robot {args.robot!r}; choose one of: {', '.join(available_robots())}"
+                 + hint)
+            return 2
+        try:
+            load(name)  # refuse a variant whose files do not load, before saving it
+            path = save_robot(name)
+        except (ConfigError, ValueError, OSError) as exc:
+            _err(f"mds-ach changerobot: {exc}")
+            return 1
+        _out(f"robot variant '{name}' saved in {path}")
+        if os.environ.get(ROBOT_ENV) and os.environ[ROBOT_ENV].strip().lower() != name:
+            _err(f"note: ${ROBOT_ENV}={os.environ[ROBOT_ENV]} is set in this shell and overrides the saved choice")
+        status = 0
+    if status == 0 and running_nodes():
+        _out("the system is running: restart it ('mds-ach stop', then 'mds-ach start') to use the new robot")
+    return status
 
 
 # --------------------------------------------------------------------------------------------- exec entry

@@ -5,10 +5,12 @@ channel reader (:class:`mds_ach.ach.watch.Latest`, re-exported) and the formatti
 from __future__ import annotations
 
 import ctypes
+from pathlib import Path
 
 import mds_ach as mds
 from mds_ach.ach.watch import Latest  # noqa: F401 - the one read-only channel watcher; the tools import it here
 from mds_ach.kinematics.limits import EffectiveLimits
+from mds_ach.paths import runtime_dir
 from mds_ach.robot.msgs.daemon_status import (
     JOINT_BAD_REPLY,
     JOINT_ENABLED,
@@ -113,3 +115,34 @@ def limits_line(limits: EffectiveLimits, gate_input: mds.MDS_REF | None) -> str:
     refused = gate_refusals(gate_input, limits)
     verdict = ("the gate REFUSES (held at the last value): " + "; ".join(refused)) if refused else "nothing refused"
     return f"{limits.describe()} from {where}; {verdict}"
+
+
+TABLE_FILE = "joint-table"  # in the runtime dir: the joint table line of the last `mds-ach start` (launcher)
+
+
+def recorded_table(rt: Path | None = None) -> str | None:
+    """The joint table line the last ``mds-ach start`` recorded, if any."""
+    try:
+        return (rt or runtime_dir()).joinpath(TABLE_FILE).read_text().strip() or None
+    except OSError:
+        return None
+
+
+def table_line(published: EffectiveLimits | None, recorded: str | None = None) -> str:
+    """Which files the joint table came from: the running daemon's (its ``mds-limits`` source, after the URDF;
+    ``recorded``, the whole line ``mds-ach start`` wrote, when it agrees: the channel's field may be cut short),
+    else what a start would load now (``mds_ach.robot.config.load``), or why that fails."""
+    from mds_ach.robot import config  # lazy: reads the calibration files only when asked
+    from mds_ach.robot.msgs.limits import LIMITS_SOURCE_SIZE
+
+    if published is not None:
+        files = published.source.split(" & ", 1)[-1]
+        if recorded and recorded.startswith(f"robot {published.robot} from {files}"):
+            return f"{recorded} (the running daemon's, from mds-limits)"
+        cut = "..." if len(published.source) >= LIMITS_SOURCE_SIZE - 1 else ""
+        kind = "calibration XML" if published.robot == config.XML_ROBOT else "YAML"
+        return f"robot {published.robot} from {files}{cut} ({kind}; the running daemon's, from mds-limits)"
+    try:
+        return config.describe(config.load()) + " (what a start loads now: no daemon published mds-limits)"
+    except ValueError as exc:
+        return f"UNUSABLE: {exc}"

@@ -24,11 +24,20 @@ import tty
 from collections.abc import Sequence
 
 import mds_ach as mds
+from mds_ach.kinematics.limits import read_published
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import BY_ADDRESS, JOINTS, lookup
 from mds_ach.robot.msgs import get_name
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
-from mds_ach.tools.monitor import Latest, collision_block, collision_summary, daemon_line, joint_fresh
+from mds_ach.tools.monitor import (
+    Latest,
+    collision_block,
+    collision_summary,
+    daemon_line,
+    joint_fresh,
+    recorded_table,
+    table_line,
+)
 
 REFRESH = 0.05  # s (the original's 20 Hz)
 HEADER = f"{'':<6}{'Joint':<24}{'Enabled':>8}  {'address':<8}{'Commanded Pos':>15}{'Actual Pos':>13}  {'Fresh':<5}"
@@ -214,6 +223,7 @@ def show_param(which: str) -> int:
         return 1
     joint = BY_ADDRESS.get(address)
     print("\n".join(param_lines(param, address)) + ("" if joint else "\n  (no MDS joint at this address)"))
+    print(f"  joint table: {table_line(read_published(), recorded_table())}")
     return 0
 
 
