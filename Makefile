@@ -10,6 +10,10 @@ DEV_STAMP := $(VENV)/.mds_ach_dev_installed
 # mds_ach's libach for C clients (libach/): libach.so + ach.h + pkgconfig/ach.pc in the venv prefix
 LIBACH := $(VENV)/lib/libach.so.4.0.0
 BENCH_STAMP := $(VENV)/.mds_ach_bench_installed
+# The ROS interface packages (interfaces/: mds_ach_interfaces, the control_msgs subset), built with rosidl into the
+# venv prefix; rebuilt only when a file under interfaces/ (or the build script) changes.
+IFACES := $(VENV)/.mds_ach_interfaces_built
+IFACES_SRC := $(shell find interfaces -type f -not -name '*~') tools/build-interfaces
 export AMENT_PREFIX_PATH := $(abspath $(VENV))
 PYTEST_ARGS ?=
 
@@ -26,7 +30,7 @@ help:
 
 all: setup
 
-setup: $(STAMP) $(LIBACH)
+setup: $(STAMP) $(LIBACH) $(IFACES)
 
 dev: $(DEV_STAMP)
 
@@ -44,6 +48,12 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c
 		"+ SIGBUS guard" if ach.GUARD_AVAILABLE else "(no SIGBUS guard: a truncated channel kills its users)")'
 	@touch $@
 
+# mds_ach_interfaces + control_msgs (FollowJointTrajectory) into the venv prefix: `from mds_ach_interfaces.msg import
+# MuxState` works in every node. Needs cmake and g++ (make sysdeps).
+$(IFACES): $(STAMP) $(IFACES_SRC)
+	tools/build-interfaces $(VENV)
+	@touch $@
+
 # libach.so, ach.h and ach.pc, built from the project's channel code (mds_ach/ach/achcore.h), so C clients build
 # with `cc demo.c -I$(VENV)/include -L$(VENV)/lib -lach` or `pkg-config --cflags --libs ach`.
 $(LIBACH): libach/libach.c libach/ach.h libach/ach.pc.in libach/Makefile mds_ach/ach/achcore.h
@@ -53,7 +63,7 @@ $(LIBACH): libach/libach.c libach/ach.h libach/ach.pc.in libach/Makefile mds_ach
 
 # The test and tooling dependencies (requirements-dev.txt: pytest, ruff, torch for the FK cross-check, ...) on top
 # of the runtime ones; `make setup` / `make run` never install them.
-$(DEV_STAMP): $(STAMP) $(LIBACH) requirements-dev.txt
+$(DEV_STAMP): $(STAMP) $(LIBACH) $(IFACES) requirements-dev.txt
 	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	@touch $@
 
@@ -61,7 +71,7 @@ $(DEV_STAMP): $(STAMP) $(LIBACH) requirements-dev.txt
 # live on the host /dev/shm so that `mds-ach console`, `read` and C clients in other terminals see them.
 # ISOLATE=0: no namespace, the nodes join this machine's ROS graph (ROS_DOMAIN_ID from the environment, default 0).
 ISOLATE ?= 1
-run: $(STAMP) $(LIBACH)
+run: $(STAMP) $(LIBACH) $(IFACES)
 ifeq ($(ISOLATE),0)
 	$(VENV)/bin/mds-ach run --nocan
 else

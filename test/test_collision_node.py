@@ -741,7 +741,10 @@ def test_collision_help() -> None:
 @pytest.mark.ros
 @pytest.mark.slow
 def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path) -> None:
+    """/mds/collision is typed (mds_ach_interfaces/msg/CollisionState) and carries what the deprecated JSON alias
+    /mds/collision/json carries, report for report."""
     import rclpy
+    from mds_ach_interfaces.msg import CollisionState, CollisionUnit
     from rclpy.node import Node
     from std_msgs.msg import Float64, String
 
@@ -753,7 +756,12 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
     rclpy.init()
     node = Node("test_collision_client")
     docs: list[dict] = []
-    node.create_subscription(String, "/mds/collision", lambda m: docs.append(json.loads(m.data)), 10)
+    msgs: list[CollisionState] = []
+    node.create_subscription(String, "/mds/collision/json", lambda m: docs.append(json.loads(m.data)), 10)
+    node.create_subscription(CollisionState, "/mds/collision", msgs.append, 10)
+
+    def held(m: CollisionState) -> list[str]:
+        return [u.unit for u in m.units if u.state == CollisionUnit.HELD]
     override = node.create_publisher(Float64, "/mds/collision/override", 10)
     from mds_ach.robot.channels import StructChannel
 
@@ -776,9 +784,26 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
             proc.send_signal(signal.SIGTERM)
             raise AssertionError(f"timed out waiting for {what}; last: {docs[-1:]}; node: {proc.communicate()[0]}")
 
-        feed_until(lambda: any(d["held"] == ["left"] and "L_HAND" in d["parts"] for d in docs), "a held left arm")
+        feed_until(lambda: any(held(m) == ["left"] and "L_HAND" in m.parts for m in msgs)
+                   and any(d["held"] == ["left"] and "L_HAND" in d["parts"] for d in docs), "a held left arm")
         override.publish(Float64(data=2.0))
-        feed_until(lambda: any(d["overridden"] and d["override_remaining"] > 0 for d in docs), "the override")
+        feed_until(lambda: any(m.overridden and m.override_remaining > 0 for m in msgs)
+                   and any(d["overridden"] and d["override_remaining"] > 0 for d in docs), "the override")
+        by_time = {d["time"]: d for d in docs}
+        pairs = [(m, by_time[m.time]) for m in msgs if m.time in by_time]
+        assert any(d["held"] for _, d in pairs) and any(d["overridden"] for _, d in pairs)
+        for m, d in pairs:
+            assert (m.collision, list(m.parts), m.measured, list(m.refused), m.refused_count, m.overridden,
+                    m.override_remaining, m.margin) == (d["collision"], d["parts"], d["measured"], d["refused"],
+                                                       d["refused_count"], d["overridden"], d["override_remaining"],
+                                                       d["margin"])
+            assert [[p.a, p.b] for p in m.pairs] == d["pairs"] and [[p.a, p.b] for p in m.contact] == d["contact"]
+            assert [u.unit for u in m.units] == ["left", "right", "body"]
+            assert held(m) == d["held"] or (d["held"] == ["all"] and len(held(m)) == 3)
+            assert [u.unit for u in m.units if u.state == CollisionUnit.RELEASING] == \
+                [u for u in ("left", "right", "body") if u in d["releasing"] and u not in held(m)]
+            assert [u.unit for u in m.units if u.escaping] == d["escaping"]
+            assert {u.unit: u.stopped_reason for u in m.units if u.stopped} == d["stopped"]
     finally:
         smooth.close()
         node.destroy_node()

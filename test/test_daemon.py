@@ -841,11 +841,14 @@ def test_bad_configuration_is_a_clear_error(clean_shm, monkeypatch: pytest.Monke
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
-    """`daemon --nocan`: a reference reaches the simulated joint, /diagnostics and the command service work,
-    and the signal stops it cleanly (exit 0)."""
+    """`daemon --nocan`: a reference reaches the simulated joint, /diagnostics, /mds/daemon_status and the command
+    service (mds_ach_interfaces/srv/Command; the deprecated AddDiagnostics text form on ~/command_text) work, and
+    the signal stops it cleanly (exit 0)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from diagnostic_msgs.srv import AddDiagnostics
+    from mds_ach_interfaces.msg import DaemonStatus
+    from mds_ach_interfaces.srv import Command
 
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--rate", "20", "--sim-pose", "LEP=-1.0",
                              "--ros-args", "-r", "__node:=mds_daemon"],
@@ -854,7 +857,10 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
     node = rclpy.create_node("test_daemon_client")
     diags: list[DiagnosticArray] = []
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
-    client = node.create_client(AddDiagnostics, "/mds_daemon/command")
+    statuses: list[DaemonStatus] = []
+    node.create_subscription(DaemonStatus, "/mds/daemon_status", statuses.append, 10)
+    client = node.create_client(Command, "/mds_daemon/command")
+    text_client = node.create_client(AddDiagnostics, "/mds_daemon/command_text")
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
     ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
     try:
@@ -883,11 +889,26 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
         values = {kv.key: kv.value for kv in diags[-1].status[0].values}
         assert diags[-1].status[0].name == "mds_daemon: control loop"
         assert float(values["bus_load_percent"]) > 0 and values["bus_state"] == "active"
-        spin_until(lambda: client.service_is_ready(), 15.0, "the command service")
-        future = client.call_async(AddDiagnostics.Request(load_namespace="home LEP"))
+        spin_until(lambda: statuses, 15.0, "/mds/daemon_status")
+        assert statuses[-1].running and statuses[-1].nocan and statuses[-1].bus_state_name == "active"
+        assert statuses[-1].rate_hz == 20.0 and statuses[-1].bus_load > 0 and statuses[-1].cycle > 0
+        spin_until(lambda: client.service_is_ready() and text_client.service_is_ready(), 15.0,
+                   "the command services")
+        future = client.call_async(Command.Request(command="home", joints=["LEP", "REP"]))
+        spin_until(future.done, 15.0, "the service reply")
+        reply = future.result()
+        assert reply.success and list(reply.failed) == [], reply.message
+        assert [line.split(":")[0] for line in reply.message.splitlines()] == ["LEP", "REP"]
+        future = client.call_async(Command.Request(command="home", joints=["LEP", "NOPE"]))
+        spin_until(future.done, 15.0, "the service reply")
+        assert not future.result().success and "unknown joint" in future.result().message
+        future = client.call_async(Command.Request(command="fly", joints=[]))
+        spin_until(future.done, 15.0, "the service reply")
+        assert not future.result().success and "unknown command 'fly'" in future.result().message
+        future = text_client.call_async(AddDiagnostics.Request(load_namespace="home LEP"))
         spin_until(future.done, 15.0, "the service reply")
         assert future.result().success and "LEP" in future.result().message
-        future = client.call_async(AddDiagnostics.Request(load_namespace="home NOPE"))
+        future = text_client.call_async(AddDiagnostics.Request(load_namespace="home NOPE"))
         spin_until(future.done, 15.0, "the service reply")
         assert not future.result().success and "unknown joint" in future.result().message
     finally:

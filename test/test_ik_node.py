@@ -264,7 +264,10 @@ def test_ik_refuses_mds_ref_as_output() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) -> None:
+    """Answers on mds-ik-state and on /mds/ik_status (mds_ach_interfaces/msg/IkStatus), which carries what the
+    deprecated JSON alias /mds/ik_status/json carries."""
     import rclpy
+    from mds_ach_interfaces.msg import IkStatus
     from std_msgs.msg import String
 
     from mds_ach.robot.channels import StructChannel
@@ -277,8 +280,10 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
     got: list[dict] = []
     from rclpy.qos import DurabilityPolicy, QoSProfile
 
-    node.create_subscription(String, IK_STATUS_TOPIC, lambda m: got.append(json.loads(m.data)),
-                             QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    typed: list[IkStatus] = []
+    latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(String, IK_STATUS_TOPIC + "/json", lambda m: got.append(json.loads(m.data)), latched)
+    node.create_subscription(IkStatus, IK_STATUS_TOPIC, typed.append, latched)
     out = StructChannel(mds.MDS_CHAN_REF_IK_NAME, mds.MDS_REF)
     try:
         def matched() -> bool:
@@ -302,12 +307,22 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
 
         def topic() -> bool:
             rclpy.spin_once(node, timeout_sec=0.05)
-            return len(got) >= 2
+            return len(got) >= 2 and len(typed) >= 2
 
-        wait_for(topic, 20, what=f"both answers on {IK_STATUS_TOPIC}")
+        wait_for(topic, 20, what=f"both answers on {IK_STATUS_TOPIC} and its JSON alias")
+        assert [m.status for m in typed] == [IkStatus.BAD_REQUEST, IkStatus.SOLVED]
+        assert typed[-1].arm == "left" and typed[-1].dof == 5 and typed[-1].seq == reply.seq
+        assert list(typed[-1].q) == pytest.approx(list(reply.q))
         assert [d["status_name"] for d in got] == ["bad request", "solved"]
-        assert got[-1]["arm"] == "left" and got[-1]["dof"] == 5 and got[-1]["seq"] == reply.seq
-        assert got[-1]["q"] == pytest.approx(list(reply.q))
+        for m, d in zip(typed, got, strict=True):
+            assert (m.seq, m.status, m.status_name, m.arm, m.dof, m.iterations, m.stamp, m.message) == (
+                d["seq"], d["status"], d["status_name"], d["arm"], d["dof"], d["iterations"], d["stamp"],
+                d["message"])
+            for key in ("error", "solve_time"):  # JSON null <-> NaN
+                value = getattr(m, key)
+                assert math.isnan(value) if d[key] is None else value == d[key], key
+            assert [None if math.isnan(v) else v for v in m.target] == d["target"]
+            assert [None if math.isnan(v) else v for v in m.q] == d["q"]
     finally:
         proc.send_signal(sig)
         text, _ = proc.communicate(timeout=20)

@@ -307,7 +307,10 @@ def test_mux_help() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -> None:
+    """/mds/mux_state is typed (mds_ach_interfaces/msg/MuxState) and carries what the deprecated JSON alias
+    /mds/mux_state/json carries, report for report."""
     import rclpy
+    from mds_ach_interfaces.msg import MuxState
     from rclpy.node import Node
     from std_msgs.msg import String
 
@@ -317,17 +320,36 @@ def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = Node("test_mux_listener")
+    msgs: list[MuxState] = []
     docs: list[dict] = []
-    node.create_subscription(String, "/mds/mux_state", lambda m: docs.append(json.loads(m.data)), 10)
+    node.create_subscription(MuxState, "/mds/mux_state", msgs.append, 10)
+    node.create_subscription(String, "/mds/mux_state/json", lambda m: docs.append(json.loads(m.data)), 10)
+
+    def owner(m: MuxState, joint: str) -> str:
+        return m.owner[list(m.joint_names).index(joint)]
+
     try:
         deadline = time.monotonic() + 20
         sent = False
-        while time.monotonic() < deadline and not any(d["owners"].get("LSP") == "ik" for d in docs):
+        while time.monotonic() < deadline and not (any(owner(m, "LSP") == "ik" for m in msgs)
+                                                   and any(d["owners"].get("LSP") == "ik" for d in docs)):
             rclpy.spin_once(node, timeout_sec=0.1)
-            if docs and not sent:
+            if msgs and not sent:
                 _put(mds.MDS_CHAN_REF_IK_NAME, _frame(ref, LSP=-0.3))
                 sent = True
-        assert any(d["owners"].get("LSP") == "ik" for d in docs), (docs[-1:], proc.poll())
+        assert any(owner(m, "LSP") == "ik" for m in msgs), (msgs[-1:], proc.poll())
+        by_time = {d["time"]: d for d in docs}
+        pairs = [(m, by_time[m.time]) for m in msgs if m.time in by_time]
+        assert pairs and any(d["owners"] for _, d in pairs)
+        for m, d in pairs:
+            assert {j: o for j, o in zip(m.joint_names, m.owner, strict=True) if o} == d["owners"]
+            held = {j: ("held", "cancelled")[h - 1] for j, h in zip(m.joint_names, m.held, strict=True) if h}
+            assert held == d["held"]
+            assert [(c.name, c.priority, c.stale, c.verdict, c.refused) for c in m.controllers] == \
+                [(c["name"], c["priority"], c["stale"], c["verdict"], c["refused"]) for c in d["controllers"]]
+            assert [c.age for c in m.controllers] == [-1.0 if c["age"] is None else c["age"] for c in d["controllers"]]
+            assert (m.hold_seq, m.hold_action, m.hold_source, m.hold_status) == tuple(d["hold"].values())
+        assert "LSP" in msgs[-1].joint_names and msgs[-1].header.stamp.sec > 0
     finally:
         node.destroy_node()
         rclpy.shutdown()

@@ -52,14 +52,15 @@ bounds the wait), and only then moves the arm on, at ``release_velocity``. The d
 arm's reference move while it withholds that arm, and never sends accumulated distance in one frame.
 
 Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``/mds/collision``
-(std_msgs/String, JSON with predicted pairs, current contacts, parts, held/releasing/escaping/stopped arms,
-refusals and the override state). Top-level ``isCollide``: **1** = the gate holds an arm: the flagged parts are those
-of the held arms, and the daemon holds exactly those arms; **2** = a predicted collision was passed by the
-expert override; **3** = in contact (measured or commanded) but nothing held: only moves out of it are passed,
-the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part: ``isCollide``
-as above; ``collision`` counts the checks of the current episode (saturating at ``counter_max``, 0 when clear);
-``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration of the episode. ``time`` = CLOCK_MONOTONIC
-of the report (the stamp the daemon echoes), ``time_dt`` = time since the previous report.
+(``mds_ach_interfaces/msg/CollisionState``: predicted pairs, current contacts, parts, per unit held / releasing /
+escaping / stopped, refusals and the override state; the JSON document of ``decision_to_dict`` stays on
+``/mds/collision/json``, std_msgs/String, deprecated, one release). Top-level ``isCollide``: **1** = the gate holds
+an arm: the flagged parts are those of the held arms, and the daemon holds exactly those arms; **2** = a predicted
+collision was passed by the expert override; **3** = in contact (measured or commanded) but nothing held: only moves
+out of it are passed, the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part:
+``isCollide`` as above; ``collision`` counts the checks of the current episode (saturating at ``counter_max``, 0
+when clear); ``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration of the episode. ``time`` =
+CLOCK_MONOTONIC of the report (the stamp the daemon echoes), ``time_dt`` = time since the previous report.
 
 **Expert override** (never the default, never silent): publish the number of seconds on
 ``/mds/collision/override`` (std_msgs/Float64), e.g.
@@ -84,6 +85,7 @@ from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
+from mds_ach_interfaces.msg import CollisionState
 from rclpy.node import Node
 from std_msgs.msg import Float64, String
 
@@ -104,6 +106,7 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
+from mds_ach.nodes.status_msgs import COLLISION_TOPIC, collision_state_msg, json_alias
 from mds_ach.robot import lifecycle
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
@@ -926,7 +929,8 @@ PARAMETERS = (
 
 
 class CollisionNode(Node):
-    """The collision gate: ``GateRunner`` on its own thread; reports on ``/mds/collision``, takes expert overrides
+    """The collision gate: ``GateRunner`` on its own thread; reports on ``/mds/collision`` (typed; deprecated JSON:
+    ``/mds/collision/json``), takes expert overrides
     (seconds) on ``/mds/collision/override``."""
 
     def __init__(self, config: str | None = None, world: str | None = None, urdf: str | None = None,
@@ -940,8 +944,9 @@ class CollisionNode(Node):
         configured = float(load_config(path).get("margin", find(PARAMETERS, "margin").default))
         self.margin: float = declare(self, find(PARAMETERS, "margin"), configured if margin is None else margin)
         model, gate_cfg, lower, upper = build_gate_parts(path, world_path, urdf_path, self.margin)
-        self.pub = self.create_publisher(String, "/mds/collision", 10)
-        self.create_subscription(Float64, "/mds/collision/override", self._on_override, 10)
+        self.pub = self.create_publisher(CollisionState, COLLISION_TOPIC, 10)
+        self.json_pub = self.create_publisher(String, json_alias(COLLISION_TOPIC), 10)  # deprecated
+        self.create_subscription(Float64, COLLISION_TOPIC + "/override", self._on_override, 10)
         self._last_pub = -math.inf
         self._last_doc = ""
         self.runner = GateRunner(model, gate_cfg, lower, upper, log=ros_log(self), on_report=self._on_report)
@@ -957,7 +962,8 @@ class CollisionNode(Node):
         if not self.context.ok():  # shutting down after SIGINT/SIGTERM
             return
         if key != self._last_doc or now - self._last_pub >= 1.0 / gate.config.report_rate:
-            self.pub.publish(String(data=json.dumps(doc)))
+            self.pub.publish(collision_state_msg(doc, self.get_clock().now().to_msg()))
+            self.json_pub.publish(String(data=json.dumps(doc)))
             self._last_doc, self._last_pub = key, now
 
     def shutdown(self) -> None:

@@ -8,11 +8,15 @@ Setup commands reach it two ways:
 
 * the ``mds-cmd`` Ach channel (``MDS_CMD``: seq, cmd = ``MDS_CMD_*``, address (0 = every enabled joint));
   the result is echoed in ``mds-daemon-status`` (``cmd_seq``, ``cmd_result``);
-* the ROS service ``~/command`` (``/mds_daemon/command``) of type ``diagnostic_msgs/srv/AddDiagnostics``
-  (the installed ROS wheels have no std_srvs): ``load_namespace`` carries the command text
-  ``"<enable|disable|home|reset|zero|resetbus> [joint|all]"``, the reply's ``success``/``message`` the result.
-  Example: ``ros2 service call /mds_daemon/command diagnostic_msgs/srv/AddDiagnostics
-  "{load_namespace: 'home LEP'}"``.
+* the ROS service ``~/command`` (``/mds_daemon/command``) of type ``mds_ach_interfaces/srv/Command``:
+  ``command`` (enable | disable | home | reset | zero | resetbus) for a list of ``joints`` (short names; empty or
+  ``all``: every enabled joint), run joint by joint; ``success`` when all succeeded, ``message`` one line per
+  joint, ``failed`` the joints that did not. Example: ``ros2 service call /mds_daemon/command
+  mds_ach_interfaces/srv/Command "{command: home, joints: [LEP, REP]}"``.
+* deprecated (one release): ``~/command_text`` of the borrowed type ``diagnostic_msgs/srv/AddDiagnostics``,
+  ``load_namespace`` = ``"<command> [joint|all]"``, the reply's ``success``/``message`` the result.
+
+Its health goes to ``/mds/daemon_status`` (``mds_ach_interfaces/msg/DaemonStatus``) with ``/diagnostics``.
 
 ROS parameters ``robot``, ``rate`` and ``nocan`` (defaults from the command line) serve launch files.
 The real-time loop runs on its own thread (see :mod:`mds_ach.nodes.daemon_loop`); the executor only serves the
@@ -31,6 +35,8 @@ from dataclasses import dataclass
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from diagnostic_msgs.srv import AddDiagnostics
+from mds_ach_interfaces.msg import DaemonStatus
+from mds_ach_interfaces.srv import Command
 from rclpy.node import Node
 
 import mds_ach as mds
@@ -40,6 +46,7 @@ from mds_ach.bus.simbus import FaultControl, SimNetwork
 from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, lock_timeout_for
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.nodes.rosnode import Param, declare, find, run_node
+from mds_ach.nodes.status_msgs import DAEMON_STATUS_TOPIC, daemon_status_msg
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import config
 from mds_ach.robot.joints import BY_ADDRESS, lookup
@@ -196,6 +203,27 @@ def parse_command(text: str) -> tuple[int, int]:
         raise ValueError(exc.args[0]) from None
 
 
+def parse_joint_command(command: str, joints: Sequence[str]) -> list[tuple[str, int, int]]:
+    """The Command service's request as (label, code, address) per joint: ('home', ['LEP']) -> [('LEP', HOME,
+    0x4C)]; no joints or 'all' (and resetbus, which is for the bus): one command for address 0. Every name is
+    checked before anything runs, so a typo refuses the whole request."""
+    name = command.strip().lower()
+    if name not in COMMAND_CODES:
+        raise ValueError(f"unknown command {command!r}; expected one of "
+                         f"{', '.join(sorted(set(COMMAND_CODES) - {'zero_encoder', 'reset_bus'}))}")
+    code = COMMAND_CODES[name]
+    if code == mds.MDS_CMD_RESET_BUS or not joints or [j.lower() for j in joints] == ["all"]:
+        return [("all", code, 0)]
+    out = []
+    for j in joints:
+        try:
+            joint = lookup(j)
+        except KeyError as exc:
+            raise ValueError(exc.args[0]) from None
+        out.append((joint.short, code, joint.address))
+    return out
+
+
 def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list[str], new_channel_errors: int = 0,
                       bad_reply_names: Sequence[str] = (), new_stalls: int = 0):
     """The daemon's DiagnosticStatus (OK / WARN above 60 % bus load, stale joints, joints with implausible position
@@ -281,8 +309,10 @@ class DaemonNode(Node):
         self._channel_errors = 0
         self._stalls = 0
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.status_pub = self.create_publisher(DaemonStatus, DAEMON_STATUS_TOPIC, 10)
         self.create_timer(1.0, self._diagnostics)
-        self.create_service(AddDiagnostics, "~/command", self._command)
+        self.create_service(Command, "~/command", self._command)
+        self.create_service(AddDiagnostics, "~/command_text", self._command_text)  # deprecated
 
     def _diagnostics(self) -> None:
         st = self.daemon.loop.snapshot()
@@ -300,19 +330,39 @@ class DaemonNode(Node):
         new_stalls, self._stalls = st.stalls - self._stalls, st.stalls
         msg.status = [diagnostic_status(st, self.daemon.loop.running, stale, new_errors, bad, new_stalls)]
         self.diag_pub.publish(msg)
+        self.status_pub.publish(daemon_status_msg(st, self.daemon.loop.running, stale, bad, msg.header.stamp))
 
-    def _command(self, request: AddDiagnostics.Request, response: AddDiagnostics.Response
-                 ) -> AddDiagnostics.Response:
+    def _run(self, code: int, address: int) -> tuple[bool, str]:
+        """One command through the control loop (which owns the bus): (succeeded, its message)."""
+        cmd = self.daemon.loop.submit(code, address)
+        if not cmd.done.wait(max(2.0, 5 * self.daemon.loop.period)):
+            return False, "the control loop did not answer in time"
+        return cmd.result == ds.CMD_OK, cmd.message
+
+    def _command(self, request: Command.Request, response: Command.Response) -> Command.Response:
+        try:
+            commands = parse_joint_command(request.command, list(request.joints))
+        except ValueError as exc:
+            response.success, response.message, response.failed = False, str(exc), list(request.joints)
+            return response
+        lines, failed = [], []
+        for label, code, address in commands:
+            ok, text = self._run(code, address)
+            lines.append(f"{label}: {text}")
+            if not ok:
+                failed.append(label)
+        response.success, response.message, response.failed = not failed, "\n".join(lines), failed
+        return response
+
+    def _command_text(self, request: AddDiagnostics.Request, response: AddDiagnostics.Response
+                      ) -> AddDiagnostics.Response:
+        """Deprecated: the text form on the borrowed AddDiagnostics type (``~/command_text``)."""
         try:
             code, address = parse_command(request.load_namespace)
         except ValueError as exc:
             response.success, response.message = False, str(exc)
             return response
-        cmd = self.daemon.loop.submit(code, address)
-        if not cmd.done.wait(max(2.0, 5 * self.daemon.loop.period)):
-            response.success, response.message = False, "the control loop did not answer in time"
-            return response
-        response.success, response.message = cmd.result == ds.CMD_OK, cmd.message
+        response.success, response.message = self._run(code, address)
         return response
 
     def shutdown(self) -> None:

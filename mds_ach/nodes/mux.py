@@ -16,7 +16,8 @@ Why "modified" rather than "newest frame wins": legacy clients read-modify-write
 Event-based: one thread per input blocks on its channel and queues frames; the mux thread applies them in
 arrival order and publishes ``mds-ref-mux`` on every output change. Ownership and ages go to
 ``mds-mux-state`` (``mds_ach.robot.msgs.MDS_MUX_STATE``) and to the ROS topic ``/mds/mux_state``
-(std_msgs/String, JSON).
+(``mds_ach_interfaces/msg/MuxState``; the JSON document of ``state_to_dict`` stays on ``/mds/mux_state/json``,
+std_msgs/String, deprecated, one release).
 
 At start the output is the current reference (``mds-ref``, else ``mds-state`` joint[].ref), published once
 so the filter holds still; frames already waiting in the input channels are taken as each controller's
@@ -40,6 +41,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from mds_ach_interfaces.msg import MuxState
 from rclpy.node import Node
 from std_msgs.msg import String
 
@@ -58,6 +60,7 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
+from mds_ach.nodes.status_msgs import MUX_STATE_TOPIC, json_alias, mux_state_msg
 from mds_ach.paths import config_path
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
@@ -579,20 +582,25 @@ PARAMETERS = (
 
 
 class MuxNode(Node):
-    """The mux: ``MuxRunner`` on its own thread, its state also on ``/mds/mux_state`` (JSON)."""
+    """The mux: ``MuxRunner`` on its own thread, its state also on ``/mds/mux_state`` (typed) and, deprecated,
+    ``/mds/mux_state/json``."""
 
     def __init__(self, config: str | None = None) -> None:
         super().__init__("mux")
         path = declare(self, find(PARAMETERS, "config"), config) or None
         cfg = load_config(path)
         self.state_rate: float = declare(self, find(PARAMETERS, "state_rate"), cfg["state_rate"])
-        self.pub = self.create_publisher(String, "/mds/mux_state", 10)
+        self.pub = self.create_publisher(MuxState, MUX_STATE_TOPIC, 10)
+        self.json_pub = self.create_publisher(String, json_alias(MUX_STATE_TOPIC), 10)  # deprecated
+        self._joints = [joint_label(a) for a in KNOWN_ADDRESSES]
         self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state)
         self.thread = start_worker(self, self.runner.run, "mux")
 
     def _on_state(self, st: MDS_MUX_STATE) -> None:
         if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
-            self.pub.publish(String(data=json.dumps(state_to_dict(st))))
+            doc = state_to_dict(st)
+            self.pub.publish(mux_state_msg(doc, self._joints, self.get_clock().now().to_msg()))
+            self.json_pub.publish(String(data=json.dumps(doc)))
 
     def shutdown(self) -> None:
         self.runner.stop()
