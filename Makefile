@@ -36,12 +36,19 @@ dev: $(DEV_STAMP)
 
 # pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
-$(STAMP): requirements.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/achcore.h \
+$(STAMP): requirements.txt requirements-nodeps.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/achcore.h \
 		mds_ach/ach/_shmguard.c mds_ach/kinematics/_collfast.c
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
 	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
+	@# A venv from before requirements-nodeps.txt has opencv-python, which shares the cv2 package with the headless
+	@# build pinned now: remove it first (a fresh venv skips this).
+	@if compgen -G '$(VENV)/lib/python3*/site-packages/opencv_python-*.dist-info' >/dev/null; then \
+		$(PY) -m pip uninstall -q -y opencv-python; fi
 	$(PY) -m pip install -q -r requirements.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
+	@# viser, yourdfpy, trimesh, python-fcl without the dependencies they declare but never import for us (opencv's
+	@# GUI build, scipy, scikit-image, embreex, Cython...: most of the venv); requirements.txt pins what they import.
+	$(PY) -m pip install -q --no-deps -r requirements-nodeps.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	PYTHONWARNINGS=ignore $(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	@$(PY) -c 'from mds_ach import ach; print("mds_ach.ach:", "C fast path" if ach.FAST_AVAILABLE else \
 		"pure Python (no C compiler or Python headers: slower; see README)", \

@@ -3,20 +3,32 @@
 torch and pytorch-kinematics (~750 MB) are test requirements only (the independent FK/Jacobian cross-check in
 test/support/torch_kinematics.py): no executable's module imports them, requirements.txt and package.xml's
 exec_depends do not list them, and test-only helpers (simulated hosts) are not part of the package.
+
+The runtime venv (`make setup`) is requirements.txt, resolved by pip, plus requirements-nodeps.txt installed with
+--no-deps (viser, yourdfpy, trimesh, python-fcl declare opencv-python, scipy, scikit-image, embreex, Cython...,
+which no part of mds_ach uses). The tests here run in the dev venv, which has more installed (torch pulls scipy
+and networkx): they compute the runtime set from the installed metadata and import with every other
+distribution's modules blocked, so that what only the dev venv provides cannot hide a missing pin.
 """
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
-from importlib.metadata import entry_points
+from functools import cache
+from importlib.metadata import PackageNotFoundError, distribution, distributions, entry_points
 
 import pytest
+from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name
 from support import REPO
 
 TEST_ONLY = ("torch", "pytorch_kinematics")
+# What the runtime venv must not contain: together ~500 MB that no node, the bridge or the viewer imports.
+HEAVY = ("opencv-python", "scipy", "scikit-image", "embreex", "cython", "torch", "pytorch-kinematics")
 
 
 def requirement_names(path: str) -> set[str]:
@@ -26,6 +38,86 @@ def requirement_names(path: str) -> set[str]:
         if line:
             names.add(re.split(r"[\[=<>~! ]", line, maxsplit=1)[0].lower().replace("_", "-"))
     return names
+
+
+def requirements(path: str) -> list[Requirement]:
+    lines = (raw.split("#", 1)[0].strip() for raw in (REPO / path).read_text().splitlines())
+    return [Requirement(line) for line in lines if line]
+
+
+@cache
+def runtime_distributions() -> frozenset[str]:
+    """What `make setup` installs: requirements.txt and, through the installed metadata, everything it depends on
+    (as pip resolves it), requirements-nodeps.txt without its dependencies, pip, setuptools and mds_ach."""
+    found = {"pip", "setuptools", "mds-ach"}
+    found |= {canonicalize_name(r.name) for r in requirements("requirements-nodeps.txt")}
+    todo = [(canonicalize_name(r.name), frozenset(r.extras)) for r in requirements("requirements.txt")]
+    done: set[tuple[str, frozenset[str]]] = set()
+    while todo:
+        name, extras = todo.pop()
+        if (name, extras) in done:
+            continue
+        done.add((name, extras))
+        found.add(name)
+        try:
+            dist = distribution(name)
+        except PackageNotFoundError:
+            pytest.fail(f"{name} (a runtime dependency) is not installed: run `make dev`")
+        for text in dist.requires or []:
+            req = Requirement(text)
+            if req.marker is None or any(req.marker.evaluate({"extra": e}) for e in (*extras, "")):
+                todo.append((canonicalize_name(req.name), frozenset(req.extras)))
+    return frozenset(found)
+
+
+def top_level_names(dist_files: list[str]) -> set[str]:
+    """The importable top-level names a distribution's files provide (packages, modules, extension modules)."""
+    names = set()
+    for path in dist_files:
+        first, sep, _rest = path.partition("/")
+        if first.startswith(("..", "__pycache__")) or first.endswith((".dist-info", ".egg-info", ".libs", ".data")):
+            continue
+        if sep:
+            names.add(first)
+        elif first.endswith((".py", ".so")):
+            names.add(first.split(".", 1)[0])
+    return names - {""}
+
+
+def blocked_modules() -> list[str]:
+    """Top-level modules that only distributions outside the runtime venv provide (the dev venv has them)."""
+    runtime, theirs, ours = runtime_distributions(), set(), set()
+    for dist in distributions():
+        names = top_level_names([str(f) for f in dist.files or []])
+        (ours if canonicalize_name(dist.metadata["Name"]) in runtime else theirs).update(names)
+    return sorted(theirs - ours - set(sys.stdlib_module_names))
+
+
+# Run with `python -c`: argv[1] the blocked top-level names (JSON), argv[2] the code to run as if they were not
+# installed (every import finder is wrapped, so optional imports probed with importlib.util.find_spec see None too).
+BLOCKING_RUNNER = """
+import json, sys
+blocked = frozenset(json.loads(sys.argv[1]))
+class OnlyRuntime:
+    def __init__(self, inner):
+        self.inner = inner
+    def find_spec(self, name, path=None, target=None):
+        if name.partition(".")[0] in blocked:
+            return None  # as if not installed: `import` raises, importlib.util.find_spec says None
+        return self.inner.find_spec(name, path, target)
+    def find_distributions(self, *args, **kwargs):
+        return getattr(self.inner, "find_distributions", lambda *a, **k: ())(*args, **kwargs)
+    def invalidate_caches(self):
+        getattr(self.inner, "invalidate_caches", lambda: None)()
+sys.meta_path[:] = [OnlyRuntime(finder) for finder in sys.meta_path]
+exec(sys.argv[2])
+"""
+
+
+def run_with_runtime_only(code: str) -> None:
+    out = subprocess.run([sys.executable, "-c", BLOCKING_RUNNER, json.dumps(blocked_modules()), code],
+                         capture_output=True, text=True, timeout=180, cwd=REPO)
+    assert out.returncode == 0, out.stderr[-3000:]
 
 
 def executable_modules() -> list[str]:
@@ -72,3 +164,44 @@ def test_test_only_modules_are_not_in_the_package() -> None:
     offenders = [str(p.relative_to(REPO)) for p in product
                  if re.search(r"^\s*(import|from)\s+(torch|pytorch_kinematics|support|netsim)\b", p.read_text(), re.M)]
     assert offenders == []
+
+
+def test_runtime_venv_has_no_heavy_package() -> None:
+    """opencv-python, scipy, scikit-image, embreex (viser's and yourdfpy's declared dependencies), Cython
+    (python-fcl's build tool) and torch stay out of `make setup`: they made the venv 908 MB."""
+    runtime = runtime_distributions()
+    assert not runtime & set(HEAVY), f"the runtime venv would contain {sorted(runtime & set(HEAVY))}"
+    assert {"viser", "yourdfpy", "trimesh", "python-fcl", "ros-jazzy-rclpy", "numpy"} <= runtime
+
+
+def test_setup_installs_the_nodeps_list_without_dependencies() -> None:
+    """The check above holds only if `make setup` installs requirements-nodeps.txt with --no-deps, and the two lists
+    do not overlap (a package in requirements.txt would bring its declared dependencies back)."""
+    makefile = (REPO / "Makefile").read_text()
+    assert re.search(r"pip install -q --no-deps -r requirements-nodeps\.txt", makefile)
+    resolved = {canonicalize_name(r.name) for r in requirements("requirements.txt")}
+    assert not resolved & {canonicalize_name(r.name) for r in requirements("requirements-nodeps.txt")}
+    assert all(str(r.specifier).startswith("==") for f in ("requirements.txt", "requirements-nodeps.txt")
+               for r in requirements(f)), "every runtime requirement is pinned"
+
+
+def test_blocking_runner_blocks() -> None:
+    """The runner below really hides what the runtime venv lacks (scipy comes with torch in the dev venv)."""
+    assert "scipy" in blocked_modules() and "torch" in blocked_modules()
+    with pytest.raises(AssertionError, match="No module named 'scipy'"):
+        run_with_runtime_only("import scipy")
+
+
+@pytest.mark.parametrize("module", executable_modules())
+def test_executable_imports_only_runtime_packages(module: str) -> None:
+    run_with_runtime_only(f"import {module}")
+
+
+def test_viewer_runs_with_only_runtime_packages() -> None:
+    """The viewer (`mds-ach viewer`) loads viser, yourdfpy, trimesh and python-fcl, installed without their declared
+    dependencies: building its whole scene (robot, ghost, collision primitives, world) on a server must work."""
+    run_with_runtime_only(
+        "from mds_ach.tools import viewer\n"
+        "v = viewer.Viewer(viewer.ViewerOptions(port=viewer.free_port('127.0.0.1')))\n"
+        "try:\n    v.tick()\nfinally:\n    v.close()\n"
+    )
