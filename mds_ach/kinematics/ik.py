@@ -33,7 +33,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,6 +42,14 @@ from mds_ach.kinematics.model import ArmKinematics, arm_kinematics, arm_name, eu
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
+
+_iksearch: Any
+try:  # the optional C searches (setup.py builds them when a compiler is there); else the Python ones run
+    from mds_ach.kinematics import _iksearch  # type: ignore[attr-defined, no-redef]
+except ImportError:  # pragma: no cover - depends on the build
+    _iksearch = None
+
+NATIVE_AVAILABLE = _iksearch is not None
 
 TASK_COMPONENTS: tuple[str, ...] = ("p-x", "p-y", "p-z", "t-x", "t-y", "t-z")
 # Legacy ik_method / console "dof": the first n of x, y, z, roll, pitch, yaw.
@@ -58,6 +66,9 @@ EXACT = 1e-6  # a pose this close to the target counts as reached whatever its E
 # Trust-region update after an accepted / rejected step: (step-limit scale, LM damping) factors.
 _ACCEPT = np.array([16.0, 0.5])
 _REJECT = np.array([0.5, 4.0])
+_MODES = {"position": 0, "euler": 1, "tilt": 2, "full": 3}  # Task.mode as the C searches number it
+# C searches: steps one search from a random start may take before the next start (most converge in 10-30).
+_NATIVE_PER_START = 60
 
 SafetyCheck = Callable[[np.ndarray, str], bool]
 
@@ -199,6 +210,14 @@ class Task:
     @property
     def dof(self) -> int:
         return len(self.idx)
+
+    def native_spec(self) -> tuple[Any, ...]:
+        """The task as the C searches take it (``_iksearch.c``: parse_task): the same numbers ``residual_scalar``
+        uses, so both compute the same rows and score."""
+        tol = self.tolerance
+        return (_MODES[self.mode], self.pos_idx, self._pos_list, self.euler_idx, self._euler_list,
+                self._R_target_list, self._up_list, self._rotation_list, tol.position, tol.angle,
+                0.0 if tol.mixed is None else tol.mixed, self._always_exact)
 
     def residual(self, R: np.ndarray, p: np.ndarray, J: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -570,6 +589,16 @@ class IKSolver:
             if np.any(self.lower > self.upper):
                 bad = [n for n, a, b in zip(self.kin.joint_names, self.lower, self.upper, strict=True) if a > b]
                 raise ValueError(f"empty joint range for {', '.join(bad)} after applying the limits")
+        # The C searches (None: the Python ones), with the chain from the URDF model and these limits.
+        self._native: Any = self._native_arm()
+        self._rng_state = int(np.random.SeedSequence(rng_seed).generate_state(1, np.uint64)[0])
+
+    def _native_arm(self) -> Any:
+        chain = self.kin.scalar_chain
+        if _iksearch is None or chain is None or self.kin.dof > _iksearch.MAX_JOINTS:
+            return None
+        return _iksearch.arm([c[0] for c in chain], [c[1] for c in chain], [v for c in chain for v in c[2:]],
+                             list(self.kin._tail_floats), self._lower_list, self._upper_list)
 
     @property
     def _lower_list(self) -> list[float]:
@@ -602,6 +631,8 @@ class IKSolver:
             q_exact, unsafe = self._closed_form(task, seed, samples)
             if q_exact is not None:
                 return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "")
+        if self._native is not None and opt.adaptive:
+            return self._solve_native(task, seed, opt, samples, t_start, unsafe)
         start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
         fast: tuple[np.ndarray, float] | None = None
         if opt.adaptive and opt.fast_iterations > 0 and self.kin.scalar_chain is not None:
@@ -661,9 +692,59 @@ class IKSolver:
         st.note_best()
         return self._result(task, seed, st.best_q, False, iterations, t_start, restarts, unsafe, message)
 
-    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, success: bool,
-                iterations: int, t_start: float, restarts: int, unsafe: int, message: str) -> IKResult:
-        if self.kin.scalar_chain is not None:  # plain floats: numpy's per-call cost would dominate a quick solve
+    def _solve_native(self, task: Task, seed: np.ndarray, opt: IKOptions, samples: int, t_start: float,
+                      unsafe: int) -> IKResult:
+        """The searches in C (``_iksearch.solve``): the seed's search, then one random start after another until
+        one converges, in one call. The step budget is ``max_iterations * seeds`` single-search steps, the work
+        the batched searches may do. A candidate the collision hook rejects sends the searches on from random
+        starts with what is left of the budget."""
+        spec, steps = task.native_spec(), self._native_steps(opt)
+        budget = opt.max_iterations * opt.seeds
+        polish = opt.polish_iterations if self.is_safe is None else 0
+        seed_list = seed.tolist()
+        spent = restarts = 0
+        from_seed = True
+        while True:
+            left = 0.0
+            if opt.timeout is not None:
+                left = opt.timeout - (time.perf_counter() - t_start)
+                if left <= 0:
+                    left = 1e-9
+            q_list, score, _, used, started, converged, self._rng_state, err, pose = _iksearch.solve(
+                self._native, spec, steps, seed_list, from_seed, opt.fast_iterations, _NATIVE_PER_START,
+                budget - spent, left, polish, self._rng_state)
+            spent += used
+            restarts += started
+            q = np.array(q_list)
+            if converged:
+                if self._safe(q, seed, samples):
+                    report: tuple[float, list[float]] | None = (err, pose)
+                    if self.is_safe is not None:
+                        q, _, used = self._polish(task, seed, q, score, opt)
+                        spent += used
+                        report = None if used else report
+                    return self._result(task, seed, q, True, spent, t_start, restarts, unsafe, "", report)
+                unsafe += 1
+            timed_out = opt.timeout is not None and time.perf_counter() - t_start >= opt.timeout
+            if not converged or spent >= budget or timed_out:
+                message = (f"IK gave up after {opt.timeout:.3g} s" if opt.timeout is not None and spent < budget
+                           else f"no IK solution within {opt.max_iterations} iterations ({spent} search steps)")
+                return self._result(task, seed, q, False, spent, t_start, restarts, unsafe, message, (err, pose))
+            from_seed = False
+
+    @staticmethod
+    def _native_steps(opt: IKOptions) -> tuple[float, float, float, float, float, float, int]:
+        return (opt.joint_step, opt.task_step, opt.max_joint_step, opt.max_task_step, opt.damping, opt.null_gain,
+                opt.stall_iterations)
+
+    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, success: bool, iterations: int, t_start: float,
+                restarts: int, unsafe: int, message: str, report: tuple[float, list[float]] | None = None
+                ) -> IKResult:
+        """``report``: the original's error at ``q`` and its six pose components, when the C searches gave them."""
+        if report is not None:
+            err = report[0]
+            achieved = np.array([report[1][i] for i in task.idx])
+        elif self.kin.scalar_chain is not None:  # plain floats: numpy's per-call cost would dominate a quick solve
             if task._legacy is None:
                 task._legacy = Task(task.requested, [TASK_COMPONENTS[i] for i in task.idx], 1.0)
                 task._legacy._always_exact = True
@@ -776,8 +857,14 @@ class IKSolver:
         if opt.polish_iterations <= 0 or self.kin.scalar_chain is None or reported <= 1e-3:
             return q, reported, 0
         full = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)  # already close
-        q2, reported2, _, used, _ = self._fast_search(task, seed, opt, start=q, budget=opt.polish_iterations,
-                                                      tolerance=1e-3, scale=full)
+        if self._native is not None:
+            q_list, reported2, _, used, _ = _iksearch.search(
+                self._native, task.native_spec(), self._native_steps(opt), q.tolist(), seed.tolist(),
+                opt.polish_iterations, 1e-3, full, min(opt.stall_iterations, 10), True)
+            q2 = np.array(q_list)
+        else:
+            q2, reported2, _, used, _ = self._fast_search(task, seed, opt, start=q, budget=opt.polish_iterations,
+                                                          tolerance=1e-3, scale=full)
         if reported2 < reported and (self.is_safe is None or self.is_safe(q2.copy(), self.arm)):
             return q2, reported2, used
         return q, reported, used
