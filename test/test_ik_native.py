@@ -179,3 +179,38 @@ def test_unreachable_targets_fail_within_the_budget_and_the_timeout() -> None:
     res = solver.solve([2.0, 0.0, 0.0], ["p-x", "p-y", "p-z"], np.zeros(6),
                        ik.IKOptions(max_iterations=10**7, timeout=0.005))
     assert not res.success and "gave up after" in res.message and res.time < 1.0
+
+
+@needs_native
+@pytest.mark.parametrize("arm", ["left", "right"])
+def test_c_closed_form_gives_the_python_candidates(arm: str) -> None:
+    """Full poses: the C closed form lists the candidates of IKSolver._closed_form (analytic.ArmGeometry.solve,
+    moved into the limits by whole turns, the seed first when already there, then nearest the seed, each within
+    1e-3 of the tolerance), and the same answer with its error and pose components."""
+    from mds_ach.kinematics.analytic import within
+    solver = ik.IKSolver(arm)
+    kin, geometry = solver.kin, solver.geometry
+    assert geometry is not None
+    rng = np.random.default_rng(13)
+    lower, upper = solver._lower_list, solver._upper_list
+    order = ik.DOF_ORDERS[6]
+    for k in range(200):
+        q_true = rng.uniform(kin.lower, kin.upper)
+        task = ik.Task(ik.getPosCurrentFromOrder(kin.fk_matrix(q_true), order), order)
+        seed = q_true.copy() if k % 10 == 0 else rng.uniform(kin.lower, kin.upper)
+        p = [0.0, 0.0, 0.0]
+        for i, v in zip(task.pos_idx, task.pos_target.tolist(), strict=True):
+            p[i] = v
+        found = [q for q in (within(s, lower, upper) for s in geometry.solve(task._R_target_list, p)) if q is not None]
+        found.sort(key=lambda q: max(abs(a - b) for a, b in zip(q, seed.tolist(), strict=True)))
+        found.insert(0, seed.tolist())
+        want = [q for q in found if task.residual_scalar(*kin.fk_jacobian_scalar(q))[3] <= 1e-3]
+        got = ik_impl._iksearch.closed_form(solver._native, task.native_spec(), seed.tolist())
+        assert len(got) == len(want) >= 1, k
+        for (q, err, pose), q_py in zip(got, want, strict=True):
+            assert np.allclose(q, q_py, atol=1e-12, rtol=0), k
+            assert err == pytest.approx(float(task.error(*kin.fk(np.array(q)[None]))[0]), abs=1e-12)
+            R, pp = kin.fk(np.array(q))
+            assert np.allclose(pose, [*pp, *kinematics.euler_zyx(R)], atol=1e-12)
+        first, _ = solver._closed_form(task, seed, 0)
+        assert first is not None and np.allclose(got[0][0], first, atol=1e-12)

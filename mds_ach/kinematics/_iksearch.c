@@ -33,6 +33,8 @@ typedef struct {
     int axis[MAXJ];
     double sign[MAXJ], t[MAXJ][3], tail[3];
     double lower[MAXJ], upper[MAXJ];
+    int closed_form; /* the chain has the MDS shape (analytic.ArmGeometry): shoulder, upper arm, forearm, tool */
+    double shoulder[3], L1, L2, d;
 } Arm;
 
 typedef struct {
@@ -374,6 +376,121 @@ static void start_search(const Arm *a, const Task *t, const Steps *o, Search *s,
     s->lam = o->damping;
 }
 
+/* ------------------------------------------------------------------------------------- closed form (6-DOF) */
+
+/* analytic.ArmGeometry.solve: every joint vector with tool pose (R, p), up to 8, no limits applied. */
+static int closed_form_solutions(const Arm *a, const double R[9], const double p[3], double out[8][MAXJ]) {
+    double X[3] = {R[0], R[3], R[6]}, Y[3] = {R[1], R[4], R[7]}, Z[3] = {R[2], R[5], R[8]};
+    double L1 = a->L1, L2 = a->L2, d = a->d, W[3], c[3];
+    const double *S = a->shoulder;
+    for (int i = 0; i < 3; i++)
+        W[i] = p[i] + d * Z[i], c[i] = W[i] - S[i];
+    double A = c[0] * Y[0] + c[1] * Y[1] + c[2] * Y[2], B = c[0] * Z[0] + c[1] * Z[1] + c[2] * Z[2];
+    double k = (L1 * L1 - L2 * L2 - (c[0] * c[0] + c[1] * c[1] + c[2] * c[2])) / (2.0 * L2);
+    double rho = hypot(A, B);
+    if (rho < 1e-12 || fabs(k) > rho * (1.0 + 1e-12))
+        return 0;
+    double phi = atan2(A, B), delta = acos(fmax(-1.0, fmin(1.0, k / rho)));
+    double q6s[2] = {phi + delta, phi - delta};
+    int count = 0;
+    for (int m = 0; m < (delta > 1e-12 ? 2 : 1); m++) {
+        double q6 = delta > 1e-12 ? q6s[m] : phi, c6 = cos(q6), s6 = sin(q6), f[3], u[3], g2[3];
+        for (int i = 0; i < 3; i++) {
+            f[i] = s6 * Y[i] + c6 * Z[i]; /* forearm axis */
+            u[i] = (S[i] - W[i] - L2 * f[i]) / L1; /* upper arm axis */
+            g2[i] = c6 * Y[i] - s6 * Z[i];
+        }
+        double gu1 = X[0] * u[0] + X[1] * u[1] + X[2] * u[2], gu2 = g2[0] * u[0] + g2[1] * u[1] + g2[2] * u[2];
+        if (hypot(gu1, gu2) < 1e-9)
+            continue; /* straight elbow: the swivel is free (outside the MDS limits) */
+        double q5a = atan2(-gu2, gu1);
+        for (int h = 0; h < 2; h++) {
+            double q5 = h ? q5a + M_PI : q5a, c5 = cos(q5), s5 = sin(q5), ex[3], ey[3];
+            for (int i = 0; i < 3; i++)
+                ex[i] = c5 * X[i] - s5 * g2[i], ey[i] = s5 * X[i] + c5 * g2[i];
+            double q4 = atan2(-(u[0] * ex[0] + u[1] * ex[1] + u[2] * ex[2]), u[0] * f[0] + u[1] * f[1] + u[2] * f[2]);
+            double mx1 = cos(q4) * ex[1] + sin(q4) * f[1];
+            double q1 = atan2(u[0], u[2]), q2 = atan2(-u[1], hypot(mx1, ey[1])), q3 = atan2(mx1, ey[1]);
+            double tail[3] = {q4, wrap(q5), wrap(q6)};
+            double *x = out[count++], *y = out[count++];
+            x[0] = q1, x[1] = q2, x[2] = q3;
+            y[0] = wrap(q1 + M_PI), y[1] = wrap(M_PI - q2), y[2] = wrap(q3 + M_PI);
+            memcpy(x + 3, tail, sizeof tail);
+            memcpy(y + 3, tail, sizeof tail);
+        }
+    }
+    return count;
+}
+
+/* analytic.within: q moved into the limits by whole turns where possible (clamped within 1e-9); 0 if not. */
+static int within_limits(const Arm *a, double *q) {
+    const double slack = 1e-9, turn = 2.0 * M_PI;
+    for (int j = 0; j < a->n; j++) {
+        double v = q[j], lo = a->lower[j], hi = a->upper[j];
+        if (v < lo - slack)
+            v += turn * ceil((lo - slack - v) / turn);
+        else if (v > hi + slack)
+            v -= turn * ceil((v - hi - slack) / turn);
+        if (!(lo - slack <= v && v <= hi + slack))
+            return 0;
+        q[j] = fmin(fmax(v, lo), hi);
+    }
+    return 1;
+}
+
+static double max_distance(const double *q, const double *seed, int n) {
+    double m = 0.0;
+    for (int j = 0; j < n; j++)
+        m = fmax(m, fabs(q[j] - seed[j]));
+    return m;
+}
+
+/* IKSolver._closed_form's candidates: the seed itself when it is already there, then the exact solutions within
+ * the limits nearest the seed first (max joint distance, stable), each kept only if its score is within 1e-3. */
+static int closed_form_candidates(const Arm *a, const Task *t, const double *seed, double out[9][MAXJ]) {
+    double sol[8][MAXJ], p[3] = {0, 0, 0}, key[9];
+    for (int k = 0; k < t->npos; k++)
+        p[t->pos_idx[k]] = t->pos_t[k];
+    int m = closed_form_solutions(a, t->Rt, p, sol), count = 0;
+    Residual res;
+    residual(a, t, seed, &res);
+    if (res.score <= 1e-3)
+        memcpy(out[count], seed, sizeof(double) * (size_t)a->n), key[count++] = -1.0;
+    for (int i = 0; i < m; i++) {
+        if (!within_limits(a, sol[i]))
+            continue;
+        residual(a, t, sol[i], &res);
+        if (res.score > 1e-3)
+            continue; /* clamped at a limit beyond the tolerance (or a round-off case) */
+        double dist = max_distance(sol[i], seed, a->n);
+        int at = count;
+        while (at > 0 && key[at - 1] > dist) { /* insertion: stable, like Python's sort */
+            memcpy(out[at], out[at - 1], sizeof(double) * MAXJ);
+            key[at] = key[at - 1];
+            at--;
+        }
+        memcpy(out[at], sol[i], sizeof(double) * (size_t)a->n);
+        key[at] = dist;
+        count++;
+    }
+    return count;
+}
+
+/* The original's error at q (Task.error: the mixed m+rad test at tolerance 1, Euler differences always worked out)
+ * and the six components [x, y, z, roll, pitch, yaw] of the pose reached: what IKSolver's result reports. */
+static void report_at(const Arm *a, const Task *t, const double *q, double *error, double pose[6]) {
+    Task legacy = *t;
+    legacy.tol_mixed = 1.0;
+    legacy.always_exact = 1;
+    Residual res;
+    residual(a, &legacy, q, &res);
+    *error = res.score;
+    double R[9], p[3], J[MAXJ][6];
+    fk_jacobian(a, q, R, p, J);
+    pose[0] = p[0], pose[1] = p[1], pose[2] = p[2];
+    pose[3] = atan2(R[7], R[8]), pose[4] = atan2(-R[6], hypot(R[7], R[8])), pose[5] = atan2(R[3], R[0]);
+}
+
 /* ------------------------------------------------------------------------------------------- Python glue */
 
 static void arm_free(PyObject *cap) { PyMem_Free(PyCapsule_GetPointer(cap, "mds_iksearch.Arm")); }
@@ -408,10 +525,11 @@ static int ints(PyObject *obj, int *out, int max, const char *what) {
     return len;
 }
 
-/* arm(axes, signs, offsets (n*3), tail (3), lower, upper) -> handle */
+/* arm(axes, signs, offsets (n*3), tail (3), lower, upper[, geometry]) -> handle; geometry (analytic.ArmGeometry:
+ * shoulder x, y, z, upper arm, forearm, tool offset) enables closed_form. */
 static PyObject *py_arm(PyObject *self, PyObject *args) {
-    PyObject *axes, *signs, *offsets, *tail, *lower, *upper;
-    if (!PyArg_ParseTuple(args, "OOOOOO", &axes, &signs, &offsets, &tail, &lower, &upper))
+    PyObject *axes, *signs, *offsets, *tail, *lower, *upper, *geometry = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOOO|O", &axes, &signs, &offsets, &tail, &lower, &upper, &geometry))
         return NULL;
     Arm *a = PyMem_Calloc(1, sizeof(Arm));
     if (a == NULL)
@@ -431,6 +549,20 @@ static PyObject *py_arm(PyObject *self, PyObject *args) {
             return PyErr_Format(PyExc_ValueError, "_iksearch.arm: joint %d: axis must be 0..2, lower <= upper", j);
         }
         memcpy(a->t[j], flat + 3 * j, sizeof(double) * 3);
+    }
+    if (geometry != Py_None) {
+        double g[6];
+        if (floats(geometry, g, 6, "geometry") < 0) {
+            PyMem_Free(a);
+            return NULL;
+        }
+        if (n != 6 || !(g[3] > 0 && g[4] > 0)) {
+            PyMem_Free(a);
+            return PyErr_Format(PyExc_ValueError, "_iksearch.arm: the closed form needs 6 joints and lengths > 0");
+        }
+        a->closed_form = 1;
+        memcpy(a->shoulder, g, sizeof(double) * 3);
+        a->L1 = g[3], a->L2 = g[4], a->d = g[5];
     }
     PyObject *cap = PyCapsule_New(a, "mds_iksearch.Arm", arm_free);
     if (cap == NULL)
@@ -546,8 +678,7 @@ static PyObject *py_solve(PyObject *self, PyObject *args) {
     uint64_t state = rng;
     double best_q[MAXJ], best_err = INFINITY, best_score = INFINITY, max_scale = max_scale_of(&o);
     Search s;
-    Residual report;
-    double pose[6];
+    double error, pose[6];
     Py_BEGIN_ALLOW_THREADS
     double deadline = timeout > 0 ? now() + timeout : INFINITY;
     memcpy(best_q, seed, sizeof(double) * (size_t)n);
@@ -587,23 +718,43 @@ static PyObject *py_solve(PyObject *self, PyObject *args) {
             memcpy(best_q, p.q, sizeof(double) * (size_t)n);
         }
     }
-    /* What the result reports: the original's error (Task.error: the mixed m+rad test at tolerance 1, Euler
-     * differences always worked out) and all six components of the pose reached. */
-    Task legacy = t;
-    legacy.tol_mixed = 1.0;
-    legacy.always_exact = 1;
-    residual(a, &legacy, best_q, &report);
-    double R[9], p[3], J[MAXJ][6];
-    fk_jacobian(a, best_q, R, p, J);
-    pose[0] = p[0], pose[1] = p[1], pose[2] = p[2];
-    pose[3] = atan2(R[7], R[8]), pose[4] = atan2(-R[6], hypot(R[7], R[8])), pose[5] = atan2(R[3], R[0]);
+    report_at(a, &t, best_q, &error, pose);
     Py_END_ALLOW_THREADS
     return Py_BuildValue("(NddllOKdN)", joint_list(best_q, n), best_score, best_err, used, restarts,
-                         converged ? Py_True : Py_False, (unsigned long long)state, report.score,
-                         joint_list(pose, 6));
+                         converged ? Py_True : Py_False, (unsigned long long)state, error, joint_list(pose, 6));
+}
+
+/* closed_form(arm, task, seed) -> [(q, original's error, pose components), ...]: IKSolver._closed_form's
+ * candidates in its order (the seed if already there, then nearest first), for a full-pose task. */
+static PyObject *py_closed_form(PyObject *self, PyObject *args) {
+    PyObject *cap, *task_spec, *seed_obj;
+    if (!PyArg_ParseTuple(args, "OOO", &cap, &task_spec, &seed_obj))
+        return NULL;
+    Arm *a = PyCapsule_GetPointer(cap, "mds_iksearch.Arm");
+    Task t;
+    double seed[MAXJ];
+    if (a == NULL || parse_task(task_spec, &t) < 0 || floats(seed_obj, seed, a->n, "seed") < 0)
+        return NULL;
+    if (!a->closed_form || t.mode != FULL || t.npos != 3)
+        return PyErr_Format(PyExc_ValueError, "_iksearch.closed_form: needs an arm of the MDS shape and a full pose");
+    double found[9][MAXJ], errors[9], poses[9][6];
+    int count = closed_form_candidates(a, &t, seed, found);
+    for (int i = 0; i < count; i++)
+        report_at(a, &t, found[i], &errors[i], poses[i]);
+    PyObject *out = PyList_New(count);
+    for (int i = 0; out != NULL && i < count; i++) {
+        PyObject *item = Py_BuildValue("(NdN)", joint_list(found[i], a->n), errors[i], joint_list(poses[i], 6));
+        if (item == NULL) {
+            Py_CLEAR(out);
+            break;
+        }
+        PyList_SET_ITEM(out, i, item);
+    }
+    return out;
 }
 
 static PyMethodDef methods[] = {
+    {"closed_form", py_closed_form, METH_VARARGS, "The closed-form full-pose candidates (see the C source)."},
     {"arm", py_arm, METH_VARARGS, "arm(axes, signs, offsets, tail, lower, upper) -> handle of a serial chain"},
     {"search", py_search, METH_VARARGS, "One damped-least-squares search (see the C source)."},
     {"solve", py_solve, METH_VARARGS, "A whole IK solve: the seed's search, then restarts (see the C source)."},

@@ -597,8 +597,10 @@ class IKSolver:
         chain = self.kin.scalar_chain
         if _iksearch is None or chain is None or self.kin.dof > _iksearch.MAX_JOINTS:
             return None
+        g = self.geometry
         return _iksearch.arm([c[0] for c in chain], [c[1] for c in chain], [v for c in chain for v in c[2:]],
-                             list(self.kin._tail_floats), self._lower_list, self._upper_list)
+                             list(self.kin._tail_floats), self._lower_list, self._upper_list,
+                             None if g is None else (*g.shoulder, g.upper, g.fore, g.tool))
 
     @property
     def _lower_list(self) -> list[float]:
@@ -628,9 +630,16 @@ class IKSolver:
         samples = opt.path_samples if self.is_safe is not None and self.is_safe(seed.copy(), self.arm) else 0
         iterations = restarts = unsafe = 0
         if opt.closed_form and self.geometry is not None and task.dof == 6:
-            q_exact, unsafe = self._closed_form(task, seed, samples)
-            if q_exact is not None:
-                return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "")
+            if self._native is not None:  # the same candidates in the same order, computed in C
+                for q_list, err, pose in _iksearch.closed_form(self._native, task.native_spec(), seed.tolist()):
+                    q_exact = np.array(q_list)
+                    if self._safe(q_exact, seed, samples):
+                        return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "", (err, pose))
+                    unsafe += 1
+            else:
+                q_exact, unsafe = self._closed_form(task, seed, samples)
+                if q_exact is not None:
+                    return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "")
         if self._native is not None and opt.adaptive:
             return self._solve_native(task, seed, opt, samples, t_start, unsafe)
         start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
