@@ -632,9 +632,9 @@ class IKSolver:
         if opt.closed_form and self.geometry is not None and task.dof == 6:
             if self._native is not None:  # the same candidates in the same order, computed in C
                 for q_list, err, pose in _iksearch.closed_form(self._native, task.native_spec(), seed.tolist()):
-                    q_exact = np.array(q_list)
-                    if self._safe(q_exact, seed, samples):
-                        return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "", (err, pose))
+                    q_found = np.array(q_list)
+                    if self._safe(q_found, seed, samples):
+                        return self._result(task, seed, q_found, True, 0, t_start, 0, 0, "", (err, pose))
                     unsafe += 1
             else:
                 q_exact, unsafe = self._closed_form(task, seed, samples)
