@@ -24,6 +24,9 @@ gimbal lock the angles are not unique, so a pose within 1e-6 of the target count
 targets are canonicalised (``IKResult.target``): roll=0, pitch=2 describes the same tilt as roll=pi,
 pitch=pi-2.
 
+The searches run in C (``_iksearch.c``: the same steps and success test, one call per solve) when that
+extension was built, else in Python (plain floats for the seed's search, numpy-batched restarts).
+
 No torch here: ``import mds_ach.ik`` stays light.
 """
 
@@ -451,6 +454,11 @@ class IKOptions:
     A full pose (all six components) is first solved in closed form (``analytic``, when the arm has the MDS
     shape and ``closed_form``): the exact solution within the limits nearest the seed that passes ``is_safe``;
     the searches run only when there is none.
+
+    With the C searches (``NATIVE_AVAILABLE``; ``adaptive`` only) the seed's search runs up to
+    ``fast_iterations`` steps, then on until it stalls, then searches from random starts run one after another
+    (each up to 60 steps or ``stall_iterations`` without progress) until one converges, within a budget of
+    ``max_iterations * seeds`` steps (the batched searches' work) and ``timeout``.
 
     Success: position within ``tolerance`` (m) and angles within ``angle_tolerance`` (rad), each checked
     separately; ``mixed_tolerance``, when set, replaces both with the original's single m+rad test.
