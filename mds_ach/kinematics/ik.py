@@ -36,6 +36,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -76,8 +77,23 @@ _NATIVE_PER_START = 60
 SafetyCheck = Callable[[np.ndarray, str], bool]
 
 
+_parsed_orders: dict[object, tuple[int, ...]] = {}  # orders seen (a robot asks for few): parsing costs more than IK
+
+
 def parse_order(order: Sequence[str] | str) -> tuple[int, ...]:
     """Component indices 0..5 for an order such as ``['p-x', 'p-z', 't-y']`` (also ``'p_x'``, case-insensitive)."""
+    key = order if isinstance(order, str) else tuple(order)
+    try:
+        return _parsed_orders[key]
+    except (KeyError, TypeError):  # TypeError: an unhashable item, which the parse below refuses
+        pass
+    idx = _parse_order(key)
+    if len(_parsed_orders) < 256:
+        _parsed_orders[key] = idx
+    return idx
+
+
+def _parse_order(order: Sequence[str] | str) -> tuple[int, ...]:
     if isinstance(order, str):
         order = order.replace(",", " ").split()
     idx: list[int] = []
@@ -169,23 +185,21 @@ class Task:
         self.requested = values
         given = dict(zip(self.idx, given_list, strict=True))
         self.pos_idx = [i for i in self.idx if i < 3]
-        self.pos_target = np.array([given[i] for i in self.pos_idx])
         angles = {i for i in self.idx if i >= 3}
         canonical = dict(given)
-        self.R_target: np.ndarray | None = None
-        self.up_in_tool: np.ndarray | None = None
+        # Plain floats first (residual_scalar and the C searches use them; the numpy copies are made on demand).
+        self._R_target_list: list[float] = []
+        self._up_list: list[float] = []
         self.euler_idx: list[int] = []
         if angles == {3, 4, 5}:
             self.mode = "full"
-            R_list = _rotation_zyx_list(given[3], given[4], given[5])
-            self.R_target = np.array(R_list).reshape(3, 3)
-            canonical.update(zip((3, 4, 5), _euler_zyx_list(R_list), strict=True))
+            self._R_target_list = _rotation_zyx_list(given[3], given[4], given[5])
+            canonical.update(zip((3, 4, 5), _euler_zyx_list(self._R_target_list), strict=True))
         elif {3, 4} <= angles:
             self.mode = "tilt"
             r, p = given[3], given[4]
             # World z expressed in the tool frame: the third row of Rz Ry(p) Rx(r), independent of yaw.
-            self.up_in_tool = np.array([-math.sin(p), math.cos(p) * math.sin(r), math.cos(p) * math.cos(r)])
-            b = self.up_in_tool
+            b = self._up_list = [-math.sin(p), math.cos(p) * math.sin(r), math.cos(p) * math.cos(r)]
             canonical[3] = math.atan2(b[1], b[2])
             canonical[4] = math.atan2(-b[0], math.hypot(b[1], b[2]))
             self.euler_idx = [5] if 5 in angles else []
@@ -196,16 +210,10 @@ class Task:
             w = math.remainder(given[i], _TWO_PI)
             canonical[i] = math.pi if w <= -math.pi else w  # (-pi, pi] like wrap_angle
         self.target = np.array([canonical[i] for i in self.idx])
-        self.euler_target = np.array([canonical[i] for i in self.euler_idx])
+        self._pos_list = [given[i] for i in self.pos_idx]
+        self._euler_list = [canonical[i] for i in self.euler_idx]
         # Canonical roll, pitch (and yaw) compared component-wise for the reported error in full/tilt mode.
-        rotation = {"full": (3, 4, 5), "tilt": (3, 4)}.get(self.mode, ())
-        self._rotation_target = np.array([canonical[i] for i in rotation])
-        # Plain-float copies for residual_scalar.
-        self._pos_list = self.pos_target.tolist()
-        self._euler_list = self.euler_target.tolist()
-        self._R_target_list = [] if self.R_target is None else self.R_target.reshape(-1).tolist()
-        self._up_list = [] if self.up_in_tool is None else self.up_in_tool.tolist()
-        self._rotation_list = self._rotation_target.tolist()
+        self._rotation_list = [canonical[i] for i in {"full": (3, 4, 5), "tilt": (3, 4)}.get(self.mode, ())]
         n_pos = len(self.pos_idx)
         self._pos_sel: slice | list[int] = slice(0, n_pos) if self.pos_idx == list(range(n_pos)) else self.pos_idx
         self._euler_sel = [i - 3 for i in self.euler_idx]
@@ -213,6 +221,30 @@ class Task:
     @property
     def dof(self) -> int:
         return len(self.idx)
+
+    @cached_property
+    def pos_target(self) -> np.ndarray:
+        """Target values of the position components, in ``pos_idx`` order."""
+        return np.array(self._pos_list)
+
+    @cached_property
+    def euler_target(self) -> np.ndarray:
+        """Canonical targets of the angles compared one by one, in ``euler_idx`` order."""
+        return np.array(self._euler_list)
+
+    @cached_property
+    def R_target(self) -> np.ndarray | None:
+        """The target rotation of a full pose (else None)."""
+        return np.array(self._R_target_list).reshape(3, 3) if self._R_target_list else None
+
+    @cached_property
+    def up_in_tool(self) -> np.ndarray | None:
+        """A roll+pitch target: the world z axis seen from the tool (else None)."""
+        return np.array(self._up_list) if self._up_list else None
+
+    @cached_property
+    def _rotation_target(self) -> np.ndarray:
+        return np.array(self._rotation_list)
 
     def native_spec(self) -> tuple[Any, ...]:
         """The task as the C searches take it (``_iksearch.c``: parse_task): the same numbers ``residual_scalar``
@@ -418,7 +450,9 @@ class IKResult:
     """What the solver found. ``q`` is always within the joint limits; on failure it is the best attempt.
 
     ``error`` is the original's measure whatever the tolerance: the norm of all target-minus-achieved
-    components, m and rad mixed (so 0.005 can be a 5 mm miss that a 1 mm tolerance rejects)."""
+    components, m and rad mixed (so 0.005 can be a 5 mm miss that a 1 mm tolerance rejects). ``iterations``:
+    steps of the batched searches, or with the C searches, single-search steps (at most ``max_iterations *
+    seeds``); 0 when the closed form or the seed itself answered."""
 
     q: np.ndarray
     success: bool
@@ -631,9 +665,9 @@ class IKSolver:
         task = Task(target, order, Tolerance(opt.tolerance, opt.angle_tolerance, opt.mixed_tolerance))
         n = self.kin.dof
         seed = np.zeros(n) if q0 is None else np.asarray(q0, dtype=float).reshape(-1)
-        if seed.size != n or not np.all(np.isfinite(seed)):
+        if seed.size != n or not np.isfinite(seed).all():
             raise ValueError(f"seed must be {n} finite joint values, got {seed.tolist()}")
-        seed = np.clip(seed, self.lower, self.upper)
+        seed = np.minimum(np.maximum(seed, self.lower), self.upper)
         # If the arm already is in a (predicted) collision, any path out starts in one: check only the goal.
         samples = opt.path_samples if self.is_safe is not None and self.is_safe(seed.copy(), self.arm) else 0
         iterations = restarts = unsafe = 0
