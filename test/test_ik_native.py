@@ -214,3 +214,20 @@ def test_c_closed_form_gives_the_python_candidates(arm: str) -> None:
             assert np.allclose(pose, [*pp, *kinematics.euler_zyx(R)], atol=1e-12)
         first, _ = solver._closed_form(task, seed, 0)
         assert first is not None and np.allclose(got[0][0], first, atol=1e-12)
+
+
+@needs_native
+def test_c_searches_refuse_malformed_input_with_a_message() -> None:
+    """The extension checks what it is handed (a wrong tuple must not be read as a pose)."""
+    solver = ik.IKSolver("left")
+    spec = list(ik.Task([0.3, 0.2, 0.0, 0.1, 0.2, 0.3], ik.DOF_ORDERS[6]).native_spec())
+    steps = solver._native_steps(ik.IKOptions())
+    bad_rotation = tuple(spec[:5] + [[1.0, 0.0, 0.0]] + spec[6:])
+    with pytest.raises(ValueError, match="R_target"):
+        ik_impl._iksearch.search(solver._native, bad_rotation, steps, [0.0] * 6, [0.0] * 6, 1, 1.0, 1.0, 10, True)
+    with pytest.raises(ValueError, match="seed needs 6 numbers"):
+        ik_impl._iksearch.solve(solver._native, tuple(spec), steps, [0.0] * 5, True, 20, 60, 100, 0.0, 0, 1)
+    with pytest.raises(ValueError, match="closed form needs an arm of the MDS shape|full pose"):
+        ik_impl._iksearch.closed_form(solver._native, ik.Task([0.3], ["p-x"]).native_spec(), [0.0] * 6)
+    with pytest.raises(ValueError, match="axis must be 0..2"):
+        ik_impl._iksearch.arm([5] * 6, [1.0] * 6, [0.0] * 18, [0.0] * 3, [-1.0] * 6, [1.0] * 6)

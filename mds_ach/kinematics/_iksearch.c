@@ -578,11 +578,19 @@ static int parse_task(PyObject *spec, Task *t) {
     if (!PyArg_ParseTuple(spec, "iOOOOOOOdddp", &t->mode, &pi, &pt, &ei, &et, &Rt, &up, &rt, &t->tol_pos,
                           &t->tol_ang, &t->tol_mixed, &t->always_exact))
         return -1;
+    int nR, nup;
     if ((t->npos = ints(pi, t->pos_idx, 3, "pos_idx")) < 0 || floats(pt, t->pos_t, t->npos, "pos_target") < 0 ||
         (t->neul = ints(ei, t->eul_idx, 3, "euler_idx")) < 0 || floats(et, t->eul_t, t->neul, "euler_target") < 0 ||
-        floats(Rt, t->Rt, -9, "R_target") < 0 || floats(up, t->up, -3, "up") < 0 ||
+        (nR = floats(Rt, t->Rt, -9, "R_target")) < 0 || (nup = floats(up, t->up, -3, "up")) < 0 ||
         (t->nrot = floats(rt, t->rot_t, -3, "rotation_target")) < 0)
         return -1;
+    if ((t->mode == FULL) != (nR == 9) || (t->mode == TILT) != (nup == 3) ||
+        t->nrot != (t->mode == FULL ? 3 : t->mode == TILT ? 2 : 0))
+        return PyErr_Format(PyExc_ValueError, "_iksearch: task mode %d needs R_target (full pose), up (tilt) and "
+                            "rotation_target (3 or 2 values) to match, got %d, %d, %d values", t->mode, nR, nup,
+                            t->nrot), -1;
+    if (!(t->tol_pos > 0 && t->tol_ang > 0 && t->tol_mixed >= 0))
+        return PyErr_Format(PyExc_ValueError, "_iksearch: tolerances must be > 0"), -1;
     for (int k = 0; k < t->npos; k++)
         if (t->pos_idx[k] < 0 || t->pos_idx[k] > 2)
             return PyErr_Format(PyExc_ValueError, "_iksearch: position index %d", t->pos_idx[k]), -1;
