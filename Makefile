@@ -36,8 +36,8 @@ dev: $(DEV_STAMP)
 
 # pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
-$(STAMP): requirements.txt requirements-nodeps.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c mds_ach/ach/achcore.h \
-		mds_ach/ach/_shmguard.c mds_ach/kinematics/_collfast.c
+$(STAMP): requirements.txt requirements-nodeps.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c \
+		mds_ach/ach/achcore.h mds_ach/ach/_shmguard.c mds_ach/kinematics/_collfast.c mds_ach/kinematics/_iksearch.c
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
 	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
@@ -116,4 +116,4 @@ lint: $(DEV_STAMP)
 
 clean:
 	rm -rf build install log .pytest_cache mds_ach/ach/_achfast.*.so mds_ach/ach/_shmguard.*.so \
-		mds_ach/kinematics/_collfast.*.so
+		mds_ach/kinematics/_collfast.*.so mds_ach/kinematics/_iksearch.*.so

@@ -62,6 +62,10 @@ setup(
                  # The collision gate's per-configuration screen (FK, poses, exact/conservative pair tests);
                  # without it mds_ach.kinematics.collision runs the numpy path, with the same answers.
                  Extension("mds_ach.kinematics._collfast", ["mds_ach/kinematics/_collfast.c"],
+                           extra_compile_args=["-O2", "-Wall"], optional=True),
+                 # The IK searches (FK, Jacobian, damped least squares, restarts) in one call; without it
+                 # mds_ach.kinematics.ik runs the same steps in Python (slower, same tolerance).
+                 Extension("mds_ach.kinematics._iksearch", ["mds_ach/kinematics/_iksearch.c"],
                            extra_compile_args=["-O2", "-Wall"], optional=True)],
     install_requires=["setuptools"],
     zip_safe=False,

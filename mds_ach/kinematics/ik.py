@@ -24,6 +24,9 @@ gimbal lock the angles are not unique, so a pose within 1e-6 of the target count
 targets are canonicalised (``IKResult.target``): roll=0, pitch=2 describes the same tilt as roll=pi,
 pitch=pi-2.
 
+The searches run in C (``_iksearch.c``: the same steps and success test, one call per solve) when that
+extension was built, else in Python (plain floats for the seed's search, numpy-batched restarts).
+
 No torch here: ``import mds_ach.ik`` stays light.
 """
 
@@ -33,7 +36,8 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from functools import cached_property
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,6 +46,14 @@ from mds_ach.kinematics.model import ArmKinematics, arm_kinematics, arm_name, eu
 
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike
+
+_iksearch: Any
+try:  # the optional C searches (setup.py builds them when a compiler is there); else the Python ones run
+    from mds_ach.kinematics import _iksearch  # type: ignore[attr-defined, no-redef]
+except ImportError:  # pragma: no cover - depends on the build
+    _iksearch = None
+
+NATIVE_AVAILABLE = _iksearch is not None
 
 TASK_COMPONENTS: tuple[str, ...] = ("p-x", "p-y", "p-z", "t-x", "t-y", "t-z")
 # Legacy ik_method / console "dof": the first n of x, y, z, roll, pitch, yaw.
@@ -58,12 +70,30 @@ EXACT = 1e-6  # a pose this close to the target counts as reached whatever its E
 # Trust-region update after an accepted / rejected step: (step-limit scale, LM damping) factors.
 _ACCEPT = np.array([16.0, 0.5])
 _REJECT = np.array([0.5, 4.0])
+_MODES = {"position": 0, "euler": 1, "tilt": 2, "full": 3}  # Task.mode as the C searches number it
+# C searches: steps one search from a random start may take before the next start (most converge in 10-30).
+_NATIVE_PER_START = 60
 
 SafetyCheck = Callable[[np.ndarray, str], bool]
 
 
+_parsed_orders: dict[object, tuple[int, ...]] = {}  # orders seen (a robot asks for few): parsing costs more than IK
+
+
 def parse_order(order: Sequence[str] | str) -> tuple[int, ...]:
     """Component indices 0..5 for an order such as ``['p-x', 'p-z', 't-y']`` (also ``'p_x'``, case-insensitive)."""
+    key = order if isinstance(order, str) else tuple(order)
+    try:
+        return _parsed_orders[key]
+    except (KeyError, TypeError):  # TypeError: an unhashable item, which the parse below refuses
+        pass
+    idx = _parse_order(key)
+    if len(_parsed_orders) < 256:
+        _parsed_orders[key] = idx
+    return idx
+
+
+def _parse_order(order: Sequence[str] | str) -> tuple[int, ...]:
     if isinstance(order, str):
         order = order.replace(",", " ").split()
     idx: list[int] = []
@@ -155,23 +185,21 @@ class Task:
         self.requested = values
         given = dict(zip(self.idx, given_list, strict=True))
         self.pos_idx = [i for i in self.idx if i < 3]
-        self.pos_target = np.array([given[i] for i in self.pos_idx])
         angles = {i for i in self.idx if i >= 3}
         canonical = dict(given)
-        self.R_target: np.ndarray | None = None
-        self.up_in_tool: np.ndarray | None = None
+        # Plain floats first (residual_scalar and the C searches use them; the numpy copies are made on demand).
+        self._R_target_list: list[float] = []
+        self._up_list: list[float] = []
         self.euler_idx: list[int] = []
         if angles == {3, 4, 5}:
             self.mode = "full"
-            R_list = _rotation_zyx_list(given[3], given[4], given[5])
-            self.R_target = np.array(R_list).reshape(3, 3)
-            canonical.update(zip((3, 4, 5), _euler_zyx_list(R_list), strict=True))
+            self._R_target_list = _rotation_zyx_list(given[3], given[4], given[5])
+            canonical.update(zip((3, 4, 5), _euler_zyx_list(self._R_target_list), strict=True))
         elif {3, 4} <= angles:
             self.mode = "tilt"
             r, p = given[3], given[4]
             # World z expressed in the tool frame: the third row of Rz Ry(p) Rx(r), independent of yaw.
-            self.up_in_tool = np.array([-math.sin(p), math.cos(p) * math.sin(r), math.cos(p) * math.cos(r)])
-            b = self.up_in_tool
+            b = self._up_list = [-math.sin(p), math.cos(p) * math.sin(r), math.cos(p) * math.cos(r)]
             canonical[3] = math.atan2(b[1], b[2])
             canonical[4] = math.atan2(-b[0], math.hypot(b[1], b[2]))
             self.euler_idx = [5] if 5 in angles else []
@@ -182,16 +210,10 @@ class Task:
             w = math.remainder(given[i], _TWO_PI)
             canonical[i] = math.pi if w <= -math.pi else w  # (-pi, pi] like wrap_angle
         self.target = np.array([canonical[i] for i in self.idx])
-        self.euler_target = np.array([canonical[i] for i in self.euler_idx])
+        self._pos_list = [given[i] for i in self.pos_idx]
+        self._euler_list = [canonical[i] for i in self.euler_idx]
         # Canonical roll, pitch (and yaw) compared component-wise for the reported error in full/tilt mode.
-        rotation = {"full": (3, 4, 5), "tilt": (3, 4)}.get(self.mode, ())
-        self._rotation_target = np.array([canonical[i] for i in rotation])
-        # Plain-float copies for residual_scalar.
-        self._pos_list = self.pos_target.tolist()
-        self._euler_list = self.euler_target.tolist()
-        self._R_target_list = [] if self.R_target is None else self.R_target.reshape(-1).tolist()
-        self._up_list = [] if self.up_in_tool is None else self.up_in_tool.tolist()
-        self._rotation_list = self._rotation_target.tolist()
+        self._rotation_list = [canonical[i] for i in {"full": (3, 4, 5), "tilt": (3, 4)}.get(self.mode, ())]
         n_pos = len(self.pos_idx)
         self._pos_sel: slice | list[int] = slice(0, n_pos) if self.pos_idx == list(range(n_pos)) else self.pos_idx
         self._euler_sel = [i - 3 for i in self.euler_idx]
@@ -199,6 +221,38 @@ class Task:
     @property
     def dof(self) -> int:
         return len(self.idx)
+
+    @cached_property
+    def pos_target(self) -> np.ndarray:
+        """Target values of the position components, in ``pos_idx`` order."""
+        return np.array(self._pos_list)
+
+    @cached_property
+    def euler_target(self) -> np.ndarray:
+        """Canonical targets of the angles compared one by one, in ``euler_idx`` order."""
+        return np.array(self._euler_list)
+
+    @cached_property
+    def R_target(self) -> np.ndarray | None:
+        """The target rotation of a full pose (else None)."""
+        return np.array(self._R_target_list).reshape(3, 3) if self._R_target_list else None
+
+    @cached_property
+    def up_in_tool(self) -> np.ndarray | None:
+        """A roll+pitch target: the world z axis seen from the tool (else None)."""
+        return np.array(self._up_list) if self._up_list else None
+
+    @cached_property
+    def _rotation_target(self) -> np.ndarray:
+        return np.array(self._rotation_list)
+
+    def native_spec(self) -> tuple[Any, ...]:
+        """The task as the C searches take it (``_iksearch.c``: parse_task): the same numbers ``residual_scalar``
+        uses, so both compute the same rows and score."""
+        tol = self.tolerance
+        return (_MODES[self.mode], self.pos_idx, self._pos_list, self.euler_idx, self._euler_list,
+                self._R_target_list, self._up_list, self._rotation_list, tol.position, tol.angle,
+                0.0 if tol.mixed is None else tol.mixed, self._always_exact)
 
     def residual(self, R: np.ndarray, p: np.ndarray, J: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -396,7 +450,9 @@ class IKResult:
     """What the solver found. ``q`` is always within the joint limits; on failure it is the best attempt.
 
     ``error`` is the original's measure whatever the tolerance: the norm of all target-minus-achieved
-    components, m and rad mixed (so 0.005 can be a 5 mm miss that a 1 mm tolerance rejects)."""
+    components, m and rad mixed (so 0.005 can be a 5 mm miss that a 1 mm tolerance rejects). ``iterations``:
+    steps of the batched searches, or with the C searches, single-search steps (at most ``max_iterations *
+    seeds``); 0 when the closed form or the seed itself answered."""
 
     q: np.ndarray
     success: bool
@@ -432,6 +488,11 @@ class IKOptions:
     A full pose (all six components) is first solved in closed form (``analytic``, when the arm has the MDS
     shape and ``closed_form``): the exact solution within the limits nearest the seed that passes ``is_safe``;
     the searches run only when there is none.
+
+    With the C searches (``NATIVE_AVAILABLE``; ``adaptive`` only) the seed's search runs up to
+    ``fast_iterations`` steps, then on until it stalls, then searches from random starts run one after another
+    (each up to 60 steps or ``stall_iterations`` without progress) until one converges, within a budget of
+    ``max_iterations * seeds`` steps (the batched searches' work) and ``timeout``.
 
     Success: position within ``tolerance`` (m) and angles within ``angle_tolerance`` (rad), each checked
     separately; ``mixed_tolerance``, when set, replaces both with the original's single m+rad test.
@@ -570,6 +631,18 @@ class IKSolver:
             if np.any(self.lower > self.upper):
                 bad = [n for n, a, b in zip(self.kin.joint_names, self.lower, self.upper, strict=True) if a > b]
                 raise ValueError(f"empty joint range for {', '.join(bad)} after applying the limits")
+        # The C searches (None: the Python ones), with the chain from the URDF model and these limits.
+        self._native: Any = self._native_arm()
+        self._rng_state = int(np.random.SeedSequence(rng_seed).generate_state(1, np.uint64)[0])
+
+    def _native_arm(self) -> Any:
+        chain = self.kin.scalar_chain
+        if _iksearch is None or chain is None or self.kin.dof > _iksearch.MAX_JOINTS:
+            return None
+        g = self.geometry
+        return _iksearch.arm([c[0] for c in chain], [c[1] for c in chain], [v for c in chain for v in c[2:]],
+                             list(self.kin._tail_floats), self._lower_list, self._upper_list,
+                             None if g is None else (*g.shoulder, g.upper, g.fore, g.tool))
 
     @property
     def _lower_list(self) -> list[float]:
@@ -592,16 +665,25 @@ class IKSolver:
         task = Task(target, order, Tolerance(opt.tolerance, opt.angle_tolerance, opt.mixed_tolerance))
         n = self.kin.dof
         seed = np.zeros(n) if q0 is None else np.asarray(q0, dtype=float).reshape(-1)
-        if seed.size != n or not np.all(np.isfinite(seed)):
+        if seed.size != n or not np.isfinite(seed).all():
             raise ValueError(f"seed must be {n} finite joint values, got {seed.tolist()}")
-        seed = np.clip(seed, self.lower, self.upper)
+        seed = np.minimum(np.maximum(seed, self.lower), self.upper)
         # If the arm already is in a (predicted) collision, any path out starts in one: check only the goal.
         samples = opt.path_samples if self.is_safe is not None and self.is_safe(seed.copy(), self.arm) else 0
         iterations = restarts = unsafe = 0
         if opt.closed_form and self.geometry is not None and task.dof == 6:
-            q_exact, unsafe = self._closed_form(task, seed, samples)
-            if q_exact is not None:
-                return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "")
+            if self._native is not None:  # the same candidates in the same order, computed in C
+                for q_list, err, pose in _iksearch.closed_form(self._native, task.native_spec(), seed.tolist()):
+                    q_found = np.array(q_list)
+                    if self._safe(q_found, seed, samples):
+                        return self._result(task, seed, q_found, True, 0, t_start, 0, 0, "", (err, pose))
+                    unsafe += 1
+            else:
+                q_exact, unsafe = self._closed_form(task, seed, samples)
+                if q_exact is not None:
+                    return self._result(task, seed, q_exact, True, 0, t_start, 0, 0, "")
+        if self._native is not None and opt.adaptive:
+            return self._solve_native(task, seed, opt, samples, t_start, unsafe)
         start = np.concatenate([seed[None], self.random_configurations(opt.seeds - 1)])
         fast: tuple[np.ndarray, float] | None = None
         if opt.adaptive and opt.fast_iterations > 0 and self.kin.scalar_chain is not None:
@@ -661,9 +743,59 @@ class IKSolver:
         st.note_best()
         return self._result(task, seed, st.best_q, False, iterations, t_start, restarts, unsafe, message)
 
-    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, success: bool,
-                iterations: int, t_start: float, restarts: int, unsafe: int, message: str) -> IKResult:
-        if self.kin.scalar_chain is not None:  # plain floats: numpy's per-call cost would dominate a quick solve
+    def _solve_native(self, task: Task, seed: np.ndarray, opt: IKOptions, samples: int, t_start: float,
+                      unsafe: int) -> IKResult:
+        """The searches in C (``_iksearch.solve``): the seed's search, then one random start after another until
+        one converges, in one call. The step budget is ``max_iterations * seeds`` single-search steps, the work
+        the batched searches may do. A candidate the collision hook rejects sends the searches on from random
+        starts with what is left of the budget."""
+        spec, steps = task.native_spec(), self._native_steps(opt)
+        budget = opt.max_iterations * opt.seeds
+        polish = opt.polish_iterations if self.is_safe is None else 0
+        seed_list = seed.tolist()
+        spent = restarts = 0
+        from_seed = True
+        while True:
+            left = 0.0
+            if opt.timeout is not None:
+                left = opt.timeout - (time.perf_counter() - t_start)
+                if left <= 0:
+                    left = 1e-9
+            q_list, score, _, used, started, converged, self._rng_state, err, pose = _iksearch.solve(
+                self._native, spec, steps, seed_list, from_seed, opt.fast_iterations, _NATIVE_PER_START,
+                budget - spent, left, polish, self._rng_state)
+            spent += used
+            restarts += started
+            q = np.array(q_list)
+            if converged:
+                if self._safe(q, seed, samples):
+                    report: tuple[float, list[float]] | None = (err, pose)
+                    if self.is_safe is not None:
+                        q, _, used = self._polish(task, seed, q, score, opt)
+                        spent += used
+                        report = None if used else report
+                    return self._result(task, seed, q, True, spent, t_start, restarts, unsafe, "", report)
+                unsafe += 1
+            timed_out = opt.timeout is not None and time.perf_counter() - t_start >= opt.timeout
+            if not converged or spent >= budget or timed_out:
+                message = (f"IK gave up after {opt.timeout:.3g} s" if opt.timeout is not None and spent < budget
+                           else f"no IK solution within {opt.max_iterations} iterations ({spent} search steps)")
+                return self._result(task, seed, q, False, spent, t_start, restarts, unsafe, message, (err, pose))
+            from_seed = False
+
+    @staticmethod
+    def _native_steps(opt: IKOptions) -> tuple[float, float, float, float, float, float, int]:
+        return (opt.joint_step, opt.task_step, opt.max_joint_step, opt.max_task_step, opt.damping, opt.null_gain,
+                opt.stall_iterations)
+
+    def _result(self, task: Task, seed: np.ndarray, q: np.ndarray, success: bool, iterations: int, t_start: float,
+                restarts: int, unsafe: int, message: str, report: tuple[float, list[float]] | None = None
+                ) -> IKResult:
+        """``report``: the original's error at ``q`` and its six pose components, when the C searches gave them."""
+        if report is not None:
+            err = report[0]
+            achieved = np.array([report[1][i] for i in task.idx])
+        elif self.kin.scalar_chain is not None:  # plain floats: numpy's per-call cost would dominate a quick solve
             if task._legacy is None:
                 task._legacy = Task(task.requested, [TASK_COMPONENTS[i] for i in task.idx], 1.0)
                 task._legacy._always_exact = True
@@ -776,8 +908,14 @@ class IKSolver:
         if opt.polish_iterations <= 0 or self.kin.scalar_chain is None or reported <= 1e-3:
             return q, reported, 0
         full = max(opt.max_joint_step / opt.joint_step, opt.max_task_step / opt.task_step, 1.0)  # already close
-        q2, reported2, _, used, _ = self._fast_search(task, seed, opt, start=q, budget=opt.polish_iterations,
-                                                      tolerance=1e-3, scale=full)
+        if self._native is not None:
+            q_list, reported2, _, used, _ = _iksearch.search(
+                self._native, task.native_spec(), self._native_steps(opt), q.tolist(), seed.tolist(),
+                opt.polish_iterations, 1e-3, full, min(opt.stall_iterations, 10), True)
+            q2 = np.array(q_list)
+        else:
+            q2, reported2, _, used, _ = self._fast_search(task, seed, opt, start=q, budget=opt.polish_iterations,
+                                                          tolerance=1e-3, scale=full)
         if reported2 < reported and (self.is_safe is None or self.is_safe(q2.copy(), self.arm)):
             return q2, reported2, used
         return q, reported, used
