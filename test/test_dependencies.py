@@ -48,8 +48,10 @@ def requirements(path: str) -> list[Requirement]:
 @cache
 def runtime_distributions() -> frozenset[str]:
     """What `make setup` installs: requirements.txt and, through the installed metadata, everything it depends on
-    (as pip resolves it), requirements-nodeps.txt without its dependencies, pip, setuptools and mds_ach."""
+    (as pip resolves it), requirements-nodeps.txt without its dependencies, pip, setuptools, mds_ach and the
+    interface packages."""
     found = {"pip", "setuptools", "mds-ach"}
+    found |= {"mds-ach-interfaces", "control-msgs"}  # built from interfaces/ by make setup (tools/build-interfaces)
     found |= {canonicalize_name(r.name) for r in requirements("requirements-nodeps.txt")}
     todo = [(canonicalize_name(r.name), frozenset(r.extras)) for r in requirements("requirements.txt")]
     done: set[tuple[str, frozenset[str]]] = set()

@@ -717,6 +717,8 @@ static PyObject *py_solve(PyObject *self, PyObject *args) {
             memcpy(best_q, s.q, sizeof(double) * (size_t)n);
         }
     }
+    if (polish > budget - used)  /* the polish is part of the step budget (max_iterations * seeds), never beyond it */
+        polish = (int)(budget - used);
     if (converged && polish > 0 && s.res.score > 1e-3) { /* the original stopped at 1 cm: a little better is cheap */
         Search p = s;
         p.scale = max_scale;

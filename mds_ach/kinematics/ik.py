@@ -615,7 +615,7 @@ class IKSolver:
                  limits: tuple[ArrayLike, ArrayLike] | None = None) -> None:
         """``limits`` (lower, upper) narrow the URDF limits, e.g. to the active robot's joint table."""
         self.arm = arm_name(arm)
-        self.kin: ArmKinematics = arm_kinematics(self.arm)
+        self._kin: ArmKinematics = arm_kinematics(self.arm)
         self.options = options or IKOptions()
         self.rng = np.random.default_rng(rng_seed)
         self.is_safe = is_safe
@@ -634,6 +634,18 @@ class IKSolver:
         # The C searches (None: the Python ones), with the chain from the URDF model and these limits.
         self._native: Any = self._native_arm()
         self._rng_state = int(np.random.SeedSequence(rng_seed).generate_state(1, np.uint64)[0])
+
+    @property
+    def kin(self) -> ArmKinematics:
+        """The arm's chain. Setting another one (a modified URDF) rebuilds what was derived from it: the
+        closed-form geometry and the C searches (None when that chain has no plain-float form)."""
+        return self._kin
+
+    @kin.setter
+    def kin(self, kin: ArmKinematics) -> None:
+        self._kin = kin
+        self.geometry = ArmGeometry.of(kin)
+        self._native = self._native_arm()
 
     def _native_arm(self) -> Any:
         chain = self.kin.scalar_chain
