@@ -51,7 +51,7 @@ $(STAMP): requirements.txt requirements-nodeps.txt setup.py setup.cfg package.xm
 	$(PY) -m pip install -q --no-deps -r requirements-nodeps.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
 	PYTHONWARNINGS=ignore $(PY) -m pip install -q --no-deps --no-build-isolation -e .
 	@$(PY) -c 'from mds_ach import ach; print("mds_ach.ach:", "C fast path" if ach.FAST_AVAILABLE else \
-		"pure Python (no C compiler or Python headers: slower; see README)", \
+		"pure Python (no C compiler or Python headers: slower; see docs/architecture.md)", \
 		"+ SIGBUS guard" if ach.GUARD_AVAILABLE else "(no SIGBUS guard: a truncated channel kills its users)")'
 	@touch $@
 

@@ -1,5 +1,5 @@
-"""ROS parameters of the six nodes: declared with descriptions and ranges, documented in the README exactly as
-declared, refused with one line when out of range, and *read*: each test starts a node with ``--ros-args -p``
+"""ROS parameters of the six nodes: declared with descriptions and ranges, documented in docs/parameters.md exactly
+as declared, refused with one line when out of range, and *read*: each test starts a node with ``--ros-args -p``
 and checks the value through what the node does."""
 
 from __future__ import annotations
@@ -65,10 +65,10 @@ def running(*argv: str) -> Iterator[subprocess.Popen[str]]:
 # --------------------------------------------------------------------------------------------- declared
 
 
-def test_readme_parameter_table_is_what_the_nodes_declare() -> None:
-    """The README lists every parameter with the type, default and range the node declares, and no other."""
-    readme = (REPO / "README.md").read_text(encoding="utf-8")
-    assert parameter_table(NODES) in readme, "README parameter table differs; regenerate with parameter_table()"
+def test_docs_parameter_table_is_what_the_nodes_declare() -> None:
+    """docs/parameters.md lists every parameter with the type, default and range the node declares, and no other."""
+    doc = (REPO / "docs" / "parameters.md").read_text(encoding="utf-8")
+    assert parameter_table(NODES) in doc, "docs/parameters.md table differs; regenerate with parameter_table()"
 
 
 def test_every_parameter_is_described_and_numbers_have_ranges() -> None:

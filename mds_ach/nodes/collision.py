@@ -918,6 +918,8 @@ def filter_speed(path: str | Path | None = None) -> float:
     return float(filter_node.load_config(path).max_velocity[MODEL_ADDRESSES].min())
 
 
+NODE_NAME = "collision"  # the ROS node name (`ros2 param`, the sections of a params file)
+
 PARAMETERS = (
     Param("config", "", "gate YAML; empty: the package's config/collision.yaml (option --config)"),
     Param("world", "", "world objects YAML; empty: the package's config/world.yaml (option --world)"),
@@ -935,7 +937,7 @@ class CollisionNode(Node):
 
     def __init__(self, config: str | None = None, world: str | None = None, urdf: str | None = None,
                  margin: float | None = None) -> None:
-        super().__init__("collision")
+        super().__init__(NODE_NAME)
         path = declare(self, find(PARAMETERS, "config"), config) or None
         world_path = declare(self, find(PARAMETERS, "world"), world) or None
         urdf_path = declare(self, find(PARAMETERS, "urdf"), urdf) or None

@@ -284,6 +284,8 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
                             values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
 
+NODE_NAME = "mds_daemon"  # the ROS node name (`ros2 param`, the sections of a params file)
+
 PARAMETERS = (
     Param("robot", "", "robot variant of the joint table (isaac, lucas, octavia, default); empty: $MDS_ACH_ROBOT "
                        "or the choice saved by `mds-ach changerobot` (option --robot)"),
@@ -300,7 +302,7 @@ class DaemonNode(Node):
     The command line gives the parameters' defaults; ``--ros-args -p`` values win (launch files)."""
 
     def __init__(self, args: argparse.Namespace) -> None:
-        super().__init__("mds_daemon")
+        super().__init__(NODE_NAME)
         robot = declare(self, find(PARAMETERS, "robot"), args.robot)
         rate = declare(self, find(PARAMETERS, "rate"), args.rate)
         nocan = declare(self, find(PARAMETERS, "nocan"), args.nocan)

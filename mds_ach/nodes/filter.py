@@ -359,6 +359,8 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
+NODE_NAME = "filter"  # the ROS node name (`ros2 param`, the sections of a params file)
+
 PARAMETERS = (
     Param("config", "", "filter YAML; empty: the package's config/filter.yaml (option --config)"),
     Param("rate", DEFAULT_RATE, "loop and publish rate in Hz; overrides the config's rate (option --rate)",
@@ -370,7 +372,7 @@ class FilterNode(Node):
     """The filter: ``FilterRunner`` on its own thread; parameters ``config`` and ``rate`` are read at start."""
 
     def __init__(self, config: str | None = None, rate: float | None = None) -> None:
-        super().__init__("filter")
+        super().__init__(NODE_NAME)
         path = declare(self, find(PARAMETERS, "config"), config) or None
         configured = load_config(path).rate  # the config's own rate is the parameter's default
         self.rate: float = declare(self, find(PARAMETERS, "rate"), configured if rate is None else rate)

@@ -409,6 +409,8 @@ def build_service(args: argparse.Namespace, log: Callable[[str, str], None]) -> 
     return IkService(config, arm_limits(args.robot), safety)
 
 
+NODE_NAME = "ik"  # the ROS node name (`ros2 param`, the sections of a params file)
+
 PARAMETERS = (
     Param("output", mds.MDS_CHAN_REF_IK_NAME, "channel for the solutions: mds-ref-ik (the mux's ik input) or "
                                               "mds-ref-filter without a mux; never mds-ref (option --output)"),
@@ -438,7 +440,7 @@ class IkNode(Node):
                  max_iterations: int | None = None, timeout: float | None = None,
                  collision_check: bool | None = None, robot: str | None = None, on_collision: str | None = None,
                  world: str | None = None) -> None:
-        super().__init__("ik")
+        super().__init__(NODE_NAME)
         log = ros_log(self)
         given = {"output": output, "tolerance": tolerance, "max_iterations": max_iterations, "timeout": timeout,
                  "collision_check": collision_check, "robot": robot, "on_collision": on_collision, "world": world}

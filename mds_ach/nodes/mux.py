@@ -572,6 +572,8 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
+NODE_NAME = "mux"  # the ROS node name (`ros2 param`, the sections of a params file)
+
 PARAMETERS = (
     Param("config", "", "mux YAML (controllers, priorities, timeouts); empty: the package's config/mux.yaml "
                         "(option --config)"),
@@ -586,7 +588,7 @@ class MuxNode(Node):
     ``/mds/mux_state/json``."""
 
     def __init__(self, config: str | None = None) -> None:
-        super().__init__("mux")
+        super().__init__(NODE_NAME)
         path = declare(self, find(PARAMETERS, "config"), config) or None
         cfg = load_config(path)
         self.state_rate: float = declare(self, find(PARAMETERS, "state_rate"), cfg["state_rate"])

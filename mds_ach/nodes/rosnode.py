@@ -1,8 +1,8 @@
 """The ROS side shared by all six nodes (daemon, mux, filter, collision, ik and the bridge).
 
 * ``Param``: one declared parameter (type from its default, description, inclusive range, read-only or not).
-  Each node lists its parameters in a module-level ``PARAMETERS`` tuple; the README table is rendered from
-  them (``parameter_table``), so the documentation cannot drift from what is declared.
+  Each node lists its parameters in a module-level ``PARAMETERS`` tuple; docs/parameters.md's table is rendered
+  from them (``parameter_table``), so the documentation cannot drift from what is declared.
 * ``declare``: declare one ``Param`` on a node and return its value (a command-line option may supply the
   default); an out-of-range or wrongly typed ``--ros-args -p`` value raises ``ParameterException``, which
   ``run_node`` turns into one line on stderr and exit status 2.
@@ -39,14 +39,14 @@ ParamValue = bool | int | float | str
 
 @dataclass(frozen=True)
 class Param:
-    """One ROS parameter of a node: what ``ros2 param describe`` shows and what the README table lists."""
+    """One ROS parameter of a node: what ``ros2 param describe`` shows and what docs/parameters.md lists."""
 
     name: str
     default: ParamValue
     description: str
     range: tuple[float, float] | None = None  # inclusive [from, to]; int or float like the default
     read_only: bool = True  # read once at start (changing it later would silently do nothing)
-    default_doc: str | None = None  # README default column when the real default comes from a config file
+    default_doc: str | None = None  # docs default column when the real default comes from a config file
 
     @property
     def type_name(self) -> str:
@@ -122,7 +122,7 @@ def find(params: Iterable[Param], name: str) -> Param:
 
 
 def parameter_table(nodes: Sequence[tuple[str, Sequence[Param]]]) -> str:
-    """The README's parameter table (Markdown) for ``[(node name, PARAMETERS), ...]``."""
+    """docs/parameters.md's parameter table (Markdown) for ``[(node name, PARAMETERS), ...]``."""
     lines = ["| node | parameter | type | default | range | meaning |", "|---|---|---|---|---|---|"]
     for node, params in nodes:
         for p in params:

@@ -170,13 +170,55 @@ def node_command(name: str) -> list[str]:
 WORLD_NODES = ("collision", "ik")  # the nodes that check collisions, so take the world file
 
 
-def node_args(name: str, nocan: bool, world: str | None = None, can_args: Sequence[str] = ()) -> list[str]:
+def node_args(name: str, nocan: bool, world: str | None = None, can_args: Sequence[str] = (),
+              params: str | None = None) -> list[str]:
+    """Node ``name``'s command-line arguments. ``params``: a checked params file, passed as ``--ros-args
+    --params-file``; the launcher's own options (``--world``) follow it as ``-p``, so they win over the file."""
     args = ["--nocan"] if name == "daemon" and nocan else []
     if name == "daemon" and not nocan:
         args += list(can_args)
     if world and name in WORLD_NODES:
         args += ["--world", world]
+    if params:
+        args += ["--ros-args", "--params-file", params]
+        if world and name in WORLD_NODES:
+            args += ["-p", f"world:={world}"]
     return args
+
+
+def params_choice(path: str | None, no_params: bool = False) -> str | None:
+    """The params file a start uses: none with ``--no-params``, ``--params FILE``, else the shipped
+    config/params.yaml when it exists."""
+    if no_params:
+        return None
+    if path:
+        return str(Path(path).absolute())
+    from mds_ach.tools.params import default_path  # lazy: see check_params
+
+    shipped = default_path()
+    return str(shipped) if shipped.is_file() else None
+
+
+def check_params(path: str | None, nocan: bool, out: Printer = _out) -> None:
+    """Refuse (LaunchError) a params file that does not fit the nodes' declarations, or whose ``nocan`` for the
+    daemon disagrees with this start's mode; prints which file is used."""
+    if path is None:
+        return
+    from mds_ach.tools import params  # lazy: imports the node modules (rclpy), only for a start with a file
+
+    try:
+        values = params.load(path)
+    except params.ParamsFileError as exc:
+        raise LaunchError("", f"{exc}\n  (nothing was started; 'python -m mds_ach.tools.params' prints a valid file "
+                              "with every parameter)") from None
+    daemon = next(n.ros_name for n in params.nodes() if n.name == "daemon")
+    given = values.get(daemon, {}).get("nocan")
+    if given is not None and bool(given) != nocan:
+        mode = "the simulated bus (nocan)" if nocan else "the CAN bus"
+        raise LaunchError("daemon", f"params file {path}: {daemon} nocan: {str(given).lower()}, but this start is on "
+                                    f"{mode}; use 'nocan' on the command line to choose the bus, and remove nocan "
+                                    "from the file (nothing was started)")
+    out(f"  parameters {path}")
 
 
 def world_file(path: str | None) -> str | None:
@@ -378,7 +420,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
            out: Printer = _out, group: str | None = None, foreground: bool = False,
            world: str | None = None, anatomy: str | None = None,
-           overlay: str | None = None) -> dict[str, subprocess.Popen]:
+           overlay: str | None = None, params: str | None = None) -> dict[str, subprocess.Popen]:
     """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
     until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``). ``foreground``: the nodes
     die with this process (``start_node``'s ``die_with_launcher``). ``world``: a world objects file for the
@@ -390,11 +432,15 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
     On failure every node started here is stopped again and LaunchError is raised (the system is left as
     it was found).
 
+    ``params``: a ROS 2 params file for every node (``params_choice``); checked first (``check_params``), so a bad
+    file starts nothing.
+
     ``anatomy``/``overlay``: calibration XML for every node (``mds_ach.robot.calibfiles``); the joint table is
     loaded here first, so a bad file starts nothing. A real start (not ``nocan``) without any CAN configuration
     uses SocketCAN can0 at 1 Mbit/s and brings a SocketCAN link up first (``canlink``)."""
     rt = rt or runtime_dir()
     world = world_file(world)
+    check_params(params, nocan, out)
     starts_daemon = "daemon" in names and read_pid("daemon", rt) is None
     table_text = check_table(anatomy, overlay, out) if starts_daemon else ""
     can_args, link = can_plan(nocan) if starts_daemon else ([], None)
@@ -423,7 +469,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
             check = _readiness(name)
             if check is not None:
                 checks[name] = check
-            procs[name] = start_node(name, node_args(name, nocan, world, can_args), rt, env,
+            procs[name] = start_node(name, node_args(name, nocan, world, can_args, params), rt, env,
                                      die_with_launcher=foreground)
             out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
         wait_ready(procs, checks, timeout, rt, abort)
@@ -640,7 +686,8 @@ def _surviving(out: Printer) -> Printer:
 
 
 def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None,
-                   world: str | None = None, anatomy: str | None = None, overlay: str | None = None) -> int:
+                   world: str | None = None, anatomy: str | None = None, overlay: str | None = None,
+                   params: str | None = None) -> int:
     """``mds-ach run``: start everything, print what to do next, supervise, stop cleanly. Leaves no orphans.
 
     It stops every node on Ctrl-C, SIGTERM and SIGHUP (the terminal closed), when its output is gone (``make run |
@@ -675,7 +722,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
         started = True
         try:
             procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True, world=world,
-                           anatomy=anatomy, overlay=overlay)
+                           anatomy=anatomy, overlay=overlay, params=params)
         except LaunchError as exc:
             if abort():
                 out("interrupted; everything stopped")
@@ -727,6 +774,10 @@ def _add_nocan(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overlay", metavar="FILE",
                    help="MDS-Ach mdsach.xml for the anatomy (default: $MDS_ACH_OVERLAY, else "
                         "/etc/mds-ach/configs/mdsach.xml, else the mdsach.xml beside the anatomy)")
+    p.add_argument("--params", metavar="FILE",
+                   help="ROS 2 params file for the nodes (<node>: ros__parameters: ...), checked before anything "
+                        "starts; default: the package's config/params.yaml when it exists (docs/parameters.md)")
+    p.add_argument("--no-params", action="store_true", help="pass no params file: the nodes' built-in defaults")
 
 
 def add_start_arguments(p: argparse.ArgumentParser) -> None:
@@ -750,7 +801,7 @@ def run_start(args: argparse.Namespace) -> int:
     _out(f"starting MDS-Ach{' (nocan: simulated bus)' if nocan else ''}; runtime dir {rt}")
     try:
         launch(nocan, args.timeout, names, rt, group=args.group, world=args.world, anatomy=args.anatomy,
-               overlay=args.overlay)
+               overlay=args.overlay, params=params_choice(args.params, args.no_params))
     except LaunchError as exc:
         _err(f"mds-ach start: {exc}")
         return 1
@@ -771,7 +822,8 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_run(args: argparse.Namespace) -> int:
     return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group,
-                          world=args.world, anatomy=args.anatomy, overlay=args.overlay)
+                          world=args.world, anatomy=args.anatomy, overlay=args.overlay,
+                          params=params_choice(args.params, args.no_params))
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:
