@@ -17,21 +17,14 @@ from dataclasses import dataclass
 from control_msgs.action import FollowJointTrajectory
 from trajectory_msgs.msg import JointTrajectory
 
-from mds_ach.robot import joints
-from mds_ach_bridge import trajectory
+from mds_ach_bridge import topics, trajectory
 from mds_ach_bridge.commands import CommandError, check_names
 from mds_ach_bridge.limits import Limits
 
 Result = FollowJointTrajectory.Result
 
-CONTROLLERS: dict[str, tuple[str, ...]] = {
-    "left_arm_controller": joints.LEFT_ARM,
-    "right_arm_controller": joints.RIGHT_ARM,
-    "head_controller": joints.TORSO + joints.NECK,
-}
-"""Controller name -> its joints, as config/moveit_controllers.yaml tells MoveIt's simple controller manager."""
-
-ACTION = "follow_joint_trajectory"
+CONTROLLERS = topics.CONTROLLERS
+ACTION = topics.FOLLOW_JOINT_TRAJECTORY
 """The action is ``<controller>/follow_joint_trajectory`` (relative: a node namespace moves it)."""
 
 CODE_NAMES = {

@@ -13,6 +13,11 @@ is logged once per command with the owner and reported on /diagnostics and ``mds
 that is refused, stopped by a HOLD or CANCEL from anyone, aborted (stall) or preempted stops being a target:
 the bridge stops streaming it and CANCELs its joints the other controllers do not own, so they hold where they
 are. RESUME never restarts it.
+
+Several trajectories run at once on disjoint joints (a goal per MoveIt controller, ``follow``/``actions``); a new
+command stops those sharing a joint with it. The state thread also runs the FollowJointTrajectory goals: feedback
+and tolerance checks on every frame, and the goal's end (succeeded, aborted with the reason, canceled).
+``joint_states`` carries velocities (``velocity.FiniteDifference``) and an empty effort (docs/operator.md).
 """
 
 from __future__ import annotations
@@ -160,7 +165,8 @@ PARAMETERS = (
           "FollowJointTrajectory: default goal tolerance (rad/s) of the measured velocity at the end; 0 = not checked",
           range=(0.0, 10.0), read_only=False),
     Param("path_position_tolerance", 0.0,
-          "FollowJointTrajectory: default path tolerance (rad, |desired - measured| while moving); 0 = not checked",
+          "FollowJointTrajectory: default path tolerance (rad): largest desired - measured error while moving; "
+          "0 = not checked",
           range=(0.0, 3.2), read_only=False),
     Param("goal_time_tolerance", 2.0,
           "FollowJointTrajectory: default time (s) after the trajectory's end to meet the goal tolerance",
