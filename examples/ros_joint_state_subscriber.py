@@ -2,8 +2,9 @@
 """ROS 2: print the robot's joint positions from ``/joint_states`` (published by the bridge).
 
 The bridge publishes one ``sensor_msgs/JointState`` per ``mds-state`` frame (names = URDF short names, positions
-= measured, rad) with the sensor-data QoS (best effort), so this subscriber uses ``qos_profile_sensor_data``:
-a RELIABLE subscriber would not match a best-effort publisher.
+= measured, rad; velocity, rad/s) with a reliable QoS by default, so a default-QoS subscriber like this one
+receives it (a bridge started with ``state_qos:=sensor_data`` publishes best effort: subscribe with
+``qos_profile_sensor_data`` then).
 
 Run the system first (``make run``), then, from another terminal, inside its ROS graph (network namespace and
 ROS_DOMAIN_ID): ``mds-ach ros python examples/ros_joint_state_subscriber.py --count 5``
@@ -17,7 +18,6 @@ import sys
 
 import rclpy
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
 from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import JointState
 
@@ -26,7 +26,7 @@ class JointStatePrinter(Node):
     def __init__(self, count: int) -> None:
         super().__init__("joint_state_printer")
         self.remaining = count  # 0: forever
-        self.create_subscription(JointState, "joint_states", self.on_state, qos_profile_sensor_data)
+        self.create_subscription(JointState, "joint_states", self.on_state, 10)  # default QoS: reliable
 
     def on_state(self, msg: JointState) -> None:
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9

@@ -26,9 +26,13 @@ the joint limits (all or nothing; rejections are logged with the reason) and wri
 reference channel ({mds.MDS_CHAN_REF_ROS_NAME}, the bridge's mux input) once per state cycle.
 """
 
+ACTIONS = "\n".join(f"  {c + '/' + topics.FOLLOW_JOINT_TRAJECTORY:<46} {' '.join(j)}"
+                    for c, j in topics.CONTROLLERS.items())
+
 EPILOG = f"""\
 topics (relative: remap with --ros-args -r old:=new, or move with -r __ns:=/robot):
-  {topics.JOINT_STATES:<24} out  sensor_msgs/JointState      measured positions
+  {topics.JOINT_STATES:<24} out  sensor_msgs/JointState      measured positions, velocities (finite
+                                   differences over the frames' stamps); reliable unless state_qos:=sensor_data
   {topics.JOINT_REFERENCES:<24} out  sensor_msgs/JointState      the daemon's reference (state.ref)
   {topics.ROBOT_DESCRIPTION:<24} out  std_msgs/String             the URDF (transient local)
   {topics.DIAGNOSTICS:<24} out  diagnostic_msgs/DiagnosticArray  stream health, command counters
@@ -43,6 +47,8 @@ topics (relative: remap with --ros-args -r old:=new, or move with -r __ns:=/robo
 services:
   {topics.HOLD_SERVICE:<24} std_srvs/Trigger  hold every joint (mux); stops the bridge's trajectory for good
   {topics.RESUME_SERVICE:<24} std_srvs/Trigger  release held joints; a stopped trajectory is not restarted
+actions (control_msgs/action/FollowJointTrajectory, for MoveIt: config/moveit_controllers.yaml):
+{ACTIONS}
 A frame the mux refuses (another controller owns a joint) is logged once with the owner; a trajectory that
 is refused, held, aborted or preempted stops and its joints are cancelled where they are.
 IK targets are in the robot frame (frame_id '' or 'torso': between the shoulders, x forward, y left,
@@ -50,7 +56,8 @@ z up); the task DOF per arm are the parameters ik_dof_left / ik_dof_right (a pre
 p-x p-y p-z t-x t-y t-z: 3 = position only, 6 = full pose).
 
 parameters (--ros-args -p name:=value; `ros2 param describe` shows every one):
-  state_channel, ref_channel, ik_channel, allow_ungated, state_qos (sensor_data|reliable),
+  state_channel, ref_channel, ik_channel, allow_ungated, state_qos (reliable|sensor_data),
+  goal_position_tolerance, goal_velocity_tolerance, path_position_tolerance, goal_time_tolerance,
   stale_timeout, max_state_age, command_mode, trajectory_mode,
   ik_dof_left, ik_dof_right, ik_frame, urdf, robot, publish_robot_description, diagnostics_period,
   rt_priority (SCHED_FIFO priority of the state thread, 0 = normal)
@@ -58,7 +65,7 @@ parameters (--ros-args -p name:=value; `ros2 param describe` shows every one):
 examples:
   bridge
   bridge --ros-args -p ref_channel:=mds-ref-filter      # no mux running: write the legacy input
-  bridge --ros-args -r __ns:=/mds1 -p state_qos:=reliable
+  bridge --ros-args -r __ns:=/mds1 -p state_qos:=sensor_data
   bridge --ros-args -p rt_priority:=50                  # real-time state thread (root or rtprio limit)
 """
 

@@ -13,12 +13,18 @@ is logged once per command with the owner and reported on /diagnostics and ``mds
 that is refused, stopped by a HOLD or CANCEL from anyone, aborted (stall) or preempted stops being a target:
 the bridge stops streaming it and CANCELs its joints the other controllers do not own, so they hold where they
 are. RESUME never restarts it.
+
+Several trajectories run at once on disjoint joints (a goal per MoveIt controller, ``follow``/``actions``); a new
+command stops those sharing a joint with it. The state thread also runs the FollowJointTrajectory goals: feedback
+and tolerance checks on every frame, and the goal's end (succeeded, aborted with the reason, canceled).
+``joint_states`` carries velocities (``velocity.FiniteDifference``) and an empty effort (docs/operator.md).
 """
 
 from __future__ import annotations
 
 import array
 import json
+import math
 import threading
 import time
 from collections import deque
@@ -49,12 +55,13 @@ from mds_ach.robot import joints, lifecycle
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
-from mds_ach_bridge import topics, trajectory
+from mds_ach_bridge import actions, follow, topics, trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
 from mds_ach_bridge.ik_request import make_request
 from mds_ach_bridge.limits import load_limits
 from mds_ach_bridge.muxwatch import MuxNews, MuxWatch
 from mds_ach_bridge.stamps import state_stamp_ns
+from mds_ach_bridge.velocity import FiniteDifference
 
 NODE_NAME = "mds_bridge"
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -92,8 +99,19 @@ class _Write:
     """One frame the bridge wrote: when (just before the put) and which commands it carried, by serial."""
 
     time: float
-    trajectory: int  # the trajectory sampled in it, 0 = none
+    trajectories: tuple[int, ...]  # the trajectories sampled in it
     commands: tuple[int, ...]  # the position commands applied in it
+
+
+@dataclass
+class _Running:
+    """A trajectory the bridge streams (from the topic or an action goal); several run at once on disjoint joints."""
+
+    serial: int
+    traj: trajectory.Trajectory
+    goal: actions.Goal | None = None  # the FollowJointTrajectory goal it carries out
+    written: float | None = None  # monotonic time of its first write
+    finished: bool = False  # sampled to its end; kept while its goal waits for the goal tolerance
 
 
 @dataclass(frozen=True)
@@ -114,8 +132,9 @@ PARAMETERS = (
     Param("ik_channel", mds.MDS_CHAN_IK_NAME, "Ach channel for mds_ik_t requests"),
     Param("allow_ungated", False,
           "allow ref_channel = mds-ref, which bypasses mux, filter and collision gate (simulation tests only)"),
-    Param("state_qos", "sensor_data", "QoS of joint_states and mds/joint_references: sensor_data (best effort) or "
-                                      "reliable (for subscribers that insist on RELIABLE)"),
+    Param("state_qos", "reliable", "QoS of joint_states and mds/joint_references: reliable (default, what "
+                                   "robot_state_publisher, RViz and MoveIt subscribe with) or sensor_data "
+                                   "(best effort)"),
     Param("stale_timeout", 0.5, "seconds without a new state frame before /diagnostics reports the daemon as stalled",
           range=SECONDS, read_only=False),
     Param("max_state_age", 1.0, "largest plausible age (s) of a state frame at receipt; older or future frames are "
@@ -139,6 +158,19 @@ PARAMETERS = (
                             "publishes it; 0 = normal scheduling. Needs CAP_SYS_NICE or an rtprio limit; refused: "
                             "logged, normal priority", range=(0, 99)),
     Param("diagnostics_period", 1.0, "seconds between /diagnostics messages", range=SECONDS),
+    Param("goal_position_tolerance", 0.02,
+          "FollowJointTrajectory: default goal tolerance (rad) for a joint whose goal_tolerance position is 0; 0 = "
+          "not checked", range=(0.0, 3.2), read_only=False),
+    Param("goal_velocity_tolerance", 0.0,
+          "FollowJointTrajectory: default goal tolerance (rad/s) of the measured velocity at the end; 0 = not checked",
+          range=(0.0, 10.0), read_only=False),
+    Param("path_position_tolerance", 0.0,
+          "FollowJointTrajectory: default path tolerance (rad): largest desired - measured error while moving; "
+          "0 = not checked",
+          range=(0.0, 3.2), read_only=False),
+    Param("goal_time_tolerance", 2.0,
+          "FollowJointTrajectory: default time (s) after the trajectory's end to meet the goal tolerance",
+          range=(0.0, 600.0), read_only=False),
 )
 
 
@@ -162,6 +194,10 @@ class BridgeNode(Node):
             raise ValueError(f"state_qos must be one of {', '.join(STATE_QOS)}, not {qos_name!r}")
         self._rt_priority: int = p("rt_priority").value
         self._stale_timeout: float = p("stale_timeout").value
+        self._goal_position_tolerance: float = p("goal_position_tolerance").value
+        self._goal_velocity_tolerance: float = p("goal_velocity_tolerance").value
+        self._path_position_tolerance: float = p("path_position_tolerance").value
+        self._goal_time_tolerance: float = p("goal_time_tolerance").value
         self._max_age: float = p("max_state_age").value
         self._command_mode: int = p("command_mode").value
         self._trajectory_mode: int = p("trajectory_mode").value
@@ -177,7 +213,8 @@ class BridgeNode(Node):
         self._lock = threading.Lock()
         self._counters = _Counters()
         self._pending: dict[str, float] = {}  # accepted position commands not yet written
-        self._trajectory: trajectory.Trajectory | None = None
+        self._running: dict[int, _Running] = {}  # by serial, in start order
+        self._goal_ends: list[actions.Goal] = []  # goals that ended under the lock, told to the client after it
         self._frame: MDS_REF | None = None  # the bridge's reference, created on the first write
         self._late_rejections: list[tuple[str, str]] = []  # found on the state thread under the lock, logged after it
         # Lifecycle: commands get a serial; the state thread remembers which ones each write carried.
@@ -185,9 +222,7 @@ class BridgeNode(Node):
         self._serial = 0
         self._what: dict[int, str] = {}  # serial -> "trajectory #3 (LSP, LEP)" for the messages
         self._pending_cmds: list[int] = []  # serials of the commands in _pending
-        self._traj_serial = 0
-        self._traj_written: float | None = None  # monotonic time of the running trajectory's first write
-        self._carried: tuple[int, tuple[int, ...]] = (0, ())  # what the frame _next_reference built carries
+        self._carried: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())  # what _next_reference's frame carries
         self._writes: deque[_Write] = deque(maxlen=WRITE_RECORDS)  # state thread only
         self._reported: deque[int] = deque(maxlen=WRITE_RECORDS)  # serials whose refusal was logged already
         self._cancels: list[tuple[tuple[str, ...], str]] = []  # (joints, reason) to CANCEL, sent outside the lock
@@ -208,6 +243,7 @@ class BridgeNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self._status_pub = self.create_publisher(String, topics.COMMAND_STATUS, COMMAND_QOS)
         self._js_msg = JointState(name=self._names)
+        self._velocity = FiniteDifference()  # state thread only
         self._ref_msg = JointState(name=self._names)
         if p("publish_robot_description").value:
             self._desc_pub = self.create_publisher(String, topics.ROBOT_DESCRIPTION, LATCHED_QOS)
@@ -221,6 +257,7 @@ class BridgeNode(Node):
         self.create_timer(p("diagnostics_period").value, self._publish_diagnostics)
         self.create_service(Trigger, topics.HOLD_SERVICE, self._on_hold)
         self.create_service(Trigger, topics.RESUME_SERVICE, self._on_resume)
+        self._action_servers = actions.create_servers(self, self._on_goal, self._on_goal_cancel)
 
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._state_loop, name="mds-bridge-state", daemon=True)
@@ -254,6 +291,9 @@ class BridgeNode(Node):
                     self._stale_timeout = prm.value
                 elif prm.name == "max_state_age":
                     self._max_age = prm.value
+                elif prm.name in ("goal_position_tolerance", "goal_velocity_tolerance", "path_position_tolerance",
+                                  "goal_time_tolerance"):
+                    setattr(self, "_" + prm.name, prm.value)
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------------------------ state -> ROS
@@ -281,6 +321,8 @@ class BridgeNode(Node):
         mono = time.clock_gettime(time.CLOCK_MONOTONIC)
         now_ns = self.get_clock().now().nanoseconds
         js = [state.joint[a] for a in self._addresses]
+        positions = [j.pos for j in js]
+        velocities = self._velocity.update(state.time, positions)
         news = self._mux.poll()  # what the mux did since the last cycle: before anything else is written
         # The reference first: it is one put, and a pending command should not wait for two publishes.
         with self._lock:
@@ -291,6 +333,8 @@ class BridgeNode(Node):
             self._take_mux_news(news)
             ref = self._next_reference(state, now_ns * 1e-9)
             carried = self._carried
+            feedback = self._follow_goals(now_ns * 1e-9, dict(zip(self._names, positions, strict=True)),
+                                          dict(zip(self._names, velocities, strict=True)))
             late, self._late_rejections = self._late_rejections, []
         if ref is not None:
             self._writes.append(_Write(time.monotonic(), *carried))
@@ -304,8 +348,11 @@ class BridgeNode(Node):
         stamp_ns, comparable = state_stamp_ns(now_ns, mono, state.time, self._max_age)
         stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
         self._js_msg.header.stamp = stamp
-        self._js_msg.position = array.array("d", [j.pos for j in js])
+        self._js_msg.position = array.array("d", positions)
+        self._js_msg.velocity = array.array("d", velocities)
         self._js_pub.publish(self._js_msg)
+        for goal, *values in feedback:
+            goal.feedback(stamp, *values)
         if self._ref_pub.get_subscription_count() > 0:  # nobody listening: skip the serialisation
             self._ref_msg.header.stamp = stamp
             self._ref_msg.position = array.array("d", [j.ref for j in js])
@@ -325,7 +372,7 @@ class BridgeNode(Node):
                 return
             self._stalled = True
             # A trajectory must not jump ahead when the state comes back: drop it and hold.
-            dropped = self._stop_trajectory("aborted: the state stream stalled") is not None
+            dropped = bool(self._stop_all("aborted: the state stream stalled"))
         what = "no state frame yet" if self._last_frame_mono is None else f"no new state frame for {now - since:.2f} s"
         self.get_logger().warning(
             f"{self._state_name}: {what}; is the daemon running?" + (" Trajectory aborted." if dropped else "")
@@ -340,40 +387,46 @@ class BridgeNode(Node):
 
         Sets ``_carried``: the serials of the trajectory and commands in the frame, to name them if it is refused.
         """
-        self._carried = (0, ())
-        if self._trajectory is None and not self._pending:
+        self._carried = ((), ())
+        active = [r for r in self._running.values() if not r.finished]
+        if not active and not self._pending:
             return None  # nothing new: the mux holds the last frame (an unchanged frame would not count anyway)
         if self._frame is None:
             self._frame = self._base_frame(state)
-        if self._trajectory is not None and not self._trajectory.anchored:
-            # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample.
-            current = {
-                n: state.joint[a].ref_r if n in self._resync else self._frame.joint[a].ref
-                for n in self._trajectory.names for a in (joints.BY_SHORT[n].address,)
-            }  # fmt: skip
-            try:
-                self._trajectory = self._trajectory.anchor(current, self._limits)
-            except CommandError as exc:
-                self._late_rejections.append((topics.JOINT_TRAJECTORY, str(exc)))
-                self._trajectory = None
-        traj_serial = 0
-        if self._trajectory is not None:
-            values, done = self._trajectory.sample(now_s)
+        sampled: list[int] = []
+        for r in active:
+            if not r.traj.anchored:
+                # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample.
+                current = {
+                    n: state.joint[a].ref_r if n in self._resync else self._frame.joint[a].ref
+                    for n in r.traj.names for a in (joints.BY_SHORT[n].address,)
+                }  # fmt: skip
+                try:
+                    r.traj = r.traj.anchor(current, self._limits)
+                except CommandError as exc:
+                    del self._running[r.serial]
+                    if r.goal is None:
+                        self._late_rejections.append((topics.JOINT_TRAJECTORY, str(exc)))
+                    else:
+                        self._end_goal(r.goal, actions.ABORT, follow.Result.INVALID_GOAL, str(exc))
+                    continue
+            values, done = r.traj.sample(now_s)
             self._apply(values, self._trajectory_mode)
-            traj_serial = self._traj_serial
-            if self._traj_written is None:
-                self._traj_written = time.monotonic()
+            sampled.append(r.serial)
+            if r.written is None:
+                r.written = time.monotonic()
             if done:
-                self._trajectory = None
-                self._traj_written = None
-                self._events.append(_Event("info", f"{self._what.get(traj_serial, 'trajectory')} finished",
-                                           {"event": "finished", "command": self._what.get(traj_serial, "")}))
+                r.finished = True
+                if r.goal is None:
+                    del self._running[r.serial]
+                what = self._what.get(r.serial, "trajectory")
+                self._events.append(_Event("info", f"{what} finished", {"event": "finished", "command": what}))
         commands: tuple[int, ...] = ()
         if self._pending:
             self._apply(self._pending, self._command_mode)
             self._pending = {}
             commands, self._pending_cmds = tuple(self._pending_cmds), []
-        self._carried = (traj_serial, commands)
+        self._carried = (tuple(sampled), commands)
         return self._frame
 
     def _base_frame(self, state: MDS_STATE) -> MDS_REF:
@@ -436,7 +489,7 @@ class BridgeNode(Node):
                 serial = self._new_command(f"{topic} command #{{}} ({', '.join(values)})")
                 self._pending.update(values)
                 self._pending_cmds.append(serial)
-                self._stop_trajectory(f"preempted by {self._what[serial]}", keep=tuple(values))
+                self._preempt(tuple(values), self._what[serial])
                 self._counters.accepted += 1
         if reason is not None:
             self._reject(topic, reason)
@@ -450,15 +503,8 @@ class BridgeNode(Node):
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         now = self.get_clock().now().nanoseconds * 1e-9
-        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        start = stamp if stamp > 0.0 else now
-        points = [
-            (p.time_from_start.sec + p.time_from_start.nanosec * 1e-9, p.positions, p.velocities) for p in msg.points
-        ]
         try:
-            traj = trajectory.build(msg.joint_names, points, start, self._limits)
-            if traj.end < now:
-                raise CommandError(f"the trajectory ended {now - traj.end:.3f} s ago (header.stamp in the past)")
+            traj = trajectory.from_message(msg, now, self._limits)
         except CommandError as exc:
             self._reject(topics.JOINT_TRAJECTORY, str(exc))
             return
@@ -466,20 +512,124 @@ class BridgeNode(Node):
             reason = self._refuse_reason()
             if reason is None:
                 serial = self._new_command(f"trajectory #{{}} ({', '.join(traj.names)})")
-                replaced = self._stop_trajectory(f"preempted by {self._what[serial]}", keep=traj.names) is not None
-                for n in traj.names:
-                    self._pending.pop(n, None)
-                self._trajectory = traj  # anchored at the current reference on the next state cycle
-                self._traj_serial, self._traj_written = serial, None
-                self._counters.accepted += 1
+                replaced = self._preempt(traj.names, self._what[serial])
+                self._start(serial, traj)
         if reason is not None:
             self._reject(topics.JOINT_TRAJECTORY, reason)
             return
         self._emit()
-        text = (f"{self._what[serial]} accepted{' (replaces the running one)' if replaced else ''}: "
+        text = (f"{self._what[serial]} accepted{' (replaces ' + ' and '.join(replaced) + ')' if replaced else ''}: "
                 f"{len(traj.names)} joints, {len(traj.times)} points, {traj.times[-1]:.3f} s")
         self.get_logger().info(text)
         self._publish_status({"event": "accepted", "command": self._what[serial], "message": text})
+
+    def _start(self, serial: int, traj: trajectory.Trajectory, goal: actions.Goal | None = None) -> None:
+        """Run ``traj`` from the next state cycle, anchored at the current reference there (caller holds the lock)."""
+        for n in traj.names:
+            self._pending.pop(n, None)
+        self._running[serial] = _Running(serial, traj, goal)  # anchored at the current reference on the next cycle
+        self._counters.accepted += 1
+
+    # ------------------------------------------------------------------------------------ FollowJointTrajectory
+
+    def _on_goal(self, controller: str, handle: Any) -> None:
+        """A goal for ``<controller>/follow_joint_trajectory``: validate it (the topic's checks), then run it like a
+        trajectory from the topic; it preempts the controller's running goal and anything else on its joints."""
+        goal = actions.Goal(handle, controller)
+        now = self.get_clock().now().nanoseconds * 1e-9
+        action = f"{controller}/{follow.ACTION}"
+        try:
+            traj = follow.validate(controller, handle.request, now, self._limits)
+            goal.tolerances = follow.tolerances(
+                traj.names, handle.request,
+                follow.Tolerance(self._path_position_tolerance or math.inf),
+                follow.Tolerance(self._goal_position_tolerance or math.inf, self._goal_velocity_tolerance or math.inf),
+                self._goal_time_tolerance)
+        except follow.GoalError as exc:
+            with self._lock:
+                goal.end(actions.ABORT, exc.code, str(exc))
+            self._reject(action, f"{follow.CODE_NAMES[exc.code]}: {exc}")
+            goal.publish_end()
+            return
+        with self._lock:
+            reason = self._refuse_reason()
+            if reason is None:
+                serial = self._new_command(f"{controller} goal #{{}} ({', '.join(traj.names)})")
+                mine = tuple(r.serial for r in self._running.values()
+                             if r.goal is not None and r.goal.controller == controller)
+                replaced = self._preempt(traj.names, self._what[serial], also=mine)
+                self._start(serial, traj, goal)
+            else:
+                goal.end(actions.ABORT, follow.Result.INVALID_GOAL, reason)
+        if reason is not None:
+            self._reject(action, reason)
+            goal.publish_end()
+            return
+        self._flush_cancels()
+        self._emit()
+        text = (f"{self._what[serial]} accepted{' (replaces ' + ' and '.join(replaced) + ')' if replaced else ''}: "
+                f"{len(traj.times)} points, {traj.times[-1]:.3f} s")
+        self.get_logger().info(text)
+        self._publish_status({"event": "accepted", "command": self._what[serial], "message": text})
+
+    def _on_goal_cancel(self, handle: Any) -> bool:
+        """A cancel request: stop the goal's trajectory; its joints hold at the current reference (a lifecycle
+        CANCEL through the mux, as joint_trajectory_controller holds). False when the goal has ended already."""
+        with self._lock:
+            r = next((r for r in self._running.values() if r.goal is not None and r.goal.handle is handle), None)
+            if r is None or r.goal is None or r.goal.outcome is not None:
+                return False
+            self._stop_running(r, "cancelled by its action client", how=actions.CANCELED,
+                               code=follow.Result.SUCCESSFUL)
+        self._flush_cancels()
+        self._emit()
+        return True
+
+    def _follow_goals(self, now_s: float, positions: dict[str, float],
+                      velocities: dict[str, float]) -> list[tuple[Any, ...]]:
+        """Check the running goals against this frame's measured positions: path tolerance while moving, goal
+        tolerance after the end (within goal_time_tolerance). Returns the feedback to publish (caller holds the
+        lock; the state thread)."""
+        feedback: list[tuple[Any, ...]] = []
+        for r in list(self._running.values()):
+            g = r.goal
+            if g is None or g.outcome is not None or g.tolerances is None or not r.traj.anchored:
+                continue
+            desired, _ = r.traj.sample(now_s)
+            actual = {n: positions[n] for n in r.traj.names}
+            what = self._what.get(r.serial, "goal")
+            if not r.finished:
+                why = follow.path_violation(g.tolerances, desired, actual)
+                if why is not None:
+                    self._stop_running(r, f"path tolerance violated: {why}", code=follow.Result.PATH_TOLERANCE_VIOLATED)
+                    continue
+            else:
+                final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
+                missing = follow.goal_missing(g.tolerances, final, actual, velocities)
+                if missing is None:
+                    del self._running[r.serial]
+                    worst = max(abs(final[n] - actual[n]) for n in final)
+                    self._end_goal(g, actions.SUCCEED, follow.Result.SUCCESSFUL,
+                                   f"{what}: every joint within the goal tolerance (largest error {worst:.4f} rad)")
+                    continue
+                if now_s > r.traj.end + g.tolerances.goal_time:
+                    del self._running[r.serial]
+                    self._end_goal(g, actions.ABORT, follow.Result.GOAL_TOLERANCE_VIOLATED,
+                                   f"{what}: {missing} {g.tolerances.goal_time:g} s after the trajectory's end "
+                                   "(goal_time_tolerance)")
+                    continue
+            feedback.append((g, r.traj.names, [desired[n] for n in r.traj.names], [actual[n] for n in r.traj.names],
+                             [velocities[n] for n in r.traj.names]))
+        return feedback
+
+    def _end_goal(self, goal: actions.Goal, how: str, code: int, text: str) -> None:
+        """Decide a goal's outcome; the client is told once the lock is released (caller holds the lock)."""
+        if goal.end(how, code, text):
+            self._goal_ends.append(goal)
+            level = "info" if how != actions.ABORT else "warn"
+            self._events.append(_Event(level, f"{goal.controller} goal {how} ({follow.CODE_NAMES[code]}): {text}",
+                                       {"event": f"goal {how}", "command": f"{goal.controller}/{follow.ACTION}",
+                                        "code": follow.CODE_NAMES[code], "message": text}))
 
     def _on_ik(self, arm: str, msg: PoseStamped) -> None:
         topic = topics.IK_LEFT if arm == "left" else topics.IK_RIGHT
@@ -510,55 +660,72 @@ class BridgeNode(Node):
             del self._what[next(iter(self._what))]
         return self._serial
 
-    def _stop_trajectory(self, reason: str, keep: tuple[str, ...] = (), cancel: bool = True) -> str | None:
-        """Stop streaming the running trajectory for good and queue a CANCEL for its joints not in ``keep`` (a
-        new command takes those); ``cancel`` False when nothing of it was applied. Returns its description, None
-        if none ran (caller holds the lock)."""
-        traj = self._trajectory
-        if traj is None:
-            return None
-        what = self._what.get(self._traj_serial, "trajectory")
-        self._trajectory = None
-        names = tuple(n for n in traj.names if n not in keep)
-        self._resync.update(names)
-        if cancel and self._traj_written is not None and names:  # it moved them: end their targets where they are
-            self._cancels.append((names, f"{what} stopped: {reason}"))
-        self._traj_written = None
-        self._counters.stopped += 1
-        self._counters.last_stop = f"{what}: {reason}"
-        level = "info" if reason.startswith("preempted") else "warn"
-        self._events.append(_Event(level, f"{what} stopped ({reason}); it will not continue: send it again",
-                                   {"event": "stopped", "command": what, "message": reason}))
+    def _stop_running(self, r: _Running, reason: str, keep: tuple[str, ...] = (), cancel: bool = True,
+                      how: str = actions.ABORT, code: int = follow.Result.INVALID_GOAL) -> str:
+        """Stop streaming ``r`` for good and queue a CANCEL for its joints not in ``keep`` (a new command takes
+        those); ``cancel`` False when nothing of it was applied. Its goal, if any, ends ``how`` with ``code``.
+        Returns its description (caller holds the lock)."""
+        what = self._what.get(r.serial, "trajectory")
+        self._running.pop(r.serial, None)
+        if not r.finished:
+            names = tuple(n for n in r.traj.names if n not in keep)
+            self._resync.update(names)
+            if cancel and r.written is not None and names:  # it moved them: end their targets where they are
+                self._cancels.append((names, f"{what} stopped: {reason}"))
+            self._counters.stopped += 1
+            self._counters.last_stop = f"{what}: {reason}"
+            level = "info" if reason.startswith("preempted") or how == actions.CANCELED else "warn"
+            self._events.append(_Event(level, f"{what} stopped ({reason}); it will not continue: send it again",
+                                       {"event": "stopped", "command": what, "message": reason}))
+        if r.goal is not None:
+            self._end_goal(r.goal, how, code, f"{what} stopped: {reason}")
         return what
 
+    def _preempt(self, names: tuple[str, ...], by: str, also: tuple[int, ...] = ()) -> list[str]:
+        """Stop the trajectories that share a joint with a new command ``by`` on ``names`` (and those of ``also``,
+        the preempted goal of the same controller); returns their descriptions (caller holds the lock)."""
+        taken = set(names)
+        hit = [r for r in self._running.values() if r.serial in also or taken & set(r.traj.names)]
+        return [self._stop_running(r, f"preempted by {by}", keep=names) for r in hit]
+
+    def _stop_all(self, reason: str) -> list[str]:
+        """Stop every trajectory and goal (caller holds the lock)."""
+        return [self._stop_running(r, reason) for r in list(self._running.values())]
+
     def _take_mux_news(self, news: MuxNews) -> None:
-        """Refusals of the bridge's frames and new holds: report them, stop the trajectory they hit (caller holds
+        """Refusals of the bridge's frames and new holds: report them, stop the trajectories they hit (caller holds
         the lock; the state thread)."""
-        for r in news.refusals:
-            self._counters.mux_refused += r.count
-            self._counters.last_mux_refusal = r.message
-            write = next((w for w in reversed(self._writes) if w.time <= r.frame_time + 1e-6), None)
-            serials = [] if write is None else [s for s in (write.trajectory, *write.commands) if s]
+        for rf in news.refusals:
+            self._counters.mux_refused += rf.count
+            self._counters.last_mux_refusal = rf.message
+            write = next((w for w in reversed(self._writes) if w.time <= rf.frame_time + 1e-6), None)
+            serials = [] if write is None else [s for s in (*write.trajectories, *write.commands) if s]
             new = [s for s in serials if s not in self._reported]
             self._reported.extend(new)
             if new or not serials:  # once per command
                 what = " and ".join(self._what.get(s, f"command #{s}") for s in new) or "a frame"
-                text = f"the mux refused {what} of the bridge as a whole: {r.message}; nothing of that frame applied"
-                self._events.append(_Event("warn", text, {"event": "refused", "command": what, "message": r.message,
-                                                          "owner": r.owner, "frames": r.count}))
-            if write is not None and write.trajectory and write.trajectory == self._traj_serial:
+                text = f"the mux refused {what} of the bridge as a whole: {rf.message}; nothing of that frame applied"
+                self._events.append(_Event("warn", text, {"event": "refused", "command": what, "message": rf.message,
+                                                          "owner": rf.owner, "frames": rf.count}))
+            if write is None:
+                continue
+            for serial in write.trajectories:
+                r = self._running.get(serial)
+                if r is None:
+                    continue
                 # Refused at its first frame: nothing of it was applied, nothing to cancel.
-                first = not any(w.trajectory == write.trajectory and w.time < write.time for w in self._writes)
-                self._stop_trajectory(f"refused by the mux: {r.message}", cancel=not first)
-        if self._trajectory is None or self._traj_written is None:
-            return
-        mine = {joints.BY_SHORT[n].address for n in self._trajectory.names}
-        for h in news.holds:
-            hit = h.addresses & mine
-            if h.time >= self._traj_written - 1e-6 and hit:
-                self._stop_trajectory(f"{labels(sorted(hit))} {'held' if h.action == 'hold' else h.action + 'led'} "
-                                      f"by '{h.source}'")
-                return
+                first = not any(serial in w.trajectories and w.time < write.time for w in self._writes)
+                self._stop_running(r, f"refused by the mux: {rf.message}", cancel=not first)
+        for r in list(self._running.values()):
+            if r.written is None or r.finished:
+                continue
+            mine = {joints.BY_SHORT[n].address for n in r.traj.names}
+            for h in news.holds:
+                hit = h.addresses & mine
+                if h.time >= r.written - 1e-6 and hit:
+                    self._stop_running(r, f"{labels(sorted(hit))} {'held' if h.action == 'hold' else h.action + 'led'} "
+                                          f"by '{h.source}'")
+                    break
 
     def _flush_cancels(self) -> None:
         """Send the queued CANCELs: the joints of a stopped trajectory hold where they are. Joints another
@@ -582,6 +749,9 @@ class BridgeNode(Node):
         """Log and publish the events noted under the lock."""
         with self._lock:
             events, self._events = self._events, []
+            ends, self._goal_ends = self._goal_ends, []
+        for goal in ends:
+            goal.publish_end()
         for e in events:
             # One call site per severity: rclpy refuses a call site whose severity changes.
             if e.level == "warn":
@@ -601,7 +771,7 @@ class BridgeNode(Node):
         """/mds/hold: stop the bridge's trajectory first (its next frame would release a held joint), then HOLD
         every joint through the mux; success only when the mux acknowledged it."""
         with self._lock:
-            stopped = self._stop_trajectory("hold requested on /mds/hold")
+            stopped = " and ".join(self._stop_all("hold requested on /mds/hold"))
         self._emit()
         self._flush_cancels()
         ack = lifecycle.request(lifecycle.HOLD_HOLD, source=self._controller, reason="ROS /mds/hold")
@@ -653,7 +823,8 @@ class BridgeNode(Node):
             frames_new = c.frames - c.frames_at_last_diag
             rejected_new = c.rejected - c.rejected_at_last_diag
             c.frames_at_last_diag, c.rejected_at_last_diag = c.frames, c.rejected
-            traj_active = self._trajectory is not None
+            moving = [self._what.get(r.serial, "") for r in self._running.values() if not r.finished]
+            traj_active = bool(moving)
             refused_new, stopped_new = c.mux_refused - c.mux_refused_at_last_diag, c.stopped - c.stopped_at_last_diag
             c.mux_refused_at_last_diag, c.stopped_at_last_diag = c.mux_refused, c.stopped
             held, cancelled = self._mux.held()
@@ -661,7 +832,8 @@ class BridgeNode(Node):
                 "mux controller": self._controller,
                 "mux refusals": str(c.mux_refused),
                 "last mux refusal": c.last_mux_refusal,
-                "trajectory": self._what.get(self._traj_serial, "") if traj_active else "none",
+                "trajectory": "; ".join(moving) if traj_active else "none",
+                "goals": "; ".join(self._what.get(r.serial, "") for r in self._running.values() if r.goal) or "none",
                 "trajectories stopped": str(c.stopped),
                 "last trajectory stop": c.last_stop,
                 "held joints": labels(held),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from mds_ach.robot import joints
+
 JOINT_STATES = "joint_states"  # sensor_msgs/JointState, measured positions, one message per mds-state frame
 JOINT_REFERENCES = "mds/joint_references"  # sensor_msgs/JointState, the daemon's reference (state.ref)
 JOINT_COMMAND = "mds/joint_command"  # sensor_msgs/JointState in: position commands by joint name
@@ -14,3 +16,12 @@ HOLD_SERVICE = "mds/hold"  # std_srvs/Trigger: hold every joint (through the mux
 RESUME_SERVICE = "mds/resume"  # std_srvs/Trigger: release held joints (a stopped trajectory is not restarted)
 ROBOT_DESCRIPTION = "robot_description"  # std_msgs/String, transient local: the URDF
 DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray
+
+FOLLOW_JOINT_TRAJECTORY = "follow_joint_trajectory"
+"""control_msgs/action/FollowJointTrajectory at ``<controller>/follow_joint_trajectory``, for MoveIt."""
+CONTROLLERS: dict[str, tuple[str, ...]] = {
+    "left_arm_controller": joints.LEFT_ARM,
+    "right_arm_controller": joints.RIGHT_ARM,
+    "head_controller": joints.TORSO + joints.NECK,
+}
+"""Controller name -> its joints, as config/moveit_controllers.yaml tells MoveIt's simple controller manager."""

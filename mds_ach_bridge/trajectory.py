@@ -14,9 +14,17 @@ import bisect
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 from mds_ach_bridge.commands import CommandError, check_names, check_value
 from mds_ach_bridge.limits import Limits
+
+if TYPE_CHECKING:
+    from trajectory_msgs.msg import JointTrajectory
+
+
+class StaleTrajectoryError(CommandError):
+    """The trajectory ended before it arrived (``header.stamp`` in the past)."""
 
 
 @dataclass(frozen=True)
@@ -122,6 +130,20 @@ def build(
     traj = Trajectory(names, tuple(times), tuple(rows), tuple(vels) if vels else None, start)
     if traj.velocities is not None:
         check_sampled(traj, limits)
+    return traj
+
+
+def from_message(msg: JointTrajectory, now: float, limits: Limits) -> Trajectory:
+    """A ``trajectory_msgs/JointTrajectory`` received at ``now`` (s, the node's clock), validated: the checks
+    the ``mds/joint_trajectory`` topic and the FollowJointTrajectory goals share."""
+    stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+    start = stamp if stamp > 0.0 else now
+    points = [
+        (p.time_from_start.sec + p.time_from_start.nanosec * 1e-9, p.positions, p.velocities) for p in msg.points
+    ]
+    traj = build(msg.joint_names, points, start, limits)
+    if traj.end < now:
+        raise StaleTrajectoryError(f"the trajectory ended {now - traj.end:.3f} s ago (header.stamp in the past)")
     return traj
 
 

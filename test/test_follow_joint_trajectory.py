@@ -1,0 +1,324 @@
+"""Issue 19 items 2 and 3: FollowJointTrajectory servers for MoveIt, and a reliable /joint_states with velocities.
+
+The pure parts (goal validation with result codes, tolerances, the velocity estimate) are tested directly; the node
+tests run the whole simulated system (``mds-ach start nocan``: daemon, mux, filter, collision gate, IK, bridge), so a
+goal goes through the mux, the filter and the gate like every command, and talk to the bridge over DDS from this
+process with default-QoS endpoints, as MoveIt and robot_state_publisher do.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+import yaml
+from support import REPO
+from support.system import running_system, state
+
+import mds_ach as mds
+from mds_ach.robot import joints
+from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.msgs import MDS_MUX_STATE
+from mds_ach.robot.msgs.mux_state import MUX_CANCELLED
+from mds_ach_bridge import follow
+from mds_ach_bridge.limits import load_limits
+from mds_ach_bridge.velocity import FiniteDifference
+
+LIMITS = {"LSP": (-1.9, 1.0), "LEP": (-2.4, 0.0), "RSP": (-1.9, 1.0), "NKY": (-1.0, 1.0)}
+Result = follow.Result
+
+
+def _goal(names: list[str], points: list[tuple[float, list[float]]], stamp: float = 0.0):
+    from control_msgs.action import FollowJointTrajectory
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    goal = FollowJointTrajectory.Goal()
+    goal.trajectory.joint_names = names
+    goal.trajectory.header.stamp.sec, goal.trajectory.header.stamp.nanosec = int(stamp), int(stamp % 1 * 1e9)
+    for t, pos in points:
+        p = JointTrajectoryPoint(positions=pos)
+        p.time_from_start.sec, p.time_from_start.nanosec = int(t), int(round(t % 1 * 1e9))
+        goal.trajectory.points.append(p)
+    return goal
+
+
+# --------------------------------------------------------------------------------------------- the pure parts
+
+
+def test_controllers_are_the_moveit_names_and_cover_the_model_joints() -> None:
+    assert follow.CONTROLLERS["head_controller"] == ("WST", "NKY", "NKP1", "NKP2", "NKR")
+    assert sorted(j for js in follow.CONTROLLERS.values() for j in js) == sorted(joints.MODEL_JOINTS)
+    doc = yaml.safe_load((REPO / "config" / "moveit_controllers.yaml").read_text())
+    manager = doc["moveit_simple_controller_manager"]
+    assert manager["controller_names"] == list(follow.CONTROLLERS)
+    for name, names in follow.CONTROLLERS.items():
+        c = manager[name]
+        assert (c["type"], c["action_ns"], c["joints"]) == ("FollowJointTrajectory", follow.ACTION, list(names))
+    assert doc["moveit_controller_manager"] == "moveit_simple_controller_manager/MoveItSimpleControllerManager"
+
+
+@pytest.mark.parametrize(
+    ("controller", "names", "points", "code", "reason"),
+    [
+        ("left_arm_controller", ["LSP", "XYZ"], [(1.0, [0.0, -0.5])], Result.INVALID_JOINTS, "'XYZ' not joints of"),
+        ("left_arm_controller", ["LSP", "RSP"], [(1.0, [0.0, 0.0])], Result.INVALID_JOINTS, "'RSP' not joints of"),
+        ("left_arm_controller", ["LSP", "LSP"], [(1.0, [0.0, 0.0])], Result.INVALID_JOINTS, "appears twice"),
+        ("left_arm_controller", [], [(1.0, [])], Result.INVALID_JOINTS, "joint_names is empty"),
+        ("left_arm_controller", ["LSP", "LEP"], [(1.0, [0.0, -0.5]), (0.5, [0.1, -0.6])], Result.INVALID_GOAL,
+         "point 1: time_from_start 0.5 s is not after the previous point"),
+        ("left_arm_controller", ["LSP", "LEP"], [(1.0, [0.0, 0.5])], Result.INVALID_GOAL,
+         "LEP: position 0.5 rad is outside the limits"),
+        ("left_arm_controller", ["LSP", "LEP"], [], Result.INVALID_GOAL, "no points"),
+        ("head_controller", ["NKY"], [(1.0, [math.nan])], Result.INVALID_GOAL, "not finite"),
+    ],
+)
+def test_bad_goals_get_a_result_code_and_the_reason(controller: str, names: list[str], points: list,
+                                                    code: int, reason: str) -> None:
+    with pytest.raises(follow.GoalError, match=reason) as info:
+        follow.validate(controller, _goal(names, points), 100.0, LIMITS)
+    assert info.value.code == code
+
+
+def test_a_goal_that_ended_before_it_arrived_is_an_old_header_timestamp() -> None:
+    with pytest.raises(follow.GoalError, match="ended 2.000 s ago") as info:
+        follow.validate("left_arm_controller", _goal(["LSP"], [(1.0, [0.1])], stamp=97.0), 100.0, LIMITS)
+    assert info.value.code == Result.OLD_HEADER_TIMESTAMP
+    traj = follow.validate("left_arm_controller", _goal(["LSP"], [(1.0, [0.1])], stamp=99.5), 100.0, LIMITS)
+    assert traj.start == 99.5 and traj.names == ("LSP",)
+
+
+def test_tolerances_follow_joint_trajectory_controller_rules() -> None:
+    """> 0 used, 0 = the server's default, < 0 = not checked; goal_time_tolerance 0 = the default."""
+    from control_msgs.msg import JointTolerance
+
+    goal = _goal(["LSP", "LEP"], [(1.0, [0.0, -0.5])])
+    goal.goal_tolerance = [JointTolerance(name="LSP", position=0.1), JointTolerance(name="LEP", position=-1.0,
+                                                                                      velocity=0.5)]
+    goal.path_tolerance = [JointTolerance(name="LEP", position=0.3)]
+    tol = follow.tolerances(["LSP", "LEP"], goal, follow.Tolerance(), follow.Tolerance(0.02, 0.2), 2.0)
+    assert tol.goal == {"LSP": follow.Tolerance(0.1, 0.2), "LEP": follow.Tolerance(math.inf, 0.5)}
+    assert tol.path == {"LSP": follow.Tolerance(), "LEP": follow.Tolerance(0.3, math.inf)}
+    assert tol.goal_time == 2.0
+    assert follow.path_violation(tol, {"LSP": 1.0, "LEP": 0.0}, {"LSP": 0.0, "LEP": -0.29}) is None
+    assert "LEP: position error +0.3100 rad exceeds the path tolerance 0.3" in str(
+        follow.path_violation(tol, {"LSP": 1.0, "LEP": 0.0}, {"LSP": 0.0, "LEP": -0.31}))
+    final = {"LSP": 0.5, "LEP": -1.0}
+    assert follow.goal_missing(tol, final, {"LSP": 0.45, "LEP": 0.0}, {"LSP": 0.0, "LEP": 0.4}) is None
+    assert "LSP: position error" in str(follow.goal_missing(tol, final, {"LSP": 0.3, "LEP": 0.0}, {"LSP": 0, "LEP": 0}))
+    assert "LEP: velocity" in str(follow.goal_missing(tol, final, {"LSP": 0.5, "LEP": 0.0}, {"LSP": 0, "LEP": 0.6}))
+    goal.goal_time_tolerance.sec = 5
+    assert follow.tolerances(["LSP"], goal, follow.Tolerance(), follow.Tolerance(), 2.0).goal_time == 5.0
+
+
+def test_velocity_is_the_finite_difference_over_the_frames_own_stamps() -> None:
+    fd = FiniteDifference()
+    assert fd.update(10.0, [0.0, 1.0]) == [0.0, 0.0]  # first frame: no estimate
+    assert fd.update(10.01, [0.01, 0.98]) == pytest.approx([1.0, -2.0])
+    assert fd.update(10.04, [0.04, 0.98]) == pytest.approx([1.0, 0.0])  # two frames missed: the stamps tell
+    assert fd.update(10.04, [0.05, 0.98]) == [0.0, 0.0]  # same stamp (restarted daemon): no spike
+    assert fd.update(12.0, [0.10, 0.98]) == [0.0, 0.0]  # a stall: no average over the gap
+
+
+# --------------------------------------------------------------------------------------------- the running system
+
+
+class Probe:
+    """A client node in this process: a default-QoS /joint_states subscriber and FollowJointTrajectory clients."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from control_msgs.action import FollowJointTrajectory
+        from rclpy.action import ActionClient
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from sensor_msgs.msg import JointState
+
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("fjt_probe", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.states: list = []
+        self.node.create_subscription(JointState, "/joint_states", self.states.append, 10)  # default QoS: reliable
+        self.clients = {c: ActionClient(self.node, FollowJointTrajectory, f"/{c}/{follow.ACTION}")
+                        for c in follow.CONTROLLERS}
+        for name, client in self.clients.items():
+            self.spin_until(client.server_is_ready, 60.0, f"the {name} action server")
+        self.spin_until(lambda: self.states, 30.0, "/joint_states with a default-QoS subscriber")
+
+    def spin_until(self, pred, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not pred():
+            assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def send(self, controller: str, goal, feedback: list | None = None):
+        """Send a goal; returns its handle once the server answered."""
+        sent = self.clients[controller].send_goal_async(
+            goal, feedback_callback=None if feedback is None else lambda fb: feedback.append(fb.feedback))
+        self.spin_until(sent.done, 20.0, "the goal response")
+        handle = sent.result()
+        assert handle is not None and handle.accepted
+        return handle
+
+    def result(self, handle, timeout: float = 30.0):
+        got = handle.get_result_async()
+        self.spin_until(got.done, timeout, "the goal's result")
+        return got.result()
+
+    def position(self, name: str) -> float:
+        msg = self.states[-1]
+        return float(msg.position[list(msg.name).index(name)])
+
+    def close(self) -> None:
+        for client in self.clients.values():
+            client.destroy()
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+@pytest.fixture(scope="module")
+def probe(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Probe]:
+    with running_system(tmp_path_factory.mktemp("fjt")):
+        p = Probe()
+        try:
+            yield p
+        finally:
+            p.close()
+
+
+def _state_rate(seconds: float) -> float:
+    from mds_ach.tools.launcher import state_rate
+
+    measured = state_rate(seconds)
+    assert measured is not None
+    return measured[0]
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_default_qos_subscriber_gets_joint_states_at_the_state_rate_with_velocities(probe: Probe) -> None:
+    window = 3.0
+    rate: list[float] = []
+    counter = threading.Thread(target=lambda: rate.append(_state_rate(window)))
+    probe.states.clear()
+    counter.start()
+    probe.spin_until(lambda: not counter.is_alive(), window + 10, "the state rate")
+    counter.join()
+    got = len(probe.states) / window
+    assert rate[0] > 5 and got >= 0.8 * rate[0], f"{got:.1f} /joint_states per s, {rate[0]:.1f} state frames per s"
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.states]
+    assert len(set(stamps)) == len(stamps), "a state frame was published twice"
+    last = probe.states[-1]
+    assert len(last.velocity) == len(last.name) == len(joints.MODEL_JOINTS) and not last.effort
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_two_point_goal_for_lsp_lep_succeeds_within_the_goal_tolerance(probe: Probe) -> None:
+    from control_msgs.action import FollowJointTrajectory
+    from control_msgs.msg import JointTolerance
+
+    start = {n: probe.position(n) for n in ("LSP", "LEP")}
+    lo, hi = load_limits()["LEP"]
+    mid = [start["LSP"] - 0.2, max(lo + 0.1, min(hi - 0.1, start["LEP"] - 0.3))]
+    end = [start["LSP"] - 0.4, max(lo + 0.1, min(hi - 0.1, start["LEP"] - 0.6))]
+    goal = _goal(["LSP", "LEP"], [(1.0, mid), (2.0, end)])
+    goal.goal_tolerance = [JointTolerance(name=n, position=0.01) for n in ("LSP", "LEP")]
+    feedback: list = []
+    handle = probe.send("left_arm_controller", goal, feedback)
+    sent = time.monotonic()
+    res = probe.result(handle)
+    took = time.monotonic() - sent
+    from action_msgs.msg import GoalStatus
+
+    assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+    assert res.result.error_code == FollowJointTrajectory.Result.SUCCESSFUL
+    assert "within the goal tolerance" in res.result.error_string
+    probe.spin_until(lambda: len(probe.states) > 2, 5.0, "/joint_states")
+    for name, want in zip(("LSP", "LEP"), end, strict=True):
+        assert abs(state().joint[mds.BY_SHORT[name].address].pos - want) <= 0.01, name
+    # Feedback at the state rate: one per state frame while the goal ran (2 s and the settling time).
+    assert feedback and list(feedback[-1].joint_names) == ["LSP", "LEP"]
+    stamps = [f.header.stamp.sec + f.header.stamp.nanosec * 1e-9 for f in feedback]
+    assert len(set(stamps)) == len(stamps) and stamps == sorted(stamps)
+    measured = _state_rate(1.0)
+    assert len(feedback) >= 0.8 * measured * 2.0, f"{len(feedback)} feedback messages in {took:.2f} s at " \
+                                                   f"{measured:.1f} frames/s"
+    fb = feedback[len(feedback) // 2]
+    assert [d - a for d, a in zip(fb.desired.positions, fb.actual.positions, strict=True)] == pytest.approx(
+        list(fb.error.positions))
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("names", "points", "code", "reason"),
+    [
+        (["LSP", "XYZ"], [(1.0, [0.0, -0.5])], "INVALID_JOINTS", "'XYZ' not joints of left_arm_controller"),
+        (["LSP", "LEP"], [(1.0, [0.0, -0.5]), (0.5, [0.0, -0.6])], "INVALID_GOAL", "is not after the previous point"),
+        (["LSP", "LEP"], [(1.0, [0.0, 2.5])], "INVALID_GOAL", "LEP: position 2.5 rad is outside the limits"),
+    ],
+)
+def test_a_bad_goal_is_rejected_with_the_reason_and_moves_nothing(probe: Probe, names: list[str], points: list,
+                                                                   code: str, reason: str) -> None:
+    from action_msgs.msg import GoalStatus
+
+    before = state().joint[mds.LSP].ref
+    res = probe.result(probe.send("left_arm_controller", _goal(names, points)), 10.0)
+    assert res.status == GoalStatus.STATUS_ABORTED
+    assert follow.CODE_NAMES[res.result.error_code] == code and reason in res.result.error_string, res.result
+    assert state().joint[mds.LSP].ref == before
+
+
+def _mux_held(address: int) -> int:
+    with StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE) as ch:
+        st = ch.latest()
+    assert st is not None
+    return int(st.held[address])
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_cancel_holds_the_arm_and_a_new_goal_preempts(probe: Probe) -> None:
+    from action_msgs.msg import GoalStatus
+
+    lsp = probe.position("LSP")
+    far = [(4.0, [lsp + 0.6])] if lsp + 0.6 < load_limits()["LSP"][1] else [(4.0, [lsp - 0.6])]
+    handle = probe.send("left_arm_controller", _goal(["LSP"], far))
+    probe.spin_until(lambda: abs(probe.position("LSP") - lsp) > 0.05, 15.0, "LSP moving")
+    cancel = handle.cancel_goal_async()
+    probe.spin_until(cancel.done, 10.0, "the cancel response")
+    res = probe.result(handle, 10.0)
+    assert res.status == GoalStatus.STATUS_CANCELED and "cancelled by its action client" in res.result.error_string
+    probe.spin_until(lambda: _mux_held(mds.LSP) == MUX_CANCELLED, 10.0, "LSP held (cancelled) by the mux")
+    time.sleep(0.5)  # the filter and the daemon settle on the held reference
+    held = state().joint[mds.LSP].ref
+    time.sleep(1.0)
+    assert state().joint[mds.LSP].ref == pytest.approx(held, abs=1e-9), "LSP went on after the cancel"
+    assert abs(held - far[0][1][0]) > 0.1, "the cancel came too late to show the hold"
+
+    # Preemption: a second goal on the same controller ends the first one, and then runs to success.
+    lsp = probe.position("LSP")
+    first = probe.send("left_arm_controller", _goal(["LSP"], [(4.0, [lsp + (0.5 if lsp < 0 else -0.5)])]))
+    probe.spin_until(lambda: abs(probe.position("LSP") - lsp) > 0.03, 15.0, "LSP moving")
+    second = probe.send("left_arm_controller", _goal(["LSP", "LEP"], [(1.0, [lsp, probe.position("LEP")])]))
+    res = probe.result(first, 10.0)
+    assert res.status == GoalStatus.STATUS_ABORTED and "preempted by left_arm_controller goal" in \
+        res.result.error_string, res.result
+    res = probe.result(second)
+    assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_the_three_action_servers_are_on_the_graph(probe: Probe) -> None:
+    from rclpy.action import get_action_names_and_types
+
+    found = dict(get_action_names_and_types(probe.node))
+    for c in follow.CONTROLLERS:
+        assert found.get(f"/{c}/{follow.ACTION}") == ["control_msgs/action/FollowJointTrajectory"], found
