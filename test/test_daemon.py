@@ -376,7 +376,7 @@ def test_corrupt_input_channel_holds_the_reference(rig: DaemonRig) -> None:
 
     rig.put_ref(LEP=-0.8)
     rig.step()
-    with ach.Channel(mds.MDS_CHAN_REF_NAME, create=False) as raw:
+    with ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, create=False) as raw:
         raw._i32[raw._i_dirty] = 1  # what a writer that died between 'dirty' and 'clean' leaves behind
     states = [MDS_STATE.from_buffer_copy(rig.step()) for _ in range(5)]
     assert all(st.joint[0x4C].ref_r == -0.8 for st in states)  # the last reference holds: LEP completes it
@@ -458,11 +458,11 @@ def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clea
         rig.step(2)
         rig.put_ref(LEP=-0.95)
         assert rig.step(2).joint[0x4C].ref == pytest.approx(-0.95)  # a small step: the re-seed's, then the target
-        with ach.Channel(mds.MDS_CHAN_REF_NAME, fast=False) as raw:
+        with ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, fast=False) as raw:
             raw._i32[raw._i_dirty] = 1  # what a writer killed inside its put leaves behind
         assert rig.step(3).joint[0x4C].ref == pytest.approx(-0.95)  # unreadable input: hold
         assert status_of(rig).channel_errors > 0
-        assert repair.repair(mds.MDS_CHAN_REF_NAME).ok
+        assert repair.repair(mds.MDS_CHAN_DAEMON_INPUT_NAME).ok
         rig.put_ref(LEP=-0.2)  # where upstream got to in the meantime
         refs = [rig.step().joint[0x4C].ref for _ in range(10)]
         steps = [abs(b - a) for a, b in zip([-0.95] + refs, refs, strict=False)]
@@ -856,7 +856,7 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     client = node.create_client(AddDiagnostics, "/mds_daemon/command")
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
-    ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+    ref_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
     try:
         first = wait_for(lambda: state_in.latest(), 20.0, what="mds-state from the daemon")
         assert first.joint[0x4C].pos == pytest.approx(-1.0, abs=1e-6) and first.joint[0x4C].ref == pytest.approx(
@@ -926,7 +926,7 @@ def test_a_stopped_daemon_process_ramps_when_it_continues(clean_shm, tmp_path: P
                              "--sim-pose", "LSP=-0.45"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
     status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
-    ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+    ref_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
     stop = threading.Event()
     try:
         first = wait_for(lambda: state_in.latest(), 30.0, what="mds-state from the daemon")
@@ -1034,7 +1034,7 @@ def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
             return frame
         return latest
 
-    inputs = {"mds-ref": rig.loop.ch.ref, "mds-collide": rig.loop.ch.collide}
+    inputs = {mds.MDS_CHAN_DAEMON_INPUT_NAME: rig.loop.ch.ref, "mds-collide": rig.loop.ch.collide}
     for name, channel in inputs.items():
         channel.latest = between_the_reads(channel, name)
     try:
@@ -1042,7 +1042,7 @@ def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
     finally:
         for channel in inputs.values():
             del channel.latest
-    assert sorted(reads) == ["mds-collide", "mds-ref"]
+    assert sorted(reads) == sorted(["mds-collide", mds.MDS_CHAN_DAEMON_INPUT_NAME])
     rig.step(5)
     assert rig.targets("LEP")[sent:] == [], f"read {reads}: the held arm was sent {rig.targets('LEP')[sent:]}"
     assert min(rig.targets("LEP")) >= held - 1e-6  # never past where the gate stopped it

@@ -213,7 +213,7 @@ def pipeline_lsp() -> str:
     channel whose lock is held is reported with the holder instead of being read)."""
     parts = []
     for name in (mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME,
-                 mds.MDS_CHAN_REF_NAME):
+                 mds.MDS_CHAN_DAEMON_INPUT_NAME):
         health = repair.check(name, timeout=0.2)
         if not health.ok:
             parts.append(f"{name}: {health.state}: {health.detail}")
@@ -427,7 +427,7 @@ def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
     s = system
     s.moving()
     mark = s.recorder.mark()
-    StuckWriter(mds.MDS_CHAN_REF_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
+    StuckWriter(mds.MDS_CHAN_DAEMON_INPUT_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
     corrupt = s.recorder.mark()
     try:
         time.sleep(2.0)
@@ -437,7 +437,7 @@ def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
         assert held and all(np.array_equal(f.ref[MODEL], held[0].ref[MODEL]) for f in held), \
             "the reference moved while mds-ref was corrupt"
         check = s.cli("repair", "--check")
-        assert check.returncode == 1 and mds.MDS_CHAN_REF_NAME in check.stderr
+        assert check.returncode == 1 and mds.MDS_CHAN_DAEMON_INPUT_NAME in check.stderr
         assert s.cli("repair").returncode == 0
         stopped = [n for n in NODES if s.pid(n) is None]
         if stopped:

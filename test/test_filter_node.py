@@ -176,7 +176,7 @@ def test_runner_starts_late_without_jump_and_resumes_the_mux_target(clean_shm: N
     from mds_ach.robot.channels import StructChannel
 
     current = _target(LSR=1.2, RSR=-1.18, LEP=-1.25, REP=-1.25)
-    _put(mds.MDS_CHAN_REF_NAME, current)  # what the daemon is commanding now
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, current)  # what the daemon is commanding now
     _put(mds.MDS_CHAN_REF_MUX_NAME, _target(LSR=1.2, RSR=-1.18, LEP=-0.25, REP=-1.25))  # pending mux target
     smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
     runner = FilterRunner(parse_config({"rate": 100}), log=lambda level, msg: None)
@@ -218,7 +218,7 @@ def test_runner_waits_for_a_reference_instead_of_commanding_zero(clean_shm: None
     try:
         wait_for(lambda: any("waiting for a current reference" in m for m in logs), 5, what="waiting message")
         assert smooth.latest() is None
-        _put(mds.MDS_CHAN_REF_NAME, _target(LSR=0.9))
+        _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, _target(LSR=0.9))
         first = wait_for(lambda: smooth.latest(), 5, what="first frame after the reference appeared")
         assert ref_arrays(first)[0][mds.LSR] == 0.9
     finally:
@@ -249,7 +249,7 @@ def test_filter_rejects_bad_config_with_a_clear_message(tmp_path) -> None:
 def test_filter_node_streams_and_stops_cleanly(clean_shm: None, sig: int) -> None:
     from mds_ach.robot.channels import StructChannel
 
-    _put(mds.MDS_CHAN_REF_NAME, _target(LSR=1.2))
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, _target(LSR=1.2))
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach-filter"), "--rate", "50"], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:

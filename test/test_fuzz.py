@@ -89,7 +89,7 @@ def cmd_frames(draw: st.DrawFn) -> bytes:
 
 
 daemon_events = st.lists(st.one_of(
-    st.tuples(st.just(mds.MDS_CHAN_REF_NAME), ref_payloads),
+    st.tuples(st.just(mds.MDS_CHAN_DAEMON_INPUT_NAME), ref_payloads),
     st.tuples(st.just(mds.MDS_CHAN_BOARD_CMD_NAME), st.one_of(cmd_frames(), st.binary(min_size=1, max_size=64))),
     st.tuples(st.just(mds.MDS_CHAN_COLLIDE_NAME), st.one_of(sized_garbage(ctypes.sizeof(MDS_COLLIDE)), any_size)),
 ), min_size=1, max_size=8)
@@ -131,7 +131,7 @@ def test_daemon_survives_anything_on_its_input_channels(fresh: None, caplog: pyt
             with caplog.at_level(logging.WARNING, logger="mds_ach.nodes.daemon"):
                 rig.run(0.1, move=False)  # one cycle takes the frame
             st_ = rig.status()
-            if channel == mds.MDS_CHAN_REF_NAME:
+            if channel == mds.MDS_CHAN_DAEMON_INPUT_NAME:
                 if len(data) != ctypes.sizeof(MDS_REF):
                     assert rig.loop.ch.ref.bad_frames == bad_before[0] + 1  # refused and counted
                 else:

@@ -226,7 +226,8 @@ def test_sliders_are_off_by_default_and_write_goto_references_to_ref_filter(inpr
             assert not inproc.send_goto("LEP", bad)
             assert "refused" in inproc.slider_status.content
         assert ref_filter.latest() is None, "refused values are not written"
-        for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME):
+        for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME,
+                     mds.MDS_CHAN_DAEMON_INPUT_NAME):
             with StructChannel(name, mds.MDS_REF, create=False) as other:
                 assert other.latest() is None, f"the sliders must not bypass the pipeline via {name}"
 

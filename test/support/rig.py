@@ -46,7 +46,7 @@ class DaemonRig:
         self.channels = DaemonChannels.open()
         self.loop = DaemonLoop(TABLE, self.io, self.channels, rate_hz=rate, nocan=True, clock=self.clock,
                                **loop_kwargs)
-        self.ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+        self.ref_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
         self.state_in = Newest(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
         self.status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
         self.collide_out = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
