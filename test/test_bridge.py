@@ -232,7 +232,8 @@ def test_bad_parameters_are_refused_with_a_message(clean_shm: None, param: str, 
                          timeout=60)
     assert res.returncode == 2, res.stderr
     assert reason in res.stderr and "Traceback" not in res.stderr, res.stderr
-    assert not any(ach.exists(n) for n in (mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME))
+    assert not any(ach.exists(n) for n in (mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME,
+                                           mds.MDS_CHAN_STATE_NAME))
 
 
 # --------------------------------------------------------------------------------------------- the node

@@ -8,6 +8,7 @@ loop thread on the real clock and one runs the real ``daemon --nocan`` executabl
 from __future__ import annotations
 
 import ctypes
+import logging
 import math
 import os
 import signal
@@ -1117,3 +1118,24 @@ def test_the_audit_catches_a_jump(rig: DaemonRig, tmp_path: Path) -> None:
         assert [v.split()[3:5] for v in found.violations] == [["speed", "LEP"], ["acceleration", "LEP"]], \
             found.violations
         assert found.targets["LEP"][-1][1] == pytest.approx(q, abs=1e-6)
+
+
+def test_a_second_writer_of_the_daemon_input_is_warned(rig: DaemonRig, caplog: pytest.LogCaptureFixture) -> None:
+    """Only the collision gate writes mds-ref-gated, each reference after its mds-collide report (G3): the daemon
+    says so when frames arrive there without one (a tool or an old client writing what the daemon executes)."""
+    from mds_ach.robot.msgs import MDS_COLLIDE
+
+    caplog.set_level(logging.WARNING, logger="mds_ach.nodes.daemon")
+    lep = rig.loop.state.joint[TABLE["LEP"].address].ref_r
+    for k in range(6):  # the gate: a report, then the reference; and reports on their own
+        rig.collide_out.put(MDS_COLLIDE())
+        rig.put_ref(LEP=lep - 0.01 * k)
+        rig.collide_out.put(MDS_COLLIDE())
+        rig.step()
+    assert "not put by the collision gate" not in caplog.text
+    rig.put_ref(LEP=lep)  # somebody else, three times within one cycle (one may pass as the last report's)
+    rig.put_ref(LEP=lep - 0.02)
+    rig.put_ref(LEP=lep - 0.03)
+    rig.step()
+    assert f"{mds.MDS_CHAN_DAEMON_INPUT_NAME}: 2 frame(s) not put by the collision gate" in caplog.text
+    assert mds.MDS_CHAN_REF_NAME in caplog.text.split("not put by the collision gate")[-1]

@@ -194,6 +194,36 @@ class DaemonChannels:
             ch.close()
 
 
+class SecondWriterCheck:
+    """Notices a second writer of the daemon's input (only the collision gate may write ``mds-ref-gated``).
+
+    Ach does not record who wrote a frame, but the gate puts its ``mds-collide`` report right before each
+    reference (the hold hand-off, docs/reliability.md G3), and more reports on their own. So between two looks
+    the input gains at most as many frames as ``mds-collide`` did, plus one (a report counted at the previous
+    look whose reference came after it). More is frames somebody else put: a tool or client (or a bridge with
+    ``allow_ungated``) writing what the daemon executes. ``poll`` returns how many (0: none). A channel
+    re-created or repaired (its sequence numbers start again) starts a new count."""
+
+    def __init__(self, ref: StructChannel, collide: StructChannel) -> None:
+        self._ref, self._collide = ref.channel, collide.channel
+        self._last: tuple[int, int] | None = None
+        self._carry = 0  # reports of the previous interval still without their reference (0 or 1)
+
+    def poll(self) -> int:
+        try:
+            now = (self._ref.last_seq, self._collide.last_seq)  # the reference first, as the loop reads them
+        except Exception:  # a broken channel is reported by the reads themselves
+            return 0
+        last, self._last = self._last, now
+        if last is None or now[0] < last[0] or now[1] < last[1]:
+            self._carry = 0
+            return 0
+        refs, reports = now[0] - last[0], now[1] - last[1]
+        allowed = reports + self._carry
+        self._carry = min(1, max(0, allowed - refs))
+        return max(0, refs - allowed)
+
+
 # --- per-joint runtime state ---------------------------------------------------------------------------
 
 
@@ -342,6 +372,7 @@ class DaemonLoop:
         self._snapshot = ds.MDS_DAEMON_STATUS()
         self._warned: set[str] = set()
         self._ref_unreadable = False  # the last read of mds-ref-gated failed (e.g. left corrupt by a dead writer)
+        self._writers = SecondWriterCheck(channels.ref, channels.collide)
         self._last_warn: dict[str, float] = {}
         self._answered: set[int] = set()
         self.start_time = clock()
@@ -463,6 +494,12 @@ class DaemonLoop:
         if collide is not None:
             self.collide = collide
             ctypes.memmove(ctypes.addressof(self.state.collide), ctypes.addressof(collide), ctypes.sizeof(collide))
+        foreign = self._writers.poll()
+        if foreign:
+            self._warn_rate("second-writer", f"{DAEMON_INPUT}: {foreign} frame(s) not put by the collision gate "
+                                             "(no mds-collide report before them): another process writes the "
+                                             "daemon's input; only the gate may (legacy clients write "
+                                             f"{mds.MDS_CHAN_REF_NAME}, the mux's 'direct' input)")
         if self.ch.ref.bad_frames:
             self._warn_once("ref-size", f"{self.ch.ref.name}: frames of the wrong size ignored (MDS_REF is "
                                         f"{ctypes.sizeof(MDS_REF)} bytes)")
