@@ -10,6 +10,10 @@ Each controller writes whole ``MDS_REF`` frames to its own input channel (config
   re-sending the same frame is holding, not commanding); its joints are then released and fall back to
   whoever changes them next. The output keeps its last value until then: no jump.
 
+The controllers (config/mux.yaml): ``ros`` (``mds-ref-ros``), ``ik`` (``mds-ref-ik``), ``default``
+(``mds-ref-filter``) and ``direct`` (``mds-ref``: the channel the original daemon executed, written by expert clients
+and ``achd push mds-ref``; highest priority, unsmoothed by the filter, still limit-checked here and gated).
+
 Why "modified" rather than "newest frame wins": legacy clients read-modify-write a whole frame (console
 ``goto`` changes one joint and re-sends the other 99 as they were). Only real changes are commands.
 
@@ -21,7 +25,7 @@ arrival order and publishes ``mds-ref-mux`` on every output change. Ownership an
 At start the output is the current reference (``mds-ref-gated``, else ``mds-state`` joint[].ref), published once
 so the filter holds still; frames already waiting in the input channels are taken as each controller's
 previous frame, not applied (they are old commands). Controllers with ``seed: true`` (the legacy
-``mds-ref-filter``) get the start reference written to their channel, as the original mds-filter did, so
+``mds-ref-filter`` and ``mds-ref``) get the start reference written to their channel, as the original mds-filter did, so
 read-modify-write clients start from the real pose instead of zeros.
 """
 
