@@ -223,7 +223,7 @@ class FilterCore:
     def set_owners(self, owners: Sequence[str | None]) -> None:
         """The mux's joint owners (controller names, None = nobody): joints owned by a controller with its own
         parameters (config ``controllers``) use them. A joint whose mode changes starts from rest (a pass-through
-        joint's step 'speed' is not a speed to carry into a ramp); its speed never exceeds its new limit."""
+        joint's step 'speed' is not a speed to carry into a ramp). Joints whose parameters stay are left alone."""
         owners = tuple(owners)
         if owners == self.owners or not self.base.controllers:
             self.owners = owners
@@ -232,7 +232,6 @@ class FilterCore:
         new = self.base.for_owners(owners)
         switched = new.mode != self.p.mode
         self.vel[switched] = 0.0
-        self.vel = np.clip(self.vel, -new.max_velocity, new.max_velocity)
         self.p = new
         self._accel = np.isfinite(new.max_accel)
 
