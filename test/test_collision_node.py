@@ -283,7 +283,7 @@ def test_the_measured_pose_of_a_compliant_arm_holds_the_other_arm(model) -> None
 
 
 def test_a_flagged_arm_never_moves_and_a_released_one_comes_back_at_the_filter_speed(model) -> None:
-    """mds-collide and mds-ref agree: while an arm's parts are flagged (the daemon withholds that arm's targets)
+    """mds-collide and mds-ref-gated agree: while an arm's parts are flagged (the daemon withholds that arm's targets)
     its reference does not change, and when it is released it moves on from the held reference no faster than
     the filter, so the daemon never has a missed distance to send at once. Hands to one point stop apart; then
     the right one goes home and the left one, released, comes on to the point."""
@@ -588,10 +588,10 @@ def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
 def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: None, table_model,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """The hand-off to the daemon is ordered: the gate puts a hold's report on mds-collide before the held reference
-    on mds-ref, and the daemon reads mds-ref before mds-collide, so a daemon that reads a held reference also reads
-    its hold (test_daemon.py::test_a_held_reference_is_read_with_its_hold is the daemon's side). Every put of the
-    runner is recorded in order while the left hand is driven into the table: at each mds-ref put, the newest
-    mds-collide already flags every arm that reference holds."""
+    on mds-ref-gated, and the daemon reads mds-ref-gated before mds-collide, so a daemon that reads a held reference
+    also reads its hold (test_daemon.py::test_a_held_reference_is_read_with_its_hold is the daemon's side). Every put of
+    the runner is recorded in order while the left hand is driven into the table: at each mds-ref-gated put, the
+    newest mds-collide already flags every arm that reference holds."""
     from mds_ach.robot.channels import StructChannel
 
     events: list[tuple[str, object]] = []  # (channel, frame copy) per put, ("held", arms) per gated frame

@@ -134,7 +134,7 @@ def test_zero_order_hold(rig: DaemonRig) -> None:
     rig.put_ref(LSP=0.3)
     ramp_done(rig, "LSP", 0.3)
     n_frames = len(rig.frames_to(0x5F))
-    st = rig.step(10)  # no new mds-ref frames: the last reference holds, nothing is re-sent
+    st = rig.step(10)  # no new mds-ref-gated frames: the last reference holds, nothing is re-sent
     assert st.joint[0x5F].ref_r == 0.3 and st.joint[0x5F].ref == pytest.approx(0.3, abs=1e-6)
     assert len(rig.frames_to(0x5F)) == n_frames
     rig.put_ref(LSP=0.3)  # a new frame with the same value: still nothing to send
@@ -372,7 +372,7 @@ def test_bus_off_and_reset_bus_command(rig: DaemonRig) -> None:
 
 
 def test_corrupt_input_channel_holds_the_reference(rig: DaemonRig) -> None:
-    """A writer killed inside a put leaves mds-ref marked dirty: the daemon keeps its loop and holds."""
+    """A writer killed inside a put leaves mds-ref-gated marked dirty: the daemon keeps its loop and holds."""
     from mds_ach import ach
 
     rig.put_ref(LEP=-0.8)
@@ -446,7 +446,7 @@ def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
 
 
 def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clean_shm) -> None:
-    """mds-ref left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
+    """mds-ref-gated left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
     `mds-ach repair` the first new reference is approached within the motion bounds, like after a restart."""
     from mds_ach import ach
     from mds_ach.tools import repair
@@ -516,7 +516,7 @@ def assert_bounded(rig: DaemonRig, both_reseed_rules: bool = True) -> Audit:
 
 
 def drive(rig: DaemonRig, cycles: int, mode: int = mds.MDS_REF_MODE_REF, **speeds: float) -> None:
-    """``cycles`` cycles, each after a new mds-ref frame moving the given joints at the given speeds (rad/s)."""
+    """``cycles`` cycles, each after a new mds-ref-gated frame moving the given joints at the given speeds (rad/s)."""
     a = {short: TABLE[short].address for short in speeds}
     refs = {short: rig.loop.state.joint[a[short]].ref_r for short in speeds}
     for _ in range(cycles):
@@ -1007,7 +1007,7 @@ def test_diagnostics_levels() -> None:
 
 def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
     """The gate's hand-off is ordered: it puts a hold's report on mds-collide, then the held reference on mds-ref,
-    and the daemon reads mds-ref before mds-collide. Here the gate's two puts land between the daemon's two reads
+    and the daemon reads mds-ref-gated before mds-collide. Here the gate's two puts land between the daemon's two reads
     of one cycle (the race the order closes): LEP moves at 1.2 rad/s when the gate holds the left arm at its last
     reference. The daemon withholds the arm in that very cycle; read the other way round it would take the held
     reference without its hold, and its limiter, braking from 1.2 rad/s, would pass the held reference (by up to

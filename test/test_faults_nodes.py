@@ -422,7 +422,7 @@ def test_client_killed_inside_a_put_on_a_mux_input(system: System) -> None:
 @pytest.mark.ros
 @pytest.mark.slow
 def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
-    """mds-ref (collision gate -> daemon) left corrupt: the daemon keeps publishing mds-state and holds the last
+    """mds-ref-gated (collision gate -> daemon) left corrupt: the daemon keeps publishing mds-state and holds the last
     reference; `mds-ach repair`, plus `mds-ach start --only` for any node that stopped, resume the motion."""
     s = system
     s.moving()
@@ -435,7 +435,7 @@ def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
         assert len(frames) >= 10, f"the daemon stopped publishing mds-state ({len(frames)} frames in 2 s)"
         held = [f for f in frames if f.received > frames[0].received + 0.3]
         assert held and all(np.array_equal(f.ref[MODEL], held[0].ref[MODEL]) for f in held), \
-            "the reference moved while mds-ref was corrupt"
+            "the reference moved while mds-ref-gated was corrupt"
         check = s.cli("repair", "--check")
         assert check.returncode == 1 and mds.MDS_CHAN_DAEMON_INPUT_NAME in check.stderr
         assert s.cli("repair").returncode == 0

@@ -169,7 +169,7 @@ def test_filter_brakes_a_held_joint_without_reversal_or_step(steps: int) -> None
 
 
 def test_filter_restarts_a_joint_the_gate_held_back_where_the_robot_is_sent() -> None:
-    """The filter reached the goal but the gate kept mds-ref at 0.3: a hold must not rest at the goal (the arm
+    """The filter reached the goal but the gate kept mds-ref-gated at 0.3: a hold must not rest at the goal (the arm
     would go there when the gate clears); it restarts at the gate's output."""
     f = _filter()
     f.set_target(_frame(LSP=1.0), ZERO_MODE)

@@ -91,8 +91,8 @@ class DaemonRig:
 
     def run(self, seconds: float, inject: Callable[[DaemonRig], None] | None = None, move: bool = True,
             mode: int = mds.MDS_REF_MODE_REF) -> None:
-        """Run ``seconds`` of robot time; with ``move`` one mds-ref frame per cycle moves the arms (``mode`` for the
-        moving joints, pass-through by default; the others hold their reference). ``inject`` runs before each
+        """Run ``seconds`` of robot time; with ``move`` one mds-ref-gated frame per cycle moves the arms (``mode``
+        for the moving joints, pass-through by default; the others hold their reference). ``inject`` runs before each
         cycle (a fault on the bus)."""
         for _ in range(max(1, round(seconds / self.loop.period))):
             if move:
