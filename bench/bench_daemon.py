@@ -2,8 +2,8 @@
 
 For each rate (10, 100, 200 Hz) a child process runs the real ``DaemonLoop`` (absolute-time schedule,
 ``clock_nanosleep(TIMER_ABSTIME)``, its own thread) on the simulated bus while a second process writes a new
-``mds-ref`` every period that moves all arm, torso and neck joints (17, sinusoids in pass-through mode), so
-every cycle sends 17 four-frame SET sequences, one broadcast query and decodes 43 replies.
+``mds-ref-gated`` frame (the daemon's input) every period that moves all arm, torso and neck joints (17, sinusoids
+in pass-through mode), so every cycle sends 17 four-frame SET sequences, one broadcast query and decodes 43 replies.
 
 * period error = |actual period - nominal|, from the start time of every cycle (first second dropped);
 * CPU = process CPU time (loop + simulated robot + channel I/O) per cycle and as % of one core, with the share
@@ -63,14 +63,14 @@ def _nice() -> None:
 
 
 def role_writer(rate: float, seconds: float) -> None:
-    """Write a new mds-ref every period: every moving joint on a 0.5 Hz sine of 0.15 rad about its home."""
+    """Write a new mds-ref-gated frame every period: every moving joint on a 0.5 Hz sine of 0.15 rad about its home."""
     import mds_ach as mds
     from mds_ach.robot import config
     from mds_ach.robot.channels import StructChannel
 
     _nice()
     table = config.load("default")
-    out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+    out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
     ref = mds.MDS_REF()
     for j in table:
         ref.joint[j.address].ref, ref.joint[j.address].mode = j.home, mds.MDS_REF_MODE_REF

@@ -75,8 +75,8 @@ extern int mds_debug; /* declared by the original header; define it if you use i
 /* ---- Ach channels (all made with MDS_CHANNEL_FRAME_COUNT frames of MDS_CHANNEL_FRAME_SIZE bytes) ---- */
 #define MDS_CHANNEL_FRAME_COUNT 10
 #define MDS_CHANNEL_FRAME_SIZE 3000
-/* mds_ref_t, stack only: what the daemon executes: the collision gate's output. */
-/*   written by collision; read by daemon, mux, filter, collision, ik, bridge */
+/* mds_ref_t: the mux's 'direct' controller input: legacy expert clients and remote achd push, unsmoothed, limit-checked and collision-gated (the daemon executes mds-ref-gated). */
+/*   written by clients, achd, mux; read by mux */
 #define MDS_CHAN_REF_NAME "mds-ref"
 /* mds_ref_t: the mux's 'default' controller input: legacy clients, console goto, the viewer. */
 /*   written by clients, console, viewer, achd, mux; read by mux */
@@ -108,6 +108,9 @@ extern int mds_debug; /* declared by the original header; define it if you use i
 /* mds_ref_t, new: the filter's smoothed output, the collision gate's input. */
 /*   written by filter; read by collision */
 #define MDS_CHAN_REF_SMOOTH_NAME "mds-ref-smooth"
+/* mds_ref_t, new, stack only: what the daemon executes: the collision gate's output (limit-checked, collision-free). */
+/*   written by collision; read by daemon, mux, filter, collision, ik, bridge */
+#define MDS_CHAN_REF_GATED_NAME "mds-ref-gated"
 /* mds_ik_status_t, new: the IK node's answer to each mds-ik request. */
 /*   written by ik; read by console, viewer, bridge, mds-ach, achd, clients */
 #define MDS_CHAN_IK_STATE_NAME "mds-ik-state"
@@ -123,8 +126,10 @@ extern int mds_debug; /* declared by the original header; define it if you use i
 /* mds_limits_t, new, stack only: the effective joint limits (URDF and joint table), published once when the daemon starts. */
 /*   written by daemon; read by mux, collision, ik, bridge, console, viewer, read, mds-ach, achd, clients */
 #define MDS_CHAN_LIMITS_NAME "mds-limits"
-/* What the daemon executes (only the stack's user writes it). */
-#define MDS_CHAN_DAEMON_INPUT_NAME MDS_CHAN_REF_NAME
+/* What the daemon executes: the collision gate's output, only the stack's user writes it.
+   Legacy clients write MDS_CHAN_REF_NAME ("mds-ref"): the mux's 'direct' input, limit-checked
+   and collision-gated. */
+#define MDS_CHAN_DAEMON_INPUT_NAME MDS_CHAN_REF_GATED_NAME
 /* Names the original header declared for channels nothing made or used (kept for its clients; no
    channel of that name exists), and the original mds_ach.py's spelling of MDS_CHAN_COLLIDE_NAME. */
 #define MDS_CHAN_CAN_DAEMON_NAME "mds-can-daemon"

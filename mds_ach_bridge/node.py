@@ -131,7 +131,8 @@ PARAMETERS = (
           "runs"),
     Param("ik_channel", mds.MDS_CHAN_IK_NAME, "Ach channel for mds_ik_t requests"),
     Param("allow_ungated", False,
-          "allow ref_channel = mds-ref, which bypasses mux, filter and collision gate (simulation tests only)"),
+          f"allow ref_channel = {mds.MDS_CHAN_DAEMON_INPUT_NAME} (the daemon's input), which bypasses mux, filter and "
+          "collision gate (simulation tests only)"),
     Param("state_qos", "reliable", "QoS of joint_states and mds/joint_references: reliable (default, what "
                                    "robot_state_publisher, RViz and MoveIt subscribe with) or sensor_data "
                                    "(best effort)"),
@@ -184,7 +185,7 @@ class BridgeNode(Node):
         self._state_name: str = p("state_channel").value
         self._ref_name: str = p("ref_channel").value
         self._ik_name: str = p("ik_channel").value
-        if self._ref_name == mds.MDS_CHAN_REF_NAME and not p("allow_ungated").value:
+        if self._ref_name == mds.MDS_CHAN_DAEMON_INPUT_NAME and not p("allow_ungated").value:
             raise ValueError(
                 f"ref_channel '{self._ref_name}' goes straight to the daemon, past the mux, filter and collision gate; "
                 "set allow_ungated:=true only for tests on the simulated robot"
@@ -446,7 +447,7 @@ class BridgeNode(Node):
                 frame = mux_out.latest()
         except (ach.AchException, ValueError):
             frame = None
-        if frame is not None and self._ref_name != mds.MDS_CHAN_REF_NAME:
+        if frame is not None and self._ref_name != mds.MDS_CHAN_DAEMON_INPUT_NAME:
             return frame
         frame = MDS_REF()
         for a in range(mds.MDS_JOINT_COUNT):

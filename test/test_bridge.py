@@ -224,7 +224,7 @@ def test_help_does_not_start_ros() -> None:
 @pytest.mark.parametrize(("param", "reason"), [
     ("rt_priority:=200", "out of range"),
     ("command_mode:=7", "out of range"),
-    ("ref_channel:=mds-ref", "past the mux, filter and collision gate"),
+    ("ref_channel:=mds-ref-gated", "past the mux, filter and collision gate"),
 ])
 def test_bad_parameters_are_refused_with_a_message(clean_shm: None, param: str, reason: str) -> None:
     """A bad parameter stops the bridge before it touches a channel: exit 2 and one line, no traceback."""
@@ -232,14 +232,15 @@ def test_bad_parameters_are_refused_with_a_message(clean_shm: None, param: str, 
                          timeout=60)
     assert res.returncode == 2, res.stderr
     assert reason in res.stderr and "Traceback" not in res.stderr, res.stderr
-    assert not any(ach.exists(n) for n in (mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME))
+    assert not any(ach.exists(n) for n in (mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME,
+                                           mds.MDS_CHAN_STATE_NAME))
 
 
 # --------------------------------------------------------------------------------------------- the node
 
 RATE = 50.0  # daemon loop rate for these tests
 NODE_PARAMS = [
-    "-p", "ref_channel:=mds-ref", "-p", "allow_ungated:=true",  # no mux/filter/gate here: straight to the daemon
+    "-p", "ref_channel:=mds-ref-gated", "-p", "allow_ungated:=true",  # no mux/filter/gate here: straight to the daemon
     "-p", "command_mode:=1",  # pass-through, so a command shows in pos within a second, not after the filter
     "-p", "stale_timeout:=0.5", "-p", "diagnostics_period:=0.2", "-p", "ik_dof_left:=5",
     "-p", "rt_priority:=7",  # the state thread runs SCHED_FIFO 7 where allowed

@@ -145,7 +145,7 @@ def test_make_refuses_an_open_mode_even_from_a_trusted_owner(run) -> None:
     ach.create(mds.MDS_CHAN_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o664)
     rc, _, err = run("make")
     assert rc == 1
-    assert "achshm-mds-ref has mode 0660, which allows more than 0640 (extra bits 0020): only the stack may " \
+    assert "achshm-mds-ref-gated has mode 0660, which allows more than 0640 (extra bits 0020): only the stack may " \
            "write the daemon's input" in err
     assert "achshm-mds-state has mode 0664, which allows more than 0660 (extra bits 0004)" in err
     rc, _, err = run("make", "--group", other_group().gr_name)

@@ -283,7 +283,7 @@ def test_the_measured_pose_of_a_compliant_arm_holds_the_other_arm(model) -> None
 
 
 def test_a_flagged_arm_never_moves_and_a_released_one_comes_back_at_the_filter_speed(model) -> None:
-    """mds-collide and mds-ref agree: while an arm's parts are flagged (the daemon withholds that arm's targets)
+    """mds-collide and mds-ref-gated agree: while an arm's parts are flagged (the daemon withholds that arm's targets)
     its reference does not change, and when it is released it moves on from the held reference no faster than
     the filter, so the daemon never has a missed distance to send at once. Hands to one point stop apart; then
     the right one goes home and the left one, released, comes on to the point."""
@@ -547,7 +547,7 @@ def _put(name: str, ref: np.ndarray) -> None:
 def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
     from mds_ach.robot.channels import StructChannel
 
-    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
     stale = HOME.copy()
     stale[mds.NKY] = 0.4
     _put(mds.MDS_CHAN_REF_SMOOTH_NAME, stale)  # left over from before: must not be acted on
@@ -556,7 +556,7 @@ def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
     runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
     t = threading.Thread(target=runner.run, daemon=True)
     t.start()
-    out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+    out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
     collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
     smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
     try:
@@ -590,10 +590,10 @@ def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
 def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: None, table_model,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """The hand-off to the daemon is ordered: the gate puts a hold's report on mds-collide before the held reference
-    on mds-ref, and the daemon reads mds-ref before mds-collide, so a daemon that reads a held reference also reads
-    its hold (test_daemon.py::test_a_held_reference_is_read_with_its_hold is the daemon's side). Every put of the
-    runner is recorded in order while the left hand is driven into the table: at each mds-ref put, the newest
-    mds-collide already flags every arm that reference holds."""
+    on mds-ref-gated, and the daemon reads mds-ref-gated before mds-collide, so a daemon that reads a held reference
+    also reads its hold (test_daemon.py::test_a_held_reference_is_read_with_its_hold is the daemon's side). Every put of
+    the runner is recorded in order while the left hand is driven into the table: at each mds-ref-gated put, the
+    newest mds-collide already flags every arm that reference holds."""
     from mds_ach.robot.channels import StructChannel
 
     events: list[tuple[str, object]] = []  # (channel, frame copy) per put, ("held", arms) per gated frame
@@ -601,7 +601,7 @@ def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: Non
 
     def recording_put(self: StructChannel, obj, lock_timeout: float | None = None) -> None:
         real_put(self, obj, lock_timeout)
-        if self.name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_COLLIDE_NAME):
+        if self.name in (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_COLLIDE_NAME):
             events.append((self.name, type(obj).from_buffer_copy(obj)))
 
     def on_report(decision, gate, now: float) -> None:
@@ -609,7 +609,7 @@ def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: Non
             events.append(("held", decision.held))
 
     monkeypatch.setattr(StructChannel, "put", recording_put)
-    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
     lower, upper = joint_limits(table_model)
     logs: list[str] = []
     runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg),
@@ -636,7 +636,7 @@ def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: Non
     for name, item in events:
         if name == mds.MDS_CHAN_COLLIDE_NAME:
             newest_collide = item
-        elif name == mds.MDS_CHAN_REF_NAME:
+        elif name == mds.MDS_CHAN_DAEMON_INPUT_NAME:
             newest_ref_flags = newest_collide  # what a daemon reading mds-ref, then mds-collide, could see at best
         elif item:  # the arms the reference just put holds
             holds += 1
@@ -652,7 +652,7 @@ def test_runner_logs_a_refusal_once_per_change_and_counts_it(clean_shm: None, mo
     counter in the runner and in /mds/collision's JSON."""
     from mds_ach.robot.channels import StructChannel
 
-    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
     lower, upper = joint_limits(model)
     logs: list[tuple[str, str]] = []
     docs: list[dict] = []
@@ -692,14 +692,14 @@ def test_an_arm_stopped_at_contact_gets_its_command_cancelled_on_mds_hold(clean_
     from mds_ach.robot.channels import StructChannel
     from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
 
-    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
     lower, upper = joint_limits(table_model)
     logs: list[str] = []
     runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
     t = threading.Thread(target=runner.run, daemon=True)
     t.start()
     smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
-    out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+    out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
     holds = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
     try:
         assert runner.ready.wait(10), logs
@@ -752,7 +752,7 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
 
     world = tmp_path / "world.yaml"
     world.write_text(json.dumps(TABLE))  # JSON is YAML
-    _put(mds.MDS_CHAN_REF_NAME, HOME)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach-collision"), "--world", str(world)], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     rclpy.init()

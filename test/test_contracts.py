@@ -47,7 +47,8 @@ def test_structs_of_the_channels() -> None:
     expected = {"mds-ref": msgs.MDS_REF, "mds-ref-filter": msgs.MDS_REF, "mds-state": msgs.MDS_STATE,
                 "mds-param": msgs.MDS_JOINT_PARAM, "mds-ik": msgs.MDS_IK, "mds-collide": msgs.MDS_COLLIDE,
                 "mds-cmd": msgs.MDS_CMD, "mds-ref-ik": msgs.MDS_REF, "mds-ref-ros": msgs.MDS_REF,
-                "mds-ref-mux": msgs.MDS_REF, "mds-ref-smooth": msgs.MDS_REF, "mds-ik-state": msgs.MDS_IK_STATUS,
+                "mds-ref-mux": msgs.MDS_REF, "mds-ref-smooth": msgs.MDS_REF, "mds-ref-gated": msgs.MDS_REF,
+                "mds-ik-state": msgs.MDS_IK_STATUS,
                 "mds-mux-state": msgs.MDS_MUX_STATE, "mds-daemon-status": msgs.MDS_DAEMON_STATUS,
                 "mds-hold": msgs.MDS_HOLD, "mds-limits": msgs.MDS_LIMITS}
     assert {c.name: c.struct for c in contracts.CHANNELS} == expected
@@ -125,7 +126,9 @@ def test_achd_rules_follow_the_contracts() -> None:
 
 
 def test_network_defaults_never_reach_the_daemon() -> None:
-    assert achd.SAFE_WRITABLE == remote.ROBOT_WRITABLE == ("mds-ref-filter", "mds-ik", "mds-hold")
+    # mds-ref is the mux's 'direct' input (issue #18): a remote `achd push mds-ref` passes the pipeline like the rest
+    assert achd.SAFE_WRITABLE == remote.ROBOT_WRITABLE == ("mds-ref", "mds-ref-filter", "mds-ik", "mds-hold")
+    assert mds.MDS_CHAN_DAEMON_INPUT_NAME == "mds-ref-gated" != mds.MDS_CHAN_REF_NAME
     assert mds.MDS_CHAN_DAEMON_INPUT_NAME not in achd.SAFE_WRITABLE
     assert mds.MDS_CHAN_BOARD_CMD_NAME not in achd.SAFE_WRITABLE
     assert set(remote.ROBOT_READABLE) == {"mds-state", "mds-param", "mds-collide", "mds-daemon-status",
@@ -141,6 +144,7 @@ def test_stack_only_is_the_daemon_input() -> None:
     assert contracts.BY_NAME[mds.MDS_CHAN_DAEMON_INPUT_NAME].writers == (contracts.COLLISION,)
     assert access.channel_mode(mds.MDS_CHAN_DAEMON_INPUT_NAME) == 0o640
     assert access.channel_mode(mds.MDS_CHAN_REF_FILTER_NAME) == 0o660
+    assert access.channel_mode(mds.MDS_CHAN_REF_NAME) == 0o660  # legacy clients (operators) write mds-ref
 
 
 def test_daemon_channel_set() -> None:

@@ -8,6 +8,7 @@ loop thread on the real clock and one runs the real ``daemon --nocan`` executabl
 from __future__ import annotations
 
 import ctypes
+import logging
 import math
 import os
 import signal
@@ -133,7 +134,7 @@ def test_zero_order_hold(rig: DaemonRig) -> None:
     rig.put_ref(LSP=0.3)
     ramp_done(rig, "LSP", 0.3)
     n_frames = len(rig.frames_to(0x5F))
-    st = rig.step(10)  # no new mds-ref frames: the last reference holds, nothing is re-sent
+    st = rig.step(10)  # no new mds-ref-gated frames: the last reference holds, nothing is re-sent
     assert st.joint[0x5F].ref_r == 0.3 and st.joint[0x5F].ref == pytest.approx(0.3, abs=1e-6)
     assert len(rig.frames_to(0x5F)) == n_frames
     rig.put_ref(LSP=0.3)  # a new frame with the same value: still nothing to send
@@ -371,12 +372,12 @@ def test_bus_off_and_reset_bus_command(rig: DaemonRig) -> None:
 
 
 def test_corrupt_input_channel_holds_the_reference(rig: DaemonRig) -> None:
-    """A writer killed inside a put leaves mds-ref marked dirty: the daemon keeps its loop and holds."""
+    """A writer killed inside a put leaves mds-ref-gated marked dirty: the daemon keeps its loop and holds."""
     from mds_ach import ach
 
     rig.put_ref(LEP=-0.8)
     rig.step()
-    with ach.Channel(mds.MDS_CHAN_REF_NAME, create=False) as raw:
+    with ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, create=False) as raw:
         raw._i32[raw._i_dirty] = 1  # what a writer that died between 'dirty' and 'clean' leaves behind
     states = [MDS_STATE.from_buffer_copy(rig.step()) for _ in range(5)]
     assert all(st.joint[0x4C].ref_r == -0.8 for st in states)  # the last reference holds: LEP completes it
@@ -445,7 +446,7 @@ def test_restart_ramps_to_the_running_reference(clean_shm) -> None:
 
 
 def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clean_shm) -> None:
-    """mds-ref left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
+    """mds-ref-gated left corrupt (a writer died mid-put): the daemon holds; upstream moves on meanwhile. After
     `mds-ach repair` the first new reference is approached within the motion bounds, like after a restart."""
     from mds_ach import ach
     from mds_ach.tools import repair
@@ -458,11 +459,11 @@ def test_reference_input_repaired_after_an_outage_is_approached_not_stepped(clea
         rig.step(2)
         rig.put_ref(LEP=-0.95)
         assert rig.step(2).joint[0x4C].ref == pytest.approx(-0.95)  # a small step: the re-seed's, then the target
-        with ach.Channel(mds.MDS_CHAN_REF_NAME, fast=False) as raw:
+        with ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, fast=False) as raw:
             raw._i32[raw._i_dirty] = 1  # what a writer killed inside its put leaves behind
         assert rig.step(3).joint[0x4C].ref == pytest.approx(-0.95)  # unreadable input: hold
         assert status_of(rig).channel_errors > 0
-        assert repair.repair(mds.MDS_CHAN_REF_NAME).ok
+        assert repair.repair(mds.MDS_CHAN_DAEMON_INPUT_NAME).ok
         rig.put_ref(LEP=-0.2)  # where upstream got to in the meantime
         refs = [rig.step().joint[0x4C].ref for _ in range(10)]
         steps = [abs(b - a) for a, b in zip([-0.95] + refs, refs, strict=False)]
@@ -515,7 +516,7 @@ def assert_bounded(rig: DaemonRig, both_reseed_rules: bool = True) -> Audit:
 
 
 def drive(rig: DaemonRig, cycles: int, mode: int = mds.MDS_REF_MODE_REF, **speeds: float) -> None:
-    """``cycles`` cycles, each after a new mds-ref frame moving the given joints at the given speeds (rad/s)."""
+    """``cycles`` cycles, each after a new mds-ref-gated frame moving the given joints at the given speeds (rad/s)."""
     a = {short: TABLE[short].address for short in speeds}
     refs = {short: rig.loop.state.joint[a[short]].ref_r for short in speeds}
     for _ in range(cycles):
@@ -862,7 +863,7 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
     client = node.create_client(Command, "/mds_daemon/command")
     text_client = node.create_client(AddDiagnostics, "/mds_daemon/command_text")
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
-    ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+    ref_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
     try:
         first = wait_for(lambda: state_in.latest(), 20.0, what="mds-state from the daemon")
         assert first.joint[0x4C].pos == pytest.approx(-1.0, abs=1e-6) and first.joint[0x4C].ref == pytest.approx(
@@ -947,7 +948,7 @@ def test_a_stopped_daemon_process_ramps_when_it_continues(clean_shm, tmp_path: P
                              "--sim-pose", "LSP=-0.45"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
     status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
-    ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+    ref_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
     stop = threading.Event()
     try:
         first = wait_for(lambda: state_in.latest(), 30.0, what="mds-state from the daemon")
@@ -1027,7 +1028,7 @@ def test_diagnostics_levels() -> None:
 
 def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
     """The gate's hand-off is ordered: it puts a hold's report on mds-collide, then the held reference on mds-ref,
-    and the daemon reads mds-ref before mds-collide. Here the gate's two puts land between the daemon's two reads
+    and the daemon reads mds-ref-gated before mds-collide. Here the gate's two puts land between the daemon's two reads
     of one cycle (the race the order closes): LEP moves at 1.2 rad/s when the gate holds the left arm at its last
     reference. The daemon withholds the arm in that very cycle; read the other way round it would take the held
     reference without its hold, and its limiter, braking from 1.2 rad/s, would pass the held reference (by up to
@@ -1055,7 +1056,7 @@ def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
             return frame
         return latest
 
-    inputs = {"mds-ref": rig.loop.ch.ref, "mds-collide": rig.loop.ch.collide}
+    inputs = {mds.MDS_CHAN_DAEMON_INPUT_NAME: rig.loop.ch.ref, "mds-collide": rig.loop.ch.collide}
     for name, channel in inputs.items():
         channel.latest = between_the_reads(channel, name)
     try:
@@ -1063,7 +1064,7 @@ def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
     finally:
         for channel in inputs.values():
             del channel.latest
-    assert sorted(reads) == ["mds-collide", "mds-ref"]
+    assert sorted(reads) == sorted(["mds-collide", mds.MDS_CHAN_DAEMON_INPUT_NAME])
     rig.step(5)
     assert rig.targets("LEP")[sent:] == [], f"read {reads}: the held arm was sent {rig.targets('LEP')[sent:]}"
     assert min(rig.targets("LEP")) >= held - 1e-6  # never past where the gate stopped it
@@ -1138,3 +1139,24 @@ def test_the_audit_catches_a_jump(rig: DaemonRig, tmp_path: Path) -> None:
         assert [v.split()[3:5] for v in found.violations] == [["speed", "LEP"], ["acceleration", "LEP"]], \
             found.violations
         assert found.targets["LEP"][-1][1] == pytest.approx(q, abs=1e-6)
+
+
+def test_a_second_writer_of_the_daemon_input_is_warned(rig: DaemonRig, caplog: pytest.LogCaptureFixture) -> None:
+    """Only the collision gate writes mds-ref-gated, each reference after its mds-collide report (G3): the daemon
+    says so when frames arrive there without one (a tool or an old client writing what the daemon executes)."""
+    from mds_ach.robot.msgs import MDS_COLLIDE
+
+    caplog.set_level(logging.WARNING, logger="mds_ach.nodes.daemon")
+    lep = rig.loop.state.joint[TABLE["LEP"].address].ref_r
+    for k in range(6):  # the gate: a report, then the reference; and reports on their own
+        rig.collide_out.put(MDS_COLLIDE())
+        rig.put_ref(LEP=lep - 0.01 * k)
+        rig.collide_out.put(MDS_COLLIDE())
+        rig.step()
+    assert "not put by the collision gate" not in caplog.text
+    rig.put_ref(LEP=lep)  # somebody else, three times within one cycle (one may pass as the last report's)
+    rig.put_ref(LEP=lep - 0.02)
+    rig.put_ref(LEP=lep - 0.03)
+    rig.step()
+    assert f"{mds.MDS_CHAN_DAEMON_INPUT_NAME}: 2 frame(s) not put by the collision gate" in caplog.text
+    assert mds.MDS_CHAN_REF_NAME in caplog.text.split("not put by the collision gate")[-1]

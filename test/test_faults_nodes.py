@@ -213,7 +213,7 @@ def pipeline_lsp() -> str:
     channel whose lock is held is reported with the holder instead of being read)."""
     parts = []
     for name in (mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME,
-                 mds.MDS_CHAN_REF_NAME):
+                 mds.MDS_CHAN_DAEMON_INPUT_NAME):
         health = repair.check(name, timeout=0.2)
         if not health.ok:
             parts.append(f"{name}: {health.state}: {health.detail}")
@@ -422,12 +422,12 @@ def test_client_killed_inside_a_put_on_a_mux_input(system: System) -> None:
 @pytest.mark.ros
 @pytest.mark.slow
 def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
-    """mds-ref (collision gate -> daemon) left corrupt: the daemon keeps publishing mds-state and holds the last
+    """mds-ref-gated (collision gate -> daemon) left corrupt: the daemon keeps publishing mds-state and holds the last
     reference; `mds-ach repair`, plus `mds-ach start --only` for any node that stopped, resume the motion."""
     s = system
     s.moving()
     mark = s.recorder.mark()
-    StuckWriter(mds.MDS_CHAN_REF_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
+    StuckWriter(mds.MDS_CHAN_DAEMON_INPUT_NAME, before=0, marker=PUT_STAGES["copying the data"][0]).kill()
     corrupt = s.recorder.mark()
     try:
         time.sleep(2.0)
@@ -435,9 +435,9 @@ def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
         assert len(frames) >= 10, f"the daemon stopped publishing mds-state ({len(frames)} frames in 2 s)"
         held = [f for f in frames if f.received > frames[0].received + 0.3]
         assert held and all(np.array_equal(f.ref[MODEL], held[0].ref[MODEL]) for f in held), \
-            "the reference moved while mds-ref was corrupt"
+            "the reference moved while mds-ref-gated was corrupt"
         check = s.cli("repair", "--check")
-        assert check.returncode == 1 and mds.MDS_CHAN_REF_NAME in check.stderr
+        assert check.returncode == 1 and mds.MDS_CHAN_DAEMON_INPUT_NAME in check.stderr
         assert s.cli("repair").returncode == 0
         stopped = [n for n in NODES if s.pid(n) is None]
         if stopped:

@@ -138,6 +138,37 @@ def test_pass_mode_and_mode_field_pass_through() -> None:
     assert core.step()[mds.NKY] == 0.4 and core.mode[mds.NKY] == mds.MDS_REF_MODE_REF
 
 
+def test_joints_the_direct_controller_owns_pass_unsmoothed() -> None:
+    """config/filter.yaml `controllers: direct: mode: pass`: a joint owned by the mux's `direct` controller (mds-ref,
+    expert clients) takes its target in one step; the others keep smoothing; released, a joint smooths again from
+    rest."""
+    from mds_ach.nodes.filter import owner_names
+    from mds_ach.robot.msgs import MDS_MUX_STATE
+
+    assert load_config().controllers["direct"][0] == PASS  # the shipped default
+    st = MDS_MUX_STATE()
+    st.count = 2
+    st.name[0] = type(st.name[0]).from_buffer_copy(b"ros".ljust(30, b"\0"))
+    st.name[1] = type(st.name[1]).from_buffer_copy(b"direct".ljust(30, b"\0"))
+    for a in range(N):
+        st.owner[a] = -1
+    st.owner[mds.LSP], st.owner[mds.LEP] = 1, 0
+    owners = owner_names(st)
+    assert owners[mds.LSP] == "direct" and owners[mds.LEP] == "ros" and owners[mds.RSP] is None
+
+    core = FilterCore(parse_config({"rate": 40, "controllers": {"direct": {"mode": "pass"}}}), np.zeros(N), ZERO_MODE)
+    core.set_owners(owners)
+    core.set_target(_target(LSP=0.5, LEP=0.5), ZERO_MODE)
+    out = core.step()
+    assert out[mds.LSP] == 0.5, "the direct controller's joint is not smoothed"
+    assert 0 < out[mds.LEP] < 0.05, "the other joints still are"
+    core.set_owners([None] * N)  # the direct controller went stale: LSP smooths again, from rest
+    core.set_target(_target(LSP=0.0, LEP=0.5), ZERO_MODE)
+    assert core.vel[mds.LSP] == 0.0 and 0.45 < core.step()[mds.LSP] < 0.5
+    with pytest.raises(ValueError, match="controllers.direct"):
+        parse_config({"controllers": {"direct": {"mode": "warp"}}})
+
+
 def test_smoothed_joints_tell_the_daemon_not_to_filter_again() -> None:
     p = parse_config({"joints": [{"joints": "WST", "mode": "pass"}]})
     core = FilterCore(p, np.zeros(N), ZERO_MODE)
@@ -176,7 +207,7 @@ def test_runner_starts_late_without_jump_and_resumes_the_mux_target(clean_shm: N
     from mds_ach.robot.channels import StructChannel
 
     current = _target(LSR=1.2, RSR=-1.18, LEP=-1.25, REP=-1.25)
-    _put(mds.MDS_CHAN_REF_NAME, current)  # what the daemon is commanding now
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, current)  # what the daemon is commanding now
     _put(mds.MDS_CHAN_REF_MUX_NAME, _target(LSR=1.2, RSR=-1.18, LEP=-0.25, REP=-1.25))  # pending mux target
     smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
     runner = FilterRunner(parse_config({"rate": 100}), log=lambda level, msg: None)
@@ -218,7 +249,7 @@ def test_runner_waits_for_a_reference_instead_of_commanding_zero(clean_shm: None
     try:
         wait_for(lambda: any("waiting for a current reference" in m for m in logs), 5, what="waiting message")
         assert smooth.latest() is None
-        _put(mds.MDS_CHAN_REF_NAME, _target(LSR=0.9))
+        _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, _target(LSR=0.9))
         first = wait_for(lambda: smooth.latest(), 5, what="first frame after the reference appeared")
         assert ref_arrays(first)[0][mds.LSR] == 0.9
     finally:
@@ -249,7 +280,7 @@ def test_filter_rejects_bad_config_with_a_clear_message(tmp_path) -> None:
 def test_filter_node_streams_and_stops_cleanly(clean_shm: None, sig: int) -> None:
     from mds_ach.robot.channels import StructChannel
 
-    _put(mds.MDS_CHAN_REF_NAME, _target(LSR=1.2))
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, _target(LSR=1.2))
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach-filter"), "--rate", "50"], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:

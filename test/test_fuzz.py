@@ -1,6 +1,6 @@
 """Fuzzing (hypothesis): malformed input everywhere -> no crash, nothing unsafe on the bus, every rejection counted.
 
-* every input channel of the daemon (``mds-ref``, ``mds-cmd``, ``mds-collide``): random bytes of any size, and
+* every input channel of the daemon (``mds-ref-gated``, ``mds-cmd``, ``mds-collide``): random bytes of any size, and
   well-sized frames full of NaN, Inf, huge values and bad modes, fed to the real daemon loop on the simulated bus;
 * the mux, filter and collision-gate inputs (``mds-ref-filter``/``-ik``/``-ros``, ``mds-ref-mux``,
   ``mds-ref-smooth``): the same frames through each node's decision code, then through the daemon;
@@ -89,7 +89,7 @@ def cmd_frames(draw: st.DrawFn) -> bytes:
 
 
 daemon_events = st.lists(st.one_of(
-    st.tuples(st.just(mds.MDS_CHAN_REF_NAME), ref_payloads),
+    st.tuples(st.just(mds.MDS_CHAN_DAEMON_INPUT_NAME), ref_payloads),
     st.tuples(st.just(mds.MDS_CHAN_BOARD_CMD_NAME), st.one_of(cmd_frames(), st.binary(min_size=1, max_size=64))),
     st.tuples(st.just(mds.MDS_CHAN_COLLIDE_NAME), st.one_of(sized_garbage(ctypes.sizeof(MDS_COLLIDE)), any_size)),
 ), min_size=1, max_size=8)
@@ -131,7 +131,7 @@ def test_daemon_survives_anything_on_its_input_channels(fresh: None, caplog: pyt
             with caplog.at_level(logging.WARNING, logger="mds_ach.nodes.daemon"):
                 rig.run(0.1, move=False)  # one cycle takes the frame
             st_ = rig.status()
-            if channel == mds.MDS_CHAN_REF_NAME:
+            if channel == mds.MDS_CHAN_DAEMON_INPUT_NAME:
                 if len(data) != ctypes.sizeof(MDS_REF):
                     assert rig.loop.ch.ref.bad_frames == bad_before[0] + 1  # refused and counted
                 else:
@@ -177,8 +177,8 @@ mux_events = st.lists(st.tuples(st.integers(0, 2), ref_payloads), min_size=1, ma
 @given(events=mux_events)
 def test_pipeline_nodes_never_pass_on_what_they_must_refuse(fresh: None, gate_parts: tuple,
                                                             events: list[tuple[int, bytes]]) -> None:
-    """mux inputs -> MuxCore -> FilterCore -> Gate -> mds-ref -> daemon, each with its real decision code. Frames of
-    the wrong size are dropped (StructChannel counts them); NaN/Inf frames are refused by the mux and counted; the
+    """mux inputs -> MuxCore -> FilterCore -> Gate -> mds-ref-gated -> daemon, each with its real decision code. Frames
+    of the wrong size are dropped (StructChannel counts them); NaN/Inf frames are refused by the mux and counted; the
     filter ignores non-finite targets with a warning; the gate passes only finite, in-limit, collision-free
     references with valid modes."""
     from mds_ach.nodes.collision import Gate

@@ -169,7 +169,7 @@ def test_filter_brakes_a_held_joint_without_reversal_or_step(steps: int) -> None
 
 
 def test_filter_restarts_a_joint_the_gate_held_back_where_the_robot_is_sent() -> None:
-    """The filter reached the goal but the gate kept mds-ref at 0.3: a hold must not rest at the goal (the arm
+    """The filter reached the goal but the gate kept mds-ref-gated at 0.3: a hold must not rest at the goal (the arm
     would go there when the gate clears); it restarts at the gate's output."""
     f = _filter()
     f.set_target(_frame(LSP=1.0), ZERO_MODE)
@@ -211,7 +211,7 @@ def test_ik_says_not_applied_when_the_mux_refuses_its_solution(clean_shm: None) 
         st.joint[a].ref = st.joint[a].pos = pose[a]
     with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as ch:
         ch.put(st)
-    with StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF) as ch:
+    with StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF) as ch:
         ch.put(make_ref(pose, ZERO_MODE))
     mux = MuxRunner(load_config()["controllers"], state_rate=10.0, log=lambda level, msg: None)
     ikr = IkRunner(IkService(IkNodeConfig(max_iterations=300), arm_limits("default")), log=lambda level, msg: None)
@@ -257,7 +257,7 @@ class _Gate:
         self.smooth: list[np.ndarray] = []
         self._stop = threading.Event()
         self._in = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
-        self._out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+        self._out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
         self._out.put(make_ref(start, ZERO_MODE))
         self._make_ref = make_ref
         self.thread = threading.Thread(target=self._run, daemon=True)

@@ -193,7 +193,7 @@ def test_runner_with_real_channels(clean_shm: None, output: str) -> None:
     t = threading.Thread(target=runner.run, daemon=True)
     t.start()
     out = StructChannel(output, mds.MDS_REF)
-    ref_ch = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+    ref_ch = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
     _frames(out)
     try:
         assert runner.ready.wait(10)

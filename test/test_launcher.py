@@ -133,11 +133,11 @@ def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path) -> None
     daemon = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--duration", "30"], env=env,
                             capture_output=True, text=True, timeout=120)
     assert daemon.returncode == 2, daemon.stderr
-    assert f"refusing channel 'mds-ref': /dev/shm/achshm-mds-ref is owned by uid {NOBODY}" in daemon.stderr
-    assert "mds-ach repair --recreate mds-ref" in daemon.stderr
+    assert f"refusing channel 'mds-ref-gated': /dev/shm/achshm-mds-ref-gated is owned by uid {NOBODY}" in daemon.stderr
+    assert "mds-ach repair --recreate mds-ref-gated" in daemon.stderr
     mux = subprocess.run([str(VENV_BIN / "mds-ach-mux")], env=env, capture_output=True, text=True, timeout=120)
-    assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref for its start reference
-    assert "refusing channel 'mds-ref'" in mux.stdout + mux.stderr
+    assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref-gated for its start reference
+    assert "refusing channel 'mds-ref-gated'" in mux.stdout + mux.stderr
     assert os.stat(ach.shm_path(mds.MDS_CHAN_DAEMON_INPUT_NAME)).st_uid == NOBODY, "the file was left alone"
 
 

@@ -86,7 +86,7 @@ def test_joint_selection_patterns_groups_and_errors() -> None:
         ([{"name": "a", "channel": "x", "priority": 1}, {"name": "b", "channel": "y", "priority": 1}], "priorities"),
         ([{"name": "a", "channel": "x", "priority": 1}, {"name": "a", "channel": "y", "priority": 2}], "names"),
         ([{"name": "a", "channel": "x", "priority": 1, "timeout": 0}], "timeout"),
-        ([{"name": "a", "channel": "mds-ref", "priority": 1}], "pipeline output"),
+        ([{"name": "a", "channel": "mds-ref-gated", "priority": 1}], "pipeline output"),
         ([{"name": "a", "channel": "x", "priority": 1, "joints": "nope"}], "unknown joint"),
         ([{"name": "a", "channel": "x"}], "priority"),
         ([{"name": "a", "channel": "x", "priority": 1, "colour": "red"}], "unknown keys"),
@@ -225,7 +225,7 @@ def runner(clean_shm: None):
     from mds_ach.robot.channels import StructChannel
 
     ref, mode = _start_ref()
-    _put(mds.MDS_CHAN_REF_NAME, ref)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, ref)
     _put(mds.MDS_CHAN_REF_IK_NAME, _frame(ref, LSP=1.0))  # an old IK frame: must not be applied
     out = StructChannel(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
     logs: list[str] = []
@@ -315,7 +315,7 @@ def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -
     from std_msgs.msg import String
 
     ref, _ = _start_ref()
-    _put(mds.MDS_CHAN_REF_NAME, ref)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, ref)
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach-mux"), "--ros-args", "--log-level", "warn"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()

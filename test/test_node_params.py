@@ -106,7 +106,7 @@ def test_out_of_range_parameters_stop_the_node_with_one_line(clean_shm: None, ar
 
 @pytest.mark.ros
 def test_filter_output_rate_follows_rate(clean_shm: None) -> None:
-    _put(mds.MDS_CHAN_REF_NAME, np.zeros(N))
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, np.zeros(N))
     with StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF) as smooth, \
             running("filter", "--rate", "50", "--ros-args", "-p", "rate:=4"):  # -p wins over the option
         wait_for(lambda: smooth.wait(timeout=0.5), 60, what="the first smoothed frame")
@@ -120,7 +120,7 @@ def test_filter_output_rate_follows_rate(clean_shm: None) -> None:
 
 @pytest.mark.ros
 def test_mux_state_period_follows_state_rate(clean_shm: None) -> None:
-    _put(mds.MDS_CHAN_REF_NAME, np.zeros(N))
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, np.zeros(N))
     with StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE) as state, \
             running("mux", "--ros-args", "-p", "state_rate:=2.0"):
         frames = [wait_for(lambda: state.wait(timeout=0.5), 60, what="the first mux state")]
@@ -146,9 +146,9 @@ def test_collision_margin_decides_where_the_hand_stops(clean_shm: None, tmp_path
     assert res.success, res.message
     into_table = home.copy()
     into_table[L] = res.q
-    _put(mds.MDS_CHAN_REF_NAME, home)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, home)
     with StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF) as smooth, \
-            StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF) as out, \
+            StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF) as out, \
             StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE) as collide, \
             running("collision", "--world", str(world), "--ros-args", "-p", "margin:=0.08"):
         wait_for(lambda: collide.latest(), 60, what="the gate's first report")

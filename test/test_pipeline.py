@@ -128,7 +128,7 @@ class System(Pipeline):
                 ch.close()
 
 
-SAMPLING_SLACK = 0.05  # s: the daemon samples mds-ref at a slightly different point of each cycle than it stamps
+SAMPLING_SLACK = 0.05  # s: the daemon samples mds-ref-gated at a slightly different point of each cycle than it stamps
 
 
 def assert_smooth(trace: list[tuple[float, np.ndarray, np.ndarray]], what: str) -> None:
@@ -413,10 +413,10 @@ def test_home_then_a_small_goto_starts_from_home(system: System) -> None:
         cmd.put(mds.MDS_CMD(seq=1, cmd=mds.MDS_CMD_HOME, address=lep))
     s.follow(lambda ref, pos: abs(pos[lep] - home) < 1e-6 and abs(ref[lep] - home) < 1e-6, timeout=30)
     with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS) as status, \
-            StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF) as daemon_input:
+            StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF) as daemon_input:
         wait_for(lambda: (st := status.latest()) is not None and st.joint_reseed[lep] == 1, 10, what="the re-seed")
         wait_for(lambda: (f := daemon_input.latest()) is not None and abs(f.joint[lep].ref - home) < 1e-9, 10,
-                 what="mds-ref re-seeded at home")
+                 what="mds-ref-gated re-seeded at home")
     s.trace.clear()
     goto(LEP=home + 0.05)
     s.follow(lambda ref, pos: abs(pos[lep] - (home + 0.05)) < 1e-4, timeout=20)

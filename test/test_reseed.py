@@ -71,7 +71,7 @@ def pipeline(clean_shm: None) -> Iterator[dict[str, StructChannel]]:
     """Mux, filter (100 Hz) and collision gate on their threads, started from a reference with LEP at -0.6."""
     start = HOME.copy()
     start[LEP] = -0.6
-    with StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF) as ch:
+    with StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF) as ch:
         ch.put(make_ref(start, np.zeros(N, dtype=np.int16)))
     publish({}, {LEP: -0.6})  # the daemon's baseline
     model = load_model(world={})
@@ -83,7 +83,7 @@ def pipeline(clean_shm: None) -> Iterator[dict[str, StructChannel]]:
                GateRunner(model, GateConfig(), lower, upper, log=quiet)]
     threads = [threading.Thread(target=r.run, daemon=True) for r in runners]
     outputs = {name: StructChannel(name, mds.MDS_REF) for name in
-               (mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_CHAN_REF_NAME)}
+               (mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME)}
     for t in threads:
         t.start()
     try:

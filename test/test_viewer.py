@@ -226,7 +226,8 @@ def test_sliders_are_off_by_default_and_write_goto_references_to_ref_filter(inpr
             assert not inproc.send_goto("LEP", bad)
             assert "refused" in inproc.slider_status.content
         assert ref_filter.latest() is None, "refused values are not written"
-        for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME):
+        for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME,
+                     mds.MDS_CHAN_DAEMON_INPUT_NAME):
             with StructChannel(name, mds.MDS_REF, create=False) as other:
                 assert other.latest() is None, f"the sliders must not bypass the pipeline via {name}"
 
@@ -639,7 +640,7 @@ def newest_state() -> mds.MDS_STATE | None:
 
 
 def goto(targets: dict[str, float]) -> None:
-    """A reference frame on mds-ref (what the collision gate passes on): the daemon's refs with ``targets``."""
+    """A reference frame on the daemon's input (what the collision gate passes on): its refs with ``targets``."""
     state = newest_state()
     assert state is not None
     ref = mds.MDS_REF()
@@ -647,7 +648,7 @@ def goto(targets: dict[str, float]) -> None:
         ref.joint[addr].ref = state.joint[addr].ref
     for name, value in targets.items():
         ref.joint[mds.lookup(name).address].ref = value
-    with StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF, create=False) as chan:
+    with StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF, create=False) as chan:
         chan.put(ref)
 
 
@@ -660,7 +661,7 @@ def reached(targets: dict[str, float], tolerance: float = 0.03) -> bool:
 
 @pytest.mark.slow
 def test_browser_follows_the_real_daemon_nocan(page: Page, tmp_path: Path) -> None:
-    """`daemon --nocan` moves the simulated arm after a reference on mds-ref; the page shows it moving there and
+    """`daemon --nocan` moves the simulated arm after a reference on its input; the page shows it moving there and
     back (same protocol as the fake-daemon test, against the daemon's own mds-state)."""
     log = open(tmp_path / "daemon.log", "wb")  # noqa: SIM115 - closed below
     daemon = subprocess.Popen(

@@ -5,7 +5,8 @@ our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` 
 :class:`Server`. Differences from the C tool, all on the safe side:
 
 * the server is a real listening TCP server, bound to loopback unless told otherwise, and it only lets a
-  client write the channels on its allow-list (by default the safe pipeline inputs, never ``mds-ref``);
+  client write the channels on its allow-list (by default the safe pipeline inputs, ``mds-ref`` included, never the
+  daemon's input ``mds-ref-gated``);
 * frames whose size does not match the channel's struct, or that fail validation (NaN/Inf references,
   bad modes), are dropped and counted, never written;
 * a client reconnects after a drop and re-sends its newest frame; our server starts a sending
@@ -69,7 +70,8 @@ IDLE_TIMEOUT_S = 300.0
 still wants the channel). Long enough that a quiet operator link is rarely rebuilt."""
 
 # Channels a client may write through our server unless told otherwise: the pipeline's inputs, so a
-# remote reference still passes the mux, filter and collision gate. Never mds-ref or mds-cmd.
+# remote reference still passes the mux, filter and collision gate (mds-ref too: the mux's 'direct' input).
+# Never the daemon's input (mds-ref-gated) or mds-cmd.
 SAFE_WRITABLE: tuple[str, ...] = contracts.REMOTE_WRITABLE
 
 

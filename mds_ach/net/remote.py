@@ -2,7 +2,8 @@
 
 Operator station: ``mds-ach remote HOST`` pushes the local reference path (``mds-ref-filter``, the input
 of the mux's default controller) to the robot's ``mds-ref-filter`` -- so remote references still pass the
-mux, smoothing filter and collision gate, unlike the original, which pushed straight into ``mds-ref`` --
+mux, smoothing filter and collision gate (a station running the original ``achd push mds-ref`` works too:
+``mds-ref`` is the mux's ``direct`` input here, gated like the rest) --
 and pulls ``mds-state`` (UDP by default), ``mds-param`` and ``mds-collide`` (TCP) into local channels of
 the same names. It runs in the background (pid and log in the runtime directory) until
 ``mds-ach remote kill``.
@@ -402,7 +403,7 @@ def run_serve(args: argparse.Namespace, stop: threading.Event) -> int:
             "listening on %s: anyone who reaches it can write %s; on untrusted networks serve on loopback "
             "and use 'mds-ach remote --ssh'", ", ".join(exposed), ", ".join(policy.writable),
         )
-    risky = [c for c in policy.writable if c in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_BOARD_CMD_NAME)]
+    risky = [c for c in policy.writable if c in (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_BOARD_CMD_NAME)]
     if risky:
         log.warning("clients may write %s: that bypasses the mux, filter and collision gate", ", ".join(risky))
     try:

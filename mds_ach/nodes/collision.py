@@ -1,4 +1,5 @@
-"""Collision gate (``ros2 run mds_ach collision``): ``mds-ref-smooth`` -> checks -> ``mds-ref`` (the daemon's input).
+"""Collision gate (``ros2 run mds_ach collision``): ``mds-ref-smooth`` -> checks -> ``mds-ref-gated``
+(the daemon's input; the gate is its only writer).
 
 Every reference is checked before it can reach the daemon, in this order:
 
@@ -719,12 +720,12 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
 
 class GateRunner:
     """Channels around ``Gate``: wait for ``mds-ref-smooth``, decide with the newest ``mds-state`` (measured pose,
-    echoed ``mds-collide``), put ``mds-ref`` and ``mds-collide``."""
+    echoed ``mds-collide``), put ``mds-ref-gated`` and ``mds-collide``."""
 
     def __init__(self, model: Any, config: GateConfig, lower: np.ndarray, upper: np.ndarray,
                  log: Callable[[str, str], None] | None = None,
                  on_report: Callable[[Decision | None, Gate, float], None] | None = None,
-                 sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
         self.model = model
         self.config = config
         self.lower, self.upper = lower, upper
@@ -759,7 +760,7 @@ class GateRunner:
         ref, mode, source = found
         gate = Gate(self.model, self.config, ref, mode, time.monotonic(), self.lower, self.upper)
         self._inp = inp = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
-        out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+        out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
         collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
         hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
@@ -886,9 +887,10 @@ class GateRunner:
 def _build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="collision",
-        description="Collision gate: reads mds-ref-smooth, writes mds-ref. Checks each reference (limits, speed "
-                    "bound, self-collision and world objects with python-fcl) and holds the affected arm at its "
-                    "last safe reference on a predicted collision. Reports on mds-collide and /mds/collision. "
+        description="Collision gate: reads mds-ref-smooth, writes mds-ref-gated (the daemon's input). Checks each "
+                    "reference (limits, speed bound, self-collision and world objects with python-fcl) and holds "
+                    "the affected arm at its last safe reference on a predicted collision. Reports on mds-collide "
+                    "and /mds/collision. "
                     "Expert override: publish seconds (std_msgs/Float64) on /mds/collision/override.",
         epilog="Example: ros2 run mds_ach collision --world my_world.yaml --margin 0.03",
     )

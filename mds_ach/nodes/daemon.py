@@ -1,8 +1,9 @@
 """``daemon`` (``ros2 run mds_ach daemon``): the MDS CAN driver node.
 
-Reads references from ``mds-ref``, drives the Xitome MCB nodes over any python-can bus (``--nocan``: the
-simulated MDS bus in this process), publishes ``mds-state`` every cycle, ``mds-param`` at start and
-``mds-daemon-status``; loop statistics and bus load go to ``/diagnostics`` (WARN above 60 % bus load).
+Reads references from ``mds-ref-gated`` (the collision gate's output), drives the Xitome MCB nodes over any
+python-can bus (``--nocan``: the simulated MDS bus in this process), publishes ``mds-state`` every cycle,
+``mds-param`` at start and ``mds-daemon-status``; loop statistics and bus load go to ``/diagnostics`` (WARN
+above 60 % bus load).
 
 Setup commands reach it two ways:
 
@@ -64,7 +65,7 @@ COMMAND_CODES = {"enable": mds.MDS_CMD_ENABLE, "disable": mds.MDS_CMD_DISABLE, "
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="daemon",
-        description="MDS CAN daemon: mds-ref -> Xitome MCB nodes -> mds-state. The CAN bus is any python-can "
+        description="MDS CAN daemon: mds-ref-gated -> Xitome MCB nodes -> mds-state. The CAN bus is any python-can "
                     "interface chosen by python-can's configuration (--interface/--channel/--bitrate, "
                     "$CAN_INTERFACE/$CAN_CHANNEL/$CAN_BITRATE, ~/.canrc or --can-config); --nocan simulates "
                     "the robot's bus in-process.",

@@ -3,7 +3,7 @@
 One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread:
 
 1. setup commands queued from ``mds-cmd`` or the ROS service (enable, disable, home, reset, zero, reset bus);
-2. newest ``mds-collide`` (copied into ``state.collide``) and newest ``mds-ref`` -- nothing new means the
+2. newest ``mds-collide`` (copied into ``state.collide``) and newest ``mds-ref-gated`` -- nothing new means the
    previous reference holds (zero-order hold); NaN/Inf or an unknown mode refuses that joint's value;
 3. per joint: clamp to the effective limits (URDF & joint table, ``mds_ach.kinematics.limits``), then the legacy
    mode (0 first-order filter with L giving 95 % of a step in 4.0 s at the loop rate, 1 pass-through, 2 compliant
@@ -36,7 +36,7 @@ joint in mode 2 or 3 without a trusted, fresh position holds its last target.
 reading arrived, ``vel`` is the finite difference of fresh readings, ``cur`` the last CURRENT reply (raw units),
 ``ref`` the target the joint is commanded to, ``ref_c_send`` the last one sent (float32 counts, as on the bus).
 Setup commands (enable, reset, zero encoder, home) never move a joint by themselves except HOME: afterwards
-the joint holds where it is until its reference on ``mds-ref`` changes, and once its position is known the
+the joint holds where it is until its reference on ``mds-ref-gated`` changes, and once its position is known the
 daemon asks the pipeline to restart the joint's reference there (``joint_reseed`` in ``mds-daemon-status``;
 ``resetbus`` does the same for every joint).
 """
@@ -142,10 +142,12 @@ def lock_timeout_for(rate_hz: float) -> float:
     return min(0.005, 0.1 / rate_hz) if rate_hz > 0 else 0.005  # (a bad rate is refused by DaemonLoop)
 
 
+DAEMON_INPUT = mds.MDS_CHAN_DAEMON_INPUT_NAME
+
 # The daemon's role for each channel it uses; the structs and geometry come from the contracts registry, and
 # test_contracts checks these are exactly the channels that name the daemon as a writer or reader.
 DAEMON_ROLES: dict[str, str] = {
-    "ref": mds.MDS_CHAN_DAEMON_INPUT_NAME,
+    "ref": DAEMON_INPUT,
     "state": mds.MDS_CHAN_STATE_NAME,
     "collide": mds.MDS_CHAN_COLLIDE_NAME,
     "cmd": mds.MDS_CHAN_BOARD_CMD_NAME,
@@ -192,6 +194,36 @@ class DaemonChannels:
             ch.close()
 
 
+class SecondWriterCheck:
+    """Notices a second writer of the daemon's input (only the collision gate may write ``mds-ref-gated``).
+
+    Ach does not record who wrote a frame, but the gate puts its ``mds-collide`` report right before each
+    reference (the hold hand-off, docs/reliability.md G3), and more reports on their own. So between two looks
+    the input gains at most as many frames as ``mds-collide`` did, plus one (a report counted at the previous
+    look whose reference came after it). More is frames somebody else put: a tool or client (or a bridge with
+    ``allow_ungated``) writing what the daemon executes. ``poll`` returns how many (0: none). A channel
+    re-created or repaired (its sequence numbers start again) starts a new count."""
+
+    def __init__(self, ref: StructChannel, collide: StructChannel) -> None:
+        self._ref, self._collide = ref.channel, collide.channel
+        self._last: tuple[int, int] | None = None
+        self._carry = 0  # reports of the previous interval still without their reference (0 or 1)
+
+    def poll(self) -> int:
+        try:
+            now = (self._ref.last_seq, self._collide.last_seq)  # the reference first, as the loop reads them
+        except Exception:  # a broken channel is reported by the reads themselves
+            return 0
+        last, self._last = self._last, now
+        if last is None or now[0] < last[0] or now[1] < last[1]:
+            self._carry = 0
+            return 0
+        refs, reports = now[0] - last[0], now[1] - last[1]
+        allowed = reports + self._carry
+        self._carry = min(1, max(0, allowed - refs))
+        return max(0, refs - allowed)
+
+
 # --- per-joint runtime state ---------------------------------------------------------------------------
 
 
@@ -200,7 +232,7 @@ class JointRuntime:
     """What the loop knows about one configured joint between cycles."""
 
     cfg: JointConfig
-    ref_r: float  # last accepted reference from mds-ref (joint rad)
+    ref_r: float  # last accepted reference from mds-ref-gated (joint rad)
     goal: float  # the reference after the joint's mode (clamped): what the limiter steers towards
     track: motion.Track  # the last target sent (float32 counts, as the log shows it): the limiter's state
     ref: float  # the target commanded now (full precision; state.ref)
@@ -339,7 +371,8 @@ class DaemonLoop:
         self._lock = threading.Lock()  # guards snapshot() against the loop thread
         self._snapshot = ds.MDS_DAEMON_STATUS()
         self._warned: set[str] = set()
-        self._ref_unreadable = False  # the last read of mds-ref failed (e.g. left corrupt by a dead writer)
+        self._ref_unreadable = False  # the last read of mds-ref-gated failed (e.g. left corrupt by a dead writer)
+        self._writers = SecondWriterCheck(channels.ref, channels.collide)
         self._last_warn: dict[str, float] = {}
         self._answered: set[int] = set()
         self.start_time = clock()
@@ -354,7 +387,7 @@ class DaemonLoop:
         show the configured home pose and get no target until they answer. It asks ``queries`` times within
         ``listen`` s and returns as soon as every joint answered (under CPU load replies come late: a short window
         made a joint that was merely slow show home and then jump to where it is). No motion frame is sent until a
-        reference changes. Old frames on ``mds-ref``/``mds-cmd`` are skipped. Returns how many joints answered.
+        reference changes. Old frames on ``mds-ref-gated``/``mds-cmd`` are skipped. Returns how many joints answered.
         """
         self._put(self.ch.param, self.table.to_param())
         self._put(self.ch.limits, self.limits.to_msg(now=self.clock()))
@@ -377,7 +410,7 @@ class DaemonLoop:
         answered = 0
         for jr in self.joints.values():
             if math.isfinite(jr.pos):
-                jr.ref_r = jr.goal = jr.pos  # hold here until mds-ref says otherwise
+                jr.ref_r = jr.goal = jr.pos  # hold here until mds-ref-gated says otherwise
                 answered += 1
             jr.ref_c_send = jr.ref
         self._fill_state(self.clock())
@@ -461,8 +494,14 @@ class DaemonLoop:
         if collide is not None:
             self.collide = collide
             ctypes.memmove(ctypes.addressof(self.state.collide), ctypes.addressof(collide), ctypes.sizeof(collide))
+        foreign = self._writers.poll()
+        if foreign:
+            self._warn_rate("second-writer", f"{DAEMON_INPUT}: {foreign} frame(s) not put by the collision gate "
+                                             "(no mds-collide report before them): another process writes the "
+                                             "daemon's input; only the gate may (legacy clients write "
+                                             f"{mds.MDS_CHAN_REF_NAME}, the mux's 'direct' input)")
         if self.ch.ref.bad_frames:
-            self._warn_once("ref-size", f"mds-ref: frames of the wrong size ignored (MDS_REF is "
+            self._warn_once("ref-size", f"{self.ch.ref.name}: frames of the wrong size ignored (MDS_REF is "
                                         f"{ctypes.sizeof(MDS_REF)} bytes)")
         if ref is not None:
             self.status.refs_received += 1
@@ -618,14 +657,14 @@ class DaemonLoop:
                 if not jr.flags & ds.JOINT_REFUSED:
                     self.status.refs_refused += 1
                     what = f"mode {mode}" if math.isfinite(value) else f"value {value}"
-                    self._warn_rate(f"refuse-{a}", f"mds-ref: {jr.cfg.short} {what} refused; holding "
+                    self._warn_rate(f"refuse-{a}", f"{DAEMON_INPUT}: {jr.cfg.short} {what} refused; holding "
                                                     f"{jr.ref_r:.4f}")
                 jr.flags |= ds.JOINT_REFUSED
                 continue
             jr.flags &= ~ds.JOINT_REFUSED
             if value != jr.ref_r and not jr.cfg.within_limits(value):
                 self.status.refs_clamped += 1
-                self._warn_rate(f"clamp-{a}", f"mds-ref: {jr.cfg.short} {value:.4f} outside "
+                self._warn_rate(f"clamp-{a}", f"{DAEMON_INPUT}: {jr.cfg.short} {value:.4f} outside "
                                               f"[{jr.cfg.lower:.4f}, {jr.cfg.upper:.4f}]: clamped")
             jr.ref_r, jr.mode = value, mode
 

@@ -14,6 +14,14 @@ Per-joint modes (the maths is ``mds_ach.nodes.filters``, shared with the daemon)
   so the reference stays compliant to where the joint really is. Falls back to ``ema`` without a state.
 * ``pass``: no smoothing.
 
+**Per controller** (config ``controllers``): the joints a given mux controller owns (``mds-mux-state`` owner[])
+use that controller's parameters instead. By default the mux's ``direct`` controller (``mds-ref``, the channel
+the original daemon executed, written by expert clients) is ``pass``: "unsmoothed" means only this stage is
+skipped for those joints. The filter stays in the path and nothing else is bypassed: the mux still refuses
+out-of-limit frames, the collision gate still checks every reference (and bounds its speed, ``max_velocity`` in
+config/collision.yaml), and the daemon still limits speed and acceleration (config/joints.yaml ``motion:``),
+so a step put on ``mds-ref`` reaches the motors as a bounded ramp.
+
 Why the velocity limiter is the default: its timing is predictable (a move of d rad takes d / 1.57 s, small
 moves are quick), it never overshoots, and it is what the robot ran in 2015; the EMA makes every move take
 ~4 s and approaches the target only asymptotically.
@@ -22,7 +30,7 @@ The legacy mode field of each joint travels with the reference, except that mode
 what zero-initialised legacy frames carry) leaves a smoothing joint as mode 1 (pass-through): the reference
 is already smooth, so the daemon must not filter it a second time (config ``mark_smoothed``, default true).
 
-No jump when started late or restarted: the output starts at the current reference (``mds-ref``, else
+No jump when started late or restarted: the output starts at the current reference (``mds-ref-gated``, else
 ``mds-state`` joint[].ref) and the newest ``mds-ref-mux`` frame (if any) becomes the target, so an
 interrupted move resumes from where the robot is. NaN/Inf targets are ignored per joint (with a warning).
 """
@@ -33,7 +41,7 @@ import argparse
 import math
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -57,12 +65,14 @@ from mds_ach.nodes.pipeline import (
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.paths import config_path
 from mds_ach.robot.channels import StructChannel
-from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
+from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE, get_name
+from mds_ach.robot.msgs.mux_state import MUX_MAX_CONTROLLERS
 
 MODES = ("pass", "ema", "enc_filter", "velocity_limit")
 PASS, EMA, ENC, VEL = range(4)
 DEFAULT_RATE = 40.0
 _PARAM_KEYS = {"mode", "max_velocity", "max_accel", "settle_time", "settle_fraction"}
+_PARAM_ARRAYS = ("mode", "max_velocity", "max_accel", "length")
 
 
 @dataclass(frozen=True)
@@ -75,6 +85,19 @@ class FilterParams:
     max_accel: np.ndarray  # rad/s^2, inf = no acceleration limit
     length: np.ndarray  # EMA L at this rate
     mark_smoothed: bool = True  # mode 0 out of a smoothing joint becomes mode 1 (the daemon passes it through)
+    controllers: Mapping[str, tuple[int, float, float, float]] = field(default_factory=dict)
+    """Mux controller name -> (mode, max_velocity, max_accel, length) for the joints it owns."""
+
+    def for_owners(self, owners: Sequence[str | None]) -> FilterParams:
+        """These parameters with the joints owned (``owners[address]``: controller name or None) by a configured
+        controller switched to that controller's parameters."""
+        arrays = {k: getattr(self, k).copy() for k in _PARAM_ARRAYS}
+        for a, name in enumerate(owners):
+            values = self.controllers.get(name) if name is not None else None
+            if values is not None:
+                for k, v in zip(_PARAM_ARRAYS, values, strict=True):
+                    arrays[k][a] = v
+        return replace(self, **arrays)
 
     @property
     def dt(self) -> float:
@@ -114,7 +137,7 @@ def _joint_params(entry: Mapping[str, Any], base: dict[str, Any], where: str) ->
 
 def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: float | None = None) -> FilterParams:
     """Validate filter.yaml: ``rate``, ``default`` parameters, ``joints`` overrides (applied in order)."""
-    unknown = set(data) - {"rate", "default", "joints", "mark_smoothed"}
+    unknown = set(data) - {"rate", "default", "joints", "mark_smoothed", "controllers"}
     if unknown:
         raise ValueError(f"{where}: unknown keys {sorted(unknown)}")
     rate = float(rate if rate is not None else data.get("rate", DEFAULT_RATE))
@@ -130,6 +153,19 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
             raise ValueError(f"{here}: needs 'joints' (names, groups or patterns) and the parameters to set")
         for a in select_joints(entry["joints"], here):
             per[a] = _joint_params(entry, per[a], here)
+    controllers = data.get("controllers") or {}
+    if not isinstance(controllers, Mapping):
+        raise ValueError(f"{where}: controllers must map mux controller names to parameters")
+    by_controller: dict[str, tuple[int, float, float, float]] = {}
+    for name, entry in controllers.items():
+        here = f"{where}: controllers.{name}"
+        if not isinstance(entry, Mapping) or "joints" in entry:
+            raise ValueError(f"{here}: needs parameters ({', '.join(sorted(_PARAM_KEYS))}) for the joints that "
+                             "controller owns")
+        c = _joint_params(entry, base, here)
+        by_controller[str(name)] = (MODES.index(c["mode"]), c["max_velocity"],
+                                    math.inf if c["max_accel"] is None else c["max_accel"],
+                                    filters.filter_length(rate, c["settle_time"], c["settle_fraction"]))
     return FilterParams(
         rate=rate,
         mode=np.array([MODES.index(p["mode"]) for p in per]),
@@ -137,6 +173,7 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
         max_accel=np.array([math.inf if p["max_accel"] is None else p["max_accel"] for p in per]),
         length=np.array([filters.filter_length(rate, p["settle_time"], p["settle_fraction"]) for p in per]),
         mark_smoothed=bool(data.get("mark_smoothed", True)),
+        controllers=by_controller,
     )
 
 
@@ -158,7 +195,9 @@ class FilterCore:
     """The smoother's state (output, velocity, target) and one ``step()`` per tick. No channels here."""
 
     def __init__(self, params: FilterParams, ref: np.ndarray, mode: np.ndarray) -> None:
+        self.base = params  # the configured parameters; ``p``: those in effect (``set_owners``)
         self.p = params
+        self.owners: tuple[str | None, ...] = (None,) * MDS_JOINT_COUNT
         self.out = np.array(ref, dtype=float)
         self.vel = np.zeros(MDS_JOINT_COUNT)
         self.target = self.out.copy()
@@ -181,11 +220,26 @@ class FilterCore:
             return f"ignored non-finite targets for {labels(np.flatnonzero(~ok))}"
         return None
 
+    def set_owners(self, owners: Sequence[str | None]) -> None:
+        """The mux's joint owners (controller names, None = nobody): joints owned by a controller with its own
+        parameters (config ``controllers``) use them. A joint whose mode changes starts from rest (a pass-through
+        joint's step 'speed' is not a speed to carry into a ramp). Joints whose parameters stay are left alone."""
+        owners = tuple(owners)
+        if owners == self.owners or not self.base.controllers:
+            self.owners = owners
+            return
+        self.owners = owners
+        new = self.base.for_owners(owners)
+        switched = new.mode != self.p.mode
+        self.vel[switched] = 0.0
+        self.p = new
+        self._accel = np.isfinite(new.max_accel)
+
     def hold(self, held: np.ndarray, reference: np.ndarray | None = None) -> None:
         """The mux's held mask (``mds-mux-state`` held[]). Newly held joints stop advancing toward their target
         at once: acceleration-limited joints brake at ``max_accel`` (never reversing, so no overshoot-and-return
         and no step), the other modes stop where their output is. A newly held joint whose output is more
-        than two steps away from ``reference`` (``mds-ref``: the collision gate or a limit held it back) restarts
+        than two steps away from ``reference`` (``mds-ref-gated``: the collision gate or a limit held it back) restarts
         at ``reference`` instead, where the robot is sent, so it never moves on when the gate clears. Released
         joints go back to the mux's target."""
         held = np.asarray(held, dtype=bool)
@@ -265,11 +319,17 @@ class FilterCore:
 # --------------------------------------------------------------------------------------------- Ach side
 
 
+def owner_names(st: MDS_MUX_STATE) -> tuple[str | None, ...]:
+    """The controller name owning each address (None: nobody) from an ``mds-mux-state`` frame."""
+    names = [get_name(bytes(st.name[i])) for i in range(max(0, min(int(st.count), MUX_MAX_CONTROLLERS)))]
+    return tuple(names[o] if 0 <= o < len(names) else None for o in (int(v) for v in st.owner))
+
+
 class FilterRunner:
     """The real-time loop: channels + ``FilterCore`` on an absolute schedule. ``run()`` blocks until ``stop()``."""
 
     def __init__(self, params: FilterParams, log: Callable[[str, str], None] | None = None,
-                 sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
         self.params = params
         self.log = log or (lambda level, msg: print(f"[filter] {level}: {msg}", flush=True))
         self.sources = tuple(sources)
@@ -292,7 +352,7 @@ class FilterRunner:
         out = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
         mux_state = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
-        gate_out = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+        gate_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
         reference: np.ndarray | None = None
         needs_state = bool(np.any(self.params.mode == ENC))
         measured: np.ndarray | None = None
@@ -315,6 +375,7 @@ class FilterRunner:
                     reference = ref_arrays(sent)[0]
                 mux = guard.call(mux_state.name, mux_state.latest)
                 if mux is not None:  # the mux's hold mask: brake newly held joints, release the others
+                    core.set_owners(owner_names(mux))  # before the hold: braking depends on the joint's mode
                     held = np.frombuffer(bytes(mux.held), dtype=np.uint8) != 0
                     core.hold(held, reference)
                 reseed = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins

@@ -4,7 +4,8 @@ For every ``MDS_IK`` request (``move``: 0 right, 1 left; ``arm[move].ik_method``
 the order x, y, z, roll, pitch, yaw from ``t_x t_y t_z r_x r_y r_z``; robot frame, m and rad):
 
 1. refuse bad requests (arm not 0/1, DOF not 1..6, NaN/Inf among the used values) with a message;
-2. seed from the current reference (``mds-state`` joint[].ref, as the original did; else ``mds-ref``);
+2. seed from the current reference (``mds-state`` joint[].ref, as the original did; else ``mds-ref-gated``,
+   what the daemon executes);
 3. solve with ``mds_ach.ik`` inside the effective limits (``mds_ach.kinematics.limits``: URDF & joint table); candidate
    poses and the joint-space path to them are collision-checked (``mds_ach.kinematics.collision``, with the
    world file of ``--world``) against the rest of the robot where it is commanded now AND with the other arm at
@@ -14,9 +15,10 @@ the order x, y, z, roll, pitch, yaw from ``t_x t_y t_z r_x r_y r_z``; robot fram
    the arm where the collision model's parts touch; ``refuse``: nothing moves (unreachable, "N colliding");
 4. on success write the arm's six references into the node's output channel: ``mds-ref-ik``, the ik input
    of the mux (``--output mds-ref-filter`` for the legacy set-up without a mux). The frame is the newest one
-   on that channel (else the mux output / ``mds-ref`` / ``mds-state``) with only those six joints replaced,
-   so other joints are never touched. Never straight to ``mds-ref``: the mux, filter and collision gate
-   stay in the path. An unreachable target writes nothing (the arm holds) and says so.
+   on that channel (else the mux output / ``mds-ref-gated`` / ``mds-state``) with only those six joints replaced,
+   so other joints are never touched. Never ``mds-ref`` (the mux's ``direct`` input) nor the daemon's input
+   ``mds-ref-gated``: the IK controller's priority and joints, the filter and the collision gate stay in the
+   path. An unreachable target writes nothing (the arm holds) and says so.
 5. after a solution was written, watch ``mds-hold`` until the arm should have arrived: when the gate stops that
    arm at contact (its ``HOLD_CANCEL``, source ``collision``), a second status frame with the same ``seq`` says
    ``IK_STOPPED_AT_CONTACT`` and "stopped at contact: right hand / left hand".
@@ -84,7 +86,7 @@ class IkNodeConfig:
     timeout: float = 2.0  # s, cap on one solve whatever the iteration count
     collision_check: bool = True
     on_collision: str = "approach"  # what a colliding solution does: approach (sent, stops at contact) | refuse
-    seed_sources: tuple[str, ...] = (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_REF_NAME)
+    seed_sources: tuple[str, ...] = (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME)
     base_sources: tuple[str, ...] = field(default=())
 
     def __post_init__(self) -> None:
@@ -94,10 +96,13 @@ class IkNodeConfig:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
         if self.on_collision not in ON_COLLISION:
             raise ValueError(f"on_collision must be one of {', '.join(ON_COLLISION)}, got {self.on_collision!r}")
-        if self.output == mds.MDS_CHAN_REF_NAME:
-            raise ValueError("the ik node never writes mds-ref directly: use mds-ref-ik (mux) or mds-ref-filter")
+        if self.output in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME):
+            # mds-ref-gated is the daemon's input (only the gate writes it); mds-ref is the mux's 'direct' input for
+            # legacy expert clients, whose priority and joints are not the IK controller's.
+            raise ValueError(f"the ik node never writes mds-ref directly nor {mds.MDS_CHAN_DAEMON_INPUT_NAME}: "
+                             "use mds-ref-ik (mux) or mds-ref-filter")
         if not self.base_sources:
-            self.base_sources = (self.output, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_NAME,
+            self.base_sources = (self.output, mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME,
                                  mds.MDS_CHAN_STATE_NAME)
 
 
@@ -376,7 +381,7 @@ def _build_parser() -> argparse.ArgumentParser:
         prog="ik",
         description="Inverse kinematics service: solves Cartesian requests from mds-ik (console 'ik left 3 0.3 "
                     "0.2 0', legacy mds_ik_t clients) for one arm and writes the six joint references to the "
-                    "mux input mds-ref-ik (through mux, filter and collision gate; never straight to mds-ref). "
+                    "mux input mds-ref-ik (through mux, filter and collision gate; never mds-ref or mds-ref-gated). "
                     f"Answers on mds-ik-state and the ROS topic {IK_STATUS_TOPIC} (JSON). Unreachable targets "
                     "move nothing.",
         epilog="Example: ros2 run mds_ach ik --output mds-ref-filter   (legacy set-up without the mux)",
@@ -413,7 +418,8 @@ NODE_NAME = "ik"  # the ROS node name (`ros2 param`, the sections of a params fi
 
 PARAMETERS = (
     Param("output", mds.MDS_CHAN_REF_IK_NAME, "channel for the solutions: mds-ref-ik (the mux's ik input) or "
-                                              "mds-ref-filter without a mux; never mds-ref (option --output)"),
+                                              "mds-ref-filter without a mux; never mds-ref or mds-ref-gated "
+                                              "(option --output)"),
     Param("tolerance", float(ik.DEFAULT_TOLERANCE), "position error (m) below which a request is solved; angles "
                                                     "within 0.01 rad, checked separately (option --tolerance)",
           range=(1e-9, 1.0)),

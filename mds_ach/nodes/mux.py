@@ -10,6 +10,10 @@ Each controller writes whole ``MDS_REF`` frames to its own input channel (config
   re-sending the same frame is holding, not commanding); its joints are then released and fall back to
   whoever changes them next. The output keeps its last value until then: no jump.
 
+The controllers (config/mux.yaml): ``ros`` (``mds-ref-ros``), ``ik`` (``mds-ref-ik``), ``default``
+(``mds-ref-filter``) and ``direct`` (``mds-ref``: the channel the original daemon executed, written by expert clients
+and ``achd push mds-ref``; highest priority, unsmoothed by the filter, still limit-checked here and gated).
+
 Why "modified" rather than "newest frame wins": legacy clients read-modify-write a whole frame (console
 ``goto`` changes one joint and re-sends the other 99 as they were). Only real changes are commands.
 
@@ -19,10 +23,10 @@ arrival order and publishes ``mds-ref-mux`` on every output change. Ownership an
 (``mds_ach_interfaces/msg/MuxState``; the JSON document of ``state_to_dict`` stays on ``/mds/mux_state/json``,
 std_msgs/String, deprecated, one release).
 
-At start the output is the current reference (``mds-ref``, else ``mds-state`` joint[].ref), published once
+At start the output is the current reference (``mds-ref-gated``, else ``mds-state`` joint[].ref), published once
 so the filter holds still; frames already waiting in the input channels are taken as each controller's
 previous frame, not applied (they are old commands). Controllers with ``seed: true`` (the legacy
-``mds-ref-filter``) get the start reference written to their channel, as the original mds-filter did, so
+``mds-ref-filter`` and ``mds-ref``) get the start reference written to their channel, as the original mds-filter did, so
 read-modify-write clients start from the real pose instead of zeros.
 """
 
@@ -121,7 +125,7 @@ def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux co
         channel = str(e.get("channel", "")).strip()
         if not channel:
             raise ValueError(f"{here}: needs an input channel")
-        if channel in (mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_CHAN_REF_NAME):
+        if channel in (mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME):
             raise ValueError(f"{here}: {channel} is a pipeline output, not a controller input")
         try:
             priority = int(e["priority"])
@@ -272,6 +276,8 @@ class MuxCore:
             return False, (f"refused a frame from '{name}' as a whole: {labels(np.flatnonzero(blocked))} owned by "
                            f"'{blocker.name}' (priority {blocker.priority}); nothing applied")
         self._verdict(index, VERDICT_APPLIED)
+        if (self.owner[modified] != index).any():
+            self.dirty = True  # the filter smooths per owner (config/filter.yaml controllers): tell it now
         self.owner[modified] = index
         if (self.held[modified] != MUX_FREE).any():
             self.held[modified] = MUX_FREE
@@ -282,7 +288,7 @@ class MuxCore:
         return bool(changed.any()), None
 
     def hold(self, request: MDS_HOLD, current: np.ndarray | None = None) -> tuple[bool, str]:
-        """Handle one ``mds-hold`` request. ``current``: the reference now (``mds-ref``) by address, what a CANCEL
+        """Handle one ``mds-hold`` request. ``current``: the reference now (``mds-ref-gated``) by address, what a CANCEL
         with NaN targets leaves as the output (None: the mux output). Returns (output changed, log message).
 
         HOLD marks the joints held: the filter brakes them to rest and keeps them there (the output keeps the
@@ -341,6 +347,7 @@ class MuxCore:
                 if mine.any():
                     self.owner[mine] = -1
                     changed = True
+        self.dirty |= changed
         return changed
 
     def state(self, now: float, seq: int = 0) -> MDS_MUX_STATE:
@@ -411,7 +418,7 @@ class MuxRunner:
                  log: Callable[[str, str], None] | None = None,
                  on_state: Callable[[MDS_MUX_STATE], None] | None = None,
                  output: str = mds.MDS_CHAN_REF_MUX_NAME,
-                 sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
         self.controllers = list(controllers)
         self.state_period = 1.0 / state_rate
         self.log = log or (lambda level, msg: print(f"[mux] {level}: {msg}", flush=True))
@@ -448,7 +455,7 @@ class MuxRunner:
         hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
         hold_ch.flush()  # requests from before this start are old: the output restarts from the reference anyway
         self._hold_ch = hold_ch
-        self._current = StructChannel(mds.MDS_CHAN_REF_NAME, mds.MDS_REF)
+        self._current = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
         try:
             for i, c in enumerate(self.controllers):
                 ch = StructChannel(c.channel, mds.MDS_REF)
@@ -506,7 +513,7 @@ class MuxRunner:
                 self._queue.put((HOLD_INPUT, frame, time.monotonic()))
 
     def _reference_now(self) -> np.ndarray | None:
-        """The newest ``mds-ref`` (what the daemon is sent): where a CANCEL without target leaves a joint."""
+        """The newest ``mds-ref-gated`` (what the daemon is sent): where a CANCEL without target leaves a joint."""
         frame = self._current.latest()
         if frame is not None:
             self._current_ref = ref_arrays(frame)[0]

@@ -117,11 +117,12 @@ def select_joints(spec: Any, where: str = "joints") -> tuple[int, ...]:
 # --------------------------------------------------------------------------------------------- current reference
 
 
-def current_reference(sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME)
+def current_reference(sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)
                       ) -> tuple[np.ndarray, np.ndarray, str] | None:
     """(ref, mode, source) from the newest frame on the first source channel that has one, else None.
 
-    ``mds-ref`` gives ref and mode; ``mds-state`` gives ``joint[].ref`` (mode 0); any other channel carries an
+    ``mds-ref-gated`` (what the daemon executes; not ``mds-ref``, a controller input since the daemon's input was
+    renamed) gives ref and mode; ``mds-state`` gives ``joint[].ref`` (mode 0); any other channel carries an
     ``MDS_REF`` (the contracts registry says which struct; unregistered names are read as ``MDS_REF``). Channels
     are created if missing, so nodes can start in any order.
     """
@@ -146,7 +147,7 @@ def current_reference(sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_C
 
 
 def wait_current_reference(stop: threading.Event, log: Callable[[str], None],
-                           sources: Sequence[str] = (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME),
+                           sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
                            poll: float = 0.1) -> tuple[np.ndarray, np.ndarray, str] | None:
     """Poll ``current_reference`` until one exists (None if ``stop`` is set first); logs once while waiting.
 

@@ -72,9 +72,11 @@ MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"
 MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"
 MDS_CHAN_HOLD_NAME = "mds-hold"
 MDS_CHAN_LIMITS_NAME = "mds-limits"
-MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_NAME
-"""What the daemon executes (the collision gate's output). The one name to change when it is renamed; its
-contract is ``stack_only``: operators write the controller inputs above it."""
+MDS_CHAN_REF_GATED_NAME = "mds-ref-gated"
+MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_GATED_NAME
+"""What the daemon executes: the collision gate's output, the one channel only the gate writes (``stack_only``).
+Every use goes through this name. It is not ``mds-ref``: in the original the daemon executed ``mds-ref`` and
+expert clients wrote it directly, so ``mds-ref`` is a pipeline input here (the mux's ``direct`` controller)."""
 
 CHANNEL_FRAME_COUNT = 10
 CHANNEL_FRAME_SIZE = 3000
@@ -168,14 +170,14 @@ class Contract(Generic[T]):
         return None
 
 
-_PIPELINE = (MUX, FILTER, COLLISION, IK)  # read mds-ref / mds-state for their start reference
+_PIPELINE = (MUX, FILTER, COLLISION, IK)  # read mds-ref-gated / mds-state for their start reference
 
 CHANNELS: tuple[Contract[Any], ...] = (
     # --- the original MDS-Ach channels -----------------------------------------------------------------
     Contract(MDS_CHAN_REF_NAME, "MDS_CHAN_REF_NAME", MDS_REF,
-             "what the daemon executes: the collision gate's output",
-             writers=(COLLISION,), readers=(DAEMON, *_PIPELINE, BRIDGE), legacy=True,
-             validator=check_ref, stack_only=True),
+             "the mux's 'direct' controller input: legacy expert clients and remote achd push, unsmoothed, "
+             "limit-checked and collision-gated (the daemon executes mds-ref-gated)",
+             writers=(CLIENTS, REMOTE, MUX), readers=(MUX,), legacy=True, validator=check_ref),
     Contract(MDS_CHAN_REF_FILTER_NAME, "MDS_CHAN_REF_FILTER_NAME", MDS_REF,
              "the mux's 'default' controller input: legacy clients, console goto, the viewer",
              writers=(CLIENTS, CONSOLE, VIEWER, REMOTE, MUX), readers=(MUX,), legacy=True, validator=check_ref),
@@ -210,6 +212,10 @@ CHANNELS: tuple[Contract[Any], ...] = (
     Contract(MDS_CHAN_REF_SMOOTH_NAME, "MDS_CHAN_REF_SMOOTH_NAME", MDS_REF,
              "the filter's smoothed output, the collision gate's input",
              writers=(FILTER,), readers=(COLLISION,), legacy=False, validator=check_ref, ready="stream"),
+    Contract(MDS_CHAN_REF_GATED_NAME, "MDS_CHAN_REF_GATED_NAME", MDS_REF,
+             "what the daemon executes: the collision gate's output (limit-checked, collision-free)",
+             writers=(COLLISION,), readers=(DAEMON, *_PIPELINE, BRIDGE), legacy=False,
+             validator=check_ref, stack_only=True),
     Contract(MDS_CHAN_IK_STATE_NAME, "MDS_CHAN_IK_STATE_NAME", MDS_IK_STATUS,
              "the IK node's answer to each mds-ik request",
              writers=(IK,), readers=(CONSOLE, VIEWER, BRIDGE, CLI, REMOTE, CLIENTS), legacy=False, ready="answer"),
@@ -236,8 +242,9 @@ PIPELINE_CHANNELS: tuple[str, ...] = tuple(c.name for c in CHANNELS if not c.leg
 ALL_CHANNELS: tuple[str, ...] = tuple(c.name for c in CHANNELS)
 STACK_ONLY: frozenset[str] = frozenset(c.name for c in CHANNELS if c.stack_only)
 REMOTE_WRITABLE: tuple[str, ...] = tuple(c.name for c in CHANNELS if REMOTE in c.writers)
-"""What a network peer may write by default: pipeline inputs only, so a remote reference still passes the
-mux, filter and collision gate. Never the daemon's input or mds-cmd."""
+"""What a network peer may write by default: pipeline inputs only (``mds-ref`` included: the mux's ``direct``
+controller), so a remote reference still passes the mux, filter and collision gate. Never the daemon's input
+(``mds-ref-gated``) or mds-cmd."""
 REMOTE_READABLE: tuple[str, ...] = tuple(c.name for c in CHANNELS if REMOTE in c.readers)
 """What the robot side of ``mds-ach remote`` shares: everything an operator monitors."""
 

@@ -158,7 +158,9 @@ def _channel_section() -> list[str]:
         out.append(f"/*   written by {', '.join(c.writers)}; read by {', '.join(c.readers)} */")
         out.append(f'#define {c.macro} "{c.name}"')
     daemon_input = contracts.BY_NAME[contracts.MDS_CHAN_DAEMON_INPUT_NAME].macro
-    out.append("/* What the daemon executes (only the stack's user writes it). */")
+    out.append("/* What the daemon executes: the collision gate's output, only the stack's user writes it.")
+    out.append("   Legacy clients write MDS_CHAN_REF_NAME (\"mds-ref\"): the mux's 'direct' input, limit-checked")
+    out.append("   and collision-gated. */")
     out.append(f"#define MDS_CHAN_DAEMON_INPUT_NAME {daemon_input}")
     out.append("/* Names the original header declared for channels nothing made or used (kept for its clients; no")
     out.append("   channel of that name exists), and the original mds_ach.py's spelling of MDS_CHAN_COLLIDE_NAME. */")

@@ -216,7 +216,7 @@ class _Auditor:
             a, b = j.to_counts(j.lower), j.to_counts(j.upper)
             self.joints[j.address] = _JointAudit(j, min(a, b), max(a, b))
         self.model = model
-        self.pose = np.zeros(MDS_JOINT_COUNT)  # by address, like mds-ref: the commanded pose for --collisions
+        self.pose = np.zeros(MDS_JOINT_COUNT)  # by address, like mds-ref-gated: the commanded pose for --collisions
         for j in table:
             self.pose[j.address] = j.home
         self.pose_dirty = False

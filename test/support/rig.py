@@ -46,7 +46,7 @@ class DaemonRig:
         self.channels = DaemonChannels.open()
         self.loop = DaemonLoop(TABLE, self.io, self.channels, rate_hz=rate, nocan=True, clock=self.clock,
                                **loop_kwargs)
-        self.ref_out = StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF)
+        self.ref_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
         self.state_in = Newest(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
         self.status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
         self.collide_out = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
@@ -91,8 +91,8 @@ class DaemonRig:
 
     def run(self, seconds: float, inject: Callable[[DaemonRig], None] | None = None, move: bool = True,
             mode: int = mds.MDS_REF_MODE_REF) -> None:
-        """Run ``seconds`` of robot time; with ``move`` one mds-ref frame per cycle moves the arms (``mode`` for the
-        moving joints, pass-through by default; the others hold their reference). ``inject`` runs before each
+        """Run ``seconds`` of robot time; with ``move`` one mds-ref-gated frame per cycle moves the arms (``mode``
+        for the moving joints, pass-through by default; the others hold their reference). ``inject`` runs before each
         cycle (a fault on the bus)."""
         for _ in range(max(1, round(seconds / self.loop.period))):
             if move:
