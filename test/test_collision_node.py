@@ -54,6 +54,9 @@ def flags(report: mds.MDS_COLLIDE, parts: tuple[int, ...]) -> bool:
     return any(report.joint[p].isCollide for p in parts)
 
 
+APPROACH = 6  # the approach-to-contact option (off by default: config/collision.yaml) in the tests of that option
+
+
 def make_gate(model, ref=HOME, **cfg) -> Gate:
     lower, upper = joint_limits(model)
     return Gate(model, GateConfig(**cfg), ref.copy(), ZERO_MODE.copy(), 0.0, lower, upper)
@@ -436,7 +439,7 @@ def hand_clearance(model, q100: np.ndarray) -> float:
 def test_both_hands_to_the_same_point_stop_at_contact(model) -> None:
     """Paper §4.2: both hands sent to the same point stop when the two parts of the collision model touch
     (within 5 mm), never interpenetrating; both arms moved into the contact, so both commands end there."""
-    gate = make_gate(model)
+    gate = make_gate(model, approach_iterations=APPROACH)
     point = [0.40, 0.0, -0.10]
     target = HOME.copy()
     target[L], target[R] = solve("left", point), solve("right", point)
@@ -456,7 +459,7 @@ def test_both_hands_to_the_same_point_stop_at_contact(model) -> None:
 def test_a_hand_sent_to_a_resting_hand_stops_there_and_only_its_command_ends(model) -> None:
     """Only the arm whose own reference moved into the contact is stopped (and cancelled); the resting arm it came
     to is held while they touch, but its command (none) is not the one that failed."""
-    gate = make_gate(model)
+    gate = make_gate(model, approach_iterations=APPROACH)
     target = HOME.copy()
     target[L] = solve("left", [0.40, 0.05, -0.10])
     drive(gate, target, 3.0)
@@ -481,7 +484,7 @@ def test_a_hand_sent_to_a_resting_hand_stops_there_and_only_its_command_ends(mod
 
 def test_the_hand_driven_down_stops_on_the_table(table_model) -> None:
     """Paper §4.3: the hand driven down toward the table does not move farther than the collision point."""
-    gate = make_gate(table_model)
+    gate = make_gate(table_model, approach_iterations=APPROACH)
     target = HOME.copy()
     target[L] = solve("left", [0.40, 0.25, -0.50])  # 10 cm below the table top
     decisions = drive(gate, target, 5.0)
@@ -496,7 +499,7 @@ def test_at_the_contact_the_daemons_target_arrives_before_the_arm_is_flagged(mod
     target there, then it is held and flagged as before. The stop (and the cancel) comes at the first frame."""
     from mds_ach.nodes.collision import Observed
 
-    gate = make_gate(model)
+    gate = make_gate(model, approach_iterations=APPROACH)
     target = HOME.copy()
     target[L] = solve("left", [0.40, 0.05, -0.10])
     drive(gate, target, 3.0)
@@ -695,7 +698,8 @@ def test_an_arm_stopped_at_contact_gets_its_command_cancelled_on_mds_hold(clean_
     _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
     lower, upper = joint_limits(table_model)
     logs: list[str] = []
-    runner = GateRunner(table_model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
+    runner = GateRunner(table_model, GateConfig(approach_iterations=APPROACH), lower, upper,
+                        log=lambda level, msg: logs.append(msg))
     t = threading.Thread(target=runner.run, daemon=True)
     t.start()
     smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)

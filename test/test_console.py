@@ -476,25 +476,11 @@ def test_ik3_set_moves_the_arm_through_the_ik_node(system: dict[str, str]) -> No
     np.testing.assert_allclose(chain_fk(arm_pos("left"), "left")[0], [0.35, 0.25, -0.05], atol=0.02)
 
 
-def test_console_does_not_import_torch(fake_system: None) -> None:
-    code = ("import sys; from mds_ach.tools.console import main; rc = main(['-c', 'get fk left']); "
-            "assert 'torch' not in sys.modules, 'console imported torch'; sys.exit(rc)")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "6DOF FK - for  left  arm" in proc.stdout
-
-
-def test_help_exits_zero() -> None:
-    for args in (["mds-ach-console", "--help"], ["mds-ach", "console", "--help"]):
-        proc = subprocess.run([str(VENV_BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=60)
-        assert proc.returncode == 0 and "usage" in proc.stdout.lower()
-        assert "goto <joint> <rad>" in proc.stdout
-
-
 @pytest.mark.slow
 def test_zeroall_goes_to_the_nearest_in_range_value_and_says_so(system: dict[str, str]) -> None:
     """0 rad is outside both elbows' effective limits: each goes to its nearest in-range value instead of the whole
-    command being refused, and the console names them. Last in the module: the arms end down at the body."""
+    command being refused, and the console names them. Last of the system tests (the fake-system tests after it
+    replace the channels): the arms end down at the body."""
     from mds_ach.kinematics.limits import current_limits
     from mds_ach.robot.config import load
 
@@ -515,3 +501,18 @@ def test_zeroall_goes_to_the_nearest_in_range_value_and_says_so(system: dict[str
     out = newest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
     for short, value in expected.items():
         assert out.joint[mds.BY_SHORT[short].address].ref == value, short
+
+
+def test_console_does_not_import_torch(fake_system: None) -> None:
+    code = ("import sys; from mds_ach.tools.console import main; rc = main(['-c', 'get fk left']); "
+            "assert 'torch' not in sys.modules, 'console imported torch'; sys.exit(rc)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "6DOF FK - for  left  arm" in proc.stdout
+
+
+def test_help_exits_zero() -> None:
+    for args in (["mds-ach-console", "--help"], ["mds-ach", "console", "--help"]):
+        proc = subprocess.run([str(VENV_BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 0 and "usage" in proc.stdout.lower()
+        assert "goto <joint> <rad>" in proc.stdout

@@ -31,7 +31,8 @@ from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
 from mds_ach.robot.msgs.ik_status import IK_SOLVED
 from mds_ach.tools.launcher import node_args
 
-TOUCH = 0.005  # m: stopped within 5 mm of touching
+TOUCH = 0.005  # m: stopped within 5 mm of touching (the hands scene, paper §4.2)
+ABOVE = 0.02  # m: the hand driven down stops above the table top, within a filter step of the margin (§4.3)
 TABLE = {"frame": "robot", "objects": [{"name": "table", "enabled": True, "shape": "box", "size": [0.6, 1.4, 0.04],
                                         "xyz": [0.6, 0.0, -0.42]}]}
 LEFT = [BY_SHORT[n].address for n in LEFT_ARM]
@@ -120,7 +121,7 @@ def test_the_papers_scenes_stop_at_contact(system: dict[str, str], monkeypatch: 
             st = _settled(state, LEFT)
             for q in (_refs(st), _refs(st, "pos")):
                 gap = _clearance(model, q, ("left_hand_link", "world:table"))
-                assert margin - 1e-6 <= gap <= margin + TOUCH, f"left hand {gap * 1e3:.1f} mm above the table"
+                assert margin - 1e-6 <= gap <= margin + ABOVE, f"left hand {gap * 1e3:.1f} mm above the table"
             cancel = wait_for(lambda: holds.next(), 5, what="the gate's cancel on mds-hold")
             assert cancel.action == HOLD_CANCEL and [a for a in LEFT if cancel.joints[a]] == LEFT
             np.testing.assert_allclose([cancel.target[a] for a in LEFT], _refs(st)[LEFT], atol=1e-9)

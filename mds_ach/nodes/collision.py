@@ -23,10 +23,14 @@ Every reference is checked before it can reach the daemon, in this order:
    is held. So an arm in contact, measured or commanded, can always be moved out of it (such a move is
    reported as *escaping*), never further in. An arm in contact whose input does not ask it to move is held
    too.
-4. **Approach to contact** (paper §4.2/§4.3: the hands stop when the parts of the collision model touch). When
+4. **Approach to contact** (paper §4.2/§4.3: the hands stop when the parts of the collision model touch). An
+   OPTION, off by default (``approach_iterations: 0``): its stop at the contact is abrupt, and the daemon, which
+   brakes within its acceleration bound, passes an abrupt stop by up to v²/2a, so with the reference at the
+   margin the commanded pose entered the contact (hands overlapping 2-6 cm, both sent to one point at once).
+   Off, an arm is held at its last safe step, which leaves that overshoot room. When enabled and
    only arms moved into a blocking contact and none of them is held yet, they are not held a whole step short:
    they move by the largest fraction of their step (the same for all of them) that blocks nothing, found by
-   bisection (``approach_iterations``, default 6: within step / 64, under 1 mm at the filter's speed). Such a
+   bisection (``approach_iterations``, e.g. 6: within step / 64, under 1 mm at the filter's speed). Such a
    frame blocks nothing, so nothing is held or flagged; the next ones creep closer until even step / 64 blocks.
    There an arm first *rests*: its reference frozen but not flagged (not a hold: the daemon withholds nothing
    and sees no reference move) until ``mds-state`` shows the daemon's rate-limited target there (at most
@@ -155,7 +159,8 @@ class GateConfig:
     release_velocity: float | None = None  # rad/s of a released joint; None = filters.DEFAULT_MAX_VELOCITY
     state_timeout: float = 0.5  # s: an older mds-state gives no measured pose
     release_wait: float = 1.0  # s: longest wait for the daemon to echo a cleared report
-    approach_iterations: int = 6  # bisection steps toward a contact (resolution: step / 2**n); 0 = hold at once
+    approach_iterations: int = 0  # bisection steps toward a contact (resolution: step / 2**n); 0 = hold at once
+    # (0 by default: see config/collision.yaml, the daemon passes an abrupt stop at the contact by up to v^2/2a)
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], where: str = "collision config") -> GateConfig:
@@ -181,7 +186,7 @@ class GateConfig:
             release_velocity=num("release_velocity", None, allow_none=True),
             state_timeout=num("state_timeout", 0.5),  # type: ignore[arg-type]
             release_wait=num("release_wait", 1.0),  # type: ignore[arg-type]
-            approach_iterations=_count(data, "approach_iterations", 6, where),
+            approach_iterations=_count(data, "approach_iterations", 0, where),
         )
 
 
