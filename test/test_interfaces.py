@@ -161,3 +161,29 @@ def test_follow_joint_trajectory_action_client_and_server_talk() -> None:
         server_node.destroy_node()
         client_node.destroy_node()
         rclpy.shutdown()
+
+
+def test_the_build_cache_restores_the_packages_into_another_venv(tmp_path: Path) -> None:
+    """A cold build takes about a minute; tools/build-interfaces keeps what it installed as one archive per input
+    and restores it into a new venv with the same inputs (like pip's wheel cache), rewriting the prefix the text
+    files name. Here: the archive written for this venv, restored into a second (bare) prefix."""
+    venv = Path(sys.prefix)
+    cache = tmp_path / "cache"
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "MDS_ACH_BUILD_CACHE": str(cache)}
+    proc = subprocess.run([str(REPO / "tools" / "build-interfaces"), str(venv)], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    archives = list(cache.glob("interfaces-*.tar.gz"))
+    assert len(archives) == 1, proc.stdout
+    other = tmp_path / "venv2"
+    (other / "bin").mkdir(parents=True)
+    (other / "bin" / "python").symlink_to(venv / "bin" / "python")  # the same Python: the same cache key
+    proc = subprocess.run([str(REPO / "tools" / "build-interfaces"), str(other)], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0 and "restored" in proc.stdout, proc.stdout + proc.stderr
+    site = other / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+    assert (site / "mds_ach_interfaces" / "msg" / "__init__.py").is_file()
+    assert (site / "control_msgs" / "action" / "__init__.py").is_file()
+    setup = (other / "share" / "mds_ach_interfaces" / "local_setup.sh").read_text()
+    assert str(other) in setup and f'"{venv}"' not in setup
+    assert not (other / ".mds_ach_interfaces_prefix").exists()
