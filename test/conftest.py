@@ -49,3 +49,19 @@ def ach_impl(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) ->
     elif not ach.FAST_AVAILABLE:
         pytest.skip("mds_ach.ach._achfast is not built here (no C compiler); test_ach_fast.py reports why")
     return request.param
+
+
+@pytest.fixture
+def golden_names() -> Iterator[None]:
+    """The golden channels carry their names in the header (shared/ach-golden), so tests must use those names;
+    removed before and after."""
+    names = ("golden_empty", "golden_small", "golden_wrap")
+
+    def clean() -> None:
+        for name in names:
+            if ach.exists(name):
+                ach.unlink(name)
+
+    clean()
+    yield
+    clean()

@@ -9,7 +9,6 @@ from __future__ import annotations
 import re
 import shutil
 import struct
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,21 +38,6 @@ def golden(shared_dir: Path) -> Path:
     path = shared_dir / "ach-golden"
     assert (path / NATIVE / "trace.txt").is_file(), f"golden vectors missing under {path}"
     return path
-
-
-@pytest.fixture
-def golden_names() -> Iterator[None]:
-    """The golden channels carry their names in the header, so the tests must use those names."""
-    names = ("golden_empty", "golden_small", "golden_wrap")
-
-    def clean() -> None:
-        for name in names:
-            if ach.exists(name):
-                ach.unlink(name)
-
-    clean()
-    yield
-    clean()
 
 
 def read_channel_file(name: str) -> bytes:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 from support import VENV_BIN, in_netns, remove_mds_channels
+from support.spin import Spinner
 
 import mds_ach as mds
 from mds_ach import ach, paths
@@ -247,7 +248,7 @@ NODE_PARAMS = [
 ]  # fmt: skip
 
 
-class Harness:
+class Harness(Spinner):
     """``daemon --nocan`` and the bridge as child processes, plus a probe node in this process."""
 
     def __init__(self, tmp: Path) -> None:
@@ -298,17 +299,6 @@ class Harness:
         self.spin_until(lambda: len(self.states) > 0, 30.0, "first /joint_states")
         self.start = dict(zip(self.states[-1].name, self.states[-1].position, strict=True))
 
-    def spin_until(self, pred, timeout: float, what: str) -> None:
-        deadline = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out after {timeout} s waiting for {what}; log:\n{self.bridge_log()}")
-            self.executor.spin_once(timeout_sec=0.02)
-
-    def spin_for(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=0.02)
 
     def bridge_log(self) -> str:
         daemon = self.daemon_log.read_text() if self.daemon_log.exists() else ""

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from support import VENV_BIN, in_netns, remove_mds_channels
+from support.spin import Spinner
 
 import mds_ach as mds
 from mds_ach.nodes.mux import Controller, MuxCore, MuxRunner
@@ -97,7 +98,7 @@ RATE = 50.0
 BRIDGE_PARAMS = ["-p", "diagnostics_period:=0.2", "-p", "stale_timeout:=1.0"]
 
 
-class System:
+class System(Spinner):
     """daemon --nocan and the bridge as child processes, the mux in this process, a probe node for DDS."""
 
     def __init__(self, tmp: Path) -> None:
@@ -148,17 +149,6 @@ class System:
         assert self.mux.core is not None
         return self.mux.core
 
-    def spin_until(self, pred, timeout: float, what: str) -> None:
-        deadline = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > deadline:
-                raise AssertionError(f"timed out after {timeout} s waiting for {what}; log:\n{self.bridge_log()}")
-            self.executor.spin_once(timeout_sec=0.02)
-
-    def spin_for(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=0.02)
 
     def call(self, client, timeout: float = 20.0):
         from std_srvs.srv import Trigger

@@ -13,7 +13,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -39,20 +38,6 @@ def run(check: Path, *args: str, timeout: float = 60) -> subprocess.CompletedPro
     proc = subprocess.run([str(check), *args], capture_output=True, text=True, timeout=timeout)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return proc
-
-
-@pytest.fixture
-def golden_names() -> Iterator[None]:
-    names = ("golden_empty", "golden_small", "golden_wrap")
-
-    def clean() -> None:
-        for name in names:
-            if ach.exists(name):
-                ach.unlink(name)
-
-    clean()
-    yield
-    clean()
 
 
 def masked(image: bytes) -> bytes:
