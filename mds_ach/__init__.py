@@ -6,6 +6,15 @@ like the original ``mds_ach.py`` did. Heavy modules (torch, fcl, rclpy) are neve
 
 from __future__ import annotations
 
+import os
+
+# One BLAS thread (before anything imports numpy): OpenBLAS's worker threads take process-directed signals from the
+# main thread (a console blocked in readline then missed Ctrl-C and SIGTERM) and add jitter to the real-time loops;
+# the matrices here are 6x6. A value the user set wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+del _var
+
 from mds_ach.robot import joints, msgs  # noqa: F401  (mds.joints, mds.msgs: public before the sub-packages)
 
 # Channel names and geometry are declared once, with their structs and rules, in mds_ach.robot.contracts.

@@ -14,6 +14,7 @@ distribution's modules blocked, so that what only the dev venv provides cannot h
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -207,3 +208,12 @@ def test_viewer_runs_with_only_runtime_packages() -> None:
         "v = viewer.Viewer(viewer.ViewerOptions(port=viewer.free_port('127.0.0.1')))\n"
         "try:\n    v.tick()\nfinally:\n    v.close()\n"
     )
+
+
+def test_importing_mds_ach_starts_no_blas_threads() -> None:
+    """OpenBLAS worker threads take process-directed signals from the main thread: a console blocked in readline
+    then missed Ctrl-C and SIGTERM (a flaky pty test). ``import mds_ach`` before numpy keeps BLAS to one thread."""
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    code = "import os, mds_ach, numpy; print(len(os.listdir('/proc/self/task')))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.strip() == "1", proc.stdout + proc.stderr
