@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 from bench.common import Row, median, percentile
+from mds_ach.paths import bin_name
 
 RATE_HZ = 100.0
 COMMAND_HZ = 25.0
@@ -217,7 +218,7 @@ def _bridge(ros: _Ros, seconds: float) -> dict[str, object]:
         raise RuntimeError("bench_bridge: the state writer did not start")
     sub = ros.node.create_subscription(JointState, "joint_states", on_state, qos_profile_sensor_data)
     cmd_pub = ros.node.create_publisher(JointState, "mds/joint_command", 10)
-    bridge = subprocess.Popen([str(BIN / "bridge")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    bridge = subprocess.Popen([str(BIN / bin_name("bridge"))], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     commands: list[tuple[float, float]] = []  # (publish time, LEP value)
     try:
         ros.spin_until(lambda: cmd_pub.get_subscription_count() > 0 and sub.get_publisher_count() > 0, 30.0,
