@@ -24,20 +24,18 @@ Every reference is checked before it can reach the daemon, in this order:
    reported as *escaping*), never further in. An arm in contact whose input does not ask it to move is held
    too.
 4. **Approach to contact** (paper §4.2/§4.3: the hands stop when the parts of the collision model touch). An
-   OPTION, off by default (``approach_iterations: 0``): its stop at the contact is abrupt, and the daemon, which
-   brakes within its acceleration bound, passes an abrupt stop by up to v²/2a, so with the reference at the
-   margin the commanded pose entered the contact (hands overlapping 2-6 cm, both sent to one point at once).
-   Off, an arm is held at its last safe step, which leaves that overshoot room. When enabled and
-   only arms moved into a blocking contact and none of them is held yet, they are not held a whole step short:
-   they move by the largest fraction of their step (the same for all of them) that blocks nothing, found by
-   bisection (``approach_iterations``, e.g. 6: within step / 64, under 1 mm at the filter's speed). Such a
-   frame blocks nothing, so nothing is held or flagged; the next ones creep closer until even step / 64 blocks.
-   There an arm first *rests*: its reference frozen but not flagged (not a hold: the daemon withholds nothing
-   and sees no reference move) until ``mds-state`` shows the daemon's rate-limited target there (at most
-   ``release_wait``), because a flag would stop the arm where that target lags, up to a daemon step short. Then
-   it is held as in 3. Only at a contact between references; one with a measured pose is held at once.
-   "Touching" is on the gate's model: the shapes inflated by ``margin / 2`` touch, i.e. the un-inflated
-   clearance is the margin; they never overlap.
+   arm never goes where it could no longer stop before a contact: the poses it would pass through if it braked
+   now (its step's direction kept, the fastest joint decelerating at ``brake_accel``, below the daemon's bound)
+   are checked with the step, and when they block, the arms that moved into the contact move by the largest
+   fraction of their step (the same for all of them) from which they can still stop, found by bisection
+   (``approach_iterations``: within step / 2**n). So the reference decelerates onto the contact within the
+   daemon's bounds, and the daemon follows it there instead of passing an abrupt stop by v²/2a. When even
+   step / 2**n blocks, an arm first *rests*: its reference frozen but not flagged (not a hold: the daemon
+   withholds nothing and sees no reference move) until ``mds-state`` shows the daemon's rate-limited target
+   there (at most ``release_wait``), because a flag would stop the arm where that target lags. Then it is held
+   as in 3. An arm whose own measured pose is in contact is held at once. "Touching" is on the gate's model:
+   the shapes inflated by ``margin / 2`` touch, i.e. the un-inflated clearance is the margin; they never
+   overlap. ``approach_iterations: 0``: no braking, an arm is held at its last safe step.
 
 **Stopped at contact: the command ends.** An arm held because its *own* reference moved into the contact (the
 arm taken at its reference in a blocking configuration and its input moved this frame) is *stopped at contact*:
@@ -146,6 +144,7 @@ Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its mea
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
 STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
+AHEAD_STEP = 0.05  # rad (fastest joint): spacing of the poses checked along an arm's braking path
 
 
 @dataclass(frozen=True)
@@ -159,8 +158,9 @@ class GateConfig:
     release_velocity: float | None = None  # rad/s of a released joint; None = filters.DEFAULT_MAX_VELOCITY
     state_timeout: float = 0.5  # s: an older mds-state gives no measured pose
     release_wait: float = 1.0  # s: longest wait for the daemon to echo a cleared report
-    approach_iterations: int = 0  # bisection steps toward a contact (resolution: step / 2**n); 0 = hold at once
-    # (0 by default: see config/collision.yaml, the daemon passes an abrupt stop at the contact by up to v^2/2a)
+    approach_iterations: int = 6  # bisection steps toward a contact (resolution: step / 2**n); 0 = hold at once
+    brake_accel: float = 4.0  # rad/s^2: an arm approaching a contact brakes at this rate (<= the daemon's bound)
+    input_period: float = 0.025  # s: the filter's period; a late frame's step counts as made in this time
 
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], where: str = "collision config") -> GateConfig:
@@ -186,7 +186,9 @@ class GateConfig:
             release_velocity=num("release_velocity", None, allow_none=True),
             state_timeout=num("state_timeout", 0.5),  # type: ignore[arg-type]
             release_wait=num("release_wait", 1.0),  # type: ignore[arg-type]
-            approach_iterations=_count(data, "approach_iterations", 0, where),
+            approach_iterations=_count(data, "approach_iterations", 6, where),
+            brake_accel=num("brake_accel", 4.0),  # type: ignore[arg-type]
+            input_period=num("input_period", 0.025),  # type: ignore[arg-type]
         )
 
 
@@ -353,11 +355,13 @@ class Gate:
             out[c] = q
         return out
 
-    def _analyze(self, x: np.ndarray, pos: np.ndarray | None) -> tuple[dict[Choice, Any], list[tuple[Choice, Any]]]:
+    def _analyze(self, x: np.ndarray, pos: np.ndarray | None,
+                 new_only: bool = False) -> tuple[dict[Choice, Any], list[tuple[Choice, Any]]]:
         """Check output candidate ``x`` in every configuration. Compared with the previous output in the same
         configuration (same measured pose), a new colliding pair blocks, and so do the pairs that came closer
         when the colliding pairs' total clearance dropped: a move out of contact may trade a little of one pair
-        for more of the others (the straight way home from an interlock often does), never the total."""
+        for more of the others (the straight way home from an interlock often does), never the total.
+        ``new_only``: only new pairs block (a pose further ahead: the step rule governs pairs already in contact)."""
         cfg = self._configs(x, pos)
         res = dict(zip(cfg, self._check(list(cfg.values())), strict=True))
         hit = [c for c, r in res.items() if r.collides]
@@ -373,7 +377,7 @@ class Gate:
             kept = [k for k in res[c].contacts if (k.a, k.b) in old]
             closer = sum(k.clearance - old[(k.a, k.b)] for k in kept) < -CLOSER
             blocking += [(c, k) for k in new]
-            if closer:
+            if closer and not new_only:
                 blocking += [(c, k) for k in kept if k.clearance < old[(k.a, k.b)]]
         return res, blocking
 
@@ -415,11 +419,53 @@ class Gate:
                 out[arm] = min(mine, key=lambda k: k.clearance)
         return out
 
+    def _braking_path(self, x: np.ndarray, arms: Iterable[str], dt: float) -> list[np.ndarray]:
+        """The poses ``x`` would pass through if its moving ``arms`` started braking now: each arm keeps the
+        direction of its step from the previous output (all its joints scaled alike, so the hand stays on its
+        path) while its fastest joint decelerates at ``brake_accel``; checked every ``AHEAD_STEP`` rad and where
+        they stop. A step is taken as made in at most ``input_period`` (a late frame does not make it slower)."""
+        h = min(dt, self.config.input_period)
+        if h <= 0:
+            return []
+        ext: list[tuple[np.ndarray, np.ndarray]] = []
+        reach = 0.0
+        for arm in arms:
+            idx = UNIT_ADDRESSES[arm]
+            d = x[idx] - self.ref[idx]
+            fastest = float(np.abs(d).max())
+            if fastest > 0:  # stopping distance v^2 / 2a of the fastest joint, v = fastest / h
+                k = fastest / (2.0 * self.config.brake_accel * h * h)
+                ext.append((idx, d * k))
+                reach = max(reach, fastest * k)
+        n = math.ceil(reach / AHEAD_STEP) if ext else 0
+        path = []
+        for i in range(1, n + 1):
+            y = x.copy()
+            for idx, e in ext:
+                y[idx] = np.clip(x[idx] + e * (i / n), self.lower[idx], self.upper[idx])
+            path.append(y)
+        return path
+
+    def _blocks(self, x: np.ndarray, pos: np.ndarray | None, arms: Iterable[str],
+                dt: float) -> list[tuple[Choice, Any]]:
+        """The blocking contacts of output candidate ``x``, or else of the first pose on its ``arms``' braking
+        path that has any: an arm must not go where it could no longer stop before a contact."""
+        blocking = self._analyze(x, pos)[1]
+        if blocking:
+            return blocking
+        for y in self._braking_path(x, arms, dt):
+            blocking = self._analyze(y, pos, new_only=True)[1]
+            if blocking:
+                return blocking
+        return []
+
     def _approach(self, cand: np.ndarray, cand_mode: np.ndarray, frozen: set[str], arms: set[str],
-                  pos: np.ndarray | None) -> np.ndarray | None:
-        """The blocked ``arms`` moved by the largest fraction of their step (the same for all of them) that blocks
-        nothing, found by bisection in ``approach_iterations`` steps; frozen units stay, the rest moves as input.
-        None when even the smallest fraction tried blocks: the arms are at the contact, hold them."""
+                  pos: np.ndarray | None, dt: float) -> tuple[np.ndarray | None, float]:
+        """The blocked ``arms`` moved by the largest fraction of their step (the same for all of them) from which
+        they can still brake before the contact, found by bisection in ``approach_iterations`` steps; frozen
+        units stay, the rest moves as input. (None, 0) when even the smallest fraction tried blocks: the arms
+        are at the contact, hold them. Braking this way, the reference decelerates within ``brake_accel`` and
+        the daemon follows it onto the contact instead of passing it by its own braking distance."""
         base, _ = self._freeze(cand, cand_mode, frozen)
         idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(arms)])
         start, step = self.ref[idx], cand[idx] - self.ref[idx]
@@ -428,11 +474,11 @@ class Gate:
             mid = 0.5 * (lo + hi)
             x = base.copy()
             x[idx] = start + mid * step
-            if self._analyze(x, pos)[1]:
+            if self._blocks(x, pos, arms, dt):
                 hi = mid
             else:
                 lo, best = mid, x
-        return best
+        return best, lo
 
     def _freeze(self, cand: np.ndarray, cand_mode: np.ndarray, units: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
         out, out_mode = cand.copy(), cand_mode.copy()
@@ -480,6 +526,10 @@ class Gate:
         res, blocking = self._analyze(cand, pos)
         result = _merge(res.values())
         frozen = {n for n, u in self.units.items() if u.state != FREE}
+        if not blocking and not overriding and self.config.approach_iterations > 0:
+            moving = [a for a in ("left", "right")
+                      if not np.array_equal(cand[UNIT_ADDRESSES[a]], self.ref[UNIT_ADDRESSES[a]])]
+            blocking = self._blocks(cand, pos, moving, dt) if moving else []  # could it still stop in time?
         out, out_mode, res_out, blocked = cand, cand_mode, res, set()
         overridden = bool(blocking) and overriding
         seen = list(blocking)  # contacts that decide holds and flags
@@ -495,14 +545,16 @@ class Gate:
             approach = blocked - frozen
             if approach and "body" not in blocked and self.config.approach_iterations > 0:
                 # Approach to contact: the arms that moved into it go the safe part of their step.
-                part = self._approach(cand, cand_mode, frozen, approach, pos)
-                settle = set() if part is not None else self._settling(approach, blocking, observed, now)
+                part, fraction = self._approach(cand, cand_mode, frozen, approach, pos, dt)
+                settle = set() if part is not None else self._settling(approach, observed, now)
                 if part is not None or settle:  # replaces their input; the rules below apply as to any input
-                    moving = approach if part is not None else settle
-                    idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(moving)])
+                    arms = approach if part is not None else settle
+                    idx = np.concatenate([UNIT_ADDRESSES[u] for u in sorted(arms)])
                     cand, cand_mode = cand.copy(), cand_mode.copy()
                     if part is not None:
                         cand[idx] = part[idx]
+                        if fraction < 1.0:  # braking behind the input: catch up at the release speed later
+                            self._ramp[idx] = True
                     else:  # at the contact: rest there, unflagged, until the daemon's target has arrived
                         cand[idx], cand_mode[idx] = self.ref[idx], self.mode[idx]
                         stopping = {a: k for a, k in own.items() if a in settle}
@@ -526,8 +578,8 @@ class Gate:
         contacts = _merge(res_out.values())
         # An arm in contact whose input does not ask it to move stays held (and flagged); one that moves passes.
         involved = [(c, k) for c, r in res_out.items() for k in r.contacts] + seen
-        static = {u for u in ("left", "right")
-                  if np.array_equal(cand[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]])}
+        static = {u for u in ("left", "right")  # (an arm settling at a contact is not flagged yet)
+                  if u not in settle and np.array_equal(cand[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]])}
         resting = {} if overridden else self._resting(static, out, pos)
         involved += [((False, False, False), k) for k in resting.values()]
         touching = {_UNIT_OF_GROUP.get(g) for _, k in involved for g in (k.group_a, k.group_b)}
@@ -549,18 +601,22 @@ class Gate:
         return Decision(out.copy(), out_mode.copy(), result, self.held(now), refused, overridden, releasing,
                         escaping, contacts, pos is not None, stopped)
 
-    def _settling(self, arms: set[str], blocking: list[tuple[Choice, Any]], observed: Observed | None,
-                  now: float) -> set[str]:
+    def _settling(self, arms: set[str], observed: Observed | None, now: float) -> set[str]:
         """Arms at a contact between references whose daemon target has not arrived there yet: they rest at the
         contact unflagged (a flag would make the daemon withhold them where its rate-limited target happens to
         be, short of the contact), for at most ``release_wait`` s; then, or when nothing echoes, they are held as
-        usual. A contact with a measured pose (a compliant arm, an arm moved by hand) is held at once."""
-        out = set()
-        for arm in arms:
-            if observed is None or observed.sent is None or now - observed.time > self.config.state_timeout:
-                continue
-            if any(any(c) for c, k in blocking if arm in (k.group_a, k.group_b)):
-                continue
+        usual. An arm whose measured pose is in contact now (a compliant arm, an arm moved by hand) is held at
+        once. A blocking contact that only involves the lagging measured pose of a moving arm is not a reason:
+        the frozen reference passed every configuration before, so the daemon may take the arm there."""
+        out: set[str] = set()
+        if observed is None or observed.sent is None or now - observed.time > self.config.state_timeout:
+            return out
+        touching: set[str] = set()
+        now_cfg = self._configs(self.ref, observed.pos)
+        for (choice, _), result in zip(now_cfg.items(), self._check(list(now_cfg.values())), strict=True):
+            touching |= {u for u in ("left", "right") if choice[UNITS.index(u)]
+                         and any(u in (k.group_a, k.group_b) for k in result.contacts)}
+        for arm in arms - touching:
             start = self._settle_since.setdefault(arm, now)
             idx = UNIT_ADDRESSES[arm]
             if now - start <= self.config.release_wait and \
