@@ -590,8 +590,9 @@ def _open_as_other_user(name: str) -> int:
     return os.waitstatus_to_exitcode(status)
 
 
-def test_permission_denied(clean_shm: None) -> None:
+def test_permission_denied(clean_shm: None, request: pytest.FixtureRequest) -> None:
     if os.geteuid() == 0:
+        request.getfixturevalue("other_user")  # root in a user namespace: nobody must exist there
         ach.create(NAME, 2, 8, mode=0o660)  # root:root rw-rw---- : nobody may not use it
         assert _open_as_other_user(NAME) == ach.ACH_EACCES
         with ach.Channel(NAME) as ch:

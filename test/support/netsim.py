@@ -10,6 +10,7 @@ private namespace (``tools/netns-run``), so no interface is ever added to the re
 from __future__ import annotations
 
 import os
+import pwd
 import shutil
 import signal
 import socket
@@ -17,6 +18,8 @@ import subprocess
 import time
 from collections.abc import Sequence
 from pathlib import Path
+
+from . import other_ids_missing
 
 HOLD_S = 900  # a forgotten host removes itself after this long
 
@@ -164,6 +167,16 @@ class Sshd:
                 self.close()
                 raise RuntimeError(f"sshd did not start:\n{self.log.read_text()[-2000:]}")
             time.sleep(0.05)
+
+    @staticmethod
+    def missing_ids() -> str | None:
+        """Why sshd cannot run here, or None: its privilege separation switches to user sshd (setgroups, setuid),
+        which a user namespace of tools/netns-run maps only with the user's subordinate ids."""
+        try:
+            user = pwd.getpwnam("sshd")
+        except KeyError:
+            return None  # not installed: __init__ says how to get it
+        return other_ids_missing((user.pw_uid,), (user.pw_gid,))
 
     def close(self) -> None:
         if self.proc.poll() is None:
