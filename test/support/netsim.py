@@ -158,6 +158,14 @@ class Sshd:
             "UsePAM no\nStrictModes no\nAllowTcpForwarding local\nX11Forwarding no\nAllowAgentForwarding no\n"
             "PermitTunnel no\nLogLevel VERBOSE\n"
         )
+        if not os.access("/etc/shadow", os.R_OK):
+            # Rootless (tools/netns-run's user namespace): the machine's shadow file belongs to an id not mapped here,
+            # and sshd takes an account it cannot look up there for a locked one. The simulated robot gets a shadow
+            # database of its own (in its mount namespace only): root without a password, key-only as configured.
+            shadow = workdir / "shadow"
+            shadow.write_text("root:*:19000:0:99999:7:::\n")
+            shadow.chmod(0o600)
+            host.run(["mount", "--bind", str(shadow), "/etc/shadow"], check=True, capture_output=True)
         self.log = workdir / "sshd.log"
         with open(self.log, "wb") as logf:
             self.proc = host.popen([SSHD, "-D", "-e", "-f", str(config)], stdout=logf, stderr=subprocess.STDOUT)
