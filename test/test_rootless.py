@@ -115,8 +115,6 @@ def user() -> Iterator[NormalUser]:
                                    "--shell", "/usr/sbin/nologin", USER], capture_output=True, text=True)
             assert made.returncode == 0, f"useradd {USER}: {made.stderr}"
             pw = pwd.getpwnam(USER)
-        missing = [tool for tool in ("newuidmap", "newgidmap") if not shutil.which(tool)]
-        assert not missing, f"{' and '.join(missing)} missing: install the Debian package uidmap (make sysdeps)"
         _ensure_subids(pw)
         os.chown(home, pw.pw_uid, pw.pw_gid)
         python, extra = _python_for(pw.pw_uid, pw.pw_gid, base)
@@ -206,6 +204,8 @@ def test_the_tests_acting_as_other_users_run_as_a_normal_user(user: NormalUser) 
     """``make test`` as a normal user: the ownership tests (channels planted by nobody, an operator in the
     channels' group, chown to another group) run, and pass, in tools/netns-run's namespace of that user."""
     if user.prefix:  # we are root: as the user, through its own tools/netns-run
+        missing = [tool for tool in ("newuidmap", "newgidmap") if not shutil.which(tool)]
+        assert not missing, f"{' and '.join(missing)} missing: install the Debian package uidmap (make sysdeps)"
         env = {k: v for k, v in user.env.items() if k != "MDS_NETNS_ACTIVE"}
         argv = [*user.prefix, NETNS_RUN, user.python]
     else:  # the whole run is rootless: this namespace is the user's
