@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from support import SHARED, remove_mds_channels
+from support import NOBODY, SHARED, other_ids_missing, remove_mds_channels
 
 from mds_ach import ach
 
@@ -32,6 +32,17 @@ def clean_shm() -> Iterator[None]:
     remove_mds_channels()
     yield
     remove_mds_channels()
+
+
+@pytest.fixture
+def other_user() -> int:
+    """The uid (and gid) of user nobody, for a test that acts as another user (``support.run_as``): skipped with
+    what is missing where this namespace has no second uid (tools/netns-run as a normal user without uidmap and a
+    /etc/subuid range)."""
+    reason = other_ids_missing()
+    if reason:
+        pytest.skip(reason)
+    return NOBODY
 
 
 @pytest.fixture(params=["fast", "pure"])

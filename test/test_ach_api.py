@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from support import wait_for
+from support import NOBODY, run_as, wait_for
 
 from mds_ach import ach
 from mds_ach.ach import channel as ach_channel  # the wait tunables are globals of the module that waits
@@ -572,26 +572,21 @@ def test_struct_channel_cancel(clean_shm: None) -> None:
 
 
 def _open_as_other_user(name: str) -> int:
-    """Status of opening ``name`` from a forked child running as nobody (the test runs as root)."""
-    pid = os.fork()
-    if pid == 0:  # child: no pytest machinery from here on
-        code = 99
+    """Status of opening ``name`` from a forked child running as nobody, without supplementary groups (the test
+    runs as root; a normal user's groups map to root's group in its user namespace)."""
+    def open_it() -> int:
         try:
-            os.setgid(65534)
-            os.setuid(65534)
-            try:
-                ach.Channel(name, create=False).close()
-                code = 0
-            except ach.AchException as exc:
-                code = exc.status
-        finally:
-            os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    return os.waitstatus_to_exitcode(status)
+            ach.Channel(name, create=False).close()
+        except ach.AchException as exc:
+            return exc.status
+        return ach.ACH_OK
+
+    return run_as(NOBODY, NOBODY, open_it)
 
 
-def test_permission_denied(clean_shm: None) -> None:
+def test_permission_denied(clean_shm: None, request: pytest.FixtureRequest) -> None:
     if os.geteuid() == 0:
+        request.getfixturevalue("other_user")  # root in a user namespace: nobody must exist there
         ach.create(NAME, 2, 8, mode=0o660)  # root:root rw-rw---- : nobody may not use it
         assert _open_as_other_user(NAME) == ach.ACH_EACCES
         with ach.Channel(NAME) as ch:

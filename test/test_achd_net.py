@@ -524,6 +524,9 @@ def test_remote_over_veth_moves_robot_and_recovers_a_cut_link(robot, operator):
 @pytest.fixture(scope="module")
 def sshd(robot, tmp_path_factory):
     """A real OpenSSH server on the robot, key-only, whose key may only forward to the loopback server."""
+    reason = Sshd.missing_ids()
+    if reason:
+        pytest.skip(f"sshd: {reason}")
     server = Sshd(robot.host, ROBOT_IP, tmp_path_factory.mktemp("ssh"), f"127.0.0.1:{LOOPBACK_ONLY_PORT}")
     yield server
     server.close()

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from support import NOBODY, VENV_BIN, run_as
+from support import NOBODY, VENV_BIN, other_ids_missing, run_as
 
 import mds_ach as mds
 from mds_ach import ach
@@ -93,6 +93,9 @@ def other_group() -> grp.struct_group:
 
 def test_make_group_and_mode(run) -> None:
     group = other_group()
+    reason = other_ids_missing(uids=(), gids=(group.gr_gid,))
+    if reason:
+        pytest.skip(reason)
     rc, out, _ = run("make", "--group", group.gr_name, "--mode", "640")
     assert rc == 0
     for name in mds.ALL_CHANNELS:
@@ -121,7 +124,7 @@ def plant_channels(mode: int = 0o666, names: tuple[str, ...] = mds.ALL_CHANNELS)
     assert all(os.stat(ach.shm_path(n)).st_uid == NOBODY for n in names)
 
 
-def test_make_and_repair_refuse_channels_another_user_planted(run) -> None:
+def test_make_and_repair_refuse_channels_another_user_planted(run, other_user: int) -> None:
     plant_channels()
     rc, out, err = run("make")
     assert rc == 1
@@ -152,7 +155,7 @@ def test_make_refuses_an_open_mode_even_from_a_trusted_owner(run) -> None:
     assert rc == 1 and f"not to the configured group {other_group().gr_gid}" in err
 
 
-def test_operators_can_write_controller_inputs_but_not_the_daemon_input(run) -> None:
+def test_operators_can_write_controller_inputs_but_not_the_daemon_input(run, other_user: int) -> None:
     assert run("make", "-q")[0] == 0
     group = os.stat(ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME)).st_gid
 

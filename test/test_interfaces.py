@@ -177,7 +177,10 @@ def test_the_build_cache_restores_the_packages_into_another_venv(tmp_path: Path)
     assert len(archives) == 1, proc.stdout
     other = tmp_path / "venv2"
     (other / "bin").mkdir(parents=True)
-    (other / "bin" / "python").symlink_to(venv / "bin" / "python")  # the same Python: the same cache key
+    # The same Python (the same cache key) without any site-packages, as in a new venv before pip installed numpy:
+    # a restore needs neither numpy nor the Python headers.
+    (other / "bin" / "python").write_text(f'#!/bin/sh\nexec "{venv / "bin" / "python"}" -S "$@"\n')
+    (other / "bin" / "python").chmod(0o755)
     proc = subprocess.run([str(REPO / "tools" / "build-interfaces"), str(other)], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0 and "restored" in proc.stdout, proc.stdout + proc.stderr

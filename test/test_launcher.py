@@ -114,7 +114,7 @@ def _plant(names: tuple[str, ...] = mds.ALL_CHANNELS) -> None:
     assert run_as(NOBODY, NOBODY, plant) == 0
 
 
-def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: Path) -> None:
+def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: Path, other_user: int) -> None:
     _plant()
     proc = mds_ach("start", "nocan", env=system_env(tmp_path), timeout=120)
     assert proc.returncode == 1
@@ -126,7 +126,7 @@ def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: 
     assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
 
 
-def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path) -> None:
+def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path, other_user: int) -> None:
     """Started by hand (not through 'mds-ach start', which checks first), a node still refuses the file."""
     _plant((mds.MDS_CHAN_DAEMON_INPUT_NAME,))
     env = system_env(tmp_path)
@@ -176,7 +176,7 @@ def test_status_reports_a_damaged_state_channel_with_the_fix(clean_shm: None, tm
     assert re.search(r"^\s+daemon\s+stopped$", proc.stdout, re.M), "the rest of the report is still there"
 
 
-def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: Path) -> None:
+def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: Path, other_user: int) -> None:
     env = system_env(tmp_path)
     assert mds_ach("make", "-q", env=env).returncode == 0
     proc = mds_ach("status", "--window", "0.1", env=env)
@@ -292,7 +292,7 @@ def test_read_once_against_the_running_system(system: dict[str, str]) -> None:
 
 
 @pytest.mark.slow
-def test_an_operator_cannot_open_the_daemon_input_of_a_running_system(system: dict[str, str]) -> None:
+def test_an_operator_cannot_open_the_daemon_input_of_a_running_system(system: dict[str, str], other_user: int) -> None:
     group = os.stat(ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME)).st_gid
 
     def operator() -> int:  # in the channels' group: may command through the pipeline, not around it

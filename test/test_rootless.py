@@ -5,6 +5,11 @@ We run as root in CI, so the checks run as a dedicated user (``mds-rootless``, c
 The venv's interpreter may live where other users cannot execute it (pyenv under /root): the user then runs the
 system's Python of the same version on the venv's packages (``PYTHONPATH``, and the ROS wheels' library path,
 which the venv's interpreter sets up itself). Skipped only where the kernel disables user namespaces.
+
+The tests that act as other users (channels planted by nobody, the operator's group, chown to another group) need
+more than the one uid ``unshare -r`` maps: the user gets a subordinate id range here (/etc/subuid, /etc/subgid;
+``make sysdeps`` installs uidmap's newuidmap/newgidmap), which tools/netns-run then maps, and those tests run as
+the user.
 """
 
 from __future__ import annotations
@@ -23,12 +28,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from support import REPO, in_netns
+from support import REPO, in_netns, other_ids_missing
 from support.system import isolated_run
 
 from mds_ach.paths import host_uid
 
 USER = "mds-rootless"
+SUBID_MIN, SUBID_COUNT = 100000, 65536  # Debian's login.defs defaults (SUB_UID_MIN, SUB_UID_COUNT)
 NETNS_RUN = str(REPO / "tools" / "netns-run")
 
 
@@ -46,6 +52,20 @@ def _userns_disabled() -> str | None:
         if _sysctl(name) == off:
             return f"the kernel disables unprivileged user namespaces ({name} = {off})"
     return None
+
+
+def _ensure_subids(pw: pwd.struct_passwd) -> None:
+    """Give the user a subordinate uid and gid range (what tools/netns-run maps with ``--map-auto``) unless it has
+    one: ``useradd --system`` allocates none. The range starts after every range already given out."""
+    for kind, path in (("uids", Path("/etc/subuid")), ("gids", Path("/etc/subgid"))):
+        entries = [line.split(":") for line in (path.read_text().splitlines() if path.exists() else [])]
+        entries = [e for e in entries if len(e) == 3]
+        if any(e[0] in (pw.pw_name, str(pw.pw_uid)) for e in entries):
+            continue
+        start = max([SUBID_MIN, *(int(e[1]) + int(e[2]) for e in entries)])
+        made = subprocess.run(["usermod", f"--add-sub{kind}", f"{start}-{start + SUBID_COUNT - 1}", pw.pw_name],
+                              capture_output=True, text=True)
+        assert made.returncode == 0, f"usermod --add-sub{kind} for {pw.pw_name}: {made.stderr}"
 
 
 @dataclass(frozen=True)
@@ -95,6 +115,7 @@ def user() -> Iterator[NormalUser]:
                                    "--shell", "/usr/sbin/nologin", USER], capture_output=True, text=True)
             assert made.returncode == 0, f"useradd {USER}: {made.stderr}"
             pw = pwd.getpwnam(USER)
+        _ensure_subids(pw)
         os.chown(home, pw.pw_uid, pw.pw_gid)
         python, extra = _python_for(pw.pw_uid, pw.pw_gid, base)
         prefix = ("setpriv", f"--reuid={pw.pw_uid}", f"--regid={pw.pw_gid}", "--clear-groups")
@@ -168,3 +189,34 @@ def test_make_run_and_mds_ach_ros_as_a_normal_user(user: NormalUser) -> None:
         assert len(re.findall(r"LSP=", proc.stdout)) == 2, proc.stdout
         status = subprocess.run([*cli, "status"], env=env, capture_output=True, text=True, timeout=120, cwd=REPO)
         assert re.search(r"bridge\s+running", status.stdout), status.stdout + status.stderr
+
+
+# The tests that act as another user inside the tests' namespace (support.run_as, chown to another group).
+OTHER_USER_TESTS = (
+    "test/test_chantool.py::test_make_group_and_mode",
+    "test/test_chantool.py::test_make_and_repair_refuse_channels_another_user_planted",
+    "test/test_chantool.py::test_operators_can_write_controller_inputs_but_not_the_daemon_input",
+    "test/test_ach_api.py::test_permission_denied",
+)
+
+
+def test_the_tests_acting_as_other_users_run_as_a_normal_user(user: NormalUser) -> None:
+    """``make test`` as a normal user: the ownership tests (channels planted by nobody, an operator in the
+    channels' group, chown to another group) run, and pass, in tools/netns-run's namespace of that user."""
+    if user.prefix:  # we are root: as the user, through its own tools/netns-run
+        missing = [tool for tool in ("newuidmap", "newgidmap") if not shutil.which(tool)]
+        assert not missing, f"{' and '.join(missing)} missing: install the Debian package uidmap (make sysdeps)"
+        env = {k: v for k, v in user.env.items() if k != "MDS_NETNS_ACTIVE"}
+        argv = [*user.prefix, NETNS_RUN, user.python]
+    else:  # the whole run is rootless: this namespace is the user's
+        reason = other_ids_missing()
+        if reason:
+            pytest.skip(reason)
+        env, argv = dict(os.environ), [sys.executable]
+    argv += ["-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider", "--basetemp", str(user.home / "pytest"),
+             *OTHER_USER_TESTS]
+    proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=300, cwd=REPO)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    summary = out.strip().splitlines()[-1]
+    assert re.fullmatch(r"\d+ passed in .*", summary), f"every one runs and passes (no skip): {summary}\n{out}"

@@ -5,7 +5,8 @@ Tests import it as ``support`` (``test/`` is on ``sys.path``: pytest's ``pythonp
 ``conftest.py`` keeps only fixtures; helpers live here, so no test module imports ``conftest``.
 
 * this module: paths (``REPO``, ``VENV_BIN``, ``SHARED``), ``wait_for``, ``in_netns``, ``remove_mds_channels``,
-  ``run_as`` (standard library only, so the benchmarks can use the package without pytest);
+  ``run_as`` and ``other_ids_missing`` (standard library only, so the benchmarks can use the package without
+  pytest);
 * ``support.channels``: the one "newest frame" reader (``newest``, ``state``, ``Newest``);
 * ``support.rig``: the one daemon rig (``DaemonRig``: the daemon loop on a simulated clock and bus);
 * ``support.system``: the one system start-up (``running_system`` via ``mds-ach start``, ``Pipeline`` for
@@ -22,7 +23,7 @@ import glob
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
@@ -64,12 +65,54 @@ def in_netns() -> bool:
     return os.environ.get("MDS_NETNS_ACTIVE") == "1"
 
 
+def _unmapped(table: str, ids: Iterable[int]) -> list[int]:
+    """The ids of ``ids`` that /proc/self/{uid,gid}_map leaves unmapped (all mapped outside a user namespace)."""
+    try:
+        lines = Path(f"/proc/self/{table}_map").read_text().split("\n")
+    except OSError:
+        return []
+    ranges = [(int(inside), int(count)) for inside, _, count in (line.split() for line in lines if line.strip())]
+    return [i for i in ids if not any(start <= i < start + count for start, count in ranges)]
+
+
+def other_ids_missing(uids: Iterable[int] = (NOBODY,), gids: Iterable[int] = (NOBODY,)) -> str | None:
+    """Why this process cannot act as ``uids``/``gids`` (setuid, setgid, setgroups), or None when it can.
+
+    As root on the host every id exists. In the user namespace tools/netns-run makes for a normal user, only that
+    user (as root) does, unless it maps the user's subordinate id range too (uidmap + /etc/subuid, /etc/subgid)."""
+    if os.geteuid() != 0:
+        return f"needs root (or root in tools/netns-run's user namespace) to act as another user, not uid " \
+               f"{os.geteuid()}"
+    unmapped = [f"uid {i}" for i in _unmapped("uid", uids)] + [f"gid {i}" for i in _unmapped("gid", gids)]
+    try:
+        setgroups = Path("/proc/self/setgroups").read_text().strip()
+    except OSError:
+        setgroups = "allow"
+    if not unmapped and setgroups == "allow":
+        return None
+    outside = Path("/proc/self/uid_map").read_text().split()[1]
+    try:
+        import pwd
+
+        who = pwd.getpwuid(int(outside)).pw_name
+    except (KeyError, ValueError):
+        who = f"uid {outside}"
+    what = ", ".join(unmapped) if unmapped else "setgroups (denied)"
+    return (f"needs a second uid inside the user namespace ({what} not available to {who}): install uidmap "
+            f"(newuidmap/newgidmap) and give {who} a /etc/subuid and /etc/subgid range (as root: usermod "
+            f"--add-subuids 100000-165535 --add-subgids 100000-165535 {who}), then run through tools/netns-run")
+
+
 def run_as(uid: int, gid: int, func: Callable[[], int], groups: tuple[int, ...] = ()) -> int:
     """Run ``func`` in a forked child as another user (we are root in the test namespace); its return value,
     or 1 after printing the traceback, is the exit status returned here. A fork, not a new interpreter:
-    the venv's Python lives under /root, which other users cannot execute."""
+    the venv's Python lives under /root, which other users cannot execute. Raises when those ids do not exist
+    here (``other_ids_missing``: tests skip first with that reason)."""
     import traceback
 
+    missing = other_ids_missing((uid,), (gid, *groups))
+    if missing:
+        raise RuntimeError(f"run_as({uid}, {gid}): {missing}")
     pid = os.fork()
     if pid == 0:
         code = 1

@@ -10,6 +10,7 @@ private namespace (``tools/netns-run``), so no interface is ever added to the re
 from __future__ import annotations
 
 import os
+import pwd
 import shutil
 import signal
 import socket
@@ -17,6 +18,8 @@ import subprocess
 import time
 from collections.abc import Sequence
 from pathlib import Path
+
+from . import other_ids_missing
 
 HOLD_S = 900  # a forgotten host removes itself after this long
 
@@ -155,6 +158,14 @@ class Sshd:
             "UsePAM no\nStrictModes no\nAllowTcpForwarding local\nX11Forwarding no\nAllowAgentForwarding no\n"
             "PermitTunnel no\nLogLevel VERBOSE\n"
         )
+        if not os.access("/etc/shadow", os.R_OK):
+            # Rootless (tools/netns-run's user namespace): the machine's shadow file belongs to an id not mapped here,
+            # and sshd takes an account it cannot look up there for a locked one. The simulated robot gets a shadow
+            # database of its own (in its mount namespace only): root without a password, key-only as configured.
+            shadow = workdir / "shadow"
+            shadow.write_text("root:*:19000:0:99999:7:::\n")
+            shadow.chmod(0o600)
+            host.run(["mount", "--bind", str(shadow), "/etc/shadow"], check=True, capture_output=True)
         self.log = workdir / "sshd.log"
         with open(self.log, "wb") as logf:
             self.proc = host.popen([SSHD, "-D", "-e", "-f", str(config)], stdout=logf, stderr=subprocess.STDOUT)
@@ -164,6 +175,16 @@ class Sshd:
                 self.close()
                 raise RuntimeError(f"sshd did not start:\n{self.log.read_text()[-2000:]}")
             time.sleep(0.05)
+
+    @staticmethod
+    def missing_ids() -> str | None:
+        """Why sshd cannot run here, or None: its privilege separation switches to user sshd (setgroups, setuid),
+        which a user namespace of tools/netns-run maps only with the user's subordinate ids."""
+        try:
+            user = pwd.getpwnam("sshd")
+        except KeyError:
+            return None  # not installed: __init__ says how to get it
+        return other_ids_missing((user.pw_uid,), (user.pw_gid,))
 
     def close(self) -> None:
         if self.proc.poll() is None:
