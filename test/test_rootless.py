@@ -125,7 +125,7 @@ def user() -> Iterator[NormalUser]:
 
 
 CHECK = r"""
-import json, os, socket, sys, time
+import getpass, json, os, socket, sys, time
 from mds_ach import ach
 from mds_ach.paths import runtime_dir
 import rclpy
@@ -134,7 +134,7 @@ from std_msgs.msg import String
 out = {"uid": os.getuid(), "uid_map": open("/proc/self/uid_map").read().split(),
        "links": [n for _, n in socket.if_nameindex()],
        "shm": sorted(f for f in os.listdir("/dev/shm") if f.startswith("achshm")),
-       "runtime_dir": str(runtime_dir())}
+       "runtime_dir": str(runtime_dir()), "user": getpass.getuser()}
 with ach.Channel("test-rootless", 4, 16, create=True) as ch:
     ch.put(b"rootless")
     buf = bytearray(16)
@@ -173,6 +173,7 @@ def test_netns_run_channel_and_rclpy_as_a_normal_user(user: NormalUser) -> None:
     assert out["channel"] == "rootless" and out["channel_uid"] == 0
     assert out["ros"] == ["hello"]
     assert out["runtime_dir"] == f"/tmp/mds-ach-{outside}", "the same runtime dir as the user's other terminals"
+    assert out["user"] == pwd.getpwuid(outside).pw_name, "the user's own name inside (pytest-of-<user>, not root's)"
 
 
 @pytest.mark.ros
