@@ -104,9 +104,9 @@ def user() -> Iterator[NormalUser]:
     base = {"PATH": "/usr/local/bin:/usr/bin:/bin", "HOME": str(home), "LANG": "C.UTF-8",
             "ROS_LOG_DIR": str(home / "ros-log")}
     try:
-        if host_uid() != 0:  # the whole test run is already rootless
-            yield NormalUser((), base | {"LD_LIBRARY_PATH": os.environ.get("LD_LIBRARY_PATH", "")}, sys.executable,
-                             home)
+        if host_uid() != 0:  # the whole test run is already rootless: the user's name as its netns-run set it
+            inherited = {k: os.environ[k] for k in ("LD_LIBRARY_PATH", "LOGNAME", "USER") if k in os.environ}
+            yield NormalUser((), base | inherited, sys.executable, home)
             return
         try:
             pw = pwd.getpwnam(USER)
