@@ -252,10 +252,7 @@ class Harness(Spinner):
     """``daemon --nocan`` and the bridge as child processes, plus a probe node in this process."""
 
     def __init__(self, tmp: Path) -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray, String
@@ -271,11 +268,7 @@ class Harness(Spinner):
             [str(VENV_BIN / "mds-ach-bridge"), "--ros-args", *NODE_PARAMS], stdout=self.log.open("w"),
             stderr=subprocess.STDOUT,
         )
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("bridge_test_probe", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self.open_node("bridge_test_probe")
         self.states: list = []
         self.refs: list = []
         self.diags: list = []
@@ -316,9 +309,7 @@ class Harness(Spinner):
         return {} if st is None else {kv.key: kv.value for kv in st.values}
 
     def close(self) -> int:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.context.try_shutdown()
+        self.close_node()
         for proc in (self.daemon,):
             if proc.poll() is None:
                 os.kill(proc.pid, signal.SIGCONT)

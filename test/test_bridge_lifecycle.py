@@ -102,10 +102,7 @@ class System(Spinner):
     """daemon --nocan and the bridge as child processes, the mux in this process, a probe node for DDS."""
 
     def __init__(self, tmp: Path) -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from sensor_msgs.msg import JointState
         from std_msgs.msg import String
         from std_srvs.srv import Trigger
@@ -124,11 +121,7 @@ class System(Spinner):
         self.teleop = StructChannel(TELEOP_CHANNEL, mds.MDS_REF)
         self.bridge = subprocess.Popen([str(VENV_BIN / "mds-ach-bridge"), "--ros-args", *BRIDGE_PARAMS],
                                        stdout=self.log.open("w"), stderr=subprocess.STDOUT)
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("bridge_lifecycle_probe", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self.open_node("bridge_lifecycle_probe")
         self.diags: list = []
         self.status: list[dict] = []
         n = self.node
@@ -168,9 +161,7 @@ class System(Spinner):
         return None
 
     def close(self) -> int:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.context.try_shutdown()
+        self.close_node()
         if self.bridge.poll() is None:
             self.bridge.send_signal(signal.SIGTERM)
         rc = self.bridge.wait(timeout=15)

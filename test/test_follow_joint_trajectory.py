@@ -16,6 +16,7 @@ from collections.abc import Iterator
 import pytest
 import yaml
 from support import REPO
+from support.spin import Spinner
 from support.system import running_system, state
 
 import mds_ach as mds
@@ -125,22 +126,15 @@ def test_velocity_is_the_finite_difference_over_the_frames_own_stamps() -> None:
 # --------------------------------------------------------------------------------------------- the running system
 
 
-class Probe:
+class Probe(Spinner):
     """A client node in this process: a default-QoS /joint_states subscriber and FollowJointTrajectory clients."""
 
     def __init__(self) -> None:
-        import rclpy
         from control_msgs.action import FollowJointTrajectory
         from rclpy.action import ActionClient
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from sensor_msgs.msg import JointState
 
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("fjt_probe", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self.open_node("fjt_probe")
         self.states: list = []
         self.node.create_subscription(JointState, "/joint_states", self.states.append, 10)  # default QoS: reliable
         self.clients = {c: ActionClient(self.node, FollowJointTrajectory, f"/{c}/{follow.ACTION}")
@@ -148,12 +142,6 @@ class Probe:
         for name, client in self.clients.items():
             self.spin_until(client.server_is_ready, 60.0, f"the {name} action server")
         self.spin_until(lambda: self.states, 30.0, "/joint_states with a default-QoS subscriber")
-
-    def spin_until(self, pred, timeout: float, what: str) -> None:
-        deadline = time.monotonic() + timeout
-        while not pred():
-            assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
-            self.executor.spin_once(timeout_sec=0.01)
 
     def send(self, controller: str, goal, feedback: list | None = None):
         """Send a goal; returns its handle once the server answered."""
@@ -176,9 +164,7 @@ class Probe:
     def close(self) -> None:
         for client in self.clients.values():
             client.destroy()
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.context.try_shutdown()
+        self.close_node()
 
 
 @pytest.fixture(scope="module")
