@@ -90,8 +90,7 @@ def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Robot]:
         codes = r.stop_all()
         r.close()
         remove_mds_channels()
-    bad = {n: c for n, c in codes.items() if c != 0}
-    assert not bad, f"unclean exits {bad}:\n" + "\n".join(r.log_text(n)[-3000:] for n in bad)
+    r.assert_clean(codes)
     assert "not put by the collision gate" not in r.log_text("daemon"), "the gate is the daemon input's only writer"
 
 

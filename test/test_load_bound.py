@@ -181,7 +181,7 @@ def test_every_target_obeys_the_bound_while_the_pipeline_and_the_daemon_are_star
         for proc in nodes.procs.values():
             proc.send_signal(signal.SIGCONT)
         codes = nodes.stop_all()
-    assert all(c == 0 for c in codes.values()), codes
+    nodes.assert_clean(codes)
     table = TABLE
     result = audit(read_log(str(can_log)), table, table.motion_bounds(mds.MDS_LOOP_PERIOD), 3.5 * mds.MDS_LOOP_PERIOD)
     lsp = result.targets["LSP"]

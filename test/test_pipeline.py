@@ -163,8 +163,7 @@ def system(clean_shm: None, tmp_path: Path):
     finally:
         codes = s.stop_all()
         s.close()
-    bad = {n: c for n, c in codes.items() if c != 0}
-    assert not bad, f"unclean exits {bad}:\n" + "\n".join(s.log_text(n)[-3000:] for n in bad)
+    s.assert_clean(codes)
     table = config.load()
     result = audit(read_log(str(can_log)), table, table.motion_bounds(mds.MDS_LOOP_PERIOD), 3.5 * mds.MDS_LOOP_PERIOD)
     assert result.violations == [], result.violations
@@ -256,8 +255,7 @@ def gate_system(clean_shm: None, tmp_path: Path):
     finally:
         codes = s.stop_all()
         s.close()
-    bad = {n: c for n, c in codes.items() if c != 0}
-    assert not bad, f"unclean exits {bad}:\n" + "\n".join(s.log_text(n)[-3000:] for n in bad)
+    s.assert_clean(codes)
 
 
 def test_gate_checks_the_measured_pose_of_a_compliant_arm(gate_system: System) -> None:
@@ -391,8 +389,7 @@ def test_gate_release_never_steps_the_motors(gate_system: System) -> None:
         ref[LEFT] = arm_solution("left", [0.40, 0.001, -0.10], home[LEFT])
         s.command(ref, mode)
     s.follow(lambda r, p: np.abs(r[LEFT] - ref[LEFT]).max() < 1e-9, timeout=20)  # released, it comes on
-    codes = s.stop_all()  # flushes the CAN log
-    assert not any(codes.values()), codes
+    s.assert_clean(s.stop_all())  # (stopping flushes the CAN log)
 
     speed = float(filter_node.load_config().max_velocity[MODEL].min())  # config/filter.yaml: 1.57 rad/s
     steps = moveto_steps(s.can_log)

@@ -181,6 +181,11 @@ class Pipeline:
         self.procs.clear()
         return codes
 
+    def assert_clean(self, codes: dict[str, int]) -> None:
+        """Every node of ``stop_all()`` exited with 0; else fail with the unclean ones' log tails."""
+        bad = {n: c for n, c in codes.items() if c != 0}
+        assert not bad, f"unclean exits {bad}:\n" + "\n".join(self.log_text(n)[-3000:] for n in bad)
+
     def log_text(self, name: str) -> str:
         path = self.logs / f"{name}.log"
         return path.read_text(errors="replace") if path.exists() else ""
