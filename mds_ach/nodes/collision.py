@@ -391,9 +391,13 @@ class Gate:
             self._cache.update(zip(todo, self.model.check_many(np.array(list(todo.values()))), strict=True))
         return [self._cache[k] for k in keys]
 
+    def _moves(self, x: np.ndarray, unit: str) -> bool:
+        """Whether output candidate ``x`` moves ``unit`` from the previous output."""
+        return not np.array_equal(x[UNIT_ADDRESSES[unit]], self.ref[UNIT_ADDRESSES[unit]])
+
     def _movers(self, blocking: list[tuple[Choice, Any]], x: np.ndarray) -> set[str]:
         """Units whose reference moved into the blocking contacts; every unit if the body (waist, neck) did."""
-        moved = {u: not np.array_equal(x[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]]) for u in UNITS}
+        moved = {u: self._moves(x, u) for u in UNITS}
         out: set[str] = set()
         for choice, contact in blocking:
             for group in (contact.group_a, contact.group_b):
@@ -412,7 +416,7 @@ class Gate:
         or that only its measured pose is in, are not its own."""
         out: dict[str, Any] = {}
         for arm in ("left", "right"):
-            if np.array_equal(x[UNIT_ADDRESSES[arm]], self.ref[UNIT_ADDRESSES[arm]]):
+            if not self._moves(x, arm):
                 continue
             mine = [k for c, k in blocking if not c[UNITS.index(arm)] and arm in (k.group_a, k.group_b)]
             if mine:
@@ -460,10 +464,10 @@ class Gate:
         return []
 
     def _approach(self, cand: np.ndarray, cand_mode: np.ndarray, frozen: set[str], arms: set[str],
-                  pos: np.ndarray | None, dt: float) -> tuple[np.ndarray | None, float]:
+                  pos: np.ndarray | None, dt: float) -> np.ndarray | None:
         """The blocked ``arms`` moved by the largest fraction of their step (the same for all of them) from which
         they can still brake before the contact, found by bisection in ``approach_iterations`` steps; frozen
-        units stay, the rest moves as input. (None, 0) when even the smallest fraction tried blocks: the arms
+        units stay, the rest moves as input. None when even the smallest fraction tried blocks: the arms
         are at the contact, hold them. Braking this way, the reference decelerates within ``brake_accel`` and
         the daemon follows it onto the contact instead of passing it by its own braking distance."""
         base, _ = self._freeze(cand, cand_mode, frozen)
@@ -478,7 +482,7 @@ class Gate:
                 hi = mid
             else:
                 lo, best = mid, x
-        return best, lo
+        return best
 
     def _freeze(self, cand: np.ndarray, cand_mode: np.ndarray, units: Iterable[str]) -> tuple[np.ndarray, np.ndarray]:
         out, out_mode = cand.copy(), cand_mode.copy()
@@ -527,8 +531,7 @@ class Gate:
         result = _merge(res.values())
         frozen = {n for n, u in self.units.items() if u.state != FREE}
         if not blocking and not overriding and self.config.approach_iterations > 0:
-            moving = [a for a in ("left", "right")
-                      if not np.array_equal(cand[UNIT_ADDRESSES[a]], self.ref[UNIT_ADDRESSES[a]])]
+            moving = [a for a in ("left", "right") if self._moves(cand, a)]
             blocking = self._blocks(cand, pos, moving, dt) if moving else []  # could it still stop in time?
         out, out_mode, res_out, blocked = cand, cand_mode, res, set()
         overridden = bool(blocking) and overriding
@@ -545,7 +548,7 @@ class Gate:
             approach = blocked - frozen
             if approach and "body" not in blocked and self.config.approach_iterations > 0:
                 # Approach to contact: the arms that moved into it go the safe part of their step.
-                part, fraction = self._approach(cand, cand_mode, frozen, approach, pos, dt)
+                part = self._approach(cand, cand_mode, frozen, approach, pos, dt)
                 settle = set() if part is not None else self._settling(approach, observed, now)
                 if part is not None or settle:  # replaces their input; the rules below apply as to any input
                     arms = approach if part is not None else settle
@@ -553,8 +556,7 @@ class Gate:
                     cand, cand_mode = cand.copy(), cand_mode.copy()
                     if part is not None:
                         cand[idx] = part[idx]
-                        if fraction < 1.0:  # braking behind the input: catch up at the release speed later
-                            self._ramp[idx] = True
+                        self._ramp[idx] = True  # braking behind the input: catch up at the release speed later
                     else:  # at the contact: rest there, unflagged, until the daemon's target has arrived
                         cand[idx], cand_mode[idx] = self.ref[idx], self.mode[idx]
                         stopping = {a: k for a, k in own.items() if a in settle}
@@ -579,7 +581,7 @@ class Gate:
         # An arm in contact whose input does not ask it to move stays held (and flagged); one that moves passes.
         involved = [(c, k) for c, r in res_out.items() for k in r.contacts] + seen
         static = {u for u in ("left", "right")  # (an arm settling at a contact is not flagged yet)
-                  if u not in settle and np.array_equal(cand[UNIT_ADDRESSES[u]], self.ref[UNIT_ADDRESSES[u]])}
+                  if u not in settle and not self._moves(cand, u)}
         resting = {} if overridden else self._resting(static, out, pos)
         involved += [((False, False, False), k) for k in resting.values()]
         touching = {_UNIT_OF_GROUP.get(g) for _, k in involved for g in (k.group_a, k.group_b)}
