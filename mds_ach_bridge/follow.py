@@ -77,7 +77,7 @@ def tolerances(names: Sequence[str], goal: FollowJointTrajectory.Goal, default_p
                                                          _bound(e.velocity, default.velocity))
         return out
 
-    t = goal.goal_time_tolerance.sec + goal.goal_time_tolerance.nanosec * 1e-9
+    t = trajectory.seconds(goal.goal_time_tolerance)
     return Tolerances(resolve(goal.path_tolerance, default_path), resolve(goal.goal_tolerance, default_goal),
                       t if t > 0.0 else default_goal_time)
 

@@ -14,7 +14,7 @@ import bisect
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from mds_ach_bridge.commands import CommandError, check_names, check_value
 from mds_ach_bridge.limits import Limits
@@ -133,14 +133,17 @@ def build(
     return traj
 
 
+def seconds(t: Any) -> float:
+    """A ``builtin_interfaces`` Time or Duration (``sec``, ``nanosec``) in seconds."""
+    return t.sec + t.nanosec * 1e-9
+
+
 def from_message(msg: JointTrajectory, now: float, limits: Limits) -> Trajectory:
     """A ``trajectory_msgs/JointTrajectory`` received at ``now`` (s, the node's clock), validated: the checks
     the ``mds/joint_trajectory`` topic and the FollowJointTrajectory goals share."""
-    stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+    stamp = seconds(msg.header.stamp)
     start = stamp if stamp > 0.0 else now
-    points = [
-        (p.time_from_start.sec + p.time_from_start.nanosec * 1e-9, p.positions, p.velocities) for p in msg.points
-    ]
+    points = [(seconds(p.time_from_start), p.positions, p.velocities) for p in msg.points]
     traj = build(msg.joint_names, points, start, limits)
     if traj.end < now:
         raise StaleTrajectoryError(f"the trajectory ended {now - traj.end:.3f} s ago (header.stamp in the past)")
