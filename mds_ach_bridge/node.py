@@ -28,7 +28,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -519,8 +519,13 @@ class BridgeNode(Node):
             self._reject(topics.JOINT_TRAJECTORY, reason)
             return
         self._emit()
-        text = (f"{self._what[serial]} accepted{' (replaces ' + ' and '.join(replaced) + ')' if replaced else ''}: "
-                f"{len(traj.names)} joints, {len(traj.times)} points, {traj.times[-1]:.3f} s")
+        self._announce_accepted(serial, replaced,
+                                f"{len(traj.names)} joints, {len(traj.times)} points, {traj.times[-1]:.3f} s")
+
+    def _announce_accepted(self, serial: int, replaced: Sequence[str], detail: str) -> None:
+        """Log and publish on the status topic that a trajectory (topic or goal) was accepted, and what it replaced."""
+        replaces = f" (replaces {' and '.join(replaced)})" if replaced else ""
+        text = f"{self._what[serial]} accepted{replaces}: {detail}"
         self.get_logger().info(text)
         self._publish_status({"event": "accepted", "command": self._what[serial], "message": text})
 
@@ -568,10 +573,7 @@ class BridgeNode(Node):
             return
         self._flush_cancels()
         self._emit()
-        text = (f"{self._what[serial]} accepted{' (replaces ' + ' and '.join(replaced) + ')' if replaced else ''}: "
-                f"{len(traj.times)} points, {traj.times[-1]:.3f} s")
-        self.get_logger().info(text)
-        self._publish_status({"event": "accepted", "command": self._what[serial], "message": text})
+        self._announce_accepted(serial, replaced, f"{len(traj.times)} points, {traj.times[-1]:.3f} s")
 
     def _on_goal_cancel(self, handle: Any) -> bool:
         """A cancel request: stop the goal's trajectory; its joints hold at the current reference (a lifecycle
