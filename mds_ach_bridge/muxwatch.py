@@ -64,8 +64,7 @@ class MuxTracker:
             self._remember(baseline)
 
     def index(self, st: MDS_MUX_STATE) -> int | None:
-        names = [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
-        return names.index(self.controller) if self.controller in names else None
+        return st.controller_index(self.controller)
 
     def _remember(self, st: MDS_MUX_STATE) -> None:
         i = self.index(st)

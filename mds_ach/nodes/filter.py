@@ -65,8 +65,7 @@ from mds_ach.nodes.pipeline import (
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.paths import config_path
 from mds_ach.robot.channels import StructChannel
-from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE, get_name
-from mds_ach.robot.msgs.mux_state import MUX_MAX_CONTROLLERS
+from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
 
 MODES = ("pass", "ema", "enc_filter", "velocity_limit")
 PASS, EMA, ENC, VEL = range(4)
@@ -321,7 +320,7 @@ class FilterCore:
 
 def owner_names(st: MDS_MUX_STATE) -> tuple[str | None, ...]:
     """The controller name owning each address (None: nobody) from an ``mds-mux-state`` frame."""
-    names = [get_name(bytes(st.name[i])) for i in range(max(0, min(int(st.count), MUX_MAX_CONTROLLERS)))]
+    names = st.controller_names()
     return tuple(names[o] if 0 <= o < len(names) else None for o in (int(v) for v in st.owner))
 
 

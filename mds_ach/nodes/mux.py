@@ -379,7 +379,7 @@ class MuxCore:
 def state_to_dict(st: MDS_MUX_STATE) -> dict[str, Any]:
     """The JSON document of /mds/mux_state: controllers (name, priority, stale, ages, newest verdict, refusals),
     joint owners, held joints and the newest hold request handled."""
-    names = [get_name(bytes(st.name[i])) for i in range(st.count)]
+    names = st.controller_names()
     held = {MUX_HELD: "held", MUX_CANCELLED: "cancelled"}
 
     def blocked(i: int) -> dict[str, Any]:

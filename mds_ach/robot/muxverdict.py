@@ -29,11 +29,6 @@ class Verdict:
     message: str  # "" when applied; else why not, naming the owner
 
 
-def _index(st: MDS_MUX_STATE, controller: str) -> int | None:
-    names = [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
-    return names.index(controller) if controller in names else None
-
-
 def describe(st: MDS_MUX_STATE, i: int) -> str:
     """Why controller ``i``'s newest frame was refused, e.g. "right arm joint RSP owned by 'ros' (priority 30)"."""
     joint = BY_ADDRESS[st.blocked_joint[i]].short if st.blocked_joint[i] in BY_ADDRESS else "a joint"
@@ -73,7 +68,7 @@ class VerdictWatch:
             st = self.states.wait(max(0.0, deadline - time.monotonic()))
             if st is not None:
                 self.newest = st
-                i = _index(st, self.controller)
+                i = st.controller_index(self.controller)
                 if i is None:
                     return Verdict(False, f"not applied: the mux has no controller '{self.controller}'")
                 if st.age[i] >= 0 and st.time - st.age[i] >= sent_at - 1e-6:

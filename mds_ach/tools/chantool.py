@@ -252,8 +252,8 @@ def _print_cmd(cmd: MDS_CMD, show_all: bool) -> None:
 
 
 def _print_mux_state(st: MDS_MUX_STATE, show_all: bool) -> None:
-    count = max(0, min(int(st.count), len(st.name)))
-    names = [get_name(bytes(st.name[i])) for i in range(count)]
+    names = st.controller_names()
+    count = len(names)
     print(f"seq {st.seq}  time {st.time:.6f}  controllers {st.count}")
     print(f"{'controller':<12} {'priority':>8} {'stale':>5} {'age':>9} {'change_age':>10}")
     for i, name in enumerate(names):

@@ -317,7 +317,7 @@ class Console:
         """Joints of ``addresses`` owned by a higher-priority mux controller than ours (the one reading
         ``channel``)."""
         mine = _controller_for(channel)
-        names = _mux_names(st)
+        names = st.controller_names()
         if mine not in names:
             return {}
         my_priority = st.priority[names.index(mine)]
@@ -393,7 +393,7 @@ class Console:
             st = self._mux_state(sent_at, chan, lambda st: _took_frame_since(st, mine, sent_at))
             if st is None:
                 latest = chan.read()
-                if latest is not None and latest.time > sent_at and mine not in _mux_names(latest):
+                if latest is not None and latest.time > sent_at and mine not in latest.controller_names():
                     raise CommandError(f"not applied: the mux has no controller reading {channel} "
                                        "(config/mux.yaml)", usage=False)
                 raise CommandError(NOT_RUNNING, usage=False)
@@ -674,14 +674,10 @@ def _controller_for(channel: str) -> str:
     return _DEFAULT_CONTROLLERS.get(channel, channel)
 
 
-def _mux_names(st: MDS_MUX_STATE) -> list[str]:
-    return [get_name(bytes(st.name[i])) for i in range(min(st.count, len(st.name)))]
-
-
 def _took_frame_since(st: MDS_MUX_STATE, controller: str, since: float) -> bool:
     """Did the mux receive a frame from ``controller`` at or after ``since`` (CLOCK_MONOTONIC)?
     ``age`` is the time from that frame's arrival to ``st.time``, so the arrival is ``st.time - age``."""
-    names = _mux_names(st)
+    names = st.controller_names()
     if controller not in names:
         return False
     i = names.index(controller)

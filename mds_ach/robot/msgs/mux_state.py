@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import ctypes
 
-from mds_ach.robot.msgs.legacy import MDS_JOINT_COUNT, Name30, _Packed
+from mds_ach.robot.msgs.legacy import MDS_JOINT_COUNT, Name30, _Packed, get_name
 
 MUX_MAX_CONTROLLERS = 8
 """Controllers one mux serves at most (the length of the per-controller arrays)."""
@@ -88,3 +88,12 @@ class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
         ("blocked_joint", ctypes.c_int8 * MUX_MAX_CONTROLLERS),
         ("refused", ctypes.c_uint32 * MUX_MAX_CONTROLLERS),
     ]
+
+    def controller_names(self) -> list[str]:
+        """``name[0:count]`` as text; ``count`` clamped to the array (a scribbled frame never reads past it)."""
+        return [get_name(bytes(self.name[i])) for i in range(max(0, min(int(self.count), MUX_MAX_CONTROLLERS)))]
+
+    def controller_index(self, controller: str) -> int | None:
+        """Index of ``controller`` in ``name[]``, None when the mux does not have it."""
+        names = self.controller_names()
+        return names.index(controller) if controller in names else None
