@@ -123,7 +123,7 @@ extern int mds_debug; /* declared by the original header; define it if you use i
 /* mds_hold_t, new: hold / resume / cancel requests to the mux (the command lifecycle). */
 /*   written by console, mds-ach, bridge, collision, viewer, achd, clients; read by mux, ik */
 #define MDS_CHAN_HOLD_NAME "mds-hold"
-/* mds_limits_t, new, stack only: the effective joint limits (URDF and joint table), published once when the daemon starts. */
+/* mds_limits_t, new, stack only: the effective joint limits (URDF and joint table) and what each joint can follow (velocity, acceleration), published once when the daemon starts. */
 /*   written by daemon; read by mux, collision, ik, bridge, console, viewer, read, mds-ach, achd, clients */
 #define MDS_CHAN_LIMITS_NAME "mds-limits"
 /* What the daemon executes: the collision gate's output, only the stack's user writes it.
@@ -605,8 +605,10 @@ typedef struct MDS_PACKED mds_limits {
     char robot[MDS_CHAR_PARAM_BUFFER_SIZE];              /* @1704 the joint table's robot variant (default, isaac, ...), char[30] */
     char source[MDS_LIMITS_SOURCE_SIZE];                 /* @1734 where the numbers come from (files), NUL-terminated ASCII */
     double time;                                         /* @1862 CLOCK_MONOTONIC when written */
+    double velocity[MDS_JOINT_COUNT];                    /* @1870 the highest speed the joint follows, rad/s (NaN where valid is 0) */
+    double acceleration[MDS_JOINT_COUNT];                /* @2670 the highest acceleration the joint follows, rad/s^2 (NaN where valid is 0) */
 } mds_limits_t;
-MDS_STATIC_ASSERT(sizeof(mds_limits_t) == 1870, "mds_limits_t must be 1870 bytes");
+MDS_STATIC_ASSERT(sizeof(mds_limits_t) == 3470, "mds_limits_t must be 3470 bytes");
 
 /* ---- legacy bare names of the original mds.h: RIGHT/LEFT, the 13 arm and torso joints by short and
    long name (#define LSP 0x005f), IK1..IK6 (the original wrote them malformed, `#define IK1 = 1`),

@@ -10,21 +10,33 @@ inside the limit.
 from __future__ import annotations
 
 import math
+import os
+import re
+import subprocess
+import xml.etree.ElementTree as ET
+from dataclasses import replace
 
 import numpy as np
 import pytest
+import yaml
+from support import VENV_BIN
 
 import mds_ach as mds
-from mds_ach import ach
+from mds_ach import ach, paths
+from mds_ach.bus import mcb, simbus
+from mds_ach.bus.mcb import StateArg
 from mds_ach.kinematics import limits as effective_limits
 from mds_ach.kinematics.collision import load_model as load_collision_model
 from mds_ach.kinematics.limits import EffectiveLimits, compute, current_limits
+from mds_ach.kinematics.model import load_model
 from mds_ach.net.achd import RefLimitCheck
+from mds_ach.nodes import collision as collision_node
+from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import ik as ik_node
 from mds_ach.nodes.collision import joint_limits
 from mds_ach.nodes.mux import Controller, MuxCore
 from mds_ach.nodes.pipeline import make_ref
-from mds_ach.robot import config
+from mds_ach.robot import config, joints, motion
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs import MDS_LIMITS, MDS_REF
@@ -144,7 +156,7 @@ def test_published_limits_are_what_every_entry_point_reads(clean_shm: None) -> N
     limits = compute()
     lower = limits.lower.copy()
     lower[mds.LSP] = -0.5
-    narrower = EffectiveLimits(lower, limits.upper, limits.valid, limits.robot, "test")
+    narrower = replace(limits, lower=lower, source="test")
     msg = narrower.to_msg(seq=1)
     assert check_limits(msg) is None
     with StructChannel.of(mds.MDS_CHAN_LIMITS_NAME) as chan:
@@ -185,3 +197,169 @@ def test_viewer_sliders_span_the_effective_limits() -> None:
     for name in BY_SHORT:
         if name in model.joints and model.joints[name].actuated:
             assert _slider_range(model.joints[name], limits.range(name)) == limits.range(name), name
+
+
+# --- what each joint can follow (issue #26 item 1) ------------------------------------------------------------
+
+
+def test_the_published_limits_say_what_each_joint_follows(clean_shm: None) -> None:
+    """Velocity = min(URDF, 0.9 x the daemon's bound), acceleration = the MOVETO acceleration the daemon commands
+    (80 deg/s^2, the MCB's own profile; below 0.9 x the daemon's 8 rad/s^2). Useful, not timid: the arms follow
+    >= 0.75 rad/s and >= 1.0 rad/s^2. Published on mds-limits and read back unchanged."""
+    table = config.load("default")
+    model = load_model()
+    limits = compute(table)
+    assert table.accel_deg_s2 == 80.0 and motion.LIMIT_MARGIN * table.max_acceleration > math.radians(80.0)
+    for short in LEFT_ARM + RIGHT_ARM + ("WST", "NKY"):
+        velocity, acceleration = limits.motion(short)
+        assert velocity == min(model.joints[short].velocity, motion.LIMIT_MARGIN * table.max_velocity) == 1.5
+        assert acceleration == math.radians(80.0) == pytest.approx(1.3963, abs=1e-4)
+        assert velocity >= 0.75 and acceleration >= 1.0, short
+    assert limits.motion("LF1") == (motion.LIMIT_MARGIN * table.max_velocity, math.radians(80.0))  # not in the URDF
+    assert limits.motion(0x01) is None  # no joint at that address
+    msg = limits.to_msg(seq=1)
+    assert check_limits(msg) is None
+    with StructChannel.of(mds.MDS_CHAN_LIMITS_NAME) as chan:
+        chan.put(msg)
+    got = current_limits()
+    assert got.published
+    for a in np.flatnonzero(limits.valid):
+        assert got.motion(int(a)) == limits.motion(int(a))
+    broken = limits.to_msg()
+    broken.acceleration[mds.LSP] = 0.0
+    assert "acceleration 0.0 at address 0x5f" in check_limits(broken)
+
+
+def test_the_followable_numbers_take_the_tightest_input() -> None:
+    base = config.load("default")
+    urdf = load_model()
+
+    def lsp(**changes: float) -> tuple[float, float]:
+        motion_ = compute(replace(base, **changes), urdf=urdf).motion("LSP")
+        assert motion_ is not None
+        return motion_
+
+    assert lsp(max_velocity=1.0) == (pytest.approx(0.9), math.radians(80.0))  # the daemon's bound at its margin
+    assert lsp(accel_deg_s2=40.0) == (1.5, math.radians(40.0))  # the MOVETO acceleration it commands
+    assert lsp(max_acceleration=1.0) == (1.5, pytest.approx(0.9))  # the daemon's acceleration bound at its margin
+    assert lsp(accel_deg_s2=120.0) == (1.5, math.radians(120.0))  # a faster MOVETO, still under 0.9 x 8 rad/s^2
+
+
+def test_the_daemon_publishes_and_commands_the_followable_acceleration(clean_shm: None) -> None:
+    """The daemon publishes the followable numbers on mds-limits and the acceleration it sends the MCB with every
+    MOVETO (TRAJECTORY_ACCELERATION, counts/s^2) is the published acceleration: a trajectory within the published
+    limits asks nothing of the MCB its profile does not do."""
+    from support.rig import TABLE, DaemonRig
+
+    rig = DaemonRig(pose={"LEP": -1.0})
+    try:
+        rig.loop.start_up()
+        with StructChannel.of(mds.MDS_CHAN_LIMITS_NAME) as chan:
+            published = chan.latest()
+        assert published is not None and check_limits(published) is None
+        limits = EffectiveLimits.from_msg(published)
+        expected = compute(TABLE)
+        for a in np.flatnonzero(expected.valid):
+            assert limits.motion(int(a)) == expected.motion(int(a))
+        rig.put_ref(LEP=-0.9)
+        rig.step(5)
+        lep = TABLE["LEP"]
+        sets = [f for f in rig.frames_to(lep.address) if f.argument == StateArg.TRAJECTORY_ACCELERATION]
+        assert sets
+        for f in sets:
+            assert f.value * 2 * math.pi / lep.cpr == pytest.approx(limits.motion("LEP")[1], rel=1e-6)  # float32
+    finally:
+        rig.close()
+
+
+def test_the_simulated_mcb_follows_the_published_limits() -> None:
+    """The MCB's MOVETO (its documented model, ``simbus.trajectory_step``) with the acceleration the daemon commands,
+    across LSP's whole range: it reaches the published velocity and never changes speed faster than the published
+    acceleration; its own speed limit (0.5 rev/s, an assumption of the model) is above the published velocity."""
+    table = config.load("default")
+    j = table["LSP"]
+    velocity, acceleration = compute(table).motion("LSP")
+    assert simbus.DEFAULT_MAX_VELOCITY_REV_S * 2 * math.pi > velocity
+    pos, vel = np.array([j.to_counts(j.lower)]), np.zeros(1)
+    target = np.array([j.to_counts(j.upper)])
+    vmax = np.array([j.cpr * simbus.DEFAULT_MAX_VELOCITY_REV_S])
+    accel = np.array([table.accel_counts(j)])
+    dt = np.array([table.trajectory_period / mcb.TRAJECTORY_TICK_HZ])
+    speeds = [0.0]
+    while pos[0] != target[0]:
+        pos, vel = simbus.trajectory_step(pos, vel, target, vmax, accel, dt)
+        speeds.append(abs(float(vel[0])) * 2 * math.pi / j.cpr)
+        assert len(speeds) < 1000
+    assert max(speeds) >= velocity
+    assert max(abs(b - a) for a, b in zip(speeds, speeds[1:], strict=False)) <= acceleration * dt[0] * (1 + 1e-9)
+
+
+def test_every_stage_lets_a_trajectory_at_the_published_limits_through() -> None:
+    """The published numbers are within every stage's own bounds (config defaults): the filter, the collision
+    gate's speed bound and the daemon's limiter (at its margin) pass such a trajectory unchanged."""
+    limits = compute()
+    table = config.load()
+    filt = filter_node.load_config()
+    gate = collision_node.GateConfig.from_mapping(collision_node.load_config())
+    for short in joints.MODEL_JOINTS:
+        a = BY_SHORT[short].address
+        velocity, acceleration = limits.motion(short)
+        assert velocity <= filt.max_velocity[a] and acceleration <= filt.max_accel[a], short
+        assert gate.max_velocity is None or velocity <= gate.max_velocity
+        assert velocity <= motion.LIMIT_MARGIN * table.max_velocity
+        assert acceleration <= motion.LIMIT_MARGIN * table.max_acceleration
+
+
+def test_robot_description_carries_the_followable_velocity() -> None:
+    limits = compute()
+    text = effective_limits.urdf_with_limits(paths.urdf_path().read_text(), limits)
+    seen = set()
+    for joint in ET.fromstring(text).iter("joint"):
+        limit = joint.find("limit")
+        if limit is None or joint.get("name") not in joints.MODEL_JOINTS:
+            continue
+        assert float(limit.get("velocity")) == limits.motion(joint.get("name"))[0]
+        seen.add(joint.get("name"))
+    assert seen == set(joints.MODEL_JOINTS)
+
+
+MOVEIT_KEYS = ["has_position_limits", "min_position", "max_position", "has_velocity_limits", "max_velocity",
+               "has_acceleration_limits", "max_acceleration", "has_jerk_limits"]
+
+
+def test_moveit_joint_limits_yaml_is_generated_from_the_authority() -> None:
+    """config/joint_limits.yaml is what `mds-ach limits --moveit-yaml` writes for the default robot, in MoveIt's
+    format (the keys of moveit_resources' panda_moveit_config), every number the authority's."""
+    committed = paths.config_path(effective_limits.MOVEIT_YAML)
+    limits = compute(robot="default")
+    assert committed.read_text() == effective_limits.moveit_yaml(limits), (
+        "config/joint_limits.yaml is out of date: run `mds-ach limits --moveit-yaml --robot default`")
+    data = yaml.safe_load(committed.read_text())
+    assert data["default_velocity_scaling_factor"] == data["default_acceleration_scaling_factor"] == 1.0
+    assert list(data["joint_limits"]) == list(joints.MODEL_JOINTS)
+    for name, entry in data["joint_limits"].items():
+        assert list(entry) == MOVEIT_KEYS
+        assert entry["has_position_limits"] and entry["has_velocity_limits"] and entry["has_acceleration_limits"]
+        assert not entry["has_jerk_limits"]
+        assert (entry["min_position"], entry["max_position"]) == limits.range(name)
+        assert (entry["max_velocity"], entry["max_acceleration"]) == limits.motion(name)
+
+
+def test_the_limits_verb_writes_and_checks_the_moveit_file(tmp_path) -> None:
+    mds_ach = str(VENV_BIN / "mds-ach")
+    env = {**os.environ, "MDS_ACH_RUNTIME_DIR": str(tmp_path / "rt")}
+
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([mds_ach, "limits", *args], capture_output=True, text=True, timeout=60, env=env)
+
+    assert cli("--moveit-yaml", "--check", "--robot", "default").returncode == 0  # the committed file
+    out = tmp_path / "joint_limits.yaml"
+    done = cli("--moveit-yaml", str(out), "--robot", "isaac")
+    assert done.returncode == 0 and out.read_text() == effective_limits.moveit_yaml(compute(robot="isaac"))
+    stale = cli("--moveit-yaml", str(out), "--check", "--robot", "default")
+    assert stale.returncode == 1 and "is out of date" in stale.stderr and "--robot default" in stale.stderr
+    table = cli("--robot", "default")
+    assert table.returncode == 0
+    assert re.search(r"^LSP\s+-1\.9185\s+1\.0185\s+1\.5000\s+1\.3963$", table.stdout, re.M), table.stdout
+    bad = cli("--robot", "nosuchrobot")
+    assert bad.returncode == 1 and "unknown robot 'nosuchrobot'" in bad.stderr and "Traceback" not in bad.stderr

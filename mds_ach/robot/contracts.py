@@ -231,7 +231,8 @@ CHANNELS: tuple[Contract[Any], ...] = (
              writers=(CONSOLE, CLI, BRIDGE, COLLISION, VIEWER, REMOTE, CLIENTS), readers=(MUX, IK), legacy=False,
              validator=check_hold),
     Contract(MDS_CHAN_LIMITS_NAME, "MDS_CHAN_LIMITS_NAME", MDS_LIMITS,
-             "the effective joint limits (URDF and joint table), published once when the daemon starts",
+             "the effective joint limits (URDF and joint table) and what each joint can follow (velocity, "
+             "acceleration), published once when the daemon starts",
              writers=(DAEMON,), readers=(MUX, COLLISION, IK, BRIDGE, CONSOLE, VIEWER, READ, CLI, REMOTE, CLIENTS),
              legacy=False, validator=check_limits, stack_only=True),
 )

@@ -40,6 +40,9 @@ VERBS: dict[str, Verb] = {
                  "mds_ach.tools.chantool:add_dump_arguments", "mds_ach.tools.chantool:run_dump"),
     "repair": Verb("check the channels; repair corrupt ones in place (a writer killed inside a put)",
                    "mds_ach.tools.repair:add_arguments", "mds_ach.tools.repair:run"),
+    "limits": Verb("the joint limits each joint can follow (range, velocity, acceleration); --moveit-yaml writes "
+                   "MoveIt's joint_limits.yaml",
+                   "mds_ach.tools.limitscmd:add_arguments", "mds_ach.tools.limitscmd:run"),
     "check-log": Verb("audit a CAN log: targets finite, in limits, to enabled joints, within speed/acceleration",
                       "mds_ach.tools.checklog:add_arguments", "mds_ach.tools.checklog:run"),
     # operator verbs (mds_ach.tools.launcher, console, read)

@@ -5,6 +5,9 @@ variant and calibration chosen by the daemon). The daemon computes them once at 
 (``mds_ach.kinematics.limits``) and publishes them here, so every entry point (console, bridge, viewer, IK,
 mux, gate, achd) refuses exactly what the daemon would have to clamp. Arrays are indexed by CAN address like
 every legacy struct. Stdlib + ctypes only, so C clients read it without numpy or rclpy.
+
+Issue #26 appended what each joint can *follow* (``velocity``, ``acceleration``: what a trajectory planner may
+use, the numbers of ``config/joint_limits.yaml``) after ``time``, so the offsets of the first fields are unchanged.
 """
 
 from __future__ import annotations
@@ -27,6 +30,8 @@ class MDS_LIMITS(_Packed):  # noqa: N801 - MDS struct naming
     robot            the joint table's robot variant (default, isaac, ...), char[30]
     source           where the numbers come from (files), NUL-terminated ASCII
     time             CLOCK_MONOTONIC when written
+    velocity[address]      the highest speed the joint follows, rad/s (NaN where valid is 0)
+    acceleration[address]  the highest acceleration the joint follows, rad/s^2 (NaN where valid is 0)
     """
 
     _fields_ = [
@@ -37,11 +42,14 @@ class MDS_LIMITS(_Packed):  # noqa: N801 - MDS struct naming
         ("robot", Name30),
         ("source", ctypes.c_char * LIMITS_SOURCE_SIZE),
         ("time", ctypes.c_double),
+        ("velocity", ctypes.c_double * MDS_JOINT_COUNT),
+        ("acceleration", ctypes.c_double * MDS_JOINT_COUNT),
     ]
 
 
 def check_limits(frame: MDS_LIMITS) -> str | None:
-    """A 0/1 valid mask, finite ``lower <= upper`` within one turn for every valid joint."""
+    """A 0/1 valid mask; for every valid joint finite ``lower <= upper`` within one turn and a finite velocity and
+    acceleration > 0 (a joint that cannot move has no limits: it is not valid)."""
     for address in range(MDS_JOINT_COUNT):
         if frame.valid[address] not in (0, 1):
             return f"valid[{address:#x}] is {frame.valid[address]}, not 0 or 1"
@@ -52,4 +60,7 @@ def check_limits(frame: MDS_LIMITS) -> str | None:
             return f"limits [{lo}, {hi}] at address {address:#x} are not finite within one turn"
         if lo > hi:
             return f"empty range [{lo}, {hi}] at address {address:#x}"
+        for what, value in (("velocity", frame.velocity[address]), ("acceleration", frame.acceleration[address])):
+            if not (math.isfinite(value) and value > 0):
+                return f"{what} {value} at address {address:#x} is not finite and > 0"
     return None
