@@ -3,6 +3,7 @@ highest rate within 60 % of the bitrate, and the refusal of a rate the bus canno
 
 from __future__ import annotations
 
+import argparse
 import math
 
 import can
@@ -16,6 +17,7 @@ from mds_ach.bus.budget import (
     choose_rate,
     parse_rate,
     plan_rate,
+    rate_argument,
 )
 from mds_ach.bus.simbus import ManualClock, SimNetwork
 from mds_ach.robot import config
@@ -78,12 +80,18 @@ def test_max_rate_is_the_highest_within_the_budget_and_never_above_the_ceiling()
     assert "no rate fits" in str(pytest.raises(ValueError, choose_rate, None, CycleBudget(10**6, 48, 1000)).value)
 
 
-def test_parse_rate() -> None:
+def test_parse_rate(capsys: pytest.CaptureFixture[str]) -> None:
     assert parse_rate("max") is None and parse_rate(" MAX ") is None
     assert parse_rate("10") == 10.0 and parse_rate("22.5") == 22.5
     for bad in ("0", "-1", "nan", "inf", "fast", ""):
         with pytest.raises(ValueError):
             parse_rate(bad)
+    parser = argparse.ArgumentParser(prog="daemon")
+    parser.add_argument("--rate", type=rate_argument)
+    assert parser.parse_args(["--rate", "max"]).rate is None and parser.parse_args(["--rate", "20"]).rate == 20.0
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--rate", "fast"])
+    assert "expected a rate in Hz or 'max', got 'fast'" in capsys.readouterr().err
     problem = CycleBudget(1, 1, MBIT).problem(math.nan)
     assert problem is not None and "must be a number > 0" in problem
 

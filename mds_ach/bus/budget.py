@@ -14,6 +14,8 @@ Worst case per cycle, every enabled joint sent a new target every cycle (§b.7's
 * 1 broadcast ACTUAL_POSITION query + 1 reply per node on the bus: every node answers, enabled or not, including
   the nodes the anatomy does not list (``UNLISTED_NODES``).
 
+Setup commands (enable, home, reset: one frame and one ACK per joint, on request) are occasional and not counted.
+
 Bits per frame: **worst-case bit stuffing**, ``mcb.FRAME_BITS`` (135 for an 11-bit ID with 8 data bytes, the
 interframe space included): the figure the daemon's bus load and the simulated bus's wire model use. Without
 stuffing a frame is ``mcb.frame_bits`` less the stuffing, 111 bits (the lower bound §b.7 quotes). Load is judged
@@ -26,6 +28,7 @@ frames; x 135 bits x 10 Hz = 206 550 bit/s = 20.7 % of 1 Mbit/s (17.0 % at 111 b
 
 from __future__ import annotations
 
+import argparse
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -137,6 +140,14 @@ def parse_rate(text: str) -> float | None:
     if not (math.isfinite(rate) and rate > 0):
         raise ValueError(f"the loop rate must be a number > 0 Hz, got {text!r}")
     return rate
+
+
+def rate_argument(text: str) -> float | None:
+    """argparse ``type=`` for ``--rate HZ|max``: :func:`parse_rate`, its message kept in the usage error."""
+    try:
+        return parse_rate(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def choose_rate(requested: float | None, budget: CycleBudget, ceiling: float = math.inf) -> float:
