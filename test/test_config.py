@@ -235,6 +235,17 @@ def test_a_robot_overlay_is_checked_at_its_own_line(tmp_path: Path) -> None:
         config.load("isaac", path=tmp_path / "joints.yaml")
 
 
+def test_yaml_aliases_cannot_blow_up_the_line_map(tmp_path: Path) -> None:
+    """The line map walks each node once: 10^12 paths through nested aliases, or a recursive alias, are refused at
+    once like any other wrong table (walking every path would never end)."""
+    bomb = "l0: &l0 {a: 1, b: 2, c: 3, d: 4, e: 5, f: 6, g: 7, h: 8, i: 9, j: 10}\n" + "".join(
+        f"l{i}: &l{i} {{" + ", ".join(f"k{k}: *l{i - 1}" for k in range(10)) + "}\n" for i in range(1, 12))
+    path = tmp_path / "joints.yaml"
+    path.write_text("format: 1\njoints: {LEP: {rom: &r {x: *r}}}\n" + "description:\n  " + bomb.replace("\n", "\n  "))
+    with pytest.raises(ConfigError, match=rf"{re.escape(str(path))}:\d+: "):
+        config.load(path=path, robot="default")
+
+
 def test_narrower_limits_are_accepted(tmp_path: Path) -> None:
     path = _write(tmp_path, lambda d: d["joints"]["LEP"].update(lower=-2.0, upper=-0.2))
     t = config.load(path=path, robot="default")

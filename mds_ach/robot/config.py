@@ -372,16 +372,20 @@ def _read_yaml(path: Path) -> tuple[dict[str, Any], dict[tuple[str, ...], int]]:
     return data, lines
 
 
-def _key_lines(node: yaml.Node | None, path: tuple[str, ...] = (),
-               out: dict[tuple[str, ...], int] | None = None) -> dict[tuple[str, ...], int]:
+def _key_lines(node: yaml.Node | None, path: tuple[str, ...] = (), out: dict[tuple[str, ...], int] | None = None,
+               seen: set[int] | None = None) -> dict[tuple[str, ...], int]:
     """1-based line of every mapping key by its path, e.g. ``("joints", "LEP", "encoder", "gear_ratio")``: the
-    loaded data keeps none, and a refusal names the line (the node tree of ``yaml.compose`` has them)."""
+    loaded data keeps none, and a refusal names the line (the node tree of ``yaml.compose`` has them). Each node
+    is walked once: an alias (``*a``) shares its anchor's node, so nested or recursive aliases cannot make the walk
+    exponential or endless (the keys under an alias then report the alias's line)."""
     out = {} if out is None else out
-    if isinstance(node, yaml.MappingNode):
+    seen = set() if seen is None else seen
+    if isinstance(node, yaml.MappingNode) and id(node) not in seen:
+        seen.add(id(node))
         for key, value in node.value:
             here = (*path, str(key.value))
             out.setdefault(here, key.start_mark.line + 1)
-            _key_lines(value, here, out)
+            _key_lines(value, here, out, seen)
     return out
 
 
