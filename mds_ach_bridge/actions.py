@@ -7,9 +7,9 @@ bridge's single executor thread). So a goal's execute callback is started only w
 the outcome the bridge decided (succeed, abort, canceled) and returns the result at once. Until then the goal's
 status is ACCEPTED (not EXECUTING); clients such as MoveIt and ``ros2 action send_goal`` only wait for the result.
 
-A goal the bridge cannot run (wrong joints, bad times, limits, old stamp) is accepted and ended at once as
-aborted with the result code and the reason in ``error_string``: the action protocol's goal response has no room
-for a reason, and MoveIt logs a result's error_string.
+A goal the bridge cannot run (wrong joints, bad times, limits, old stamp, a tolerance that means nothing) is
+accepted and ended at once as aborted with the result code and the reason in ``error_string``: the action
+protocol's goal response has no room for a reason, and MoveIt logs a result's error_string.
 """
 
 from __future__ import annotations

@@ -3,9 +3,12 @@
 The pure part of the action servers (``mds_ach_bridge.actions`` is the rclpy glue, the node runs the goals): which
 joints each controller drives, how a goal is checked before it moves anything (the same checks as the
 ``mds/joint_trajectory`` topic, ``trajectory.from_message``, plus "these joints belong to this controller"), and
-how the JointTolerance entries of a goal become per-joint bounds, as ros2_controllers' joint_trajectory_controller
-reads them: a tolerance > 0 is used, 0 takes the server's default (a node parameter), < 0 means "not checked".
-Acceleration tolerances are not checked (the bridge has no measured acceleration).
+how the JointTolerance entries of a goal become per-joint bounds, as control_msgs documents them and
+ros2_controllers' joint_trajectory_controller reads them: a tolerance > 0 is used, 0 takes the server's default (a
+node parameter), -1 "erases" it (not checked). Anything else means nothing and the goal is refused (INVALID_GOAL,
+the reason in error_string): NaN (every comparison with it is false, so the goal succeeded however far away), +-Inf,
+any other negative value, and a negative goal_time_tolerance. Acceleration tolerances are validated the same way
+but not checked (the bridge has no measured acceleration).
 """
 
 from __future__ import annotations
@@ -57,8 +60,21 @@ class Tolerances:
     goal_time: float  # s after the trajectory's end to meet the goal tolerances
 
 
+ERASE = -1.0
+"""JointTolerance's documented "no limit" value; like joint_trajectory_controller, within float32 rounding."""
+_ERASE_SLACK = 1.2e-7  # float32 epsilon
+
+
+def _check(value: float, where: str, unit: str) -> None:
+    """A ``GoalError`` naming ``where`` unless ``value`` is a tolerance JointTolerance defines (> 0, 0 or -1)."""
+    if math.isfinite(value) and (value >= 0.0 or abs(value - ERASE) <= _ERASE_SLACK):
+        return
+    raise GoalError(Result.INVALID_GOAL, f"{where} {value:g} is not a tolerance: give > 0 {unit}, 0 for the "
+                                         f"default or -1 for none")
+
+
 def _bound(value: float, default: float) -> float:
-    if value < 0.0:
+    if value < 0.0:  # ERASE (the only negative value _check lets through)
         return math.inf
     if value == 0.0:
         return default if default > 0.0 else math.inf
@@ -67,7 +83,17 @@ def _bound(value: float, default: float) -> float:
 
 def tolerances(names: Sequence[str], goal: FollowJointTrajectory.Goal, default_path: Tolerance,
                default_goal: Tolerance, default_goal_time: float) -> Tolerances:
-    """The goal's JointTolerance entries (by joint name; others ignored) over the server's defaults."""
+    """The goal's JointTolerance entries (by joint name; others ignored) over the server's defaults; a value that
+    means nothing is a ``GoalError`` (see module doc)."""
+    for field in ("path_tolerance", "goal_tolerance"):
+        for i, e in enumerate(getattr(goal, field)):
+            for what, unit in (("position", "rad"), ("velocity", "rad/s"), ("acceleration", "rad/s^2")):
+                _check(getattr(e, what), f"{field}[{i}] ({e.name}): {what}", unit)
+    t = trajectory.seconds(goal.goal_time_tolerance)
+    if t < 0.0:
+        raise GoalError(Result.INVALID_GOAL, f"goal_time_tolerance {t:g} s is negative: give > 0 s, or 0 for the "
+                                             f"default")
+
     def resolve(entries: Sequence, default: Tolerance) -> dict[str, Tolerance]:
         given = {e.name: e for e in entries}
         out = {}
@@ -77,7 +103,6 @@ def tolerances(names: Sequence[str], goal: FollowJointTrajectory.Goal, default_p
                                                          _bound(e.velocity, default.velocity))
         return out
 
-    t = trajectory.seconds(goal.goal_time_tolerance)
     return Tolerances(resolve(goal.path_tolerance, default_path), resolve(goal.goal_tolerance, default_goal),
                       t if t > 0.0 else default_goal_time)
 

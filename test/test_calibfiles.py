@@ -120,6 +120,93 @@ def test_bad_xml_names_file_and_line_and_starts_nothing(tmp_path: Path, monkeypa
     assert "\n" not in text
 
 
+def _lep(param: str, value: str):
+    """A damage: LeftElbowFlex's ``param`` set to ``value`` (its needle is the new line's text)."""
+    return lambda t: re.sub(rf'(name="LeftElbowFlex">.*?<parameter name="{re.escape(param)}" value=")[^"]*',
+                            rf"\g<1>{value}", t, count=1, flags=re.S)
+
+
+@pytest.mark.parametrize("param, value, message", [
+    ("rom.margin", "100%", r"parameter rom\.margin: 1 \(100 %\) is not a margin: it must be between 0 and 0\.5"),
+    ("rom.margin", "150%", r"parameter rom\.margin: 1\.5 \(150 %\) is not a margin"),
+    ("rom.margin", "-5%", r"parameter rom\.margin: -0\.05 \(-5 %\) is not a margin"),
+    ("safetymargin", "1e9", r"parameter safetymargin: 1e\+09 \(1e\+11 %\) is not a margin"),
+    ("gearratio", "1e-300", r"parameter gearratio: 1e-300 is not a reduction gear ratio \(>= 1\)"),
+    ("gearratio", "1e300", r"parameter gearratio: 5\.12e\+302 counts per revolution .* more than a float32"),
+    ("encoderresolution", "256.5", r"parameter encoderresolution: 256\.5 is not a whole number >= 1"),
+    ("encoderconfig.tickspercount", "0.5", r"parameter encoderconfig\.tickspercount: 0\.5 is not a whole number"),
+    ("rom", "60000", r"parameter rom: 60000 counts is not a range of motion between 1 count and one revolution "
+                     r"\(51200 counts: resolution 256 x gear_ratio 100 x ticks_per_count 2\)"),
+    ("rom", "0.001", r"parameter rom: 0\.001 counts is not a range of motion"),
+    ("HomeTimeout", "-75", r"parameter HomeTimeout: -75 is negative"),
+])
+def test_calibration_numbers_are_checked_for_sense(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, param: str,
+                                                   value: str, message: str) -> None:
+    """Issue #25 item 9: a margin of 100 % (the range a point) or 150 % (inverted), a gear ratio of 1e-300, a safety
+    margin of 1e9... loaded silently; each is refused naming the file, the parameter's line and the parameter."""
+    bad = tmp_path / "anatomy.xml"
+    bad.write_text(_lep(param, value)((CONFIGS / "anatomy.xml").read_text()))
+    line = _line_of(bad, f'name="{param}" value="{value}"')
+    assert 648 < line < 664  # inside LeftElbowFlex
+    shutil.copyfile(CONFIGS / "mdsach.xml", tmp_path / "mdsach.xml")
+    monkeypatch.setenv(calibfiles.ANATOMY_ENV, str(bad))
+    with pytest.raises(ConfigError) as err:
+        config.load()
+    text = str(err.value)
+    assert text.startswith(f"{bad}:{line}: muscle LeftElbowFlex: "), text
+    assert re.search(message, text), text
+
+
+def test_overlay_offsets_are_checked_for_sense(tmp_path: Path) -> None:
+    """An mdsach.xml offset beyond one turn (degrees for radians) is refused at its line."""
+    overlay = tmp_path / "mdsach.xml"
+    overlay.write_text((CONFIGS / "mdsach.xml").read_text().replace('value="-1.25"', 'value="-71.6"', 1))
+    line = _line_of(overlay, 'value="-71.6"')
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(overlay))}:{line}: muscle \w+: parameter offset: "
+                                          r"-71\.6 rad is more than one turn"):
+        config.load(anatomy_path=CONFIGS / "anatomy.xml", overlay_path=overlay)
+
+
+def test_every_reference_file_passes_the_sense_checks_unchanged() -> None:
+    """The original's files are the positive set: each loads, with the numbers the files give (the margins of 50 %
+    on the fingers, the safetymargin "50" the later "5%" overrides)."""
+    for path in sorted(CONFIGS.glob("*anatomy.xml")):
+        table = config.from_xml(path, CONFIGS / "mdsach.xml")
+        assert {j.safety_margin for j in table} == {0.05}, path.name
+        assert all(0.0 <= j.rom_margin <= 0.5 and j.lower < j.upper for j in table), path.name
+    assert {j.rom_margin for j in config.from_xml(CONFIGS / "anatomy.xml")} == {0.05, 0.1, 0.5}
+
+
+EXTERNAL = '<!DOCTYPE anatomy [\n  <!ENTITY rom SYSTEM "file:///etc/hostname">\n]>\n'
+LAUGHS = ('<!DOCTYPE anatomy [\n  <!ENTITY lol "lol">\n  <!ENTITY lol1 "&lol;&lol;&lol;&lol;&lol;&lol;&lol;&lol;">\n'
+          + "".join(f'  <!ENTITY lol{i} "{f"&lol{i - 1};" * 10}">\n' for i in range(2, 10)) + "]>\n")
+
+
+@pytest.mark.parametrize("name", ["anatomy.xml", "mdsach.xml"])
+@pytest.mark.parametrize("doctype, entity", [
+    (EXTERNAL, "rom"),  # external: expat dropped the reference silently (an empty value, or a missing one)
+    (LAUGHS, "lol"),  # internal: the billion laughs, expanded before
+    ('<!DOCTYPE anatomy SYSTEM "http://example.invalid/anatomy.dtd">\n', None),  # external DTD: undeclared refs
+], ids=["external-entity", "billion-laughs", "external-dtd"])
+def test_entities_are_refused_naming_the_file(tmp_path: Path, name: str, doctype: str, entity: str | None) -> None:
+    files = {n: tmp_path / n for n in ("anatomy.xml", "mdsach.xml")}
+    for n, path in files.items():
+        shutil.copyfile(CONFIGS / n, path)
+    text = (CONFIGS / name).read_text()
+    ref = "&rom;" if entity == "rom" else "&lol9;" if entity else "&undeclared;"
+    files[name].write_text(doctype + text.replace('value="-1.25"' if name == "mdsach.xml" else 'value="21182"',
+                                                  f'value="{ref}"', 1))
+    with pytest.raises(ConfigError) as err:
+        config.load(anatomy_path=files["anatomy.xml"], overlay_path=files["mdsach.xml"])
+    text = str(err.value)
+    if entity:
+        line = _line_of(files[name], f"<!ENTITY {entity} ")
+        assert text.startswith(f"{files[name]}:{line}: <!DOCTYPE> declares the entity {entity!r}: "), text
+    else:
+        assert text.startswith(f"{files[name]}:1: <!DOCTYPE anatomy> names an external document type "), text
+    assert "may declare no entities and no external DTD" in text and "\n" not in text
+
+
 def test_start_with_bad_xml_starts_nothing(tmp_path: Path, clean_shm: None) -> None:
     bad = tmp_path / "anatomy.xml"
     bad.write_text((CONFIGS / "anatomy.xml").read_text().replace('value="28592"', 'value="2x8592"', 1))

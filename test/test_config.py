@@ -196,6 +196,56 @@ def test_bad_yaml_is_refused_naming_file_joint_field(tmp_path: Path, mutate, joi
     assert str(path) in msg and f"joint {joint}" in msg and field in msg, msg
 
 
+@pytest.mark.parametrize(("key", "value", "field", "message"), [
+    ("rom_margin", "1.0", "rom_margin", r"1 \(100 %\) is not a margin: it must be between 0 and 0\.5"),
+    ("rom_margin", "1.5", "rom_margin", r"1\.5 \(150 %\) is not a margin"),
+    ("safety_margin", "1.0e+9", "safety_margin", r"1e\+09 \(1e\+11 %\) is not a margin"),
+    ("gear_ratio", "1.0e-300", "encoder.gear_ratio", r"1e-300 is not a reduction gear ratio"),
+    ("resolution", "256.5", "encoder.resolution", r"256\.5 is not a whole number >= 1"),
+    ("ticks_per_count", "2.5", "encoder.ticks_per_count", r"2\.5 is not a whole number >= 1"),
+    ("rom", "90000", "rom", r"90000 counts is not a range of motion between 1 count and one revolution"),
+    ("offset", "-71.6", "offset", r"-71\.6 rad is more than one turn"),
+    ("acceleration", "-500", "homing.acceleration", r"-500 is negative"),
+])
+def test_yaml_numbers_are_checked_for_sense_with_the_line(tmp_path: Path, key: str, value: str, field: str,
+                                                         message: str) -> None:
+    """Issue #25 item 9: the bounds of the calibration XML hold for the YAML table too, refused at the field's line."""
+    src = config_path("joints.yaml").read_text()
+    text, n = re.subn(rf"(\n  LEP:.*?\b{key}: )[-0-9.e+]+", rf"\g<1>{value}", src, count=1, flags=re.S)
+    assert n == 1
+    path = tmp_path / "joints.yaml"
+    path.write_text(text)
+    line = next(i for i, (a, b) in enumerate(zip(src.splitlines(), text.splitlines(), strict=True), 1) if a != b)
+    with pytest.raises(ConfigError) as info:
+        config.load(path=path, robot="default")
+    msg = str(info.value)
+    assert msg.startswith(f"{path}:{line}: joint LEP: field '{field}': "), msg
+    assert re.search(message, msg), msg
+
+
+def test_a_robot_overlay_is_checked_at_its_own_line(tmp_path: Path) -> None:
+    (tmp_path / "robots").mkdir()
+    (tmp_path / "joints.yaml").write_text(config_path("joints.yaml").read_text())
+    overlay = config_path("robots/isaac.yaml").read_text()
+    assert "  NKR: {rom: 28544, rom_margin: 0.09," in overlay
+    (tmp_path / "robots/isaac.yaml").write_text(overlay.replace("rom_margin: 0.09,", "rom_margin: 1.5,", 1))
+    line = next(i for i, t in enumerate(overlay.splitlines(), 1) if t.startswith("  NKR:"))
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(tmp_path / 'robots/isaac.yaml'))}:{line}: joint NKR: "
+                                          r"field 'rom_margin': 1\.5 \(150 %\) is not a margin"):
+        config.load("isaac", path=tmp_path / "joints.yaml")
+
+
+def test_yaml_aliases_cannot_blow_up_the_line_map(tmp_path: Path) -> None:
+    """The line map walks each node once: 10^12 paths through nested aliases, or a recursive alias, are refused at
+    once like any other wrong table (walking every path would never end)."""
+    bomb = "l0: &l0 {a: 1, b: 2, c: 3, d: 4, e: 5, f: 6, g: 7, h: 8, i: 9, j: 10}\n" + "".join(
+        f"l{i}: &l{i} {{" + ", ".join(f"k{k}: *l{i - 1}" for k in range(10)) + "}\n" for i in range(1, 12))
+    path = tmp_path / "joints.yaml"
+    path.write_text("format: 1\njoints: {LEP: {rom: &r {x: *r}}}\n" + "description:\n  " + bomb.replace("\n", "\n  "))
+    with pytest.raises(ConfigError, match=rf"{re.escape(str(path))}:\d+: "):
+        config.load(path=path, robot="default")
+
+
 def test_narrower_limits_are_accepted(tmp_path: Path) -> None:
     path = _write(tmp_path, lambda d: d["joints"]["LEP"].update(lower=-2.0, upper=-0.2))
     t = config.load(path=path, robot="default")

@@ -12,6 +12,7 @@ import math
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import yaml
@@ -92,7 +93,7 @@ def test_a_goal_that_ended_before_it_arrived_is_an_old_header_timestamp() -> Non
 
 
 def test_tolerances_follow_joint_trajectory_controller_rules() -> None:
-    """> 0 used, 0 = the server's default, < 0 = not checked; goal_time_tolerance 0 = the default."""
+    """> 0 used, 0 = the server's default, -1 = not checked; goal_time_tolerance 0 = the default."""
     from control_msgs.msg import JointTolerance
 
     goal = _goal(["LSP", "LEP"], [(1.0, [0.0, -0.5])])
@@ -112,6 +113,38 @@ def test_tolerances_follow_joint_trajectory_controller_rules() -> None:
     assert "LEP: velocity" in str(follow.goal_missing(tol, final, {"LSP": 0.5, "LEP": 0.0}, {"LSP": 0, "LEP": 0.6}))
     goal.goal_time_tolerance.sec = 5
     assert follow.tolerances(["LSP"], goal, follow.Tolerance(), follow.Tolerance(), 2.0).goal_time == 5.0
+
+
+@pytest.mark.parametrize("field", ["path_tolerance", "goal_tolerance"])
+@pytest.mark.parametrize("what", ["position", "velocity", "acceleration"])
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf, -0.5, -2.0, -1e-9])
+def test_a_tolerance_that_means_nothing_is_an_invalid_goal(field: str, what: str, value: float) -> None:
+    """Issue #25 item 9: NaN (every comparison false: SUCCESSFUL however far away), +-Inf and negative values other
+    than control_msgs' -1 ("no limit") were taken; they are refused with the entry and the value."""
+    from control_msgs.msg import JointTolerance
+
+    goal = _goal(["LSP", "LEP"], [(1.0, [0.0, -0.5])])
+    setattr(goal, field, [JointTolerance(name="LSP", position=0.1), JointTolerance(name="LEP", **{what: value})])
+    with pytest.raises(follow.GoalError, match=rf"^{field}\[1\] \(LEP\): {what} {value:g} is not a tolerance: "
+                                               r"give > 0 rad.*, 0 for the default or -1 for none$") as info:
+        follow.tolerances(["LSP", "LEP"], goal, follow.Tolerance(), follow.Tolerance(0.02), 2.0)
+    assert info.value.code == Result.INVALID_GOAL
+
+
+def test_the_documented_special_tolerances_stay_valid() -> None:
+    """0 = the default, -1 = none (float32-rounded too, as joint_trajectory_controller compares it), > 0 used; a
+    negative goal_time_tolerance is refused, 0 is the default."""
+    from control_msgs.msg import JointTolerance
+
+    goal = _goal(["LSP", "LEP"], [(1.0, [0.0, -0.5])])
+    goal.goal_tolerance = [JointTolerance(name="LSP", position=0.0, velocity=-1.0, acceleration=-1.0),
+                           JointTolerance(name="LEP", position=-0.99999997, velocity=0.3, acceleration=0.0)]
+    tol = follow.tolerances(["LSP", "LEP"], goal, follow.Tolerance(), follow.Tolerance(0.02, 0.2), 2.0)
+    assert tol.goal == {"LSP": follow.Tolerance(0.02, math.inf), "LEP": follow.Tolerance(math.inf, 0.3)}
+    goal.goal_time_tolerance.sec, goal.goal_time_tolerance.nanosec = -1, 500_000_000
+    with pytest.raises(follow.GoalError, match=r"^goal_time_tolerance -0\.5 s is negative") as info:
+        follow.tolerances(["LSP", "LEP"], goal, follow.Tolerance(), follow.Tolerance(), 2.0)
+    assert info.value.code == Result.INVALID_GOAL
 
 
 def test_velocity_is_the_finite_difference_over_the_frames_own_stamps() -> None:
@@ -135,6 +168,7 @@ class Probe(Spinner):
         from sensor_msgs.msg import JointState
 
         self.open_node("fjt_probe")
+        self.runtime = Path()  # the system's runtime directory (logs), set by the fixture
         self.states: list = []
         self.node.create_subscription(JointState, "/joint_states", self.states.append, 10)  # default QoS: reliable
         self.clients = {c: ActionClient(self.node, FollowJointTrajectory, f"/{c}/{follow.ACTION}")
@@ -169,8 +203,10 @@ class Probe(Spinner):
 
 @pytest.fixture(scope="module")
 def probe(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Probe]:
-    with running_system(tmp_path_factory.mktemp("fjt")):
+    runtime = tmp_path_factory.mktemp("fjt")
+    with running_system(runtime):
         p = Probe()
+        p.runtime = runtime
         try:
             yield p
         finally:
@@ -259,6 +295,30 @@ def test_a_bad_goal_is_rejected_with_the_reason_and_moves_nothing(probe: Probe, 
     assert res.status == GoalStatus.STATUS_ABORTED
     assert follow.CODE_NAMES[res.result.error_code] == code and reason in res.result.error_string, res.result
     assert state().joint[mds.LSP].ref == before
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_goal_with_a_nan_tolerance_is_refused_and_moves_nothing(probe: Probe) -> None:
+    """The campaign's case: a NaN goal tolerance made a goal SUCCESSFUL while the arm was 0.47 rad away. Now the
+    goal ends INVALID_GOAL at once with the reason (result and bridge log), and nothing moves."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.msg import JointTolerance
+
+    lsp = probe.position("LSP")
+    target = lsp + 0.5 if lsp + 0.5 < load_limits()["LSP"][1] else lsp - 0.5
+    before = state().joint[mds.LSP].ref
+    goal = _goal(["LSP"], [(3.0, [target])])
+    goal.goal_tolerance = [JointTolerance(name="LSP", position=math.nan)]
+    res = probe.result(probe.send("left_arm_controller", goal), 10.0)
+    assert res.status == GoalStatus.STATUS_ABORTED, res.result
+    assert follow.CODE_NAMES[res.result.error_code] == "INVALID_GOAL"
+    assert res.result.error_string == ("goal_tolerance[0] (LSP): position nan is not a tolerance: give > 0 rad, 0 "
+                                       "for the default or -1 for none")
+    time.sleep(0.5)  # what a wrongly accepted goal would have started by now
+    assert state().joint[mds.LSP].ref == before
+    log = (probe.runtime / "bridge.log").read_text()
+    assert "INVALID_GOAL: goal_tolerance[0] (LSP): position nan is not a tolerance" in log
 
 
 def _mux_held(address: int) -> int:

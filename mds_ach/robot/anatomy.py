@@ -7,7 +7,12 @@
 * ``nrl00x.xml``: MCB node settings, a concatenation of ``<node>`` documents (not one well-formed file).
 
 Every refusal names the file and the line (``anatomy.xml:212: muscle LeftElbowFlex: parameter rom: not a
-number``), so an operator can fix a hand-edited calibration file without guessing.
+number``), so an operator can fix a hand-edited calibration file without guessing. Numbers are checked for sense
+too (margins 0-50 %, whole encoder counts, reduction gears, a ROM of at most one turn: :mod:`calibsense`).
+
+A document type declaration with an external subset or any entity declaration (external, or internal: the
+"billion laughs") is refused naming the file and line: expat would drop an external entity silently (the value
+would vanish from the calibration) and expand internal ones without bound; no calibration file needs either.
 
 The original overlay gave the short name LYP to two eye joints and RYP to the right eye pan; those are
 mapped to the unique names of :mod:`mds_ach.robot.joints` (LYY, EYP, RYY) with a logged note.
@@ -24,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from xml.parsers import expat
 
+from mds_ach.robot import calibsense
 from mds_ach.robot import joints as joint_table
 
 log = logging.getLogger(__name__)
@@ -46,6 +52,14 @@ ANATOMY_NUMBERS = (
     "rom.margin",
 )
 REQUIRED_NUMBERS = ("rom", "encoderresolution", "gearratio", "encoderconfig.tickspercount")  # > 0 in every muscle
+# Anatomy parameter -> the field name of the bounds of sense (mds_ach.robot.calibsense, the YAML's names).
+SENSE_FIELDS = {
+    "encoderresolution": calibsense.RESOLUTION, "gearratio": calibsense.GEAR_RATIO,
+    "encoderconfig.tickspercount": calibsense.TICKS, "rom": calibsense.ROM, "rom.margin": calibsense.ROM_MARGIN,
+    "safetymargin": calibsense.SAFETY_MARGIN, "HomeAcceleration": "homing.acceleration",
+    "HomeVelocity": "homing.velocity", "HomeError": "homing.error", "HomeBuffer": "homing.buffer",
+    "HomeTimeout": "homing.timeout",
+}
 ANATOMY_TEXTS = ("coordsys", "HomeType", "HomeTarget")
 
 
@@ -135,6 +149,21 @@ def _parse(path: Path) -> tuple[ET.Element, _Lines]:
     def start(tag: str, attrs: dict[str, str]) -> None:
         lines[id(builder.start(tag, attrs))] = parser.CurrentLineNumber
 
+    def refuse(what: str) -> None:
+        raise XmlConfigError(f"{path}:{parser.CurrentLineNumber}: {what}: a calibration file may declare no "
+                             "entities and no external DTD (an external entity would be dropped silently, an "
+                             "internal one expanded); remove the <!DOCTYPE> declaration")
+
+    def doctype(name: str, system_id: str | None, public_id: str | None, _internal: int) -> None:
+        if system_id or public_id:
+            refuse(f"<!DOCTYPE {name}> names an external document type {system_id or public_id!r}")
+
+    def entity(name: str, is_parameter: int, *_rest: object) -> None:
+        refuse(f"<!DOCTYPE> declares the {'parameter ' if is_parameter else ''}entity {name!r}")
+
+    parser.StartDoctypeDeclHandler = doctype
+    parser.EntityDeclHandler = entity
+    parser.SkippedEntityHandler = lambda name, _is_parameter: refuse(f"reference to the undeclared entity {name!r}")
     parser.StartElementHandler = start
     parser.EndElementHandler = builder.end
     parser.CharacterDataHandler = builder.data
@@ -174,6 +203,10 @@ def _muscle(path: Path, lines: _Lines, el: ET.Element, address: int, name: str) 
         value = muscle.numbers[key]
         if value is None or value <= 0:
             raise XmlConfigError(f"{where(key)} must be a positive number, got {text(key)!r}")
+    bad = calibsense.problem({SENSE_FIELDS[k]: muscle.numbers[k] for k in SENSE_FIELDS})
+    if bad is not None:
+        key = next(k for k, f in SENSE_FIELDS.items() if f == bad[0])
+        raise XmlConfigError(f"{where(key)}: {bad[1]}")
     return muscle
 
 
@@ -241,7 +274,8 @@ def load_overlay(path: str | Path) -> dict[str, Overlay]:
             raise XmlConfigError(f"{where}: missing 'name' attribute")
         if name in out:
             raise XmlConfigError(f"{where}: duplicate muscle {name}")
-        params = {k: p.get("value", "") for k, p in _params(el).items()}
+        elements = _params(el)
+        params = {k: p.get("value", "") for k, p in elements.items()}
         short = params.get("mdsachname", "").strip()
         canonical = joint_table.BY_NAME.get(name)
         if canonical is not None and canonical.short != short:
@@ -249,7 +283,11 @@ def load_overlay(path: str | Path) -> dict[str, Overlay]:
             short = canonical.short
         if not short:
             raise XmlConfigError(f"{where}: parameter mdsachname missing")
-        offset = parse_number(params.get("offset", "0"), f"{where}: parameter offset") or 0.0
+        offset_at = lines.at(path, elements.get("offset", el)) + f": muscle {name}: parameter offset"
+        offset = parse_number(params.get("offset", "0"), offset_at) or 0.0
+        bad = calibsense.problem({calibsense.OFFSET: offset})
+        if bad is not None:
+            raise XmlConfigError(f"{offset_at}: {bad[1]}")
         direction = parse_number(params.get("direction", "1"), f"{where}: parameter direction")
         enabled = parse_number(params.get("enabled", "0"), f"{where}: parameter enabled") or 0.0
         if direction not in (1.0, -1.0):

@@ -22,7 +22,9 @@ Conventions (``mds-original.md`` §b.5, §d.2), per joint with ``cpr = resolutio
 * home pose (start-up reference when the robot does not answer): ``-offset * direction`` unless set,
   i.e. motor angle 0, the ROM middle the Xitome homing leaves the joint at.
 
-Anything malformed or inconsistent is refused with a :class:`ConfigError` naming file, joint and field.
+Anything malformed or inconsistent is refused with a :class:`ConfigError` naming file, line, joint and field; the
+numbers are checked for sense by the same bounds as the XML's (:mod:`mds_ach.robot.calibsense`: margins 0-50 %,
+whole encoder counts, reduction gears, a ROM of at most one turn).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ from typing import Any
 import yaml
 
 from mds_ach.paths import config_path
-from mds_ach.robot import anatomy, calibfiles, motion
+from mds_ach.robot import anatomy, calibfiles, calibsense, motion
 from mds_ach.robot import joints as node_table
 from mds_ach.robot.choice import (  # re-exported: config.ROBOT_ENV etc. are public names
     DEFAULT_ROBOT,
@@ -303,7 +305,7 @@ def describe(table: JointTable) -> str:
 def _load_yaml(robot: str | None, path: str | Path | None) -> JointTable:
     base_path = Path(path) if path else _config_dir() / "joints.yaml"
     name = robot_name(robot) if path is None else (robot or os.environ.get(ROBOT_ENV) or DEFAULT_ROBOT).lower()
-    base = _read_yaml(base_path)
+    base, base_lines = _read_yaml(base_path)
     _check_keys(base, _TOP_KEYS, f"{base_path}")
     raw_joints = _expect(base.get("joints"), dict, f"{base_path}: field 'joints'")
     trajectory = base.get("trajectory") or {}
@@ -311,11 +313,12 @@ def _load_yaml(robot: str | None, path: str | Path | None) -> JointTable:
     sources = [str(base_path)]
     overrides: dict[str, Any] = {}
     overlay_path: Path | None = None
+    overlay_lines: dict[tuple[str, ...], int] = {}
     if name != DEFAULT_ROBOT:
         overlay_path = base_path.parent / "robots" / f"{name}.yaml"
         if not overlay_path.is_file():
             raise ConfigError(f"{overlay_path}: robot {name!r} has no overlay file")
-        overlay = _read_yaml(overlay_path)
+        overlay, overlay_lines = _read_yaml(overlay_path)
         _check_keys(overlay, _OVERLAY_TOP_KEYS, f"{overlay_path}")
         overrides = _expect(overlay.get("joints") or {}, dict, f"{overlay_path}: field 'joints'")
         trajectory = {**trajectory, **(overlay.get("trajectory") or {})}
@@ -326,11 +329,13 @@ def _load_yaml(robot: str | None, path: str | Path | None) -> JointTable:
                 raise ConfigError(f"{overlay_path}: joint {short}: not in {base_path.name}")
     joints = []
     for short, entry in raw_joints.items():
-        where = f"{base_path}: joint {short}"
-        merged = _expect(entry, dict, where)
-        if short in overrides:
-            merged = _merge(merged, _expect(overrides[short], dict, f"{overlay_path}: joint {short}"))
-            where = f"{base_path} + {overlay_path}: joint {short}"
+        files = [(base_path, base_lines)]
+        where = _Where(str(short), tuple(files))
+        merged = _expect(entry, dict, str(where))
+        if short in overrides and overlay_path is not None:
+            files.insert(0, (overlay_path, overlay_lines))
+            merged = _merge(merged, _expect(overrides[short], dict, str(_Where(str(short), tuple(files)))))
+            where = _Where(str(short), tuple(files))
         joints.append(_joint_from_yaml(str(short), merged, where))
     table = JointTable(
         tuple(sorted(joints, key=lambda j: j.address)),
@@ -349,16 +354,61 @@ def _load_yaml(robot: str | None, path: str | Path | None) -> JointTable:
     return table
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+_YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def _read_yaml(path: Path) -> tuple[dict[str, Any], dict[tuple[str, ...], int]]:
+    """The file's mapping and the line of each of its keys by key path (``_key_lines``)."""
     try:
-        data = yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+        text = path.read_text()
+        data = yaml.load(text, Loader=_YAML_LOADER)
+        lines = _key_lines(yaml.compose(text, Loader=_YAML_LOADER))
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: malformed YAML: {exc}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
-    return data
+    return data, lines
+
+
+def _key_lines(node: yaml.Node | None, path: tuple[str, ...] = (), out: dict[tuple[str, ...], int] | None = None,
+               seen: set[int] | None = None) -> dict[tuple[str, ...], int]:
+    """1-based line of every mapping key by its path, e.g. ``("joints", "LEP", "encoder", "gear_ratio")``: the
+    loaded data keeps none, and a refusal names the line (the node tree of ``yaml.compose`` has them). Each node
+    is walked once: an alias (``*a``) shares its anchor's node, so nested or recursive aliases cannot make the walk
+    exponential or endless (the keys under an alias then report the alias's line)."""
+    out = {} if out is None else out
+    seen = set() if seen is None else seen
+    if isinstance(node, yaml.MappingNode) and id(node) not in seen:
+        seen.add(id(node))
+        for key, value in node.value:
+            here = (*path, str(key.value))
+            out.setdefault(here, key.start_mark.line + 1)
+            _key_lines(value, here, out, seen)
+    return out
+
+
+@dataclass(frozen=True)
+class _Where:
+    """Where one joint's fields are: ``file:line: joint X`` (the robot overlay first when it sets the field)."""
+
+    short: str
+    files: tuple[tuple[Path, dict[tuple[str, ...], int]], ...]
+
+    def _at(self, keys: tuple[str, ...]) -> str:
+        for file, lines in self.files:
+            line = lines.get(("joints", self.short, *keys))
+            if line is not None:
+                return f"{file}:{line}"
+        return self._at(()) if keys else str(self.files[-1][0])
+
+    def __str__(self) -> str:
+        return f"{self._at(())}: joint {self.short}"
+
+    def field(self, key: str) -> str:
+        """``file:line: joint X: field 'key'``; ``key`` dotted for nested fields (``encoder.gear_ratio``)."""
+        return f"{self._at(tuple(key.split('.')))}: joint {self.short}: field '{key}'"
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -401,65 +451,71 @@ def _integer(value: Any, where: str) -> int:
     return value
 
 
-def _joint_from_yaml(short: str, e: dict[str, Any], where: str) -> JointConfig:
-    _check_keys(e, _JOINT_KEYS, where)
+def _joint_from_yaml(short: str, e: dict[str, Any], where: _Where) -> JointConfig:
+    _check_keys(e, _JOINT_KEYS, str(where))
     for required in ("name", "address", "encoder", "rom", "offset", "direction", "enabled"):
         if required not in e:
             raise ConfigError(f"{where}: field '{required}' is missing")
-    enc = _expect(e["encoder"], dict, f"{where}: field 'encoder'")
-    _check_keys(enc, _ENCODER_KEYS, f"{where}: field 'encoder'")
-    homing = _expect(e.get("homing") or {}, dict, f"{where}: field 'homing'")
-    _check_keys(homing, _HOMING_KEYS, f"{where}: field 'homing'")
-    gains = _expect(e.get("gains") or {}, dict, f"{where}: field 'gains'")
-    _check_keys(gains, _GAIN_KEYS, f"{where}: field 'gains'")
+    enc = _expect(e["encoder"], dict, where.field("encoder"))
+    _check_keys(enc, _ENCODER_KEYS, where.field("encoder"))
+    homing = _expect(e.get("homing") or {}, dict, where.field("homing"))
+    _check_keys(homing, _HOMING_KEYS, where.field("homing"))
+    gains = _expect(e.get("gains") or {}, dict, where.field("gains"))
+    _check_keys(gains, _GAIN_KEYS, where.field("gains"))
 
     def num(key: str, src: dict[str, Any] = e, positive: bool = False, default: Any = ..., prefix: str = "") -> float:
         if key not in src and default is not ...:
             return default
         if key not in src:
-            raise ConfigError(f"{where}: field '{prefix}{key}' is missing")
-        return _number(src[key], f"{where}: field '{prefix}{key}'", positive=positive)
+            raise ConfigError(f"{where.field(prefix + key)} is missing")
+        return _number(src[key], where.field(prefix + key), positive=positive)
 
     enabled = e["enabled"]
     if not isinstance(enabled, bool) and enabled not in (0, 1):
-        raise ConfigError(f"{where}: field 'enabled': expected true/false, got {enabled!r}")
+        raise ConfigError(f"{where.field('enabled')}: expected true/false, got {enabled!r}")
     direction = num("direction")
     if direction not in (1.0, -1.0):
-        raise ConfigError(f"{where}: field 'direction': must be 1 or -1, got {e['direction']!r}")
+        raise ConfigError(f"{where.field('direction')}: must be 1 or -1, got {e['direction']!r}")
     name = e["name"]
     if not isinstance(name, str) or not name:
-        raise ConfigError(f"{where}: field 'name': expected the anatomy name, got {name!r}")
-    address = _integer(e["address"], f"{where}: field 'address'")
+        raise ConfigError(f"{where.field('name')}: expected the anatomy name, got {name!r}")
+    address = _integer(e["address"], where.field("address"))
     res = num("resolution", enc, positive=True, prefix="encoder.")
     gear = num("gear_ratio", enc, positive=True, prefix="encoder.")
     ticks = num("ticks_per_count", enc, positive=True, prefix="encoder.")
     rom = num("rom", positive=True)
     rom_margin = num("rom_margin", default=0.05)
-    if not 0.0 <= rom_margin < 1.0:
-        raise ConfigError(f"{where}: field 'rom_margin': must be in [0, 1), got {rom_margin}")
+    safety_margin = num("safety_margin", default=0.05)
     offset = num("offset")
+    hn = {k: num(k, homing, prefix="homing.") for k in calibsense.HOMING if k in homing}
+    bad = calibsense.problem({
+        calibsense.RESOLUTION: res, calibsense.GEAR_RATIO: gear, calibsense.TICKS: ticks, calibsense.ROM: rom,
+        calibsense.ROM_MARGIN: rom_margin, calibsense.SAFETY_MARGIN: safety_margin, calibsense.OFFSET: offset,
+        **{f"homing.{k}": v for k, v in hn.items()}})
+    if bad is not None:
+        raise ConfigError(f"{where.field(bad[0])}: {bad[1]}")
     lower, upper = derived_limits(rom, res * gear * ticks, rom_margin, offset, direction)
     lo = e.get("lower")
     hi = e.get("upper")
     if lo is not None:
-        lo = _number(lo, f"{where}: field 'lower'")
+        lo = _number(lo, where.field("lower"))
         if lo < lower - 1e-9:
-            raise ConfigError(f"{where}: field 'lower' {lo} is outside the ROM-derived range [{lower:.4f}, "
+            raise ConfigError(f"{where.field('lower')}: {lo} is outside the ROM-derived range [{lower:.4f}, "
                               f"{upper:.4f}]")
         lower = lo
     if hi is not None:
-        hi = _number(hi, f"{where}: field 'upper'")
+        hi = _number(hi, where.field("upper"))
         if hi > upper + 1e-9:
-            raise ConfigError(f"{where}: field 'upper' {hi} is outside the ROM-derived range [{lower:.4f}, "
+            raise ConfigError(f"{where.field('upper')}: {hi} is outside the ROM-derived range [{lower:.4f}, "
                               f"{upper:.4f}]")
         upper = hi
-    if lower >= upper:
-        raise ConfigError(f"{where}: fields 'lower'/'upper': empty range [{lower}, {upper}]")
+    empty = calibsense.empty_range(lower, upper)
+    if empty is not None:
+        raise ConfigError(f"{where.field('lower' if lo is not None else 'upper' if hi is not None else 'rom')}: "
+                          f"{empty}")
     home = num("home", default=-offset * direction)
     if not lower <= home <= upper:
-        raise ConfigError(f"{where}: field 'home' {home:.4f} is outside the joint range [{lower:.4f}, {upper:.4f}]")
-    hn = {k: num(k, homing, prefix="homing.") for k in ("acceleration", "velocity", "error", "buffer", "timeout")
-          if k in homing}
+        raise ConfigError(f"{where.field('home')}: {home:.4f} is outside the joint range [{lower:.4f}, {upper:.4f}]")
     return JointConfig(
         address=address,
         name=name,
@@ -469,7 +525,7 @@ def _joint_from_yaml(short: str, e: dict[str, Any], where: str) -> JointConfig:
         ticks_per_count=ticks,
         rom=rom,
         rom_margin=rom_margin,
-        safety_margin=num("safety_margin", default=0.05),
+        safety_margin=safety_margin,
         offset=offset,
         direction=direction,
         enabled=bool(enabled),
@@ -478,7 +534,7 @@ def _joint_from_yaml(short: str, e: dict[str, Any], where: str) -> JointConfig:
         upper=upper,
         coordsys=str(e.get("coordsys", "semantic")),
         homing=Homing(type=str(homing.get("type", "auto")), target=str(homing.get("target", "middle")), **hn),
-        gains=Gains(**{k: _number(v, f"{where}: field 'gains.{k}'", allow_none=True) for k, v in gains.items()}),
+        gains=Gains(**{k: _number(v, where.field(f"gains.{k}"), allow_none=True) for k, v in gains.items()}),
     )
 
 
@@ -537,6 +593,10 @@ def from_xml(anatomy_path: str | Path, mdsach_path: str | Path | None = None, ro
         ticks, rom = m.number("encoderconfig.tickspercount"), m.number("rom")
         cpr = resolution * ratio * ticks
         lower, upper = derived_limits(rom, cpr, rom_margin, offset, direction)
+        empty = calibsense.empty_range(lower, upper)  # each number is in bounds (anatomy): a last guard
+        if empty is not None:
+            raise ConfigError(f"{where}: {empty} (rom {rom:g}, cpr {cpr:g}, rom.margin {rom_margin:g}, "
+                              f"offset {offset:g})")
         joints.append(JointConfig(
             address=address, name=m.name, short=short,
             encoder_resolution=resolution, gear_ratio=ratio,
