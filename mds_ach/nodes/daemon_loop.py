@@ -86,6 +86,7 @@ from mds_ach.robot.msgs import daemon_status as ds
 log = logging.getLogger("mds_ach.nodes.daemon")
 
 HOMING_TIMEOUT = 60.0  # s: stop waiting for a homing joint to settle
+HOMED_TOLERANCE = 0.01  # rad: at rest after HOME the count reads this close to 0 (the ROM middle, joint side)
 COMMAND_NAMES = {mds.MDS_CMD_ENABLE: "enable", mds.MDS_CMD_DISABLE: "disable", mds.MDS_CMD_HOME: "home",
                  mds.MDS_CMD_RESET: "reset", mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET_BUS: "resetbus"}
 _F32 = struct.Struct("<f")
@@ -257,6 +258,9 @@ class JointRuntime:
     hold: float | None = None  # after a setup command: hold until ref_r differs from this
     flags: int = 0
     homing_since: float | None = None
+    # False after ZERO_ENCODER / RESET (or a HOME that did not settle): the count no longer has its calibrated zero
+    # at the ROM middle, so targets and replies would be in a shifted frame. No target, no position until HOME.
+    referenced: bool = True
 
 
 @dataclass
@@ -638,7 +642,9 @@ class DaemonLoop:
                     # The count restarts: old readings are void.
                     jr.pos, jr.last_reply, jr.last_heard = math.nan, -math.inf, -math.inf
                     jr.trusted, jr.suspect, jr.consistent = True, None, 0
-                elif math.isfinite(jr.pos):
+                    if cmd.code != mds.MDS_CMD_HOME:
+                        self._unreference(jr, COMMAND_NAMES[cmd.code])
+                elif math.isfinite(jr.pos) and jr.referenced:
                     # ENABLE: the node holds where it is, which is the latest trusted reply, not the last target
                     # (a disabled joint may have been moved by hand). A target in this very cycle starts there.
                     jr.track.reseed(jr.pos, jr.last_reply)
@@ -648,6 +654,16 @@ class DaemonLoop:
             return ds.CMD_FAILED, f"{COMMAND_NAMES[cmd.code]} not sent to {', '.join(failed)}: " \
                                   f"{self.io.counters.last_error}"
         return ds.CMD_OK, f"{COMMAND_NAMES[cmd.code]} sent to {names}"
+
+    def _unreference(self, jr: JointRuntime, why: str) -> None:
+        """The joint's count lost its calibrated zero (docs/reliability.md M2): it gets no target and shows no
+        position until HOME re-establishes the frame. The node restarted its count at 0 where the joint stood; the
+        daemon does not know that count exactly (the last reply is up to a period old and the joint may have been
+        moving), and a frame off by any amount would move the limits and the collision model with it."""
+        if jr.referenced:
+            log.warning("%s: %s restarted the encoder count: the joint is unreferenced (no targets, no position) "
+                        "until `home %s`", jr.cfg.short, why, jr.cfg.short)
+        jr.referenced = False
 
     def _accept_ref(self, ref: MDS_REF) -> None:
         for a, jr in self.joints.items():
@@ -693,7 +709,11 @@ class DaemonLoop:
             jr.goal = cfg.clamp(goal)
 
     def _known(self, jr: JointRuntime, now: float) -> bool:
-        """Is the joint's position trusted and fresh (``state.active``)?"""
+        """Is the joint's position trusted, fresh and in the calibrated frame (``state.active``)?"""
+        return jr.referenced and self._reading(jr, now)
+
+    def _reading(self, jr: JointRuntime, now: float) -> bool:
+        """Are the joint's replies trusted and fresh, in whatever frame its count is (a homing joint's)?"""
         return jr.trusted and math.isfinite(jr.pos) and now - jr.last_reply <= self.stale_after
 
     def _collision_held(self) -> frozenset[int] | None:
@@ -723,8 +743,9 @@ class DaemonLoop:
         if self.bus_state == ds.BUS_STATE_BUS_OFF:
             return  # nothing gets through; `mds-ach resetbus` re-opens the bus
         for a, jr in self.joints.items():
-            if not jr.enabled or jr.hold is not None or jr.homing_since is not None or a in held:
-                continue
+            if not jr.enabled or not jr.referenced or jr.hold is not None or jr.homing_since is not None \
+                    or a in held:
+                continue  # (an unreferenced joint's target would be in a shifted frame: nothing until HOME)
             t = self.clock()  # the limiter counts the time up to these very frames
             if t - jr.last_heard > self.stale_after:
                 continue  # a silent node gets nothing: when it answers again, it restarts from where it is
@@ -920,7 +941,7 @@ class DaemonLoop:
         else:
             jr.vel = 0.0
         jr.pos, jr.last_reply = q, now
-        if jr.reseed:
+        if jr.reseed and jr.referenced:  # (an unreferenced reading is in a shifted frame: never a target)
             jr.track.reseed(q, now)
             jr.ref, jr.goal, jr.goal_t = q, cfg.clamp(q), -math.inf
 
@@ -970,19 +991,33 @@ class DaemonLoop:
             heard = now - jr.last_heard <= self.stale_after
             if jr.homing_since is not None and now - jr.homing_since > 1.0:
                 counts_per_cycle = abs(jr.vel) * self.period * jr.cfg.cpr / (2 * math.pi)
-                if (fresh and counts_per_cycle < 2.0) or now - jr.homing_since > HOMING_TIMEOUT:
+                settled = self._reading(jr, now) and counts_per_cycle < 2.0
+                # HOME ends with the count zeroed at the ROM middle: that reading, at rest, is the calibrated frame.
+                if settled and abs(jr.cfg.direction * jr.pos + jr.cfg.offset) <= HOMED_TOLERANCE:
                     jr.homing_since = None  # settled: hold there (jr.hold) until the reference changes
+                    if not jr.referenced:
+                        log.info("%s: homed: the encoder count is referenced again", jr.cfg.short)
+                    jr.referenced = True
+                    fresh = self._known(jr, now)
+                elif now - jr.homing_since > HOMING_TIMEOUT:
+                    jr.homing_since = None
+                    if jr.referenced:
+                        log.warning("%s: HOME did not end at the zeroed middle of the range in %.0f s: the joint is "
+                                    "unreferenced until a HOME that does", jr.cfg.short, HOMING_TIMEOUT)
+                    jr.referenced = False  # the search may have stopped anywhere: the count's zero is unknown
             if jr.pipeline_reseed and fresh and jr.homing_since is None:
                 jr.pipeline_reseed = False
                 self.status.joint_reseed[a] += 1  # the pipeline restarts this joint at s.pos below
                 log.info("%s: the pipeline's reference restarts where the joint is (%.4f rad)", jr.cfg.short, jr.pos)
             s.ref_r, s.ref, s.ref_c_send, s.ref_c = jr.ref_r, jr.ref, jr.ref_c_send, jr.ref_c
-            s.pos, s.vel, s.cur = jr.pos, (jr.vel if fresh else 0.0), jr.cur
+            # An unreferenced reading is in a shifted frame: never shown as a position (the gate, IK, viewer use it).
+            s.pos, s.vel, s.cur = (jr.pos if jr.referenced else math.nan), (jr.vel if fresh else 0.0), jr.cur
             s.enabled, s.active = int(jr.enabled), int(fresh)
             flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
             flags |= ds.JOINT_CONFIGURED | (ds.JOINT_ENABLED if jr.enabled else 0)
             flags |= ds.JOINT_FRESH if fresh else 0 if heard else ds.JOINT_STALE
             flags |= 0 if jr.trusted else ds.JOINT_BAD_REPLY
+            flags |= 0 if jr.referenced else ds.JOINT_UNREFERENCED
             self.status.joint_flags[a] = flags
             self.status.joint_age[a] = now - jr.last_heard if math.isfinite(jr.last_heard) else -1.0
             if not heard and jr.enabled:
