@@ -266,6 +266,10 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
     if unreferenced:
         level = DiagnosticStatus.WARN
         problems.append(f"unreferenced after zero/reset (no motion until `home`): {' '.join(unreferenced)}")
+    follow_faults = flagged(st, ds.JOINT_FOLLOW_FAULT)
+    if follow_faults:
+        level = DiagnosticStatus.WARN
+        problems.append(f"follow fault, mode 2/3 held until `enable`: {' '.join(follow_faults)}")
     if new_stalls:
         level = DiagnosticStatus.WARN
         problems.append(f"control loop stalled {new_stalls} time(s) (longest {st.stall_max:.2f} s)")
@@ -305,7 +309,7 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
             f"{BY_ADDRESS[a].short}:{st.joint_limited[a]}" for a in BY_ADDRESS if st.joint_limited[a]),
         "bad_replies": str(st.bad_replies), "bad_reply_joints": " ".join(bad_reply_names),
         "stalls": str(st.stalls), "stall_max_s": f"{st.stall_max:.3f}",
-        "unreferenced_joints": " ".join(unreferenced),
+        "unreferenced_joints": " ".join(unreferenced), "follow_fault_joints": " ".join(follow_faults),
     }
     return DiagnosticStatus(level=level, name="mds_daemon: control loop", hardware_id="mds",
                             message="; ".join(problems) or "OK",

@@ -4,7 +4,7 @@ Each is one ``MDS_CMD`` on ``mds-cmd`` per joint (the channel only the operators
 docs/operator.md), waited for until the daemon echoes its sequence number in ``mds-daemon-status``. ``zero``
 (ZERO_ENCODER) and ``reset`` (RESET) restart the node's encoder count where the joint stands: the daemon then marks
 the joint *unreferenced* and moves it no more until ``home``; the ROS command service refuses them unless the daemon
-allows it (``allow_encoder_commands``).
+allows it (``allow_encoder_commands``). ``enable`` also clears a joint's follow fault (mode 2/3).
 """
 
 from __future__ import annotations
