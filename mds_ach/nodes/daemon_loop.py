@@ -7,7 +7,8 @@ One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread
    previous reference holds (zero-order hold); NaN/Inf or an unknown mode refuses that joint's value;
 3. per joint: clamp to the effective limits (URDF & joint table, ``mds_ach.kinematics.limits``), then the legacy
    mode (0 first-order filter with L giving 95 % of a step in 4.0 s at the loop rate, 1 pass-through, 2 compliant
-   (follow the encoder), 3 encoder filter): the joint's *goal*;
+   (follow the encoder), 3 encoder filter; 2 and 3 follow at most ``FOLLOW_SPEED`` and fault when the replies and
+   the motion disagree, ``_follow``): the joint's *goal*;
 4. for enabled joints, unless ``mds-collide`` says a collision is predicted for that arm (``_collision_held``):
    the goal through ``motion.limit`` at the moment the joint's frames go out, then, if the target (float32
    counts) changed, the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
@@ -26,6 +27,10 @@ ZERO_ENCODER and ENABLE, and when a silent node answers again: until the next MO
 trusted replies, and that MOVETO states exactly where the joint is (a zero step), so the daemon and any
 observer of the log (``mds-ach check-log``) restart from the same point. A joint whose position the daemon
 never knew is not commanded. Targets that had to be limited are flagged (``JOINT_LIMITED``) and counted.
+
+**The calibrated frame.** Limits, targets and ``mds-state`` are in the frame whose count 0 is the ROM middle, which
+HOME establishes. ZERO_ENCODER and RESET restart a node's count where the joint stands: the joint is *unreferenced*
+(``JOINT_UNREFERENCED``) -- no target, ``pos`` NaN -- until a HOME ends at rest with the count at 0 again.
 
 **Position replies are validated**: one outside the joint's range (plus a margin) or implying a speed beyond
 ``REPLY_SPEED_FACTOR`` times the velocity bound is refused (``JOINT_BAD_REPLY``, counted); ``pos`` keeps the
