@@ -294,6 +294,8 @@ typedef enum mds_joint_address {
 #define MDS_DAEMON_JOINT_MOVING 0x0040
 #define MDS_DAEMON_JOINT_LIMITED 0x0080
 #define MDS_DAEMON_JOINT_BAD_REPLY 0x0100
+#define MDS_DAEMON_JOINT_UNREFERENCED 0x0200
+#define MDS_DAEMON_JOINT_FOLLOW_FAULT 0x0400
 /* mds_daemon_status_t.bus_state. */
 typedef enum mds_daemon_bus_state {
     MDS_DAEMON_BUS_STATE_ACTIVE = 0,

@@ -236,6 +236,33 @@ def test_a_re_seed_lets_the_next_step_start_from_the_measured_position(tmp_path:
     assert found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
 
 
+@pytest.mark.parametrize("command", [mcb.Command.ZERO_ENCODER, mcb.Command.RESET])
+def test_targets_after_an_encoder_restart_are_unreferenced_until_home(tmp_path: Path, command: int) -> None:
+    """Issue #25 item 1: LSP at -0.9, ZERO_ENCODER (or RESET): its count restarts there, so its replies read the
+    homed zero's angle (-0.45) and a target in counts is in a shifted frame -- -1.85, inside the limits in counts, is
+    really -2.30. Every target until a HOME zeroed the count at the middle is ``unreferenced``; after it, none."""
+    lsp = TABLE["LSP"]
+    zero = lsp.to_joint(0.0)
+    b = LogBuilder(0.1, pose={"LSP": -0.9})
+    b.cycle()
+    b.raw(mcb.encode_command(lsp.address, command))
+    b.cycle(replies={"LSP": zero})
+    b.cycle(replies={"LSP": zero})
+    b.ramp({"LSP": zero - 0.2}, 0.5)  # "goto -1.85" as the shifted frame sees it
+    r = audit(b.write(tmp_path / "zeroed.asc"))
+    kinds = found_kinds(r)
+    assert kinds == {("unreferenced", "LSP")}, checklog.format_report(checklog.Report([r]), TABLE)
+    assert command.name in r.findings[0].text
+    b.raw(mcb.encode_home(lsp.address))
+    for q in (zero - 0.5, zero + 0.2):  # homing in the old frame, then the count zeroed at the middle
+        b.cycle(replies={"LSP": q})
+    b.cycle(replies={"LSP": zero})
+    before = len(r.findings)
+    b.ramp({"LSP": zero - 0.2}, 0.5)
+    r = audit(b.write(tmp_path / "homed.asc"))
+    assert len(r.findings) == before and found_kinds(r) == {("unreferenced", "LSP")}
+
+
 def test_after_home_a_step_counts_from_the_latest_reply_not_the_first(tmp_path: Path) -> None:
     """HOME moves the joint by itself: the first reply after it is a point the homing passed, not where the joint
     is. The daemon's re-seed follows every reply up to its next target, so a target back to that first reply is a

@@ -13,9 +13,11 @@ Setup commands reach it two ways:
   ``command`` (enable | disable | home | reset | zero | resetbus) for a list of ``joints`` (short names; empty or
   ``all``: every enabled joint), run joint by joint; ``success`` when all succeeded, ``message`` one line per
   joint, ``failed`` the joints that did not. Example: ``ros2 service call /mds_daemon/command
-  mds_ach_interfaces/srv/Command "{command: home, joints: [LEP, REP]}"``.
+  mds_ach_interfaces/srv/Command "{command: home, joints: [LEP, REP]}"``. ``zero`` and ``reset`` are refused there
+  unless the parameter ``allow_encoder_commands`` is true (``refused_from_ros``);
 * deprecated (one release): ``~/command_text`` of the borrowed type ``diagnostic_msgs/srv/AddDiagnostics``,
-  ``load_namespace`` = ``"<command> [joint|all]"``, the reply's ``success``/``message`` the result.
+  ``load_namespace`` = ``"<command> [joint|all]"``, the reply's ``success``/``message`` the result (the same rule
+  for ``zero`` and ``reset``).
 
 Its health goes to ``/mds/daemon_status`` (``mds_ach_interfaces/msg/DaemonStatus``) with ``/diagnostics``.
 
@@ -60,6 +62,8 @@ COMMAND_CODES = {"enable": mds.MDS_CMD_ENABLE, "disable": mds.MDS_CMD_DISABLE, "
                  "reset": mds.MDS_CMD_RESET, "zero": mds.MDS_CMD_ZERO_ENCODER,
                  "zero_encoder": mds.MDS_CMD_ZERO_ENCODER, "resetbus": mds.MDS_CMD_RESET_BUS,
                  "reset_bus": mds.MDS_CMD_RESET_BUS}
+# Commands that restart a node's encoder count: the joint leaves its calibrated frame (unreferenced until HOME).
+ENCODER_COMMANDS = {mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET: "reset"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -98,6 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--filter-length", type=float, help="L of the mode-0 filter (default: 95%% in 4.0 s)")
     loop.add_argument("--no-collide-gate", action="store_true",
                       help="do not hold the robot while mds-collide reports a collision (expert use only)")
+    loop.add_argument("--allow-encoder-commands", action="store_true",
+                      help="let the ROS command service send zero and reset (default: only mds-cmd, i.e. `mds-ach "
+                           "zero|reset`, may)")
     loop.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the loop thread (needs "
                                                                  "CAP_SYS_NICE); 0 = normal scheduling")
     sim = ap.add_argument_group("simulated bus (--nocan)")
@@ -204,6 +211,21 @@ def parse_command(text: str) -> tuple[int, int]:
         raise ValueError(exc.args[0]) from None
 
 
+def refused_from_ros(code: int, allow_encoder_commands: bool) -> str | None:
+    """Why the ROS command service refuses ``code`` (None: it runs).
+
+    ZERO_ENCODER and RESET restart a node's count: the joint is unreferenced (no motion) until HOME. On the Ach side
+    only the operators may send them (``mds-cmd`` is writable by the operators' group, ``mds-ach zero|reset``); the
+    ROS graph reaches any peer on the domain, so the service sends them only when the daemon was started with the
+    parameter ``allow_encoder_commands`` (``--allow-encoder-commands``)."""
+    name = ENCODER_COMMANDS.get(code)
+    if name is None or allow_encoder_commands:
+        return None
+    return (f"'{name}' is refused from ROS: it restarts the joint's encoder count (the joint is unreferenced, no "
+            f"motion, until HOME); an operator sends it with `mds-ach {name} JOINT` (it writes "
+            f"{mds.MDS_CHAN_BOARD_CMD_NAME}), or start the daemon with -p allow_encoder_commands:=true")
+
+
 def parse_joint_command(command: str, joints: Sequence[str]) -> list[tuple[str, int, int]]:
     """The Command service's request as (label, code, address) per joint: ('home', ['LEP']) -> [('LEP', HOME,
     0x4C)]; no joints or 'all' (and resetbus, which is for the bus): one command for address 0. Every name is
@@ -240,6 +262,14 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
     if bad_reply_names:
         level = DiagnosticStatus.WARN
         problems.append(f"implausible position replies (position not trusted): {' '.join(bad_reply_names)}")
+    unreferenced = flagged(st, ds.JOINT_UNREFERENCED)
+    if unreferenced:
+        level = DiagnosticStatus.WARN
+        problems.append(f"unreferenced after zero/reset (no motion until `home`): {' '.join(unreferenced)}")
+    follow_faults = flagged(st, ds.JOINT_FOLLOW_FAULT)
+    if follow_faults:
+        level = DiagnosticStatus.WARN
+        problems.append(f"follow fault, mode 2/3 held until `enable`: {' '.join(follow_faults)}")
     if new_stalls:
         level = DiagnosticStatus.WARN
         problems.append(f"control loop stalled {new_stalls} time(s) (longest {st.stall_max:.2f} s)")
@@ -279,10 +309,16 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
             f"{BY_ADDRESS[a].short}:{st.joint_limited[a]}" for a in BY_ADDRESS if st.joint_limited[a]),
         "bad_replies": str(st.bad_replies), "bad_reply_joints": " ".join(bad_reply_names),
         "stalls": str(st.stalls), "stall_max_s": f"{st.stall_max:.3f}",
+        "unreferenced_joints": " ".join(unreferenced), "follow_fault_joints": " ".join(follow_faults),
     }
     return DiagnosticStatus(level=level, name="mds_daemon: control loop", hardware_id="mds",
                             message="; ".join(problems) or "OK",
                             values=[KeyValue(key=k, value=v) for k, v in values.items()])
+
+
+def flagged(st: ds.MDS_DAEMON_STATUS, flag: int) -> list[str]:
+    """The short names of the joints whose ``joint_flags`` have ``flag``."""
+    return [BY_ADDRESS[a].short for a in BY_ADDRESS if st.joint_flags[a] & flag]
 
 
 NODE_NAME = "mds_daemon"  # the ROS node name (`ros2 param`, the sections of a params file)
@@ -294,6 +330,9 @@ PARAMETERS = (
                                             "joint and cycle (option --rate)", range=(0.1, 1000.0)),
     Param("nocan", False, "simulate the robot's CAN bus in this process instead of a python-can interface "
                           "(option --nocan)"),
+    Param("allow_encoder_commands", False, "let the command service send zero and reset, which take a joint out of "
+                                           "its calibrated frame until HOME (default: only the operators, through "
+                                           "mds-cmd: `mds-ach zero|reset`; option --allow-encoder-commands)"),
 )
 
 
@@ -307,6 +346,8 @@ class DaemonNode(Node):
         robot = declare(self, find(PARAMETERS, "robot"), args.robot)
         rate = declare(self, find(PARAMETERS, "rate"), args.rate)
         nocan = declare(self, find(PARAMETERS, "nocan"), args.nocan)
+        self.allow_encoder_commands = bool(declare(self, find(PARAMETERS, "allow_encoder_commands"),
+                                                   args.allow_encoder_commands))
         args = argparse.Namespace(**{**vars(args), "robot": robot or None, "rate": float(rate), "nocan": bool(nocan)})
         self.daemon = build(args)
         self._channel_errors = 0
@@ -348,6 +389,10 @@ class DaemonNode(Node):
         except ValueError as exc:
             response.success, response.message, response.failed = False, str(exc), list(request.joints)
             return response
+        refused = refused_from_ros(commands[0][1], self.allow_encoder_commands)  # (one command per request)
+        if refused is not None:
+            response.success, response.message, response.failed = False, refused, [c[0] for c in commands]
+            return response
         lines, failed = [], []
         for label, code, address in commands:
             ok, text = self._run(code, address)
@@ -364,6 +409,10 @@ class DaemonNode(Node):
             code, address = parse_command(request.load_namespace)
         except ValueError as exc:
             response.success, response.message = False, str(exc)
+            return response
+        refused = refused_from_ros(code, self.allow_encoder_commands)
+        if refused is not None:
+            response.success, response.message = False, refused
             return response
         response.success, response.message = self._run(code, address)
         return response

@@ -7,7 +7,8 @@ One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread
    previous reference holds (zero-order hold); NaN/Inf or an unknown mode refuses that joint's value;
 3. per joint: clamp to the effective limits (URDF & joint table, ``mds_ach.kinematics.limits``), then the legacy
    mode (0 first-order filter with L giving 95 % of a step in 4.0 s at the loop rate, 1 pass-through, 2 compliant
-   (follow the encoder), 3 encoder filter): the joint's *goal*;
+   (follow the encoder), 3 encoder filter; 2 and 3 follow at most ``FOLLOW_SPEED`` and fault when the replies and
+   the motion disagree, ``_follow``): the joint's *goal*;
 4. for enabled joints, unless ``mds-collide`` says a collision is predicted for that arm (``_collision_held``):
    the goal through ``motion.limit`` at the moment the joint's frames go out, then, if the target (float32
    counts) changed, the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
@@ -26,6 +27,10 @@ ZERO_ENCODER and ENABLE, and when a silent node answers again: until the next MO
 trusted replies, and that MOVETO states exactly where the joint is (a zero step), so the daemon and any
 observer of the log (``mds-ach check-log``) restart from the same point. A joint whose position the daemon
 never knew is not commanded. Targets that had to be limited are flagged (``JOINT_LIMITED``) and counted.
+
+**The calibrated frame.** Limits, targets and ``mds-state`` are in the frame whose count 0 is the ROM middle, which
+HOME establishes. ZERO_ENCODER and RESET restart a node's count where the joint stands: the joint is *unreferenced*
+(``JOINT_UNREFERENCED``) -- no target, ``pos`` NaN -- until a HOME ends at rest with the count at 0 again.
 
 **Position replies are validated**: one outside the joint's range (plus a margin) or implying a speed beyond
 ``REPLY_SPEED_FACTOR`` times the velocity bound is refused (``JOINT_BAD_REPLY``, counted); ``pos`` keeps the
@@ -86,6 +91,7 @@ from mds_ach.robot.msgs import daemon_status as ds
 log = logging.getLogger("mds_ach.nodes.daemon")
 
 HOMING_TIMEOUT = 60.0  # s: stop waiting for a homing joint to settle
+HOMED_TOLERANCE = 0.01  # rad: at rest after HOME the count reads this close to 0 (the ROM middle, joint side)
 COMMAND_NAMES = {mds.MDS_CMD_ENABLE: "enable", mds.MDS_CMD_DISABLE: "disable", mds.MDS_CMD_HOME: "home",
                  mds.MDS_CMD_RESET: "reset", mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET_BUS: "resetbus"}
 _F32 = struct.Struct("<f")
@@ -116,6 +122,26 @@ REPLY_RANGE_MIN = 0.1  # rad
 REPLY_SPEED_FACTOR = 4.0
 REPLY_SLACK = 0.05  # rad
 REPLIES_TO_TRUST = 3  # consistent replies in a row before a joint's position is trusted again
+# Modes 2 and 3 follow the reported position. A wrong but plausible reply (two boards on one address, an encoder
+# that slipped) would be followed, the joint driven after it, the next reply as wrong again: a runaway in bounded
+# steps. So the target follows the reported position at most FOLLOW_SPEED, and a chase that runs away is a fault
+# that holds the joint (``JointRuntime.follow_fault``): while the reported position is more than FOLLOW_GAP ahead
+# of the target chasing it, the two must not move on together in that direction by FOLLOW_FAULT_TRAVEL -- a joint
+# pushed and held stands still while its target comes; one that moves with the target it is ahead of is driven by
+# that target, so it is not where the replies say. What a runaway moves the joint before the fault:
+# FOLLOW_FAULT_TRAVEL plus the node's lag behind its target (FOLLOW_RUNAWAY_BOUND at the default bounds and 10 Hz;
+# test_feedback_fault.py measures it).
+FOLLOW_SPEED = 0.5  # rad/s (at most the velocity bound); a hand moving a joint faster is followed this fast
+FOLLOW_GAP = 0.1  # rad (at least 1.5 cycles' follow)
+FOLLOW_FAULT_TRAVEL = 0.1  # rad
+FOLLOW_RUNAWAY_BOUND = 0.3  # rad at 10 Hz (0.25 measured); add a cycle's follow at lower rates
+# An offset below FOLLOW_GAP looks like a hand moving the joint at up to FOLLOW_GAP per cycle; but a push ends (the
+# reported position comes to rest: within FOLLOW_SETTLED for FOLLOW_REST_TIME, at least 2.5 periods) and an offset
+# fed back never does: a target that followed FOLLOW_DRIFT one way while the reply never rested faults too (a joint
+# moves at most FOLLOW_DRIFT plus the node's lag on such an offset).
+FOLLOW_SETTLED = 0.002  # rad
+FOLLOW_REST_TIME = 0.2  # s
+FOLLOW_DRIFT = 0.5  # rad
 LIMIT_TOLERANCE = 1e-9  # rad: a target further than this from the goal counts as limited
 
 _LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
@@ -257,6 +283,13 @@ class JointRuntime:
     hold: float | None = None  # after a setup command: hold until ref_r differs from this
     flags: int = 0
     homing_since: float | None = None
+    # False after ZERO_ENCODER / RESET (or a HOME that did not settle): the count no longer has its calibrated zero
+    # at the ROM middle, so targets and replies would be in a shifted frame. No target, no position until HOME.
+    referenced: bool = True
+    chase: tuple[float, float, float] | None = None  # mode 2/3 at a chase's start: (reported position, target, gap)
+    drift: tuple[float, float] | None = None  # mode 2/3: (target, direction) of a follow since the reply last rested
+    rest: tuple[float, float] | None = None  # mode 2/3: (reported position, since when) it stays within FOLLOW_SETTLED
+    follow_fault: bool = False  # mode 2/3 holds: its replies and its motion disagree (cleared by ENABLE or HOME)
 
 
 @dataclass
@@ -342,6 +375,8 @@ class DaemonLoop:
         io.clock = clock  # what went out is stamped on the loop's clock (see ``_send``)
         # The longest a MOVETO may go out after the time it was limited for (see ``_send``).
         self.late_send = late_send_tolerance(self.bounds, self.period)
+        self.follow_step = min(FOLLOW_SPEED, self.bounds.max_velocity) * self.period  # rad per cycle (modes 2, 3)
+        self.follow_gap = max(FOLLOW_GAP, 1.5 * self.follow_step)
         self.joints: dict[int, JointRuntime] = {
             j.address: JointRuntime(j, ref_r=j.home, goal=j.home, track=motion.Track(j.home), ref=j.home,
                                     enabled=j.enabled)
@@ -375,6 +410,7 @@ class DaemonLoop:
         self._writers = SecondWriterCheck(channels.ref, channels.collide)
         self._last_warn: dict[str, float] = {}
         self._answered: set[int] = set()
+        self._first_reply: dict[int, tuple[float, float]] = {}  # address -> (q, t) of its first reply to the query
         self.start_time = clock()
         self.status.start_time = self.start_time
 
@@ -638,16 +674,32 @@ class DaemonLoop:
                     # The count restarts: old readings are void.
                     jr.pos, jr.last_reply, jr.last_heard = math.nan, -math.inf, -math.inf
                     jr.trusted, jr.suspect, jr.consistent = True, None, 0
-                elif math.isfinite(jr.pos):
+                    if cmd.code != mds.MDS_CMD_HOME:
+                        self._unreference(jr, COMMAND_NAMES[cmd.code])
+                elif math.isfinite(jr.pos) and jr.referenced:
                     # ENABLE: the node holds where it is, which is the latest trusted reply, not the last target
                     # (a disabled joint may have been moved by hand). A target in this very cycle starts there.
                     jr.track.reseed(jr.pos, jr.last_reply)
                 jr.homing_since = now if cmd.code == mds.MDS_CMD_HOME else None
+                if cmd.code in (mds.MDS_CMD_ENABLE, mds.MDS_CMD_HOME) and jr.follow_fault:
+                    log.info("%s: follow fault cleared by %s", jr.cfg.short, COMMAND_NAMES[cmd.code])
+                    jr.follow_fault = False
+                jr.chase = jr.drift = None
         names = ", ".join(jr.cfg.short for jr in targets)
         if failed:
             return ds.CMD_FAILED, f"{COMMAND_NAMES[cmd.code]} not sent to {', '.join(failed)}: " \
                                   f"{self.io.counters.last_error}"
         return ds.CMD_OK, f"{COMMAND_NAMES[cmd.code]} sent to {names}"
+
+    def _unreference(self, jr: JointRuntime, why: str) -> None:
+        """The joint's count lost its calibrated zero (docs/reliability.md M2): it gets no target and shows no
+        position until HOME re-establishes the frame. The node restarted its count at 0 where the joint stood; the
+        daemon does not know that count exactly (the last reply is up to a period old and the joint may have been
+        moving), and a frame off by any amount would move the limits and the collision model with it."""
+        if jr.referenced:
+            log.warning("%s: %s restarted the encoder count: the joint is unreferenced (no targets, no position) "
+                        "until `home %s`", jr.cfg.short, why, jr.cfg.short)
+        jr.referenced = False
 
     def _accept_ref(self, ref: MDS_REF) -> None:
         for a, jr in self.joints.items():
@@ -686,14 +738,64 @@ class DaemonLoop:
                 goal = desired
             elif jr.mode == mds.MDS_REF_MODE_REF_FILTER:
                 goal = filters.ema_step(jr.goal, desired, self.L)
-            elif jr.mode == mds.MDS_REF_MODE_COMPLIANT:
-                goal = jr.pos if known else jr.track.q
-            else:  # MDS_REF_MODE_ENC_FILTER
-                goal = filters.enc_filter_step(jr.pos, desired, self.L) if known else jr.track.q
+            else:  # MDS_REF_MODE_COMPLIANT, MDS_REF_MODE_ENC_FILTER
+                goal = self._follow(jr, desired, known, now)
+            if jr.mode not in (mds.MDS_REF_MODE_COMPLIANT, mds.MDS_REF_MODE_ENC_FILTER):
+                jr.chase = jr.drift = None
             jr.goal = cfg.clamp(goal)
 
+    def _follow(self, jr: JointRuntime, desired: float, known: bool, now: float) -> float:
+        """Mode 2 (compliant) or 3 (encoder filter): the goal from the reported position, which the target follows
+        at most ``follow_step`` per cycle; a chase that does not close faults (see FOLLOW_*). Holds the last target
+        without a trusted position or after a fault."""
+        held = jr.track.q
+        if not known or jr.follow_fault:
+            jr.chase = jr.drift = jr.rest = None
+            return held
+        gap = jr.pos - held
+        sign = 1.0 if gap > 0 else -1.0
+        if jr.rest is None or abs(jr.pos - jr.rest[0]) > FOLLOW_SETTLED:
+            jr.rest = (jr.pos, now)  # the reported position moved: it rests from here, if it stays
+        if now - jr.rest[1] >= max(FOLLOW_REST_TIME, 2.5 * self.period) or (
+                jr.drift is not None and sign != jr.drift[1] and abs(gap) > 0.5 * self.follow_gap):
+            jr.drift = None  # at rest (a push ended), or clearly behind its target: no drift
+        elif jr.drift is None:
+            jr.drift = (held, sign) if abs(gap) > FOLLOW_SETTLED else None
+        elif (held - jr.drift[0]) * jr.drift[1] >= FOLLOW_DRIFT:
+            self._follow_fault(jr, f"its target followed the reported position {FOLLOW_DRIFT:g} rad one way and that "
+                                   "never came to rest: a push ends, an offset fed back does not")
+            return held
+        if abs(gap) <= self.follow_gap:
+            jr.chase = None
+        elif jr.chase is None or (gap > 0) != (jr.chase[2] > 0):
+            jr.chase = (jr.pos, held, gap)
+        else:
+            ran = min((jr.pos - jr.chase[0]) * sign, (held - jr.chase[1]) * sign)  # both moved on, together
+            if ran >= FOLLOW_FAULT_TRAVEL:
+                self._follow_fault(jr, f"the reported position stays {abs(gap):.3f} rad ahead of the target chasing "
+                                       f"it and moved on with it {ran:.3f} rad: the joint moves with its target, not "
+                                       "where the replies say")
+                return held
+        followed = held + min(max(gap, -self.follow_step), self.follow_step)
+        if jr.mode == mds.MDS_REF_MODE_COMPLIANT:
+            return followed
+        return filters.enc_filter_step(followed, desired, self.L)
+
+    def _follow_fault(self, jr: JointRuntime, why: str) -> None:
+        """Stop feeding a mode 2/3 joint's replies back: it holds its last target (modes 0/1 still move it) until
+        ENABLE or HOME. Logged once per fault, flagged in ``mds-daemon-status`` (JOINT_FOLLOW_FAULT)."""
+        jr.chase = jr.drift = None
+        if not jr.follow_fault:
+            jr.follow_fault = True
+            log.error("%s: follow fault (mode %d): %s; holding at %.4f rad until `enable %s` or `home %s`",
+                      jr.cfg.short, jr.mode, why, jr.track.q, jr.cfg.short, jr.cfg.short)
+
     def _known(self, jr: JointRuntime, now: float) -> bool:
-        """Is the joint's position trusted and fresh (``state.active``)?"""
+        """Is the joint's position trusted, fresh and in the calibrated frame (``state.active``)?"""
+        return jr.referenced and self._reading(jr, now)
+
+    def _reading(self, jr: JointRuntime, now: float) -> bool:
+        """Are the joint's replies trusted and fresh, in whatever frame its count is (a homing joint's)?"""
         return jr.trusted and math.isfinite(jr.pos) and now - jr.last_reply <= self.stale_after
 
     def _collision_held(self) -> frozenset[int] | None:
@@ -723,8 +825,9 @@ class DaemonLoop:
         if self.bus_state == ds.BUS_STATE_BUS_OFF:
             return  # nothing gets through; `mds-ach resetbus` re-opens the bus
         for a, jr in self.joints.items():
-            if not jr.enabled or jr.hold is not None or jr.homing_since is not None or a in held:
-                continue
+            if not jr.enabled or not jr.referenced or jr.hold is not None or jr.homing_since is not None \
+                    or a in held:
+                continue  # (an unreferenced joint's target would be in a shifted frame: nothing until HOME)
             t = self.clock()  # the limiter counts the time up to these very frames
             if t - jr.last_heard > self.stale_after:
                 continue  # a silent node gets nothing: when it answers again, it restarts from where it is
@@ -811,6 +914,7 @@ class DaemonLoop:
         expected = expected or set(self.joints)
         self.status.replies_expected = len(expected)
         self._answered = set()
+        self._first_reply.clear()  # (late replies of the previous query count as its own, see _second_reply)
         if not self.io.send(mcb.encode_query_positions()):
             self.status.replies_received = 0
             return
@@ -859,7 +963,10 @@ class DaemonLoop:
                 self.status.malformed_frames += 1
                 return
             self._answered.add(address)
-            self._position_reply(jr, jr.cfg.to_joint(counts), now)
+            q = jr.cfg.to_joint(counts)
+            if self._second_reply(jr, q, now):
+                return
+            self._position_reply(jr, q, now)
             return
         data = msg.data
         if data[7] == Response.ACK:  # fast path: the 4 ACKs of every SET sequence
@@ -920,9 +1027,31 @@ class DaemonLoop:
         else:
             jr.vel = 0.0
         jr.pos, jr.last_reply = q, now
-        if jr.reseed:
+        if jr.reseed and jr.referenced:  # (an unreferenced reading is in a shifted frame: never a target)
             jr.track.reseed(q, now)
             jr.ref, jr.goal, jr.goal_t = q, cfg.clamp(q), -math.inf
+
+    def _second_reply(self, jr: JointRuntime, q: float, now: float) -> bool:
+        """Is this a second in-range position reply to one query that disagrees with the first (two nodes on one
+        address, or one answering twice with different counts)? Then neither is a position: the joint is not trusted
+        until REPLIES_TO_TRUST consistent replies (which two such nodes never give: each query resets the count), so
+        a mode 2/3 joint holds. A late reply of the previous query may come with this query's: they differ by what
+        the joint moves in a period. (A reply out of range is refused as such by ``_position_reply``.)"""
+        if not reply_in_range(self.physical[jr.cfg.address], q):
+            return False
+        first = self._first_reply.get(jr.cfg.address)
+        if first is None:
+            self._first_reply[jr.cfg.address] = (q, now)
+            return False
+        if abs(q - first[0]) <= REPLY_SLACK + self.bounds.max_velocity * (self.period + abs(now - first[1])):
+            return False
+        self.status.bad_replies += 1
+        self.status.joint_bad_replies[jr.cfg.address] += 1
+        self._warn_rate(f"two-replies-{jr.cfg.address}",
+                        f"{jr.cfg.short}: two different position replies to one query ({first[0]:.4f} and {q:.4f} "
+                        f"rad): two nodes on one address? Position not trusted")
+        jr.trusted, jr.suspect, jr.consistent = False, None, 0
+        return True
 
     def _bad_reply(self, jr: JointRuntime, q: float, in_range: bool) -> None:
         """Count an implausible reply; warn (rate-limited) when it costs the joint its trusted position."""
@@ -970,19 +1099,34 @@ class DaemonLoop:
             heard = now - jr.last_heard <= self.stale_after
             if jr.homing_since is not None and now - jr.homing_since > 1.0:
                 counts_per_cycle = abs(jr.vel) * self.period * jr.cfg.cpr / (2 * math.pi)
-                if (fresh and counts_per_cycle < 2.0) or now - jr.homing_since > HOMING_TIMEOUT:
+                settled = self._reading(jr, now) and counts_per_cycle < 2.0
+                # HOME ends with the count zeroed at the ROM middle: that reading, at rest, is the calibrated frame.
+                if settled and abs(jr.cfg.direction * jr.pos + jr.cfg.offset) <= HOMED_TOLERANCE:
                     jr.homing_since = None  # settled: hold there (jr.hold) until the reference changes
+                    if not jr.referenced:
+                        log.info("%s: homed: the encoder count is referenced again", jr.cfg.short)
+                    jr.referenced = True
+                    fresh = self._known(jr, now)
+                elif now - jr.homing_since > HOMING_TIMEOUT:
+                    jr.homing_since = None
+                    if jr.referenced:
+                        log.warning("%s: HOME did not end at the zeroed middle of the range in %.0f s: the joint is "
+                                    "unreferenced until a HOME that does", jr.cfg.short, HOMING_TIMEOUT)
+                    jr.referenced = False  # the search may have stopped anywhere: the count's zero is unknown
             if jr.pipeline_reseed and fresh and jr.homing_since is None:
                 jr.pipeline_reseed = False
                 self.status.joint_reseed[a] += 1  # the pipeline restarts this joint at s.pos below
                 log.info("%s: the pipeline's reference restarts where the joint is (%.4f rad)", jr.cfg.short, jr.pos)
             s.ref_r, s.ref, s.ref_c_send, s.ref_c = jr.ref_r, jr.ref, jr.ref_c_send, jr.ref_c
-            s.pos, s.vel, s.cur = jr.pos, (jr.vel if fresh else 0.0), jr.cur
+            # An unreferenced reading is in a shifted frame: never shown as a position (the gate, IK, viewer use it).
+            s.pos, s.vel, s.cur = (jr.pos if jr.referenced else math.nan), (jr.vel if fresh else 0.0), jr.cur
             s.enabled, s.active = int(jr.enabled), int(fresh)
             flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
             flags |= ds.JOINT_CONFIGURED | (ds.JOINT_ENABLED if jr.enabled else 0)
             flags |= ds.JOINT_FRESH if fresh else 0 if heard else ds.JOINT_STALE
             flags |= 0 if jr.trusted else ds.JOINT_BAD_REPLY
+            flags |= 0 if jr.referenced else ds.JOINT_UNREFERENCED
+            flags |= ds.JOINT_FOLLOW_FAULT if jr.follow_fault else 0
             self.status.joint_flags[a] = flags
             self.status.joint_age[a] = now - jr.last_heard if math.isfinite(jr.last_heard) else -1.0
             if not heard and jr.enabled:

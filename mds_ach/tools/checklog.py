@@ -14,6 +14,10 @@ upstream. Findings, each with the joint, the log time and the value against its 
 * ``silent`` (``whole_run`` too): a target to a joint that has not answered at all for longer than the stale
   window plus ``max_interval`` (slack for where the daemon and the log date a reply) -- the daemon sends a silent
   node nothing, since the target may never arrive and the node, once back, would jump to it;
+* ``unreferenced``: a target to a joint after a ZERO_ENCODER, RESET or encoder SET to it and before its count reads
+  the homed zero again (a valid reply within ``HOMED_TOLERANCE`` of count 0 after a HOME): its count restarted where
+  the joint stood, so a target in counts is in a shifted frame and ``limit`` cannot judge it -- the daemon sends
+  such a joint nothing until HOME (docs/reliability.md M2);
 * ``speed``, ``acceleration``: :func:`mds_ach.robot.motion.check` on every target, per joint, exactly the definition
   the daemon's limiter enforces;
 * ``collision`` (``--collisions``): the commanded pose after a batch of targets collides, with the collision
@@ -68,13 +72,14 @@ import numpy as np
 from mds_ach.bus import canio, mcb
 from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
 from mds_ach.kinematics import collision
-from mds_ach.nodes.daemon_loop import reply_in_range
+from mds_ach.nodes.daemon_loop import HOMED_TOLERANCE, reply_in_range
 from mds_ach.paths import config_path
 from mds_ach.robot import config, motion
 from mds_ach.robot.config import ConfigError, JointConfig, JointTable
 from mds_ach.robot.msgs import MDS_JOINT_COUNT
 
-KINDS = ("non-finite", "limit", "address", "no-position", "silent", "speed", "acceleration", "collision")
+KINDS = ("non-finite", "limit", "address", "no-position", "silent", "unreferenced", "speed", "acceleration",
+         "collision")
 MOTION_KINDS = ("speed", "acceleration")
 STALE_PERIODS = 3.5  # the daemon's stale_after (mds_ach.nodes.daemon_loop): 3.5 periods, at least 20 ms
 MIN_STALE = 0.02
@@ -195,6 +200,8 @@ class _JointAudit:
     reseed_due: bool = False  # a command restarted the count: the next valid reply re-seeds
     restart: bool = False  # whole run: the daemon certainly re-seeds, so the last target is no start any more
     holding: bool = True  # no target since the start or a setup command: the node holds where it is
+    unreferenced: str = ""  # the command that restarted its count away from the homed zero ("": referenced)
+    homing: bool = False  # a HOME since: the next reply at the homed zero references the count again
 
 
 class _Auditor:
@@ -261,6 +268,8 @@ class _Auditor:
             self.r.replies_ignored += 1
             return
         self.r.replies_valid += 1
+        if ja.homing and abs(counts) * 2 * math.pi / ja.cfg.cpr <= HOMED_TOLERANCE:
+            ja.unreferenced, ja.homing = "", False  # the node zeroed its count at the middle of its range
         if self.model is not None and ja.holding:
             self._set_pose(address, q)  # no target to it (yet, or since HOME...): it is commanded to stay there
         first = ja.last_reply == -math.inf
@@ -286,8 +295,10 @@ class _Auditor:
                 self.r.commands["HOME"] += 1
                 self._moves(t, dest, "HOME")
                 self._reseed_due(dest, count_restarts=True)
+                self._reference(dest, "")
             elif f.argument == StateArg.ENCODER:
                 self._reseed_due(dest, count_restarts=True)
+                self._reference(dest, "SET ENCODER")
             return
         if f.command == Command.SET_TARGET:
             self._target(t, dest, float(f.value))
@@ -295,6 +306,19 @@ class _Auditor:
         self.r.commands[_name(f.command)] += 1
         if f.command in _RESEED_COMMANDS:
             self._reseed_due(dest, count_restarts=f.command != Command.ENABLE)
+        if f.command in (Command.RESET, Command.ZERO_ENCODER):
+            self._reference(dest, _name(f.command))
+
+    def _reference(self, dest: int, restarted_by: str) -> None:
+        """A HOME (``restarted_by`` empty: referenced again once a reply reads the homed zero) or a command that
+        restarted the count where the joint stood (unreferenced until then)."""
+        for a in (self.joints if dest == mcb.BROADCAST_SID else [dest]):
+            if a in self.joints:
+                ja = self.joints[a]
+                if restarted_by:
+                    ja.unreferenced, ja.homing = restarted_by, False
+                else:
+                    ja.homing = bool(ja.unreferenced)
 
     def _reseed_due(self, dest: int, count_restarts: bool) -> None:
         """A re-seed command: the next valid reply re-seeds; in a whole run the daemon certainly restarts the
@@ -354,6 +378,10 @@ class _Auditor:
                 since = "since its count restarted or it came back" if ja.sent else "of the joint"
                 self._find("no-position", t, label, q, math.nan, f"target {q:.4f} rad before any valid position "
                                                                  f"reply {since}")
+        if ja.unreferenced:
+            self._find("unreferenced", t, label, q, math.nan,
+                       f"target {q:.4f} rad after {ja.unreferenced} restarted the joint's count and before a HOME "
+                       "zeroed it at the middle of its range: the target's counts are in a shifted frame")
         if not ja.lo_counts - COUNT_TOLERANCE <= counts <= ja.hi_counts + COUNT_TOLERANCE:
             bound = cfg.upper if q > cfg.upper else cfg.lower
             self._find("limit", t, label, q, bound, f"target {q:.4f} rad ({counts:.1f} counts) outside "

@@ -59,6 +59,11 @@ VERBS: dict[str, Verb] = {
                    "mds_ach.tools.launcher:add_status_arguments", "mds_ach.tools.launcher:run_status"),
     "resetbus": Verb("ask the daemon to reset the CAN bus (bus-off recovery)",
                      "mds_ach.tools.launcher:add_resetbus_arguments", "mds_ach.tools.launcher:run_resetbus"),
+    **{name: Verb(text, "mds_ach.tools.boardcmd:add_arguments", "mds_ach.tools.boardcmd:run")
+       for name, text in (("enable", "enable joints' nodes (and clear a mode 2/3 follow fault)"),
+                          ("home", "home joints: each drives to the middle of its range (the calibrated zero)"),
+                          ("zero", "restart joints' encoder count where they stand (unreferenced until 'home')"),
+                          ("reset", "reset joints' nodes (their count restarts: unreferenced until 'home')"))},
     "changerobot": Verb("choose the robot variant (isaac, lucas, octavia) for the next start",
                         "mds_ach.tools.launcher:add_changerobot_arguments", "mds_ach.tools.launcher:run_changerobot"),
     "hold": Verb("stop every joint (or JOINT..., left, right, arms) where it is; nothing moves until 'resume'",

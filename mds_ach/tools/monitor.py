@@ -14,8 +14,10 @@ from mds_ach.paths import runtime_dir
 from mds_ach.robot.msgs.daemon_status import (
     JOINT_BAD_REPLY,
     JOINT_ENABLED,
+    JOINT_FOLLOW_FAULT,
     JOINT_FRESH,
     JOINT_STALE,
+    JOINT_UNREFERENCED,
     MDS_DAEMON_STATUS,
     summary_line,
 )
@@ -82,10 +84,16 @@ def daemon_line(status: MDS_DAEMON_STATUS | None, age: float | None) -> str:
 
 def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
     """'yes' when the daemon heard the joint's node recently, 'STALE' when not, 'BAD' when the node answers with
-    implausible positions (not trusted), '-' for joints it does not poll, '?' without daemon status."""
+    implausible positions (not trusted), 'UNREF' when its encoder count lost its calibrated zero (ZERO_ENCODER or
+    RESET: no motion until HOME), 'FAULT' when a mode 2/3 joint's replies disagree with its motion (held until
+    ENABLE or HOME), '-' for joints it does not poll, '?' without daemon status."""
     if status is None:
         return "?"
     flags = status.joint_flags[address]
+    if flags & JOINT_UNREFERENCED:
+        return "UNREF"
+    if flags & JOINT_FOLLOW_FAULT:
+        return "FAULT"
     if flags & JOINT_FRESH:
         return "yes"
     if flags & JOINT_STALE:

@@ -32,6 +32,8 @@ JOINT_REFUSED = 0x20  # the last reference was NaN/Inf and was refused (previous
 JOINT_MOVING = 0x40  # a new target was sent this cycle
 JOINT_LIMITED = 0x80  # this cycle's target was limited to the motion bounds (it differs from the reference)
 JOINT_BAD_REPLY = 0x100  # position replies are implausible (out of range, impossible jump): pos holds the last good
+JOINT_UNREFERENCED = 0x200  # its count restarted (ZERO_ENCODER, RESET, HOME timed out): no target, pos NaN until HOME
+JOINT_FOLLOW_FAULT = 0x400  # mode 2/3: replies and the motion disagree (a reply fed back): held until ENABLE or HOME
 
 # Command results (``cmd_result``), echoed with ``cmd_seq`` of the last mds-cmd / service command handled.
 CMD_OK = 0
@@ -111,7 +113,8 @@ def flags_text(flags: int) -> str:
     """Short human form of a joint's flags, e.g. 'en fresh'."""
     names = ((JOINT_ENABLED, "en"), (JOINT_FRESH, "fresh"), (JOINT_STALE, "STALE"), (JOINT_CLAMPED, "clamped"),
              (JOINT_REFUSED, "REFUSED"), (JOINT_MOVING, "moving"), (JOINT_LIMITED, "limited"),
-             (JOINT_BAD_REPLY, "BAD-REPLY"))
+             (JOINT_BAD_REPLY, "BAD-REPLY"), (JOINT_UNREFERENCED, "UNREFERENCED"),
+             (JOINT_FOLLOW_FAULT, "FOLLOW-FAULT"))
     return " ".join(n for bit, n in names if flags & bit) or "-"
 
 
@@ -123,7 +126,9 @@ def summary_line(st: MDS_DAEMON_STATUS) -> str:
                         ("refused", st.refs_refused), ("clamped", st.refs_clamped), ("no-ack", st.acks_missing),
                         ("channel-err", st.channel_errors), ("limited", st.targets_limited),
                         ("bad-reply", st.bad_replies), ("stalls", st.stalls),
-                        ("lock-timeouts", st.lock_timeouts)):
+                        ("lock-timeouts", st.lock_timeouts),
+                        ("unreferenced", sum(1 for f in st.joint_flags if f & JOINT_UNREFERENCED)),
+                        ("follow-fault", sum(1 for f in st.joint_flags if f & JOINT_FOLLOW_FAULT))):
         if value:
             faults.append(f"{name} {value}")
     return (f"{st.measured_rate_hz:.1f}/{st.rate_hz:g} Hz, period err p99 {st.period_error_p99 * 1e3:.2f} ms, "
