@@ -119,6 +119,57 @@ def test_link_refused_reports_the_server_message(server):
     assert link.stats.sent == 0
 
 
+def test_server_refuses_a_cancel_the_mux_would_refuse_and_the_client_sees_why(clean_shm):
+    """Issue 25 item 2: a CANCEL pushed over the network got ACH_OK and moved LEP from -1.20 to the edge of its
+    range. The server applies the mux's check (``check_cancel``): the frame is not written, the connection is
+    answered with the reason and closed; our client reports it and does not re-send that frame; a CANCEL without
+    target still goes through."""
+    from mds_ach.nodes.pipeline import make_ref
+    from mds_ach.robot import lifecycle
+    from mds_ach.robot.channels import StructChannel
+
+    _need_netns()
+    pose = [0.0] * mds.MDS_JOINT_COUNT
+    pose[mds.LEP], pose[mds.LSP] = -1.2, -0.2
+    with StructChannel.of(mds.MDS_CHAN_REF_GATED_NAME) as gated:  # where the pipeline has the joints
+        gated.put(make_ref(pose, [0] * mds.MDS_JOINT_COUNT))
+    StructChannel.of(mds.MDS_CHAN_HOLD_NAME).close()
+    ach.create("test-hold", mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("127.0.0.1",), 0, dead_after_s=2.0).start()  # the default write rules: mds-hold allowed
+    port = srv.ports[0]
+    link = achd.Link("push", "127.0.0.1", "test-hold", remote_channel=mds.MDS_CHAN_HOLD_NAME, port=port)
+    try:
+        for targets, fragment in (({mds.LEP: 1.0}, "outside LEP's range"),
+                                  ({mds.LSP: 0.3}, "a CANCEL never moves a joint")):
+            sock, headers = _raw_session(port, ap.encode_request(mds.MDS_CHAN_HOLD_NAME, "tcp", "pull"))
+            assert headers.status == ap.ACH_OK
+            sock.sendall(ap.encode_frame(bytes(lifecycle.make(lifecycle.HOLD_CANCEL, targets=targets))))
+            reply, _ = achd._read_headers(sock, 5.0)
+            assert reply.status == ap.ACH_EINVAL and fragment in reply.message, reply.message
+            assert sock.recv(100) == b""  # and closes
+            sock.close()
+        assert _frames(mds.MDS_CHAN_HOLD_NAME) == []  # nothing reached the mux
+        assert srv.refused_frames == 2
+        # our client: the reason in its status, the refused frame never re-sent after it reconnects
+        link.start()
+        assert link.connected.wait(5), link.stats.last_error
+        with ach.Channel("test-hold", create=False) as local:
+            local.put(bytes(lifecycle.make(lifecycle.HOLD_CANCEL, targets={mds.LEP: 1.0})))
+            wait_for(lambda: "ACH_EINVAL" in link.stats.last_error, 5, what="the refusal at the client")
+            assert "outside LEP's range" in link.stats.last_error
+            wait_for(link.connected.is_set, 10, what="the client back")
+            stop = lifecycle.make(lifecycle.HOLD_CANCEL, [mds.LEP])  # no target: where the reference is
+            local.put(bytes(stop))
+            wait_for(lambda: _frames(mds.MDS_CHAN_HOLD_NAME) != [], 5, what="the CANCEL without target written")
+        assert [msgs.MDS_HOLD.from_bytes(f).seq for f in _frames(mds.MDS_CHAN_HOLD_NAME)] == [stop.seq]
+        assert srv.refused_frames == 3  # the client's refused frame once: not re-sent when it reconnected
+    finally:
+        link.stop()
+        link.join(5)
+        srv.stop()
+        srv.join()
+
+
 @pytest.mark.parametrize("transport", ["tcp", "udp"])
 def test_pull_and_push_links(server, transport):
     port = server.ports[0]

@@ -8,7 +8,9 @@ our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` 
   client write the channels on its allow-list (by default the safe pipeline inputs, ``mds-ref`` included, never the
   daemon's input ``mds-ref-gated``);
 * frames whose size does not match the channel's struct, or that fail validation (NaN/Inf references,
-  bad modes), are dropped and counted, never written;
+  bad modes), are dropped and counted, never written; an ``mds-hold`` request the mux would refuse (a CANCEL
+  target past the limits or away from the joint's reference, ``check_cancel``) is not written either, and the
+  connection is answered with achd's error block (``ACH_EINVAL`` and the reason) and closed;
 * a client reconnects after a drop and re-sends its newest frame; our server starts a sending
   connection with the channel's newest frame (achd flushes it), so a reconnect never loses the newest
   frame and a late client gets ``mds-param`` at once;
@@ -46,7 +48,8 @@ from mds_ach import ach
 from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
 from mds_ach.robot import contracts
-from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_REF
+from mds_ach.robot.msgs import MDS_HOLD, MDS_JOINT_COUNT, MDS_REF
+from mds_ach.robot.msgs.hold import check_cancel
 
 log = logging.getLogger("mds_ach.net.achd")
 
@@ -134,6 +137,10 @@ class ConnectionLostError(Exception):
 
 class IdleConnectionError(ConnectionLostError):
     """A served connection moved no frame for the server's idle timeout and was closed."""
+
+
+class FrameRefusedError(Exception):
+    """A received request frame was refused (``HoldCheck``): the server tells the client why and closes."""
 
 
 class RemoteRefusedError(Exception):
@@ -227,11 +234,55 @@ class RefLimitCheck:
         return None
 
 
+class HoldCheck:
+    """``check_cancel`` at the network door (issue 25): an ``mds-hold`` request a peer writes is refused when the mux
+    would refuse it, judged as the mux judges it: the effective limits (``mds-limits``) and the joint's reference
+    now, ``mds-ref-gated`` where it has one, else the mux output (``mds-ref-mux``). A CANCEL stops, it never
+    moves; a refused request is not written and the client is told why (``FrameRefusedError``)."""
+
+    def __init__(self, limits: Any) -> None:
+        self.limits = limits
+
+    @classmethod
+    def for_channel(cls, name: str) -> HoldCheck | None:
+        if name != contracts.MDS_CHAN_HOLD_NAME:
+            return None
+        from mds_ach.kinematics.limits import current_limits  # numpy and the URDF only where requests come in
+
+        return cls(current_limits())
+
+    @staticmethod
+    def reference() -> list[float] | None:
+        """The reference now by address, as the mux takes it (NaN where unknown); None when neither channel has
+        a frame."""
+        from mds_ach.robot.channels import StructChannel
+
+        ref: list[float] | None = None
+        for name in (contracts.MDS_CHAN_REF_MUX_NAME, contracts.MDS_CHAN_REF_GATED_NAME):  # gated wins
+            try:
+                with StructChannel.of(name, create=False) as chan:
+                    frame = chan.latest()
+            except Exception:  # no such channel here, or one the stack must not trust: no reference from it
+                continue
+            if frame is None:
+                continue
+            values = [float(j.ref) for j in frame.joint]
+            ref = [v if math.isfinite(v) else (ref[a] if ref is not None else math.nan) for a, v in enumerate(values)]
+        return ref
+
+    def problem(self, payload: bytes) -> tuple[str, str] | None:
+        """``("refused", reason)`` for a request the mux would refuse, else None."""
+        hold = MDS_HOLD.from_buffer_copy(payload)
+        reason = check_cancel(hold, self.limits, self.reference())
+        return None if reason is None else ("refused", reason)
+
+
 class _Sink:
     """Writes received frames into a local channel, after the size and content checks (and, for the reference
-    inputs a peer writes into our server, the limit check)."""
+    inputs and the hold requests a peer writes into our server, the limit and cancel checks)."""
 
-    def __init__(self, chan, rule: FrameRule, stats: LinkStats, limits: RefLimitCheck | None = None) -> None:
+    def __init__(self, chan, rule: FrameRule, stats: LinkStats,
+                 limits: RefLimitCheck | HoldCheck | None = None) -> None:
         self.chan = chan
         self.rule = rule
         self.stats = stats
@@ -244,6 +295,8 @@ class _Sink:
             problem = self.limits.problem(payload)
         if problem:
             _count_drop(self.stats, problem, "received frame dropped")
+            if problem[0] == "refused":
+                raise FrameRefusedError(problem[1])
             return
         try:
             self.chan.put(payload)
@@ -314,6 +367,7 @@ class _Conn:
     udp_peer: tuple[str, int] | None = None
     leftover: bytes = b""
     headers: ap.Headers = field(default_factory=ap.Headers)
+    refusal: ap.HeaderParser | None = None  # a client's: the server's error block for a refused frame, as it arrives
 
     def close(self) -> None:
         for s in (self.tcp, self.udp):
@@ -355,8 +409,10 @@ def _read_headers(sock: socket.socket, timeout: float) -> tuple[ap.Headers, byte
     return parser.headers(), rest
 
 
-def _peer_closed(conn: _Conn) -> bool:
-    """On a connection where the peer never sends, readable means EOF or reset (achd's rule too)."""
+def _peer_closed(conn: _Conn, refusals: bool = False) -> bool:
+    """On a connection where the peer never sends, readable means EOF or reset (achd's rule too). With
+    ``refusals`` (a client sending to our server) bytes that arrive are the server's error block for a refused
+    frame: raises ``RemoteRefusedError`` with its status and message once the block is complete."""
     readable, _, _ = select.select([conn.tcp], [], [], 0)
     if not readable:
         return False
@@ -364,6 +420,18 @@ def _peer_closed(conn: _Conn) -> bool:
         data = conn.tcp.recv(4096)
     except OSError:
         return True
+    if data and refusals:
+        if conn.refusal is None:
+            conn.refusal = ap.HeaderParser()
+        try:
+            conn.refusal.feed(data)
+        except ap.HeaderError:  # not an error block: ignored, as achd ignores what a receiver sends
+            conn.refusal = None
+            return False
+        if conn.refusal.done:
+            headers = conn.refusal.headers()
+            if headers.status is not None and headers.status != ap.ACH_OK:
+                raise RemoteRefusedError(headers.status, headers.message or "frame refused")
     return not data
 
 
@@ -409,10 +477,10 @@ class _IdleWatch:
 
 def _run_sender(
     conn: _Conn, source: _Source, stats: LinkStats, stop: threading.Event, period_ns: int, first: bytes | None,
-    idle_timeout: float | None = None,
+    idle_timeout: float | None = None, refusals: bool = False,
 ) -> None:
     """Send each new frame of ``source`` until stopped, the connection is lost or it was idle for
-    ``idle_timeout`` s."""
+    ``idle_timeout`` s; with ``refusals`` (a client) until the server refused a frame (``RemoteRefusedError``)."""
     period = period_ns / 1e9
     last_sent = 0.0
     watch = _ChannelWatch(source.chan)
@@ -424,7 +492,7 @@ def _run_sender(
     while not stop.is_set():
         watch.check()
         idle.check()
-        if _peer_closed(conn):
+        if _peer_closed(conn, refusals):
             raise ConnectionLostError("peer closed the connection")
         if period and last_sent:
             remaining = last_sent + period - time.monotonic()
@@ -596,6 +664,8 @@ class Link:
                     self.stats.last_error = str(exc)
                     log.error("%s: server refused: %s", self.name, exc)
                     retry_after = REFUSED_RETRY_S
+                    if self.connected.is_set() and self._source is not None:
+                        self._source.newest = None  # a frame was refused (maybe the newest): never re-sent
                 except ach.AchException as exc:  # the local channel cannot be made or opened
                     self.stats.last_error = str(exc)
                     log.error("%s: local channel: %s", self.name, exc)
@@ -691,7 +761,7 @@ class Link:
             first = None
             if self.resend_on_reconnect and self.stats.connects > 1 and not self._delivered():
                 first = self._source.newest  # TCP may have dropped it with the old connection
-            _run_sender(conn, self._source, self.stats, self._stop, self.period_ns, first)
+            _run_sender(conn, self._source, self.stats, self._stop, self.period_ns, first, refusals=True)
         else:
             _run_receiver(conn, _Sink(self._chan, self.rule, self.stats), self.stats, self._stop, self.max_frame)
 
@@ -769,6 +839,7 @@ class Server:
         self.stats: dict[str, LinkStats] = {}
         self.refused = 0
         self.refused_busy = 0  # connections refused by the admission limits
+        self.refused_frames = 0  # connections closed after a refused request frame (HoldCheck)
         self.idle_closed = 0  # connections closed for being idle
         self._listeners: list[socket.socket] = []
         self._stop = threading.Event()
@@ -922,10 +993,15 @@ class Server:
                     chan.flush()
                 _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first, self.idle_timeout_s)
             else:
-                limits = RefLimitCheck.for_channel(chan, name)  # reads the channel's newest frame: before the flush
+                limits = RefLimitCheck.for_channel(chan, name) or HoldCheck.for_channel(name)  # before the flush
                 chan.flush()
                 _run_receiver(conn, _Sink(chan, rule, stats, limits), stats, self._stop, self.max_frame,
                               self.idle_timeout_s)
+        except FrameRefusedError as exc:  # the client is told why; it reconnects for its next request
+            self.refused_frames += 1
+            if self.refused_frames == 1 or self.refused_frames % 100 == 0:  # a flood must not flood the log
+                log.warning("%s: refused a frame on %s (#%d) and closed: %s", who, name, self.refused_frames, exc)
+            _refuse(sock, ap.ACH_EINVAL, str(exc), linger=True)
         except (OSError, ConnectionLostError) as exc:
             self.idle_closed += isinstance(exc, IdleConnectionError)
             log.info("%s: finished: %s", who, exc)
@@ -938,11 +1014,18 @@ class Server:
             self._release(peer[0])
 
 
-def _refuse(sock: socket.socket, status: int, message: str) -> None:
-    """achd's error reply (status, message, '.'), then close."""
+def _refuse(sock: socket.socket, status: int, message: str, linger: bool = False) -> None:
+    """achd's error reply (status, message, '.'), then close. ``linger``: mid-stream, the client may still be
+    sending; read and drop what it sends (at most 1 s) until it closes, so the close is no reset that could
+    discard the reply before the client read it."""
     try:
         sock.settimeout(1.0)
         sock.sendall(ap.encode_error(status, message))
+        if linger:
+            sock.shutdown(socket.SHUT_WR)
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline and sock.recv(65536):
+                pass
     except OSError:
         pass
     finally:
