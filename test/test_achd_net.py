@@ -11,6 +11,7 @@ through an SSH tunnel to a real sshd on the robot; a cut link recovers without l
 from __future__ import annotations
 
 import ctypes
+import ipaddress
 import json
 import math
 import os
@@ -20,7 +21,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from support import VENV_BIN, in_netns, wait_for
+from support import VENV_BIN, in_netns, run_as, wait_for
 from support.netsim import Host, Sshd, Veth, reachable
 
 import mds_ach as mds
@@ -410,6 +411,96 @@ def test_idle_connections_are_closed_and_busy_ones_kept(lan_addresses):
             sock.close()
         srv.stop()
         srv.join()
+
+
+@pytest.mark.parametrize("family, host", [(socket.AF_INET, "127.0.0.1"), (socket.AF_INET6, "::1")])
+def test_peer_uid_names_the_user_at_the_other_end_of_a_loopback_connection(family, host):
+    """``/proc/net/tcp{,6}``: the connected socket at the accepted peer's address whose other end is the server."""
+    from mds_ach.net.peeruid import parse_address, peer_uid
+
+    _need_netns()
+    assert parse_address("0100007F:1F90") == (ipaddress.ip_address("127.0.0.1"), 8080)
+    assert parse_address("00000000000000000000000001000000:0050") == (ipaddress.ip_address("::1"), 80)
+    assert parse_address("0000000000000000FFFF00000100007F:0050") == (ipaddress.ip_address("127.0.0.1"), 80)
+    with socket.socket(family, socket.SOCK_STREAM) as listener:
+        listener.bind((host, 0))
+        listener.listen(1)
+        client = socket.create_connection(listener.getsockname()[:2], timeout=5)
+        accepted, peer = listener.accept()
+        with accepted:
+            assert peer_uid(peer, accepted.getsockname()) == os.getuid()
+            assert peer_uid(accepted.getsockname(), peer) == os.getuid()  # the server's own socket: also ours
+            client.close()
+            wait_for(lambda: peer_uid(peer, accepted.getsockname()) is None, 5, what="a closed peer: no longer listed")
+
+
+def _pull_one_state_frame(port: int) -> int:
+    """The SSH-tunnelled operator (runs as another user, in a forked child): pull ``mds-state`` through loopback;
+    0 once a whole state frame arrived, else the reason on stdout and 1."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+        sock.sendall(ap.encode_request("mds-state", "tcp", "push"))
+        headers, rest = achd._read_headers(sock, 5.0)
+        if headers.status != ap.ACH_OK:
+            print(f"operator refused: {ap.status_name(headers.status or 0)}: {headers.message}", flush=True)
+            return 1
+        decoder = ap.FrameDecoder()
+        frames = decoder.feed(rest)
+        while not frames:
+            data = sock.recv(65536)
+            if not data:
+                print("operator: closed before a state frame", flush=True)
+                return 1
+            frames = decoder.feed(data)
+    return 0 if len(frames[0]) == ctypes.sizeof(msgs.MDS_STATE) else 1
+
+
+def test_a_local_user_flooding_the_loopback_pool_does_not_lock_out_the_operator(clean_shm, other_user):
+    """Issue 25 item 8: 32 loopback connections pulling ``mds-state`` (never idle) refused the SSH-tunnelled
+    operator ("too many local connections (32)") for as long as they stayed. Each local user (the uid owning the
+    peer's socket: sshd's forwarding child runs as the operator's user) now has a pool of its own: the flooding
+    user's 33rd connection is refused, another user's is served."""
+    import threading
+
+    _need_netns()
+    for name in ("mds-state", "test-state"):
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("127.0.0.1",), 0).start()
+    port = srv.ports[0]
+    stop = threading.Event()
+
+    def publish() -> None:  # the daemon's state stream: the pullers are never idle
+        with ach.Channel("mds-state", create=False) as chan:
+            while not stop.wait(0.05):
+                chan.put(bytes(msgs.MDS_STATE()))
+
+    writer = threading.Thread(target=publish, daemon=True)
+    writer.start()
+    flood = [achd.Link("pull", "127.0.0.1", "test-state", remote_channel="mds-state", port=port,
+                       period_ns=100_000_000) for _ in range(achd.MAX_LOCAL_CLIENTS)]
+    try:
+        for link in flood:
+            link.start()
+        wait_for(lambda: all(link.connected.is_set() and link.stats.written > 0 for link in flood), 20,
+                 what="every puller connected and receiving")
+        assert run_as(other_user, other_user, lambda: _pull_one_state_frame(port)) == 0, "the operator locked out"
+        wait_for(lambda: srv.local_users() == {os.getuid(): achd.MAX_LOCAL_CLIENTS}, 5,
+                 what="the flooding user's pool full, the operator's connection released")
+        sock, headers = _raw_session(port, ap.encode_request("mds-state", "tcp", "push"))  # the flooder's 33rd
+        sock.close()
+        assert headers.status == ap.ACH_EAGAIN
+        assert headers.message == f"too many local connections from uid {os.getuid()} ({achd.MAX_LOCAL_CLIENTS}); " \
+                                  f"close some first"
+        assert all(link.connected.is_set() for link in flood)
+    finally:
+        stop.set()
+        for link in flood:
+            link.stop()
+        for link in flood:
+            link.join(5)
+        writer.join(5)
+        srv.stop()
+        srv.join()
+    assert srv.local_users() == {} and srv.connections()["local"] == 0  # every slot released
 
 
 def test_an_idle_close_does_not_replay_an_old_reference(clean_shm):

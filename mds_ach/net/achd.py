@@ -17,8 +17,9 @@ our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` 
 * queues are bounded and the newest frame wins: the channel ring is the only queue, read newest-first
   with get-last, and the socket send buffer is kept small;
 * no peer can lock others out: each remote address may hold a few connections (``max_per_peer``), loopback
-  peers (the robot's own tools, every operator coming through an SSH tunnel) have a pool of their own that
-  remote peers cannot use, and a connection that moves no data for ``idle_timeout_s`` is closed.
+  peers (the robot's own tools, every operator coming through an SSH tunnel) have pools of their own that
+  remote peers cannot use, one per local user (``mds_ach.net.peeruid``), and a connection that moves no data
+  for ``idle_timeout_s`` is closed.
 
 Usage as a tool (same verbs and short options as achd)::
 
@@ -47,6 +48,7 @@ from typing import Any, TypedDict
 from mds_ach import ach
 from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
+from mds_ach.net.peeruid import peer_uid
 from mds_ach.robot import contracts
 from mds_ach.robot.msgs import MDS_HOLD, MDS_JOINT_COUNT, MDS_REF
 from mds_ach.robot.msgs.hold import check_cancel
@@ -67,7 +69,9 @@ MAX_CLIENTS = 32
 MAX_PER_PEER = 8
 """Connections from one remote address: ``mds-ach remote`` opens at most 5, a second tool fits too."""
 MAX_LOCAL_CLIENTS = 32
-"""Connections from loopback (local tools, SSH-tunnelled operators): a pool remote peers cannot exhaust."""
+"""Connections from loopback (local tools, SSH-tunnelled operators) per local user (the uid owning the peer's
+socket): pools remote peers cannot use, and no local user can use up another's (an operator's SSH forward runs
+as the operator's user)."""
 IDLE_TIMEOUT_S = 300.0
 """A served connection that sends and receives no frame for this long is closed (the client reconnects if it
 still wants the channel). Long enough that a quiet operator link is rarely rebuilt."""
@@ -801,9 +805,10 @@ class Server:
 
     Admission, so that no peer can lock out another or the operator: a remote address holds at most
     ``max_per_peer`` connections and all remote peers together ``max_clients``; loopback peers (local tools, and
-    operators coming through an SSH tunnel) have their own ``max_local_clients``, which remote peers cannot
-    use. A connection that sends and receives no frame for ``idle_timeout_s`` (None: never) is closed, one
-    that does not complete its request within ``HEADER_TIMEOUT_S`` too. Refusals answer ``ACH_EAGAIN``.
+    operators coming through an SSH tunnel) have ``max_local_clients`` per local user (the uid owning the peer's
+    socket), which remote peers and other local users cannot use. A connection that sends and receives no frame
+    for ``idle_timeout_s`` (None: never) is closed, one that does not complete its request within
+    ``HEADER_TIMEOUT_S`` too. Refusals answer ``ACH_EAGAIN``.
     """
 
     def __init__(
@@ -845,6 +850,7 @@ class Server:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._per_peer: dict[str, int] = {}  # open connections per remote address
+        self._per_uid: dict[int | None, int] = {}  # open loopback connections per local user
         self._remote = 0
         self._local = 0
         self._lock = threading.Lock()
@@ -892,54 +898,71 @@ class Server:
                     sock, peer = listener.accept()
                 except OSError:
                     continue
-                busy = self._admit(peer[0])
+                busy, slot = self._admit(peer, sock.getsockname())
                 if busy:
                     self.refused_busy += 1
                     if self.refused_busy == 1 or self.refused_busy % 100 == 0:  # a flood must not flood the log
                         log.warning("refusing %s (#%d): %s", peer[0], self.refused_busy, busy)
                     _refuse(sock, ap.ACH_EAGAIN, busy)
                     continue
-                thread = threading.Thread(target=self._serve_one, args=(sock, peer), daemon=True)
+                thread = threading.Thread(target=self._serve_one, args=(sock, peer, slot), daemon=True)
                 with self._lock:
                     self._threads = [t for t in self._threads if t.is_alive()]
                     self._threads.append(thread)
                 thread.start()
 
-    def _admit(self, host: str) -> str | None:
-        """Count a new connection from ``host`` in, or say why it is refused (its pool or its share is full)."""
+    def _admit(self, peer: tuple, server: tuple) -> tuple[str | None, tuple[bool, Any]]:
+        """Count a new connection from ``peer`` (accepted on ``server``) in, or say why it is refused (its pool or
+        its share is full). Returns (refusal or None, the slot ``_release`` frees): a loopback peer's slot is its
+        local user's (``peer_uid``; None when it cannot be told: the peer closed already, or no /proc), a remote
+        peer's its address."""
+        host = peer[0]
+        local = is_local_peer(host)
+        key: Any = peer_uid(peer, server) if local else host
         with self._lock:
-            if is_local_peer(host):
-                if self._local >= self.max_local_clients:
-                    return f"too many local connections ({self.max_local_clients})"
+            if local:
+                mine = self._per_uid.get(key, 0)
+                if mine >= self.max_local_clients:
+                    who = "an unknown local user" if key is None else f"uid {key}"
+                    return (f"too many local connections from {who} ({self.max_local_clients}); close some first",
+                            (local, key))
+                self._per_uid[key] = mine + 1
                 self._local += 1
-                return None
+                return None, (local, key)
             mine = self._per_peer.get(host, 0)
             if mine >= self.max_per_peer:
-                return f"too many connections from {host} ({self.max_per_peer}); close some first"
+                return f"too many connections from {host} ({self.max_per_peer}); close some first", (local, key)
             if self._remote >= self.max_clients:
-                return f"too many remote clients ({self.max_clients})"
+                return f"too many remote clients ({self.max_clients})", (local, key)
             self._per_peer[host] = mine + 1
             self._remote += 1
-            return None
+            return None, (local, key)
 
-    def _release(self, host: str) -> None:
+    def _release(self, slot: tuple[bool, Any]) -> None:
+        local, key = slot
         with self._lock:
-            if is_local_peer(host):
-                self._local -= 1
-                return
-            self._remote -= 1
-            left = self._per_peer.get(host, 1) - 1
+            counts = self._per_uid if local else self._per_peer
+            left = counts.get(key, 1) - 1
             if left > 0:
-                self._per_peer[host] = left
+                counts[key] = left
             else:
-                self._per_peer.pop(host, None)
+                counts.pop(key, None)
+            if local:
+                self._local -= 1
+            else:
+                self._remote -= 1
 
     def connections(self) -> dict[str, int]:
         """Open connections: ``local``, ``remote`` and one entry per remote address."""
         with self._lock:
             return {"local": self._local, "remote": self._remote, **self._per_peer}
 
-    def _serve_one(self, sock: socket.socket, peer: tuple) -> None:
+    def local_users(self) -> dict[int | None, int]:
+        """Open loopback connections per local user (uid; None: not known)."""
+        with self._lock:
+            return dict(self._per_uid)
+
+    def _serve_one(self, sock: socket.socket, peer: tuple, slot: tuple[bool, Any]) -> None:
         conn = _Conn(sock)
         chan = None
         who = f"{peer[0]}:{peer[1]}"
@@ -1011,7 +1034,7 @@ class Server:
             conn.close()
             if chan is not None:
                 chan.close()
-            self._release(peer[0])
+            self._release(slot)
 
 
 def _refuse(sock: socket.socket, status: int, message: str, linger: bool = False) -> None:
@@ -1054,8 +1077,9 @@ def add_server_limit_arguments(p: argparse.ArgumentParser, prefix: str = "") -> 
     p.add_argument("--max-per-peer", type=int, default=MAX_PER_PEER,
                    help=f"{prefix}connections from one remote address (default {MAX_PER_PEER})")
     p.add_argument("--max-local", type=int, default=MAX_LOCAL_CLIENTS,
-                   help=f"{prefix}connections from loopback: local tools and SSH-tunnelled operators, a pool "
-                        f"remote peers cannot use (default {MAX_LOCAL_CLIENTS})")
+                   help=f"{prefix}connections from loopback per local user (local tools, SSH-tunnelled operators: "
+                        f"the uid owning the peer's socket), pools remote peers and other local users cannot use "
+                        f"(default {MAX_LOCAL_CLIENTS})")
     p.add_argument("--idle-timeout", type=float, default=IDLE_TIMEOUT_S, metavar="S",
                    help=f"{prefix}close a connection that sends and receives no frame for S seconds "
                         f"(default {IDLE_TIMEOUT_S:g}; 0: never)")
