@@ -178,9 +178,9 @@ def test_a_cancel_never_moves_a_joint_a_higher_priority_controller_owns() -> Non
     core.update(0, _frame(LSP=-0.5), ZERO_MODE, now=1.0)  # ros (priority 30) commands LSP
     current = _frame(LSP=-0.5)  # the pipeline has it there
     assert core.owner[mds.LSP] == 0
-    changed, text = core.hold(_hold(HOLD_CANCEL, 8, (mds.LSP,), {mds.LSP: -0.3}), current)
+    changed, text = core.hold(_hold(HOLD_CANCEL, 8, (mds.LSP,), {mds.LSP: 0.3}), current)
     assert not changed and core.ref[mds.LSP] == -0.5 and core.owner[mds.LSP] == 0
-    assert "is 0.2000 rad from its reference" in _refusal(core)
+    assert "is 0.8000 rad from its reference" in _refusal(core)
     for k in range(20):  # each target just within the tolerance of the output: still not one step
         near = float(core.ref[mds.LSP]) + 0.9 * CANCEL_TOLERANCE
         core.hold(_hold(HOLD_CANCEL, 9 + k, (mds.LSP,), {mds.LSP: near}), current)

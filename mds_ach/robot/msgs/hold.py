@@ -37,11 +37,13 @@ HOLD_CANCEL = 3
 """End the joints' targets: hold where the reference is now until a new command (``target``: ``check_cancel``)."""
 HOLD_ACTIONS: dict[int, str] = {HOLD_HOLD: "hold", HOLD_RESUME: "resume", HOLD_CANCEL: "cancel"}
 HOLD_REASON_SIZE = 64
-CANCEL_TOLERANCE = 0.05
-"""rad: how far an explicit CANCEL target may lie from the joint's reference now (``mds-ref-gated``): the distance
-the pipeline moves a joint at the daemon's speed bound (2 rad/s) in 25 ms, one cycle of the 40 Hz filter, so a
-sender that read the reference a cycle before the mux handles its request is still taken. Farther is a move, not
-a stop. The joint then holds where its reference is, never at the target, so the tolerance moves nothing."""
+CANCEL_TOLERANCE = 0.25
+"""rad: how far an explicit CANCEL target may lie from the joint's reference now (``mds-ref-gated``): the braking
+distance at the daemon's motion bounds (config/joints.yaml ``motion``: (2 rad/s)^2 / (2 * 8 rad/s^2)), which is
+also how far the reference can run at the 2 rad/s speed bound in 125 ms. So the collision gate's CANCEL is still
+taken when the arm it stopped was released and moved on before the mux (late on a loaded host) took the request;
+a target farther away asks for a move, not a stop. The joint then holds where its reference is, never at the
+target, so the tolerance moves nothing."""
 
 
 class MDS_HOLD(_Packed):  # noqa: N801 - MDS struct naming
