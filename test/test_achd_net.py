@@ -415,7 +415,9 @@ def test_idle_connections_are_closed_and_busy_ones_kept(lan_addresses):
 
 @pytest.mark.parametrize("family, host", [(socket.AF_INET, "127.0.0.1"), (socket.AF_INET6, "::1")])
 def test_peer_uid_names_the_user_at_the_other_end_of_a_loopback_connection(family, host):
-    """``/proc/net/tcp{,6}``: the connected socket at the accepted peer's address whose other end is the server."""
+    """The connected socket at the accepted peer's address whose other end is the server: sock_diag's exact lookup,
+    and the ``/proc/net/tcp{,6}`` fallback, agree."""
+    from mds_ach.net import peeruid
     from mds_ach.net.peeruid import parse_address, peer_uid
 
     _need_netns()
@@ -429,6 +431,9 @@ def test_peer_uid_names_the_user_at_the_other_end_of_a_loopback_connection(famil
         accepted, peer = listener.accept()
         with accepted:
             assert peer_uid(peer, accepted.getsockname()) == os.getuid()
+            ends = [(ipaddress.ip_address(a[0]), a[1]) for a in (peer, accepted.getsockname())]
+            assert peeruid._diag_uid(*ends[0], *ends[1]) == peeruid._table_uid(*ends) == os.getuid()
+            assert peeruid._diag_uid(*ends[0], *ends[0]) is None  # no such connection
             assert peer_uid(accepted.getsockname(), peer) == os.getuid()  # the server's own socket: also ours
             client.close()
             wait_for(lambda: peer_uid(peer, accepted.getsockname()) is None, 5, what="a closed peer: no longer listed")

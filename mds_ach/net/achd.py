@@ -1031,10 +1031,10 @@ class Server:
         except Exception:  # one broken connection must never take the server down
             log.exception("%s: connection failed", who)
         finally:
+            self._release(slot)  # before the close: a client that saw its connection end finds its slot free
             conn.close()
             if chan is not None:
                 chan.close()
-            self._release(slot)
 
 
 def _refuse(sock: socket.socket, status: int, message: str, linger: bool = False) -> None:
