@@ -56,6 +56,7 @@
 #define MDS_MUX_MAX_CONTROLLERS 8  /* mds_mux_state_t per-controller arrays */
 #define MDS_IK_MESSAGE_SIZE 80  /* mds_ik_status_t.message, NUL included */
 #define MDS_HOLD_REASON_SIZE 64  /* mds_hold_t.reason, NUL included */
+#define MDS_MUX_HOLD_REASON_SIZE 120  /* mds_mux_state_t.hold_reason, NUL included */
 #define MDS_LIMITS_SOURCE_SIZE 128  /* mds_limits_t.source, NUL included */
 #define MDS_LOOP_PERIOD 0.1  /* s, default daemon period */
 #define MDS_REF_FILTER_LENGTH 40
@@ -500,7 +501,7 @@ typedef struct MDS_PACKED mds_ik_status {
 } mds_ik_status_t;
 MDS_STATIC_ASSERT(sizeof(mds_ik_status_t) == 214, "mds_ik_status_t must be 214 bytes");
 
-/* mds-mux-state frame (packed, 700 B): who owns each joint, how fresh each controller is, what was
+/* mds-mux-state frame (packed, 820 B): who owns each joint, how fresh each controller is, what was
    held and what each controller's newest frame got. */
 typedef struct MDS_PACKED mds_mux_state {
     int8_t owner[MDS_JOINT_COUNT];                       /* @0 controller index (into name[]) that owns the joint, -1 = nobody (holding) */
@@ -515,14 +516,15 @@ typedef struct MDS_PACKED mds_mux_state {
     uint8_t held[MDS_JOINT_COUNT];                       /* @506 MUX_FREE / MUX_HELD / MUX_CANCELLED */
     uint32_t hold_seq;                                   /* @606 seq of the newest mds-hold request handled (the acknowledgement), 0 = none yet */
     int16_t hold_action;                                 /* @610 its action (HOLD_HOLD / HOLD_RESUME / HOLD_CANCEL) */
-    int16_t hold_status;                                 /* @612 MUX_HOLD_DONE, or MUX_HOLD_REFUSED (invalid request) */
+    int16_t hold_status;                                 /* @612 MUX_HOLD_DONE, or MUX_HOLD_REFUSED (see hold_reason) */
     char hold_source[MDS_CHAR_PARAM_BUFFER_SIZE];        /* @614 its source, char[30] */
     int8_t verdict[MDS_MUX_MAX_CONTROLLERS];             /* @644 what the mux did with controller i's newest frame (VERDICT_*) */
     int8_t blocker[MDS_MUX_MAX_CONTROLLERS];             /* @652 VERDICT_OWNED: index of the owning controller, else -1 */
     int8_t blocked_joint[MDS_MUX_MAX_CONTROLLERS];       /* @660 the first joint (address) that made the frame refused, -1 = none */
     uint32_t refused[MDS_MUX_MAX_CONTROLLERS];           /* @668 frames of controller i refused since the mux started */
+    char hold_reason[MDS_MUX_HOLD_REASON_SIZE];          /* @700 why the newest mds-hold request was refused (MUX_HOLD_REFUSED), else empty */
 } mds_mux_state_t;
-MDS_STATIC_ASSERT(sizeof(mds_mux_state_t) == 700, "mds_mux_state_t must be 700 bytes");
+MDS_STATIC_ASSERT(sizeof(mds_mux_state_t) == 820, "mds_mux_state_t must be 820 bytes");
 
 /* Loop timing, bus load and faults, per-joint freshness (all times in seconds, CLOCK_MONOTONIC). */
 typedef struct MDS_PACKED mds_daemon_status {
@@ -591,7 +593,7 @@ typedef struct MDS_PACKED mds_hold {
     uint32_t seq;                                        /* @0 the writer's request counter (the mux echoes the newest it handled) */
     int16_t action;                                      /* @4 HOLD_HOLD / HOLD_RESUME / HOLD_CANCEL */
     uint8_t joints[MDS_JOINT_COUNT];                     /* @6 1 = the request applies to this joint; all 0 = every joint */
-    double target[MDS_JOINT_COUNT];                      /* @106 CANCEL only: the position to hold, rad; NaN = where the joint's reference is now */
+    double target[MDS_JOINT_COUNT];                      /* @106 CANCEL only: NaN or where the sender saw the reference stop, rad (check_cancel) */
     char source[MDS_CHAR_PARAM_BUFFER_SIZE];             /* @906 who asked (console, mds-ach, ros, collision, a client's name), char[30] */
     char reason[MDS_HOLD_REASON_SIZE];                   /* @936 why, for the logs and the status (e.g. "goto timed out"), NUL-terminated ASCII */
     double time;                                         /* @1000 CLOCK_MONOTONIC when written */

@@ -11,6 +11,7 @@ through an SSH tunnel to a real sshd on the robot; a cut link recovers without l
 from __future__ import annotations
 
 import ctypes
+import ipaddress
 import json
 import math
 import os
@@ -20,7 +21,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from support import VENV_BIN, in_netns, wait_for
+from support import VENV_BIN, in_netns, run_as, wait_for
 from support.netsim import Host, Sshd, Veth, reachable
 
 import mds_ach as mds
@@ -117,6 +118,57 @@ def test_link_refused_reports_the_server_message(server):
     assert link.finished.wait(10)
     assert "ACH_EACCES" in link.stats.last_error and "mds-ref" in link.stats.last_error
     assert link.stats.sent == 0
+
+
+def test_server_refuses_a_cancel_the_mux_would_refuse_and_the_client_sees_why(clean_shm):
+    """Issue 25 item 2: a CANCEL pushed over the network got ACH_OK and moved LEP from -1.20 to the edge of its
+    range. The server applies the mux's check (``check_cancel``): the frame is not written, the connection is
+    answered with the reason and closed; our client reports it and does not re-send that frame; a CANCEL without
+    target still goes through."""
+    from mds_ach.nodes.pipeline import make_ref
+    from mds_ach.robot import lifecycle
+    from mds_ach.robot.channels import StructChannel
+
+    _need_netns()
+    pose = [0.0] * mds.MDS_JOINT_COUNT
+    pose[mds.LEP], pose[mds.LSP] = -1.2, -0.2
+    with StructChannel.of(mds.MDS_CHAN_REF_GATED_NAME) as gated:  # where the pipeline has the joints
+        gated.put(make_ref(pose, [0] * mds.MDS_JOINT_COUNT))
+    StructChannel.of(mds.MDS_CHAN_HOLD_NAME).close()
+    ach.create("test-hold", mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("127.0.0.1",), 0, dead_after_s=2.0).start()  # the default write rules: mds-hold allowed
+    port = srv.ports[0]
+    link = achd.Link("push", "127.0.0.1", "test-hold", remote_channel=mds.MDS_CHAN_HOLD_NAME, port=port)
+    try:
+        for targets, fragment in (({mds.LEP: 1.0}, "outside LEP's range"),
+                                  ({mds.LSP: 0.3}, "a CANCEL never moves a joint")):
+            sock, headers = _raw_session(port, ap.encode_request(mds.MDS_CHAN_HOLD_NAME, "tcp", "pull"))
+            assert headers.status == ap.ACH_OK
+            sock.sendall(ap.encode_frame(bytes(lifecycle.make(lifecycle.HOLD_CANCEL, targets=targets))))
+            reply, _ = achd._read_headers(sock, 5.0)
+            assert reply.status == ap.ACH_EINVAL and fragment in reply.message, reply.message
+            assert sock.recv(100) == b""  # and closes
+            sock.close()
+        assert _frames(mds.MDS_CHAN_HOLD_NAME) == []  # nothing reached the mux
+        assert srv.refused_frames == 2
+        # our client: the reason in its status, the refused frame never re-sent after it reconnects
+        link.start()
+        assert link.connected.wait(5), link.stats.last_error
+        with ach.Channel("test-hold", create=False) as local:
+            local.put(bytes(lifecycle.make(lifecycle.HOLD_CANCEL, targets={mds.LEP: 1.0})))
+            wait_for(lambda: "ACH_EINVAL" in link.stats.last_error, 5, what="the refusal at the client")
+            assert "outside LEP's range" in link.stats.last_error
+            wait_for(link.connected.is_set, 10, what="the client back")
+            stop = lifecycle.make(lifecycle.HOLD_CANCEL, [mds.LEP])  # no target: where the reference is
+            local.put(bytes(stop))
+            wait_for(lambda: _frames(mds.MDS_CHAN_HOLD_NAME) != [], 5, what="the CANCEL without target written")
+        assert [msgs.MDS_HOLD.from_bytes(f).seq for f in _frames(mds.MDS_CHAN_HOLD_NAME)] == [stop.seq]
+        assert srv.refused_frames == 3  # the client's refused frame once: not re-sent when it reconnected
+    finally:
+        link.stop()
+        link.join(5)
+        srv.stop()
+        srv.join()
 
 
 @pytest.mark.parametrize("transport", ["tcp", "udp"])
@@ -359,6 +411,101 @@ def test_idle_connections_are_closed_and_busy_ones_kept(lan_addresses):
             sock.close()
         srv.stop()
         srv.join()
+
+
+@pytest.mark.parametrize("family, host", [(socket.AF_INET, "127.0.0.1"), (socket.AF_INET6, "::1")])
+def test_peer_uid_names_the_user_at_the_other_end_of_a_loopback_connection(family, host):
+    """The connected socket at the accepted peer's address whose other end is the server: sock_diag's exact lookup,
+    and the ``/proc/net/tcp{,6}`` fallback, agree."""
+    from mds_ach.net import peeruid
+    from mds_ach.net.peeruid import parse_address, peer_uid
+
+    _need_netns()
+    assert parse_address("0100007F:1F90") == (ipaddress.ip_address("127.0.0.1"), 8080)
+    assert parse_address("00000000000000000000000001000000:0050") == (ipaddress.ip_address("::1"), 80)
+    assert parse_address("0000000000000000FFFF00000100007F:0050") == (ipaddress.ip_address("127.0.0.1"), 80)
+    with socket.socket(family, socket.SOCK_STREAM) as listener:
+        listener.bind((host, 0))
+        listener.listen(1)
+        client = socket.create_connection(listener.getsockname()[:2], timeout=5)
+        accepted, peer = listener.accept()
+        with accepted:
+            assert peer_uid(peer, accepted.getsockname()) == os.getuid()
+            ends = [(ipaddress.ip_address(a[0]), a[1]) for a in (peer, accepted.getsockname())]
+            assert peeruid._diag_uid(*ends[0], *ends[1]) == peeruid._table_uid(*ends) == os.getuid()
+            assert peeruid._diag_uid(*ends[0], *ends[0]) is None  # no such connection
+            assert peer_uid(accepted.getsockname(), peer) == os.getuid()  # the server's own socket: also ours
+            client.close()
+            wait_for(lambda: peer_uid(peer, accepted.getsockname()) is None, 5, what="a closed peer: no longer listed")
+
+
+def _pull_one_state_frame(port: int) -> int:
+    """The SSH-tunnelled operator (runs as another user, in a forked child): pull ``mds-state`` through loopback;
+    0 once a whole state frame arrived, else the reason on stdout and 1."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+        sock.sendall(ap.encode_request("mds-state", "tcp", "push"))
+        headers, rest = achd._read_headers(sock, 5.0)
+        if headers.status != ap.ACH_OK:
+            print(f"operator refused: {ap.status_name(headers.status or 0)}: {headers.message}", flush=True)
+            return 1
+        decoder = ap.FrameDecoder()
+        frames = decoder.feed(rest)
+        while not frames:
+            data = sock.recv(65536)
+            if not data:
+                print("operator: closed before a state frame", flush=True)
+                return 1
+            frames = decoder.feed(data)
+    return 0 if len(frames[0]) == ctypes.sizeof(msgs.MDS_STATE) else 1
+
+
+def test_a_local_user_flooding_the_loopback_pool_does_not_lock_out_the_operator(clean_shm, other_user):
+    """Issue 25 item 8: 32 loopback connections pulling ``mds-state`` (never idle) refused the SSH-tunnelled
+    operator ("too many local connections (32)") for as long as they stayed. Each local user (the uid owning the
+    peer's socket: sshd's forwarding child runs as the operator's user) now has a pool of its own: the flooding
+    user's 33rd connection is refused, another user's is served."""
+    import threading
+
+    _need_netns()
+    for name in ("mds-state", "test-state"):
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("127.0.0.1",), 0).start()
+    port = srv.ports[0]
+    stop = threading.Event()
+
+    def publish() -> None:  # the daemon's state stream: the pullers are never idle
+        with ach.Channel("mds-state", create=False) as chan:
+            while not stop.wait(0.05):
+                chan.put(bytes(msgs.MDS_STATE()))
+
+    writer = threading.Thread(target=publish, daemon=True)
+    writer.start()
+    flood = [achd.Link("pull", "127.0.0.1", "test-state", remote_channel="mds-state", port=port,
+                       period_ns=100_000_000) for _ in range(achd.MAX_LOCAL_CLIENTS)]
+    try:
+        for link in flood:
+            link.start()
+        wait_for(lambda: all(link.connected.is_set() and link.stats.written > 0 for link in flood), 20,
+                 what="every puller connected and receiving")
+        assert run_as(other_user, other_user, lambda: _pull_one_state_frame(port)) == 0, "the operator locked out"
+        wait_for(lambda: srv.local_users() == {os.getuid(): achd.MAX_LOCAL_CLIENTS}, 5,
+                 what="the flooding user's pool full, the operator's connection released")
+        sock, headers = _raw_session(port, ap.encode_request("mds-state", "tcp", "push"))  # the flooder's 33rd
+        sock.close()
+        assert headers.status == ap.ACH_EAGAIN
+        assert headers.message == f"too many local connections from uid {os.getuid()} ({achd.MAX_LOCAL_CLIENTS}); " \
+                                  f"close some first"
+        assert all(link.connected.is_set() for link in flood)
+    finally:
+        stop.set()
+        for link in flood:
+            link.stop()
+        for link in flood:
+            link.join(5)
+        writer.join(5)
+        srv.stop()
+        srv.join()
+    assert srv.local_users() == {} and srv.connections()["local"] == 0  # every slot released
 
 
 def test_an_idle_close_does_not_replay_an_old_reference(clean_shm):

@@ -752,8 +752,9 @@ def test_an_arm_stopped_at_contact_gets_its_command_cancelled_on_mds_hold(clean_
     """The gate ends the command of an arm it stopped at contact: one HOLD_CANCEL on mds-hold for that arm's joints at
     the reference it holds, source 'collision', reason 'stopped at contact: <pair>' (the mux drops the target, so
     the arm does not go on later when the obstacle is moved away)."""
+    from mds_ach.kinematics.limits import compute as compute_limits
     from mds_ach.robot.channels import StructChannel
-    from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
+    from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD, check_cancel
 
     _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
     lower, upper = joint_limits(table_model)
@@ -794,6 +795,8 @@ def test_an_arm_stopped_at_contact_gets_its_command_cancelled_on_mds_hold(clean_
     np.testing.assert_array_equal([f.target[a] for a in L], held[L])
     assert all(np.isnan(f.target[a]) for a in range(N) if a not in L)
     assert any("left arm stopped at contact: left hand / table" in m for m in logs)
+    # the mux (and the network server) take it: at the reference the gate holds, inside the limits (issue 25)
+    assert check_cancel(f, compute_limits(), held.tolist()) is None
 
 
 # --------------------------------------------------------------------------------------------- node

@@ -1,4 +1,5 @@
-"""Issue 17: atomic goals and the command lifecycle (hold / resume / cancel) in the mux and the filter."""
+"""Issue 17: atomic goals and the command lifecycle (hold / resume / cancel) in the mux and the filter.
+Issue 25: a CANCEL stops, it never moves (limits, owners: ``check_cancel``)."""
 
 from __future__ import annotations
 
@@ -8,12 +9,21 @@ import numpy as np
 import pytest
 
 import mds_ach as mds
+from mds_ach.kinematics.limits import compute
 from mds_ach.nodes.filter import FilterCore, parse_config
 from mds_ach.nodes.mux import Controller, MuxCore, state_to_dict
 from mds_ach.nodes.pipeline import select_joints
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
-from mds_ach.robot.msgs.hold import HOLD_CANCEL, HOLD_HOLD, HOLD_RESUME, MDS_HOLD
-from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD, VERDICT_APPLIED, VERDICT_OWNED
+from mds_ach.robot.msgs.hold import CANCEL_TOLERANCE, HOLD_CANCEL, HOLD_HOLD, HOLD_RESUME, MDS_HOLD
+from mds_ach.robot.msgs.mux_state import (
+    MUX_CANCELLED,
+    MUX_FREE,
+    MUX_HELD,
+    MUX_HOLD_DONE,
+    MUX_HOLD_REFUSED,
+    VERDICT_APPLIED,
+    VERDICT_OWNED,
+)
 
 ARMS = select_joints(["left_arm", "right_arm"])
 LEFT_ARM = select_joints("left_arm")
@@ -21,12 +31,13 @@ ALL = select_joints("all")
 ZERO_MODE = np.zeros(MDS_JOINT_COUNT, dtype=np.int16)
 
 
-def _core() -> MuxCore:
+def _core(start: np.ndarray | None = None, limits: bool = False) -> MuxCore:
     controllers = [Controller("ros", "mds-ref-ros", 30, ALL, 1.0), Controller("ik", "mds-ref-ik", 20, ARMS, 2.0),
                    Controller("default", "mds-ref-filter", 10, ALL, None, seed=True)]
-    core = MuxCore(controllers, np.zeros(MDS_JOINT_COUNT), ZERO_MODE)
+    start = np.zeros(MDS_JOINT_COUNT) if start is None else start
+    core = MuxCore(controllers, start, ZERO_MODE, compute() if limits else None)
     for i in range(3):
-        core.absorb(i, np.zeros(MDS_JOINT_COUNT), ZERO_MODE)
+        core.absorb(i, start, ZERO_MODE)
     return core
 
 
@@ -101,13 +112,14 @@ def test_hold_is_kept_until_a_new_command_and_resume_restores_the_targets() -> N
 
 
 def test_cancel_ends_targets_for_good() -> None:
-    """CANCEL: ownership dropped, the output becomes where the joint is (NaN target) or the given value;
+    """CANCEL: ownership dropped, the output becomes where the reference is (NaN target, or a target there);
     RESUME never revives it, nor does a read-modify-write client re-sending its old frame."""
     core = _core()
     frame = _frame(LSP=0.5, LEP=-0.6)
     core.update(2, frame, ZERO_MODE, now=1.0)
     current = np.zeros(MDS_JOINT_COUNT)
     current[mds.LSP] = 0.12  # where the reference is now (the gate held the arm)
+    current[mds.LEP] = -0.3
     changed, _ = core.hold(_hold(HOLD_CANCEL, 3, (mds.LSP, mds.LEP), {mds.LEP: -0.3}), current)
     assert changed and core.ref[mds.LSP] == 0.12 and core.ref[mds.LEP] == -0.3
     assert core.owner[mds.LSP] == -1 and core.owner[mds.LEP] == -1
@@ -130,6 +142,53 @@ def test_invalid_hold_request_is_refused_and_acknowledged() -> None:
     assert not changed and "refused" in text and "unknown hold action" in text
     st = core.state(now=1.0)
     assert st.hold_seq == 9 and st.hold_status == 1 and (np.frombuffer(bytes(st.held), np.uint8) == 0).all()
+
+
+def _refusal(core: MuxCore) -> str:
+    st = MDS_MUX_STATE.from_buffer_copy(bytes(core.state(now=9.0)))
+    assert st.hold_status == MUX_HOLD_REFUSED
+    reason = st.hold_reason.decode()
+    assert state_to_dict(st)["hold"] == {"seq": st.hold_seq, "action": "cancel", "source": "test",
+                                         "status": "refused", "reason": reason}
+    return reason
+
+
+def test_a_cancel_target_outside_the_limits_is_refused() -> None:
+    """Issue 25 item 2: LEP at -1.20 and a CANCEL to +1.0 (inside one turn, outside LEP's range) ran LEP to the
+    edge of its range. Refused with the reason on mds-mux-state; nothing changes."""
+    start = _frame(LEP=-1.2)
+    core = _core(start, limits=True)
+    changed, text = core.hold(_hold(HOLD_CANCEL, 5, (mds.LEP,), {mds.LEP: 1.0}), start)
+    assert not changed and "refused cancel #5 from 'test'" in text and "nothing changed" in text
+    assert core.ref[mds.LEP] == -1.2 and core.held[mds.LEP] == MUX_FREE
+    assert "outside LEP's range" in _refusal(core)
+    # inside the limits but away from the reference: a move, refused as well
+    changed, text = core.hold(_hold(HOLD_CANCEL, 6, (mds.LEP,), {mds.LEP: -0.5}), start)
+    assert not changed and core.ref[mds.LEP] == -1.2 and "never moves" in _refusal(core)
+    # where the reference is: taken (the collision gate's cancel), and the reason is cleared
+    changed, text = core.hold(_hold(HOLD_CANCEL, 7, (mds.LEP,), {mds.LEP: -1.2}), start)
+    assert not changed and core.hold_status == MUX_HOLD_DONE and core.state(now=9.1).hold_reason == b""
+
+
+def test_a_cancel_never_moves_a_joint_a_higher_priority_controller_owns() -> None:
+    """Issue 25 item 2: a CANCEL with an in-range target moved a joint owned by a higher-priority controller. Now a
+    CANCEL only stops: a target away from the reference is refused; one within the tolerance holds the joint where
+    its reference is, not at the target, so repeated CANCELs cannot walk it either."""
+    core = _core(limits=True)
+    core.update(0, _frame(LSP=-0.5), ZERO_MODE, now=1.0)  # ros (priority 30) commands LSP
+    current = _frame(LSP=-0.5)  # the pipeline has it there
+    assert core.owner[mds.LSP] == 0
+    changed, text = core.hold(_hold(HOLD_CANCEL, 8, (mds.LSP,), {mds.LSP: 0.3}), current)
+    assert not changed and core.ref[mds.LSP] == -0.5 and core.owner[mds.LSP] == 0
+    assert "is 0.8000 rad from its reference" in _refusal(core)
+    for k in range(20):  # each target just within the tolerance of the output: still not one step
+        near = float(core.ref[mds.LSP]) + 0.9 * CANCEL_TOLERANCE
+        core.hold(_hold(HOLD_CANCEL, 9 + k, (mds.LSP,), {mds.LSP: near}), current)
+        assert core.hold_status == MUX_HOLD_DONE and core.ref[mds.LSP] == -0.5
+    # stopping stays every writer's right: a CANCEL without target ends the target where the reference is
+    core.update(0, _frame(LSP=-0.1), ZERO_MODE, now=2.0)
+    changed, _ = core.hold(_hold(HOLD_CANCEL, 40, (mds.LSP,)), current)
+    assert changed and core.ref[mds.LSP] == -0.5 and core.held[mds.LSP] == MUX_CANCELLED
 
 
 # --------------------------------------------------------------------------------------------- filter
@@ -240,6 +299,50 @@ def test_ik_says_not_applied_when_the_mux_refuses_its_solution(clean_shm: None) 
         ikr.stop()
         for t in threads:
             t.join(5)
+
+
+def test_cancels_on_mds_hold_that_would_move_a_joint_are_refused_with_the_reason(
+        clean_shm: None, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 25 item 2 through the channels: a CANCEL to +1.0 for LEP at -1.20 (outside its range), and an in-range
+    CANCEL for LSP, which a higher-priority controller (ros) commands, are refused; the requester gets the reason
+    in the acknowledgement and the mux output does not move. A CANCEL without target still stops LSP."""
+    import threading
+
+    from support import wait_for
+
+    from mds_ach.nodes import mux as mux_node
+    from mds_ach.nodes.mux import MuxRunner, load_config
+    from mds_ach.nodes.pipeline import make_ref
+    from mds_ach.robot import lifecycle
+    from mds_ach.robot.channels import StructChannel
+
+    monkeypatch.setattr(mux_node, "REFUSAL_LOG_S", 60.0)  # both refusals within one logging window, however slow
+    pose = _frame(LEP=-1.2, LSP=-0.2)
+    with StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF) as ch:
+        ch.put(make_ref(pose, ZERO_MODE))
+    logs: list[str] = []
+    mux = MuxRunner(load_config()["controllers"], state_rate=10.0, log=lambda level, msg: logs.append(msg))
+    thread = threading.Thread(target=mux.run, daemon=True)
+    thread.start()
+    try:
+        assert mux.ready.wait(20) and mux.core is not None
+        core = mux.core
+        ack = lifecycle.request(HOLD_CANCEL, targets={mds.LEP: 1.0}, source="adversary", timeout=5)
+        assert not ack.ok and "refused by the mux" in ack.message and "outside LEP's range" in ack.message
+        assert core.ref[mds.LEP] == -1.2
+        with StructChannel(mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_REF) as ros:
+            ros.put(make_ref(_frame(pose, LSP=-0.35), ZERO_MODE))  # ros (priority 30) commands LSP
+            wait_for(lambda: core.owner[mds.LSP] == 0, 5, what="ros owning LSP")
+        ack = lifecycle.request(HOLD_CANCEL, targets={mds.LSP: 0.3}, source="adversary", timeout=5)
+        assert not ack.ok and "a CANCEL never moves a joint" in ack.message
+        assert core.ref[mds.LSP] == -0.35 and core.owner[mds.LSP] == 0
+        assert sum("refused cancel" in m for m in logs) == 1, logs  # the second in the window: counted, not logged
+        assert mux.hold_refusals == 2
+        ack = lifecycle.request(HOLD_CANCEL, [mds.LSP], source="console", timeout=5)
+        assert ack.ok and core.ref[mds.LSP] == -0.2 and core.held[mds.LSP] == MUX_CANCELLED  # where the pipeline is
+    finally:
+        mux.stop()
+        thread.join(5)
 
 
 class _Gate:

@@ -159,7 +159,7 @@ def test_mds_h_joint_constants(short: str, name: str, address: int) -> None:
 def test_new_struct_sizes() -> None:
     assert ctypes.sizeof(msgs.MDS_CMD) == 16
     assert ctypes.sizeof(msgs.MDS_IK_STATUS) == 214
-    assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 700
+    assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 820
     assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2087
 
 
@@ -179,7 +179,9 @@ def test_mux_state_offsets() -> None:
                                            # appended with the command lifecycle (issue 17)
                                            "held": 506, "hold_seq": 606, "hold_action": 610, "hold_status": 612,
                                            "hold_source": 614, "verdict": 644, "blocker": 652, "blocked_joint": 660,
-                                           "refused": 668}
+                                           "refused": 668,
+                                           # appended with issue 25
+                                           "hold_reason": 700}
     assert msgs.MDS_MUX_STATE.name.size == 8 * 30
 
 

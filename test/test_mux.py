@@ -99,9 +99,10 @@ def test_bad_controller_config_is_refused(entries: list, message: str) -> None:
 
 
 def test_state_struct_layout() -> None:
-    assert ctypes.sizeof(MDS_MUX_STATE) == 700
+    assert ctypes.sizeof(MDS_MUX_STATE) == 820
     assert MDS_MUX_STATE.owner.offset == 0
     assert MDS_MUX_STATE.time.offset == 494 and MDS_MUX_STATE.held.offset == 506
+    assert MDS_MUX_STATE.hold_reason.offset == 700  # appended (issue 25): the fields before keep their offsets
 
 
 # --------------------------------------------------------------------------------------------- merge rule
@@ -348,7 +349,8 @@ def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -
             assert [(c.name, c.priority, c.stale, c.verdict, c.refused) for c in m.controllers] == \
                 [(c["name"], c["priority"], c["stale"], c["verdict"], c["refused"]) for c in d["controllers"]]
             assert [c.age for c in m.controllers] == [-1.0 if c["age"] is None else c["age"] for c in d["controllers"]]
-            assert (m.hold_seq, m.hold_action, m.hold_source, m.hold_status) == tuple(d["hold"].values())
+            assert (m.hold_seq, m.hold_action, m.hold_source, m.hold_status, m.hold_reason) == tuple(
+                d["hold"].values())
         assert "LSP" in msgs[-1].joint_names and msgs[-1].header.stamp.sec > 0
     finally:
         node.destroy_node()

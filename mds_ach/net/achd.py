@@ -8,15 +8,18 @@ our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` 
   client write the channels on its allow-list (by default the safe pipeline inputs, ``mds-ref`` included, never the
   daemon's input ``mds-ref-gated``);
 * frames whose size does not match the channel's struct, or that fail validation (NaN/Inf references,
-  bad modes), are dropped and counted, never written;
+  bad modes), are dropped and counted, never written; an ``mds-hold`` request the mux would refuse (a CANCEL
+  target past the limits or away from the joint's reference, ``check_cancel``) is not written either, and the
+  connection is answered with achd's error block (``ACH_EINVAL`` and the reason) and closed;
 * a client reconnects after a drop and re-sends its newest frame; our server starts a sending
   connection with the channel's newest frame (achd flushes it), so a reconnect never loses the newest
   frame and a late client gets ``mds-param`` at once;
 * queues are bounded and the newest frame wins: the channel ring is the only queue, read newest-first
   with get-last, and the socket send buffer is kept small;
 * no peer can lock others out: each remote address may hold a few connections (``max_per_peer``), loopback
-  peers (the robot's own tools, every operator coming through an SSH tunnel) have a pool of their own that
-  remote peers cannot use, and a connection that moves no data for ``idle_timeout_s`` is closed.
+  peers (the robot's own tools, every operator coming through an SSH tunnel) have pools of their own that
+  remote peers cannot use, one per local user (``mds_ach.net.peeruid``), and a connection that moves no data
+  for ``idle_timeout_s`` is closed.
 
 Usage as a tool (same verbs and short options as achd)::
 
@@ -45,8 +48,10 @@ from typing import Any, TypedDict
 from mds_ach import ach
 from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
+from mds_ach.net.peeruid import peer_uid
 from mds_ach.robot import contracts
-from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_REF
+from mds_ach.robot.msgs import MDS_HOLD, MDS_JOINT_COUNT, MDS_REF
+from mds_ach.robot.msgs.hold import check_cancel
 
 log = logging.getLogger("mds_ach.net.achd")
 
@@ -64,7 +69,9 @@ MAX_CLIENTS = 32
 MAX_PER_PEER = 8
 """Connections from one remote address: ``mds-ach remote`` opens at most 5, a second tool fits too."""
 MAX_LOCAL_CLIENTS = 32
-"""Connections from loopback (local tools, SSH-tunnelled operators): a pool remote peers cannot exhaust."""
+"""Connections from loopback (local tools, SSH-tunnelled operators) per local user (the uid owning the peer's
+socket): pools remote peers cannot use, and no local user can use up another's (an operator's SSH forward runs
+as the operator's user)."""
 IDLE_TIMEOUT_S = 300.0
 """A served connection that sends and receives no frame for this long is closed (the client reconnects if it
 still wants the channel). Long enough that a quiet operator link is rarely rebuilt."""
@@ -134,6 +141,10 @@ class ConnectionLostError(Exception):
 
 class IdleConnectionError(ConnectionLostError):
     """A served connection moved no frame for the server's idle timeout and was closed."""
+
+
+class FrameRefusedError(Exception):
+    """A received request frame was refused (``HoldCheck``): the server tells the client why and closes."""
 
 
 class RemoteRefusedError(Exception):
@@ -227,11 +238,55 @@ class RefLimitCheck:
         return None
 
 
+class HoldCheck:
+    """``check_cancel`` at the network door (issue 25): an ``mds-hold`` request a peer writes is refused when the mux
+    would refuse it, judged as the mux judges it: the effective limits (``mds-limits``) and the joint's reference
+    now, ``mds-ref-gated`` where it has one, else the mux output (``mds-ref-mux``). A CANCEL stops, it never
+    moves; a refused request is not written and the client is told why (``FrameRefusedError``)."""
+
+    def __init__(self, limits: Any) -> None:
+        self.limits = limits
+
+    @classmethod
+    def for_channel(cls, name: str) -> HoldCheck | None:
+        if name != contracts.MDS_CHAN_HOLD_NAME:
+            return None
+        from mds_ach.kinematics.limits import current_limits  # numpy and the URDF only where requests come in
+
+        return cls(current_limits())
+
+    @staticmethod
+    def reference() -> list[float] | None:
+        """The reference now by address, as the mux takes it (NaN where unknown); None when neither channel has
+        a frame."""
+        from mds_ach.robot.channels import StructChannel
+
+        ref: list[float] | None = None
+        for name in (contracts.MDS_CHAN_REF_MUX_NAME, contracts.MDS_CHAN_REF_GATED_NAME):  # gated wins
+            try:
+                with StructChannel.of(name, create=False) as chan:
+                    frame = chan.latest()
+            except Exception:  # no such channel here, or one the stack must not trust: no reference from it
+                continue
+            if frame is None:
+                continue
+            values = [float(j.ref) for j in frame.joint]
+            ref = [v if math.isfinite(v) else (ref[a] if ref is not None else math.nan) for a, v in enumerate(values)]
+        return ref
+
+    def problem(self, payload: bytes) -> tuple[str, str] | None:
+        """``("refused", reason)`` for a request the mux would refuse, else None."""
+        hold = MDS_HOLD.from_buffer_copy(payload)
+        reason = check_cancel(hold, self.limits, self.reference())
+        return None if reason is None else ("refused", reason)
+
+
 class _Sink:
     """Writes received frames into a local channel, after the size and content checks (and, for the reference
-    inputs a peer writes into our server, the limit check)."""
+    inputs and the hold requests a peer writes into our server, the limit and cancel checks)."""
 
-    def __init__(self, chan, rule: FrameRule, stats: LinkStats, limits: RefLimitCheck | None = None) -> None:
+    def __init__(self, chan, rule: FrameRule, stats: LinkStats,
+                 limits: RefLimitCheck | HoldCheck | None = None) -> None:
         self.chan = chan
         self.rule = rule
         self.stats = stats
@@ -244,6 +299,8 @@ class _Sink:
             problem = self.limits.problem(payload)
         if problem:
             _count_drop(self.stats, problem, "received frame dropped")
+            if problem[0] == "refused":
+                raise FrameRefusedError(problem[1])
             return
         try:
             self.chan.put(payload)
@@ -314,6 +371,7 @@ class _Conn:
     udp_peer: tuple[str, int] | None = None
     leftover: bytes = b""
     headers: ap.Headers = field(default_factory=ap.Headers)
+    refusal: ap.HeaderParser | None = None  # a client's: the server's error block for a refused frame, as it arrives
 
     def close(self) -> None:
         for s in (self.tcp, self.udp):
@@ -355,8 +413,10 @@ def _read_headers(sock: socket.socket, timeout: float) -> tuple[ap.Headers, byte
     return parser.headers(), rest
 
 
-def _peer_closed(conn: _Conn) -> bool:
-    """On a connection where the peer never sends, readable means EOF or reset (achd's rule too)."""
+def _peer_closed(conn: _Conn, refusals: bool = False) -> bool:
+    """On a connection where the peer never sends, readable means EOF or reset (achd's rule too). With
+    ``refusals`` (a client sending to our server) bytes that arrive are the server's error block for a refused
+    frame: raises ``RemoteRefusedError`` with its status and message once the block is complete."""
     readable, _, _ = select.select([conn.tcp], [], [], 0)
     if not readable:
         return False
@@ -364,6 +424,18 @@ def _peer_closed(conn: _Conn) -> bool:
         data = conn.tcp.recv(4096)
     except OSError:
         return True
+    if data and refusals:
+        if conn.refusal is None:
+            conn.refusal = ap.HeaderParser()
+        try:
+            conn.refusal.feed(data)
+        except ap.HeaderError:  # not an error block: ignored, as achd ignores what a receiver sends
+            conn.refusal = None
+            return False
+        if conn.refusal.done:
+            headers = conn.refusal.headers()
+            if headers.status is not None and headers.status != ap.ACH_OK:
+                raise RemoteRefusedError(headers.status, headers.message or "frame refused")
     return not data
 
 
@@ -409,10 +481,10 @@ class _IdleWatch:
 
 def _run_sender(
     conn: _Conn, source: _Source, stats: LinkStats, stop: threading.Event, period_ns: int, first: bytes | None,
-    idle_timeout: float | None = None,
+    idle_timeout: float | None = None, refusals: bool = False,
 ) -> None:
     """Send each new frame of ``source`` until stopped, the connection is lost or it was idle for
-    ``idle_timeout`` s."""
+    ``idle_timeout`` s; with ``refusals`` (a client) until the server refused a frame (``RemoteRefusedError``)."""
     period = period_ns / 1e9
     last_sent = 0.0
     watch = _ChannelWatch(source.chan)
@@ -424,7 +496,7 @@ def _run_sender(
     while not stop.is_set():
         watch.check()
         idle.check()
-        if _peer_closed(conn):
+        if _peer_closed(conn, refusals):
             raise ConnectionLostError("peer closed the connection")
         if period and last_sent:
             remaining = last_sent + period - time.monotonic()
@@ -596,6 +668,8 @@ class Link:
                     self.stats.last_error = str(exc)
                     log.error("%s: server refused: %s", self.name, exc)
                     retry_after = REFUSED_RETRY_S
+                    if self.connected.is_set() and self._source is not None:
+                        self._source.newest = None  # a frame was refused (maybe the newest): never re-sent
                 except ach.AchException as exc:  # the local channel cannot be made or opened
                     self.stats.last_error = str(exc)
                     log.error("%s: local channel: %s", self.name, exc)
@@ -691,7 +765,7 @@ class Link:
             first = None
             if self.resend_on_reconnect and self.stats.connects > 1 and not self._delivered():
                 first = self._source.newest  # TCP may have dropped it with the old connection
-            _run_sender(conn, self._source, self.stats, self._stop, self.period_ns, first)
+            _run_sender(conn, self._source, self.stats, self._stop, self.period_ns, first, refusals=True)
         else:
             _run_receiver(conn, _Sink(self._chan, self.rule, self.stats), self.stats, self._stop, self.max_frame)
 
@@ -731,9 +805,10 @@ class Server:
 
     Admission, so that no peer can lock out another or the operator: a remote address holds at most
     ``max_per_peer`` connections and all remote peers together ``max_clients``; loopback peers (local tools, and
-    operators coming through an SSH tunnel) have their own ``max_local_clients``, which remote peers cannot
-    use. A connection that sends and receives no frame for ``idle_timeout_s`` (None: never) is closed, one
-    that does not complete its request within ``HEADER_TIMEOUT_S`` too. Refusals answer ``ACH_EAGAIN``.
+    operators coming through an SSH tunnel) have ``max_local_clients`` per local user (the uid owning the peer's
+    socket), which remote peers and other local users cannot use. A connection that sends and receives no frame
+    for ``idle_timeout_s`` (None: never) is closed, one that does not complete its request within
+    ``HEADER_TIMEOUT_S`` too. Refusals answer ``ACH_EAGAIN``.
     """
 
     def __init__(
@@ -769,11 +844,13 @@ class Server:
         self.stats: dict[str, LinkStats] = {}
         self.refused = 0
         self.refused_busy = 0  # connections refused by the admission limits
+        self.refused_frames = 0  # connections closed after a refused request frame (HoldCheck)
         self.idle_closed = 0  # connections closed for being idle
         self._listeners: list[socket.socket] = []
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._per_peer: dict[str, int] = {}  # open connections per remote address
+        self._per_uid: dict[int | None, int] = {}  # open loopback connections per local user
         self._remote = 0
         self._local = 0
         self._lock = threading.Lock()
@@ -821,54 +898,71 @@ class Server:
                     sock, peer = listener.accept()
                 except OSError:
                     continue
-                busy = self._admit(peer[0])
+                busy, slot = self._admit(peer, sock.getsockname())
                 if busy:
                     self.refused_busy += 1
                     if self.refused_busy == 1 or self.refused_busy % 100 == 0:  # a flood must not flood the log
                         log.warning("refusing %s (#%d): %s", peer[0], self.refused_busy, busy)
                     _refuse(sock, ap.ACH_EAGAIN, busy)
                     continue
-                thread = threading.Thread(target=self._serve_one, args=(sock, peer), daemon=True)
+                thread = threading.Thread(target=self._serve_one, args=(sock, peer, slot), daemon=True)
                 with self._lock:
                     self._threads = [t for t in self._threads if t.is_alive()]
                     self._threads.append(thread)
                 thread.start()
 
-    def _admit(self, host: str) -> str | None:
-        """Count a new connection from ``host`` in, or say why it is refused (its pool or its share is full)."""
+    def _admit(self, peer: tuple, server: tuple) -> tuple[str | None, tuple[bool, Any]]:
+        """Count a new connection from ``peer`` (accepted on ``server``) in, or say why it is refused (its pool or
+        its share is full). Returns (refusal or None, the slot ``_release`` frees): a loopback peer's slot is its
+        local user's (``peer_uid``; None when it cannot be told: the peer closed already, or no /proc), a remote
+        peer's its address."""
+        host = peer[0]
+        local = is_local_peer(host)
+        key: Any = peer_uid(peer, server) if local else host
         with self._lock:
-            if is_local_peer(host):
-                if self._local >= self.max_local_clients:
-                    return f"too many local connections ({self.max_local_clients})"
+            if local:
+                mine = self._per_uid.get(key, 0)
+                if mine >= self.max_local_clients:
+                    who = "an unknown local user" if key is None else f"uid {key}"
+                    return (f"too many local connections from {who} ({self.max_local_clients}); close some first",
+                            (local, key))
+                self._per_uid[key] = mine + 1
                 self._local += 1
-                return None
+                return None, (local, key)
             mine = self._per_peer.get(host, 0)
             if mine >= self.max_per_peer:
-                return f"too many connections from {host} ({self.max_per_peer}); close some first"
+                return f"too many connections from {host} ({self.max_per_peer}); close some first", (local, key)
             if self._remote >= self.max_clients:
-                return f"too many remote clients ({self.max_clients})"
+                return f"too many remote clients ({self.max_clients})", (local, key)
             self._per_peer[host] = mine + 1
             self._remote += 1
-            return None
+            return None, (local, key)
 
-    def _release(self, host: str) -> None:
+    def _release(self, slot: tuple[bool, Any]) -> None:
+        local, key = slot
         with self._lock:
-            if is_local_peer(host):
-                self._local -= 1
-                return
-            self._remote -= 1
-            left = self._per_peer.get(host, 1) - 1
+            counts = self._per_uid if local else self._per_peer
+            left = counts.get(key, 1) - 1
             if left > 0:
-                self._per_peer[host] = left
+                counts[key] = left
             else:
-                self._per_peer.pop(host, None)
+                counts.pop(key, None)
+            if local:
+                self._local -= 1
+            else:
+                self._remote -= 1
 
     def connections(self) -> dict[str, int]:
         """Open connections: ``local``, ``remote`` and one entry per remote address."""
         with self._lock:
             return {"local": self._local, "remote": self._remote, **self._per_peer}
 
-    def _serve_one(self, sock: socket.socket, peer: tuple) -> None:
+    def local_users(self) -> dict[int | None, int]:
+        """Open loopback connections per local user (uid; None: not known)."""
+        with self._lock:
+            return dict(self._per_uid)
+
+    def _serve_one(self, sock: socket.socket, peer: tuple, slot: tuple[bool, Any]) -> None:
         conn = _Conn(sock)
         chan = None
         who = f"{peer[0]}:{peer[1]}"
@@ -922,27 +1016,39 @@ class Server:
                     chan.flush()
                 _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first, self.idle_timeout_s)
             else:
-                limits = RefLimitCheck.for_channel(chan, name)  # reads the channel's newest frame: before the flush
+                limits = RefLimitCheck.for_channel(chan, name) or HoldCheck.for_channel(name)  # before the flush
                 chan.flush()
                 _run_receiver(conn, _Sink(chan, rule, stats, limits), stats, self._stop, self.max_frame,
                               self.idle_timeout_s)
+        except FrameRefusedError as exc:  # the client is told why; it reconnects for its next request
+            self.refused_frames += 1
+            if self.refused_frames == 1 or self.refused_frames % 100 == 0:  # a flood must not flood the log
+                log.warning("%s: refused a frame on %s (#%d) and closed: %s", who, name, self.refused_frames, exc)
+            _refuse(sock, ap.ACH_EINVAL, str(exc), linger=True)
         except (OSError, ConnectionLostError) as exc:
             self.idle_closed += isinstance(exc, IdleConnectionError)
             log.info("%s: finished: %s", who, exc)
         except Exception:  # one broken connection must never take the server down
             log.exception("%s: connection failed", who)
         finally:
+            self._release(slot)  # before the close: a client that saw its connection end finds its slot free
             conn.close()
             if chan is not None:
                 chan.close()
-            self._release(peer[0])
 
 
-def _refuse(sock: socket.socket, status: int, message: str) -> None:
-    """achd's error reply (status, message, '.'), then close."""
+def _refuse(sock: socket.socket, status: int, message: str, linger: bool = False) -> None:
+    """achd's error reply (status, message, '.'), then close. ``linger``: mid-stream, the client may still be
+    sending; read and drop what it sends (at most 1 s) until it closes, so the close is no reset that could
+    discard the reply before the client read it."""
     try:
         sock.settimeout(1.0)
         sock.sendall(ap.encode_error(status, message))
+        if linger:
+            sock.shutdown(socket.SHUT_WR)
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline and sock.recv(65536):
+                pass
     except OSError:
         pass
     finally:
@@ -971,8 +1077,9 @@ def add_server_limit_arguments(p: argparse.ArgumentParser, prefix: str = "") -> 
     p.add_argument("--max-per-peer", type=int, default=MAX_PER_PEER,
                    help=f"{prefix}connections from one remote address (default {MAX_PER_PEER})")
     p.add_argument("--max-local", type=int, default=MAX_LOCAL_CLIENTS,
-                   help=f"{prefix}connections from loopback: local tools and SSH-tunnelled operators, a pool "
-                        f"remote peers cannot use (default {MAX_LOCAL_CLIENTS})")
+                   help=f"{prefix}connections from loopback per local user (local tools, SSH-tunnelled operators: "
+                        f"the uid owning the peer's socket), pools remote peers and other local users cannot use "
+                        f"(default {MAX_LOCAL_CLIENTS})")
     p.add_argument("--idle-timeout", type=float, default=IDLE_TIMEOUT_S, metavar="S",
                    help=f"{prefix}close a connection that sends and receives no frame for S seconds "
                         f"(default {IDLE_TIMEOUT_S:g}; 0: never)")

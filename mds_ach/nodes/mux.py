@@ -68,13 +68,14 @@ from mds_ach.nodes.status_msgs import MUX_STATE_TOPIC, json_alias, mux_state_msg
 from mds_ach.paths import config_path
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
-from mds_ach.robot.msgs.hold import HOLD_ACTIONS, HOLD_HOLD, HOLD_RESUME, MDS_HOLD, check_hold
+from mds_ach.robot.msgs.hold import HOLD_ACTIONS, HOLD_HOLD, HOLD_RESUME, MDS_HOLD, check_cancel, check_hold
 from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
     MDS_MUX_STATE,
     MUX_CANCELLED,
     MUX_FREE,
     MUX_HELD,
     MUX_HOLD_DONE,
+    MUX_HOLD_REASON_SIZE,
     MUX_HOLD_REFUSED,
     MUX_MAX_CONTROLLERS,
     VERDICT_APPLIED,
@@ -86,6 +87,9 @@ from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
 )
 
 DEFAULT_STATE_RATE = 10.0
+REFUSAL_LOG_S = 5.0
+"""Refused hold requests are logged at most once per this many seconds (with the count since): a writer flooding
+``mds-hold`` must not flood the log. Every one is still answered on ``mds-mux-state``."""
 HOLD_INPUT = -1
 """Queue index of an ``mds-hold`` request (controller inputs are 0..n-1)."""
 
@@ -208,6 +212,7 @@ class MuxCore:
         self.hold_action = 0
         self.hold_status = MUX_HOLD_DONE
         self.hold_source = ""
+        self.hold_reason = ""  # why the newest request was refused (mds-mux-state hold_reason)
         self.dirty = False  # the held mask or a verdict changed: publish mds-mux-state now, not at the next tick
 
     def absorb(self, index: int, ref: np.ndarray, mode: np.ndarray) -> None:
@@ -288,14 +293,17 @@ class MuxCore:
         return bool(changed.any()), None
 
     def hold(self, request: MDS_HOLD, current: np.ndarray | None = None) -> tuple[bool, str]:
-        """Handle one ``mds-hold`` request. ``current``: the reference now (``mds-ref-gated``) by address, what a CANCEL
-        with NaN targets leaves as the output (None: the mux output). Returns (output changed, log message).
+        """Handle one ``mds-hold`` request. ``current``: the reference now (``mds-ref-gated``) by address, where a
+        CANCEL leaves a joint (None or NaN: the mux output). Returns (output changed, log message).
 
         HOLD marks the joints held: the filter brakes them to rest and keeps them there (the output keeps the
         controllers' targets, for RESUME). RESUME releases held joints, never cancelled ones. CANCEL drops
-        ownership and replaces the targets: explicit values become the output (the filter ramps there); NaN
-        joints stay held as cancelled, their output becomes ``current`` and no RESUME releases them; only a
-        controller frame that modifies them (a new command) does.
+        ownership and stops the joints where their reference is now, whoever owns them (stopping is every
+        writer's right): NaN joints stay held as cancelled, their output becomes ``current`` and no RESUME
+        releases them; only a controller frame that modifies them (a new command) does. Joints with an explicit
+        target (the sender's word where the reference stopped, e.g. the collision gate's) get the same output, not
+        held; the request is refused as a whole unless every such target is within the limits and near
+        ``current`` (``check_cancel``): a CANCEL never moves a joint.
         """
         self.hold_seq = int(request.seq)
         self.hold_action = int(request.action)
@@ -303,11 +311,17 @@ class MuxCore:
         self.dirty = True
         who = f"{HOLD_ACTIONS.get(self.hold_action, str(self.hold_action))} #{self.hold_seq} from " \
               f"'{self.hold_source or '?'}'"
-        problem = check_hold(request)
+        now = self.ref.copy()
+        if current is not None:
+            found = np.isfinite(current)
+            now[found] = np.asarray(current)[found]
+        problem = check_hold(request) or check_cancel(request, self.limits, now.tolist())
         if problem:
             self.hold_status = MUX_HOLD_REFUSED
-            return False, f"refused {who}: {problem}"
+            self.hold_reason = problem
+            return False, f"refused {who}: {problem}; nothing changed"
         self.hold_status = MUX_HOLD_DONE
+        self.hold_reason = ""
         mask = np.frombuffer(bytes(request.joints), dtype=np.uint8).astype(bool) & self._known
         if not mask.any():
             mask = self._known.copy()
@@ -323,11 +337,7 @@ class MuxCore:
             self.owner[mask] = -1
             given = mask & np.isfinite(target)
             here = mask & ~given
-            new = self.ref.copy()
-            new[given] = target[given]
-            if current is not None:
-                found = here & np.isfinite(current)
-                new[found] = np.asarray(current)[found]
+            new = np.where(mask, now, self.ref)
             changed = bool((new != self.ref).any())
             self.ref = new
             self.held[given] = MUX_FREE
@@ -370,6 +380,7 @@ class MuxCore:
         st.hold_action = self.hold_action
         st.hold_status = self.hold_status
         st.hold_source = self.hold_source.encode("ascii", "replace")[:29]
+        st.hold_reason = self.hold_reason.encode("ascii", "replace")[: MUX_HOLD_REASON_SIZE - 1]
         st.time = now
         st.seq = seq
         self.dirty = False
@@ -404,7 +415,8 @@ def state_to_dict(st: MDS_MUX_STATE) -> dict[str, Any]:
         "held": {joint_label(a): held[st.held[a]] for a in KNOWN_ADDRESSES if st.held[a] in held},
         "hold": {"seq": st.hold_seq, "action": HOLD_ACTIONS.get(st.hold_action, ""),
                  "source": get_name(bytes(st.hold_source)),
-                 "status": "refused" if st.hold_status == MUX_HOLD_REFUSED else "done"},
+                 "status": "refused" if st.hold_status == MUX_HOLD_REFUSED else "done",
+                 "reason": st.hold_reason.decode("ascii", "replace")},
     }
 
 
@@ -435,6 +447,8 @@ class MuxRunner:
         self._current_ref: np.ndarray | None = None
         self.ready = threading.Event()
         self.published = 0
+        self.hold_refusals = 0  # mds-hold requests refused since the start
+        self._refusal_logged = (-math.inf, 0)  # (when, hold_refusals then) of the last refusal logged
 
     def stop(self) -> None:
         self._stop.set()
@@ -532,7 +546,10 @@ class MuxRunner:
                 self._reseed(core, out, watch)  # before the frame: a command after HOME starts at the joint
                 if index == HOLD_INPUT:
                     changed, text = core.hold(frame, self._reference_now())
-                    self.log("error" if core.hold_status == MUX_HOLD_REFUSED else "info", text)
+                    if core.hold_status == MUX_HOLD_REFUSED:
+                        self._log_refusal(text)
+                    else:
+                        self.log("info", text)
                 else:
                     changed, problem = core.update(index, *ref_arrays(frame), t)
                     if problem:
@@ -553,6 +570,17 @@ class MuxRunner:
                 if self.on_state is not None:
                     self.on_state(st)
                 next_state = now + self.state_period
+
+    def _log_refusal(self, text: str) -> None:
+        """A refused hold request: the first one, then at most one line per ``REFUSAL_LOG_S`` with the count."""
+        self.hold_refusals += 1
+        now = time.monotonic()
+        when, count = self._refusal_logged
+        if now - when < REFUSAL_LOG_S:
+            return
+        more = self.hold_refusals - count - 1
+        self.log("error", text + (f" ({more} more refused in the last {now - when:.0f} s)" if more > 0 else ""))
+        self._refusal_logged = (now, self.hold_refusals)
 
     def _reseed(self, core: MuxCore, out: Any, watch: ReseedWatch) -> None:
         """Restart the joints the daemon asks for (HOME, reset, resetbus) where they are, and publish that."""

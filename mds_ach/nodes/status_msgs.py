@@ -71,6 +71,7 @@ def mux_state_msg(doc: Mapping[str, Any], joints: Sequence[str], stamp: Time | N
     hold = doc["hold"]
     msg.hold_seq, msg.hold_action = int(hold["seq"]), hold["action"]
     msg.hold_source, msg.hold_status = hold["source"], hold["status"]
+    msg.hold_reason = hold["reason"]
     return _stamped(msg, stamp)
 
 

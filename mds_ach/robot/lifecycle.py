@@ -95,6 +95,7 @@ def request(action: int, addresses: Iterable[int] = (), targets: Mapping[int, fl
             if st.hold_seq == seq:
                 if st.hold_status == MUX_HOLD_DONE:
                     return Ack(seq, True, f"{what} acknowledged by the mux (request {seq})", st)
-                return Ack(seq, False, f"{what} refused by the mux (request {seq}): invalid request; see its log", st)
+                why = st.hold_reason.decode("ascii", "replace") or "invalid request; see its log"
+                return Ack(seq, False, f"{what} refused by the mux (request {seq}): {why}", st)
     return Ack(seq, False, f"{what} not acknowledged: no answer from the mux on {mds.MDS_CHAN_MUX_STATE_NAME} "
                            f"within {timeout:g} s (is it running? mds-ach start --only mux)")

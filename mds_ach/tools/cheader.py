@@ -54,6 +54,7 @@ _LENGTH_MACROS: dict[int, str] = {
     mux_state.MUX_MAX_CONTROLLERS: "MDS_MUX_MAX_CONTROLLERS",
     ik_status.IK_MESSAGE_SIZE: "MDS_IK_MESSAGE_SIZE",
     hold.HOLD_REASON_SIZE: "MDS_HOLD_REASON_SIZE",
+    mux_state.MUX_HOLD_REASON_SIZE: "MDS_MUX_HOLD_REASON_SIZE",
     limits.LIMITS_SOURCE_SIZE: "MDS_LIMITS_SOURCE_SIZE",
 }
 
@@ -299,6 +300,8 @@ def generate() -> str:
         f"#define MDS_MUX_MAX_CONTROLLERS {mux_state.MUX_MAX_CONTROLLERS}  /* mds_mux_state_t per-controller arrays */",
         f"#define MDS_IK_MESSAGE_SIZE {ik_status.IK_MESSAGE_SIZE}  /* mds_ik_status_t.message, NUL included */",
         f"#define MDS_HOLD_REASON_SIZE {hold.HOLD_REASON_SIZE}  /* mds_hold_t.reason, NUL included */",
+        f"#define MDS_MUX_HOLD_REASON_SIZE {mux_state.MUX_HOLD_REASON_SIZE}  /* mds_mux_state_t.hold_reason, NUL "
+        f"included */",
         f"#define MDS_LIMITS_SOURCE_SIZE {limits.LIMITS_SOURCE_SIZE}  /* mds_limits_t.source, NUL included */",
         f"#define MDS_LOOP_PERIOD {mds.MDS_LOOP_PERIOD!r}  /* s, default daemon period */",
         f"#define MDS_REF_FILTER_LENGTH {mds.MDS_REF_FILTER_LENGTH}",
@@ -356,7 +359,8 @@ def generate() -> str:
                  [("MDS_MUX_" + k, v) for k, v in _module_constants("VERDICT_", module=mux_state)
                   if k != "VERDICT_NAMES"])
     out += _enum("mds_mux_hold_status", "mds_mux_state_t.hold_status.",
-                 [("MDS_" + k, v) for k, v in _module_constants("MUX_HOLD_", module=mux_state)])
+                 [("MDS_" + k, v) for k, v in _module_constants("MUX_HOLD_", module=mux_state)
+                  if k != "MUX_HOLD_REASON_SIZE"])
     out.append("")
     out.append("/* ---- mds_hold_t (MDS_CHAN_HOLD_NAME): hold / resume / cancel requests to the mux ---- */")
     out += _enum("mds_hold_action", "mds_hold_t.action.",

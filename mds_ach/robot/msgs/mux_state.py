@@ -40,11 +40,13 @@ VERDICT_NAMES: dict[int, str] = {VERDICT_NONE: "none", VERDICT_APPLIED: "applied
 # hold_status: the mux's answer to the newest mds-hold request
 MUX_HOLD_DONE = 0
 MUX_HOLD_REFUSED = 1
-"""The request was invalid (``check_hold``); nothing changed."""
+"""The request was refused, ``hold_reason`` says why (``check_hold``, ``check_cancel``); nothing changed."""
+MUX_HOLD_REASON_SIZE = 120
+"""Bytes of ``hold_reason`` (NUL-terminated ASCII, cut to fit)."""
 
 
 class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
-    """``mds-mux-state`` frame (packed, 700 B): who owns each joint, how fresh each controller is, what
+    """``mds-mux-state`` frame (packed, 820 B): who owns each joint, how fresh each controller is, what
     was held and what each controller's newest frame got.
 
     owner[address]     controller index (into name[]) that owns the joint, -1 = nobody (holding)
@@ -60,12 +62,14 @@ class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
     held[address]      MUX_FREE / MUX_HELD / MUX_CANCELLED
     hold_seq           seq of the newest mds-hold request handled (the acknowledgement), 0 = none yet
     hold_action        its action (HOLD_HOLD / HOLD_RESUME / HOLD_CANCEL)
-    hold_status        MUX_HOLD_DONE, or MUX_HOLD_REFUSED (invalid request)
+    hold_status        MUX_HOLD_DONE, or MUX_HOLD_REFUSED (see hold_reason)
     hold_source        its source, char[30]
     verdict[i]         what the mux did with controller i's newest frame (VERDICT_*)
     blocker[i]         VERDICT_OWNED: index of the owning controller, else -1
     blocked_joint[i]   the first joint (address) that made the frame refused, -1 = none
     refused[i]         frames of controller i refused since the mux started
+    --- appended with issue 25 ---
+    hold_reason        why the newest mds-hold request was refused (MUX_HOLD_REFUSED), else empty
     """
 
     _fields_ = [
@@ -87,6 +91,7 @@ class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
         ("blocker", ctypes.c_int8 * MUX_MAX_CONTROLLERS),
         ("blocked_joint", ctypes.c_int8 * MUX_MAX_CONTROLLERS),
         ("refused", ctypes.c_uint32 * MUX_MAX_CONTROLLERS),
+        ("hold_reason", ctypes.c_char * MUX_HOLD_REASON_SIZE),
     ]
 
     def controller_names(self) -> list[str]:
