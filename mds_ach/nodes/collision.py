@@ -966,7 +966,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="gate YAML (default: the package's config/collision.yaml)")
     p.add_argument("--world", help="world objects YAML (default: the package's config/world.yaml)")
     p.add_argument("--urdf", help="robot URDF (default: the package's urdf/mds.urdf)")
-    p.add_argument("--margin", type=float, help="minimum clearance in m (overrides the config)")
+    p.add_argument("--margin", type=find(PARAMETERS, "margin").arg_type(),
+                   help="minimum clearance in m (overrides the config)")
     return p
 
 

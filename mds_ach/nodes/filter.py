@@ -418,7 +418,8 @@ def _build_parser() -> argparse.ArgumentParser:
         epilog="Example: ros2 run mds_ach filter --rate 50",
     )
     p.add_argument("--config", help="filter YAML (default: the package's config/filter.yaml)")
-    p.add_argument("--rate", type=float, help="loop rate in Hz (overrides the config; default 40)")
+    p.add_argument("--rate", type=find(PARAMETERS, "rate").arg_type(),
+                   help="loop rate in Hz (overrides the config; default 40)")
     return p
 
 

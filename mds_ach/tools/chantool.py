@@ -14,6 +14,7 @@ from typing import Any
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.argtypes import seconds
 from mds_ach.robot import contracts
 from mds_ach.robot.channels import make_channels
 from mds_ach.robot.joints import BY_ADDRESS
@@ -130,7 +131,7 @@ def add_dump_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-a", "--all", action="store_true", help="list every known joint, not only enabled/named ones")
     p.add_argument("--fields", action="store_true",
                    help="print every field of the struct by its C name (nested structs and arrays expanded)")
-    p.add_argument("--wait", type=float, metavar="SECONDS",
+    p.add_argument("--wait", type=seconds(zero=True), metavar="SECONDS",
                    help="if the channel is empty, wait up to SECONDS for a first frame")
 
 

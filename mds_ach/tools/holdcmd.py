@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mds_ach.argtypes import seconds
 from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import JOINTS
 from mds_ach.robot.msgs import MDS_MUX_STATE
@@ -34,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("joints", nargs="*", metavar="JOINT",
                    help="joint names (LSP, LeftShoulderExt), left, right, arms or all (default: all)")
     p.add_argument("--reason", default="", help="why, for the mux's log")
-    p.add_argument("--timeout", type=float, default=lifecycle.ACK_TIMEOUT,
+    p.add_argument("--timeout", type=seconds(), default=lifecycle.ACK_TIMEOUT,
                    help="s to wait for the mux's acknowledgement (default %(default)s)")
 
 
