@@ -293,7 +293,7 @@ def start_node(name: str, args: Sequence[str] = (), rt: Path | None = None,
     rt = rt or runtime_dir()
     rt.mkdir(parents=True, exist_ok=True)
     proc = background.spawn_detached(node_command(name) + list(args), log_path(name, rt),
-                                     env=env if env is not None else child_env(), append=False,
+                                     env=env if env is not None else child_env(),
                                      die_with_parent=die_with_launcher)
     background.write_pid_file(pid_path(name, rt), proc.pid)
     return proc
