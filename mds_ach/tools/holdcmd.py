@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mds_ach import ach
 from mds_ach.argtypes import seconds
 from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import JOINTS
@@ -48,8 +49,12 @@ def _run(args: argparse.Namespace, verb: str) -> int:
         print(f"mds-ach {verb}: {exc}", file=sys.stderr)
         return 2
     assert isinstance(cmd, Hold)
-    ack = lifecycle.request(cmd.action, cmd.addresses, source="mds-ach", reason=args.reason or f"mds-ach {verb}",
-                            timeout=args.timeout)
+    try:
+        ack = lifecycle.request(cmd.action, cmd.addresses, source="mds-ach",
+                                reason=args.reason or f"mds-ach {verb}", timeout=args.timeout)
+    except ach.AchException as exc:  # a channel missing, damaged, planted by another user, a FIFO...
+        print(f"mds-ach {verb}: nothing sent: {exc}", file=sys.stderr)
+        return 1
     if not ack.ok:
         print(f"mds-ach {verb}: {ack.message}", file=sys.stderr)
         return 1
