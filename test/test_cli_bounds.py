@@ -40,6 +40,8 @@ CASES = [
     (["check-log", "x.asc", "--max", "1.5"], "argument --max: '1.5' is not a whole number"),
     (["sim", "--port", "70000"], "argument --port: 70000 is out of range"),
     (["sim", "--rate", "nan"], "argument --rate: nan is not a finite number"),
+    (["make", "--mode", "7777777"], "argument --mode: 7777777 is out of range"),
+    (["make", "--mode", "8"], "argument --mode: '8' is not an octal mode"),
 ]
 
 
