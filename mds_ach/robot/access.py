@@ -120,8 +120,9 @@ def stack_owner() -> int | None:
 
 def client_problem(name: str, path: str, st: os.stat_result) -> str | None:
     """Why a client must not use channel ``name`` (file status ``st``), or None: it must be owned by root, this
-    user or the stack's user (:func:`stack_owner`). The rule every channel open applies (``ach.set_open_check``)."""
-    if st.st_uid in trusted_owners():
+    user or the stack's user (:func:`stack_owner`). The rule every channel open applies (``ach.set_open_check``);
+    a node of the stack (:func:`enforce_in_this_process`) applies the stricter :func:`require_trusted` instead."""
+    if _enforced or st.st_uid in trusted_owners():
         return None
     stack = stack_owner()
     if st.st_uid == stack:
