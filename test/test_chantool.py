@@ -444,3 +444,14 @@ def test_a_client_trusts_the_stack_users_channels(clean_shm: None, other_user: i
     os.chmod(ach.shm_path(gated), 0o640)
     assert channel_access.stack_owner() == NOBODY
     ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False).close()
+
+
+def test_rm_of_a_directory_at_the_channel_path_is_a_clear_error(run) -> None:
+    path = ach.shm_path(mds.MDS_CHAN_STATE_NAME)
+    os.mkdir(path)
+    try:
+        rc, out, err = run("rm", mds.MDS_CHAN_STATE_NAME)
+    finally:
+        os.rmdir(path)
+    assert rc == 1 and "Traceback" not in out + err
+    assert f"{path} is a directory, not a channel file" in err

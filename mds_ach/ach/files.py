@@ -84,8 +84,9 @@ def shm_path(name: str) -> str:
 
 
 def exists(name: str) -> bool:
-    """True when a channel file of that name exists (its contents are not checked)."""
-    return os.path.exists(shm_path(name))
+    """True when something exists at the channel's path (its contents are not checked; a symbolic link counts,
+    dangling or not: the name is taken, and opening it is refused)."""
+    return os.path.lexists(shm_path(name))
 
 
 def unlink(name: str) -> None:
@@ -95,8 +96,8 @@ def unlink(name: str) -> None:
         os.unlink(path)
     except FileNotFoundError:
         raise AchException(ACH_ENOENT, path, channel=name) from None
-    except PermissionError as exc:
-        raise AchException(ACH_EACCES, f"{path}: {exc.strerror}", channel=name) from None
+    except OSError as exc:  # EACCES/EPERM, a directory at the path (EISDIR), ...
+        raise os_error(exc, name, path) from None
 
 
 # --- read-only parsing (any arch, no locking) ------------------------------------------------------
