@@ -323,7 +323,11 @@ enum ach_status ach_open(ach_channel_t *chan, const char *name, ach_attr_t *attr
         return fail(ACH_ENOTSUP, "the source lock is not supported");
     char path[128];
     shm_path(path, sizeof path, name);
-    int fd = open(path, O_RDWR | O_CLOEXEC);
+    /* Never through a symbolic link (another user may plant one in /dev/shm to a file of theirs), never block
+     * on a FIFO: refuse anything but a regular file, as the Python open does (mds_ach.ach.files). */
+    int fd = open(path, O_RDWR | O_CLOEXEC | O_NOFOLLOW | O_NONBLOCK);
+    if (fd < 0 && errno == ELOOP)
+        return fail(ACH_BAD_SHM_FILE, "%s is a symbolic link: a channel is never opened through one", path);
     if (fd < 0)
         return fail(errno_status(errno), "%s: %s", path, strerror(errno));
     struct stat st;
@@ -333,6 +337,14 @@ enum ach_status ach_open(ach_channel_t *chan, const char *name, ach_attr_t *attr
     struct ach_header *h;
     if (fstat(fd, &st) != 0) {
         r = fail(ACH_FAILED_SYSCALL, "%s: fstat: %s", path, strerror(errno));
+        goto out;
+    }
+    if (!S_ISREG(st.st_mode)) {
+        r = fail(ACH_BAD_SHM_FILE, "%s is not a regular file, not a channel file", path);
+        goto out;
+    }
+    if (fcntl(fd, F_SETFL, fcntl(fd, F_GETFL) & ~O_NONBLOCK) != 0) {
+        r = fail(ACH_FAILED_SYSCALL, "%s: fcntl: %s", path, strerror(errno));
         goto out;
     }
     if (pread(fd, &magic, 4, 0) != 4 || magic != ACHCORE_MAGIC) {

@@ -162,6 +162,12 @@ _export_joint_constants()
 # The original mds_ach.py's Hubo-era joint names (LEB, NYH, ...): see mds_ach.robot.legacy_names.
 globals().update(hubo_era_constants())
 
+# Every channel this process opens (clients: the tools, this legacy API, the examples) must be owned by root,
+# this user or the stack's user; symlinks and non-regular files are refused in the ach layer itself.
+from mds_ach.robot import access as _access  # noqa: E402  (after the constants: access imports this package)
+
+_access.install_client_rule()
+
 __all__ = [
     "ALL_CHANNELS",
     "CHANNEL_FRAME_COUNT",

@@ -22,6 +22,7 @@ import subprocess
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import BinaryIO
 
 POLL_S = 0.02  # how often a stop looks whether the process is gone
 
@@ -131,20 +132,57 @@ def _parent_death_signal(sig: int) -> Callable[[], None]:
     return arm
 
 
+LOG_ROTATE_BYTES = 8 * 1024 * 1024
+"""A log larger than this at a start is moved to ``<log>.1`` (the one before is dropped): logs are appended across
+restarts, so they are bounded here."""
+
+START_MARKER = "===== start"
+"""Opens the line a start appends to the log (``===== start <UTC time> pid <pid>: <command> =====``): where one
+run's lines end and the next one's begin."""
+
+
+def _open_log(log_path: Path, append: bool) -> BinaryIO:
+    """The log opened for a new run: appended to (the previous run's lines, e.g. a crash's traceback, stay; the
+    documented recovery ``start --only NODE`` must not erase them), rotated to ``.1`` first when it grew too large;
+    truncated with ``append=False``."""
+    if append:
+        try:
+            if log_path.stat().st_size > LOG_ROTATE_BYTES:
+                os.replace(log_path, log_path.with_name(log_path.name + ".1"))
+        except FileNotFoundError:
+            pass
+    return open(log_path, "ab" if append else "wb")
+
+
+def _write_marker(argv: Sequence[str], then: Callable[[], None] | None) -> Callable[[], None]:
+    """A ``preexec_fn`` writing the start marker with the child's own pid to its stdout (the log: the child's
+    descriptors are set up before preexec_fn runs), before the program can write anything; then ``then``."""
+    stamp = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+    command = " ".join(argv)[:200]
+
+    def mark() -> None:
+        os.write(1, f"{START_MARKER} {stamp} pid {os.getpid()}: {command} =====\n".encode(errors="replace"))
+        if then is not None:
+            then()
+
+    return mark
+
+
 def spawn_detached(argv: Sequence[str], log_path: Path, env: dict[str, str] | None = None,
                    append: bool = True, die_with_parent: bool = False) -> subprocess.Popen[bytes]:
     """Start ``argv`` in its own session (a terminal's Ctrl-C does not reach it), stdout and stderr to the log
-    (appended, or a fresh log with ``append=False``). ``die_with_parent``: the child gets SIGTERM when this process
-    dies, however it dies (a foreground supervisor killed by SIGKILL leaves no orphan); otherwise it outlives it
-    (a background service)."""
+    (appended after a start marker line, see :func:`_open_log`; a fresh log with ``append=False``).
+    ``die_with_parent``: the child gets SIGTERM when this process dies, however it dies (a foreground supervisor
+    killed by SIGKILL leaves no orphan); otherwise it outlives it (a background service)."""
     preexec = _parent_death_signal(signal.SIGTERM) if die_with_parent else None
-    with open(log_path, "ab" if append else "wb") as log:
+    with _open_log(log_path, append) as log:
         return subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                                start_new_session=True, env=env, preexec_fn=preexec)
+                                start_new_session=True, env=env, preexec_fn=_write_marker(argv, preexec))
 
 
 def log_tail(path: Path, lines: int) -> list[str]:
-    """The last ``lines`` lines of a log (at most its last 64 KiB are read); empty if there is none."""
+    """The last ``lines`` lines of the newest run in a log (after its last start marker; at most the log's last
+    64 KiB are read); empty if there is none or that run wrote nothing."""
     try:
         with open(path, "rb") as f:
             f.seek(0, os.SEEK_END)
@@ -152,4 +190,8 @@ def log_tail(path: Path, lines: int) -> list[str]:
             text = f.read().decode("utf-8", "replace")
     except OSError:
         return []
-    return text.splitlines()[-lines:]
+    run = text.splitlines()
+    starts = [i for i, line in enumerate(run) if line.startswith(START_MARKER)]
+    if starts:
+        run = run[starts[-1] + 1:]
+    return run[-lines:]

@@ -617,3 +617,38 @@ def test_put_wakes_waiter_without_polling(clean_shm: None, monkeypatch: pytest.M
         w.put(b"wake")
         t.join(timeout=25)
         assert result == [(ach.ACH_OK, 4)]
+
+
+# --- what a channel path may be (issue #25, item 9) -------------------------------------------------------
+
+
+def test_a_symlink_at_the_channel_path_is_refused_not_followed(clean_shm: None) -> None:
+    """Another user can plant /dev/shm/achshm-NAME -> a valid Ach file of theirs: the open never follows it (so
+    nothing is read from or written into that file)."""
+    ach.create("test-theirs", 4, 64)
+    before = Path(ach.shm_path("test-theirs")).read_bytes()
+    os.symlink(ach.shm_path("test-theirs"), ach.shm_path(NAME))
+    with pytest.raises(ach.AchException) as exc:
+        ach.Channel(NAME, create=True)  # not even "create if missing": the path is taken
+    assert exc.value.status == ach.ACH_BAD_SHM_FILE and "is a symbolic link" in str(exc.value)
+    assert f"mds-ach repair --recreate {NAME}" in str(exc.value)
+    assert Path(ach.shm_path("test-theirs")).read_bytes() == before
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory"])
+def test_a_fifo_or_directory_at_the_channel_path_is_a_clear_error_without_blocking(clean_shm: None,
+                                                                                   kind: str) -> None:
+    path = ach.shm_path(NAME)
+    if kind == "fifo":
+        os.mkfifo(path)
+    else:
+        os.mkdir(path)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(ach.AchException) as exc:
+            ach.Channel(NAME, create=False)
+        assert time.monotonic() - t0 < 5.0  # a FIFO never blocks the open
+        assert exc.value.status == ach.ACH_BAD_SHM_FILE
+        assert f"is a {'FIFO' if kind == 'fifo' else 'directory'}, not a channel file" in str(exc.value)
+    finally:
+        os.rmdir(path) if kind == "directory" else os.unlink(path)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import ipaddress
 import json
+import logging
 import math
 import os
 import select
@@ -93,6 +94,23 @@ def test_server_writes_only_valid_frames(server):
     assert (stats.written, stats.dropped_size, stats.dropped_invalid) == (2, 1, 3)
     written = [msgs.MDS_REF.from_bytes(f).joint[mds.LSP].ref for f in _frames("mds-ref-filter")]
     assert written == [-0.25, 0.5]
+
+
+def test_a_flood_of_refused_frames_is_counted_but_logged_a_few_times(server, caplog):
+    """Every out-of-limit frame a peer pushes is dropped and counted, but the log gets one line for the first and
+    repeats are summarized (issue #25, item 9: 1 kHz of refused frames wrote megabytes a second)."""
+    caplog.set_level(logging.WARNING, logger="mds_ach.net.achd")
+    sock, headers = _raw_session(server.ports[0], ap.encode_request("mds-ref-filter", "tcp", "pull"))
+    assert headers.status == ap.ACH_OK
+    n = 3000
+    frames = [bytes(_ref(-0.25))] + [bytes(_ref(3.0 + 1e-4 * i)) for i in range(n)]  # the first: the base
+    sock.sendall(b"".join(ap.encode_frame(f) for f in frames))
+    stats = wait_for(lambda: next(iter(server.stats.values()), None), 5, what="server stats")
+    wait_for(lambda: stats.dropped_invalid == n, 30, what="every frame dropped")
+    sock.close()
+    lines = [r for r in caplog.records if "received frame dropped" in r.getMessage()]
+    assert 1 <= len(lines) <= 3, [r.getMessage() for r in lines]
+    assert "refused by the joint limits" in lines[0].getMessage() and stats.written == 1
 
 
 @pytest.mark.parametrize(

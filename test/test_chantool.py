@@ -368,3 +368,90 @@ def test_console_script_and_light_startup(clean_shm: None) -> None:
             "print(rc, heavy)\n")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.stdout.strip() == "0 []", result.stderr
+
+
+# --- clients and channel files they must not use (issue #25, item 9) ----------------------------------------
+
+
+def _plant_as_nobody(how: str, names: tuple[str, ...]) -> Path | None:
+    """User nobody plants the clients' channels: a symlink to a valid Ach file of theirs, or the file itself."""
+    theirs = Path(ach.shm_path("test-theirs"))
+
+    def plant() -> int:
+        if how == "symlink":
+            ach.create("test-theirs", mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o666)
+        for name in names:
+            if how == "symlink":
+                os.symlink(theirs, ach.shm_path(name))
+            else:
+                ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o666)
+        return 0
+
+    assert run_as(NOBODY, NOBODY, plant) == 0
+    return theirs if how == "symlink" else None
+
+
+CLIENTS = [(("read", "--once"), mds.MDS_CHAN_STATE_NAME), (("dump", mds.MDS_CHAN_STATE_NAME), mds.MDS_CHAN_STATE_NAME),
+           (("hold", "--timeout", "2"), mds.MDS_CHAN_HOLD_NAME)]
+
+
+@pytest.mark.parametrize("how", ["symlink", "file"])
+@pytest.mark.parametrize(("argv", "channel"), CLIENTS, ids=[a[0] for a, _ in CLIENTS])
+def test_clients_refuse_channels_another_user_planted(run, other_user: int, how: str, argv: tuple[str, ...],
+                                                     channel: str) -> None:
+    """`read --once`, `dump` and `hold` neither follow a planted symlink nor use a file another user owns: a clear
+    message, exit 1, and that user's file is untouched (nothing was read from or written into it)."""
+    ach.create(mds.MDS_CHAN_MUX_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    theirs = _plant_as_nobody(how, (mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_HOLD_NAME))
+    target = theirs or Path(ach.shm_path(channel))
+    before = target.read_bytes()
+    rc, out, err = run(*argv)
+    assert rc == 1, (out, err)
+    assert "Traceback" not in out + err
+    want = "is a symbolic link" if how == "symlink" else f"is owned by uid {NOBODY} (nobody), neither you"
+    assert want in out + err and f"mds-ach repair --recreate {channel}" in out + err
+    assert target.read_bytes() == before
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory"])
+@pytest.mark.parametrize(("argv", "channel"), CLIENTS, ids=[a[0] for a, _ in CLIENTS])
+def test_clients_on_a_fifo_or_directory_say_so_without_blocking(run, kind: str, argv: tuple[str, ...],
+                                                                channel: str) -> None:
+    ach.create(mds.MDS_CHAN_MUX_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    path = ach.shm_path(channel)
+    os.mkfifo(path) if kind == "fifo" else os.mkdir(path)
+    try:
+        rc, out, err = run(*argv)
+    finally:
+        os.rmdir(path) if kind == "directory" else os.unlink(path)
+    assert rc == 1 and "Traceback" not in out + err, (out, err)
+    assert f"{path} is a {'FIFO' if kind == 'fifo' else 'directory'}, not a channel file" in out + err
+
+
+def test_a_client_trusts_the_stack_users_channels(clean_shm: None, other_user: int) -> None:
+    """The stack's user, for a client, is the owner of the daemon's input with the daemon input's mode: a client
+    running as another user (here root, the stack being nobody's) uses that user's channels, and nobody else's."""
+    ach.create(mds.MDS_CHAN_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o660)
+    os.chown(ach.shm_path(mds.MDS_CHAN_STATE_NAME), NOBODY, NOBODY)
+    with pytest.raises(ach.AchException, match="neither you .* root nor the stack's user \\(unknown"):
+        ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False)
+    gated = mds.MDS_CHAN_DAEMON_INPUT_NAME
+    ach.create(gated, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o660)  # group-writable: not the stack's
+    os.chown(ach.shm_path(gated), NOBODY, NOBODY)
+    assert channel_access.stack_owner() is None
+    with pytest.raises(ach.AchException, match="ACH_EACCES"):
+        ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False)
+    os.chmod(ach.shm_path(gated), 0o640)
+    assert channel_access.stack_owner() == NOBODY
+    ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False).close()
+
+
+def test_rm_of_a_directory_at_the_channel_path_is_a_clear_error(run) -> None:
+    path = ach.shm_path(mds.MDS_CHAN_STATE_NAME)
+    os.mkdir(path)
+    try:
+        rc, out, err = run("rm", mds.MDS_CHAN_STATE_NAME)
+    finally:
+        os.rmdir(path)
+    assert rc == 1 and "Traceback" not in out + err
+    assert f"{path} is a directory, not a channel file" in err

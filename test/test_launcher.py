@@ -204,6 +204,43 @@ def test_a_node_that_fails_is_named_with_its_log_and_nothing_is_left_running(cle
     assert _processes_of(tmp_path) == [], "the nodes started before the failure are stopped again"
 
 
+@pytest.mark.slow
+def test_a_restarted_node_keeps_the_previous_runs_log(clean_shm: None, tmp_path: Path) -> None:
+    """The documented recovery (`start --only NODE`) must not erase what a crashed node wrote (issue #25, item 9):
+    each start appends a marker line (time, pid) and the new run's lines; the start's log tail shows the new run
+    only."""
+    from mds_ach.nodes.pipeline import make_ref
+    from mds_ach.procs import START_MARKER
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.tools import launcher
+
+    env = system_env(tmp_path)
+    assert mds_ach("make", "-q", env=env).returncode == 0
+    with StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF) as ch:  # the mux starts from this reference
+        ch.put(make_ref([0.0] * mds.MDS_JOINT_COUNT, [0] * mds.MDS_JOINT_COUNT))
+    log = tmp_path / "mux.log"
+    first = launcher.start_node("mux", rt=tmp_path, env=dict(env))
+    try:
+        wait_for(lambda: "started from" in log.read_text(errors="replace"), 60, what="the first mux's start line")
+    finally:
+        first.kill()  # a crash: SIGKILL
+        first.wait()
+    before = log.read_text(errors="replace")
+    proc = mds_ach("start", "--only", "mux", "--timeout", "60", env=env, timeout=120)
+    try:
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        text = log.read_text(errors="replace")
+        assert text.startswith(before), "the first run's lines are still there, first"
+        markers = [line for line in text.splitlines() if line.startswith(START_MARKER)]
+        assert len(markers) == 2 and f" pid {first.pid}: " in markers[0], markers
+        second = int((tmp_path / "mux.pid").read_text())
+        assert f" pid {second}: " in markers[1] and re.search(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC", markers[1])
+        assert "started from" in text.split(markers[1], 1)[1], "the second run's lines follow its marker"
+        assert launcher.log_tail("mux", rt=tmp_path).count("started from") == 1  # the new run only
+    finally:
+        assert mds_ach("stop", env=env, timeout=60).returncode == 0
+
+
 # --------------------------------------------------------------------------------------------- a running system
 
 

@@ -126,3 +126,32 @@ def test_no_top_level_ach_is_installed() -> None:
     assert not any(f in ("ach.py", "ach/__init__.py") or f.startswith("ach/") for f in files), files
     top = (distribution("mds_ach").read_text("top_level.txt") or "").split()
     assert "ach" not in top
+
+
+@pytest.mark.parametrize("how", ["symlink", "file"])
+def test_a_legacy_write_never_reaches_a_file_another_user_planted(clean_shm: None, other_user: int,
+                                                                  how: str) -> None:
+    """`import mds_ach as mds` scripts write `mds-ref` with `ach.Channel(...).put(...)`: a symlink another user
+    planted at the channel's path to a valid Ach file of theirs, or a channel file they own, is refused at the
+    open (issue #25, item 9); their file is unchanged."""
+    import os
+    from pathlib import Path
+
+    from support import NOBODY, run_as
+
+    from mds_ach import ach
+
+    theirs = Path(ach.shm_path("test-theirs" if how == "symlink" else mds.MDS_CHAN_REF_NAME))
+
+    def plant() -> int:
+        ach.create(theirs.name.removeprefix("achshm-"), mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o666)
+        if how == "symlink":
+            os.symlink(theirs, ach.shm_path(mds.MDS_CHAN_REF_NAME))
+        return 0
+
+    assert run_as(NOBODY, NOBODY, plant) == 0
+    before = theirs.read_bytes()
+    with pytest.raises(ach.AchException) as exc:
+        ach.Channel(mds.MDS_CHAN_REF_NAME).put(bytes(mds.MDS_REF()))
+    assert ("is a symbolic link" if how == "symlink" else "is owned by uid 65534 (nobody)") in str(exc.value)
+    assert theirs.read_bytes() == before

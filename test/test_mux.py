@@ -296,6 +296,49 @@ def test_runner_refuses_nan_frames_with_a_message(runner) -> None:
     assert np.array_equal(r.core.ref, ref)
 
 
+def test_a_flood_of_refused_frames_logs_a_bounded_number_of_lines_and_counts_every_one(clean_shm: None) -> None:
+    """1 kHz of out-of-limit frames (each with a new value) for 3 s: one line for the first refusal, then
+    summaries at most every ``log_every`` s; the summary's total and mds-mux-state ``refused`` agree with the
+    mux's count of every frame it refused (issue #25, item 9: 77.5 MB of mux.log in 10 s)."""
+    from mds_ach.robot.channels import StructChannel
+
+    ref, mode = _start_ref()
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, ref)
+    logs: list[str] = []
+    r = MuxRunner(_controllers(), state_rate=50.0, log=lambda level, msg: logs.append(f"{level}: {msg}"),
+                  log_every=1.0)
+    t = threading.Thread(target=r.run, daemon=True)
+    t.start()
+    try:
+        assert r.ready.wait(10), logs
+        started = len(logs)
+        with StructChannel(mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_REF) as ch:
+            t0 = time.monotonic()
+            sent = 0
+            while time.monotonic() - t0 < 3.0:
+                ch.put(make_ref(_frame(ref, LSP=5.0 + 1e-4 * sent), mode))
+                sent += 1
+                time.sleep(max(0.0, t0 + sent * 1e-3 - time.monotonic()))
+        assert sent > 2000
+        core = r.core
+        assert core is not None
+        # the last summary comes from the mux's own tick once the flood stopped
+        wait_for(lambda: any(f"{int(core.refused[0])} in all" in m for m in logs[started:]), 10,
+                 what="a summary with the total")
+        refused = int(core.refused[0])
+        lines = [m for m in logs[started:] if "refused a frame from 'ros'" in m]
+        assert refused > 500 and r.refusals.total("ros") == refused
+        assert 2 <= len(lines) <= 3 + 3 / 1.0 + 2, lines
+        assert lines[0].startswith("error: ") and "LSP" in lines[0] and "in all" not in lines[0]  # the first, whole
+        with StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE) as state_ch:
+            wait_for(lambda: (st := state_ch.latest()) is not None and int(st.refused[0]) == refused, 5,
+                     what="mds-mux-state refused = every refused frame")
+    finally:
+        r.stop()
+        t.join(5)
+    assert not t.is_alive()
+
+
 # --------------------------------------------------------------------------------------------- node
 
 

@@ -128,3 +128,25 @@ def test_launcher_and_remote_read_pid_files_through_the_helper(run_dir: Path,
     assert remote.read_pid(run_dir / "remote.pid") == session.pid
     procs.write_pid_file(run_dir / "remote.pid", node.pid)
     assert remote.read_pid(run_dir / "remote.pid") is None
+
+
+def test_a_log_is_appended_with_a_start_marker_and_rotated_when_large(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each start appends ``===== start <time> pid <pid>: <command> =====`` and its output (a crash's lines
+    survive the restart); ``log_tail`` shows the newest run; an oversized log moves to ``.log.1`` at a start."""
+    log = tmp_path / "node.log"
+    pids = []
+    for word in ("first", "second"):
+        proc = procs.spawn_detached([sys.executable, "-c", f"print('{word} run')"], log)
+        proc.wait()
+        pids.append(proc.pid)
+    lines = log.read_text().splitlines()
+    assert [line.split(" pid ", 1)[1].split(":")[0] for line in lines[::2]] == [str(p) for p in pids]
+    assert all(line.startswith(procs.START_MARKER) for line in lines[::2]) and lines[1::2] == ["first run",
+                                                                                               "second run"]
+    assert procs.log_tail(log, 10) == ["second run"]
+    monkeypatch.setattr(procs, "LOG_ROTATE_BYTES", log.stat().st_size - 1)
+    proc = procs.spawn_detached([sys.executable, "-c", "print('third run')"], log)
+    proc.wait()
+    assert (tmp_path / "node.log.1").read_text().splitlines()[1::2] == ["first run", "second run"]
+    assert log.read_text().splitlines()[1:] == ["third run"]

@@ -85,6 +85,8 @@ from mds_ach.ach.files import (
     _shmguard,
     create,
     exists,
+    open_channel_file,
+    set_open_check,
     shm_path,
     unlink,
     validate_name,
@@ -151,6 +153,7 @@ __all__ = [
     "IDLE_SLICE", "LAYOUTS", "LAYOUT_AARCH64", "LAYOUT_X86_64", "MAGIC", "NAME_MAX", "POLL_SLICE", "SHM_DIR",
     "SHM_PREFIX", "UNWOKEN_HOLD", "UNWOKEN_POLL", "WAIT_SLICE", "AchException", "Channel", "ChannelImage",
     "IndexEntry", "Layout", "MappingGuard",
-    "create", "detect_layout", "exists", "explain", "native_layout", "parse_image", "result_string", "shm_path",
-    "unlink", "validate_name", "_LOCK_TIMED_OUT", "_achfast", "_shmguard",
+    "create", "detect_layout", "exists", "explain", "native_layout", "open_channel_file", "parse_image",
+    "result_string", "set_open_check", "shm_path", "unlink", "validate_name",
+    "_LOCK_TIMED_OUT", "_achfast", "_shmguard",
 ]

@@ -20,7 +20,7 @@ import time
 from types import ModuleType
 from typing import TYPE_CHECKING
 
-from mds_ach.ach.files import MappingGuard, os_error, reserve, shm_path, validate_name
+from mds_ach.ach.files import MappingGuard, open_channel_file, os_error, reserve, shm_path, validate_name
 from mds_ach.ach.files import create as _create  # Channel.__init__ has a parameter called ``create``
 from mds_ach.ach.files import unlink as _unlink_file
 from mds_ach.ach.glibc import (
@@ -174,10 +174,7 @@ class Channel:
         the file's memory and guard the mapping (module docstring)."""
         layout = native_layout()
         path = shm_path(self.name)
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CLOEXEC)
-        except OSError as exc:
-            raise os_error(exc, self.name, path) from None
+        fd = open_channel_file(self.name, path)  # never through a symlink, never a FIFO; the ownership rule
         try:
             size = os.fstat(fd).st_size
             head = os.pread(fd, 4, 0)

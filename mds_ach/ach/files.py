@@ -10,8 +10,10 @@ import ctypes
 import errno
 import mmap
 import os
+import stat
 import struct
 import threading
+from collections.abc import Callable
 from types import ModuleType
 
 from mds_ach.ach.glibc import pthread
@@ -29,6 +31,7 @@ from mds_ach.ach.layout import (
     native_layout,
 )
 from mds_ach.ach.status import (
+    ACH_BAD_SHM_FILE,
     ACH_DEFAULT_FRAME_COUNT,
     ACH_DEFAULT_FRAME_SIZE,
     ACH_EACCES,
@@ -81,8 +84,9 @@ def shm_path(name: str) -> str:
 
 
 def exists(name: str) -> bool:
-    """True when a channel file of that name exists (its contents are not checked)."""
-    return os.path.exists(shm_path(name))
+    """True when something exists at the channel's path (its contents are not checked; a symbolic link counts,
+    dangling or not: the name is taken, and opening it is refused)."""
+    return os.path.lexists(shm_path(name))
 
 
 def unlink(name: str) -> None:
@@ -92,8 +96,8 @@ def unlink(name: str) -> None:
         os.unlink(path)
     except FileNotFoundError:
         raise AchException(ACH_ENOENT, path, channel=name) from None
-    except PermissionError as exc:
-        raise AchException(ACH_EACCES, f"{path}: {exc.strerror}", channel=name) from None
+    except OSError as exc:  # EACCES/EPERM, a directory at the path (EISDIR), ...
+        raise os_error(exc, name, path) from None
 
 
 # --- read-only parsing (any arch, no locking) ------------------------------------------------------
@@ -263,9 +267,62 @@ class MappingGuard:
         return True
 
 
+OpenCheck = Callable[[str, str, os.stat_result], str | None]
+"""``check(name, path, st) -> why not | None``: who may own a channel file this process opens (see
+:func:`set_open_check`)."""
+
+_open_check: OpenCheck | None = None
+
+
+def set_open_check(check: OpenCheck | None) -> None:
+    """Install the ownership rule every channel open applies (after the file is known to be a regular file).
+
+    This layer knows channel files, not who the robot's users are: ``mds_ach.robot.access`` installs its client
+    rule (owned by root, this user or the stack's user) when the package is imported, so every client -- the
+    CLI tools, the legacy ``import mds_ach as mds`` API, the examples -- refuses a file another user planted."""
+    global _open_check
+    _open_check = check
+
+
+_KINDS = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISDIR, "a directory"), (stat.S_ISSOCK, "a socket"),
+          (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"))
+
+
+def open_channel_file(name: str, path: str) -> int:
+    """Open the channel file ``path`` read-write and return the descriptor, refusing what a channel never is.
+
+    ``O_NOFOLLOW``: a symbolic link at the channel's path is refused, never followed (another user can plant a
+    link in ``/dev/shm`` to a file of theirs: a client would then read their data and write into it).
+    ``O_NONBLOCK`` then ``fstat``: a FIFO (or anything but a regular file) is refused instead of blocking the open
+    or failing later with a traceback. Then the installed ownership rule (:func:`set_open_check`)."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CLOEXEC | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as exc:
+        raise os_error(exc, name, path) from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = next((what for test, what in _KINDS if test(st.st_mode)), "not a regular file")
+            raise AchException(ACH_BAD_SHM_FILE, f"{path} is {kind}, not a channel file", channel=name)
+        os.set_blocking(fd, True)
+        why = _open_check(name, path, st) if _open_check is not None else None
+        if why is not None:
+            raise AchException(ACH_EACCES, why, channel=name)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
 def os_error(exc: OSError, name: str, path: str) -> AchException:
     if exc.errno == errno.ENOENT:
         return AchException(ACH_ENOENT, path, channel=name)
+    if exc.errno == errno.ELOOP:
+        return AchException(ACH_BAD_SHM_FILE, f"{path} is a symbolic link: a channel is never opened through one "
+                             "(another user may have planted it); remove it (mds-ach repair --recreate "
+                             f"{name})", channel=name)
+    if exc.errno == errno.EISDIR:
+        return AchException(ACH_BAD_SHM_FILE, f"{path} is a directory, not a channel file", channel=name)
     if exc.errno in (errno.EACCES, errno.EPERM):
         return AchException(ACH_EACCES, f"{path}: {exc.strerror}", channel=name)
     if exc.errno == errno.EEXIST:

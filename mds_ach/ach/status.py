@@ -58,7 +58,7 @@ _EXPLANATIONS = {
     ACH_OK: "success",
     ACH_OVERFLOW: "frame does not fit (buffer too small for the frame, or frame larger than the channel)",
     ACH_INVALID_NAME: "invalid channel name (1-63 characters of [A-Za-z0-9_.-], not starting with '.')",
-    ACH_BAD_SHM_FILE: "not an Ach channel file (bad magic number or too short)",
+    ACH_BAD_SHM_FILE: "not an Ach channel file (a link, a FIFO, a directory, a bad magic number or too short)",
     ACH_FAILED_SYSCALL: "a system call failed",
     ACH_EAGAIN: "no new frame (stale frames), or the channel lock was busy (ACH_LOCKED)",
     ACH_MISSED_FRAME: "frames were skipped",

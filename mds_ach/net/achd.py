@@ -49,6 +49,7 @@ from mds_ach import ach
 from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
 from mds_ach.net.peeruid import peer_uid
+from mds_ach.ratelog import RateLimitedLog, logger_fn
 from mds_ach.robot import contracts
 from mds_ach.robot.msgs import MDS_HOLD, MDS_JOINT_COUNT, MDS_REF
 from mds_ach.robot.msgs.hold import check_cancel
@@ -331,6 +332,9 @@ class _ChannelWatch(ReplacementCheck):
             raise ConnectionLostError(f"channel {self.chan.name} was removed or re-created")
 
 
+_DROP_LOG = RateLimitedLog(logger_fn(log))
+
+
 def _count_drop(stats: LinkStats, problem: tuple[str, str], what: str) -> None:
     kind, reason = problem
     if kind == "size":
@@ -340,8 +344,9 @@ def _count_drop(stats: LinkStats, problem: tuple[str, str], what: str) -> None:
         stats.dropped_invalid += 1
         n = stats.dropped_invalid
     stats.last_drop = f"{kind}: {reason}"
-    if n == 1 or n % 100 == 0:  # the first, then every 100th: a flood must not flood the log
-        log.warning("%s (%s #%d): %s", what, kind, n, reason)
+    # A flood must not flood the log: one line per change of kind per link, repeats counted (the exact counts
+    # are in the link's stats).
+    _DROP_LOG(f"{what}@{id(stats):x}", f"{what} ({kind} #{n}): {reason}", kind=kind)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -23,6 +23,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -34,6 +35,7 @@ from pathlib import Path
 
 import mds_ach as mds
 from mds_ach import procs as background
+from mds_ach.argtypes import bounded, port, seconds
 from mds_ach.net import achd
 from mds_ach.net import protocol as ap
 from mds_ach.paths import runtime_dir
@@ -81,6 +83,25 @@ def free_local_port() -> int:
         return s.getsockname()[1]
 
 
+_HOST = re.compile(r"[A-Za-z0-9_.:%\[\]-]{1,253}")
+_USER = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,31}")
+
+
+def destination_problem(destination: str, *, ssh: bool) -> str | None:
+    """Why ``destination`` (HOST, or USER@HOST with ``ssh``) is not one, or None. A host starting with '-' would
+    be read by ssh as an option (``-oProxyCommand=...`` runs a command): refused here, and the tunnel passes
+    ``--`` before the destination as well."""
+    user, at, host = destination.rpartition("@")
+    if ssh and (not at or not _USER.fullmatch(user)):
+        return f"--ssh wants USER@HOST (user: letters, digits, '_', '.', '-'), got {destination[:80]!r}"
+    if not ssh and at:
+        return f"HOST {destination[:80]!r} has a user: give it as --ssh USER@HOST"
+    if host.startswith("-") or not _HOST.fullmatch(host):
+        return (f"invalid host {host[:80]!r}: a name or address of at most 253 letters, digits, '.', '-', ':' "
+                "(and not starting with '-')")
+    return None
+
+
 class SshTunnel:
     """``ssh -N -L 127.0.0.1:LOCAL:127.0.0.1:REMOTE user@host``, restarted whenever it exits.
 
@@ -100,8 +121,9 @@ class SshTunnel:
         options: tuple[str, ...] = (),
         ssh: str = "ssh",
     ) -> None:
-        if "@" not in destination or destination.startswith("-"):
-            raise ValueError(f"--ssh wants USER@HOST, got {destination!r}")
+        problem = destination_problem(destination, ssh=True)
+        if problem:
+            raise ValueError(problem)
         self.destination = destination
         self.remote_port = remote_port
         self.identity = identity
@@ -448,22 +470,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("target", nargs="?", metavar="HOST|serve|kill|status",
                    help="robot host to connect to, or serve (robot side), kill, status")
-    p.add_argument("--port", type=int, default=ap.ACHD_PORT, help="achd TCP port (default 8076)")
+    p.add_argument("--port", type=port(), default=ap.ACHD_PORT, help="achd TCP port (default 8076)")
     p.add_argument("--ssh", metavar="USER@HOST", help="secure mode: carry every stream through an SSH tunnel")
     p.add_argument("--ssh-identity", metavar="FILE", help="private key for --ssh (pre-shared key)")
     p.add_argument("--ssh-known-hosts", metavar="FILE", help="known_hosts holding the robot's host key")
-    p.add_argument("--ssh-port", type=int, help="sshd port on the robot (default 22)")
+    p.add_argument("--ssh-port", type=port(), help="sshd port on the robot (default 22)")
     p.add_argument("--ssh-option", action="append", metavar="OPT", help="extra ssh -o option (repeatable)")
     p.add_argument("--state-transport", choices=ap.TRANSPORTS,
                    help="transport of mds-state (default udp; tcp with --ssh)")
-    p.add_argument("--state-period-ms", type=float, default=0.0, help="send mds-state at most this often")
+    p.add_argument("--state-period-ms", type=bounded(0.0, 60_000.0, unit="ms"), default=0.0,
+                   help="send mds-state at most this often")
     p.add_argument("--ref-channel", default=mds.MDS_CHAN_REF_FILTER_NAME,
                    help="local channel whose references are pushed (default mds-ref-filter)")
     p.add_argument("--remote-ref-channel", default=mds.MDS_CHAN_REF_FILTER_NAME,
                    help="robot channel receiving them (default mds-ref-filter, the mux's default input)")
     p.add_argument("--with-ik", action="store_true", help="also push mds-ik (IK requests)")
-    p.add_argument("--dead-after", type=float, default=5.0, help="seconds of silence before a link is redone")
-    p.add_argument("--wait", type=float, default=15.0, help="seconds to wait for every link at start")
+    p.add_argument("--dead-after", type=seconds(), default=5.0, help="seconds of silence before a link is redone")
+    p.add_argument("--wait", type=seconds(), default=15.0, help="seconds to wait for every link at start")
     p.add_argument("--foreground", action="store_true", help="stay in the foreground (Ctrl-C stops)")
     p.add_argument("--bind", action="append", metavar="ADDR", help="serve: listen address (default 127.0.0.1)")
     p.add_argument("--allow-write", action="append", metavar="CHAN",
@@ -478,10 +501,14 @@ def _check(args: argparse.Namespace) -> str | None:
     """A usage problem, or None."""
     if args.state_transport == "udp" and args.ssh:
         return "UDP cannot pass an SSH tunnel; leave --state-transport out (tcp) with --ssh"
-    if not 0 < args.port < 65536:
-        return f"port {args.port} outside 1..65535"
-    if args.state_period_ms < 0 or args.dead_after <= 0:
-        return "--state-period-ms must be >= 0 and --dead-after > 0"
+    if args.ssh:
+        problem = destination_problem(args.ssh, ssh=True)
+        if problem:
+            return problem
+    elif args.target not in (None, "serve", "kill", "status"):
+        problem = destination_problem(args.target, ssh=False)
+        if problem:
+            return problem
     for name in (args.ref_channel, args.remote_ref_channel):
         if not ap.valid_channel_name(name):
             return f"invalid channel name {name!r}"

@@ -110,6 +110,7 @@ from mds_ach.nodes.pipeline import (
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.nodes.status_msgs import COLLISION_TOPIC, collision_state_msg, json_alias
+from mds_ach.ratelog import RateLimitedLog
 from mds_ach.robot import lifecycle
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
@@ -793,6 +794,9 @@ class GateRunner:
         self.config = config
         self.lower, self.upper = lower, upper
         self.log = log or (lambda level, msg: print(f"[collision] {level}: {msg}", flush=True))
+        # One line per change of what is refused, and an input alternating at the frame rate still cannot flood
+        # the log (mds_ach.ratelog); refused_count counts every refused reference.
+        self.refusals = RateLimitedLog(self.log)
         self.on_report = on_report
         self.sources = tuple(sources)
         self._stop = threading.Event()
@@ -878,6 +882,7 @@ class GateRunner:
                         self.log("error", f"EXPERT OVERRIDE passed a predicted collision: "
                                           f"{sorted(decision.result.pairs)}")
                         last_override_log = now
+                self.refusals.tick()
                 reported = frame is not None
                 if not reported and now - gate.last_report >= report_period:
                     guard.call(collide.name, collide.put, gate.report(now))
@@ -896,7 +901,8 @@ class GateRunner:
         """One message per change of what is refused (not one per reference: a refusal lasts while the input
         does), with the values and the limits they broke."""
         if not refused:
-            self.log("info", f"references for {labels(before)} accepted again ({self.refused_count} refused so far)")
+            self.refusals("refusal", f"references for {labels(before)} accepted again ({self.refused_count} refused "
+                                     f"so far)", kind=refused, level="info")
             return
         ref, mode = ref_arrays(frame)
         why = []
@@ -908,8 +914,8 @@ class GateRunner:
                 why.append(f"{labels([a])}: non-finite {value}")
             else:
                 why.append(f"{labels([a])}: {value:.5f} rad outside [{lo:.5f}, {hi:.5f}]")
-        self.log("error", f"refusing references (held at their last value until the input is valid again): "
-                          f"{'; '.join(why)}")
+        self.refusals("refusal", f"refusing references (held at their last value until the input is valid again): "
+                                 f"{'; '.join(why)}", kind=refused, level="error")
 
     def _cancel(self, hold_ch: StructChannel[MDS_HOLD], guard: ChannelGuard, arm: str, ref: np.ndarray, pair: str,
                 now: float) -> None:
@@ -960,7 +966,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="gate YAML (default: the package's config/collision.yaml)")
     p.add_argument("--world", help="world objects YAML (default: the package's config/world.yaml)")
     p.add_argument("--urdf", help="robot URDF (default: the package's urdf/mds.urdf)")
-    p.add_argument("--margin", type=float, help="minimum clearance in m (overrides the config)")
+    p.add_argument("--margin", type=find(PARAMETERS, "margin").arg_type(),
+                   help="minimum clearance in m (overrides the config)")
     return p
 
 

@@ -80,6 +80,7 @@ from mds_ach.bus.mcb import Response, StateArg
 from mds_ach.kinematics import limits as effective_limits
 from mds_ach.kinematics.limits import EffectiveLimits
 from mds_ach.nodes import filters
+from mds_ach.ratelog import RateLimitedLog, logger_fn
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import contracts, motion
 from mds_ach.robot.channels import StructChannel
@@ -408,7 +409,7 @@ class DaemonLoop:
         self._warned: set[str] = set()
         self._ref_unreadable = False  # the last read of mds-ref-gated failed (e.g. left corrupt by a dead writer)
         self._writers = SecondWriterCheck(channels.ref, channels.collide)
-        self._last_warn: dict[str, float] = {}
+        self._warnings = RateLimitedLog(logger_fn(log))  # repeats counted, summarized every 5 s
         self._answered: set[int] = set()
         self._first_reply: dict[int, tuple[float, float]] = {}  # address -> (q, t) of its first reply to the query
         self.start_time = clock()
@@ -1172,8 +1173,6 @@ class DaemonLoop:
             log.warning(text)
 
     def _warn_rate(self, key: str, text: str, every: float = 5.0) -> None:
-        """At most one warning per ``every`` seconds per key (a flood must not stall the loop)."""
-        now = time.monotonic()
-        if now - self._last_warn.get(key, -math.inf) >= every:
-            self._last_warn[key] = now
-            log.warning(text)
+        """At most one warning per ``every`` seconds per key, the repeats counted in it (a flood must neither
+        stall the loop nor fill the log: mds_ach.ratelog)."""
+        self._warnings(key, text, every=every)

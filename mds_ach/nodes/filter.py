@@ -64,6 +64,7 @@ from mds_ach.nodes.pipeline import (
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.paths import config_path
+from mds_ach.ratelog import RateLimitedLog
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
 
@@ -331,6 +332,7 @@ class FilterRunner:
                  sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
         self.params = params
         self.log = log or (lambda level, msg: print(f"[filter] {level}: {msg}", flush=True))
+        self.ignored = RateLimitedLog(self.log)  # a bad input can repeat every cycle: one line per change
         self.sources = tuple(sources)
         self._stop = threading.Event()
         self.ready = threading.Event()
@@ -368,7 +370,8 @@ class FilterRunner:
                 if frame is not None:
                     problem = core.set_target(*ref_arrays(frame))
                     if problem:
-                        self.log("warn", problem)
+                        self.ignored("target", problem, kind=problem)
+                self.ignored.tick()
                 sent = guard.call(gate_out.name, gate_out.latest)
                 if sent is not None:
                     reference = ref_arrays(sent)[0]
@@ -415,7 +418,8 @@ def _build_parser() -> argparse.ArgumentParser:
         epilog="Example: ros2 run mds_ach filter --rate 50",
     )
     p.add_argument("--config", help="filter YAML (default: the package's config/filter.yaml)")
-    p.add_argument("--rate", type=float, help="loop rate in Hz (overrides the config; default 40)")
+    p.add_argument("--rate", type=find(PARAMETERS, "rate").arg_type(),
+                   help="loop rate in Hz (overrides the config; default 40)")
     return p
 
 

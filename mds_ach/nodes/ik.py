@@ -51,7 +51,7 @@ from mds_ach.kinematics.collision import check_world_file, load_model
 from mds_ach.kinematics.limits import current_limits
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import current_reference, make_ref
-from mds_ach.nodes.rosnode import Param, declare, ros_log, run_node, start_worker
+from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.nodes.status_msgs import ik_status_msg, json_alias
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
@@ -388,11 +388,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--output", default=mds.MDS_CHAN_REF_IK_NAME,
                    help="channel for the solutions (default: mds-ref-ik; mds-ref-filter without the mux)")
-    p.add_argument("--tolerance", type=float, default=ik.DEFAULT_TOLERANCE,
+    p.add_argument("--tolerance",
+                   type=find(PARAMETERS, "tolerance").arg_type(), default=ik.DEFAULT_TOLERANCE,
                    help="position tolerance in m (default 0.001); angles must be within 0.01 rad, checked separately")
-    p.add_argument("--max-iterations", type=int, default=ik.DEFAULT_ITERATIONS,
+    p.add_argument("--max-iterations",
+                   type=find(PARAMETERS, "max_iterations").arg_type(), default=ik.DEFAULT_ITERATIONS,
                    help="iteration cap per request (default 1000)")
-    p.add_argument("--timeout", type=float, default=2.0, help="cap on one solve in s (default 2)")
+    p.add_argument("--timeout",
+                   type=find(PARAMETERS, "timeout").arg_type(), default=2.0, help="cap on one solve in s (default 2)")
     p.add_argument("--no-collision-check", action="store_true",
                    help="do not collision-check IK candidates (the collision gate still checks every reference)")
     p.add_argument("--robot", help="robot whose joint table narrows the limits (default: MDS_ROBOT or 'default')")

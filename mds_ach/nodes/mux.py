@@ -66,6 +66,7 @@ from mds_ach.nodes.pipeline import (
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.nodes.status_msgs import MUX_STATE_TOPIC, json_alias, mux_state_msg
 from mds_ach.paths import config_path
+from mds_ach.ratelog import EVERY_S, RateLimitedLog
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
 from mds_ach.robot.msgs.hold import HOLD_ACTIONS, HOLD_HOLD, HOLD_RESUME, MDS_HOLD, check_cancel, check_hold
@@ -232,6 +233,11 @@ class MuxCore:
         if verdict in (VERDICT_OWNED, VERDICT_NOT_PERMITTED, VERDICT_INVALID):
             self.refused[index] += 1
             self.dirty = True
+
+    def refusal_kind(self, index: int) -> tuple[int, int, int]:
+        """What controller ``index``'s newest verdict refused, without the values: (verdict, blocker, joint). A
+        refusal log writes one line per change of it (mds_ach.ratelog)."""
+        return int(self.verdict[index]), int(self.blocker[index]), int(self.blocked_joint[index])
 
     def update(self, index: int, ref: np.ndarray, mode: np.ndarray, now: float) -> tuple[bool, str | None]:
         """Apply one frame of controller ``index``. Returns (output changed, refusal message or None).
@@ -430,10 +436,14 @@ class MuxRunner:
                  log: Callable[[str, str], None] | None = None,
                  on_state: Callable[[MDS_MUX_STATE], None] | None = None,
                  output: str = mds.MDS_CHAN_REF_MUX_NAME,
-                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
+                 log_every: float = EVERY_S) -> None:
         self.controllers = list(controllers)
         self.state_period = 1.0 / state_rate
         self.log = log or (lambda level, msg: print(f"[mux] {level}: {msg}", flush=True))
+        # A refused frame can repeat at the writer's rate: one line per change of reason, repeats counted
+        # (the exact count per controller is `refused` in mds-mux-state).
+        self.refusals = RateLimitedLog(self.log, every=log_every)
         self.on_state = on_state
         self.output_name = output
         self.sources = tuple(sources)
@@ -553,7 +563,8 @@ class MuxRunner:
                 else:
                     changed, problem = core.update(index, *ref_arrays(frame), t)
                     if problem:
-                        self.log("error", problem)
+                        self.refusals(self.controllers[index].name, problem, kind=core.refusal_kind(index),
+                                      level="error")
                 if changed:
                     out.put(make_ref(core.ref, core.mode))
                     self.published += 1
@@ -563,6 +574,7 @@ class MuxRunner:
                     continue
             now = time.monotonic()
             if now >= next_state:
+                self.refusals.tick()
                 core.release_stale(now)
                 seq += 1
                 st = core.state(now, seq)

@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
+from mds_ach.argtypes import bounded
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import access as channel_access
 
@@ -71,6 +72,12 @@ class Param:
             else:
                 desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
         return desc
+
+    def arg_type(self) -> Callable[[str], float]:
+        """The argparse ``type`` of the option that sets this parameter: the same range (mds_ach.argtypes), so a
+        value ROS would refuse is a usage error on the command line too (not a traceback, not a silent nan)."""
+        assert self.range is not None and self.type_name in ("integer", "double"), self.name
+        return bounded(*self.range, integer=self.type_name == "integer")
 
     def doc_default(self) -> str:
         if self.default_doc is not None:

@@ -15,8 +15,16 @@ So the stack (``mds-ach make``/``start``, the daemon and the pipeline nodes) acc
 * when a group is configured (``mds-ach make --group``), it belongs to that group.
 
 A refused file is re-created by ``mds-ach repair --recreate NAME`` (as root when another user owns it: the
-sticky bit keeps the stack's user from removing it). Operator clients (console, read, examples) do not check
-ownership: they run as other users, and the stack, not the client, is the safety boundary.
+sticky bit keeps the stack's user from removing it).
+
+Operator clients (console, read, hold, examples, the legacy API) run as other users, so they cannot demand the
+stack's rules of ownership and mode; but they must not read or write a file a third user planted either (it
+would show them that user's data and take their commands). Every channel open -- client or node -- therefore
+refuses a symbolic link (``O_NOFOLLOW``) and anything but a regular file (``mds_ach.ach.files``), and a client
+refuses a file owned by anyone but root, itself or the stack's user (:func:`client_problem`, installed in the
+``ach`` layer when ``mds_ach`` is imported). The stack's user, as a client sees it, is the owner of the daemon's
+input ``mds-ref-gated`` when that is a regular file with the daemon input's mode (0640 or narrower): only the
+stack creates it, and the stack refuses to start on one another user planted.
 """
 
 from __future__ import annotations
@@ -96,6 +104,39 @@ def problem(name: str, st: os.stat_result, mode: int = CHANNEL_MODE, gid: int | 
     if gid is not None and st.st_gid != gid:
         return f"{ach.shm_path(name)} belongs to group {st.st_gid}, not to the configured group {gid}"
     return None
+
+
+def stack_owner() -> int | None:
+    """The stack's user as a client sees it: the owner of the daemon's input (module docstring), or None when
+    there is no such file (no stack made its channels here)."""
+    try:
+        st = os.lstat(ach.shm_path(DAEMON_INPUT))
+    except OSError:
+        return None
+    if not stat.S_ISREG(st.st_mode) or st.st_mode & 0o777 & ~channel_mode(DAEMON_INPUT):
+        return None
+    return st.st_uid
+
+
+def client_problem(name: str, path: str, st: os.stat_result) -> str | None:
+    """Why a client must not use channel ``name`` (file status ``st``), or None: it must be owned by root, this
+    user or the stack's user (:func:`stack_owner`). The rule every channel open applies (``ach.set_open_check``);
+    a node of the stack (:func:`enforce_in_this_process`) applies the stricter :func:`require_trusted` instead."""
+    if _enforced or st.st_uid in trusted_owners():
+        return None
+    stack = stack_owner()
+    if st.st_uid == stack:
+        return None
+    who = f"the stack's user ({_user(stack)}, owner of {DAEMON_INPUT})" if stack is not None else \
+        f"the stack's user (unknown: no {DAEMON_INPUT})"
+    return (f"refused: {path} is owned by {_user(st.st_uid)}, neither you ({_user(os.geteuid())}), "
+            f"root nor {who}: another user created it and would see what you write and choose what you read; "
+            f"{recreate_hint(name)}")
+
+
+def install_client_rule() -> None:
+    """Make every channel this process opens pass :func:`client_problem` (called once by ``mds_ach``)."""
+    ach.set_open_check(client_problem)
 
 
 def path_problem(name: str, mode: int = CHANNEL_MODE, gid: int | None = None) -> str | None:

@@ -15,6 +15,7 @@ Imports: :mod:`mds_ach.paths` only.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -23,6 +24,21 @@ from mds_ach.paths import config_path
 CONFIG_DIR_ENV = "MDS_ACH_CONFIG_DIR"
 ROBOT_ENV = "MDS_ACH_ROBOT"
 DEFAULT_ROBOT = "default"
+
+
+ROBOT_NAME_MAX = 64
+"""The longest robot name: a name is one word (a file stem under config/robots, an anatomy in /etc/mds-ach)."""
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be a robot's name (length, characters), or None; whether it exists is checked later
+    (``available_robots``, ``config.robot_name``)."""
+    if len(name) > ROBOT_NAME_MAX:
+        return f"a robot name has at most {ROBOT_NAME_MAX} characters (got {len(name)})"
+    if not _NAME.fullmatch(name.strip()):
+        return f"invalid robot name {name!r}: letters, digits, '_', '.' and '-', starting with a letter or digit"
+    return None
 
 
 def available_robots(config_dir: Path | None = None) -> tuple[str, ...]:

@@ -14,6 +14,7 @@ from typing import Any
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.argtypes import seconds
 from mds_ach.robot import contracts
 from mds_ach.robot.channels import make_channels
 from mds_ach.robot.joints import BY_ADDRESS
@@ -43,6 +44,17 @@ def _err(verb: str, message: str) -> None:
 # --- make -------------------------------------------------------------------------------------------
 
 
+def _octal_mode(text: str) -> int:
+    """A file mode in octal, 0..0777 (whether it is allowed is ``check_configured_mode``'s: a clear message)."""
+    try:
+        mode = int(text, 8)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text[:20]!r} is not an octal mode such as 0660") from None
+    if not 0 <= mode <= 0o777:
+        raise argparse.ArgumentTypeError(f"{text[:20]} is out of range: give an octal mode 0..0777, such as 0660")
+    return mode
+
+
 def add_make_arguments(p: argparse.ArgumentParser) -> None:
     p.description = (f"Create every MDS channel ({', '.join(mds.ALL_CHANNELS)}) with {mds.CHANNEL_FRAME_COUNT} "
                      f"frames x {mds.CHANNEL_FRAME_SIZE} B, mode 0660 (the stack's user and the channels' group "
@@ -54,7 +66,7 @@ def add_make_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--group", metavar="GROUP", help="give the new channels to this group (name or gid) so its "
                                                     "members (operators) can run clients; existing channels must "
                                                     "belong to it")
-    p.add_argument("--mode", type=lambda s: int(s, 8), default=0o660, metavar="OCTAL",
+    p.add_argument("--mode", type=_octal_mode, default=0o660, metavar="OCTAL",
                    help="file mode of new channels (default 0660; it may only restrict 0660, e.g. 0600)")
     p.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
 
@@ -130,7 +142,7 @@ def add_dump_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-a", "--all", action="store_true", help="list every known joint, not only enabled/named ones")
     p.add_argument("--fields", action="store_true",
                    help="print every field of the struct by its C name (nested structs and arrays expanded)")
-    p.add_argument("--wait", type=float, metavar="SECONDS",
+    p.add_argument("--wait", type=seconds(zero=True), metavar="SECONDS",
                    help="if the channel is empty, wait up to SECONDS for a first frame")
 
 

@@ -69,6 +69,7 @@ from typing import Any
 import can
 import numpy as np
 
+from mds_ach.argtypes import bounded, count, seconds
 from mds_ach.bus import canio, mcb
 from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
 from mds_ach.kinematics import collision
@@ -614,9 +615,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot", help="robot variant of the joint table (default: $MDS_ACH_ROBOT, the saved choice, "
                                    "else 'default')")
     p.add_argument("--config", metavar="FILE", help="joint table YAML (default: the installed config/joints.yaml)")
-    p.add_argument("--rate", type=float, metavar="HZ",
+    p.add_argument("--rate", type=bounded(0.0, 10_000.0, above=True, unit="Hz"), metavar="HZ",
                    help="daemon loop rate (default: inferred from the broadcast position queries)")
-    p.add_argument("--stale-after", type=float, metavar="S",
+    p.add_argument("--stale-after", type=seconds(60.0), metavar="S",
                    help=f"reply gap after which a joint re-seeds (default {STALE_PERIODS:g} periods, as the daemon)")
     p.add_argument("--whole-run", action="store_true",
                    help="each log starts when the daemon started (its --can-log, or candump started before it): a "
@@ -625,9 +626,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--collisions", action="store_true",
                    help="also check every commanded pose with the collision gate's model (self and world)")
     p.add_argument("--world", metavar="FILE", help="world objects for --collisions (default: config/world.yaml)")
-    p.add_argument("--collision-margin", type=float, default=0.0, metavar="M",
+    p.add_argument("--collision-margin", type=bounded(0.0, 1.0, unit="m"), default=0.0, metavar="M",
                    help="clearance (m) below which a commanded pose counts as colliding (default 0: touching)")
-    p.add_argument("--max", type=int, default=0, metavar="N",
+    p.add_argument("--max", type=count(0, 1_000_000_000), default=0, metavar="N",
                    help="list at most N violations per file (default 0: all; the summary counts every one)")
 
 

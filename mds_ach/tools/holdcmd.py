@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mds_ach import ach
+from mds_ach.argtypes import seconds
 from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import JOINTS
 from mds_ach.robot.msgs import MDS_MUX_STATE
@@ -34,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("joints", nargs="*", metavar="JOINT",
                    help="joint names (LSP, LeftShoulderExt), left, right, arms or all (default: all)")
     p.add_argument("--reason", default="", help="why, for the mux's log")
-    p.add_argument("--timeout", type=float, default=lifecycle.ACK_TIMEOUT,
+    p.add_argument("--timeout", type=seconds(), default=lifecycle.ACK_TIMEOUT,
                    help="s to wait for the mux's acknowledgement (default %(default)s)")
 
 
@@ -47,8 +49,12 @@ def _run(args: argparse.Namespace, verb: str) -> int:
         print(f"mds-ach {verb}: {exc}", file=sys.stderr)
         return 2
     assert isinstance(cmd, Hold)
-    ack = lifecycle.request(cmd.action, cmd.addresses, source="mds-ach", reason=args.reason or f"mds-ach {verb}",
-                            timeout=args.timeout)
+    try:
+        ack = lifecycle.request(cmd.action, cmd.addresses, source="mds-ach",
+                                reason=args.reason or f"mds-ach {verb}", timeout=args.timeout)
+    except ach.AchException as exc:  # a channel missing, damaged, planted by another user, a FIFO...
+        print(f"mds-ach {verb}: nothing sent: {exc}", file=sys.stderr)
+        return 1
     if not ack.ok:
         print(f"mds-ach {verb}: {ack.message}", file=sys.stderr)
         return 1

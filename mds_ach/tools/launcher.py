@@ -26,11 +26,12 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach import procs as background
+from mds_ach.argtypes import seconds
 from mds_ach.kinematics.limits import current_limits, read_published
 from mds_ach.paths import bin_name, runtime_dir
 from mds_ach.robot import calibfiles, contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
-from mds_ach.robot.choice import effective_robot, save_robot
+from mds_ach.robot.choice import effective_robot, name_problem, save_robot
 from mds_ach.robot.config import ROBOT_ENV, XML_ROBOT, ConfigError, available_robots, describe, load
 from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
@@ -292,7 +293,7 @@ def start_node(name: str, args: Sequence[str] = (), rt: Path | None = None,
     rt = rt or runtime_dir()
     rt.mkdir(parents=True, exist_ok=True)
     proc = background.spawn_detached(node_command(name) + list(args), log_path(name, rt),
-                                     env=env if env is not None else child_env(), append=False,
+                                     env=env if env is not None else child_env(),
                                      die_with_parent=die_with_launcher)
     background.write_pid_file(pid_path(name, rt), proc.pid)
     return proc
@@ -760,7 +761,7 @@ def _add_nocan(p: argparse.ArgumentParser) -> None:
     p.add_argument("mode", nargs="?", choices=["nocan"],
                    help="'nocan': run on the simulated MDS bus instead of the CAN interface")
     p.add_argument("--nocan", dest="nocan_flag", action="store_true", help="same as the 'nocan' word")
-    p.add_argument("--timeout", type=float, default=DEFAULT_START_TIMEOUT,
+    p.add_argument("--timeout", type=seconds(), default=DEFAULT_START_TIMEOUT,
                    help=f"seconds to wait for the state channel to go live (default {DEFAULT_START_TIMEOUT:g})")
     p.add_argument("--group", metavar="GROUP",
                    help="give channels created now to this group (the operators'), like 'mds-ach make --group'; "
@@ -828,7 +829,7 @@ def run_run(args: argparse.Namespace) -> int:
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:
     p.description = "Stop the nodes: SIGTERM (clients and pipeline first, the daemon last), SIGKILL after a grace time."
-    p.add_argument("--grace", type=float, default=DEFAULT_STOP_GRACE,
+    p.add_argument("--grace", type=seconds(zero=True), default=DEFAULT_STOP_GRACE,
                    help=f"seconds to wait after SIGTERM before SIGKILL (default {DEFAULT_STOP_GRACE:g})")
     p.add_argument("nodes", nargs="*", metavar="NODE", help=f"only these nodes ({', '.join(NODES)})")
 
@@ -870,7 +871,7 @@ def add_status_arguments(p: argparse.ArgumentParser) -> None:
                      "one), the state rate, the daemon's loop rate and bus load, and the collision state. Exit "
                      "status 0 when every node runs and every channel is sound, 1 when a channel is damaged or "
                      "not to be trusted, 3 when a node is not running.")
-    p.add_argument("--window", type=float, default=1.0, help="seconds to measure the state rate (default 1)")
+    p.add_argument("--window", type=seconds(60.0), default=1.0, help="seconds to measure the state rate (default 1)")
 
 
 def run_status(args: argparse.Namespace) -> int:
@@ -884,7 +885,7 @@ def add_resetbus_arguments(p: argparse.ArgumentParser) -> None:
                      "system was started on (ip link set CHANNEL down / type can bitrate ... / up; or print those "
                      "commands when this user may not run them), then ask the daemon to re-open its bus: "
                      f"MDS_CMD_RESET_BUS on {mds.MDS_CHAN_BOARD_CMD_NAME}.")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the daemon's acknowledgement")
+    p.add_argument("--timeout", type=seconds(), default=5.0, help="seconds to wait for the daemon's acknowledgement")
     p.add_argument("--channel", help="SocketCAN link to restart (default: the one 'mds-ach start' brought up; none "
                                      "for the simulated bus or another interface)")
     p.add_argument("--no-link", action="store_true", help="only reset the daemon's side, not the link")
@@ -934,8 +935,24 @@ def add_changerobot_arguments(p: argparse.ArgumentParser) -> None:
                      "packaged robot variant whose joint table the daemon loads (in $MDS_ACH_CONFIG_DIR/robot, "
                      "default ~/.config/mds-ach/robot; $MDS_ACH_ROBOT overrides it). Restart the system for it to "
                      "take effect. An unknown name changes nothing (exit status 2).")
-    p.add_argument("robot", help=f"robot ({', '.join(available_robots())}) or, with /etc/mds-ach, a path to an "
-                                 "anatomy file")
+    p.add_argument("robot", type=_robot_argument,
+                   help=f"robot ({', '.join(available_robots())}) or, with /etc/mds-ach, a path to an anatomy file")
+
+
+PATH_MAX = 4096  # Linux: longer paths (or components over NAME_MAX) fail in every system call
+
+
+def _robot_argument(text: str) -> str:
+    """A robot name, or a path when it has a '/' or ends in .xml: checked for sense before any file access (a
+    5,000-character name traced back in stat)."""
+    if "/" in text or text.endswith(".xml"):
+        if len(text) > PATH_MAX or any(len(part) > 255 for part in text.split("/")) or "\0" in text:
+            raise argparse.ArgumentTypeError(f"path too long or invalid: {text[:80]!r}...")
+        return text
+    problem = name_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return text
 
 
 NO_CHANGE = "-- No Change to Robot --"  # the original's words for an unknown robot

@@ -48,6 +48,7 @@ from mds_ach.ach.layout import (
     OFF_INDEX_HEAD,
     entry_ok,
 )
+from mds_ach.argtypes import seconds
 from mds_ach.robot import access as channel_access
 
 LOCK_TIMEOUT = 1.0  # s: a healthy put or get holds the lock for microseconds
@@ -428,7 +429,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--check", action="store_true", help="only report; exit 1 if any channel needs a repair")
     p.add_argument("--recreate", action="store_true",
                    help="re-create the named channels empty instead of repairing in place (libach's remedy)")
-    p.add_argument("--timeout", type=float, default=LOCK_TIMEOUT,
+    p.add_argument("--timeout", type=seconds(), default=LOCK_TIMEOUT,
                    help=f"seconds to wait for a channel's lock (default {LOCK_TIMEOUT:g})")
     p.add_argument("-q", "--quiet", action="store_true", help="print only channels that are not ok")
 

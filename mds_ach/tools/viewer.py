@@ -38,6 +38,7 @@ import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach import procs as background
 from mds_ach.ach.watch import Latest
+from mds_ach.argtypes import bounded, count
 from mds_ach.kinematics import model as kin
 from mds_ach.kinematics.collision import CollisionModel, WorldObject, load_model
 from mds_ach.kinematics.collision import load_world as _load_world
@@ -749,12 +750,13 @@ def add_server_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default=DEFAULT_HOST, help=f"address to serve on (default {DEFAULT_HOST}, loopback)")
     parser.add_argument(
         "--port",
-        type=int,
+        type=count(0, 65535),
         default=DEFAULT_PORT,
         help=f"port (default {DEFAULT_PORT}; the next free one if taken; 0 picks any free port)",
     )
     parser.add_argument(
-        "--rate", type=float, default=DEFAULT_RATE_HZ, help=f"scene updates per second (default {DEFAULT_RATE_HZ:g})"
+        "--rate", type=bounded(0.0, 1000.0, above=True, unit="Hz"), default=DEFAULT_RATE_HZ,
+        help=f"scene updates per second (default {DEFAULT_RATE_HZ:g})",
     )
     parser.add_argument("--urdf", type=Path, default=None, help="robot model (default: the package's urdf/mds.urdf)")
     parser.add_argument("--world", type=Path, default=None, help="world objects YAML (default: config/world.yaml)")
