@@ -140,7 +140,10 @@ class Recorder:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            st = self._chan.latest()  # polled: a blocking wait could hang on a condvar wedged by a killed node
+            try:
+                st = self._chan.latest()  # polled: a blocking wait could hang on a condvar wedged by a killed node
+            except ach.AchException:  # a damaged mds-state: nothing to record until it is repaired (re-opened)
+                st = None
             if st is None:
                 time.sleep(0.005)
             else:
@@ -444,6 +447,67 @@ def test_writer_killed_inside_a_put_on_the_daemon_input(system: System) -> None:
             s.start_nodes(*stopped)
         s.moving()
         assert_no_jump(s.recorder.since(mark), "corrupt daemon input repaired")
+    finally:
+        s.heal()
+
+
+# An operator may write these channels; scribbled over, each killed a node (issue 25 item 7). -> the node that
+# reports it in its log.
+SCRIBBLED = {
+    mds.MDS_CHAN_REF_MUX_NAME: "mux",
+    mds.MDS_CHAN_MUX_STATE_NAME: "mux",
+    mds.MDS_CHAN_IK_NAME: "ik",
+    mds.MDS_CHAN_HOLD_NAME: "ik",
+    mds.MDS_CHAN_STATE_NAME: "bridge",
+}
+
+
+def scribble(name: str, offset: int = 16, count: int = 80) -> None:
+    """80 bytes over the header (name, frame count) of a channel: no handle can use it, and `mds-ach repair` can
+    only re-create it."""
+    fd = os.open(ach.shm_path(name), os.O_RDWR)
+    try:
+        os.pwrite(fd, b"X" * count, offset)
+    finally:
+        os.close(fd)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("channel", SCRIBBLED)
+def test_a_scribbled_channel_kills_no_node_and_repair_brings_it_back(system: System, channel: str) -> None:
+    """Every node lives through a channel whose header was overwritten: it reports the channel and the fix, holds,
+    and after `mds-ach repair` (which re-creates the file) it re-opens the channel and works again; no restart."""
+    from mds_ach.robot import lifecycle
+
+    s = system
+    s.moving()
+    pids = {n: s.pid(n) for n in ("daemon", *NODES)}
+    mark = s.recorder.mark()
+    reporter = SCRIBBLED[channel]
+    scribble(channel)
+    try:
+        wait_for(lambda: f"mds-ach repair {channel}" in s.log(reporter), 20,
+                 what=f"{reporter} to report the damaged {channel}")
+        time.sleep(1.0)  # the outage goes on for a while: nobody dies of it
+        assert {n: s.pid(n) for n in pids} == pids, f"a node died of the damaged {channel}"
+        check = s.cli("repair", "--check")
+        assert check.returncode == 1 and channel in check.stderr and "broken" in check.stderr, check.stderr
+        fixed = s.cli("repair", channel)
+        assert fixed.returncode == 0 and "re-created" in fixed.stdout, fixed.stdout + fixed.stderr
+        s.moving(timeout=20)  # the motion reaches the robot again, through the same processes
+        wait_for(lambda: f"channel {channel} works again" in s.log(reporter), 20,
+                 what=f"{reporter} to say {channel} works again")
+        if channel in (mds.MDS_CHAN_IK_NAME, mds.MDS_CHAN_HOLD_NAME, mds.MDS_CHAN_MUX_STATE_NAME):
+            assert_ik_answers(s)
+        if channel in (mds.MDS_CHAN_HOLD_NAME, mds.MDS_CHAN_MUX_STATE_NAME):  # the mux takes and answers requests
+            ack = bounded(lambda: lifecycle.request(lifecycle.HOLD_RESUME, source="test", reason="after repair"),
+                          30, "a RESUME through mds-hold")
+            assert ack.ok, ack.message
+        if channel == mds.MDS_CHAN_STATE_NAME:  # /joint_states flows again and a ROS command moves the robot
+            bounded(lambda: assert_bridge_commands_reach_the_robot(s), 60, "a ROS command through the bridge")
+        assert {n: s.pid(n) for n in pids} == pids, "a node was restarted"
+        assert_no_jump(s.recorder.since(mark), f"{channel} scribbled and repaired")
     finally:
         s.heal()
 

@@ -205,13 +205,13 @@ class SecondWriterCheck:
     re-created or repaired (its sequence numbers start again) starts a new count."""
 
     def __init__(self, ref: StructChannel, collide: StructChannel) -> None:
-        self._ref, self._collide = ref.channel, collide.channel
+        self._ref, self._collide = ref, collide  # StructChannels: .channel changes when a re-created file is re-opened
         self._last: tuple[int, int] | None = None
         self._carry = 0  # reports of the previous interval still without their reference (0 or 1)
 
     def poll(self) -> int:
         try:
-            now = (self._ref.last_seq, self._collide.last_seq)  # the reference first, as the loop reads them
+            now = (self._ref.channel.last_seq, self._collide.channel.last_seq)  # the reference first, as the loop reads
         except Exception:  # a broken channel is reported by the reads themselves
             return 0
         last, self._last = self._last, now

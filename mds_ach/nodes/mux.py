@@ -433,6 +433,10 @@ class MuxRunner:
         self._hold_ch: Any = None
         self._current: Any = None
         self._current_ref: np.ndarray | None = None
+        # The mux thread's channels (each reader thread has its own guard). No pause after an error: the thread
+        # blocks on its queue anyway, and a pause per frame would let the queue grow while a channel is damaged.
+        self._guard = ChannelGuard(self.log, self._stop, pause=0.0)
+        self._unsent = False  # the newest output could not be written (a damaged mds-ref-mux): write it again
         self.ready = threading.Event()
         self.published = 0
 
@@ -514,7 +518,7 @@ class MuxRunner:
 
     def _reference_now(self) -> np.ndarray | None:
         """The newest ``mds-ref-gated`` (what the daemon is sent): where a CANCEL without target leaves a joint."""
-        frame = self._current.latest()
+        frame = self._guard.call(self._current.name, self._current.latest)
         if frame is not None:
             self._current_ref = ref_arrays(frame)[0]
         return self._current_ref
@@ -538,29 +542,38 @@ class MuxRunner:
                     if problem:
                         self.log("error", problem)
                 if changed:
-                    out.put(make_ref(core.ref, core.mode))
-                    self.published += 1
+                    self._publish(core, out)
                 if core.dirty:  # a hold or a verdict: the filter and the requester hear it now
                     next_state = time.monotonic()
                 elif not self._queue.empty():
                     continue
             now = time.monotonic()
             if now >= next_state:
+                if self._unsent:  # mds-ref-mux was unwritable: try the newest merge again, once a state period
+                    self._publish(core, out)
                 core.release_stale(now)
                 seq += 1
                 st = core.state(now, seq)
-                state_ch.put(st)
+                self._guard.put(state_ch, st)  # a damaged mds-mux-state: the next period tries again
                 if self.on_state is not None:
                     self.on_state(st)
                 next_state = now + self.state_period
+
+    def _publish(self, core: MuxCore, out: Any) -> None:
+        """Write the merged reference. While ``mds-ref-mux`` is damaged the write fails (``ChannelGuard`` reports
+        it) and the filter downstream keeps smoothing to the last target it has; the loop writes the newest merge
+        again every state period until it gets through (after ``mds-ach repair``), so nothing the controllers sent
+        meanwhile is lost and the filter ramps to it."""
+        self._unsent = not self._guard.put(out, make_ref(core.ref, core.mode))
+        if not self._unsent:
+            self.published += 1
 
     def _reseed(self, core: MuxCore, out: Any, watch: ReseedWatch) -> None:
         """Restart the joints the daemon asks for (HOME, reset, resetbus) where they are, and publish that."""
         found = watch.poll()
         if found is not None:
             core.reseed(*found)
-            out.put(make_ref(core.ref, core.mode))
-            self.published += 1
+            self._publish(core, out)
             self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or resetbus)")
 
 
