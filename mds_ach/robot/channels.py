@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Generic, TypeVar
 
 import mds_ach as mds
@@ -152,8 +153,8 @@ class StructChannel(Generic[T]):
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            status, size = self._io(lambda ch, left=remaining: ch.get(self._buf, wait=True, last=True, timeout=left,
-                                                                      lock_timeout=lock_timeout))
+            status, size = self._io(partial(ach.Channel.get, buf=self._buf, wait=True, last=True,
+                                            timeout=remaining, lock_timeout=lock_timeout))
             if status in (ach.ACH_TIMEOUT, ach.ACH_CANCELED):
                 return None
             frame = self._frame(status, size)
@@ -220,7 +221,11 @@ class ChannelGuard:
 
     def put(self, channel: StructChannel[Any], frame: Any) -> bool:
         """``channel.put(frame)``; False (reported as ``call`` does) when the frame could not be written."""
-        return bool(self.call(channel.name, lambda: channel.put(frame) or True, default=False))
+        def put() -> bool:
+            channel.put(frame)
+            return True
+
+        return bool(self.call(channel.name, put, default=False))
 
     def failing(self, name: str) -> bool:
         """Did the newest call on channel ``name`` fail?"""
