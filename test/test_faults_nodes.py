@@ -32,7 +32,7 @@ from mds_ach import ach
 from mds_ach.bus import mcb
 from mds_ach.bus.mcb import StateArg
 from mds_ach.robot.channels import StructChannel, make_channels
-from mds_ach.robot.msgs import MDS_REF, MDS_STATE
+from mds_ach.robot.msgs import MDS_DAEMON_STATUS, MDS_REF, MDS_STATE
 from mds_ach.tools import launcher, repair
 
 # ============================================================================================ 3. the running system
@@ -459,7 +459,9 @@ SCRIBBLED = {
     mds.MDS_CHAN_IK_NAME: "ik",
     mds.MDS_CHAN_HOLD_NAME: "ik",
     mds.MDS_CHAN_STATE_NAME: "bridge",
+    mds.MDS_CHAN_BOARD_CMD_NAME: "daemon",  # the daemon lived through it already; it must read commands again
 }
+RECOVERED = {"daemon": "re-opened it, commands are read again"}  # the daemon logs its own way (no ChannelGuard)
 
 
 def scribble(name: str, offset: int = 16, count: int = 80) -> None:
@@ -496,14 +498,19 @@ def test_a_scribbled_channel_kills_no_node_and_repair_brings_it_back(system: Sys
         fixed = s.cli("repair", channel)
         assert fixed.returncode == 0 and "re-created" in fixed.stdout, fixed.stdout + fixed.stderr
         s.moving(timeout=20)  # the motion reaches the robot again, through the same processes
-        wait_for(lambda: f"channel {channel} works again" in s.log(reporter), 20,
-                 what=f"{reporter} to say {channel} works again")
+        again = RECOVERED.get(reporter, f"channel {channel} works again")
+        wait_for(lambda: again in s.log(reporter), 20, what=f"{reporter} to say {channel} works again")
         if channel in (mds.MDS_CHAN_IK_NAME, mds.MDS_CHAN_HOLD_NAME, mds.MDS_CHAN_MUX_STATE_NAME):
             assert_ik_answers(s)
         if channel in (mds.MDS_CHAN_HOLD_NAME, mds.MDS_CHAN_MUX_STATE_NAME):  # the mux takes and answers requests
             ack = bounded(lambda: lifecycle.request(lifecycle.HOLD_RESUME, source="test", reason="after repair"),
                           30, "a RESUME through mds-hold")
             assert ack.ok, ack.message
+        if channel == mds.MDS_CHAN_BOARD_CMD_NAME:  # a command is executed again (an unknown code: refused, harmless)
+            seq = launcher.send_command(99)
+            with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS) as status:
+                wait_for(lambda: (st := status.latest()) is not None and st.cmd_seq == seq, 10,
+                         what="the daemon to answer a command on the re-created mds-cmd")
         if channel == mds.MDS_CHAN_STATE_NAME:  # /joint_states flows again and a ROS command moves the robot
             bounded(lambda: assert_bridge_commands_reach_the_robot(s), 60, "a ROS command through the bridge")
         assert {n: s.pid(n) for n in pids} == pids, "a node was restarted"

@@ -31,6 +31,17 @@ from mds_ach.robot import contracts
 T = TypeVar("T", bound=ctypes.Structure)
 
 
+def replaced(channel: ach.Channel) -> bool:
+    """Does the channel's path name another file than the open handle maps (``mds-ach repair`` re-created a
+    channel whose header was damaged)? A missing file is not a replacement: the handle is all there is."""
+    try:
+        mapped = os.fstat(channel.fileno())
+        at_path = os.lstat(ach.shm_path(channel.name))
+    except (OSError, ach.AchException):
+        return False
+    return (mapped.st_dev, mapped.st_ino) != (at_path.st_dev, at_path.st_ino)
+
+
 class StructChannel(Generic[T]):
     """An Ach channel whose frames are instances of ``ctype``.
 
@@ -74,14 +85,8 @@ class StructChannel(Generic[T]):
         return channel
 
     def replaced(self) -> bool:
-        """Does the channel's path name another file than the open handle maps (``mds-ach repair`` re-created a
-        channel whose header was damaged)? A missing file is not a replacement: the handle is all there is."""
-        try:
-            mapped = os.fstat(self.channel.fileno())
-            at_path = os.lstat(ach.shm_path(self.name))
-        except (OSError, ach.AchException):
-            return False
-        return (mapped.st_dev, mapped.st_ino) != (at_path.st_dev, at_path.st_ino)
+        """Was the channel file re-created under this handle (``replaced``)?"""
+        return replaced(self.channel)
 
     def reopen(self) -> None:
         """Open the file now at the channel's path and drop the old handle (its reader position starts again:
