@@ -217,6 +217,7 @@ class BridgeNode(Node):
         self._running: dict[int, _Running] = {}  # by serial, in start order
         self._goal_ends: list[actions.Goal] = []  # goals that ended under the lock, told to the client after it
         self._frame: MDS_REF | None = None  # the bridge's reference, created on the first write
+        self._unsent = False  # state thread only: the newest frame could not be written (a damaged channel)
         self._late_rejections: list[tuple[str, str]] = []  # found on the state thread under the lock, logged after it
         # Lifecycle: commands get a serial; the state thread remembers which ones each write carried.
         self._controller = controller_for(self._ref_name)  # the bridge's name in the mux (config/mux.yaml)
@@ -339,13 +340,16 @@ class BridgeNode(Node):
             self._counters.frames += 1
             self._take_mux_news(news)
             ref = self._next_reference(state, now_ns * 1e-9)
+            if ref is None and self._unsent:  # the newest frame did not get through: write it again
+                ref = self._frame
             carried = self._carried
             feedback = self._follow_goals(now_ns * 1e-9, dict(zip(self._names, positions, strict=True)),
                                           dict(zip(self._names, velocities, strict=True)))
             late, self._late_rejections = self._late_rejections, []
         if ref is not None:
             self._writes.append(_Write(time.monotonic(), *carried))
-            if self._guard.put(self._ref_chan, ref):  # else reported; the next cycle writes the newest frame
+            self._unsent = not self._guard.put(self._ref_chan, ref)  # reported; the next cycle writes it again
+            if not self._unsent:
                 with self._lock:
                     self._counters.references_written += 1
         for topic, reason in late:

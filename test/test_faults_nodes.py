@@ -31,7 +31,7 @@ import mds_ach as mds
 from mds_ach import ach
 from mds_ach.bus import mcb
 from mds_ach.bus.mcb import StateArg
-from mds_ach.robot.channels import StructChannel, make_channels
+from mds_ach.robot.channels import StructChannel, make_channels, replaced
 from mds_ach.robot.msgs import MDS_DAEMON_STATUS, MDS_REF, MDS_STATE
 from mds_ach.tools import launcher, repair
 
@@ -104,6 +104,9 @@ class Driver:
                 self.puts += 1
             except ach.AchException:
                 self.errors += 1
+                if replaced(self.chan):  # `mds-ach repair` re-created it: a careful client re-opens it
+                    old, self.chan = self.chan, ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False)
+                    old.close()
             self.last_put = time.monotonic()
 
     @property
@@ -460,6 +463,9 @@ SCRIBBLED = {
     mds.MDS_CHAN_HOLD_NAME: "ik",
     mds.MDS_CHAN_STATE_NAME: "bridge",
     mds.MDS_CHAN_BOARD_CMD_NAME: "daemon",  # the daemon lived through it already; it must read commands again
+    mds.MDS_CHAN_REF_FILTER_NAME: "mux",  # a controller input
+    mds.MDS_CHAN_REF_SMOOTH_NAME: "filter",  # filter -> gate: the filter holds its output meanwhile
+    mds.MDS_CHAN_COLLIDE_NAME: "collision",  # gate -> daemon
 }
 RECOVERED = {"daemon": "re-opened it, commands are read again"}  # the daemon logs its own way (no ChannelGuard)
 

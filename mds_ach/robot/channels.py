@@ -200,7 +200,9 @@ class ChannelGuard:
     header make it unusable until ``mds-ach repair`` re-creates it (``StructChannel`` then re-opens it). A node
     that died on either would take the pipeline down with it. ``call`` returns ``default`` instead, logs the error
     at most every ``every`` seconds per channel with the fix, pauses ``pause`` s so a failing wait does not spin,
-    and logs once when the channel works again. Thread-safe: one guard may serve several threads.
+    and, after an outage it reported, logs once that the channel works again (a flapping channel, e.g. a lock that
+    times out now and then, gives at most one pair of lines per ``every`` s). Thread-safe: one guard may serve
+    several threads.
     """
 
     def __init__(self, log: Callable[[str, str], None], stop: threading.Event | None = None, every: float = 5.0,
@@ -212,6 +214,7 @@ class ChannelGuard:
         self._lock = threading.Lock()
         self._last: dict[str, float] = {}
         self._failing: dict[str, int] = {}  # channel -> errors since it last worked
+        self._reported: set[str] = set()  # channels whose current outage was logged
         self.errors = 0
 
     def call(self, name: str, fn: Callable[..., Any], *args: Any, default: Any = None, **kwargs: Any) -> Any:
@@ -244,6 +247,7 @@ class ChannelGuard:
             due = now - self._last.get(name, -float("inf")) >= self._every
             if due:
                 self._last[name] = now
+                self._reported.add(name)
         if due:
             locked = exc.status == ach.ACH_LOCKED
             fix = ("`mds-ach repair --check` names the process holding it" if locked
@@ -254,8 +258,9 @@ class ChannelGuard:
     def _recovered(self, name: str) -> None:
         with self._lock:
             errors = self._failing.pop(name, None)
-            self._last.pop(name, None)
-        if errors is not None:
+            reported = name in self._reported
+            self._reported.discard(name)
+        if errors is not None and reported:
             self._log("info", f"channel {name} works again (after {errors} failed call(s)); carrying on")
 
 
