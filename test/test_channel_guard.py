@@ -1,10 +1,13 @@
-"""Nodes keep running through a corrupt channel (a client died inside a put) and resume once it is repaired."""
+"""Nodes keep running through a corrupt or re-created channel (a client died inside a put, a scribbled header, a
+truncated file) and resume once it is repaired."""
 
 from __future__ import annotations
 
 import mmap
 import os
 import threading
+
+import pytest
 
 from mds_ach import ach
 from mds_ach.nodes.pipeline import ChannelGuard
@@ -60,7 +63,8 @@ def scribble_header(name: str, offset: int = 16, count: int = 80) -> None:
         os.close(fd)
 
 
-def test_a_re_created_channel_is_re_opened_and_the_guard_says_it_works_again(clean_shm) -> None:
+@pytest.mark.parametrize("damage", ["scribbled header", "truncated"])
+def test_a_re_created_channel_is_re_opened_and_the_guard_says_it_works_again(clean_shm, damage: str) -> None:
     from mds_ach.tools import repair
 
     ach.create("mds-ref-mux", 10, 3000)
@@ -70,7 +74,10 @@ def test_a_re_created_channel_is_re_opened_and_the_guard_says_it_works_again(cle
     guard = ChannelGuard(lambda level, msg: logged.append((level, msg)), threading.Event())
     try:
         writer.put(MDS_REF())
-        scribble_header("mds-ref-mux")
+        if damage == "truncated":
+            os.truncate(ach.shm_path("mds-ref-mux"), 4096)
+        else:
+            scribble_header("mds-ref-mux")
         assert guard.call(reader.name, reader.latest, default="held") == "held"
         assert not guard.put(writer, MDS_REF())
         assert guard.failing("mds-ref-mux")
