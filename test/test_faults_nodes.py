@@ -578,7 +578,12 @@ def assert_bridge_commands_reach_the_robot(s: System) -> None:
     from sensor_msgs.msg import JointState
 
     nky = TABLE["NKY"]
-    goal = nky.clamp(0.25 if s.recorder.last().ref[nky.address] < 0.1 else -0.05)
+    # A goal away from where NKY is and from the bridge's newest frame: a mux restarted since (heal) took that
+    # frame as already seen, so the same value again would not be a command.
+    with StructChannel(mds.MDS_CHAN_REF_ROS_NAME, MDS_REF) as ros:
+        newest = ros.latest()
+    before = [s.recorder.last().ref[nky.address], math.nan if newest is None else newest.joint[nky.address].ref]
+    goal = next(g for g in map(nky.clamp, (0.25, -0.05, 0.1)) if all(not abs(g - v) < 0.05 for v in before))
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node("fault_test_client", context=ctx)
