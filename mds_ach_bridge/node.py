@@ -50,9 +50,9 @@ from mds_ach.ach.glibc import tune_thread
 from mds_ach.kinematics.limits import current_limits, urdf_with_limits
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
-from mds_ach.nodes.rosnode import Param, declare
+from mds_ach.nodes.rosnode import Param, declare, ros_log
 from mds_ach.robot import joints, lifecycle
-from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
 from mds_ach_bridge import actions, follow, topics, trajectory
@@ -217,6 +217,7 @@ class BridgeNode(Node):
         self._running: dict[int, _Running] = {}  # by serial, in start order
         self._goal_ends: list[actions.Goal] = []  # goals that ended under the lock, told to the client after it
         self._frame: MDS_REF | None = None  # the bridge's reference, created on the first write
+        self._unsent = False  # state thread only: the newest frame could not be written (a damaged channel)
         self._late_rejections: list[tuple[str, str]] = []  # found on the state thread under the lock, logged after it
         # Lifecycle: commands get a serial; the state thread remembers which ones each write carried.
         self._controller = controller_for(self._ref_name)  # the bridge's name in the mux (config/mux.yaml)
@@ -261,6 +262,10 @@ class BridgeNode(Node):
         self._action_servers = actions.create_servers(self, self._on_goal, self._on_goal_cancel)
 
         self._stop = threading.Event()
+        # A damaged channel (a writer killed mid-put, a scribbled header) must not stop the bridge or its state
+        # thread: it reads as "nothing new" (the stall check then holds the trajectories), writes fail with a
+        # report, and StructChannel re-opens a file `mds-ach repair` re-created (docs/reliability.md §2).
+        self._guard = ChannelGuard(ros_log(self), self._stop)
         self._thread = threading.Thread(target=self._state_loop, name="mds-bridge-state", daemon=True)
         self._thread.start()
         self.get_logger().info(
@@ -306,7 +311,8 @@ class BridgeNode(Node):
         try:
             while not self._stop.is_set():
                 # The wait returns on every put; its timeout only paces the stall check.
-                state = self._state_chan.wait(timeout=max(0.01, min(0.25, self._stale_timeout / 4)))
+                state = self._guard.call(self._state_chan.name, self._state_chan.wait,
+                                         timeout=max(0.01, min(0.25, self._stale_timeout / 4)))
                 if state is None:
                     self._check_stall()
                     self._flush_cancels()
@@ -324,7 +330,8 @@ class BridgeNode(Node):
         js = [state.joint[a] for a in self._addresses]
         positions = [j.pos for j in js]
         velocities = self._velocity.update(state.time, positions)
-        news = self._mux.poll()  # what the mux did since the last cycle: before anything else is written
+        # What the mux did since the last cycle: before anything else is written.
+        news = self._guard.call(self._mux.states.name, self._mux.poll, default=MuxNews())
         # The reference first: it is one put, and a pending command should not wait for two publishes.
         with self._lock:
             was_stalled = self._stalled
@@ -333,15 +340,18 @@ class BridgeNode(Node):
             self._counters.frames += 1
             self._take_mux_news(news)
             ref = self._next_reference(state, now_ns * 1e-9)
+            if ref is None and self._unsent:  # the newest frame did not get through: write it again
+                ref = self._frame
             carried = self._carried
             feedback = self._follow_goals(now_ns * 1e-9, dict(zip(self._names, positions, strict=True)),
                                           dict(zip(self._names, velocities, strict=True)))
             late, self._late_rejections = self._late_rejections, []
         if ref is not None:
             self._writes.append(_Write(time.monotonic(), *carried))
-            self._ref_chan.put(ref)
-            with self._lock:
-                self._counters.references_written += 1
+            self._unsent = not self._guard.put(self._ref_chan, ref)  # reported; the next cycle writes it again
+            if not self._unsent:
+                with self._lock:
+                    self._counters.references_written += 1
         for topic, reason in late:
             self._reject(topic, reason)
         self._emit()
@@ -439,7 +449,7 @@ class BridgeNode(Node):
         to mds-ref-filter); the mux output; and only without a mux the daemon's reference (state ref_r).
         Taken at the first write, not at start-up, so it is never an old pose.
         """
-        frame = self._ref_chan.latest()
+        frame = self._guard.call(self._ref_chan.name, self._ref_chan.latest)
         if frame is not None:
             return frame
         try:
@@ -648,7 +658,9 @@ class BridgeNode(Node):
         except CommandError as exc:
             self._reject(topic, str(exc))
             return
-        self._ik_chan.put(req)
+        if not self._guard.put(self._ik_chan, req):
+            self._reject(topic, f"{self._ik_name} cannot be written (damaged: `mds-ach repair {self._ik_name}`)")
+            return
         with self._lock:
             self._counters.accepted += 1
             self._counters.ik_forwarded += 1
@@ -777,7 +789,7 @@ class BridgeNode(Node):
             stopped = " and ".join(self._stop_all("hold requested on /mds/hold"))
         self._emit()
         self._flush_cancels()
-        ack = lifecycle.request(lifecycle.HOLD_HOLD, source=self._controller, reason="ROS /mds/hold")
+        ack = self._mux_request(lifecycle.HOLD_HOLD, "ROS /mds/hold")
         response.success = ack.ok
         if ack.ok and ack.state is not None:
             held = [a for a in range(mds.MDS_JOINT_COUNT) if ack.state.held[a] == MUX_HELD]
@@ -794,6 +806,15 @@ class BridgeNode(Node):
                               "message": response.message})
         return response
 
+    def _mux_request(self, action: int, reason: str) -> lifecycle.Ack:
+        """``lifecycle.request`` from a service callback: a damaged ``mds-hold`` or ``mds-mux-state`` is a failed
+        answer, never an exception (it would stop the executor, and the node with it)."""
+        try:
+            return lifecycle.request(action, source=self._controller, reason=reason)
+        except ach.AchException as exc:
+            fix = f"mds-ach repair {exc.channel}" if exc.channel else "mds-ach repair"
+            return lifecycle.Ack(0, False, f"{exc}; run `{fix}`")
+
     def _log_answer(self, service: str, ok: bool, message: str) -> None:
         if ok:
             self.get_logger().info(f"{service}: {message}")
@@ -803,7 +824,7 @@ class BridgeNode(Node):
     def _on_resume(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """/mds/resume: release held joints through the mux. A trajectory the bridge stopped is not restarted, and
         cancelled joints stay where they are until a new command."""
-        ack = lifecycle.request(lifecycle.HOLD_RESUME, source=self._controller, reason="ROS /mds/resume")
+        ack = self._mux_request(lifecycle.HOLD_RESUME, "ROS /mds/resume")
         response.success = ack.ok
         if ack.ok and ack.state is not None:
             still = [a for a in range(mds.MDS_JOINT_COUNT) if ack.state.held[a] != MUX_FREE]

@@ -883,3 +883,45 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
     assert "EXPERT OVERRIDE ON for 2.0 s" in out and "EXPERT OVERRIDE passed a predicted collision" in out
     assert "Traceback" not in out
 
+
+
+def test_the_runner_does_not_grow_with_the_references_it_gates(clean_shm: None, model) -> None:
+    """Issue 25 item 10: the node's memory grew while it gated (a list of decision times trimmed only at 10,000
+    entries, ~0.3 MB). After a warm-up, thousands more gated references leave the Python heap where it was (the
+    decision cache is capped at 512 configurations, ~0.1 MB, and is all that may still vary)."""
+    import tracemalloc
+
+    from mds_ach.robot.channels import StructChannel
+
+    lower, upper = joint_limits(model)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
+    runner = GateRunner(model, GateConfig(), lower, upper, log=lambda level, msg: None)
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    t = threading.Thread(target=runner.run, daemon=True)
+    tracemalloc.start()
+    try:
+        t.start()
+        assert runner.ready.wait(30)
+        step = [0]
+
+        def gate_until(count: int) -> None:
+            while runner.processed < count:  # a moving reference (newest wins: the gate takes what it can)
+                step[0] += 1
+                ref = HOME.copy()
+                ref[L] += 0.1 * np.sin(0.01 * step[0] + np.arange(len(L)))
+                ref[R] += 0.1 * np.sin(0.013 * step[0] + np.arange(len(R)))
+                smooth.put(make_ref(ref, ZERO_MODE))
+                time.sleep(0.0002)
+                assert t.is_alive()
+
+        gate_until(1000)
+        before = tracemalloc.get_traced_memory()[0]
+        gate_until(7000)
+        grown = tracemalloc.get_traced_memory()[0] - before
+        assert grown < 140_000, f"{grown / 1e3:.0f} kB more after 6,000 more gated references"
+    finally:
+        tracemalloc.stop()
+        runner.stop()
+        t.join(5)
+        smooth.close()
+    assert not t.is_alive()

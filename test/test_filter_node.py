@@ -300,3 +300,42 @@ def test_filter_node_streams_and_stops_cleanly(clean_shm: None, sig: int) -> Non
         out, _ = proc.communicate(timeout=15)
     assert proc.returncode == 0, out
     assert "Traceback" not in out, out
+
+
+def test_runner_holds_its_output_while_it_cannot_write_it_and_goes_on_without_a_step(clean_shm: None) -> None:
+    """mds-ref-smooth scribbled over (issue 25 item 7): the filter keeps running and holds its output where the gate
+    last saw it; after `mds-ach repair` re-created the channel it writes it again, one step from there."""
+    import os
+
+    from mds_ach import ach
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.tools import repair
+
+    current = _target(LSR=1.2, RSR=-1.18, LEP=-1.25, REP=-1.25)
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, current)
+    _put(mds.MDS_CHAN_REF_MUX_NAME, _target(LSR=1.2, RSR=-1.18, LEP=0.0, REP=-1.25))  # 1.25 rad away: 0.8 s
+    smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+    logged: list[str] = []
+    runner = FilterRunner(parse_config({"rate": 100}), log=lambda level, msg: logged.append(msg))
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    step = 1.57 / 100
+    try:
+        first = wait_for(smooth.next, 10, what="first smoothed frame")
+        before = [ref_arrays(f)[0][mds.LEP] for f in (first, *iter(smooth.next, None))]
+        fd = os.open(ach.shm_path(mds.MDS_CHAN_REF_SMOOTH_NAME), os.O_RDWR)
+        os.pwrite(fd, b"X" * 80, 16)
+        os.close(fd)
+        ticks = runner.ticks
+        wait_for(lambda: runner.ticks >= ticks + 30, 10, what="the filter to run on through the outage")
+        assert t.is_alive() and any(f"mds-ach repair {mds.MDS_CHAN_REF_SMOOTH_NAME}" in m for m in logged), logged
+        assert repair.repair(mds.MDS_CHAN_REF_SMOOTH_NAME).action == "re-created"
+        after = ref_arrays(wait_for(smooth.next, 10, what="a smoothed frame after the repair"))[0][mds.LEP]
+        # at most the frames put between the last read and the scribble, plus one step: not the 0.3 s it would have
+        # travelled meanwhile
+        assert before and 0 <= after - before[-1] <= 4 * step + 1e-9, (before[-3:], after)
+    finally:
+        runner.stop()
+        t.join(5)
+        smooth.close()
+    assert not t.is_alive()

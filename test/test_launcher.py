@@ -158,8 +158,8 @@ def _damage(how: str) -> None:
 
 @pytest.mark.parametrize(("how", "expected"), [
     ("corrupt", "mds-state: corrupt: a writer died inside a put .*; repair it in place: mds-ach repair mds-state$"),
-    ("truncated", "mds-state: broken: .*truncated.*; mds-ach repair mds-state re-creates it; then restart the nodes "
-                  "that use it$"),
+    ("truncated", "mds-state: broken: .*truncated.*; mds-ach repair mds-state re-creates it; the stack's nodes "
+                  "re-open it by themselves, restart any other process that uses it$"),
     ("not an Ach file", "mds-state: broken: ACH_BAD_SHM_FILE.*; mds-ach repair mds-state re-creates it"),
     ("wrong size", r"mds-state: exists as 16 x 512 B, expected 10 x 3000 B; remove it \(mds-ach rm mds-state\)"),
 ], ids=["corrupt", "truncated", "not-ach", "wrong-size"])

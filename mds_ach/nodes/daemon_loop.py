@@ -83,7 +83,7 @@ from mds_ach.nodes import filters
 from mds_ach.ratelog import RateLimitedLog, logger_fn
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import contracts, motion
-from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.channels import StructChannel, replaced
 from mds_ach.robot.config import JointConfig, JointTable
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_REF, MDS_STATE
@@ -204,10 +204,7 @@ class DaemonChannels:
         try:
             for key, name in DAEMON_ROLES.items():
                 if key == "cmd":  # raw: the loop counts and reports wrong-sized commands itself
-                    c = contracts.contract(name)
-                    opened[key] = ach.Channel(name, c.frame_count, c.frame_size, lock_timeout=lock_timeout)
-                    if channel_access.enforced():  # as StructChannel does for the others
-                        channel_access.require_trusted(opened[key])
+                    opened[key] = cls.open_raw(name, lock_timeout)
                 else:
                     opened[key] = StructChannel.of(name, lock_timeout=lock_timeout)
         except Exception:
@@ -215,6 +212,32 @@ class DaemonChannels:
                 ch.close()
             raise
         return cls(**opened)
+
+    @staticmethod
+    def open_raw(name: str, lock_timeout: float | None, create: bool = True) -> ach.Channel:
+        """A raw handle on channel ``name`` (its contract's geometry), trusted as ``StructChannel`` requires."""
+        c = contracts.contract(name)
+        channel = ach.Channel(name, c.frame_count, c.frame_size, create=create, lock_timeout=lock_timeout)
+        if channel_access.enforced():  # as StructChannel does for the others
+            try:
+                channel_access.require_trusted(channel)
+            except BaseException:
+                channel.close()
+                raise
+        return channel
+
+    def reopen_cmd(self) -> bool:
+        """Re-open ``mds-cmd`` if ``mds-ach repair`` re-created it (the StructChannels re-open themselves); True if
+        it did."""
+        if not replaced(self.cmd):
+            return False
+        try:
+            new = self.open_raw(self.cmd.name, self.cmd.lock_timeout, create=False)
+        except (ach.AchException, OSError, ValueError):
+            return False
+        old, self.cmd = self.cmd, new
+        old.close()
+        return True
 
     def close(self) -> None:
         for ch in (self.ref, self.state, self.collide, self.cmd, self.status, self.param, self.limits):
@@ -232,13 +255,13 @@ class SecondWriterCheck:
     re-created or repaired (its sequence numbers start again) starts a new count."""
 
     def __init__(self, ref: StructChannel, collide: StructChannel) -> None:
-        self._ref, self._collide = ref.channel, collide.channel
+        self._ref, self._collide = ref, collide  # StructChannels: .channel changes when a re-created file is re-opened
         self._last: tuple[int, int] | None = None
         self._carry = 0  # reports of the previous interval still without their reference (0 or 1)
 
     def poll(self) -> int:
         try:
-            now = (self._ref.last_seq, self._collide.last_seq)  # the reference first, as the loop reads them
+            now = (self._ref.channel.last_seq, self._collide.channel.last_seq)  # the reference first, as the loop reads
         except Exception:  # a broken channel is reported by the reads themselves
             return 0
         last, self._last = self._last, now
@@ -607,7 +630,10 @@ class DaemonLoop:
             try:
                 status, size = self.ch.cmd.get(self._cmd_buf)
             except ach.AchException as exc:
-                self._channel_error(mds.MDS_CHAN_BOARD_CMD_NAME, exc)
+                if self.ch.reopen_cmd():  # re-created by `mds-ach repair`: read the new file from the next cycle
+                    log.warning(f"{mds.MDS_CHAN_BOARD_CMD_NAME} was re-created: re-opened it, commands are read again")
+                else:
+                    self._channel_error(mds.MDS_CHAN_BOARD_CMD_NAME, exc)
                 return
             if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
                 return

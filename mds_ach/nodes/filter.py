@@ -269,6 +269,13 @@ class FilterCore:
         self.vel[addresses] = 0.0
         self.braking[addresses] = False
 
+    def stay(self, out: np.ndarray) -> None:
+        """The step just computed could not be published (a damaged output channel): go back to ``out``, the last
+        output downstream has, at rest. Targets stay, so once the channel works again the output ramps on from
+        there (acceleration-limited joints from rest) instead of jumping to where it would have got meanwhile."""
+        self.out = np.array(out, dtype=float)
+        self.vel[:] = 0.0
+
     def step(self, measured: np.ndarray | None = None) -> np.ndarray:
         """Advance one tick. ``measured``: mds-state joint[].pos for the enc_filter joints (None = unknown)."""
         p, out, tgt = self.p, self.out, self.target
@@ -359,7 +366,7 @@ class FilterRunner:
         measured: np.ndarray | None = None
         warned_state = False
         self.core = core
-        guard = ChannelGuard(self.log, self._stop)
+        guard = ChannelGuard(self.log, self._stop, pause=0.0)  # the schedule paces the loop
         watch = ReseedWatch(self.log, self._stop)
         try:
             self.log("info", f"started from {source} at {self.params.rate:g} Hz ({self.params.describe()})")
@@ -392,7 +399,9 @@ class FilterRunner:
                     elif measured is None and not warned_state:
                         self.log("warn", "enc_filter joints have no mds-state yet: using ema until it arrives")
                         warned_state = True
-                guard.call(out.name, out.put, make_ref(core.step(measured), core.out_mode()))
+                published = core.out.copy()
+                if not guard.put(out, make_ref(core.step(measured), core.out_mode())):
+                    core.stay(published)  # a damaged mds-ref-smooth: hold, so the gate sees no step after repair
                 self.ticks += 1
                 if not timer.wait(self._stop):
                     break

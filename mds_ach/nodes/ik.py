@@ -53,7 +53,7 @@ from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import current_reference, make_ref
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.nodes.status_msgs import ik_status_msg, json_alias
-from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
 from mds_ach.robot.msgs.ik_status import (
@@ -273,6 +273,7 @@ class IkRunner:
         self.ready = threading.Event()
         self.handled = 0
         self.watches: dict[int, _Watch] = {}  # arm -> its newest solved request, until it should have arrived
+        self._guard = ChannelGuard(self.log, self._stop)
 
     def stop(self) -> None:
         self._stop.set()
@@ -292,7 +293,9 @@ class IkRunner:
             self.log("info", f"waiting for requests on {mds.MDS_CHAN_IK_NAME}; solutions go to {self.config.output}")
             self.ready.set()
             while not self._stop.is_set():
-                request = requests.wait(timeout=0.05 if self.watches else 0.5)
+                # A damaged channel (a writer killed mid-put, a scribbled header) reads as "no request" until
+                # `mds-ach repair` fixed it; the guard says so and StructChannel re-opens a re-created file.
+                request = self._guard.call(requests.name, requests.wait, timeout=0.05 if self.watches else 0.5)
                 self._watch_stops(holds, status_ch)
                 if request is None:
                     continue
@@ -303,7 +306,7 @@ class IkRunner:
                     st = IkService._refuse(MDS_IK_STATUS(), IK_BAD_REQUEST, f"internal error: {exc!r}"[:79]).status
                     st.arm = -1
                 st.stamp = time.monotonic()
-                status_ch.put(st)
+                self._guard.put(status_ch, st)
                 self.handled += 1
                 self._report(st)
         finally:
@@ -317,7 +320,7 @@ class IkRunner:
         """Read every new ``mds-hold`` frame; a collision CANCEL of a watched arm gets its request a second
         answer (same seq): IK_STOPPED_AT_CONTACT with the gate's reason. Watches end when the arm should have
         arrived."""
-        while (hold := holds.next()) is not None:
+        while (hold := self._guard.call(holds.name, holds.next)) is not None:
             for arm, watch in list(self.watches.items()):
                 reason = stopped_at_contact(hold, watch)
                 if reason is None:
@@ -327,7 +330,7 @@ class IkRunner:
                 st.status = IK_STOPPED_AT_CONTACT
                 set_message(st, reason)
                 st.stamp = time.monotonic()
-                status_ch.put(st)
+                self._guard.put(status_ch, st)
                 self._report(st)
         now = time.monotonic()
         for arm in [a for a, w in self.watches.items() if now > w.until]:

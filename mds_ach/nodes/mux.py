@@ -88,9 +88,6 @@ from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
 )
 
 DEFAULT_STATE_RATE = 10.0
-REFUSAL_LOG_S = 5.0
-"""Refused hold requests are logged at most once per this many seconds (with the count since): a writer flooding
-``mds-hold`` must not flood the log. Every one is still answered on ``mds-mux-state``."""
 HOLD_INPUT = -1
 """Queue index of an ``mds-hold`` request (controller inputs are 0..n-1)."""
 
@@ -455,10 +452,13 @@ class MuxRunner:
         self._hold_ch: Any = None
         self._current: Any = None
         self._current_ref: np.ndarray | None = None
+        # The mux thread's channels (each reader thread has its own guard). No pause after an error: the thread
+        # blocks on its queue anyway, and a pause per frame would let the queue grow while a channel is damaged.
+        self._guard = ChannelGuard(self.log, self._stop, pause=0.0)
+        self._unsent = False  # the newest output could not be written (a damaged mds-ref-mux): write it again
         self.ready = threading.Event()
         self.published = 0
         self.hold_refusals = 0  # mds-hold requests refused since the start
-        self._refusal_logged = (-math.inf, 0)  # (when, hold_refusals then) of the last refusal logged
 
     def stop(self) -> None:
         self._stop.set()
@@ -538,7 +538,7 @@ class MuxRunner:
 
     def _reference_now(self) -> np.ndarray | None:
         """The newest ``mds-ref-gated`` (what the daemon is sent): where a CANCEL without target leaves a joint."""
-        frame = self._current.latest()
+        frame = self._guard.call(self._current.name, self._current.latest)
         if frame is not None:
             self._current_ref = ref_arrays(frame)[0]
         return self._current_ref
@@ -566,8 +566,7 @@ class MuxRunner:
                         self.refusals(self.controllers[index].name, problem, kind=core.refusal_kind(index),
                                       level="error")
                 if changed:
-                    out.put(make_ref(core.ref, core.mode))
-                    self.published += 1
+                    self._publish(core, out)
                 if core.dirty:  # a hold or a verdict: the filter and the requester hear it now
                     next_state = time.monotonic()
                 elif not self._queue.empty():
@@ -575,32 +574,36 @@ class MuxRunner:
             now = time.monotonic()
             if now >= next_state:
                 self.refusals.tick()
+                if self._unsent:  # mds-ref-mux was unwritable: try the newest merge again, once a state period
+                    self._publish(core, out)
                 core.release_stale(now)
                 seq += 1
                 st = core.state(now, seq)
-                state_ch.put(st)
+                self._guard.put(state_ch, st)  # a damaged mds-mux-state: the next period tries again
                 if self.on_state is not None:
                     self.on_state(st)
                 next_state = now + self.state_period
 
     def _log_refusal(self, text: str) -> None:
-        """A refused hold request: the first one, then at most one line per ``REFUSAL_LOG_S`` with the count."""
+        """A refused hold request: counted, logged through the refusal log (the first, then a count per window)."""
         self.hold_refusals += 1
-        now = time.monotonic()
-        when, count = self._refusal_logged
-        if now - when < REFUSAL_LOG_S:
-            return
-        more = self.hold_refusals - count - 1
-        self.log("error", text + (f" ({more} more refused in the last {now - when:.0f} s)" if more > 0 else ""))
-        self._refusal_logged = (now, self.hold_refusals)
+        self.refusals("hold", text, kind="hold-refused", level="error")
+
+    def _publish(self, core: MuxCore, out: Any) -> None:
+        """Write the merged reference. While ``mds-ref-mux`` is damaged the write fails (``ChannelGuard`` reports
+        it) and the filter downstream keeps smoothing to the last target it has; the loop writes the newest merge
+        again every state period until it gets through (after ``mds-ach repair``), so nothing the controllers sent
+        meanwhile is lost and the filter ramps to it."""
+        self._unsent = not self._guard.put(out, make_ref(core.ref, core.mode))
+        if not self._unsent:
+            self.published += 1
 
     def _reseed(self, core: MuxCore, out: Any, watch: ReseedWatch) -> None:
         """Restart the joints the daemon asks for (HOME, reset, resetbus) where they are, and publish that."""
         found = watch.poll()
         if found is not None:
             core.reseed(*found)
-            out.put(make_ref(core.ref, core.mode))
-            self.published += 1
+            self._publish(core, out)
             self.log("info", f"re-seeded {labels(found[0])} where the joints are (after HOME, reset or resetbus)")
 
 

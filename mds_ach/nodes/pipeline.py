@@ -5,7 +5,8 @@
 * joint selections from config (``'all'``, group names, fnmatch patterns such as ``'L*'``, addresses);
 * the *current reference* at start-up, so a node started late (or restarted) continues from what the daemon
   is already commanding instead of jumping;
-* ``ChannelGuard``, ``ReseedWatch``, ``Periodic``: a broken channel, a re-seed request, an absolute schedule.
+* ``ChannelGuard`` (defined in ``mds_ach.robot.channels``), ``ReseedWatch``, ``Periodic``: a broken channel, a
+  re-seed request, an absolute schedule.
 
 No rclpy here: the helpers are used by tests and tools that never start ROS (the ROS side of the nodes is
 ``mds_ach.nodes.rosnode``).
@@ -24,7 +25,7 @@ import numpy as np
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.robot import contracts
-from mds_ach.robot.channels import StructChannel
+from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
 
 REF_DTYPE = np.dtype([("ref", "<f8"), ("mode", "<i2")])  # packed, itemsize 10 == sizeof(MDS_JOINT_REF)
@@ -178,7 +179,7 @@ class ReseedWatch:
     """
 
     def __init__(self, log: Callable[[str, str], None], stop: threading.Event) -> None:
-        self._guard = ChannelGuard(log, stop)
+        self._guard = ChannelGuard(log, stop, pause=0.0)  # latest() never blocks: nothing to pace
         self._status = StructChannel.of(mds.MDS_CHAN_DAEMON_STATUS_NAME)
         self._state = StructChannel.of(mds.MDS_CHAN_STATE_NAME)
         self._last_state: mds.MDS_STATE | None = None
@@ -247,31 +248,3 @@ class Periodic:
             self.overruns += 1
             self.next = now + self.period
         return not stop.is_set()
-
-
-class ChannelGuard:
-    """Keeps a node running through a broken channel and says so, at most every ``every`` seconds.
-
-    A client killed inside a put leaves its channel ACH_CORRUPT until ``mds-ach repair``; a node that died on
-    that would take the whole pipeline down with it. ``call`` returns ``default`` instead and pauses briefly so
-    a failing wait does not spin; once the channel is repaired the same handle works again.
-    """
-
-    def __init__(self, log: Callable[[str, str], None], stop: threading.Event, every: float = 5.0) -> None:
-        self._log = log
-        self._stop = stop
-        self._every = every
-        self._last: dict[str, float] = {}
-        self.errors = 0
-
-    def call(self, name: str, fn: Callable[..., Any], *args: Any, default: Any = None, **kwargs: Any) -> Any:
-        try:
-            return fn(*args, **kwargs)
-        except ach.AchException as exc:
-            self.errors += 1
-            now = time.monotonic()
-            if now - self._last.get(name, -float("inf")) >= self._every:
-                self._last[name] = now
-                self._log("error", f"channel {name}: {exc}; holding until `mds-ach repair {name}`")
-            self._stop.wait(0.05)
-            return default

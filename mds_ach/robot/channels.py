@@ -4,6 +4,11 @@ Every MDS channel carries exactly one struct type (``mds-state`` -> ``MDS_STATE`
 makes the common patterns one call (``latest()`` in a control loop, ``wait()`` in an event loop) and refuses
 frames of the wrong size instead of handing out half-filled or truncated structs: a C client built against
 an older ``mds.h`` must not silently move joints.
+
+A damaged channel must not kill the node that uses it (docs/reliability.md §2): ``StructChannel`` re-opens a
+channel file that ``mds-ach repair`` re-created (a damaged header cannot be repaired in place), and
+``ChannelGuard`` turns an unusable channel into "nothing new" for the caller, says what to run, and says when the
+channel works again.
 """
 
 from __future__ import annotations
@@ -11,8 +16,11 @@ from __future__ import annotations
 import ctypes
 import grp
 import os
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Generic, TypeVar
 
 import mds_ach as mds
@@ -21,6 +29,17 @@ from mds_ach.robot import access as channel_access
 from mds_ach.robot import contracts
 
 T = TypeVar("T", bound=ctypes.Structure)
+
+
+def replaced(channel: ach.Channel) -> bool:
+    """Does the channel's path name another file than the open handle maps (``mds-ach repair`` re-created a
+    channel whose header was damaged)? A missing file is not a replacement: the handle is all there is."""
+    try:
+        mapped = os.fstat(channel.fileno())
+        at_path = os.lstat(ach.shm_path(channel.name))
+    except (OSError, ach.AchException):
+        return False
+    return (mapped.st_dev, mapped.st_ino) != (at_path.st_dev, at_path.st_ino)
 
 
 class StructChannel(Generic[T]):
@@ -39,24 +58,58 @@ class StructChannel(Generic[T]):
         self.name = name
         self.ctype = ctype
         self.size = ctypes.sizeof(ctype)
-        self.channel = ach.Channel(name, frame_count, frame_size, create=create,
-                                   mode=channel_access.channel_mode(name), lock_timeout=lock_timeout)
-        if channel_access.enforced():  # a node of the stack: never use a file another user planted
-            try:
-                channel_access.require_trusted(self.channel)
-            except BaseException:
-                self.channel.close()
-                raise
-        if self.size > self.channel.data_size:
-            data_size = self.channel.data_size
-            self.channel.close()
-            raise ValueError(f"channel '{name}' holds frames of at most {data_size} bytes, but {ctype.__name__} "
-                             f"needs {self.size}; remove it (mds-ach rm {name}) and re-create it (mds-ach make)")
+        self._geometry = (frame_count, frame_size)
+        self.channel = self._open(create, lock_timeout)
         # Every frame fits in a buffer of data_size, so a wrong-sized frame is read (and counted) exactly once
         # instead of sticking in the channel as an endless ACH_OVERFLOW.
         self._buf = bytearray(self.channel.data_size)
         self.bad_frames = 0
         self.missed_frames = 0
+        self.reopened = 0
+
+    def _open(self, create: bool, lock_timeout: float | None) -> ach.Channel:
+        """Open (create) the file at the channel's path: trusted (when enforced) and large enough for ``ctype``."""
+        frame_count, frame_size = self._geometry
+        channel = ach.Channel(self.name, frame_count, frame_size, create=create,
+                              mode=channel_access.channel_mode(self.name), lock_timeout=lock_timeout)
+        try:
+            if channel_access.enforced():  # a node of the stack: never use a file another user planted
+                channel_access.require_trusted(channel)
+            if self.size > channel.data_size:
+                raise ValueError(f"channel '{self.name}' holds frames of at most {channel.data_size} bytes, but "
+                                 f"{self.ctype.__name__} needs {self.size}; remove it (mds-ach rm {self.name}) and "
+                                 f"re-create it (mds-ach make)")
+        except BaseException:
+            channel.close()
+            raise
+        return channel
+
+    def replaced(self) -> bool:
+        """Was the channel file re-created under this handle (``replaced``)?"""
+        return replaced(self.channel)
+
+    def reopen(self) -> None:
+        """Open the file now at the channel's path and drop the old handle (its reader position starts again:
+        the new file's frames are all new). Raises like the constructor; the old handle stays on failure."""
+        new = self._open(False, self.channel.lock_timeout)
+        old, self.channel = self.channel, new
+        self._buf = bytearray(new.data_size)
+        self.reopened += 1
+        old.close()
+
+    def _io(self, op: Callable[[ach.Channel], Any]) -> Any:
+        """``op(self.channel)``; an error on a channel file that was since re-created re-opens it and tries once
+        more, so every user of a StructChannel picks up a re-created channel by itself."""
+        try:
+            return op(self.channel)
+        except ach.AchException as exc:
+            if exc.status in (ach.ACH_LOCKED, ach.ACH_CLOSED, ach.ACH_CANCELED) or not self.replaced():
+                raise
+            try:
+                self.reopen()
+            except (ach.AchException, OSError, ValueError):
+                raise exc from None  # not usable yet (e.g. half created): still the original error
+        return op(self.channel)
 
     @classmethod
     def of(cls, name: str, create: bool = True, lock_timeout: float | None = None) -> StructChannel[Any]:
@@ -79,18 +132,19 @@ class StructChannel(Generic[T]):
     def latest(self, lock_timeout: float | None = None) -> T | None:
         """The newest frame if one arrived since the last call, else None. Never waits for a frame (only for the
         channel mutex, at most ``lock_timeout`` s if given or set on the channel)."""
-        status, size = self.channel.get(self._buf, last=True, lock_timeout=lock_timeout)
+        status, size = self._io(lambda ch: ch.get(self._buf, last=True, lock_timeout=lock_timeout))
         return self._frame(status, size)
 
     def next(self, lock_timeout: float | None = None) -> T | None:
         """The oldest frame not read yet (in order, libach's get without ACH_O_LAST), else None. Never waits."""
-        status, size = self.channel.get(self._buf, last=False, lock_timeout=lock_timeout)
+        status, size = self._io(lambda ch: ch.get(self._buf, last=False, lock_timeout=lock_timeout))
         return self._frame(status, size)
 
     def wait_next(self, timeout: float | None = None, lock_timeout: float | None = None) -> T | None:
         """Block until a frame not read yet exists and return the *oldest* one (in order, for request channels
         where every frame counts, e.g. ``mds-hold``); None on timeout, cancel or close."""
-        status, size = self.channel.get(self._buf, wait=True, last=False, timeout=timeout, lock_timeout=lock_timeout)
+        status, size = self._io(lambda ch: ch.get(self._buf, wait=True, last=False, timeout=timeout,
+                                                  lock_timeout=lock_timeout))
         if status in (ach.ACH_TIMEOUT, ach.ACH_CANCELED):
             return None
         return self._frame(status, size)
@@ -104,8 +158,8 @@ class StructChannel(Generic[T]):
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            status, size = self.channel.get(self._buf, wait=True, last=True, timeout=remaining,
-                                            lock_timeout=lock_timeout)
+            status, size = self._io(partial(ach.Channel.get, buf=self._buf, wait=True, last=True,
+                                            timeout=remaining, lock_timeout=lock_timeout))
             if status in (ach.ACH_TIMEOUT, ach.ACH_CANCELED):
                 return None
             frame = self._frame(status, size)
@@ -119,11 +173,11 @@ class StructChannel(Generic[T]):
         ``lock_timeout`` as for ``latest``."""
         if not isinstance(obj, self.ctype):
             raise TypeError(f"channel '{self.name}' carries {self.ctype.__name__}, got {type(obj).__name__}")
-        self.channel.put(obj, lock_timeout=lock_timeout)
+        self._io(lambda ch: ch.put(obj, lock_timeout=lock_timeout))
 
     def flush(self) -> None:
         """Treat everything in the channel as already seen."""
-        self.channel.flush()
+        self._io(lambda ch: ch.flush())
 
     def cancel(self) -> None:
         """Wake a blocked ``wait()`` for good (e.g. at shutdown, from another thread or a signal handler)."""
@@ -137,6 +191,77 @@ class StructChannel(Generic[T]):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class ChannelGuard:
+    """Keeps a node running through an unusable channel and says so: what broke, what fixes it, when it works again.
+
+    A client killed inside a put leaves its channel ACH_CORRUPT until ``mds-ach repair``; bytes scribbled over a
+    header make it unusable until ``mds-ach repair`` re-creates it (``StructChannel`` then re-opens it). A node
+    that died on either would take the pipeline down with it. ``call`` returns ``default`` instead, logs the error
+    at most every ``every`` seconds per channel with the fix, pauses ``pause`` s so a failing wait does not spin,
+    and, after an outage it reported, logs once that the channel works again (a flapping channel, e.g. a lock that
+    times out now and then, gives at most one pair of lines per ``every`` s). Thread-safe: one guard may serve
+    several threads.
+    """
+
+    def __init__(self, log: Callable[[str, str], None], stop: threading.Event | None = None, every: float = 5.0,
+                 pause: float = 0.05) -> None:
+        self._log = log
+        self._stop = stop if stop is not None else threading.Event()
+        self._every = every
+        self._pause = pause
+        self._lock = threading.Lock()
+        self._last: dict[str, float] = {}
+        self._failing: dict[str, int] = {}  # channel -> errors since it last worked
+        self._reported: set[str] = set()  # channels whose current outage was logged
+        self.errors = 0
+
+    def call(self, name: str, fn: Callable[..., Any], *args: Any, default: Any = None, **kwargs: Any) -> Any:
+        try:
+            result = fn(*args, **kwargs)
+        except ach.AchException as exc:
+            self._failed(name, exc)
+            return default
+        if name in self._failing:
+            self._recovered(name)
+        return result
+
+    def put(self, channel: StructChannel[Any], frame: Any) -> bool:
+        """``channel.put(frame)``; False (reported as ``call`` does) when the frame could not be written."""
+        def put() -> bool:
+            channel.put(frame)
+            return True
+
+        return bool(self.call(channel.name, put, default=False))
+
+    def failing(self, name: str) -> bool:
+        """Did the newest call on channel ``name`` fail?"""
+        return name in self._failing
+
+    def _failed(self, name: str, exc: ach.AchException) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self.errors += 1
+            self._failing[name] = self._failing.get(name, 0) + 1
+            due = now - self._last.get(name, -float("inf")) >= self._every
+            if due:
+                self._last[name] = now
+                self._reported.add(name)
+        if due:
+            locked = exc.status == ach.ACH_LOCKED
+            fix = ("`mds-ach repair --check` names the process holding it" if locked
+                   else f"run `mds-ach repair {name}`; the node picks it up again by itself")
+            self._log("error", f"channel {name}: {exc}; holding until it works again ({fix})")
+        self._stop.wait(self._pause)
+
+    def _recovered(self, name: str) -> None:
+        with self._lock:
+            errors = self._failing.pop(name, None)
+            reported = name in self._reported
+            self._reported.discard(name)
+        if errors is not None and reported:
+            self._log("info", f"channel {name} works again (after {errors} failed call(s)); carrying on")
 
 
 # --- MDS channel set ------------------------------------------------------------------------------

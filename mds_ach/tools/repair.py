@@ -85,7 +85,8 @@ class Report:
         return {
             MISSING: "mds-ach make (or start) creates it",
             CORRUPT: f"repair it in place: mds-ach repair {self.name}",
-            BROKEN: f"mds-ach repair {self.name} re-creates it; then restart the nodes that use it",
+            BROKEN: f"mds-ach repair {self.name} re-creates it; the stack's nodes re-open it by themselves, "
+                    "restart any other process that uses it",
             LOCKED: "resume (kill -CONT) or kill that process, then mds-ach repair (docs/reliability.md)",
             UNSAFE: channel_access.recreate_hint(self.name),
         }.get(self.state, "")
@@ -101,7 +102,8 @@ class Report:
         elif self.action == "re-created":
             text += " -> re-created empty with the channel's size and a safe mode (docs/operator.md)"
             if self.users:
-                text += f"; restart the processes that still map the old file: pids {' '.join(map(str, self.users))}"
+                text += (f"; the stack's nodes re-open it by themselves, restart any other process that still maps "
+                         f"the old file: pids {' '.join(map(str, self.users))}")
         return text
 
 
