@@ -954,6 +954,9 @@ def test_the_loop_thread_alone_runs_real_time_by_default(clean_shm) -> None:
     try:
         status = wait_for(lambda: status_in.latest(), 60.0, what="mds-daemon-status")
         threads, locked = realtime_threads(proc.pid), _locked_kb(proc.pid)
+        nice = [(Path(f"/proc/{proc.pid}/task/{tid}/comm").read_text().strip(), os.getpriority(os.PRIO_PROCESS,
+                                                                                               int(tid)))
+                for tid in os.listdir(f"/proc/{proc.pid}/task")]
     finally:
         status_in.close()
         proc.send_signal(signal.SIGTERM)
@@ -962,6 +965,8 @@ def test_the_loop_thread_alone_runs_real_time_by_default(clean_shm) -> None:
     if may_use_sched_fifo():
         assert threads == [("mds-daemon-loop", 50)], f"real-time threads of the daemon: {threads}"
         assert locked > 0, "mlockall did not lock the daemon's memory"
+        # The others (ROS executor, DDS) at normal scheduling, nice -10: they share the interpreter lock with the loop
+        assert len(nice) > 3 and {n for name, n in nice if name != "mds-daemon-loop"} == {-10}, nice
         assert (status.version, status.loop_policy, status.loop_priority, status.memory_locked) == (
             3, os.SCHED_FIFO, 50, 1)
         assert "loop real-time (SCHED_FIFO 50, memory locked)" in ds.summary_line(status)

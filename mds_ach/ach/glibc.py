@@ -14,6 +14,7 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -207,6 +208,24 @@ def thread_scheduling(tid: int = 0) -> tuple[int, int]:
 def is_realtime(policy: int) -> bool:
     """SCHED_FIFO or SCHED_RR: the thread runs before every normal one that wants the CPU."""
     return policy in (os.SCHED_FIFO, os.SCHED_RR)
+
+
+def renice_other_threads(nice: int) -> str | None:
+    """Give every other thread of this process the nice value ``nice`` (threads they create inherit it). None on
+    success, else why not. Python threads share one interpreter lock: a normal-priority thread of a real-time
+    process that is preempted while it holds the lock stops the real-time thread too; a negative nice value gets
+    it the CPU back sooner (CFS weight), while it stays at normal, never real-time, scheduling."""
+    me = threading.get_native_id()
+    try:
+        for tid in (int(t) for t in os.listdir("/proc/self/task")):
+            if tid != me:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, nice)
+                except ProcessLookupError:  # the thread ended meanwhile
+                    pass
+    except OSError as exc:
+        return f"nice {nice} refused ({exc.strerror or exc})"
+    return None
 
 
 def _may_lock_all_memory() -> str | None:

@@ -118,6 +118,7 @@ REPLY_SPEED_FACTOR = 4.0
 REPLY_SLACK = 0.05  # rad
 REPLIES_TO_TRUST = 3  # consistent replies in a row before a joint's position is trusted again
 LIMIT_TOLERANCE = 1e-9  # rad: a target further than this from the goal counts as limited
+OTHER_THREADS_NICE = -10  # the daemon's other threads, when the loop is real-time (glibc.renice_other_threads)
 LOOP_THREAD_NAME = "mds-daemon-loop"  # the loop thread's kernel name (ps -L, /proc/PID/task/TID/comm; 15 bytes max)
 # What running without a real-time priority means, said once at start (docs/operator.md, "Real-time priority").
 WITHOUT_RT = ("under CPU load the loop may stall, seconds on a busy machine (mds-state, /joint_states and "
@@ -451,7 +452,10 @@ class DaemonLoop:
         """Ask for ``rt_priority`` (SCHED_FIFO) for this thread only and, once granted, lock the process's memory;
         record the outcome in ``mds-daemon-status`` and say it once. Under CPU load a normal-priority loop waits
         behind every busy process (seconds, measured with 3 CPU hogs); a SCHED_FIFO one runs first. It never
-        busy-waits (``sleep_until``), and the threads it creates start at normal priority (SCHED_RESET_ON_FORK)."""
+        busy-waits (``sleep_until``), and the threads it creates start at normal priority (SCHED_RESET_ON_FORK).
+        The other threads (ROS executor, DDS) stay at normal scheduling with nice -10: they share the interpreter
+        lock with the loop, and one preempted while holding it stalled the loop (about 4 times as often at nice 0,
+        100 Hz beside 3 CPU hogs)."""
         problems = glibc.tune_thread(self.rt_priority, name=LOOP_THREAD_NAME)
         refused = [p for p in problems if p.startswith("SCHED_FIFO")]
         for problem in problems:
@@ -472,9 +476,13 @@ class DaemonLoop:
             return
         locked = glibc.lock_memory()
         self.status.memory_locked = int(locked is None)
-        log.info("loop thread: %s %d%s", glibc.SCHED_NAMES.get(policy, policy), priority,
+        reniced = glibc.renice_other_threads(OTHER_THREADS_NICE)
+        log.info("loop thread: %s %d%s%s", glibc.SCHED_NAMES.get(policy, policy), priority,
                  ", memory locked (mlockall)" if locked is None else
-                 f"; memory not locked ({locked}): a page fault may still delay a cycle")
+                 f"; memory not locked ({locked}): a page fault may still delay a cycle",
+                 f"; the other threads at nice {OTHER_THREADS_NICE}" if reniced is None else
+                 f"; the other threads at their nice value ({reniced}): one preempted while it holds Python's "
+                 "interpreter lock delays the loop longer")
 
     def run(self) -> None:
         """Absolute-time schedule: deadlines at start + k*period; a missed deadline is an overrun and the
