@@ -196,18 +196,9 @@ def tune_thread(rt_priority: int = 0, name: str | None = None) -> list[str]:
     return problems
 
 
-SCHED_NAMES = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_FIFO: "SCHED_FIFO", os.SCHED_RR: "SCHED_RR",
-               os.SCHED_BATCH: "SCHED_BATCH", os.SCHED_IDLE: "SCHED_IDLE"}
-
-
 def thread_scheduling(tid: int = 0) -> tuple[int, int]:
     """(policy, real-time priority) of thread ``tid`` (0: the calling one), the SCHED_RESET_ON_FORK flag removed."""
     return os.sched_getscheduler(tid) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(tid).sched_priority
-
-
-def is_realtime(policy: int) -> bool:
-    """SCHED_FIFO or SCHED_RR: the thread runs before every normal one that wants the CPU."""
-    return policy in (os.SCHED_FIFO, os.SCHED_RR)
 
 
 def renice_other_threads(nice: int) -> str | None:

@@ -125,7 +125,8 @@ WITHOUT_RT = ("under CPU load the loop may stall, seconds on a busy machine (mds
               "trajectories pause; `stalls` in mds-ach status); the bus stays safe: nothing is sent late (a target "
               "later than late_send_tolerance is withheld) and the joints ramp after a stall")
 RT_HOWTO = ("allowed for root, with CAP_SYS_NICE, or with an rtprio limit (/etc/security/limits.conf: "
-            "'USER - rtprio 99' and 'USER - memlock unlimited'; docs/operator.md, \"Real-time priority\")")
+            "'USER - rtprio 99', 'USER - memlock unlimited', 'USER - nice -10'; docs/operator.md, "
+            "\"Real-time priority\")")
 
 _LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
                mds.COLLIDE_L_WRIST)
@@ -466,7 +467,7 @@ class DaemonLoop:
         except OSError:
             policy, priority = 0, 0
         self.status.loop_policy, self.status.loop_priority = policy, priority
-        if not glibc.is_realtime(policy):
+        if policy not in ds.REALTIME_POLICIES:
             if self.rt_priority <= 0:
                 log.info("loop thread: real-time priority off (rt_priority 0): %s", WITHOUT_RT)
             else:
@@ -477,7 +478,7 @@ class DaemonLoop:
         locked = glibc.lock_memory()
         self.status.memory_locked = int(locked is None)
         reniced = glibc.renice_other_threads(OTHER_THREADS_NICE)
-        log.info("loop thread: %s %d%s%s", glibc.SCHED_NAMES.get(policy, policy), priority,
+        log.info("loop thread: %s %d%s%s", ds.LOOP_POLICY_NAMES.get(policy, policy), priority,
                  ", memory locked (mlockall)" if locked is None else
                  f"; memory not locked ({locked}): a page fault may still delay a cycle",
                  f"; the other threads at nice {OTHER_THREADS_NICE}" if reniced is None else
