@@ -25,7 +25,7 @@ help:
 	@echo "make run    set up if needed, then start the whole system on the simulated robot (Ctrl-C stops it)"
 	@echo "make test   set up if needed, then run all tests (inside a private network namespace)"
 	@echo "make bench  run every benchmark against its peers (bench/requirements.txt) and print one table"
-	@echo "make soak   multi-minute soak, then the adversarial safety scenario (not part of make test)"
+	@echo "make soak   multi-minute soak, then the adversarial safety scenario at 10 and 100 Hz with CPU hogs (not in make test)"
 	@echo "make lint   ruff"
 
 all: setup
@@ -104,12 +104,19 @@ bench: $(BENCH_STAMP)
 	$(PY) -m bench.bench_setup measure $(VENV)/bench-setup.json
 	MDS_BENCH_SETUP_RESULT=$(abspath $(VENV))/bench-setup.json tools/netns-run $(PY) -m bench
 
-# The soak, then the adversarial safety scenario (bench/adversary.py) for SOAK_ADVERSARY_MINUTES; both reports
-# are printed, the target fails if either fails.
+# The soak (SOAK_MINUTES), then the adversarial safety scenario (bench/adversary.py) for SOAK_ADVERSARY_MINUTES at
+# each rate of SOAK_RATES, its second half beside SOAK_HOGS CPU hogs (each report gives the daemon's worst stall
+# under them); every report is printed, the target fails if any part fails.
+SOAK_MINUTES ?= 3
 SOAK_ADVERSARY_MINUTES ?= 10
+SOAK_RATES ?= 10 100
+SOAK_HOGS ?= 3
 soak: $(DEV_STAMP)
-	rc=0; tools/netns-run $(PY) -m bench.soak || rc=1; \
-	tools/netns-run $(PY) -m bench.adversary --minutes $(SOAK_ADVERSARY_MINUTES) || rc=1; exit $$rc
+	rc=0; tools/netns-run $(PY) -m bench.soak --minutes $(SOAK_MINUTES) || rc=1; \
+	for rate in $(SOAK_RATES); do \
+		tools/netns-run $(PY) -m bench.adversary --minutes $(SOAK_ADVERSARY_MINUTES) --rate $$rate \
+			--hogs $(SOAK_HOGS) || rc=1; \
+	done; exit $$rc
 
 lint: $(DEV_STAMP)
 	$(VENV)/bin/ruff check .

@@ -14,6 +14,13 @@ bridge, each its own process. A ``random.Random(seed)`` picks, until the time is
 * ``collide``: both hands sent to the same point (the gate must hold them), later sent apart (it releases);
 * ``home``: HOME of a joint (``mds-cmd``); ``busoff``: the simulated bus goes bus-off, then ``mds-ach resetbus``.
 
+Overload (``--hogs N``, ``make soak``: 3): for the last ``--hog-fraction`` of the scenario (half) N busy-loop
+processes load every core beside the stack. The phase starts with a restart of the daemon, and meanwhile the
+daemon is neither stopped nor killed (those draws hit another node), so the daemon's own ``stall_max`` in
+``mds-daemon-status`` is the worst stall the overload caused; it is reported with the loop's scheduling (the
+daemon asks for SCHED_FIFO by default; ``--rt-priority 0`` measures it without), the stall count and the worst
+period error. A stall is reported, never a violation: a stalled loop sends nothing and ramps afterwards.
+
 Afterwards the daemon is stopped (SIGTERM: its log is complete) and every log is audited: no target may be
 non-finite, outside its joint's limits, to a wrong address, faster or more accelerated than the joint table's
 motion bounds, and (``collisions``) the commanded pose may never collide. ``python -m bench.adversary
@@ -30,6 +37,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -38,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 from support.channels import newest  # test/support/, on sys.path via bench/__init__.py
+from support.hogs import CpuHogs
 
 import mds_ach as mds
 from mds_ach import ach
@@ -46,6 +55,7 @@ from mds_ach.kinematics.limits import compute as effective_limits
 from mds_ach.robot import config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import LEFT_ARM, NECK, RIGHT_ARM, TORSO
+from mds_ach.robot.msgs import daemon_status as ds
 from mds_ach.tools import checklog, launcher
 
 TABLE = config.load("default")
@@ -63,20 +73,41 @@ WEIGHTS = {"goto": 6, "mode": 3, "stop-daemon": 2, "stop-node": 2, "kill": 1, "b
 
 
 @dataclass
+class Overload:
+    """How the daemon's loop fared while CPU hogs ran (from its ``mds-daemon-status``, sampled twice a second)."""
+
+    hogs: int
+    seconds: float = 0.0  # how long the hogs ran
+    loop: str = "?"  # the loop thread's scheduling (ds.loop_scheduling_text)
+    stalls: int = 0  # mds-daemon-status stalls: loop stalls and targets withheld for being late
+    stall_max: float = 0.0  # s, the longest gap between two cycle starts of a stall (0: none over 2 periods)
+    period_error_max: float = 0.0  # s, the worst |period error| seen in the daemon's 10 s windows
+    overruns: int = 0
+
+    def line(self, rate: float) -> str:
+        return (f"daemon loop under {self.hogs} CPU hogs ({self.seconds:.0f} s, {rate:g} Hz, {self.loop}): "
+                f"worst stall {self.stall_max:.3f} s (0: no gap over 2 periods), worst period error "
+                f"{self.period_error_max * 1e3:.1f} ms, overruns {self.overruns}, stalls and late sends withheld "
+                f"{self.stalls}")
+
+
+@dataclass
 class Result:
     seed: int
     actions: list[str] = field(default_factory=list)  # "t=  12.3 s kill mux" ...
     counts: Counter = field(default_factory=Counter)
     can_logs: list[Path] = field(default_factory=list)
     problems: list[str] = field(default_factory=list)  # the stack misbehaved (a node did not come back...)
+    overload: Overload | None = None  # with hogs: the daemon's stalls meanwhile
 
 
 class Stack:
     """The system on the simulated robot; the daemon records its CAN traffic and takes test-only faults."""
 
-    def __init__(self, rt: Path, rate: float) -> None:
+    def __init__(self, rt: Path, rate: float, rt_priority: int | None = None) -> None:
         self.rt = rt
         self.rate = rate
+        self.rt_priority = rt_priority  # the daemon's --rt-priority (None: its default)
         self.socket = rt / "sim-faults.sock"
         self.can_logs: list[Path] = []
         self.daemon: subprocess.Popen | None = None
@@ -94,6 +125,8 @@ class Stack:
         log = self.rt / f"can-{len(self.can_logs) + 1}.asc"
         self.can_logs.append(log)
         args = ["--nocan", "--rate", f"{self.rate:g}", "--can-log", str(log), "--sim-faults", str(self.socket)]
+        if self.rt_priority is not None:
+            args += ["--rt-priority", str(self.rt_priority)]
         if pose:
             args += ["--sim-pose", ",".join(f"{k}={v:.6f}" for k, v in pose.items())]
         with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as state:
@@ -181,16 +214,48 @@ def cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     return subprocess.run([str(exe), *args], capture_output=True, text=True, timeout=timeout)
 
 
-class Adversary:
-    """Draws actions from ``random.Random(seed)`` and carries them out on a Stack until ``seconds`` are over."""
+class LoopWatch:
+    """Samples ``mds-daemon-status`` twice a second on a thread: the daemon's stalls and worst period error."""
 
-    def __init__(self, stack: Stack, seed: int, seconds: float, out: Callable[[str], None] = print) -> None:
+    def __init__(self, report: Overload) -> None:
+        self.report = report
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="loop-watch", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.5):
+            self.sample()
+
+    def sample(self) -> None:
+        st = newest(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
+        if st is None:
+            return
+        r = self.report
+        r.loop, r.stalls, r.stall_max, r.overruns = ds.loop_scheduling_text(st), st.stalls, st.stall_max, st.overruns
+        r.period_error_max = max(r.period_error_max, st.period_error_max)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.sample()
+
+
+class Adversary:
+    """Draws actions from ``random.Random(seed)`` and carries them out on a Stack until ``seconds`` are over; with
+    ``hogs``, the last ``hog_fraction`` of it runs beside that many CPU hogs (see the module's docstring)."""
+
+    def __init__(self, stack: Stack, seed: int, seconds: float, out: Callable[[str], None] = print,
+                 hogs: int = 0, hog_fraction: float = 0.5) -> None:
         self.stack = stack
         self.rng = random.Random(seed)
         self.seconds = seconds
         self.out = out
         self.result = Result(seed)
         self.meeting = meeting_pose()
+        self.hogs = hogs
+        self.hog_fraction = hog_fraction
+        self.overloaded = False  # in the overload phase: the daemon is neither stopped nor killed
         self.t0 = time.monotonic()
 
     def log(self, text: str) -> None:
@@ -202,15 +267,35 @@ class Adversary:
         legacy_write(HOME_POSE)
         self.pause(2.0, 3.0)
         names, weights = zip(*WEIGHTS.items(), strict=True)
-        while time.monotonic() - self.t0 < self.seconds:
-            action = self.rng.choices(names, weights)[0]
-            self.result.counts[action] += 1
-            getattr(self, "do_" + action.replace("-", "_"))()
-            self.pause(0.2, 1.5)
+        hog_start = self.seconds * (1.0 - self.hog_fraction) if self.hogs > 0 else math.inf
+        hogs = watch = None
+        try:
+            while (elapsed := time.monotonic() - self.t0) < self.seconds:
+                if hogs is None and elapsed >= hog_start:
+                    hogs, watch = self.overload(self.seconds - elapsed)
+                action = self.rng.choices(names, weights)[0]
+                self.result.counts[action] += 1
+                getattr(self, "do_" + action.replace("-", "_"))()
+                self.pause(0.2, 1.5)
+        finally:
+            if hogs is not None and watch is not None and self.result.overload is not None:
+                hogs.close()
+                watch.close()
+                self.result.overload.seconds = time.monotonic() - self.t0 - hog_start
+                self.log(f"CPU hogs stopped; {self.result.overload.line(self.stack.rate)}")
         self.log("end: everything back to pass-through, the free pose")
         legacy_write(HOME_POSE, {n: mds.MDS_REF_MODE_REF for n in MOVABLE})
         self.pause(3.0, 3.0)
         return self.result
+
+    def overload(self, seconds: float) -> tuple[CpuHogs, LoopWatch]:
+        """Restart the daemon (its stall_max then covers this phase only), then start the hogs and the watch."""
+        self.log(f"overload: SIGKILL daemon, restart, then {self.hogs} CPU hogs for {seconds:.0f} s (the daemon is "
+                 "neither stopped nor killed meanwhile)")
+        self.stack.kill("daemon")
+        self.overloaded = True
+        self.result.overload = Overload(self.hogs)
+        return CpuHogs(self.hogs, seconds + 60.0), LoopWatch(self.result.overload)
 
     def pause(self, lo: float, hi: float) -> None:
         time.sleep(self.rng.uniform(lo, hi))
@@ -239,7 +324,7 @@ class Adversary:
         legacy_write(modes={short: mode})
 
     def do_stop_daemon(self) -> None:
-        self._stop("daemon")
+        self._stop(self.rng.choice(STOPPABLE) if self.overloaded else "daemon")
 
     def do_stop_node(self) -> None:
         self._stop(self.rng.choice(STOPPABLE))
@@ -254,7 +339,7 @@ class Adversary:
             self.stack.signal(name, signal.SIGCONT)
 
     def do_kill(self) -> None:
-        name = self.rng.choice(NODES)
+        name = self.rng.choice([n for n in NODES if n != "daemon"] if self.overloaded else NODES)
         self.log(f"SIGKILL {name}, restart")
         self.stack.kill(name)
 
@@ -296,13 +381,15 @@ class Adversary:
             self.result.problems.append(f"mds-ach resetbus: {proc.stdout}{proc.stderr}")
 
 
-def run(seed: int, seconds: float, rt: Path, rate: float = 10.0, out: Callable[[str], None] = print) -> Result:
+def run(seed: int, seconds: float, rt: Path, rate: float = 10.0, out: Callable[[str], None] = print,
+        hogs: int = 0, hog_fraction: float = 0.5, rt_priority: int | None = None) -> Result:
     """Start the stack in ``rt``, run the scenario, stop the stack; the daemon's CAN logs are in the result."""
-    stack = Stack(rt, rate)
-    out(f"adversary: seed {seed}, {seconds:g} s of scenario, daemon {rate:g} Hz, runtime dir {rt}")
+    stack = Stack(rt, rate, rt_priority)
+    out(f"adversary: seed {seed}, {seconds:g} s of scenario, daemon {rate:g} Hz"
+        + (f", {hogs} CPU hogs for the last {hog_fraction:.0%}" if hogs else "") + f", runtime dir {rt}")
     try:
         stack.start()
-        result = Adversary(stack, seed, seconds, out).run()
+        result = Adversary(stack, seed, seconds, out, hogs, hog_fraction).run()
         dead = [n for n in NODES if stack.pid(n) is None]
         if dead:
             result.problems.append(f"not running at the end: {', '.join(dead)}")
@@ -323,6 +410,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=10.0, help="scenario length (default 10)")
     ap.add_argument("--seed", type=int, help="random seed (default: a fresh one, printed)")
     ap.add_argument("--rate", type=float, default=10.0, help="daemon loop rate in Hz (default 10, the daemon's)")
+    ap.add_argument("--hogs", type=int, default=0, help="CPU hogs (busy-loop processes) for the overload phase "
+                                                       "(default 0: none; make soak: 3)")
+    ap.add_argument("--hog-fraction", type=float, default=0.5,
+                    help="the last fraction of the scenario that runs beside the hogs (default 0.5)")
+    ap.add_argument("--rt-priority", type=int, help="the daemon's --rt-priority (default: the daemon's own, "
+                                                    "SCHED_FIFO 50 where allowed; 0 measures it without)")
     ap.add_argument("--allow-host-shm", action="store_true",
                     help="run even outside tools/netns-run (it creates and removes the real MDS channels!)")
     args = ap.parse_args(argv)
@@ -330,12 +423,16 @@ def main(argv: list[str] | None = None) -> int:
         print("bench.adversary: run it through tools/netns-run (make soak): it uses the real channel names",
               file=sys.stderr)
         return 2
+    if args.hogs < 0 or not 0 < args.hog_fraction <= 1 or not args.minutes > 0:
+        print("bench.adversary: --minutes > 0, --hogs >= 0, 0 < --hog-fraction <= 1", file=sys.stderr)
+        return 2
     seed = args.seed if args.seed is not None else random.SystemRandom().randrange(2**32)
     rt = Path(tempfile.mkdtemp(prefix="mds-adversary-"))
     os.environ["MDS_ACH_RUNTIME_DIR"] = str(rt)
     os.environ.setdefault("MDS_ACH_CONFIG_DIR", str(rt / "config"))
     try:
-        result = run(seed, args.minutes * 60.0, rt, args.rate)
+        result = run(seed, args.minutes * 60.0, rt, args.rate, hogs=args.hogs, hog_fraction=args.hog_fraction,
+                     rt_priority=args.rt_priority)
     finally:
         cli("killall")  # the channels too: the next run starts clean
     report = audit(result)
@@ -343,10 +440,13 @@ def main(argv: list[str] | None = None) -> int:
     print(checklog.format_report(report, TABLE, max_listed=50))
     for p in result.problems:
         print(f"problem: {p}")
+    stall = f"; {result.overload.line(args.rate)}" if result.overload is not None else ""
     if report.exit_code or result.problems:
-        print(f"ADVERSARY FAILED (seed {seed}; repeat with --seed {seed})")
+        print(f"ADVERSARY FAILED at {args.rate:g} Hz (seed {seed}; repeat with --seed {seed}): "
+              f"{len(report.findings)} violation(s){stall}")
         return 1
-    print(f"ADVERSARY PASSED: {len(result.actions)} actions, no violation in {len(result.can_logs)} CAN log(s)")
+    print(f"ADVERSARY PASSED at {args.rate:g} Hz: {len(result.actions)} actions, no violation in "
+          f"{len(result.can_logs)} CAN log(s){stall}")
     return 0
 
 

@@ -285,7 +285,7 @@ typedef enum mds_joint_address {
 #define MDS_NECK_JOINTS { MDS_JOINT_NKY, MDS_JOINT_NKP1, MDS_JOINT_NKP2, MDS_JOINT_NKR }
 
 /* ---- mds_daemon_status_t (MDS_CHAN_DAEMON_STATUS_NAME): version and joint_flags[] bits ---- */
-#define MDS_DAEMON_STATUS_VERSION 2
+#define MDS_DAEMON_STATUS_VERSION 3
 #define MDS_DAEMON_JOINT_CONFIGURED 0x0001
 #define MDS_DAEMON_JOINT_ENABLED 0x0002
 #define MDS_DAEMON_JOINT_FRESH 0x0004
@@ -585,8 +585,11 @@ typedef struct MDS_PACKED mds_daemon_status {
     uint32_t joint_bad_replies[MDS_JOINT_COUNT];         /* @1283 */
     uint32_t joint_reseed[MDS_JOINT_COUNT];              /* @1683 */
     uint32_t lock_timeouts;                              /* @2083 */
+    uint8_t loop_policy;                                 /* @2087 */
+    uint8_t loop_priority;                               /* @2088 */
+    uint8_t memory_locked;                               /* @2089 */
 } mds_daemon_status_t;
-MDS_STATIC_ASSERT(sizeof(mds_daemon_status_t) == 2087, "mds_daemon_status_t must be 2087 bytes");
+MDS_STATIC_ASSERT(sizeof(mds_daemon_status_t) == 2090, "mds_daemon_status_t must be 2090 bytes");
 
 /* mds-hold frame (packed). */
 typedef struct MDS_PACKED mds_hold {

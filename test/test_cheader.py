@@ -45,7 +45,7 @@ SPEC_SIZES = {
     "mds_ik_t": 102,
 }
 # The new structs (this stack's own channels); test_msgs_layout checks their offsets.
-NEW_SIZES = {"mds_cmd_t": 16, "mds_ik_status_t": 214, "mds_mux_state_t": 820, "mds_daemon_status_t": 2087}
+NEW_SIZES = {"mds_cmd_t": 16, "mds_ik_status_t": 214, "mds_mux_state_t": 820, "mds_daemon_status_t": 2090}
 
 
 def _compile_and_run(tmp_path: Path, source: str, compiler: str = "gcc", std: str = "c11", extra: tuple = ()) -> str:
@@ -152,6 +152,8 @@ int main(void) {
     d.joint_flags[MDS_JOINT_LEP] = MDS_DAEMON_JOINT_ENABLED | MDS_DAEMON_JOINT_STALE;
     d.joint_reseed[MDS_JOINT_LEP] = 4;
     d.lock_timeouts = 77;
+    d.loop_policy = 1;
+    d.loop_priority = 50;
     fwrite(&m, sizeof m, 1, stdout);
     fwrite(&k, sizeof k, 1, stdout);
     fwrite(&d, sizeof d, 1, stdout);
@@ -175,7 +177,7 @@ int main(void) {
     assert (d.version, d.bus_state, d.cmd_result) == (daemon_status.DAEMON_STATUS_VERSION,
                                                       daemon_status.BUS_STATE_BUS_OFF, daemon_status.CMD_REFUSED)
     assert d.joint_flags[mds.LEP] == daemon_status.JOINT_ENABLED | daemon_status.JOINT_STALE
-    assert (d.joint_reseed[mds.LEP], d.lock_timeouts) == (4, 77)
+    assert (d.joint_reseed[mds.LEP], d.lock_timeouts, d.loop_policy, d.loop_priority) == (4, 77, 1, 50)
 
 
 def test_gxx_layout_equals_ctypes(tmp_path: Path) -> None:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import can
 import pytest
-from support import VENV_BIN, wait_for
+from support import VENV_BIN, may_use_sched_fifo, realtime_threads, wait_for
 from support.motion_audit import Audit, audit, read_log
 from support.rig import TABLE, DaemonRig
 
@@ -951,6 +951,89 @@ def test_no_ros_mode_stops_on_sigterm(clean_shm) -> None:
     assert proc.returncode == 0, out
 
 
+def _locked_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmLck:"):
+            return int(line.split()[1])
+    return 0
+
+
+@pytest.mark.slow
+def test_the_loop_thread_alone_runs_real_time_by_default(clean_shm) -> None:
+    """Without being asked, the daemon (here with ROS, its DDS and executor threads) puts its loop thread, and only
+    that thread, under SCHED_FIFO 50 and locks its memory where the user may (root in tools/netns-run: CI), and
+    mds-daemon-status, the status line and the log say so. Where the user may not, it says once why not."""
+    proc = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--ros-args", "-r", "__node:=mds_daemon"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
+    try:
+        status = wait_for(lambda: status_in.latest(), 60.0, what="mds-daemon-status")
+        threads, locked = realtime_threads(proc.pid), _locked_kb(proc.pid)
+        nice = [(Path(f"/proc/{proc.pid}/task/{tid}/comm").read_text().strip(), os.getpriority(os.PRIO_PROCESS,
+                                                                                               int(tid)))
+                for tid in os.listdir(f"/proc/{proc.pid}/task")]
+    finally:
+        status_in.close()
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    if may_use_sched_fifo():
+        assert threads == [("mds-daemon-loop", 50)], f"real-time threads of the daemon: {threads}"
+        assert locked > 0, "mlockall did not lock the daemon's memory"
+        # The others (ROS executor, DDS) at normal scheduling, nice -10: they share the interpreter lock with the loop
+        assert len(nice) > 3 and {n for name, n in nice if name != "mds-daemon-loop"} == {-10}, nice
+        assert (status.version, status.loop_policy, status.loop_priority, status.memory_locked) == (
+            3, os.SCHED_FIFO, 50, 1)
+        assert "loop real-time (SCHED_FIFO 50, memory locked)" in ds.summary_line(status)
+        assert "loop thread: SCHED_FIFO 50, memory locked (mlockall)" in out, out
+    else:
+        assert threads == [] and (status.loop_policy, status.memory_locked) == (os.SCHED_OTHER, 0)
+        assert out.count("WITHOUT a real-time priority (SCHED_FIFO 50 refused") == 1, out
+
+
+@pytest.mark.parametrize("how", ["refused", "off"])
+def test_without_real_time_the_daemon_says_so_once_and_what_it_means(clean_shm, how: str) -> None:
+    """Refused (no CAP_SYS_NICE, rtprio limit 0: a normal user) or turned off (--rt-priority 0): the loop runs at
+    normal priority, nothing in the process is real-time or locked, and the daemon says so once at start, with
+    what it means (stalls under load; the bus stays safe) and, when refused, how to allow it."""
+    cmd = [str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros"]
+    if how == "refused":  # whoever runs the tests: no CAP_SYS_NICE (root) and no rtprio limit (limits.conf)
+        cmd = ["prlimit", "--rtprio=0:0", "setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", *cmd]
+    else:
+        cmd += ["--rt-priority", "0"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    status_in = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
+    try:
+        status = wait_for(lambda: (st := status_in.latest()) is not None and st.cycle >= 3 and st, 30.0,
+                          what="mds-daemon-status")
+        threads, locked = realtime_threads(proc.pid), _locked_kb(proc.pid)
+    finally:
+        status_in.close()
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert threads == [] and locked == 0
+    assert (status.version, status.loop_policy, status.loop_priority, status.memory_locked) == (3, 0, 0, 0)
+    assert "loop not real-time" in ds.summary_line(status)
+    said = [line for line in out.splitlines() if "real-time priority" in line]
+    assert len(said) == 1, out
+    assert "stall" in said[0] and "the bus stays safe: nothing is sent late" in said[0], said
+    assert "late_send_tolerance" in said[0]
+    if how == "refused":
+        assert said[0].startswith("[daemon] WARNING: loop thread runs WITHOUT a real-time priority (SCHED_FIFO 50 "
+                                  "refused (Operation not permitted))"), said
+        assert "limits.conf" in said[0] and "rtprio" in said[0]
+    else:
+        assert said[0].startswith("[daemon] INFO: loop thread: real-time priority off (rt_priority 0)"), said
+
+
+def test_rt_priority_out_of_range_is_a_usage_error() -> None:
+    for bad in ("100", "-1", "high"):
+        out = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--rt-priority", bad],
+                             capture_output=True, text=True, timeout=30)
+        assert out.returncode == 2 and "--rt-priority" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
 @pytest.mark.slow
 def test_a_stopped_daemon_process_ramps_when_it_continues(clean_shm, tmp_path: Path) -> None:
     """SIGSTOP the real daemon for 3 s while a client keeps moving LSP's reference: when it continues, the stall
@@ -1039,6 +1122,20 @@ def test_diagnostics_levels() -> None:
     assert stalled.level == DiagnosticStatus.WARN and "stalled 1 time(s) (longest 3.10 s)" in stalled.message
     assert {kv.key: kv.value for kv in stalled.values}["limited_joints"] == "LSP:7"
     assert daemon.diagnostic_status(st, True, [], 0, [], 0).level == DiagnosticStatus.OK  # limiting is no fault
+
+
+def test_diagnostics_say_whether_the_loop_is_real_time() -> None:
+    st = ds.MDS_DAEMON_STATUS(rate_hz=10, stalls=1, stall_max=0.26)
+    normal = daemon.diagnostic_status(st, True, [], 0, [], 1)
+    values = {kv.key: kv.value for kv in normal.values}
+    assert (values["realtime"], values["loop_scheduling"], values["memory_locked"]) == ("False", "SCHED_OTHER 0",
+                                                                                         "False")
+    assert "stalled 1 time(s) (longest 0.26 s) without a real-time priority" in normal.message
+    st.loop_policy, st.loop_priority, st.memory_locked = os.SCHED_FIFO, 50, 1
+    rt = daemon.diagnostic_status(st, True, [], 0, [], 1)
+    values = {kv.key: kv.value for kv in rt.values}
+    assert (values["realtime"], values["loop_scheduling"], values["memory_locked"]) == ("True", "SCHED_FIFO 50", "True")
+    assert rt.message.endswith("(longest 0.26 s)")
 
 
 def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:

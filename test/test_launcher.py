@@ -12,7 +12,17 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from support import NOBODY, REPO, VENV_BIN, in_netns, remove_mds_channels, run_as, wait_for
+from support import (
+    NOBODY,
+    REPO,
+    VENV_BIN,
+    in_netns,
+    may_use_sched_fifo,
+    realtime_threads,
+    remove_mds_channels,
+    run_as,
+    wait_for,
+)
 from support.channels import newest
 from support.system import mds_ach, running_system, system_env
 
@@ -295,6 +305,20 @@ def test_status_reports_nodes_rate_bus_load_and_collisions(system: dict[str, str
     # issue #17: where the limits come from (the daemon's, for its robot) and whether the gate refuses anything
     assert re.search(r"^limits\s+URDF & joint table, robot isaac from mds-limits \(the daemon's\); nothing refused$",
                      proc.stdout, re.M), proc.stdout
+
+
+@pytest.mark.slow
+def test_only_the_daemon_loop_runs_real_time(system: dict[str, str]) -> None:
+    """`mds-ach start` asks nothing of the scheduler itself: the daemon puts its loop thread under SCHED_FIFO 50
+    (where the user may); every other thread of every node stays at normal priority; `status` says which."""
+    threads = {name: realtime_threads(pid) for name, pid in _pids(system).items()}
+    status = mds_ach("status", env=system).stdout
+    if may_use_sched_fifo():
+        assert threads == {**{n: [] for n in NODES}, "daemon": [("mds-daemon-loop", 50)]}, threads
+        assert re.search(r"^daemon .*, loop real-time \(SCHED_FIFO 50, memory locked\), bus", status, re.M), status
+    else:
+        assert threads == {n: [] for n in NODES}, threads
+        assert re.search(r"^daemon .*, loop not real-time, bus", status, re.M), status
 
 
 @pytest.mark.slow

@@ -160,7 +160,7 @@ def test_new_struct_sizes() -> None:
     assert ctypes.sizeof(msgs.MDS_CMD) == 16
     assert ctypes.sizeof(msgs.MDS_IK_STATUS) == 214
     assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 820
-    assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2087
+    assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2090
 
 
 def test_cmd_offsets() -> None:
@@ -188,9 +188,12 @@ def test_mux_state_offsets() -> None:
 def test_daemon_status_offsets() -> None:
     got = offsets(msgs.MDS_DAEMON_STATUS)
     assert {k: got[k] for k in ("version", "pid", "time", "cycle", "bus_state", "cmd_result", "joint_flags",
-                                "joint_age", "channel_errors", "joint_limited", "joint_reseed", "lock_timeouts")} == {
+                                "joint_age", "channel_errors", "joint_limited", "joint_reseed", "lock_timeouts",
+                                "loop_policy", "loop_priority", "memory_locked")} == {
         "version": 0, "pid": 2, "time": 6, "cycle": 22, "bus_state": 134, "cmd_result": 234, "joint_flags": 235,
-        "joint_age": 435, "channel_errors": 835, "joint_limited": 883, "joint_reseed": 1683, "lock_timeouts": 2083}
+        "joint_age": 435, "channel_errors": 835, "joint_limited": 883, "joint_reseed": 1683, "lock_timeouts": 2083,
+        # appended in version 3 (the loop thread's scheduling, issue 25)
+        "loop_policy": 2087, "loop_priority": 2088, "memory_locked": 2089}
 
 
 def test_every_struct_is_packed_little_endian() -> None:

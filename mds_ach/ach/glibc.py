@@ -1,9 +1,10 @@
 """The one ctypes binding to glibc: process-shared pthread objects, futex, absolute sleeps, thread tuning.
 
 Ach channels keep a robust, priority-inheriting pthread mutex and a condvar inside the file, so Python must call
-the very glibc functions libach calls; the daemon's loop sleeps to absolute deadlines with ``clock_nanosleep``
-and asks for 1 ns timer slack. All of it is bound here once, with argtypes set once (cached function pointers:
-these calls sit on hot paths), so the channel code, ``mds-ach repair`` and the daemon cannot drift apart.
+the very glibc functions libach calls; the daemon's loop sleeps to absolute deadlines with ``clock_nanosleep``,
+asks for 1 ns timer slack, SCHED_FIFO and ``mlockall``. All of it is bound here once, with argtypes set once
+(cached function pointers: these calls sit on hot paths), so the channel code, ``mds-ach repair`` and the daemon
+cannot drift apart.
 
 Imports: only :mod:`mds_ach.ach.status`.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 import ctypes
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -34,6 +36,10 @@ SYS_FUTEX = {"x86_64": 202, "aarch64": 98}
 CLOCK_MONOTONIC = 1
 TIMER_ABSTIME = 1
 PR_SET_TIMERSLACK = 29
+PR_SET_NAME = 15
+MCL_CURRENT = 1
+MCL_FUTURE = 2
+CAP_IPC_LOCK = 14
 
 
 class Timespec(ctypes.Structure):
@@ -167,17 +173,81 @@ def sleep_until(deadline: float) -> None:
         pass
 
 
-def tune_thread(rt_priority: int = 0) -> list[str]:
-    """Best effort for the calling thread: 1 ns timer slack, optional SCHED_FIFO. Returns what failed."""
+def tune_thread(rt_priority: int = 0, name: str | None = None) -> list[str]:
+    """Best effort for the calling thread: 1 ns timer slack, its kernel name (``ps -L``, ``/proc/PID/task/TID/comm``;
+    at most 15 bytes), optional SCHED_FIFO. Returns what failed.
+
+    SCHED_FIFO comes with SCHED_RESET_ON_FORK: a thread or process this thread creates starts at normal priority,
+    so nothing but the thread that asked for it ever runs real-time (a busy real-time helper would starve the
+    machine)."""
     problems = []
     try:
         if libc().prctl(PR_SET_TIMERSLACK, ctypes.c_ulong(1), 0, 0, 0) != 0:
             problems.append("timer slack unchanged")
+        if name is not None:
+            libc().prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)
     except (OSError, AttributeError):
         problems.append("no prctl")
     if rt_priority > 0:
         try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(rt_priority))
         except OSError as exc:
             problems.append(f"SCHED_FIFO {rt_priority} refused ({exc.strerror or exc}); running with normal priority")
     return problems
+
+
+def thread_scheduling(tid: int = 0) -> tuple[int, int]:
+    """(policy, real-time priority) of thread ``tid`` (0: the calling one), the SCHED_RESET_ON_FORK flag removed."""
+    return os.sched_getscheduler(tid) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(tid).sched_priority
+
+
+def renice_other_threads(nice: int) -> str | None:
+    """Give every other thread of this process the nice value ``nice`` (threads they create inherit it). None on
+    success, else why not. Python threads share one interpreter lock: a normal-priority thread of a real-time
+    process that is preempted while it holds the lock stops the real-time thread too; a negative nice value gets
+    it the CPU back sooner (CFS weight), while it stays at normal, never real-time, scheduling."""
+    me = threading.get_native_id()
+    try:
+        for tid in (int(t) for t in os.listdir("/proc/self/task")):
+            if tid != me:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, nice)
+                except ProcessLookupError:  # the thread ended meanwhile
+                    pass
+    except OSError as exc:
+        return f"nice {nice} refused ({exc.strerror or exc})"
+    return None
+
+
+def _may_lock_all_memory() -> str | None:
+    """None when ``mlockall`` can lock this process's memory now and later without making allocations fail:
+    CAP_IPC_LOCK or an unlimited RLIMIT_MEMLOCK. Else why not (with a finite limit, MCL_FUTURE would turn the
+    process's growth past the limit into failed allocations)."""
+    import resource
+
+    soft, _hard = resource.getrlimit(resource.RLIMIT_MEMLOCK)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("CapEff:") and int(line.split()[1], 16) >> CAP_IPC_LOCK & 1:
+                    return None
+    except (OSError, ValueError):
+        pass
+    return f"RLIMIT_MEMLOCK is {soft // 1024} KiB, not unlimited, and no CAP_IPC_LOCK"
+
+
+def lock_memory() -> str | None:
+    """``mlockall(MCL_CURRENT | MCL_FUTURE)`` for the whole process, so no page of it is ever paged out and a page
+    fault never delays a real-time loop. None on success, else why not (nothing is locked then)."""
+    why = _may_lock_all_memory()
+    if why is not None:
+        return why
+    try:
+        fn = _fn(libc().mlockall, [ctypes.c_int])
+    except (OSError, AttributeError):
+        return "no mlockall"
+    if fn(MCL_CURRENT | MCL_FUTURE) != 0:
+        return f"mlockall failed ({os.strerror(ctypes.get_errno())})"
+    return None

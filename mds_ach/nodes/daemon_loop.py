@@ -65,7 +65,8 @@ import numpy as np
 
 import mds_ach as mds
 from mds_ach import ach
-from mds_ach.ach.glibc import sleep_until, tune_thread
+from mds_ach.ach import glibc
+from mds_ach.ach.glibc import sleep_until
 from mds_ach.bus import mcb
 from mds_ach.bus.canio import CanIO
 from mds_ach.bus.constants import (
@@ -144,6 +145,15 @@ FOLLOW_SETTLED = 0.002  # rad
 FOLLOW_REST_TIME = 0.2  # s
 FOLLOW_DRIFT = 0.5  # rad
 LIMIT_TOLERANCE = 1e-9  # rad: a target further than this from the goal counts as limited
+OTHER_THREADS_NICE = -10  # the daemon's other threads, when the loop is real-time (glibc.renice_other_threads)
+LOOP_THREAD_NAME = "mds-daemon-loop"  # the loop thread's kernel name (ps -L, /proc/PID/task/TID/comm; 15 bytes max)
+# What running without a real-time priority means, said once at start (docs/operator.md, "Real-time priority").
+WITHOUT_RT = ("under CPU load the loop may stall, seconds on a busy machine (mds-state, /joint_states and "
+              "trajectories pause; `stalls` in mds-ach status); the bus stays safe: nothing is sent late (a target "
+              "later than late_send_tolerance is withheld) and the joints ramp after a stall")
+RT_HOWTO = ("allowed for root, with CAP_SYS_NICE, or with an rtprio limit (/etc/security/limits.conf: "
+            "'USER - rtprio 99', 'USER - memlock unlimited', 'USER - nice -10'; docs/operator.md, "
+            "\"Real-time priority\")")
 
 _LEFT_PARTS = (mds.COLLIDE_L_HAND, mds.COLLIDE_L_SHOULDER, mds.COLLIDE_L_FOREARM, mds.COLLIDE_L_ELBOW,
                mds.COLLIDE_L_WRIST)
@@ -499,11 +509,46 @@ class DaemonLoop:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
+    def _go_realtime(self) -> None:
+        """Ask for ``rt_priority`` (SCHED_FIFO) for this thread only and, once granted, lock the process's memory;
+        record the outcome in ``mds-daemon-status`` and say it once. Under CPU load a normal-priority loop waits
+        behind every busy process (seconds, measured with 3 CPU hogs); a SCHED_FIFO one runs first. It never
+        busy-waits (``sleep_until``), and the threads it creates start at normal priority (SCHED_RESET_ON_FORK).
+        The other threads (ROS executor, DDS) stay at normal scheduling with nice -10: they share the interpreter
+        lock with the loop, and one preempted while holding it stalled the loop (about 4 times as often at nice 0,
+        100 Hz beside 3 CPU hogs)."""
+        problems = glibc.tune_thread(self.rt_priority, name=LOOP_THREAD_NAME)
+        refused = [p for p in problems if p.startswith("SCHED_FIFO")]
+        for problem in problems:
+            if problem not in refused:
+                log.warning("loop thread: %s", problem)
+        try:
+            policy, priority = glibc.thread_scheduling()
+        except OSError:
+            policy, priority = 0, 0
+        self.status.loop_policy, self.status.loop_priority = policy, priority
+        if policy not in ds.REALTIME_POLICIES:
+            if self.rt_priority <= 0:
+                log.info("loop thread: real-time priority off (rt_priority 0): %s", WITHOUT_RT)
+            else:
+                log.warning("loop thread runs WITHOUT a real-time priority (%s): %s. Real-time scheduling is %s",
+                            refused[0].split(";")[0] if refused else f"SCHED_FIFO {self.rt_priority} not granted",
+                            WITHOUT_RT, RT_HOWTO)
+            return
+        locked = glibc.lock_memory()
+        self.status.memory_locked = int(locked is None)
+        reniced = glibc.renice_other_threads(OTHER_THREADS_NICE)
+        log.info("loop thread: %s %d%s%s", ds.LOOP_POLICY_NAMES.get(policy, policy), priority,
+                 ", memory locked (mlockall)" if locked is None else
+                 f"; memory not locked ({locked}): a page fault may still delay a cycle",
+                 f"; the other threads at nice {OTHER_THREADS_NICE}" if reniced is None else
+                 f"; the other threads at their nice value ({reniced}): one preempted while it holds Python's "
+                 "interpreter lock delays the loop longer")
+
     def run(self) -> None:
         """Absolute-time schedule: deadlines at start + k*period; a missed deadline is an overrun and the
         schedule skips to the next future slot (never a burst of catch-up cycles)."""
-        for problem in tune_thread(self.rt_priority):
-            log.warning("loop thread: %s", problem)
+        self._go_realtime()
         # Everything allocated so far lives for the whole run: keep it out of the cyclic GC's full passes,
         # whose pauses would otherwise land in the loop.
         gc.collect()

@@ -5,8 +5,8 @@ Tests import it as ``support`` (``test/`` is on ``sys.path``: pytest's ``pythonp
 ``conftest.py`` keeps only fixtures; helpers live here, so no test module imports ``conftest``.
 
 * this module: paths (``REPO``, ``VENV_BIN``, ``SHARED``), ``wait_for``, ``in_netns``, ``remove_mds_channels``,
-  ``run_as`` and ``other_ids_missing`` (standard library only, so the benchmarks can use the package without
-  pytest);
+  ``run_as``, ``other_ids_missing``, ``realtime_threads`` and ``may_use_sched_fifo`` (standard library only, so
+  the benchmarks can use the package without pytest);
 * ``support.channels``: the one "newest frame" reader (``newest``, ``state``, ``Newest``);
 * ``support.rig``: the one daemon rig (``DaemonRig``: the daemon loop on a simulated clock and bus);
 * ``support.system``: the one system start-up (``running_system`` via ``mds-ach start``, ``Pipeline`` for
@@ -63,6 +63,40 @@ def wait_for(predicate: Callable[[], object], timeout: float = 10.0, interval: f
 def in_netns() -> bool:
     """Are we inside tools/netns-run (private network namespace and /dev/shm)?"""
     return os.environ.get("MDS_NETNS_ACTIVE") == "1"
+
+
+def realtime_threads(pid: int) -> list[tuple[str, int]]:
+    """(kernel thread name, priority) of every thread of process ``pid`` that runs SCHED_FIFO or SCHED_RR."""
+    out = []
+    for tid in sorted(int(t) for t in os.listdir(f"/proc/{pid}/task")):
+        try:
+            policy = os.sched_getscheduler(tid) & ~os.SCHED_RESET_ON_FORK
+            if policy in (os.SCHED_FIFO, os.SCHED_RR):
+                comm = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
+                out.append((comm, os.sched_getparam(tid).sched_priority))
+        except (ProcessLookupError, FileNotFoundError):  # the thread ended meanwhile
+            pass
+    return out
+
+
+def may_use_sched_fifo() -> bool:
+    """May processes started from here run SCHED_FIFO (root, CAP_SYS_NICE, an rtprio limit; not as a normal user in
+    tools/netns-run's user namespace)? Probed on a short-lived thread, which then ends."""
+    import threading
+
+    allowed: list[bool] = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            allowed.append(True)
+        except PermissionError:
+            allowed.append(False)
+
+    thread = threading.Thread(target=probe)
+    thread.start()
+    thread.join()
+    return allowed[0]
 
 
 def _unmapped(table: str, ids: Iterable[int]) -> list[int]:

@@ -7,6 +7,10 @@ ROS. Packed little-endian like every MDS struct; per-joint arrays are indexed by
 Version 2 adds what the daemon did to keep every sent target inside the motion bounds (``mds_ach.robot.motion``):
 targets it had to limit, position replies it refused, its own stalls, and ``joint_reseed``, the counters the
 pipeline nodes (mux, filter, collision gate) watch to restart a joint's reference where the joint is.
+
+Version 3 appends how the control loop thread is scheduled (``loop_policy``, ``loop_priority``, ``memory_locked``):
+whether it runs real-time (SCHED_FIFO/SCHED_RR, it then keeps its period under CPU load) or at normal priority
+(it may stall for seconds on a loaded machine; the bus stays safe). The layout of versions 1-2 is unchanged.
 """
 
 from __future__ import annotations
@@ -15,7 +19,12 @@ import ctypes
 
 from mds_ach.robot.msgs.legacy import MDS_JOINT_COUNT, _Packed
 
-DAEMON_STATUS_VERSION = 2  # 2: motion bounds, stalls, limited targets, bad replies, re-seeds, lock_timeouts
+DAEMON_STATUS_VERSION = 3  # 2: motion bounds, stalls, limited targets, bad replies, re-seeds, lock_timeouts
+# 3: the loop thread's scheduling (loop_policy, loop_priority, memory_locked)
+
+# ``loop_policy``: Linux's policy numbers (os.SCHED_*).
+LOOP_POLICY_NAMES = {0: "SCHED_OTHER", 1: "SCHED_FIFO", 2: "SCHED_RR", 3: "SCHED_BATCH", 5: "SCHED_IDLE"}
+REALTIME_POLICIES = (1, 2)  # SCHED_FIFO, SCHED_RR
 
 BUS_STATE_ACTIVE = 0  # error-active: all fine
 BUS_STATE_PASSIVE = 1  # error-passive / warning level: frames get through, errors seen
@@ -106,6 +115,10 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         # mds-state joint[].pos of that cycle (mds_ach.nodes.pipeline.ReseedWatch).
         ("joint_reseed", ctypes.c_uint32 * MDS_JOINT_COUNT),
         ("lock_timeouts", ctypes.c_uint32),  # channel reads/writes skipped: the lock was held longer than allowed
+        # --- version 3: how the control loop thread runs (set once when the loop starts)
+        ("loop_policy", ctypes.c_uint8),  # its scheduling policy: 1 SCHED_FIFO, 2 SCHED_RR (real-time), 0 normal
+        ("loop_priority", ctypes.c_uint8),  # its real-time priority (1-99), 0 at normal scheduling
+        ("memory_locked", ctypes.c_uint8),  # 1: the daemon's memory is locked (mlockall), no page faults to disk
     ]
 
 
@@ -116,6 +129,14 @@ def flags_text(flags: int) -> str:
              (JOINT_BAD_REPLY, "BAD-REPLY"), (JOINT_UNREFERENCED, "UNREFERENCED"),
              (JOINT_FOLLOW_FAULT, "FOLLOW-FAULT"))
     return " ".join(n for bit, n in names if flags & bit) or "-"
+
+
+def loop_scheduling_text(st: MDS_DAEMON_STATUS) -> str:
+    """How the loop thread runs, for people: 'real-time (SCHED_FIFO 50, memory locked)' or 'not real-time'."""
+    if st.loop_policy not in REALTIME_POLICIES:
+        return "not real-time"
+    name = LOOP_POLICY_NAMES.get(st.loop_policy, str(st.loop_policy))
+    return f"real-time ({name} {st.loop_priority}{', memory locked' if st.memory_locked else ''})"
 
 
 def summary_line(st: MDS_DAEMON_STATUS) -> str:
@@ -130,8 +151,9 @@ def summary_line(st: MDS_DAEMON_STATUS) -> str:
                         ("unreferenced", sum(1 for f in st.joint_flags if f & JOINT_UNREFERENCED)),
                         ("follow-fault", sum(1 for f in st.joint_flags if f & JOINT_FOLLOW_FAULT))):
         if value:
-            faults.append(f"{name} {value}")
+            faults.append(f"{name} {value}" + (f" (longest {st.stall_max:.2f} s)" if name == "stalls" else ""))
     return (f"{st.measured_rate_hz:.1f}/{st.rate_hz:g} Hz, period err p99 {st.period_error_p99 * 1e3:.2f} ms, "
-            f"overruns {st.overruns}, bus {BUS_STATE_NAMES.get(st.bus_state, '?')} {st.bus_load_avg:.0f}%"
+            f"overruns {st.overruns}, loop {loop_scheduling_text(st)}, "
+            f"bus {BUS_STATE_NAMES.get(st.bus_state, '?')} {st.bus_load_avg:.0f}%"
             f"{' (nocan)' if st.nocan else ''}, stale {st.stale_count}"
             + (", " + ", ".join(faults) if faults else ""))
