@@ -85,7 +85,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from mds_ach_interfaces.msg import CollisionState
@@ -141,6 +141,18 @@ SAME_POSE = 1e-4  # rad: a unit measured this close to its reference is checked 
 CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than this are "brought closer"
 
 Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
+# Every choice of {reference, measured} per unit in itertools.product order, and for each the q columns taken
+# measured: _configs builds all the configurations of a frame in one array operation.
+_CHOICES: tuple[Choice, ...] = tuple(itertools.product((False, True), (False, True), (False, True)))
+_CHOICE_ROW = {c: k for k, c in enumerate(_CHOICES)}
+_UNIT_COLUMNS = np.zeros((len(UNITS), len(MODEL_ADDRESSES)), dtype=bool)
+for _k, _u in enumerate(UNITS):
+    _UNIT_COLUMNS[_k, _UNIT_Q[_u]] = True
+_CHOICE_MASK = np.array([np.any(_UNIT_COLUMNS[list(c)], axis=0) for c in _CHOICES])
+# Which units are measured away from their reference -> the choices to check (a unit at its reference: once).
+_CHOICES_FOR = {apart: [c for c in _CHOICES if all(a or not m for m, a in zip(c, apart, strict=True))]
+                for apart in _CHOICES}
+
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
 STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
@@ -338,22 +350,19 @@ class Gate:
                  choices: Iterable[Choice] | None = None) -> dict[Choice, np.ndarray]:
         """Model joint vectors of output ``x`` combined per unit with the measured pose ``pos`` (NaN: not known,
         taken at its reference). Without ``choices``: every distinct combination."""
-        q_ref = self.model.q_from_ref(x)
+        addresses = self.model.addresses
+        q_ref = np.asarray(x, dtype=float)[addresses]
         if pos is None:
             return {(False, False, False): q_ref}
-        q_pos = self.model.q_from_ref(np.where(np.isnan(pos), x, pos))
-        if choices is None:
-            options = [(False, True) if np.abs(q_pos[_UNIT_Q[u]] - q_ref[_UNIT_Q[u]]).max() > SAME_POSE else (False,)
-                       for u in UNITS]
-            choices = cast(Iterable[Choice], itertools.product(*options))  # one option tuple per unit: triples
-        out = {}
-        for c in choices:
-            q = q_ref.copy()
-            for u, measured in zip(UNITS, c, strict=True):
-                if measured:
-                    q[_UNIT_Q[u]] = q_pos[_UNIT_Q[u]]
-            out[c] = q
-        return out
+        q_pos = pos[addresses]
+        q_pos = np.where(np.isnan(q_pos), q_ref, q_pos)
+        if choices is None:  # a unit measured within SAME_POSE of its reference counts once (taken at it)
+            apart = (_UNIT_COLUMNS & (np.abs(q_pos - q_ref) > SAME_POSE)).any(axis=1)
+            choices = _CHOICES_FOR[tuple(apart.tolist())]
+        else:
+            choices = list(choices)
+        rows = np.where(_CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]], q_pos, q_ref)
+        return dict(zip(choices, rows, strict=True))
 
     def _analyze(self, x: np.ndarray, pos: np.ndarray | None,
                  new_only: bool = False) -> tuple[dict[Choice, Any], list[tuple[Choice, Any]]]:
@@ -442,13 +451,13 @@ class Gate:
                 ext.append((idx, d * k))
                 reach = max(reach, fastest * k)
         n = math.ceil(reach / AHEAD_STEP) if ext else 0
-        path = []
-        for i in range(1, n + 1):
-            y = x.copy()
-            for idx, e in ext:
-                y[idx] = np.clip(x[idx] + e * (i / n), self.lower[idx], self.upper[idx])
-            path.append(y)
-        return path
+        if n == 0:
+            return []
+        path = np.tile(x, (n, 1))
+        fraction = np.arange(1, n + 1)[:, None] / n
+        for idx, e in ext:
+            path[:, idx] = np.clip(x[idx] + e * fraction, self.lower[idx], self.upper[idx])
+        return list(path)
 
     def _blocks(self, x: np.ndarray, pos: np.ndarray | None, arms: Iterable[str],
                 dt: float) -> list[tuple[Choice, Any]]:
