@@ -863,11 +863,79 @@ done:
     return out;
 }
 
+/* check_many(handle, Q) -> per row of Q (K x n doubles, C order): None when every pair is proven apart, else the
+ * list of the pairs not proven apart, in pair order: (k, d) for pair k proven overlapping by more than eps, with
+ * d the signed distance of its un-inflated shapes (NaN: ask fcl), or (k, None) for an undecided pair (ask fcl).
+ * One call for all the configurations of a gate frame: no Python work for the configurations that are free. */
+static PyObject *check_many(PyObject *self, PyObject *args) {
+    PyObject *cap;
+    Py_buffer qb;
+    if (!PyArg_ParseTuple(args, "Oy*", &cap, &qb))
+        return NULL;
+    PyObject *out = NULL;
+    double *poses = NULL;
+    Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
+    if (m == NULL)
+        goto done;
+    const Py_ssize_t row = m->n * (Py_ssize_t)sizeof(double);
+    if (row == 0 || qb.len % row != 0) {
+        PyErr_Format(PyExc_ValueError, "_collfast.check_many: Q needs rows of %zd doubles, got %zd bytes", m->n, qb.len);
+        goto done;
+    }
+    poses = PyMem_Malloc((m->P > 0 ? m->P : 1) * 16 * sizeof(double));
+    if (poses == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const Py_ssize_t K = qb.len / row;
+    out = PyList_New(K);
+    if (out == NULL)
+        goto done;
+    for (Py_ssize_t r = 0; r < K; r++) {
+        place(m, (const double *)qb.buf + r * m->n);
+        for (Py_ssize_t p = 0; p < m->P; p++) {
+            memcpy(poses + 16 * p, m->W + 12 * p, 12 * sizeof(double));
+            poses[16 * p + 12] = poses[16 * p + 13] = poses[16 * p + 14] = 0.0;
+            poses[16 * p + 15] = 1.0;
+        }
+        PyObject *found = NULL;
+        for (Py_ssize_t k = 0; k < m->M; k++) {
+            const int status = pair_status(m, m->I[k], m->J[k]);
+            if (status == 0)
+                continue;
+            if (found == NULL && (found = PyList_New(0)) == NULL)
+                goto fail;
+            PyObject *item = status == 2
+                ? Py_BuildValue("(nd)", k, signed_distance(m, poses, m->I[k], m->J[k]))
+                : Py_BuildValue("(nO)", k, Py_None);
+            if (item == NULL || PyList_Append(found, item) < 0) {
+                Py_XDECREF(item);
+                Py_DECREF(found);
+                goto fail;
+            }
+            Py_DECREF(item);
+        }
+        if (found == NULL) {
+            Py_INCREF(Py_None);
+            found = Py_None;
+        }
+        PyList_SET_ITEM(out, r, found);
+    }
+    goto done;
+fail:
+    Py_CLEAR(out);
+done:
+    PyMem_Free(poses);
+    PyBuffer_Release(&qb);
+    return out;
+}
+
 static PyMethodDef methods[] = {
     {"build", build, METH_VARARGS,
      "build(n, P, M, eps, A, parent, order, owner, offset, kind, dims, raw, brad, I, J)"},
     {"screen", screen, METH_VARARGS, "screen(handle, q, poses_out, stop_at_sure=False) -> [pair or -1 - pair]"},
     {"poses", poses, METH_VARARGS, "poses(handle, q, poses_out): primitive poses only"},
+    {"check_many", check_many, METH_VARARGS, "check_many(handle, Q) -> [None or [(pair, distance or None)]]"},
     {"distance", distance, METH_VARARGS, "distance(handle, poses, i, j) -> signed distance (un-inflated), NaN: ask fcl"},
     {NULL, NULL, 0, NULL},
 };
