@@ -152,6 +152,7 @@ _CHOICE_MASK = np.array([np.any(_UNIT_COLUMNS[list(c)], axis=0) for c in _CHOICE
 # Which units are measured away from their reference -> the choices to check (a unit at its reference: once).
 _CHOICES_FOR = {apart: [c for c in _CHOICES if all(a or not m for m, a in zip(c, apart, strict=True))]
                 for apart in _CHOICES}
+_MASK_FOR = {apart: _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]] for apart, choices in _CHOICES_FOR.items()}
 
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
@@ -305,6 +306,8 @@ class Gate:
         self.stopped: dict[str, str] = {}  # arm -> "right hand / left hand" while it rests where it was stopped
         self._stop_contact: dict[str, Any] = {}  # arm -> the contact it was stopped at (followed while it rests)
         self._settle_since: dict[str, float] = {}  # arm -> when it came to rest at a contact, unflagged
+        # the measured pose of this frame and its model joints (NaN: unknown), see _configs; reset every frame
+        self._measured: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # ----- override
 
@@ -351,17 +354,20 @@ class Gate:
         """Model joint vectors of output ``x`` combined per unit with the measured pose ``pos`` (NaN: not known,
         taken at its reference). Without ``choices``: every distinct combination."""
         addresses = self.model.addresses
-        q_ref = np.asarray(x, dtype=float)[addresses]
+        q_ref = np.asarray(x, dtype=float).take(addresses)
         if pos is None:
             return {(False, False, False): q_ref}
-        q_pos = pos[addresses]
-        q_pos = np.where(np.isnan(q_pos), q_ref, q_pos)
+        if self._measured is None or self._measured[0] is not pos:  # once per frame: the measured joints in q
+            measured = pos.take(addresses)
+            self._measured = (pos, measured, np.isnan(measured))
+        q_pos = np.where(self._measured[2], q_ref, self._measured[1])
         if choices is None:  # a unit measured within SAME_POSE of its reference counts once (taken at it)
-            apart = (_UNIT_COLUMNS & (np.abs(q_pos - q_ref) > SAME_POSE)).any(axis=1)
-            choices = _CHOICES_FOR[tuple(apart.tolist())]
+            apart = tuple((_UNIT_COLUMNS & (np.abs(q_pos - q_ref) > SAME_POSE)).any(axis=1).tolist())
+            choices, mask = _CHOICES_FOR[apart], _MASK_FOR[apart]
         else:
             choices = list(choices)
-        rows = np.where(_CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]], q_pos, q_ref)
+            mask = _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]]
+        rows = np.where(mask, q_pos, q_ref)
         return dict(zip(choices, rows, strict=True))
 
     def _analyze(self, x: np.ndarray, pos: np.ndarray | None,
@@ -456,7 +462,7 @@ class Gate:
         path = np.tile(x, (n, 1))
         fraction = np.arange(1, n + 1)[:, None] / n
         for idx, e in ext:
-            path[:, idx] = np.clip(x[idx] + e * fraction, self.lower[idx], self.upper[idx])
+            path[:, idx] = np.minimum(np.maximum(x[idx] + e * fraction, self.lower[idx]), self.upper[idx])
         return list(path)
 
     def _blocks(self, x: np.ndarray, pos: np.ndarray | None, arms: Iterable[str],
@@ -503,6 +509,7 @@ class Gate:
     # ----- the decision
 
     def process(self, ref: np.ndarray, mode: np.ndarray, now: float, observed: Observed | None = None) -> Decision:
+        self._measured = None
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         cand = ref.copy()
