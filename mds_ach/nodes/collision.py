@@ -44,7 +44,9 @@ held at (source ``collision``, reason ``stopped at contact: right hand / left ha
 target and the arm does not go on to it later when the obstacle moves away; only a new command moves it. An arm
 held because the other arm (or the waist, or its measured pose) came to it is not cancelled: its command did not
 fail. ``/mds/collision`` reports ``stopped`` (arm -> ``stopped at contact: <its part> / <the other part>``) until
-that arm's reference moves again.
+that arm's reference moves again. Until then its input does not bring it back toward the contact: what is left of
+the cancelled command (the mux may not have applied the cancel yet) finds the arm resting or held, as at the stop,
+never approaching it again (which would stop it at another point and cancel again).
 
 **Holding and releasing agree with ``mds-collide``.** The daemon withholds the targets of an arm whose parts
 ``mds-collide`` flags (``daemon_loop._collision_held``). So the gate flags exactly the arms it holds, keeps an
@@ -564,7 +566,10 @@ class Gate:
             approach = blocked - frozen
             if approach and "body" not in blocked and self.config.approach_iterations > 0:
                 # Approach to contact: the arms that moved into it go the safe part of their step.
-                part = self._approach(cand, cand_mode, frozen, approach, pos, dt)
+                # An arm already stopped at contact does not approach it again on what is left of its cancelled
+                # command (the gate's cancel may not have reached the mux yet): it rests or is held, as at the stop.
+                part = None if approach <= set(self.stopped) else \
+                    self._approach(cand, cand_mode, frozen, approach, pos, dt)
                 settle = set() if part is not None else self._settling(approach, observed, now)
                 if part is not None or settle:  # replaces their input; the rules below apply as to any input
                     arms = approach if part is not None else settle
