@@ -3,6 +3,10 @@ fcl, margins, world objects, and a known colliding pair that must always be repo
 
 from __future__ import annotations
 
+import math
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -11,6 +15,9 @@ from mds_ach.kinematics import collision
 from mds_ach.kinematics.model import load_model as load_kinematics
 from mds_ach.paths import config_path, urdf_path
 from mds_ach.robot.joints import MODEL_JOINTS
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.bench_collision import half_dims, project_onto  # noqa: E402  (bench/ is not an installed package)
 
 HOME = {"RSP": -0.445, "RSR": -1.18, "REP": -1.25, "RSY": 0.15, "LSP": -0.45, "LSR": 1.2, "LEP": -1.25,
         "LSY": -0.25, "LWR": -0.28}
@@ -333,32 +340,24 @@ def test_c_screen_gives_the_numpy_and_exhaustive_answers(scene: str) -> None:
         assert table_hits > 20
 
 
-def _project(points: np.ndarray, poses: np.ndarray, kinds: np.ndarray, dims: np.ndarray) -> np.ndarray:
-    """The nearest point of each solid primitive (kind 0 sphere r, 1 box half extents, 2 cylinder r, half
-    length; posed by ``poses``) to each point: row by row, in numpy."""
-    R, t = poses[:, :3, :3], poses[:, :3, 3]
-    local = np.einsum("nji,nj->ni", R, points - t)
-    out = local.copy()
-    box = kinds == 1
-    out[box] = np.clip(local[box], -dims[box], dims[box])
-    cyl = kinds == 2
-    radial = np.hypot(local[cyl, 0], local[cyl, 1])
-    scale = np.minimum(1.0, dims[cyl, 0] / np.maximum(radial, 1e-300))
-    out[cyl, 0] *= scale
-    out[cyl, 1] *= scale
-    out[cyl, 2] = np.clip(local[cyl, 2], -dims[cyl, 1], dims[cyl, 1])
-    ball = kinds == 0
-    norm = np.linalg.norm(local[ball], axis=1)
-    out[ball] *= np.minimum(1.0, dims[ball, 0] / np.maximum(norm, 1e-300))[:, None]
-    return np.einsum("nij,nj->ni", R, out) + t
-
-
-def _half_dims(p: collision.Primitive) -> tuple[float, float, float]:
-    if p.kind == "sphere":
-        return (p.size[0], 0.0, 0.0)
-    if p.kind == "box":
-        return (p.size[0] / 2, p.size[1] / 2, p.size[2] / 2)
-    return (p.size[0], p.size[1] / 2, 0.0)
+def _sphere_overlap(poses: np.ndarray, kinds: np.ndarray, dims: np.ndarray, i: int, j: int) -> float | None:
+    """Signed distance of a sphere and a solid that overlap it, in numpy: the centre's signed distance to the
+    solid (inside: minus the distance to its nearest face) minus the radius. None without a sphere."""
+    if kinds[j] == 0:
+        i, j = j, i
+    if kinds[i] != 0:
+        return None
+    p = poses[j, :3, :3].T @ (poses[i, :3, 3] - poses[j, :3, 3])
+    h = dims[j]
+    if kinds[j] == 0:
+        inside = float(np.linalg.norm(p)) - h[0]
+    elif kinds[j] == 1:
+        out = np.maximum(np.abs(p) - h, 0.0)
+        inside = float(np.linalg.norm(out)) if out.any() else float((np.abs(p) - h).max())
+    else:
+        e = np.array([math.hypot(p[0], p[1]) - h[0], abs(p[2]) - h[1]])
+        inside = float(np.linalg.norm(np.maximum(e, 0.0))) if (e > 0).any() else float(e.max())
+    return inside - dims[i][0]
 
 
 @pytest.mark.skipif(not collision.FAST_AVAILABLE, reason="mds_ach.kinematics._collfast not built")
@@ -367,15 +366,17 @@ def test_c_clearances_equal_an_independent_reference() -> None:
     and escape rule use, equal an independent reference within 1e-6 m on every checked pair of 300 random
     configurations and the two paper scenes: apart shapes, the distance of the closest pair found by
     alternating projections onto the two solids in numpy (never below the C distance, which is certified, and
-    at most 1e-6 above it); overlapping shapes, python-fcl's penetration depth (its EPA, within 1e-6 m).
+    at most 1e-6 above it); overlapping boxes and cylinders, python-fcl's penetration depth (its EPA, within
+    1e-6 m).
     python-fcl's own distance is not the reference where shapes are apart: on cylinders it is off by up to
-    millimetres, and its signed mode by up to a millimetre on spheres (measured with coal, bench_collision)."""
+    millimetres, and its signed mode by up to a millimetre on spheres (measured with coal, bench_collision);
+    overlaps with a sphere are checked against the closed form in numpy (python-fcl's collide misses some)."""
     model = collision.load_model(world=TABLE)
     configs = np.concatenate([random_configs(model, 300, seed=9), hands_together(model, 100, seed=3),
                               hand_over_table(model, 100, seed=4)])
     kind_code = {"sphere": 0, "box": 1, "cylinder": 2}
     kinds = np.array([kind_code[p.kind] for p in model.primitives])
-    dims = np.array([_half_dims(p) for p in model.primitives])
+    dims = np.array([half_dims(p) for p in model.primitives])
     apart: list[tuple[np.ndarray, np.ndarray, int, int, float]] = []
     overlapping = checked = 0
     for q in configs:
@@ -385,7 +386,10 @@ def test_c_clearances_equal_an_independent_reference() -> None:
             checked += 1
             if d < 0:
                 overlapping += 1
-                assert d == pytest.approx(model.fcl_signed_distance(poses, i, j), abs=1e-6), (q, i, j)
+                reference = _sphere_overlap(poses, kinds, dims, i, j)
+                if reference is None:  # boxes and cylinders: python-fcl's EPA
+                    reference = model.fcl_signed_distance(poses, i, j)
+                assert d == pytest.approx(reference, abs=1e-6), (q, i, j)
             else:
                 apart.append((poses[i], poses[j], i, j, d))
     assert overlapping > 300 and len(apart) > 10000, (overlapping, len(apart))
@@ -397,8 +401,8 @@ def test_c_clearances_equal_an_independent_reference() -> None:
     ours = np.array([a[4] for a in apart])
     x = Pj[:, :3, 3].copy()
     for _ in range(5000):  # alternating projections: converge to a closest pair of two disjoint convex solids
-        a = _project(x, Pi, kinds[first], dims[first])
-        step = _project(a, Pj, kinds[second], dims[second])
+        a = project_onto(x, Pi, kinds[first], dims[first])
+        step = project_onto(a, Pj, kinds[second], dims[second])
         moved = np.abs(step - x).max()
         x = step
         if moved < 1e-13:

@@ -643,8 +643,9 @@ class CollisionModel:
 
     def fcl_signed_distance(self, poses: np.ndarray, i: int, j: int) -> float:
         """python-fcl's signed distance of primitives ``i``, ``j`` (un-inflated) at ``poses``: ``fcl.distance``
-        when they are apart (exact there), its signed mode (penetration depth) when they overlap. The reference
-        the C code's distances are tested against, and the fallback where that code has no answer."""
+        when ``fcl.collide`` finds them apart (exact there, where its signed mode is up to a millimetre off), its
+        signed mode (EPA, within 1e-6 m) when they overlap. The fallback where the C code has no answer. (fcl's
+        collide misses some sub-millimetre sphere overlaps: then this gives ~0 for a small negative distance.)"""
         fcl, raw = self._fcl, self._raw_objects
         for m in (i, j):
             if self._moving[m]:
