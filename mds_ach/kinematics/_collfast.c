@@ -19,6 +19,8 @@
 
 enum { SPHERE = 0, BOX = 1, CYLINDER = 2 };
 
+#define GJK_TOL 1e-9  /* m: a GJK or EPA distance is within this of the true one */
+
 /* A 3x4 affine transform, row-major: R (3x3) and t in the last column. */
 typedef double Affine[12];
 
@@ -32,6 +34,7 @@ typedef struct {
     double *offset;     /* P * 12 */
     int64_t *kind;      /* P */
     double *dims;       /* P * 3: sphere (r), box (half x, y, z), cylinder (r, half length) -- inflated */
+    double *raw;        /* P * 3: the same, un-inflated (for clearances) */
     double *brad;       /* P: bounding radius about the centre */
     int64_t *I, *J;     /* M pairs */
     double *T;          /* (n + 1) * 12 work: joint frames */
@@ -42,7 +45,7 @@ static void model_free(Model *m) {
     if (m == NULL)
         return;
     PyMem_Free(m->A); PyMem_Free(m->parent); PyMem_Free(m->order); PyMem_Free(m->owner);
-    PyMem_Free(m->offset); PyMem_Free(m->kind); PyMem_Free(m->dims); PyMem_Free(m->brad);
+    PyMem_Free(m->offset); PyMem_Free(m->kind); PyMem_Free(m->dims); PyMem_Free(m->raw); PyMem_Free(m->brad);
     PyMem_Free(m->I); PyMem_Free(m->J); PyMem_Free(m->T); PyMem_Free(m->W);
     PyMem_Free(m);
 }
@@ -73,13 +76,13 @@ static int copy_buffer(PyObject *obj, Py_ssize_t count, Py_ssize_t itemsize, voi
     return 0;
 }
 
-/* build(n, P, M, eps, A, parent, order, owner, offset, kind, dims, brad, I, J) -> handle */
+/* build(n, P, M, eps, A, parent, order, owner, offset, kind, dims, raw, brad, I, J) -> handle */
 static PyObject *build(PyObject *self, PyObject *args) {
     Py_ssize_t n, P, M;
     double eps;
-    PyObject *A, *parent, *order, *owner, *offset, *kind, *dims, *brad, *I, *J;
-    if (!PyArg_ParseTuple(args, "nnndOOOOOOOOOO", &n, &P, &M, &eps, &A, &parent, &order, &owner, &offset, &kind,
-                          &dims, &brad, &I, &J))
+    PyObject *A, *parent, *order, *owner, *offset, *kind, *dims, *raw, *brad, *I, *J;
+    if (!PyArg_ParseTuple(args, "nnndOOOOOOOOOOO", &n, &P, &M, &eps, &A, &parent, &order, &owner, &offset, &kind,
+                          &dims, &raw, &brad, &I, &J))
         return NULL;
     if (n < 0 || P < 0 || M < 0) {
         PyErr_SetString(PyExc_ValueError, "_collfast.build: negative size");
@@ -95,6 +98,7 @@ static PyObject *build(PyObject *self, PyObject *args) {
         || copy_buffer(offset, P * 12, 8, (void **)&m->offset, "offset") < 0
         || copy_buffer(kind, P, 8, (void **)&m->kind, "kind") < 0
         || copy_buffer(dims, P * 3, 8, (void **)&m->dims, "dims") < 0
+        || copy_buffer(raw, P * 3, 8, (void **)&m->raw, "raw") < 0
         || copy_buffer(brad, P, 8, (void **)&m->brad, "brad") < 0
         || copy_buffer(I, M, 8, (void **)&m->I, "I") < 0 || copy_buffer(J, M, 8, (void **)&m->J, "J") < 0) {
         model_free(m);
@@ -252,6 +256,409 @@ static double segment_segment2(const double *p0, const double *u, const double *
     return r2;
 }
 
+/* ---- GJK on the primitives (convex, given by their support points): certified distances and verdicts ----
+ *
+ * What the closed forms above do not cover (a cylinder against a box or a cylinder, two boxes for clearances) is
+ * decided with GJK on the Minkowski difference. Every answer it gives is certified by bounds that hold whatever
+ * the simplex bookkeeping did: |v| (v a convex combination of support points, so a point of A - B) is an upper
+ * bound of the distance and v.w / |v| (w the support point of A - B towards -v) a lower bound. A distance is
+ * returned only when the two agree within the tolerance; "intersecting" only when the origin is strictly inside
+ * a tetrahedron of support points. Anything else (touching, degenerate simplex, no convergence) is left to fcl.
+ */
+
+typedef struct {
+    int kind;
+    const double *T;  /* pose, 3x4 row-major (the first 12 entries of a 4x4 row-major pose) */
+    double d[3];      /* sphere (r), box (half x, y, z), cylinder (r, half length) */
+} Shape;
+
+static void support(const Shape *s, const double *dir, double *out) {
+    const double *T = s->T;
+    const double l[3] = {T[0] * dir[0] + T[4] * dir[1] + T[8] * dir[2], T[1] * dir[0] + T[5] * dir[1] + T[9] * dir[2],
+                         T[2] * dir[0] + T[6] * dir[1] + T[10] * dir[2]};
+    double p[3] = {0.0, 0.0, 0.0};
+    if (s->kind == SPHERE) {
+        const double n = sqrt(dot3(l, l));
+        if (n > 0)
+            for (int k = 0; k < 3; k++)
+                p[k] = l[k] * s->d[0] / n;
+        else
+            p[0] = s->d[0];
+    } else if (s->kind == BOX) {
+        for (int k = 0; k < 3; k++)
+            p[k] = l[k] >= 0 ? s->d[k] : -s->d[k];
+    } else {
+        const double rr = hypot(l[0], l[1]);
+        if (rr > 0) {
+            p[0] = l[0] * s->d[0] / rr;
+            p[1] = l[1] * s->d[0] / rr;
+        }
+        p[2] = l[2] >= 0 ? s->d[1] : -s->d[1];
+    }
+    for (int r = 0; r < 3; r++)
+        out[r] = T[4 * r] * p[0] + T[4 * r + 1] * p[1] + T[4 * r + 2] * p[2] + T[4 * r + 3];
+}
+
+/* Support point of A - B in direction dir. */
+static void support_diff(const Shape *a, const Shape *b, const double *dir, double *out) {
+    const double neg[3] = {-dir[0], -dir[1], -dir[2]};
+    double pa[3], pb[3];
+    support(a, dir, pa);
+    support(b, neg, pb);
+    for (int k = 0; k < 3; k++)
+        out[k] = pa[k] - pb[k];
+}
+
+static inline void sub3(const double *a, const double *b, double *c) {
+    c[0] = a[0] - b[0]; c[1] = a[1] - b[1]; c[2] = a[2] - b[2];
+}
+
+static inline void cross3(const double *a, const double *b, double *c) {
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* Closest point to the origin on segment W[0]W[1]; keeps the vertices of the feature it lies on. */
+static void closest_segment(double W[4][3], int *n, double *v) {
+    double e[3];
+    sub3(W[1], W[0], e);
+    const double ee = dot3(e, e), t = ee > 0 ? -dot3(W[0], e) / ee : 0.0;
+    if (t <= 0) {
+        *n = 1;
+        memcpy(v, W[0], sizeof(double) * 3);
+    } else if (t >= 1) {
+        *n = 1;
+        memcpy(W[0], W[1], sizeof(double) * 3);
+        memcpy(v, W[0], sizeof(double) * 3);
+    } else {
+        for (int k = 0; k < 3; k++)
+            v[k] = W[0][k] + t * e[k];
+    }
+}
+
+/* Closest point to the origin on triangle W[0..2] (Voronoi regions, as in Ericson's Real-Time Collision
+ * Detection 5.1.5); keeps the vertices of the feature it lies on. */
+static void closest_triangle(double W[4][3], int *n, double *v) {
+    const double *a = W[0], *b = W[1], *c = W[2];
+    double ab[3], ac[3], ap[3] = {-a[0], -a[1], -a[2]};
+    sub3(b, a, ab);
+    sub3(c, a, ac);
+    const double d1 = dot3(ab, ap), d2 = dot3(ac, ap);
+    double keep[3][3];
+    if (d1 <= 0 && d2 <= 0) {  /* vertex a */
+        *n = 1;
+        memcpy(v, a, sizeof keep[0]);
+        return;
+    }
+    const double bp[3] = {-b[0], -b[1], -b[2]};
+    const double d3 = dot3(ab, bp), d4 = dot3(ac, bp);
+    if (d3 >= 0 && d4 <= d3) {  /* vertex b */
+        *n = 1;
+        memcpy(W[0], b, sizeof keep[0]);
+        memcpy(v, W[0], sizeof keep[0]);
+        return;
+    }
+    const double vc = d1 * d4 - d3 * d2;
+    if (vc <= 0 && d1 >= 0 && d3 <= 0) {  /* edge ab */
+        const double t = d1 / (d1 - d3);
+        for (int k = 0; k < 3; k++)
+            v[k] = a[k] + t * ab[k];
+        *n = 2;
+        return;
+    }
+    const double cp[3] = {-c[0], -c[1], -c[2]};
+    const double d5 = dot3(ab, cp), d6 = dot3(ac, cp);
+    if (d6 >= 0 && d5 <= d6) {  /* vertex c */
+        *n = 1;
+        memcpy(W[0], c, sizeof keep[0]);
+        memcpy(v, W[0], sizeof keep[0]);
+        return;
+    }
+    const double vb = d5 * d2 - d1 * d6;
+    if (vb <= 0 && d2 >= 0 && d6 <= 0) {  /* edge ac */
+        const double t = d2 / (d2 - d6);
+        for (int k = 0; k < 3; k++)
+            v[k] = a[k] + t * ac[k];
+        memcpy(W[1], c, sizeof keep[0]);
+        *n = 2;
+        return;
+    }
+    const double va = d3 * d6 - d5 * d4;
+    if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) {  /* edge bc */
+        const double t = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        for (int k = 0; k < 3; k++)
+            v[k] = b[k] + t * (c[k] - b[k]);
+        memcpy(W[0], c, sizeof keep[0]);
+        *n = 2;
+        return;
+    }
+    const double den = va + vb + vc;
+    if (!(den > 0)) {  /* degenerate (flat) triangle: the closest of its edges */
+        double best = INFINITY, bv[3] = {0, 0, 0}, S[4][3];
+        int bn = 0;
+        double Bs[4][3];
+        for (int e = 0; e < 3; e++) {
+            int m = 2;
+            double u[3];
+            memcpy(S[0], W[e], sizeof keep[0]);
+            memcpy(S[1], W[(e + 1) % 3], sizeof keep[0]);
+            closest_segment(S, &m, u);
+            if (dot3(u, u) < best) {
+                best = dot3(u, u);
+                memcpy(bv, u, sizeof bv);
+                memcpy(Bs, S, sizeof Bs);
+                bn = m;
+            }
+        }
+        memcpy(W, Bs, sizeof Bs);
+        *n = bn;
+        memcpy(v, bv, sizeof bv);
+        return;
+    }
+    const double sv = vb / den, sw = vc / den;
+    for (int k = 0; k < 3; k++)
+        v[k] = a[k] + ab[k] * sv + ac[k] * sw;
+    *n = 3;
+}
+
+/* Closest point to the origin on tetrahedron W[0..3]: the closest over the faces the origin is outside of.
+ * Returns 1 when the origin is strictly inside (by `inside` relative to the face's scale), else 0 (and the
+ * reduced simplex and point). A flat tetrahedron is never "inside": its faces are all tried. */
+static int closest_tetra(double W[4][3], int *n, double *v) {
+    static const int face[4][4] = {{0, 1, 2, 3}, {0, 2, 3, 1}, {0, 3, 1, 2}, {1, 3, 2, 0}};
+    double e1[3], e2[3], nrm[3], d[3], po[3];
+    sub3(W[1], W[0], e1);
+    sub3(W[2], W[0], e2);
+    cross3(e1, e2, nrm);
+    sub3(W[3], W[0], d);
+    const double vol = dot3(nrm, d);
+    double scale = 0.0;
+    for (int i = 0; i < 4; i++)
+        scale = fmax(scale, dot3(W[i], W[i]));
+    const int flat = fabs(vol) <= 1e-12 * scale * sqrt(scale);
+    int outside_any = 0;
+    double best = INFINITY, bv[3] = {0, 0, 0}, Bs[4][3];
+    int bn = 0;
+    for (int f = 0; f < 4; f++) {
+        const double *a = W[face[f][0]], *b = W[face[f][1]], *c = W[face[f][2]], *o = W[face[f][3]];
+        sub3(b, a, e1);
+        sub3(c, a, e2);
+        cross3(e1, e2, nrm);
+        sub3(o, a, d);
+        po[0] = -a[0]; po[1] = -a[1]; po[2] = -a[2];
+        const double so = dot3(nrm, d), sp = dot3(nrm, po);
+        const double nn = sqrt(dot3(nrm, nrm));
+        /* outside this face: the origin and the opposite vertex on different sides (or a flat tetrahedron),
+         * or too close to the face to tell (then it is not "strictly inside" either) */
+        const int outside = flat || sp * so <= 0 || fabs(sp) <= 1e-12 * nn * sqrt(scale);
+        if (!outside)
+            continue;
+        outside_any = 1;
+        double S[4][3], u[3];
+        int m = 3;
+        memcpy(S[0], a, sizeof S[0]);
+        memcpy(S[1], b, sizeof S[0]);
+        memcpy(S[2], c, sizeof S[0]);
+        closest_triangle(S, &m, u);
+        if (dot3(u, u) < best) {
+            best = dot3(u, u);
+            memcpy(bv, u, sizeof bv);
+            memcpy(Bs, S, sizeof Bs);
+            bn = m;
+        }
+    }
+    if (!outside_any)
+        return 1;
+    memcpy(W, Bs, sizeof Bs);
+    *n = bn;
+    memcpy(v, bv, sizeof bv);
+    return 0;
+}
+
+enum { GJK_UNDECIDED = -1, GJK_INTERSECT = 0, GJK_APART = 1 };
+
+/* GJK between a and b. GJK_APART with *dist within `tol` of the distance (certified), or, when `apart_above` is
+ * finite, as soon as the lower bound exceeds it (*dist = that lower bound); GJK_INTERSECT when the origin is
+ * strictly inside a tetrahedron of support points of A - B (the shapes share an interior point); else
+ * GJK_UNDECIDED. */
+static int gjk_simplex(const Shape *a, const Shape *b, double tol, double apart_above, double *dist, double W[4][3]) {
+    double v[3], w[3];
+    int n = 1;
+    const double dir0[3] = {a->T[3] - b->T[3], a->T[7] - b->T[7], a->T[11] - b->T[11]};
+    const double one[3] = {1.0, 0.0, 0.0};
+    support_diff(a, b, dot3(dir0, dir0) > 0 ? dir0 : one, W[0]);
+    memcpy(v, W[0], sizeof v);
+    double upper = INFINITY, lower = -INFINITY;  /* the best bounds so far */
+    for (int iter = 0; iter < 64; iter++) {
+        const double vv = dot3(v, v);
+        if (!(vv > 1e-24))  /* touching, or lost: not ours to decide */
+            return GJK_UNDECIDED;
+        const double vn = sqrt(vv);
+        if (!(vn < upper))  /* no progress (rounding on a flat simplex): the bounds decide, or fcl */
+            break;
+        upper = vn;
+        const double neg[3] = {-v[0], -v[1], -v[2]};
+        support_diff(a, b, neg, w);
+        lower = fmax(lower, dot3(v, w) / vn);
+        if (lower > apart_above) {
+            *dist = lower;
+            return GJK_APART;
+        }
+        if (upper - lower <= tol)
+            break;
+        memcpy(W[n++], w, sizeof w);
+        if (n == 2)
+            closest_segment(W, &n, v);
+        else if (n == 3)
+            closest_triangle(W, &n, v);
+        else if (closest_tetra(W, &n, v))
+            return GJK_INTERSECT;
+    }
+    if (upper - lower <= tol && lower > 0) {
+        *dist = upper;
+        return GJK_APART;
+    }
+    return GJK_UNDECIDED;
+}
+
+static int gjk(const Shape *a, const Shape *b, double tol, double apart_above, double *dist) {
+    double W[4][3];
+    return gjk_simplex(a, b, tol, apart_above, dist, W);
+}
+
+/* EPA: the penetration depth of two overlapping shapes (the distance from the origin to the boundary of A - B),
+ * grown from GJK's tetrahedron around the origin. Certified as GJK is: the polytope lies inside A - B, so its
+ * nearest face's distance is a lower bound of the depth, and the support value of A - B along that face's
+ * normal an upper bound; the depth is returned when they agree within `tol`. Returns 1 and *depth, or 0 (no
+ * tetrahedron, a degenerate face, out of room or iterations): ask fcl. */
+#define EPA_VERTS 132
+#define EPA_FACES (2 * EPA_VERTS)
+static int epa(const Shape *a, const Shape *b, double W[4][3], double tol, double *depth) {
+    double V[EPA_VERTS][3];
+    int F[EPA_FACES][3], nf = 0, nv = 4;
+    double N[EPA_FACES][3], D[EPA_FACES];
+    char alive[EPA_FACES];
+    memcpy(V, W, sizeof(double) * 12);
+    static const int tet[4][4] = {{0, 1, 2, 3}, {0, 3, 1, 2}, {0, 2, 3, 1}, {1, 3, 2, 0}};
+    for (int f = 0; f < 4; f++) {
+        int i0 = tet[f][0], i1 = tet[f][1], i2 = tet[f][2];
+        double e1[3], e2[3], n[3], o[3];
+        sub3(V[i1], V[i0], e1);
+        sub3(V[i2], V[i0], e2);
+        cross3(e1, e2, n);
+        sub3(V[tet[f][3]], V[i0], o);
+        if (dot3(n, o) > 0) {  /* orient outwards: away from the opposite vertex */
+            const int t = i1; i1 = i2; i2 = t;
+        }
+        F[nf][0] = i0; F[nf][1] = i1; F[nf][2] = i2;
+        alive[nf++] = 1;
+    }
+    for (int iter = 0;; iter++) {
+        /* normals and distances of the new faces (those not computed yet are marked with D = NAN) */
+        int best = -1;
+        for (int f = 0; f < nf; f++) {
+            if (!alive[f])
+                continue;
+            if (iter == 0 || D[f] != D[f]) {
+                double e1[3], e2[3], n[3];
+                sub3(V[F[f][1]], V[F[f][0]], e1);
+                sub3(V[F[f][2]], V[F[f][0]], e2);
+                cross3(e1, e2, n);
+                const double len = sqrt(dot3(n, n));
+                if (!(len > 1e-18))
+                    return 0;
+                for (int k = 0; k < 3; k++)
+                    N[f][k] = n[k] / len;
+                D[f] = dot3(N[f], V[F[f][0]]);
+                if (D[f] < -1e-12)  /* the origin outside the polytope: numerically lost */
+                    return 0;
+            }
+            if (best < 0 || D[f] < D[best])
+                best = f;
+        }
+        if (best < 0)
+            return 0;
+        double w[3];
+        support_diff(a, b, N[best], w);
+        const double upper = dot3(N[best], w);
+        if (upper - D[best] <= tol) {
+            *depth = D[best] > 0 ? D[best] : 0.0;
+            return 1;
+        }
+        if (nv == EPA_VERTS || iter > EPA_VERTS)
+            return 0;
+        memcpy(V[nv], w, sizeof w);
+        /* remove the faces w sees; the horizon (their edges not shared by another removed face) gets new faces */
+        int edges[3 * EPA_FACES][2], ne = 0;
+        for (int f = 0; f < nf; f++) {
+            if (!alive[f] || dot3(N[f], w) - D[f] <= 1e-12)  /* w on a face's plane: keep the face */
+                continue;
+            alive[f] = 0;
+            for (int e = 0; e < 3; e++) {
+                const int u = F[f][e], x = F[f][(e + 1) % 3];
+                int shared = -1;
+                for (int k = 0; k < ne; k++)
+                    if (edges[k][0] == x && edges[k][1] == u) {
+                        shared = k;
+                        break;
+                    }
+                if (shared >= 0) {
+                    edges[shared][0] = edges[--ne][0];
+                    edges[shared][1] = edges[ne][1];
+                } else {
+                    edges[ne][0] = u;
+                    edges[ne][1] = x;
+                    ne++;
+                }
+            }
+        }
+        if (ne == 0)
+            return 0;
+        for (int k = 0; k < ne; k++) {
+            int f = 0;
+            while (f < nf && alive[f])  /* reuse a dead slot */
+                f++;
+            if (f == nf) {
+                if (nf == EPA_FACES)
+                    return 0;
+                nf++;
+            }
+            F[f][0] = edges[k][0]; F[f][1] = edges[k][1]; F[f][2] = nv;
+            alive[f] = 1;
+            D[f] = NAN;
+        }
+        nv++;
+    }
+}
+
+/* Signed distance of two shapes by GJK, and EPA when they overlap: NAN when neither certifies an answer. */
+static double gjk_epa(const Shape *a, const Shape *b) {
+    double W[4][3], d;
+    const int g = gjk_simplex(a, b, GJK_TOL, INFINITY, &d, W);
+    if (g == GJK_APART)
+        return d;
+    if (g == GJK_INTERSECT && epa(a, b, W, GJK_TOL, &d))
+        return -d;
+    return NAN;
+}
+
+static void make_shape(Shape *s, int kind, const double *T, const double *dims, double grow) {
+    s->kind = kind;
+    s->T = T;
+    for (int k = 0; k < 3; k++)
+        s->d[k] = dims[k] + grow;
+}
+
+/* Smallest half dimension of a shape (to know how far it can be shrunk). */
+static double thinnest(const Shape *s) {
+    if (s->kind == SPHERE)
+        return s->d[0];
+    if (s->kind == CYLINDER)
+        return fmin(s->d[0], s->d[1]);
+    return fmin(s->d[0], fmin(s->d[1], s->d[2]));
+}
+
 static int pair_status(const Model *m, Py_ssize_t i, Py_ssize_t j) {
     const double *Ti = m->W + 12 * i, *Tj = m->W + 12 * j;
     double ci[3], cj[3];
@@ -299,7 +706,49 @@ static int pair_status(const Model *m, Py_ssize_t i, Py_ssize_t j) {
         if (segment_segment2(ci, u, cj, v) > r * r)
             return 0;
     }
+    /* GJK on the shapes themselves: apart when the certified lower bound of their distance exceeds eps;
+     * overlapping by more than eps when the shapes shrunk by eps on every side still share an interior point */
+    Shape a, b;
+    double d;
+    make_shape(&a, ki, Ti, di, 0.0);
+    make_shape(&b, kj, Tj, dj, 0.0);
+    if (gjk(&a, &b, GJK_TOL, eps, &d) == GJK_APART && d - GJK_TOL > eps)
+        return 0;
+    if (thinnest(&a) > 2 * eps && thinnest(&b) > 2 * eps) {
+        make_shape(&a, ki, Ti, di, -eps);
+        make_shape(&b, kj, Tj, dj, -eps);
+        if (gjk(&a, &b, GJK_TOL, 0.0, &d) == GJK_INTERSECT)
+            return 2;
+    }
     return 1;
+}
+
+/* Signed distance (m) between primitives i and j, un-inflated, posed by `poses` (P x 4 x 4): > 0 the gap, < 0
+ * the overlap depth. Exact closed forms for every pair with a sphere; GJK (within GJK_TOL) for the others when
+ * they are apart; NAN when this code cannot tell (overlapping or touching shapes without a sphere): ask fcl. */
+static double signed_distance(const Model *m, const double *poses, Py_ssize_t i, Py_ssize_t j) {
+    int ki = (int)m->kind[i], kj = (int)m->kind[j];
+    if (ki > kj) {
+        Py_ssize_t x = i; i = j; j = x;
+        int k = ki; ki = kj; kj = k;
+    }
+    const double *Ti = poses + 16 * i, *Tj = poses + 16 * j, *di = m->raw + 3 * i, *dj = m->raw + 3 * j;
+    double ci[3], p[3];
+    centre(Ti, ci);
+    if (ki == SPHERE) {
+        if (kj == SPHERE) {
+            double cj[3];
+            centre(Tj, cj);
+            return sqrt((ci[0] - cj[0]) * (ci[0] - cj[0]) + (ci[1] - cj[1]) * (ci[1] - cj[1])
+                        + (ci[2] - cj[2]) * (ci[2] - cj[2])) - di[0] - dj[0];
+        }
+        to_local(Tj, ci, p);
+        return (kj == BOX ? point_box(p, dj) : point_cylinder(p, dj[0], dj[1])) - di[0];
+    }
+    Shape a, b;
+    make_shape(&a, ki, Ti, di, 0.0);
+    make_shape(&b, kj, Tj, dj, 0.0);
+    return gjk_epa(&a, &b);
 }
 
 /* Joint frames and primitive poses of configuration q into m->T, m->W. */
@@ -324,6 +773,8 @@ static void place(Model *m, const double *q) {
 /* screen(handle, q, poses_out, stop_at_sure) -> list of pair indices not proven apart, in pair order; a pair
  * proven to overlap is given as -1 - index. poses_out (P x 4 x 4 doubles, writable) receives the primitive
  * poses. With stop_at_sure, the list ends at the first proven overlap (a yes/no question). */
+static int fill_poses(Model *m, Py_buffer *qb, Py_buffer *pb, const char *who);
+
 static PyObject *screen(PyObject *self, PyObject *args) {
     PyObject *cap;
     Py_buffer qb, pb;
@@ -334,18 +785,8 @@ static PyObject *screen(PyObject *self, PyObject *args) {
     Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
     if (m == NULL)
         goto done;
-    if (qb.len != m->n * (Py_ssize_t)sizeof(double) || pb.len != m->P * 16 * (Py_ssize_t)sizeof(double)) {
-        PyErr_Format(PyExc_ValueError, "_collfast.screen: q needs %zd doubles and poses %zd, got %zd and %zd bytes",
-                     m->n, m->P * 16, qb.len, pb.len);
+    if (fill_poses(m, &qb, &pb, "screen") < 0)
         goto done;
-    }
-    place(m, (const double *)qb.buf);
-    double *poses = pb.buf;
-    for (Py_ssize_t p = 0; p < m->P; p++) {
-        memcpy(poses + 16 * p, m->W + 12 * p, 12 * sizeof(double));
-        poses[16 * p + 12] = poses[16 * p + 13] = poses[16 * p + 14] = 0.0;
-        poses[16 * p + 15] = 1.0;
-    }
     out = PyList_New(0);
     if (out == NULL)
         goto done;
@@ -369,9 +810,133 @@ done:
     return out;
 }
 
+/* poses(handle, q, poses_out): the primitive poses of configuration q (P x 4 x 4 doubles), no pair test. */
+static int fill_poses(Model *m, Py_buffer *qb, Py_buffer *pb, const char *who) {
+    if (qb->len != m->n * (Py_ssize_t)sizeof(double) || pb->len != m->P * 16 * (Py_ssize_t)sizeof(double)) {
+        PyErr_Format(PyExc_ValueError, "_collfast.%s: q needs %zd doubles and poses %zd, got %zd and %zd bytes", who,
+                     m->n, m->P * 16, qb->len, pb->len);
+        return -1;
+    }
+    place(m, (const double *)qb->buf);
+    double *poses = pb->buf;
+    for (Py_ssize_t p = 0; p < m->P; p++) {
+        memcpy(poses + 16 * p, m->W + 12 * p, 12 * sizeof(double));
+        poses[16 * p + 12] = poses[16 * p + 13] = poses[16 * p + 14] = 0.0;
+        poses[16 * p + 15] = 1.0;
+    }
+    return 0;
+}
+
+static PyObject *poses(PyObject *self, PyObject *args) {
+    PyObject *cap;
+    Py_buffer qb, pb;
+    if (!PyArg_ParseTuple(args, "Oy*w*", &cap, &qb, &pb))
+        return NULL;
+    Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
+    const int ok = m != NULL && fill_poses(m, &qb, &pb, "poses") == 0;
+    PyBuffer_Release(&qb);
+    PyBuffer_Release(&pb);
+    if (!ok)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
+/* distance(handle, poses, i, j) -> signed distance of primitives i, j (un-inflated), NaN: ask fcl. */
+static PyObject *distance(PyObject *self, PyObject *args) {
+    PyObject *cap;
+    Py_buffer pb;
+    Py_ssize_t i, j;
+    if (!PyArg_ParseTuple(args, "Oy*nn", &cap, &pb, &i, &j))
+        return NULL;
+    PyObject *out = NULL;
+    Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
+    if (m == NULL)
+        goto done;
+    if (pb.len != m->P * 16 * (Py_ssize_t)sizeof(double) || i < 0 || i >= m->P || j < 0 || j >= m->P) {
+        PyErr_Format(PyExc_ValueError, "_collfast.distance: poses need %zd doubles and 0 <= i, j < %zd", m->P * 16,
+                     m->P);
+        goto done;
+    }
+    out = PyFloat_FromDouble(signed_distance(m, (const double *)pb.buf, i, j));
+done:
+    PyBuffer_Release(&pb);
+    return out;
+}
+
+/* check_many(handle, Q) -> per row of Q (K x n doubles, C order): None when every pair is proven apart, else the
+ * list of the pairs not proven apart, in pair order: (k, d) for pair k proven overlapping by more than eps, with
+ * d the signed distance of its un-inflated shapes (NaN: ask fcl), or (k, None) for an undecided pair (ask fcl).
+ * One call for all the configurations of a gate frame: no Python work for the configurations that are free. */
+static PyObject *check_many(PyObject *self, PyObject *args) {
+    PyObject *cap;
+    Py_buffer qb;
+    if (!PyArg_ParseTuple(args, "Oy*", &cap, &qb))
+        return NULL;
+    PyObject *out = NULL;
+    double *poses = NULL;
+    Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
+    if (m == NULL)
+        goto done;
+    const Py_ssize_t row = m->n * (Py_ssize_t)sizeof(double);
+    if (row == 0 || qb.len % row != 0) {
+        PyErr_Format(PyExc_ValueError, "_collfast.check_many: Q needs rows of %zd doubles, got %zd bytes", m->n, qb.len);
+        goto done;
+    }
+    poses = PyMem_Malloc((m->P > 0 ? m->P : 1) * 16 * sizeof(double));
+    if (poses == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const Py_ssize_t K = qb.len / row;
+    out = PyList_New(K);
+    if (out == NULL)
+        goto done;
+    for (Py_ssize_t r = 0; r < K; r++) {
+        place(m, (const double *)qb.buf + r * m->n);
+        for (Py_ssize_t p = 0; p < m->P; p++) {
+            memcpy(poses + 16 * p, m->W + 12 * p, 12 * sizeof(double));
+            poses[16 * p + 12] = poses[16 * p + 13] = poses[16 * p + 14] = 0.0;
+            poses[16 * p + 15] = 1.0;
+        }
+        PyObject *found = NULL;
+        for (Py_ssize_t k = 0; k < m->M; k++) {
+            const int status = pair_status(m, m->I[k], m->J[k]);
+            if (status == 0)
+                continue;
+            if (found == NULL && (found = PyList_New(0)) == NULL)
+                goto fail;
+            PyObject *item = status == 2
+                ? Py_BuildValue("(nd)", k, signed_distance(m, poses, m->I[k], m->J[k]))
+                : Py_BuildValue("(nO)", k, Py_None);
+            if (item == NULL || PyList_Append(found, item) < 0) {
+                Py_XDECREF(item);
+                Py_DECREF(found);
+                goto fail;
+            }
+            Py_DECREF(item);
+        }
+        if (found == NULL) {
+            Py_INCREF(Py_None);
+            found = Py_None;
+        }
+        PyList_SET_ITEM(out, r, found);
+    }
+    goto done;
+fail:
+    Py_CLEAR(out);
+done:
+    PyMem_Free(poses);
+    PyBuffer_Release(&qb);
+    return out;
+}
+
 static PyMethodDef methods[] = {
-    {"build", build, METH_VARARGS, "build(n, P, M, eps, A, parent, order, owner, offset, kind, dims, brad, I, J)"},
+    {"build", build, METH_VARARGS,
+     "build(n, P, M, eps, A, parent, order, owner, offset, kind, dims, raw, brad, I, J)"},
     {"screen", screen, METH_VARARGS, "screen(handle, q, poses_out, stop_at_sure=False) -> [pair or -1 - pair]"},
+    {"poses", poses, METH_VARARGS, "poses(handle, q, poses_out): primitive poses only"},
+    {"check_many", check_many, METH_VARARGS, "check_many(handle, Q) -> [None or [(pair, distance or None)]]"},
+    {"distance", distance, METH_VARARGS, "distance(handle, poses, i, j) -> signed distance (un-inflated), NaN: ask fcl"},
     {NULL, NULL, 0, NULL},
 };
 

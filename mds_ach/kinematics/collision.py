@@ -444,6 +444,7 @@ class CollisionModel:
         if len(set(names)) != len(names):
             raise ValueError(f"duplicate collision primitive names: {sorted({x for x in names if names.count(x) > 1})}")
         self.primitives: tuple[Primitive, ...] = tuple(prims)
+        self._index = {p.name: k for k, p in enumerate(prims)}
         self._owner = np.array(owners, dtype=int)
         self._offset = np.array([p.offset for p in prims])
         self._moving = self._owner != n
@@ -462,8 +463,11 @@ class CollisionModel:
         self._I = np.array([p[0] for p in pairs], dtype=int)
         self._J = np.array([p[1] for p in pairs], dtype=int)
         self._rsum = self._radius[self._I] + self._radius[self._J]
+        self._pair_info = [(prims[i].name, prims[j].name, prims[i].group, prims[j].group, prims[i].part,
+                            prims[j].part) for i, j in pairs]
         self._request = fcl.CollisionRequest()
         self._signed = fcl.DistanceRequest(enable_signed_distance=True)
+        self._plain = fcl.DistanceRequest()
         self._fcl = fcl
         self._fast: Any = self._build_screen(pad) if FAST_AVAILABLE else None
         self._pose_buffer = np.zeros((len(prims), 4, 4))
@@ -475,20 +479,20 @@ class CollisionModel:
         A = np.stack([tree._A0[:, :3], tree._A1[:, :3], tree._A2[:, :3]], axis=1)  # (n, 3, 3, 4)
         order = np.concatenate([idx for idx, _ in tree._levels]).astype(np.int64)
         kinds = {"sphere": 0, "box": 1, "cylinder": 2}
-        dims = np.zeros((len(self.primitives), 3))
+        dims, raw = np.zeros((len(self.primitives), 3)), np.zeros((len(self.primitives), 3))
         for k, p in enumerate(self.primitives):
-            size = inflate(p.kind, p.size, pad)
-            if p.kind == "sphere":
-                dims[k, 0] = size[0]
-            elif p.kind == "box":
-                dims[k] = np.asarray(size) / 2
-            else:
-                dims[k, :2] = size[0], size[1] / 2
+            for out, size in ((dims, inflate(p.kind, p.size, pad)), (raw, p.size)):
+                if p.kind == "sphere":
+                    out[k, 0] = size[0]
+                elif p.kind == "box":
+                    out[k] = np.asarray(size) / 2
+                else:
+                    out[k, :2] = size[0], size[1] / 2
         return _collfast.build(
             n, len(self.primitives), len(self.pairs), SCREEN_EPS, np.ascontiguousarray(A),
             tree.parent.astype(np.int64), order, self._owner.astype(np.int64),
             np.ascontiguousarray(self._offset[:, :3]), np.array([kinds[p.kind] for p in self.primitives], np.int64),
-            dims, np.ascontiguousarray(self._radius), self._I.astype(np.int64), self._J.astype(np.int64))
+            dims, raw, np.ascontiguousarray(self._radius), self._I.astype(np.int64), self._J.astype(np.int64))
 
     # ----- construction helpers
 
@@ -556,11 +560,24 @@ class CollisionModel:
         phase."""
         qs = np.atleast_2d(np.asarray(qs, dtype=float))
         if self._fast is not None:
-            return [self._check_screened(q) for q in qs]
+            found = _collfast.check_many(self._fast, np.ascontiguousarray(qs))
+            return [_FREE if f is None else self._from_screen(q, f) for q, f in zip(qs, found, strict=True)]
         poses = self.primitive_poses(qs)
         centres = poses[..., :3, 3]
         gap = np.linalg.norm(centres[:, self._I] - centres[:, self._J], axis=2) - self._rsum
         return [self._narrow(p, np.flatnonzero(g < 0.0)) for p, g in zip(poses, gap, strict=True)]
+
+    def _from_screen(self, q: np.ndarray, found: list[tuple[int, float | None]]) -> CheckResult:
+        """The result of configuration ``q`` from ``_collfast.check_many``'s pairs not proven apart: pairs proven
+        overlapping, with their clearance, are the contacts; an undecided pair (or a clearance the C code could not
+        certify) sends the configuration the fcl way, ``_check_screened``, which gives the same answer."""
+        contacts = []
+        info = self._pair_info
+        for k, d in found:
+            if d is None or d != d:
+                return self._check_screened(q)
+            contacts.append(Contact(*info[k], d))
+        return CheckResult(tuple(contacts))
 
     def _check_screened(self, q: np.ndarray) -> CheckResult:
         poses = self._pose_buffer
@@ -594,7 +611,7 @@ class CollisionModel:
     def _narrow(self, poses: np.ndarray, candidates: Iterable[int]) -> CheckResult:
         """fcl on the candidate pairs (``-1 - k``: pair k proven overlapping by the screen, no ``fcl.collide``);
         the signed distance of the un-inflated shapes for each colliding pair."""
-        fcl, objs, raw, prims = self._fcl, self._objects, self._raw_objects, self.primitives
+        fcl, objs, prims = self._fcl, self._objects, self.primitives
         placed = np.zeros(len(prims), dtype=bool)
         contacts = []
         for k in candidates:
@@ -608,14 +625,35 @@ class CollisionModel:
                         objs[m].setTranslation(poses[m, :3, 3])
                         placed[m] = True
             if sure or fcl.collide(objs[i], objs[j], self._request, fcl.CollisionResult()) > 0:
-                for m in (i, j):
-                    if self._moving[m]:
-                        raw[m].setRotation(poses[m, :3, :3])
-                        raw[m].setTranslation(poses[m, :3, 3])
-                clearance = float(fcl.distance(raw[i], raw[j], self._signed, fcl.DistanceResult()))
+                clearance = self._signed_distance(poses, i, j)
                 a, b = prims[i], prims[j]
                 contacts.append(Contact(a.name, b.name, a.group, b.group, a.part, b.part, clearance))
         return CheckResult(tuple(contacts))
+
+    def _signed_distance(self, poses: np.ndarray, i: int, j: int) -> float:
+        """Signed distance (m) of primitives ``i``, ``j`` (un-inflated) at ``poses``: the C code's exact closed
+        forms and certified GJK distances where it has them (every pair with a sphere, every pair apart), else
+        fcl's signed distance (overlapping or touching boxes and cylinders). fcl's signed mode is only used
+        for overlaps: on shapes apart it is up to a millimetre off, its plain distance is exact there."""
+        if self._fast is not None:
+            d = _collfast.distance(self._fast, poses, i, j)
+            if d == d:  # not NaN
+                return float(d)
+        return self.fcl_signed_distance(poses, i, j)
+
+    def fcl_signed_distance(self, poses: np.ndarray, i: int, j: int) -> float:
+        """python-fcl's signed distance of primitives ``i``, ``j`` (un-inflated) at ``poses``: ``fcl.distance``
+        when ``fcl.collide`` finds them apart (exact there, where its signed mode is up to a millimetre off), its
+        signed mode (EPA, within 1e-6 m) when they overlap. The fallback where the C code has no answer. (fcl's
+        collide misses some sub-millimetre sphere overlaps: then this gives ~0 for a small negative distance.)"""
+        fcl, raw = self._fcl, self._raw_objects
+        for m in (i, j):
+            if self._moving[m]:
+                raw[m].setRotation(poses[m, :3, :3])
+                raw[m].setTranslation(poses[m, :3, 3])
+        if fcl.collide(raw[i], raw[j], self._request, fcl.CollisionResult()) == 0:
+            return float(fcl.distance(raw[i], raw[j], self._plain, fcl.DistanceResult()))
+        return float(fcl.distance(raw[i], raw[j], self._signed, fcl.DistanceResult()))
 
     def distances(self, q: np.ndarray) -> dict[tuple[str, str], float]:
         """Clearance (m) of every checked pair on the un-inflated shapes; 0.0 when they overlap. For reports and
@@ -638,9 +676,12 @@ class CollisionModel:
     def clearance(self, q: np.ndarray, a: str, b: str) -> float:
         """Clearance (m) of the one pair of primitives ``a``, ``b`` on the un-inflated shapes; 0.0 when they
         overlap. Cheap enough for the gate to follow one contact per frame (an arm resting where it stopped)."""
+        i, j = self._index[a], self._index[b]
+        if self._fast is not None:
+            poses = self._pose_buffer
+            _collfast.poses(self._fast, np.ascontiguousarray(q, dtype=float), poses)
+            return max(0.0, self._signed_distance(poses, i, j))
         fcl = self._fcl
-        names = [p.name for p in self.primitives]
-        i, j = names.index(a), names.index(b)
         poses = self.primitive_poses(q)
         for m in (i, j):
             if self._moving[m]:

@@ -44,7 +44,9 @@ held at (source ``collision``, reason ``stopped at contact: right hand / left ha
 target and the arm does not go on to it later when the obstacle moves away; only a new command moves it. An arm
 held because the other arm (or the waist, or its measured pose) came to it is not cancelled: its command did not
 fail. ``/mds/collision`` reports ``stopped`` (arm -> ``stopped at contact: <its part> / <the other part>``) until
-that arm's reference moves again.
+that arm's reference moves again. Until then its input does not bring it back toward the contact: what is left of
+the cancelled command (the mux may not have applied the cancel yet) finds the arm resting or held, as at the stop,
+never approaching it again (which would stop it at another point and cancel again).
 
 **Holding and releasing agree with ``mds-collide``.** The daemon withholds the targets of an arm whose parts
 ``mds-collide`` flags (``daemon_loop._collision_held``). So the gate flags exactly the arms it holds, keeps an
@@ -85,7 +87,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from mds_ach_interfaces.msg import CollisionState
@@ -142,6 +144,19 @@ SAME_POSE = 1e-4  # rad: a unit measured this close to its reference is checked 
 CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than this are "brought closer"
 
 Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
+# Every choice of {reference, measured} per unit in itertools.product order, and for each the q columns taken
+# measured: _configs builds all the configurations of a frame in one array operation.
+_CHOICES: tuple[Choice, ...] = tuple(itertools.product((False, True), (False, True), (False, True)))
+_CHOICE_ROW = {c: k for k, c in enumerate(_CHOICES)}
+_UNIT_COLUMNS = np.zeros((len(UNITS), len(MODEL_ADDRESSES)), dtype=bool)
+for _k, _u in enumerate(UNITS):
+    _UNIT_COLUMNS[_k, _UNIT_Q[_u]] = True
+_CHOICE_MASK = np.array([np.any(_UNIT_COLUMNS[list(c)], axis=0) for c in _CHOICES])
+# Which units are measured away from their reference -> the choices to check (a unit at its reference: once).
+_CHOICES_FOR = {apart: [c for c in _CHOICES if all(a or not m for m, a in zip(c, apart, strict=True))]
+                for apart in _CHOICES}
+_MASK_FOR = {apart: _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]] for apart, choices in _CHOICES_FOR.items()}
+
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
 STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
@@ -294,6 +309,8 @@ class Gate:
         self.stopped: dict[str, str] = {}  # arm -> "right hand / left hand" while it rests where it was stopped
         self._stop_contact: dict[str, Any] = {}  # arm -> the contact it was stopped at (followed while it rests)
         self._settle_since: dict[str, float] = {}  # arm -> when it came to rest at a contact, unflagged
+        # the measured pose of this frame and its model joints (NaN: unknown), see _configs; reset every frame
+        self._measured: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # ----- override
 
@@ -339,22 +356,22 @@ class Gate:
                  choices: Iterable[Choice] | None = None) -> dict[Choice, np.ndarray]:
         """Model joint vectors of output ``x`` combined per unit with the measured pose ``pos`` (NaN: not known,
         taken at its reference). Without ``choices``: every distinct combination."""
-        q_ref = self.model.q_from_ref(x)
+        addresses = self.model.addresses
+        q_ref = np.asarray(x, dtype=float).take(addresses)
         if pos is None:
             return {(False, False, False): q_ref}
-        q_pos = self.model.q_from_ref(np.where(np.isnan(pos), x, pos))
-        if choices is None:
-            options = [(False, True) if np.abs(q_pos[_UNIT_Q[u]] - q_ref[_UNIT_Q[u]]).max() > SAME_POSE else (False,)
-                       for u in UNITS]
-            choices = cast(Iterable[Choice], itertools.product(*options))  # one option tuple per unit: triples
-        out = {}
-        for c in choices:
-            q = q_ref.copy()
-            for u, measured in zip(UNITS, c, strict=True):
-                if measured:
-                    q[_UNIT_Q[u]] = q_pos[_UNIT_Q[u]]
-            out[c] = q
-        return out
+        if self._measured is None or self._measured[0] is not pos:  # once per frame: the measured joints in q
+            measured = pos.take(addresses)
+            self._measured = (pos, measured, np.isnan(measured))
+        q_pos = np.where(self._measured[2], q_ref, self._measured[1])
+        if choices is None:  # a unit measured within SAME_POSE of its reference counts once (taken at it)
+            apart = tuple((_UNIT_COLUMNS & (np.abs(q_pos - q_ref) > SAME_POSE)).any(axis=1).tolist())
+            choices, mask = _CHOICES_FOR[apart], _MASK_FOR[apart]
+        else:
+            choices = list(choices)
+            mask = _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]]
+        rows = np.where(mask, q_pos, q_ref)
+        return dict(zip(choices, rows, strict=True))
 
     def _analyze(self, x: np.ndarray, pos: np.ndarray | None,
                  new_only: bool = False) -> tuple[dict[Choice, Any], list[tuple[Choice, Any]]]:
@@ -443,13 +460,13 @@ class Gate:
                 ext.append((idx, d * k))
                 reach = max(reach, fastest * k)
         n = math.ceil(reach / AHEAD_STEP) if ext else 0
-        path = []
-        for i in range(1, n + 1):
-            y = x.copy()
-            for idx, e in ext:
-                y[idx] = np.clip(x[idx] + e * (i / n), self.lower[idx], self.upper[idx])
-            path.append(y)
-        return path
+        if n == 0:
+            return []
+        path = np.tile(x, (n, 1))
+        fraction = np.arange(1, n + 1)[:, None] / n
+        for idx, e in ext:
+            path[:, idx] = np.minimum(np.maximum(x[idx] + e * fraction, self.lower[idx]), self.upper[idx])
+        return list(path)
 
     def _blocks(self, x: np.ndarray, pos: np.ndarray | None, arms: Iterable[str],
                 dt: float) -> list[tuple[Choice, Any]]:
@@ -495,6 +512,7 @@ class Gate:
     # ----- the decision
 
     def process(self, ref: np.ndarray, mode: np.ndarray, now: float, observed: Observed | None = None) -> Decision:
+        self._measured = None
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         cand = ref.copy()
@@ -549,7 +567,10 @@ class Gate:
             approach = blocked - frozen
             if approach and "body" not in blocked and self.config.approach_iterations > 0:
                 # Approach to contact: the arms that moved into it go the safe part of their step.
-                part = self._approach(cand, cand_mode, frozen, approach, pos, dt)
+                # An arm already stopped at contact does not approach it again on what is left of its cancelled
+                # command (the gate's cancel may not have reached the mux yet): it rests or is held, as at the stop.
+                part = None if approach <= set(self.stopped) else \
+                    self._approach(cand, cand_mode, frozen, approach, pos, dt)
                 settle = set() if part is not None else self._settling(approach, observed, now)
                 if part is not None or settle:  # replaces their input; the rules below apply as to any input
                     arms = approach if part is not None else settle
