@@ -148,6 +148,7 @@ def test_one_legacy_put_on_mds_ref_moves_the_robot_there_and_it_stays(robot: Rob
 def test_an_out_of_limit_put_on_mds_ref_is_clamped_to_the_limit_with_a_verdict(robot: Robot) -> None:
     """Issue 26: as the original hardware stopped at its limits, the joint goes to the limit (not a silent
     refusal); the mux logs it and its verdict ('clamped') names the joint."""
+    _, start, _ = robot.frame()
     upper = float(current_limits().arrays()[1][LEP])
     legacy_put(LEP=upper + 0.2)
     with StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE) as mux_state:
@@ -162,6 +163,8 @@ def test_an_out_of_limit_put_on_mds_ref_is_clamped_to_the_limit_with_a_verdict(r
     assert "LEP" in line and "nearest limit" in line, line
     trace = robot.follow(lambda ref, pos: abs(pos[LEP] - upper) < 1e-4, timeout=20)
     assert max(r[LEP] for _, r, _ in trace) <= upper + 1e-12, "never past the limit"
+    legacy_put(LEP=start[LEP])  # back where it was, for the next tests
+    robot.follow(lambda ref, pos: abs(pos[LEP] - start[LEP]) < 1e-4, timeout=20)
 
 
 def test_a_remote_achd_push_into_mds_ref_moves_the_robot(robot: Robot) -> None:

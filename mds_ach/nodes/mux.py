@@ -200,7 +200,7 @@ class MuxCore:
     def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray,
                  limits: EffectiveLimits | None = None) -> None:
         self.controllers = list(controllers)
-        self.limits = limits  # the one limit authority (mds-limits): a modified joint outside refuses the frame
+        self.limits = limits  # the one limit authority (mds-limits): refuses (ros, ik) or clamps (legacy inputs)
         bounds = limits.arrays() if limits is not None else (np.empty(0), np.empty(0))
         self._lower: np.ndarray = bounds[0]
         self._upper: np.ndarray = bounds[1]
