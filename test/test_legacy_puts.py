@@ -286,3 +286,52 @@ def test_the_issue_scenario_through_the_mux_channels(clean_shm: None) -> None:
         out.close()
         state_ch.close()
     assert not t.is_alive()
+
+
+def test_a_hold_holds_through_the_channels_while_a_client_reputs_at_50_hz(clean_shm: None) -> None:
+    """LSP put by the client, moved by IK, held on mds-hold; the client re-puts its frame at 50 Hz past IK's
+    timeout: mds-ref-mux keeps LSP where the hold found it. After RESUME, the next re-put sends it back."""
+    from mds_ach.robot import lifecycle
+
+    start = _start()
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, start)
+    logs: list[str] = []
+    r = MuxRunner(CONTROLLERS, state_rate=50.0, log=lambda level, msg: logs.append(f"{level}: {msg}"))
+    t = threading.Thread(target=r.run, daemon=True)
+    t.start()
+    try:
+        assert r.ready.wait(10), logs
+        core = r.core
+        assert core is not None
+        client = _frame(start, LSP=-0.123)
+        _put(mds.MDS_CHAN_REF_FILTER_NAME, client)
+        wait_for(lambda: core.ref[mds.LSP] == -0.123, 5, what="the client's LSP")
+        _put(mds.MDS_CHAN_REF_IK_NAME, _frame(start, LSP=0.3))
+        wait_for(lambda: core.ref[mds.LSP] == 0.3, 5, what="IK's LSP")
+        ack = lifecycle.request(HOLD_HOLD, [mds.LSP], source="test", timeout=5)
+        assert ack.ok, ack.message
+        timeout = CONTROLLERS[IK].timeout
+        assert timeout is not None
+        with StructChannel(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF) as out, \
+                StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF) as legacy:
+            end = time.monotonic() + timeout + 0.5
+            puts = 0
+            next_at = time.monotonic()
+            while time.monotonic() < end:
+                legacy.put(make_ref(client, ZERO_MODE))
+                puts += 1
+                while (frame := out.latest()) is not None:
+                    assert ref_arrays(frame)[0][mds.LSP] == 0.3, "a re-put moved a held joint"
+                next_at += 0.02
+                time.sleep(max(0.0, next_at - time.monotonic()))
+            wait_for(lambda: r._queue.empty(), 5, what="the re-puts handled")
+            assert puts >= 100 and core.ref[mds.LSP] == 0.3 and core.held[mds.LSP] == MUX_HELD
+            assert core.stale(IK, time.monotonic()), "IK went stale meanwhile: only the hold kept LSP"
+            ack = lifecycle.request(HOLD_RESUME, [mds.LSP], source="test", timeout=5)
+            assert ack.ok, ack.message
+            legacy.put(make_ref(client, ZERO_MODE))
+            wait_for(lambda: core.ref[mds.LSP] == -0.123, 5, what="after RESUME, the re-put sends LSP back")
+    finally:
+        r.stop()
+        t.join(5)
+    assert not t.is_alive()
