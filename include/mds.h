@@ -336,6 +336,7 @@ typedef enum mds_mux_verdict {
     MDS_MUX_VERDICT_OWNED = 2,
     MDS_MUX_VERDICT_NOT_PERMITTED = 3,
     MDS_MUX_VERDICT_INVALID = 4,
+    MDS_MUX_VERDICT_CLAMPED = 5,
 } mds_mux_verdict_t;
 /* mds_mux_state_t.hold_status. */
 typedef enum mds_mux_hold_status {
@@ -501,7 +502,7 @@ typedef struct MDS_PACKED mds_ik_status {
 } mds_ik_status_t;
 MDS_STATIC_ASSERT(sizeof(mds_ik_status_t) == 214, "mds_ik_status_t must be 214 bytes");
 
-/* mds-mux-state frame (packed, 820 B): who owns each joint, how fresh each controller is, what was
+/* mds-mux-state frame (packed, 920 B): who owns each joint, how fresh each controller is, what was
    held and what each controller's newest frame got. */
 typedef struct MDS_PACKED mds_mux_state {
     int8_t owner[MDS_JOINT_COUNT];                       /* @0 controller index (into name[]) that owns the joint, -1 = nobody (holding) */
@@ -523,8 +524,9 @@ typedef struct MDS_PACKED mds_mux_state {
     int8_t blocked_joint[MDS_MUX_MAX_CONTROLLERS];       /* @660 the first joint (address) that made the frame refused, -1 = none */
     uint32_t refused[MDS_MUX_MAX_CONTROLLERS];           /* @668 frames of controller i refused since the mux started */
     char hold_reason[MDS_MUX_HOLD_REASON_SIZE];          /* @700 why the newest mds-hold request was refused (MUX_HOLD_REFUSED), else empty */
+    uint8_t clamped[MDS_JOINT_COUNT];                    /* @820 bit i set: controller i's newest applied frame was clamped to the limits at this joint */
 } mds_mux_state_t;
-MDS_STATIC_ASSERT(sizeof(mds_mux_state_t) == 820, "mds_mux_state_t must be 820 bytes");
+MDS_STATIC_ASSERT(sizeof(mds_mux_state_t) == 920, "mds_mux_state_t must be 920 bytes");
 
 /* Loop timing, bus load and faults, per-joint freshness (all times in seconds, CLOCK_MONOTONIC). */
 typedef struct MDS_PACKED mds_daemon_status {

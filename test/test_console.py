@@ -23,6 +23,9 @@ from support.system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, md
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.kinematics.limits import current_limits
+from mds_ach.robot.joints import JOINTS
+from mds_ach.robot.msgs.mux_state import MUX_HELD
 from mds_ach.tools import console
 from mds_ach.tools.console import CommandError, Get, GetFk, Goto, Ik, Simple, parse
 
@@ -153,9 +156,11 @@ def test_console_never_crashes_on_random_lines(fake_system: None, line: str) -> 
         assert out and out[0].strip(), "a failure must say what was wrong"
 
 
-def test_goto_is_reported_applied_only_when_the_mux_output_has_it(fake_system: None) -> None:
-    """The mux takes only changes: a goto to the value mds-ref-filter already holds, after another controller
-    moved the joint, changes nothing, and the console must say so instead of reporting success."""
+def test_a_goto_to_the_value_the_channel_holds_is_a_command_after_another_controller_moved_it(
+        fake_system: None) -> None:
+    """Every put on mds-ref-filter is a command (issue 26): a goto to the value mds-ref-filter already holds, after
+    another controller moved the joint, sends it back (as the original did) and is reported applied; a joint held
+    by 'hold' stays held and the console says so. Then ``zeroall``: all or nothing, naming the joints that block."""
     import threading
 
     from mds_ach.nodes.mux import MuxRunner, load_config
@@ -183,9 +188,32 @@ def test_goto_is_reported_applied_only_when_the_mux_output_has_it(fake_system: N
         wait_for(lambda: runner.core.stale(ik_index, time.monotonic()) and runner.core.owner[lsp] != ik_index, 10,
                  what="the IK controller stale, LSP released")
         out.clear()
-        assert not con.run_line("goto LSP -0.3")
-        assert "not applied: the mux output (mds-ref-mux) keeps LSP at -0.10000 (target -0.30000)" in out[0], out
-        assert con.run_line("goto LSP -0.29"), out  # a change is taken again
+        assert con.run_line("goto LSP -0.3"), out
+        wait_for(lambda: _newest_mux_output().joint[lsp].ref == -0.3, 5, what="LSP back at -0.3")
+        # the IK controller moves LSP again; zeroall after it is applied to every joint (not "some")
+        with StructChannel(mds.MDS_CHAN_REF_IK_NAME, mds.MDS_REF) as ik:
+            ref, mode = ref_arrays(_newest_mux_output())
+            ref[lsp] = -0.15  # a change for 'ik' (it keeps "changed values only")
+            ik.put(make_ref(ref, mode))
+        wait_for(lambda: _newest_mux_output().joint[lsp].ref == -0.15, 5, what="the IK frame applied")
+        wait_for(lambda: runner.core.stale(ik_index, time.monotonic()), 10, what="the IK controller stale")
+        out.clear()
+        assert con.run_line("zeroall"), out
+        limits = current_limits()
+        mux = _newest_mux_output()
+        for j in JOINTS:
+            rng = limits.range(j.address)
+            if rng is not None:
+                assert mux.joint[j.address].ref == min(max(0.0, rng[0]), rng[1]), j.short
+        # a held joint that would have to move: zeroall sends nothing and names it
+        assert con.run_line("goto LSP -0.2"), out
+        assert con.run_line("hold LSP"), out
+        before = ref_arrays(_newest_mux_output())[0]
+        out.clear()
+        assert not con.run_line("zeroall")
+        assert "not sent: LSP (held)" in out[0], out
+        assert np.array_equal(ref_arrays(_newest_mux_output())[0], before), "nothing moved"
+        assert runner.core.held[lsp] == MUX_HELD
     finally:
         con.close()
         runner.stop()

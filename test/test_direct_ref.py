@@ -7,7 +7,8 @@ simulated robot, with the real node processes:
 
 * one put on ``mds-ref`` moves the robot there, as a bounded ramp (the filter passes the step, the gate and the
   daemon bound its speed), and it stays there after the controller's timeout;
-* a put outside the effective limits is refused by the mux as a whole, with a message, and nothing moves;
+* a put outside the effective limits is clamped to them by the mux (issue 26: the original stopped at its
+  limits), with a log line and the verdict 'clamped' naming the joint;
 * a remote ``achd push`` into ``mds-ref`` through the robot's achd server moves the robot the same way;
 * a direct put that drives one arm into the other is stopped by the collision gate.
 """
@@ -31,7 +32,7 @@ from mds_ach.kinematics.limits import current_limits
 from mds_ach.net import achd
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
-from mds_ach.robot.msgs.mux_state import MDS_MUX_STATE, VERDICT_INVALID
+from mds_ach.robot.msgs.mux_state import MDS_MUX_STATE, VERDICT_CLAMPED
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -144,20 +145,26 @@ def test_one_legacy_put_on_mds_ref_moves_the_robot_there_and_it_stays(robot: Rob
     assert_stays(robot, there, DIRECT_TIMEOUT + 1.0)  # past the direct controller's timeout: it stays
 
 
-def test_an_out_of_limit_put_on_mds_ref_is_refused_with_a_message(robot: Robot) -> None:
+def test_an_out_of_limit_put_on_mds_ref_is_clamped_to_the_limit_with_a_verdict(robot: Robot) -> None:
+    """Issue 26: as the original hardware stopped at its limits, the joint goes to the limit (not a silent
+    refusal); the mux logs it and its verdict ('clamped') names the joint."""
     _, start, _ = robot.frame()
     upper = float(current_limits().arrays()[1][LEP])
     legacy_put(LEP=upper + 0.2)
     with StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE) as mux_state:
-        def refused() -> bool:
+        def clamped() -> bool:
             st = mux_state.latest()
             names = [bytes(st.name[i]).split(b"\0")[0].decode() for i in range(st.count)] if st else []
-            return st is not None and "direct" in names and st.verdict[names.index("direct")] == VERDICT_INVALID
-        wait_for(refused, 10, what="the mux's verdict on the direct frame")
-    wait_for(lambda: "refused a frame from 'direct' as a whole" in robot.log_text("mux"), 10, what="the refusal")
-    line = [s for s in robot.log_text("mux").splitlines() if "refused a frame from 'direct'" in s][-1]
-    assert "LEP" in line and "nothing applied" in line, line
-    assert_stays(robot, start, 1.0)
+            return st is not None and "direct" in names and st.verdict[names.index("direct")] == VERDICT_CLAMPED \
+                and st.clamped_joints(names.index("direct")) == [LEP]
+        wait_for(clamped, 10, what="the mux's verdict on the direct frame")
+    wait_for(lambda: "clamped a frame from 'direct'" in robot.log_text("mux"), 10, what="the clamping log line")
+    line = [s for s in robot.log_text("mux").splitlines() if "clamped a frame from 'direct'" in s][-1]
+    assert "LEP" in line and "nearest limit" in line, line
+    trace = robot.follow(lambda ref, pos: abs(pos[LEP] - upper) < 1e-4, timeout=20)
+    assert max(r[LEP] for _, r, _ in trace) <= upper + 1e-12, "never past the limit"
+    legacy_put(LEP=start[LEP])  # back where it was, for the next tests
+    robot.follow(lambda ref, pos: abs(pos[LEP] - start[LEP]) < 1e-4, timeout=20)
 
 
 def test_a_remote_achd_push_into_mds_ref_moves_the_robot(robot: Robot) -> None:

@@ -159,7 +159,7 @@ def test_mds_h_joint_constants(short: str, name: str, address: int) -> None:
 def test_new_struct_sizes() -> None:
     assert ctypes.sizeof(msgs.MDS_CMD) == 16
     assert ctypes.sizeof(msgs.MDS_IK_STATUS) == 214
-    assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 820
+    assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 920
     assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2090
 
 
@@ -181,7 +181,9 @@ def test_mux_state_offsets() -> None:
                                            "hold_source": 614, "verdict": 644, "blocker": 652, "blocked_joint": 660,
                                            "refused": 668,
                                            # appended with issue 25
-                                           "hold_reason": 700}
+                                           "hold_reason": 700,
+                                           # appended with issue 26
+                                           "clamped": 820}
     assert msgs.MDS_MUX_STATE.name.size == 8 * 30
 
 

@@ -99,7 +99,7 @@ def test_bad_controller_config_is_refused(entries: list, message: str) -> None:
 
 
 def test_state_struct_layout() -> None:
-    assert ctypes.sizeof(MDS_MUX_STATE) == 820
+    assert ctypes.sizeof(MDS_MUX_STATE) == 920
     assert MDS_MUX_STATE.owner.offset == 0
     assert MDS_MUX_STATE.time.offset == 494 and MDS_MUX_STATE.held.offset == 506
     assert MDS_MUX_STATE.hold_reason.offset == 700  # appended (issue 25): the fields before keep their offsets

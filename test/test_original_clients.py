@@ -67,6 +67,45 @@ def test_original_c_client_builds_and_moves_the_elbow(system: dict[str, str], tm
 
 
 @pytest.mark.slow
+def test_the_c_client_put_again_sends_the_elbow_back_after_another_controller_moved_it(
+        system: dict[str, str], tmp_path: Path) -> None:
+    """Issue 26: the same C client run again writes the same frame (LEP -0.2) after the IK controller moved LEP:
+    every put on mds-ref-filter is a command, so the elbow goes back, as on the original (it stayed before)."""
+    import mds_ach as mds
+    from mds_ach.nodes.mux import load_config
+    from mds_ach.nodes.pipeline import make_ref, ref_arrays
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs import MDS_MUX_STATE
+
+    exe = libach.build(CLIENTS / "mds_demo.c", tmp_path / "mds_demo", f"-I{REPO / 'include'}")
+    env = dict(system, LD_LIBRARY_PATH=f"{libach.prefix() / 'lib'}:{system.get('LD_LIBRARY_PATH', '')}")
+
+    def run_client() -> None:
+        proc = subprocess.run([str(exe)], env=env, capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+
+    run_client()
+    wait_for(lambda: abs(joint_pos("LEP") + 0.2) < 0.006, timeout=30, what="LEP at -0.2")
+    lep = mds.BY_SHORT["LEP"].address
+    with StructChannel(mds.MDS_CHAN_REF_IK_NAME, mds.MDS_REF) as ik, \
+            StructChannel(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF) as out:
+        base = ik.latest() or out.latest()  # change LEP only, compared with what 'ik' wrote before
+        assert base is not None
+        ref, mode = ref_arrays(base)
+        ref[lep] = -0.5
+        ik.put(make_ref(ref, mode))
+    wait_for(lambda: abs(joint_pos("LEP") + 0.5) < 0.006, timeout=30, what="LEP at -0.5 (moved by 'ik')")
+    names = [c.name for c in load_config()["controllers"]]
+    with StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE) as states:
+        def ik_stale() -> bool:
+            st = states.wait(1.0)
+            return st is not None and bool(st.stale[names.index("ik")])
+        wait_for(ik_stale, 15, what="'ik' stale")
+    run_client()  # the same frame again
+    wait_for(lambda: abs(joint_pos("LEP") + 0.2) < 0.006, timeout=30, what="LEP back at -0.2")
+
+
+@pytest.mark.slow
 def test_paper_simple_joint_demo(system: dict[str, str], tmp_path: Path) -> None:
     proc = run_python(system, port("mds_simple_demo_python.py", tmp_path))
     assert proc.returncode == 0, proc.stdout + proc.stderr

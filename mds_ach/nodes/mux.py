@@ -17,6 +17,16 @@ and ``achd push mds-ref``; highest priority, unsmoothed by the filter, still lim
 Why "modified" rather than "newest frame wins": legacy clients read-modify-write a whole frame (console
 ``goto`` changes one joint and re-sends the other 99 as they were). Only real changes are commands.
 
+Legacy inputs (``legacy: true``: ``default`` on ``mds-ref-filter``, ``direct`` on ``mds-ref``): every put is a command,
+as on the original, where the daemon executed the newest frame whatever it was. A put (a new Ach sequence number;
+the readers wake on each one, identical values included) commands the joints it modified *and* re-asserts the joints
+whose value another controller moved away from it -- except joints held or cancelled (or re-seeded after HOME) while
+the frame carried that value: a client re-putting the same frame at 50 Hz cannot release a hold or revive a cancelled
+command; a different value (a new command) or RESUME (for held joints) does. Values outside the effective limits are
+clamped to them (the original hardware stopped at its limits), logged once per change of the clamped joints and
+reported as ``VERDICT_CLAMPED`` with ``clamped[]`` naming them; NaN/Inf still refuses the frame. ``ros`` and ``ik``
+keep "modified only" and whole-frame refusal: their senders validate and stream on purpose.
+
 Event-based: one thread per input blocks on its channel and queues frames; the mux thread applies them in
 arrival order and publishes ``mds-ref-mux`` on every output change. Ownership and ages go to
 ``mds-mux-state`` (``mds_ach.robot.msgs.MDS_MUX_STATE``) and to the ROS topic ``/mds/mux_state``
@@ -80,6 +90,7 @@ from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
     MUX_HOLD_REFUSED,
     MUX_MAX_CONTROLLERS,
     VERDICT_APPLIED,
+    VERDICT_CLAMPED,
     VERDICT_INVALID,
     VERDICT_NAMES,
     VERDICT_NONE,
@@ -105,6 +116,7 @@ class Controller:
     joints: tuple[int, ...]  # permitted addresses
     timeout: float | None  # s after its last change until it goes stale; None = never stale
     seed: bool = False
+    legacy: bool = False  # every put is a command (re-puts re-assert), out-of-limit values clamped (not refused)
 
 
 def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux config") -> list[Controller]:
@@ -119,7 +131,7 @@ def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux co
             raise ValueError(f"{where}: controllers[{k}] must be a mapping")
         name = str(e.get("name", "")).strip()
         here = f"{where}: controller {name or k!r}"
-        unknown = set(e) - {"name", "channel", "priority", "joints", "timeout", "seed"}
+        unknown = set(e) - {"name", "channel", "priority", "joints", "timeout", "seed", "legacy"}
         if unknown:
             raise ValueError(f"{here}: unknown keys {sorted(unknown)}")
         if not name or len(name.encode()) >= 30:
@@ -139,7 +151,8 @@ def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux co
             timeout = float(timeout)
             if not (math.isfinite(timeout) and timeout > 0):
                 raise ValueError(f"{here}: timeout must be > 0 s (or null for never stale)")
-        out.append(Controller(name, channel, priority, joints, timeout, bool(e.get("seed", False))))
+        out.append(Controller(name, channel, priority, joints, timeout, bool(e.get("seed", False)),
+                              bool(e.get("legacy", False))))
     for attr, plural in (("name", "names"), ("channel", "channels"), ("priority", "priorities")):
         values = [getattr(c, attr) for c in out]
         dupes = sorted({str(v) for v in values if values.count(v) > 1})
@@ -184,7 +197,7 @@ class MuxCore:
     def __init__(self, controllers: Sequence[Controller], ref: np.ndarray, mode: np.ndarray,
                  limits: EffectiveLimits | None = None) -> None:
         self.controllers = list(controllers)
-        self.limits = limits  # the one limit authority (mds-limits): a modified joint outside refuses the frame
+        self.limits = limits  # the one limit authority (mds-limits): refuses (ros, ik) or clamps (legacy inputs)
         bounds = limits.arrays() if limits is not None else (np.empty(0), np.empty(0))
         self._lower: np.ndarray = bounds[0]
         self._upper: np.ndarray = bounds[1]
@@ -199,6 +212,11 @@ class MuxCore:
         self._known[list(KNOWN_ADDRESSES)] = True
         self._prio = np.array([c.priority for c in self.controllers])
         self._prev: list[tuple[np.ndarray, np.ndarray] | None] = [None] * n
+        # [i, a]: controller i's current value for joint a was held, cancelled or re-seeded: a re-put of it is not
+        # a command (a hold must hold against a client that keeps re-putting); a different value clears it.
+        self._settled = np.zeros((n, MDS_JOINT_COUNT), dtype=bool)
+        self.clamped = np.zeros(MDS_JOINT_COUNT, dtype=np.uint8)  # bit i: controller i's newest frame clamped here
+        self.clamp_message: str | None = None  # the newest update's clamping, for the (rate-limited) log
         self.last_frame = np.full(n, -math.inf)
         self.last_change = np.full(n, -math.inf)
         self.refused = np.zeros(n, dtype=int)
@@ -236,19 +254,31 @@ class MuxCore:
         refusal log writes one line per change of it (mds_ach.ratelog)."""
         return int(self.verdict[index]), int(self.blocker[index]), int(self.blocked_joint[index])
 
-    def update(self, index: int, ref: np.ndarray, mode: np.ndarray, now: float) -> tuple[bool, str | None]:
-        """Apply one frame of controller ``index``. Returns (output changed, refusal message or None).
+    def clamped_kind(self, index: int) -> tuple[int, ...]:
+        """The joints controller ``index``'s newest frame was clamped at (the clamping log's kind)."""
+        return tuple(int(a) for a in np.flatnonzero(self.clamped & np.uint8(1 << index)))
 
-        Atomic: the frame is applied to all of its modified joints or to none. Refused as a whole when it has
-        NaN/Inf in a known joint, when it modifies a joint the controller is not permitted (config ``joints``),
-        or when a fresh, higher-priority controller owns one of the modified joints (the message names it).
-        A modified joint that was held or cancelled is released: a new command for it.
-        A frame that modifies a joint to a value outside the effective limits (mds-limits) is refused too.
+    def update(self, index: int, ref: np.ndarray, mode: np.ndarray, now: float) -> tuple[bool, str | None]:
+        """Apply one frame (one put) of controller ``index``. Returns (output changed, refusal message or None).
+
+        The joints it commands: those it *modified* (compared with its previous frame) and, for a legacy input
+        (``legacy: true``: every put is a command, as on the original), those whose value differs from the output
+        because another controller moved them (``reasserted``) unless held or cancelled while the controller's
+        frame carried that value (``_settled``: only a different value, a new command, releases them).
+
+        Atomic: the frame is applied to all of the joints it commands or to none. Refused as a whole when it has
+        NaN/Inf in a known joint, when it commands a joint the controller is not permitted (config ``joints``),
+        or when a fresh, higher-priority controller owns one of them (the message names it). A non-legacy input's
+        frame commanding a value outside the effective limits (mds-limits) is refused too; a legacy input's value
+        is clamped to them instead (``VERDICT_CLAMPED``, ``clamp_message``). A commanded joint that was held or
+        cancelled is released: a new command for it.
         """
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         name = self.controllers[index].name
+        legacy = self.controllers[index].legacy
         self.last_frame[index] = now
+        self.clamp_message = None
         bad = self._known & ~np.isfinite(ref)
         if bad.any():
             self._verdict(index, VERDICT_INVALID, joint=int(np.flatnonzero(bad)[0]))
@@ -257,17 +287,27 @@ class MuxCore:
         base_ref, base_mode = prev if prev is not None else (self.ref, self.mode)
         modified = self._known & ((ref != base_ref) | (mode != base_mode))
         self._prev[index] = (ref.copy(), mode.copy())
-        if not modified.any():
-            return False, None
+        self._settled[index, modified] = False  # a different value: a new command, holds no longer apply
+        target = ref
+        outside = np.zeros(MDS_JOINT_COUNT, dtype=bool)
         if self.limits is not None:
-            outside = modified & ((ref < self._lower) | (ref > self._upper))
-            if outside.any():
-                self._verdict(index, VERDICT_INVALID, joint=int(np.flatnonzero(outside)[0]))
-                why = "; ".join(self.limits.problems({int(a): float(ref[a]) for a in np.flatnonzero(outside)}))
-                return False, f"refused a frame from '{name}' as a whole: {why}; nothing applied"
+            outside = self._known & ((ref < self._lower) | (ref > self._upper))
+            if legacy:
+                target = np.where(outside, np.clip(ref, self._lower, self._upper), ref)
+        command = modified.copy()
+        if legacy:
+            command |= self._known & ~self._settled[index] & ((target != self.ref) | (mode != self.mode))
+        if not command.any():
+            return False, None
+        outside &= command
+        if outside.any() and not legacy:
+            self._verdict(index, VERDICT_INVALID, joint=int(np.flatnonzero(outside)[0]))
+            assert self.limits is not None
+            why = "; ".join(self.limits.problems({int(a): float(ref[a]) for a in np.flatnonzero(outside)}))
+            return False, f"refused a frame from '{name}' as a whole: {why}; nothing applied"
         self.last_change[index] = now
         self.release_stale(now)
-        forbidden = modified & ~self._permit[index]
+        forbidden = command & ~self._permit[index]
         if forbidden.any():
             self._verdict(index, VERDICT_NOT_PERMITTED, joint=int(np.flatnonzero(forbidden)[0]))
             return False, (f"refused a frame from '{name}' as a whole: it may not move "
@@ -275,7 +315,7 @@ class MuxCore:
         owner = self.owner.astype(int)
         owned = owner >= 0
         owner_prio = np.where(owned, self._prio[np.maximum(owner, 0)], np.iinfo(np.int64).min)
-        blocked = modified & owned & (owner != index) & (owner_prio > self._prio[index])
+        blocked = command & owned & (owner != index) & (owner_prio > self._prio[index])
         if blocked.any():
             first = int(np.flatnonzero(blocked)[0])
             by = int(owner[first])
@@ -283,16 +323,28 @@ class MuxCore:
             blocker = self.controllers[by]
             return False, (f"refused a frame from '{name}' as a whole: {labels(np.flatnonzero(blocked))} owned by "
                            f"'{blocker.name}' (priority {blocker.priority}); nothing applied")
-        self._verdict(index, VERDICT_APPLIED)
-        if (self.owner[modified] != index).any():
-            self.dirty = True  # the filter smooths per owner (config/filter.yaml controllers): tell it now
-        self.owner[modified] = index
-        if (self.held[modified] != MUX_FREE).any():
-            self.held[modified] = MUX_FREE
+        bit = np.uint8(1 << index)
+        clamped = (self.clamped & bit) != 0
+        if (clamped != outside).any():
+            self.clamped = np.where(outside, self.clamped | bit, self.clamped & ~bit).astype(np.uint8)
             self.dirty = True
-        changed = modified & ((self.ref != ref) | (self.mode != mode))
-        self.ref[modified] = ref[modified]
-        self.mode[modified] = mode[modified]
+        if outside.any():
+            self._verdict(index, VERDICT_CLAMPED, joint=int(np.flatnonzero(outside)[0]))
+            assert self.limits is not None
+            why = "; ".join(self.limits.problems({int(a): float(ref[a]) for a in np.flatnonzero(outside)}))
+            self.clamp_message = (f"clamped a frame from '{name}' to the limits: {why}; "
+                                  f"{labels(np.flatnonzero(outside))} go to the nearest limit, the rest as sent")
+        else:
+            self._verdict(index, VERDICT_APPLIED)
+        if (self.owner[command] != index).any():
+            self.dirty = True  # the filter smooths per owner (config/filter.yaml controllers): tell it now
+        self.owner[command] = index
+        if (self.held[command] != MUX_FREE).any():
+            self.held[command] = MUX_FREE
+            self.dirty = True
+        changed = command & ((self.ref != target) | (self.mode != mode))
+        self.ref[command] = target[command]
+        self.mode[command] = mode[command]
         return bool(changed.any()), None
 
     def hold(self, request: MDS_HOLD, current: np.ndarray | None = None) -> tuple[bool, str]:
@@ -333,9 +385,13 @@ class MuxCore:
         changed = False
         if self.hold_action == HOLD_HOLD:
             self.held[mask & (self.held == MUX_FREE)] = MUX_HELD
+            self._settled[:, mask] = True
         elif self.hold_action == HOLD_RESUME:
-            self.held[mask & (self.held == MUX_HELD)] = MUX_FREE
+            resumed = mask & (self.held == MUX_HELD)
+            self.held[resumed] = MUX_FREE
+            self._settled[:, resumed] = False  # the hold is over: a re-put commands again
         else:
+            self._settled[:, mask] = True
             target = np.array(request.target, dtype=float)
             self.owner[mask] = -1
             given = mask & np.isfinite(target)
@@ -348,8 +404,10 @@ class MuxCore:
         return changed, text
 
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
-        """Restart these joints' output where they are (``pipeline.ReseedWatch``); ownership is unchanged."""
+        """Restart these joints' output where they are (``pipeline.ReseedWatch``); ownership is unchanged. A
+        client re-putting its pre-HOME frame does not drive them back: only a new value does."""
         self.ref[addresses] = positions
+        self._settled[:, addresses] = True
 
     def release_stale(self, now: float) -> bool:
         """Release the joints of stale controllers (values stay). True if any ownership changed."""
@@ -368,6 +426,7 @@ class MuxCore:
         for a in range(MDS_JOINT_COUNT):
             st.owner[a] = int(self.owner[a])
             st.held[a] = int(self.held[a])
+            st.clamped[a] = int(self.clamped[a])
         st.count = len(self.controllers)
         for i, c in enumerate(self.controllers):
             st.priority[i] = c.priority
@@ -411,7 +470,7 @@ def state_to_dict(st: MDS_MUX_STATE) -> dict[str, Any]:
              "age": None if st.age[i] < 0 else round(st.age[i], 4),
              "change_age": None if st.change_age[i] < 0 else round(st.change_age[i], 4),
              "verdict": VERDICT_NAMES.get(st.verdict[i], str(st.verdict[i])), "refused": st.refused[i],
-             **blocked(i)}
+             "clamped": [joint_label(a) for a in st.clamped_joints(i)], **blocked(i)}
             for i in range(st.count)
         ],
         "owners": {joint_label(a): names[st.owner[a]] for a in KNOWN_ADDRESSES if st.owner[a] >= 0},
@@ -487,6 +546,7 @@ class MuxRunner:
                 old = ch.latest()
                 if c.seed:
                     ch.put(make_ref(ref, mode))
+                    ch.latest()  # the seed is ours, not a client's put (legacy inputs: every put is a command)
                     core.absorb(i, ref, mode)
                 elif old is not None:
                     core.absorb(i, *ref_arrays(old))
@@ -565,6 +625,9 @@ class MuxRunner:
                     if problem:
                         self.refusals(self.controllers[index].name, problem, kind=core.refusal_kind(index),
                                       level="error")
+                    elif core.clamp_message:  # one line per change of the clamped joints, repeats counted
+                        name = self.controllers[index].name
+                        self.refusals(f"{name} clamped", core.clamp_message, kind=core.clamped_kind(index))
                 if changed:
                     self._publish(core, out)
                 if core.dirty:  # a hold or a verdict: the filter and the requester hear it now

@@ -63,7 +63,8 @@ def mux_state_msg(doc: Mapping[str, Any], joints: Sequence[str], stamp: Time | N
     msg.controllers = [
         MuxController(name=c["name"], priority=int(c["priority"]), stale=bool(c["stale"]), age=_age(c["age"]),
                       change_age=_age(c["change_age"]), verdict=c["verdict"], refused=int(c["refused"]),
-                      blocker=c.get("blocker", ""), blocked_joint=c.get("blocked_joint", ""))
+                      blocker=c.get("blocker", ""), blocked_joint=c.get("blocked_joint", ""),
+                      clamped=list(c.get("clamped", [])))
         for c in doc["controllers"]]
     msg.joint_names = list(joints)
     msg.owner = [doc["owners"].get(j, "") for j in joints]

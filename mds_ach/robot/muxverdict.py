@@ -15,7 +15,7 @@ import mds_ach as mds
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_ADDRESS
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
-from mds_ach.robot.msgs.mux_state import VERDICT_INVALID, VERDICT_NOT_PERMITTED, VERDICT_OWNED
+from mds_ach.robot.msgs.mux_state import VERDICT_CLAMPED, VERDICT_INVALID, VERDICT_NOT_PERMITTED, VERDICT_OWNED
 
 VERDICT_TIMEOUT = 0.5
 """s a writer waits for the mux's verdict (it answers within one queue pass; this covers a loaded host)."""
@@ -26,7 +26,7 @@ LIVE_AGE = 1.0
 @dataclass(frozen=True)
 class Verdict:
     applied: bool
-    message: str  # "" when applied; else why not, naming the owner
+    message: str  # "" when applied as sent; else why not (naming the owner) or which joints were clamped
 
 
 def describe(st: MDS_MUX_STATE, i: int) -> str:
@@ -40,6 +40,9 @@ def describe(st: MDS_MUX_STATE, i: int) -> str:
         return f"{joint} is not permitted to this controller (config/mux.yaml)"
     if v == VERDICT_INVALID:
         return f"non-finite reference for {joint}"
+    if v == VERDICT_CLAMPED:
+        shorts = [BY_ADDRESS[a].short for a in st.clamped_joints(i) if a in BY_ADDRESS]
+        return f"clamped to the limits: {', '.join(shorts) or joint}"
     return "refused"
 
 
@@ -74,6 +77,6 @@ class VerdictWatch:
                 if st.age[i] >= 0 and st.time - st.age[i] >= sent_at - 1e-6:
                     if st.verdict[i] in (VERDICT_OWNED, VERDICT_NOT_PERMITTED, VERDICT_INVALID):
                         return Verdict(False, "not applied: " + describe(st, i))
-                    return Verdict(True, "")
+                    return Verdict(True, describe(st, i) if st.verdict[i] == VERDICT_CLAMPED else "")
             if time.monotonic() >= deadline:
                 return Verdict(False, f"not applied: no verdict from the mux within {timeout:g} s")

@@ -32,6 +32,7 @@ from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
+from mds_ach.robot.msgs.mux_state import MUX_FREE, MUX_HELD
 from mds_ach.tools.monitor import Latest, collision_summary
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
 
@@ -413,8 +414,8 @@ class Console:
         if off:
             text = ", ".join(f"{mds.BY_ADDRESS[a].short} at {output.joint[a].ref:.5f} (target {v:.5f})"
                              for a, v in off.items())
-            raise CommandError(f"not applied: the mux output ({mds.MDS_CHAN_REF_MUX_NAME}) keeps {text}; the mux "
-                               f"takes only changes from '{mine}': send another value first, then this one",
+            raise CommandError(f"not applied: the mux output ({mds.MDS_CHAN_REF_MUX_NAME}) keeps {text} (held, "
+                               f"cancelled or taken by another controller: see 'mds-ach dump mds-mux-state')",
                                usage=False)
 
     def _wait_arrival(self, targets: dict[int, float], timeout: float,
@@ -533,7 +534,11 @@ class Console:
 
     def zeroall(self) -> None:
         """Every enabled joint to 0 rad, or to the value nearest 0 inside its effective limits (the original
-        wrote 0 everywhere, unchecked; refusing all of them for one joint whose range excludes 0 helped nobody)."""
+        wrote 0 everywhere, unchecked; refusing all of them for one joint whose range excludes 0 helped nobody).
+
+        All or nothing: nothing is sent while a joint that would move is owned by a higher-priority controller
+        (after ``RELEASE_TIMEOUT`` s) or held/cancelled (``hold``: a re-put does not release it), and the error
+        names those joints; the mux applies the frame whole (every put on mds-ref-filter is a command)."""
         state = self._state()
         limits = current_limits()
         targets: dict[int, float] = {}
@@ -552,6 +557,7 @@ class Console:
         for a, v in targets.items():
             self._check_target(mds.BY_ADDRESS[a], v, state)
         self._wait_until_free(list(targets))
+        self._refuse_held(targets)
         sent_at = time.monotonic()
         self._put_refs(targets, state)
         self._confirm_applied(targets, sent_at)
@@ -559,6 +565,27 @@ class Console:
         if nearest:
             self.out(f"0 rad is outside the limits ({limits.describe()}) of {len(nearest)}; nearest in range: "
                      + ", ".join(nearest))
+
+    def _refuse_held(self, targets: dict[int, float]) -> None:
+        """CommandError naming the joints of ``targets`` that are held or cancelled (mds-mux-state ``held``) and
+        would have to move (the mux output is elsewhere): the mux would leave them, so nothing is sent."""
+        chan = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+        out = Latest(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
+        try:
+            st = self._mux_state(time.monotonic(), chan)
+            output = out.read()
+        finally:
+            chan.close()
+            out.close()
+        if st is None or output is None:
+            raise CommandError(NOT_RUNNING + "; nothing sent", usage=False)
+        stuck = {a: st.held[a] for a, v in targets.items()
+                 if st.held[a] != MUX_FREE and not abs(output.joint[a].ref - v) <= APPLIED_TOLERANCE}
+        if stuck:
+            text = ", ".join(f"{mds.BY_ADDRESS[a].short} ({'held' if h == MUX_HELD else 'cancelled'})"
+                             for a, h in stuck.items())
+            raise CommandError(f"not sent: {text}; 'resume' releases held joints, 'goto' a cancelled one; "
+                               "nothing moved", usage=False)
 
     def get(self, joint: Joint) -> None:
         """The original's two lines, under the joint's long (anatomy) name as the original printed it."""

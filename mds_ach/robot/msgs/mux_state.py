@@ -33,9 +33,15 @@ VERDICT_OWNED = 2
 VERDICT_NOT_PERMITTED = 3
 """Refused as a whole: it modifies joints the controller may not move (config/mux.yaml ``joints``)."""
 VERDICT_INVALID = 4
-"""Refused as a whole: NaN/Inf in a known joint, or a modified joint outside the effective limits (mds-limits)."""
+"""Refused as a whole: NaN/Inf in a known joint, or (inputs that validate before sending: ``ros``, ``ik``) a
+modified joint outside the effective limits (mds-limits)."""
+VERDICT_CLAMPED = 5
+"""Applied, but values outside the effective limits were clamped to them (legacy inputs, config/mux.yaml
+``legacy: true``, as the original hardware stopped at its limits): ``clamped[address]`` bit i names the joints,
+``blocked_joint[i]`` the first of them."""
 VERDICT_NAMES: dict[int, str] = {VERDICT_NONE: "none", VERDICT_APPLIED: "applied", VERDICT_OWNED: "owned",
-                                 VERDICT_NOT_PERMITTED: "not permitted", VERDICT_INVALID: "invalid"}
+                                 VERDICT_NOT_PERMITTED: "not permitted", VERDICT_INVALID: "invalid",
+                                 VERDICT_CLAMPED: "clamped"}
 
 # hold_status: the mux's answer to the newest mds-hold request
 MUX_HOLD_DONE = 0
@@ -46,7 +52,7 @@ MUX_HOLD_REASON_SIZE = 120
 
 
 class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
-    """``mds-mux-state`` frame (packed, 820 B): who owns each joint, how fresh each controller is, what
+    """``mds-mux-state`` frame (packed, 920 B): who owns each joint, how fresh each controller is, what
     was held and what each controller's newest frame got.
 
     owner[address]     controller index (into name[]) that owns the joint, -1 = nobody (holding)
@@ -70,6 +76,9 @@ class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
     refused[i]         frames of controller i refused since the mux started
     --- appended with issue 25 ---
     hold_reason        why the newest mds-hold request was refused (MUX_HOLD_REFUSED), else empty
+    --- appended with issue 26 ---
+    clamped[address]   bit i set: controller i's newest applied frame was clamped to the limits at this joint
+                       (VERDICT_CLAMPED); 0 = no controller's
     """
 
     _fields_ = [
@@ -92,11 +101,16 @@ class MDS_MUX_STATE(_Packed):  # noqa: N801 - MDS struct naming
         ("blocked_joint", ctypes.c_int8 * MUX_MAX_CONTROLLERS),
         ("refused", ctypes.c_uint32 * MUX_MAX_CONTROLLERS),
         ("hold_reason", ctypes.c_char * MUX_HOLD_REASON_SIZE),
+        ("clamped", ctypes.c_uint8 * MDS_JOINT_COUNT),
     ]
 
     def controller_names(self) -> list[str]:
         """``name[0:count]`` as text; ``count`` clamped to the array (a scribbled frame never reads past it)."""
         return [get_name(bytes(self.name[i])) for i in range(max(0, min(int(self.count), MUX_MAX_CONTROLLERS)))]
+
+    def clamped_joints(self, i: int) -> list[int]:
+        """Addresses where controller ``i``'s newest applied frame was clamped to the limits."""
+        return [a for a in range(MDS_JOINT_COUNT) if self.clamped[a] >> i & 1] if 0 <= i < MUX_MAX_CONTROLLERS else []
 
     def controller_index(self, controller: str) -> int | None:
         """Index of ``controller`` in ``name[]``, None when the mux does not have it."""
