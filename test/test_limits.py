@@ -108,11 +108,12 @@ def test_every_entry_point_refuses_what_the_urdf_refuses(clean_shm: None, gate_m
     assert mux.ref[mds.NKY] == 0.0 and mux.ref[address] == HOME[address]
     frame[address] = limit
     assert mux.update(0, frame, np.zeros(N, dtype=np.int16), 2.0) == (True, None)
-    # achd: a frame a peer pushes into mds-ref-filter
-    with StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF) as chan:
+    # achd: a frame a peer pushes into a non-legacy input (mds-ref-ros; into the legacy mds-ref-filter the mux
+    # clamps, test_an_out_of_limit_push_into_a_legacy_input_is_clamped_by_the_mux_like_a_local_put)
+    with StructChannel(mds.MDS_CHAN_REF_ROS_NAME, MDS_REF) as chan:
         chan.put(make_ref(HOME, np.zeros(N, dtype=np.int16)))
         check = RefLimitCheck.for_channel(chan.channel, chan.name)
-    assert check is not None
+    assert check is not None and not check.clamps
     frame = HOME.copy()
     frame[address] = value
     got = check.problem(bytes(make_ref(frame, np.zeros(N, dtype=np.int16))))
@@ -139,7 +140,7 @@ def test_the_achd_check_only_judges_joints_the_frame_changes(clean_shm: None) ->
     only what it changes is judged, as the mux does."""
     start = HOME.copy()
     start[mds.LWR] = -0.8  # where the joint is (the table allows it), outside the URDF
-    with StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF) as chan:
+    with StructChannel(mds.MDS_CHAN_REF_ROS_NAME, MDS_REF) as chan:
         chan.put(make_ref(start, np.zeros(N, dtype=np.int16)))
         check = RefLimitCheck.for_channel(chan.channel, chan.name)
     assert check is not None
@@ -149,6 +150,24 @@ def test_the_achd_check_only_judges_joints_the_frame_changes(clean_shm: None) ->
     moved[mds.LWR] = -0.9
     assert "LWR" in check.problem(bytes(make_ref(moved, np.zeros(N, dtype=np.int16))))[1]
     assert RefLimitCheck.for_channel(chan.channel, mds.MDS_CHAN_IK_NAME) is None  # not a reference input
+
+
+@pytest.mark.parametrize("name", [mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_CHAN_REF_NAME])
+def test_an_out_of_limit_push_into_a_legacy_input_is_clamped_by_the_mux_like_a_local_put(
+        clean_shm: None, name: str) -> None:
+    """The same answer from every door (issue #26): into the original channels the mux clamps an out-of-limit value
+    (the original hardware stopped at its limits), so the network server passes a pushed frame on as a local put;
+    a non-finite value, which the mux refuses whole, it refuses at once."""
+    with StructChannel(name, MDS_REF) as chan:
+        chan.put(make_ref(HOME, np.zeros(N, dtype=np.int16)))
+        check = RefLimitCheck.for_channel(chan.channel, chan.name)
+    assert check is not None and check.clamps
+    zero_built = np.zeros(N)  # an original client's frame: zeros, one joint set; REP's range excludes 0
+    zero_built[mds.LSP] = -0.3
+    assert check.problem(bytes(make_ref(zero_built, np.zeros(N, dtype=np.int16)))) is None
+    zero_built[mds.LSP] = math.nan
+    got = check.problem(bytes(make_ref(zero_built, np.zeros(N, dtype=np.int16))))
+    assert got is not None and got[0] == "invalid" and "LSP" in got[1], got
 
 
 def test_published_limits_are_what_every_entry_point_reads(clean_shm: None) -> None:

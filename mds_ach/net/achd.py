@@ -205,10 +205,15 @@ class RefLimitCheck:
     channel's newest frame (read when the link starts), so a read-modify-write client re-sending a pose the robot
     is at (perhaps outside the limits after power-on) is not refused for joints it does not move. Into a channel
     that never had a frame (no mux ran: the mux takes frames waiting at its start as old, never applies them)
-    the first frame is only the base."""
+    the first frame is only the base.
 
-    def __init__(self, chan, limits: Any) -> None:
+    Into a *legacy* input (config/mux.yaml ``legacy: true``: ``mds-ref-filter``, ``mds-ref``) the mux clamps an
+    out-of-limit value as the original hardware stopped at its limits (issue #26): the same frame pushed over the
+    network is then passed on like a local put (``clamps``); only a non-finite value is refused there."""
+
+    def __init__(self, chan, limits: Any, clamps: bool = False) -> None:
         self.limits = limits
+        self.clamps = clamps
         self.base: Any = None
         buf = bytearray(max(1, _geometry(chan)[1]))
         status, size = chan.get(buf, last=True)
@@ -222,8 +227,13 @@ class RefLimitCheck:
         if found is None or found.struct is not MDS_REF or name == contracts.MDS_CHAN_DAEMON_INPUT_NAME:
             return None
         from mds_ach.kinematics.limits import current_limits  # numpy and the URDF only where references come in
+        from mds_ach.nodes.mux import load_config  # which inputs the mux clamps: one definition, config/mux.yaml
 
-        return cls(chan, current_limits())
+        try:
+            clamps = any(c.channel == name and c.legacy for c in load_config()["controllers"])
+        except ValueError:  # no readable mux config: judge as a non-legacy input (refuse rather than pass on)
+            clamps = False
+        return cls(chan, current_limits(), clamps)
 
     def problem(self, payload: bytes) -> tuple[str, str] | None:
         """``("invalid", reason)`` when the frame changes a joint to a value outside its limits, else None (then
@@ -232,6 +242,8 @@ class RefLimitCheck:
         base = self.base if self.base is not None else ref
         changed = {a: ref.joint[a].ref for a in range(MDS_JOINT_COUNT)
                    if self.limits.valid[a] and ref.joint[a].ref != base.joint[a].ref}
+        if self.clamps:  # the mux clamps finite values on this input; a non-finite one it refuses whole
+            changed = {a: v for a, v in changed.items() if not math.isfinite(v)}
         problems = self.limits.problems(changed)
         if problems:
             return "invalid", "refused by the joint limits: " + "; ".join(problems)
