@@ -3,10 +3,10 @@ Issue 25: a CANCEL stops, it never moves (limits, owners: ``check_cancel``)."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
+from support.mux_frames import frame as _frame
+from support.mux_frames import hold_request as _hold
 
 import mds_ach as mds
 from mds_ach.kinematics.limits import compute
@@ -14,7 +14,7 @@ from mds_ach.nodes.filter import FilterCore, parse_config
 from mds_ach.nodes.mux import Controller, MuxCore, state_to_dict
 from mds_ach.nodes.pipeline import select_joints
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
-from mds_ach.robot.msgs.hold import CANCEL_TOLERANCE, HOLD_CANCEL, HOLD_HOLD, HOLD_RESUME, MDS_HOLD
+from mds_ach.robot.msgs.hold import CANCEL_TOLERANCE, HOLD_CANCEL, HOLD_HOLD, HOLD_RESUME
 from mds_ach.robot.msgs.mux_state import (
     MUX_CANCELLED,
     MUX_FREE,
@@ -41,22 +41,8 @@ def _core(start: np.ndarray | None = None, limits: bool = False) -> MuxCore:
     return core
 
 
-def _frame(base: np.ndarray | None = None, **joints: float) -> np.ndarray:
-    out = np.zeros(MDS_JOINT_COUNT) if base is None else base.copy()
-    for name, value in joints.items():
-        out[getattr(mds, name)] = value
-    return out
 
 
-def _hold(action: int, seq: int, joints: tuple[int, ...] = (), targets: dict[int, float] | None = None) -> MDS_HOLD:
-    h = MDS_HOLD(seq=seq, action=action, source=b"test", reason=b"unit test")
-    for a in range(MDS_JOINT_COUNT):
-        h.target[a] = math.nan
-    for a in joints:
-        h.joints[a] = 1
-    for a, v in (targets or {}).items():
-        h.target[a] = v
-    return h
 
 
 # --------------------------------------------------------------------------------------------- atomic goals

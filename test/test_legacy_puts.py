@@ -21,6 +21,8 @@ import time
 import numpy as np
 import pytest
 from support import wait_for
+from support.mux_frames import frame as _frame
+from support.mux_frames import hold_request as _hold
 
 import mds_ach as mds
 from mds_ach.kinematics.limits import compute
@@ -28,7 +30,7 @@ from mds_ach.nodes.mux import MuxCore, MuxRunner, load_config, state_to_dict
 from mds_ach.nodes.pipeline import make_ref, ref_arrays
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
-from mds_ach.robot.msgs.hold import HOLD_CANCEL, HOLD_HOLD, HOLD_RESUME, MDS_HOLD
+from mds_ach.robot.msgs.hold import HOLD_CANCEL, HOLD_HOLD, HOLD_RESUME
 from mds_ach.robot.msgs.mux_state import (
     MUX_CANCELLED,
     MUX_FREE,
@@ -60,22 +62,8 @@ def _core(start: np.ndarray | None = None) -> MuxCore:
     return core
 
 
-def _frame(base: np.ndarray, **joints: float) -> np.ndarray:
-    out = base.copy()
-    for name, value in joints.items():
-        out[getattr(mds, name)] = value
-    return out
 
 
-def _hold(action: int, seq: int, joints: tuple[int, ...] = (), targets: dict[int, float] | None = None) -> MDS_HOLD:
-    h = MDS_HOLD(seq=seq, action=action, source=b"test", reason=b"unit test")
-    for a in range(MDS_JOINT_COUNT):
-        h.target[a] = math.nan
-    for a in joints:
-        h.joints[a] = 1
-    for a, v in (targets or {}).items():
-        h.target[a] = v
-    return h
 
 
 def test_the_shipped_config_makes_the_original_channels_legacy_inputs() -> None:
