@@ -1127,8 +1127,9 @@ def test_a_node_back_online_far_from_its_last_target_goes_on_from_that_target(ri
     """A node silent for 1 s comes back 0.65 rad from its last target (moved by hand, or power-cycled), and its first
     answer is garbage (+5 rad, refused and counted). Its targets go on from the last target it was sent, within the
     bounds, never from a reply: the log alone cannot tell a node that moved by itself from one whose replies lag
-    its targets, and nothing on the bus says why it should restart (issue #25 item 4). A power-cycled MCB holds
-    until ENABLE, which re-seeds where it is (test_enable_with_a_new_reference_in_the_same_cycle...)."""
+    its targets, and nothing on the bus says why it should restart (issue #25 item 4). The node itself runs its own
+    trajectory back to that target; an operator who moved it on purpose sends ENABLE, which re-seeds where it is
+    (test_enable_with_a_new_reference_in_the_same_cycle_starts_where_the_joint_is)."""
     lep = TABLE["LEP"]
     rig.put_ref(LEP=-0.95)
     ramp_done(rig, "LEP", -0.95)
