@@ -790,10 +790,9 @@ class DaemonLoop:
         CAN log stamps it with ``t`` (``CanIO.send(at=t)``), so the daemon and the auditor judge the same step with
         the same numbers at every rate, whatever the jitter. The frame must reach the interface within ``late_send``
         of ``t``: a MOVETO that would go out later (this thread was preempted or stopped meanwhile) is not sent (its
-        step was sized for a moment long past; the next cycle limits afresh); one whose send itself took longer
-        (preempted inside it) may have reached the wire that much later than its stamp, so the joint gets no new
-        target for ``max_interval`` after the send returned: the next one starts from rest, on the bus and in the
-        log, and two targets never reach the wire closer in time than their step allows.
+        step was sized for a moment long past; the next cycle limits afresh). The frame may still have reached the
+        wire as late as the send returned (preempted inside it): ``_rest_after`` holds the joint's next target back
+        just long enough that its step, counted from this stamp, never reaches the wire faster than the bound.
         """
         jr.ref = q
         c32 = f32(jr.cfg.to_counts(q))
@@ -815,8 +814,7 @@ class DaemonLoop:
                 jr.ref_c_send = sent
                 jr.ack_due = self.io.last_sent + self.ack_timeout
                 jr.flags |= ds.JOINT_MOVING
-                if self.io.last_sent - t > self.late_send:
-                    self._slow_send(jr, self.io.last_sent - t)
+                self._rest_after(jr, t)
         jr.sent_counts = c32
 
     def _late_send(self, jr: JointRuntime, late: float) -> None:
@@ -826,13 +824,26 @@ class DaemonLoop:
         self._warn_rate("late-send", f"{jr.cfg.short}: target withheld, {1e3 * late:.1f} ms late (the loop was "
                                      f"preempted between limiting and sending it); the next cycle limits it afresh")
 
-    def _slow_send(self, jr: JointRuntime, late: float) -> None:
-        """A MOVETO whose send returned ``late`` s after its stamp: it may have reached the wire that late."""
-        jr.resume_at = self.io.last_sent + self.bounds.max_interval
-        self.status.stalls += 1
-        self._warn_rate("slow-send", f"{jr.cfg.short}: a target took {1e3 * late:.1f} ms to reach the interface (the "
-                                     f"loop was preempted inside the send); its next target follows "
-                                     f"{1e3 * self.bounds.max_interval:.0f} ms later, from rest")
+    def _rest_after(self, jr: JointRuntime, t: float) -> None:
+        """After a MOVETO stamped ``t`` whose send returned ``d`` s later (it reached the wire somewhere between):
+        the joint's next target waits until its step cannot reach the wire faster than the velocity bound.
+
+        The limiter moves at most ``LIMIT_MARGIN * v_max`` over the logged interval ``h`` (up to ``max_interval``),
+        and the wire spacing is at least ``h - d``: waiting until ``h >= d / (1 - LIMIT_MARGIN)`` keeps it within
+        ``v_max`` (a send of d = 1 ms waits 10 ms: no cost at 100 Hz and below). A longer wait is cut short once the
+        logged interval exceeds ``max_interval`` (the next step starts from rest: at most ``S0`` =
+        ``LIMIT_MARGIN * min(v_max, a_max * max_interval) * max_interval``) and the wire spacing is ``S0 / v_max``.
+        """
+        b, sent = self.bounds, self.io.last_sent
+        d = max(sent - t, 0.0)
+        from_rest = motion.LIMIT_MARGIN * min(b.max_velocity, b.max_acceleration * b.max_interval) * b.max_interval
+        jr.resume_at = min(t + d / (1.0 - motion.LIMIT_MARGIN),
+                           max(t + b.max_interval + 1e-6, sent + from_rest / b.max_velocity))
+        if d > self.late_send:
+            self.status.stalls += 1
+            self._warn_rate("slow-send", f"{jr.cfg.short}: a target took {1e3 * d:.1f} ms to reach the interface (the "
+                                         f"loop was preempted inside the send); its next target waits "
+                                         f"{1e3 * (jr.resume_at - sent):.0f} ms so it cannot reach the wire too soon")
 
     def _check_acks(self, now: float) -> None:
         for jr in self.joints.values():
