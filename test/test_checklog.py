@@ -43,6 +43,7 @@ class LogBuilder:
         self.silent: set[str] = set()  # joints that do not answer
         self.tracks: dict[str, motion.Track] = {}
         self.last_reply = T0
+        self.foreign: set[int] = set()  # indices of frames another sender put on the bus (the host received them)
 
     def raw(self, raw: mcb.RawFrame, dt: float = 0.0) -> None:
         self.frames.append((self.t + dt, raw))
@@ -76,7 +77,7 @@ class LogBuilder:
 
     def ramp(self, goals: dict[str, float], seconds: float) -> None:
         """Move joints towards ``goals`` with the daemon's own limiter (what a correct daemon sends)."""
-        bounds = TABLE.motion_bounds(self.period)
+        bounds = TABLE.motion_bounds()
         for s in goals:
             self.tracks.setdefault(s, motion.Track(self.pos[s], 0.0, self.last_reply))
         for _ in range(round(seconds / self.period)):
@@ -87,11 +88,19 @@ class LogBuilder:
                 self.pos[s] = q
             self.cycle()
 
-    def write(self, path: Path) -> Path:
+    def received(self, raw: mcb.RawFrame, dt: float = 0.0) -> None:
+        """A frame another sender put on the bus, which the host received."""
+        self.foreign.add(len(self.frames))
+        self.raw(raw, dt)
+
+    def write(self, path: Path, directions: bool = False) -> Path:
+        """The frames with python-can's default direction (received), or as the daemon records them: what the
+        host sent as Tx, the nodes' replies and ``received`` frames as Rx."""
         writer = can.Logger(str(path))
-        for t, f in self.frames:
+        for k, (t, f) in enumerate(self.frames):
+            rx = not directions or f.arbitration_id == mcb.HOST_SID or k in self.foreign
             writer.on_message_received(can.Message(timestamp=t, arbitration_id=f.arbitration_id, data=f.data,
-                                                   is_extended_id=False))
+                                                   is_extended_id=False, is_rx=rx))
         writer.stop()
         return path
 
@@ -226,14 +235,58 @@ def _standing(gap: bool = False, home: bool = False, bogus: bool = False) -> Log
     return b
 
 
-@pytest.mark.parametrize("how", ["gap", "home"])
-def test_a_re_seed_lets_the_next_step_start_from_the_measured_position(tmp_path: Path, how: str) -> None:
-    r = audit(_standing(**{how: True}).write(tmp_path / "reseed.asc"))
+def test_a_re_seed_lets_the_next_step_start_from_the_measured_position(tmp_path: Path) -> None:
+    r = audit(_standing(home=True).write(tmp_path / "reseed.asc"))
     assert r.ok, checklog.format_report(checklog.Report([r]), TABLE)
-    assert r.commands["HOME"] == (how == "home")
-    # The same replies without the gap or the HOME are a joint that moved by itself: the step is a jump.
-    r = audit(_standing().write(tmp_path / "no-reseed.asc"))
-    assert found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
+    assert r.commands["HOME"] == 1
+    # The same replies without the HOME are a joint that moved by itself: the step is a jump; so they are after a
+    # silence (nothing on the bus says why the joint should restart elsewhere).
+    for how in ({}, {"gap": True}):
+        r = audit(_standing(**how).write(tmp_path / "no-reseed.asc"))
+        assert found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
+
+
+def _moving_then_silent(restate: bool) -> LogBuilder:
+    """RSP cruises up at the limiter's speed, its replies lagging the targets by 0.3 rad (the node's own trajectory
+    follows them); its replies stop for 0.5 s, longer than the stale window, during which it is sent nothing; then
+    they resume, still lagging. The next target restates the measured position (``restate``) or goes on from the
+    last target."""
+    b = LogBuilder(0.1)
+    b.cycle()
+    b.ramp({"RSP": -0.2}, 0.1)  # the track starts at the first reply
+    bounds = TABLE.motion_bounds()
+    track = b.tracks["RSP"]
+    for _ in range(6):
+        q = motion.limit(track, 0.6, b.t, bounds)
+        track.advance(q, b.t, bounds)
+        b.target("RSP", q)
+        b.cycle(replies={"RSP": q - 0.3})
+    last = track.q
+    b.silent.add("RSP")
+    for _ in range(5):
+        b.cycle()
+    b.silent.clear()
+    b.cycle(replies={"RSP": last - 0.3})
+    if restate:
+        b.cycle({"RSP": last - 0.3})
+    else:
+        b.target("RSP", motion.limit(track, 0.6, b.t, bounds))
+        b.cycle()
+    return b
+
+
+def test_a_silence_is_no_restart_a_target_that_reverses_a_moving_joint_is_a_violation(tmp_path: Path) -> None:
+    """Issue #25 item 4: a node whose replies pause for longer than the stale window keeps going to its last target;
+    a daemon that restarted it at the measured position (0.3 rad behind, where the replies lag) reversed it, and the
+    auditor let it pass as a re-seed. Only HOME, RESET, ZERO_ENCODER and ENABLE (frames on the bus) restart a
+    track now: restating the lagging position is a violation, going on from the last target is clean."""
+    reverse = _moving_then_silent(restate=True).write(tmp_path / "reverse.asc")
+    on = _moving_then_silent(restate=False).write(tmp_path / "on.asc")
+    for whole_run in (False, True):
+        r = audit(reverse, whole_run=whole_run)
+        assert ("acceleration", "RSP") in found_kinds(r) and r.reseeds == len(TABLE), r.findings
+        r = audit(on, whole_run=whole_run)
+        assert r.ok, checklog.format_report(checklog.Report([r]), TABLE)
 
 
 @pytest.mark.parametrize("command", [mcb.Command.ZERO_ENCODER, mcb.Command.RESET])
@@ -279,8 +332,8 @@ def test_after_home_a_step_counts_from_the_latest_reply_not_the_first(tmp_path: 
 
 
 def test_a_reply_from_before_a_home_is_no_start_after_it(tmp_path: Path) -> None:
-    """A node back online re-seeds at its reply (-0.05, moved by hand); then HOME restarts its count, and a target
-    before any reply after it may only continue from the last target, not from that older reply."""
+    """A node back online (at -0.05, moved by hand) goes on from its last target; then HOME restarts its count, and
+    a target before any reply after it may only continue from the last target, not from that older reply."""
     b = LogBuilder(0.1)
     b.ramp({"LSP": -0.45}, 1.0)
     b.silent.add("LSP")
@@ -325,11 +378,12 @@ def test_a_target_before_any_position_is_a_violation_of_a_whole_run(tmp_path: Pa
     assert out.returncode == 1 and "no-position 1 (LSP 1)" in out.stdout, out.stdout
 
 
-def test_in_a_whole_run_a_silence_home_or_enable_ends_the_old_track(tmp_path: Path) -> None:
-    """In a log of one whole daemon run a silence longer than the stale window plus max_interval, a HOME or an
-    ENABLE certainly made the daemon restart the joint where it is: its next target may not go on from the last
-    one. LSP is silent for 0.6 s and comes back 0.4 rad away (moved by hand); a target 0.05 rad on from the last
-    one is a 0.35 rad jump for it. After a HOME, a target before any reply is one to a position nobody knows.
+def test_in_a_whole_run_a_home_or_enable_ends_the_old_track_and_a_silence_does_not(tmp_path: Path) -> None:
+    """In a log of one whole daemon run a HOME or an ENABLE certainly made the daemon restart the joint where it
+    is: its next target may not go on from the last one. A silence does not: LSP is silent for 0.6 s and comes back
+    0.4 rad away (moved by hand); its next target goes on 0.05 rad from the last one, within the bounds (the daemon
+    never restarts a joint at a reply: its targets ramp from where they were). After a HOME, a target before any
+    reply is one to a position nobody knows.
     Disabled and moved by hand to -0.05, then enabled, the node holds at -0.05: a target at -0.4 right after the
     ENABLE is a jump, one at -0.05 is not. Each log is clean when it may come from other software (not a whole
     run)."""
@@ -357,7 +411,7 @@ def test_in_a_whole_run_a_silence_home_or_enable_ends_the_old_track(tmp_path: Pa
         b.raw(mcb.encode_enable(TABLE["LSP"].address))
         b.target("LSP", target)
         b.cycle()
-    cases = ((back, {"speed", "acceleration"}), (home, {"no-position"}),
+    cases = ((back, set()), (home, {"no-position"}),
              (enabled[-0.4], {"speed", "acceleration"}), (enabled[-0.05], set()))
     for k, (b, kinds) in enumerate(cases):
         path = b.write(tmp_path / f"case{k}.asc")
@@ -390,30 +444,60 @@ def test_implausible_replies_are_ignored_and_never_re_seed(tmp_path: Path) -> No
     assert found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
 
 
+# --------------------------------------------------------------------------------------------- sent, received
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".log", ".trc"])
+def test_frames_received_from_another_sender_are_not_host_commands(tmp_path: Path, suffix: str) -> None:
+    """Issue #25 item 9: in a log that records direction (the daemon's --can-log, candump -x), only frames the host
+    sent are host commands. Another sender's MOVETO to LEP (a second host, a node on a wrong ID), received by the
+    host, is counted apart and never audited as the host's target (it was: a 0.5 rad jump by the daemon). The same
+    frame in a log without direction is read by ID, as before: a violation."""
+    b = LogBuilder(0.1)
+    b.cycle()
+    b.ramp({"LEP": -1.2}, 1.0)
+    b.received(mcb.encode_moveto(TABLE["LEP"].address, TABLE["LEP"].to_counts(-0.7)), 0.005)
+    b.received(mcb.encode_home(TABLE["LSP"].address), 0.006)
+    b.ramp({"LEP": -1.2}, 0.5)
+    r = audit(b.write(tmp_path / f"dir{suffix}", directions=True))
+    assert r.ok and r.directions, checklog.format_report(checklog.Report([r]), TABLE)
+    assert r.received_other == 2 and r.targets["LEP"] == 15 and r.commands["HOME"] == 0
+    assert r.sent_frames + r.received_frames == r.frames and r.received_frames == r.replies_valid + 2
+    assert "from another sender with a command's ID" in checklog.format_report(checklog.Report([r]), TABLE)
+    r = audit(b.write(tmp_path / f"nodir{suffix}"))
+    assert not r.directions and found_kinds(r) == {("speed", "LEP"), ("acceleration", "LEP")}
+    assert r.commands["HOME"] == 1
+
+
 # --------------------------------------------------------------------------------------------- period
 
 
-def test_rate_overrides_the_inferred_period(tmp_path: Path) -> None:
+def test_the_bounds_are_the_same_at_every_rate(tmp_path: Path) -> None:
+    """Issue #25 item 5: a step counts at most motion.MAX_INTERVAL and a joint is silent after
+    daemon_loop.STALE_AFTER, whatever the daemon's rate (inferred or --rate, which only labels the report): an
+    inferred period that jitter made a little longer or shorter no longer moves the audit's bounds away from the
+    daemon's."""
     b = LogBuilder(0.1)
     b.cycle()
     b.ramp({"LSP": 0.0}, 1.0)
     path = b.write(tmp_path / "ramp.asc")
-    assert audit(path).ok
-    fast = audit(path, rate=100.0)  # steps 0.1 s apart count as 15 ms: a 10 Hz ramp is far too fast at 100 Hz
+    for rate in (None, 10.0, 100.0):
+        r = audit(path, rate=rate)
+        assert r.ok and r.bounds == TABLE.motion_bounds() and r.stale_after == daemon_loop.STALE_AFTER
+        assert r.bounds.max_interval == motion.MAX_INTERVAL == pytest.approx(0.15)
+    fast = audit(path, rate=100.0)
     assert fast.period == 0.01 and fast.period_source == "--rate 100 Hz"
-    assert {f.kind for f in fast.findings} == {"speed", "acceleration"}
 
 
-def test_without_a_period_the_motion_is_not_audited(tmp_path: Path) -> None:
+def test_without_a_period_the_motion_is_still_audited(tmp_path: Path) -> None:
     b = LogBuilder()
     b.cycle()
-    b.target("LSP", -0.4)
+    b.target("LSP", TABLE["LSP"].home + 0.4)  # 0.4 rad, 0.1 s after the reply
     path = b.write(tmp_path / "one-query.asc")
     r = audit(path)
-    assert r.error.startswith("speed and acceleration not checked") and "--rate" in r.error
+    assert r.period is None and found_kinds(r) == {("speed", "LSP"), ("acceleration", "LSP")}
     out = cli(path)
-    assert out.returncode == 2 and "NOT AUDITED" in out.stdout
-    assert cli("--rate", "10", path).returncode == 0
+    assert out.returncode == 1 and "period unknown" in out.stdout, out.stdout
 
 
 # --------------------------------------------------------------------------------------------- bad input
@@ -466,13 +550,18 @@ def test_bad_options_exit_2(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------------------------- real captures
 
 
+SPEEDS = {"mds-LEB.-45-0deg.r2": 5.25, "mds-LEB.0--45deg.r2": 9.21, "mds-LEB.0-30deg.r2": 3.51, "mds-LEB.0deg": 3.46,
+          "mds-LEB.30-0deg.r2": 3.46, "mds-LEB.30deg": 3.51, "mds-nky.0deg": 2.91, "mds-nky.25deg": 2.91}  # rad/s
+
+
 def test_the_real_captures_decode_and_what_they_contain(shared_dir: Path) -> None:
     """The June 2015 captures of the original daemon (ms time stamps): every frame decodes; each holds one
     captured MOVETO (LEP for the LEB runs, NKY for the neck runs), inside the joint's limits. Each MOVETO is one
     25-45 degree step: at the original 10 Hz loop that is 2.9-9.2 rad/s, far over the 2 rad/s bound (the original
-    relied on the MCB's own trajectory to ramp). At the cadence the captures show (a position query every ~5 s)
-    a step counts from the latest position reply before it: in mds-LEB.0--45deg.r2 that reply came 85 ms before
-    the MOVETO, so the 45 degree step shows at 9.2 rad/s there too; the others pass at that cadence."""
+    relied on the MCB's own trajectory to ramp). The step counts from the latest position reply before it, over at
+    most motion.MAX_INTERVAL whatever the cadence of the queries (one every ~5 s there): each capture's step is a
+    violation (before #25 a step counted 1.5 inferred periods, 7.5 s there, and only the one whose reply came
+    85 ms before it showed)."""
     files = sorted((shared_dir / REAL_LOGS).iterdir())
     assert len(files) == 8
     replies = 0
@@ -482,16 +571,15 @@ def test_the_real_captures_decode_and_what_they_contain(shared_dir: Path) -> Non
         replies += r.replies_valid + r.replies_ignored + r.replies_unknown
         joint = "NKY" if "nky" in path.name else "LEP"
         assert dict(r.targets) == {joint: 1} and r.replies_ignored == 0
-        if path.name == "mds-LEB.0--45deg.r2":
-            assert found_kinds(r) == {("speed", joint), ("acceleration", joint)}
-            assert [round(f.value, 2) for f in r.findings if f.kind == "speed"] == [9.21]
-        else:
-            assert r.findings == []
+        assert found_kinds(r) == {("speed", joint), ("acceleration", joint)}
+        speed = SPEEDS[path.name]
+        assert [round(f.value, 2) for f in r.findings if f.kind == "speed"] == [speed]
         assert r.commands["SET TRAJECTORY_ACCELERATION"] == 1 and r.commands["SET TRAJECTORY_PERIOD"] == 1
-        if path.name == "mds-nky.0deg":  # one position query only: the period must be given
-            assert "--rate" in r.error
+        assert not r.error and not r.directions  # the dumps do not say who sent a frame: read by ID
+        if path.name == "mds-nky.0deg":  # one position query only: no period, the same bounds
+            assert r.period is None
         else:
-            assert not r.error and 4.0 < r.period < 8.0
+            assert 4.0 < r.period < 8.0
         at_10hz = audit(path, rate=10.0)
         assert found_kinds(at_10hz) == {("speed", joint), ("acceleration", joint)}, at_10hz.findings
         assert all(2.9 <= f.value <= 9.3 for f in at_10hz.findings if f.kind == "speed")

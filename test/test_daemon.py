@@ -32,7 +32,7 @@ from mds_ach.bus.mcb import Command, StateArg
 from mds_ach.bus.simbus import ManualClock, SimNetwork
 from mds_ach.kinematics import limits as effective_limits
 from mds_ach.nodes import daemon
-from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop
+from mds_ach.nodes.daemon_loop import STALE_AFTER, DaemonChannels, DaemonLoop
 from mds_ach.nodes.filters import filter_length
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_COLLIDE, MDS_REF, MDS_STATE
@@ -69,6 +69,27 @@ def status_of(rig: DaemonRig) -> ds.MDS_DAEMON_STATUS:
 
 
 # --- start-up ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("rate", [1.0, 9.9, 0.0, math.nan, 2000.0])
+def test_a_rate_outside_10_to_1000_hz_is_refused_with_the_reason(clean_shm: None, rate: float) -> None:
+    """Issue #25 item 5: below the original's 10 Hz a few targets carry a whole move (at 1 Hz a 1.45 rad move was one
+    target, within the bounds of that 1.5 s interval): the loop refuses such a rate, and the command line says why
+    in one line (exit 2, no traceback)."""
+    net = SimNetwork.from_table(TABLE, bitrate=None)
+    io = canio.make_canio(nocan=True, network=net)
+    channels = DaemonChannels.open()
+    try:
+        with pytest.raises(ValueError, match="loop rate must be 10 to 1000 Hz"):
+            DaemonLoop(TABLE, io, channels, rate_hz=rate, nocan=True)
+        DaemonLoop(TABLE, io, channels, rate_hz=10.0, nocan=True)
+    finally:
+        io.close()
+        channels.close()
+    res = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--rate", f"{rate:g}"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert "loop rate must be 10 to 1000 Hz" in res.stderr.splitlines()[-1]
 
 
 def test_start_up_begins_at_the_measured_pose_without_a_step(rig: DaemonRig) -> None:
@@ -575,24 +596,54 @@ def test_a_bogus_position_reply_is_never_a_position(rig: DaemonRig, mode: int, b
     assert_bounded(rig)
 
 
-def test_a_node_back_online_ramps_from_where_it_is(rig: DaemonRig) -> None:
-    """A node offline for 5 s while its reference moved 0.5 rad: the targets sent meanwhile never arrived, so
-    when it answers again the first target states where the joint is, and it ramps to its reference."""
+def test_a_node_back_online_ramps_from_its_last_target(rig: DaemonRig) -> None:
+    """A node offline for 5 s while its reference moved 0.5 rad: it is sent nothing once stale; when it answers
+    again its targets go on from the last one it was sent, from rest, and ramp to its reference (M1 without a
+    restart exception: a restart at the measured position would reverse a joint whose replies merely paused)."""
     lep = TABLE["LEP"]
     rig.net.set_offline(lep.address)
     drive(rig, 50, LEP=0.1)
     reference = rig.loop.state.joint[lep.address].ref_r
     assert reference == pytest.approx(-0.5)
     assert status_of(rig).joint_flags[lep.address] & ds.JOINT_STALE
-    sent = len(rig.targets("LEP"))
+    before = rig.targets("LEP")
+    assert -1.0 < before[-1] < -0.7  # targets went out until the node counted as stale
     rig.net.set_offline(lep.address, False)
     ramp_done(rig, "LEP", reference)
-    targets = rig.targets("LEP")[sent:]
-    assert targets[0] == pytest.approx(-1.0, abs=1e-6)  # where it stood, not where its targets had got to
-    assert max(abs(b - a) for a, b in zip(targets, targets[1:], strict=False)) <= 0.9 * TABLE.max_velocity * 0.1
+    targets = rig.targets("LEP")[len(before):]
+    assert targets[0] > before[-1]  # on from the last target, towards the reference: never back to -1.0
+    steps = [b - a for a, b in zip(before[-1:] + targets, targets, strict=False)]
+    assert min(steps) >= 0 and max(steps) <= 0.9 * TABLE.max_velocity * 0.1 + 1e-6
     rig.step(10)
     assert rig.measured("LEP") == pytest.approx(reference, abs=1e-4)
     assert_bounded(rig)
+
+
+@pytest.mark.parametrize("rate", [10.0, 100.0])
+def test_replies_that_pause_during_a_move_never_reverse_the_joint(clean_shm: None, rate: float) -> None:
+    """Issue #25 item 4: RSP cruises towards a far goal; its replies are withheld for 0.6 s, longer than the stale
+    window (the node still acts on every target), then resume. No target ever steps backwards and every step obeys
+    the bounds; before, the next target restated the measured position, which lags the targets (RSP -0.200 ->
+    -0.8155 rad at 10 Hz: 0.6 rad backwards, then forward again)."""
+    rig = DaemonRig(rate=rate, pose={"RSP": -1.2})
+    try:
+        rig.loop.start_up()
+        rig.put_ref(RSP=0.8)
+        rig.step(round(0.6 * rate))  # cruising
+        rsp = TABLE["RSP"].address
+        lag = rig.loop.state.joint[rsp].ref - rig.pos("RSP")
+        rig.net.drop_replies(rsp)
+        rig.step(round(0.6 * rate))
+        assert status_of(rig).joint_flags[rsp] & ds.JOINT_STALE
+        rig.net.drop_replies(rsp, count=0)
+        rig.step(round(2.0 * rate))
+        targets = rig.targets("RSP")
+        steps = [b - a for a, b in zip(targets, targets[1:], strict=False)]
+        assert lag > 0.05 and min(steps) >= 0, (lag, min(steps))
+        assert targets[-1] == pytest.approx(0.8, abs=1e-6)
+        assert rig.audit().violations == []
+    finally:
+        rig.close()
 
 
 def test_a_collision_hold_released_ramps(rig: DaemonRig) -> None:
@@ -635,8 +686,9 @@ def test_home_then_a_small_goto_ramps_from_home(rig: DaemonRig) -> None:
 
 
 def test_bus_off_and_resetbus_during_motion_ramps(rig: DaemonRig) -> None:
-    """Bus-off while the reference moves: nothing gets through. After `resetbus` the joints answer again and
-    ramp from where they stand; the stale target of the moment is never re-sent."""
+    """Bus-off while the reference moves: nothing gets through (every send fails, so the track is the last target
+    that went out, where the joint stands). After `resetbus` the joints answer again and ramp on from that target,
+    from rest; the stale target of the moment is never re-sent."""
     lep = TABLE["LEP"]
     drive(rig, 5, LEP=0.3)
     rig.net.bus_off()
@@ -647,8 +699,9 @@ def test_bus_off_and_resetbus_during_motion_ramps(rig: DaemonRig) -> None:
     drive(rig, 5, LEP=0.3)
     reference = rig.loop.state.joint[lep.address].ref_r
     ramp_done(rig, "LEP", reference)
-    targets = rig.targets("LEP")[sent:]
-    assert targets[0] == pytest.approx(stood, abs=1e-6)
+    before, targets = rig.targets("LEP")[:sent], rig.targets("LEP")[sent:]
+    assert before[-1] == pytest.approx(stood, abs=1e-6)
+    assert 0 < targets[0] - stood <= 0.9 * TABLE.max_acceleration * rig.loop.bounds.max_interval ** 2 + 1e-6
     assert reference - stood > 0.5
     reseeds = status_of(rig).joint_reseed
     assert reseeds[lep.address] == 1 and reseeds[TABLE["RSP"].address] == 1
@@ -1077,7 +1130,7 @@ def test_a_stopped_daemon_process_ramps_when_it_continues(clean_shm, tmp_path: P
         for ch in (state_in, status_in, ref_out):
             ch.close()
     assert proc.returncode == 0, out
-    loop_bounds, stale_after = TABLE.motion_bounds(0.1), 3.5 * 0.1  # the defaults at 10 Hz
+    loop_bounds, stale_after = TABLE.motion_bounds(), STALE_AFTER  # the daemon's defaults
     result = audit(read_log(str(can_log)), TABLE, loop_bounds, stale_after)
     assert len(result.targets["LSP"]) > 20, "LSP was hardly commanded"
     assert result.violations == [], result.violations
@@ -1182,12 +1235,13 @@ def test_a_held_reference_is_read_with_its_hold(rig: DaemonRig) -> None:
     assert min(rig.targets("LEP")) >= held - 1e-6  # never past where the gate stopped it
 
 
-def test_a_node_back_online_with_a_bogus_first_reply_still_restarts_where_it_is(rig: DaemonRig) -> None:
-    """A node silent for 1 s comes back 0.65 rad from its last target (moved by hand, or restarted), and its first
-    answer is garbage (+5 rad). That reply is refused, and it must not cost the re-seed: once three consistent
-    replies restore the trust, the first target states where the joint is, then it ramps. (Before, the refused
-    reply ended the silence without a re-seed, and the next target went out from the old track: a 0.7 rad jump
-    for the node. The audit catches it too: in a whole run a silence ends every old track.)"""
+def test_a_node_back_online_far_from_its_last_target_goes_on_from_that_target(rig: DaemonRig) -> None:
+    """A node silent for 1 s comes back 0.65 rad from its last target (moved by hand, or power-cycled), and its first
+    answer is garbage (+5 rad, refused and counted). Its targets go on from the last target it was sent, within the
+    bounds, never from a reply: the log alone cannot tell a node that moved by itself from one whose replies lag
+    its targets, and nothing on the bus says why it should restart (issue #25 item 4). The node itself runs its own
+    trajectory back to that target; an operator who moved it on purpose sends ENABLE, which re-seeds where it is
+    (test_enable_with_a_new_reference_in_the_same_cycle_starts_where_the_joint_is)."""
     lep = TABLE["LEP"]
     rig.put_ref(LEP=-0.95)
     ramp_done(rig, "LEP", -0.95)
@@ -1200,11 +1254,12 @@ def test_a_node_back_online_with_a_bogus_first_reply_still_restarts_where_it_is(
     sent = len(rig.targets("LEP"))
     rig.step(5)
     assert status_of(rig).joint_bad_replies[lep.address] == 1
-    rig.put_ref(LEP=-0.9)
-    ramp_done(rig, "LEP", -0.9)
-    targets = rig.targets("LEP")[sent:]
-    assert targets[0] == pytest.approx(-1.6, abs=1e-6), targets  # where it stands, not where it was told to be
-    assert max(abs(b - a) for a, b in zip(targets, targets[1:], strict=False)) <= 0.9 * TABLE.max_velocity * 0.1
+    rig.put_ref(LEP=-0.8)
+    ramp_done(rig, "LEP", -0.8)
+    targets = rig.targets("LEP")[sent - 1:]
+    assert targets[0] == pytest.approx(-0.95, abs=1e-6)
+    steps = [b - a for a, b in zip(targets, targets[1:], strict=False)]
+    assert min(steps) > 0 and max(steps) <= 0.9 * TABLE.max_velocity * 0.1, targets  # on from -0.95, never -1.6
     assert_bounded(rig)
 
 
@@ -1239,13 +1294,14 @@ def test_the_audit_catches_a_jump(rig: DaemonRig, tmp_path: Path) -> None:
     lep = TABLE["LEP"]
     q = rig.targets("LEP")[-1] + 0.5
     jump = can.Message(arbitration_id=lep.address, data=mcb.encode_moveto(lep.address, lep.to_counts(q)).data,
-                       is_extended_id=False)
+                       is_extended_id=False, is_rx=False)  # the daemon sent it
     frames = [*rig.log.frames, (rig.clock.now, jump)]
     path = tmp_path / "jump.asc"
     with can.Logger(str(path)) as writer:
         for t, msg in frames:
             writer.on_message_received(can.Message(timestamp=t, arbitration_id=msg.arbitration_id, data=msg.data,
-                                                   is_extended_id=False, is_error_frame=msg.is_error_frame))
+                                                   is_extended_id=False, is_error_frame=msg.is_error_frame,
+                                                   is_rx=msg.is_rx))
     for found in (audit(frames, TABLE, rig.loop.bounds, rig.loop.stale_after),
                   audit(read_log(str(path)), TABLE, rig.loop.bounds, rig.loop.stale_after)):
         assert [v.split()[3:5] for v in found.violations] == [["speed", "LEP"], ["acceleration", "LEP"]], \

@@ -358,7 +358,7 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
         assert any(f.argument == StateArg.MOVETO_TARGET for _, f in sent), "no motion was logged"
         assert unsafe_commands(sent) == []
         for path in s.can_logs:  # every daemon run on its own: each restarts from the joints' first replies
-            bounded = audit(read_log(str(path)), TABLE, TABLE.motion_bounds(mds.MDS_LOOP_PERIOD),
+            bounded = audit(read_log(str(path)), TABLE, TABLE.motion_bounds(),
                             3.5 * mds.MDS_LOOP_PERIOD)
             assert bounded.violations == [], f"{path.name}: {bounded.violations}"
     finally:

@@ -30,6 +30,7 @@ from support.system import Pipeline
 import mds_ach as mds
 from mds_ach.kinematics.collision import load_model
 from mds_ach.kinematics.model import arm_kinematics
+from mds_ach.nodes.daemon_loop import STALE_AFTER
 from mds_ach.robot import config
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, RIGHT_ARM
@@ -165,7 +166,7 @@ def system(clean_shm: None, tmp_path: Path):
         s.close()
     s.assert_clean(codes)
     table = config.load()
-    result = audit(read_log(str(can_log)), table, table.motion_bounds(mds.MDS_LOOP_PERIOD), 3.5 * mds.MDS_LOOP_PERIOD)
+    result = audit(read_log(str(can_log)), table, table.motion_bounds(), STALE_AFTER)
     assert result.violations == [], result.violations
 
 

@@ -296,7 +296,7 @@ class CanIO:
         self.bus: can.BusABC | None = None
         self.last_sent = -float("inf")  # ``clock()`` right after the last frame the interface accepted
         # Wall time minus CLOCK_MONOTONIC, fixed once: sent frames stamped with a monotonic time keep its spacing.
-        self._wall_offset = time.time() - time.monotonic()
+        self.wall_offset = time.time() - time.monotonic()
         self.open()
 
     def open(self) -> None:
@@ -332,10 +332,10 @@ class CanIO:
     def send(self, raw: mcb.RawFrame, at: float | None = None) -> bool:
         """Send one MCB frame; False (and counted) when the interface refuses it.
 
-        The frame is stamped (``last_sent``, and the log) with ``clock()`` read right after the interface took it:
-        never earlier than it went out, so the spacing a log shows between two frames is never longer than the real
-        one (a sender preempted between computing a frame and sending it cannot hide the delay). ``at`` overrides
-        the log's stamp (a CLOCK_MONOTONIC time; for replaying recorded traffic with its own times).
+        ``last_sent`` is ``clock()`` read right after the interface took the frame: never earlier than it went out.
+        The log stamps the frame with ``last_sent`` too, unless ``at`` (a time on ``clock``) gives the moment the frame
+        stands for: the daemon dates a MOVETO by the time its step was limited for (``DaemonLoop._send``), and makes
+        sure the frame reaches the interface within a tolerance of it.
         """
         msg = can.Message(arbitration_id=raw.arbitration_id, data=raw.data, is_extended_id=False, is_rx=False)
         try:
@@ -350,7 +350,7 @@ class CanIO:
         self.counters.tx_frames += 1
         self.counters.bits += mcb.FRAME_BITS
         if self.recorder is not None:
-            msg.timestamp = (self.last_sent if at is None else at) + self._wall_offset
+            msg.timestamp = (self.last_sent if at is None else at) + self.wall_offset
             self.recorder(msg)
         return True
 

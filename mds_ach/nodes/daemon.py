@@ -46,12 +46,19 @@ import mds_ach as mds
 from mds_ach.bus import canio
 from mds_ach.bus.canio import CanIO
 from mds_ach.bus.simbus import FaultControl, SimNetwork
-from mds_ach.nodes.daemon_loop import DaemonChannels, DaemonLoop, lock_timeout_for
+from mds_ach.nodes.daemon_loop import (
+    MAX_RATE_HZ,
+    STALE_AFTER,
+    DaemonChannels,
+    DaemonLoop,
+    lock_timeout_for,
+    rate_problem,
+)
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.nodes.rosnode import Param, declare, find, run_node
 from mds_ach.nodes.status_msgs import DAEMON_STATUS_TOPIC, daemon_status_msg
 from mds_ach.robot import access as channel_access
-from mds_ach.robot import config
+from mds_ach.robot import config, motion
 from mds_ach.robot.joints import BY_ADDRESS, lookup
 from mds_ach.robot.msgs import daemon_status as ds
 
@@ -90,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     bus.add_argument("--replay", metavar="FILE", help="feed the node replies of a recorded log back (no robot)")
     bus.add_argument("--replay-speed", type=float, default=1.0, help="replay pacing factor; 0 = as fast as read")
     loop = ap.add_argument_group("loop")
-    loop.add_argument("-r", "--rate", type=float, default=1.0 / mds.MDS_LOOP_PERIOD, help="loop rate in Hz (10)")
+    loop.add_argument("-r", "--rate", type=float, default=1.0 / mds.MDS_LOOP_PERIOD,
+                      help=f"loop rate in Hz (10; {motion.MIN_RATE_HZ:g} to {MAX_RATE_HZ:g})")
     loop.add_argument("--robot", help="robot variant (isaac, lucas, octavia, default); else $MDS_ACH_ROBOT or the "
                                       "choice saved by `mds-ach changerobot`")
     loop.add_argument("--config", metavar="FILE", help="joint table YAML (default: the calibration XML when there "
@@ -101,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                         "$MDS_ACH_OVERLAY, else /etc/mds-ach/configs/mdsach.xml, "
                                                         "else the one beside the anatomy)")
     loop.add_argument("--reply-wait", type=float, help="s to wait for position replies per cycle (half a period)")
-    loop.add_argument("--stale-after", type=float, help="s without a reply before a joint is stale (3.5 periods)")
+    loop.add_argument("--stale-after", type=float, help=f"s without a reply before a joint is stale ({STALE_AFTER:g})")
     loop.add_argument("--filter-length", type=float, help="L of the mode-0 filter (default: 95%% in 4.0 s)")
     loop.add_argument("--no-collide-gate", action="store_true",
                       help="do not hold the robot while mds-collide reports a collision (expert use only)")
@@ -347,7 +355,7 @@ PARAMETERS = (
     Param("robot", "", "robot variant of the joint table (isaac, lucas, octavia, default); empty: $MDS_ACH_ROBOT "
                        "or the choice saved by `mds-ach changerobot` (option --robot)"),
     Param("rate", 1.0 / mds.MDS_LOOP_PERIOD, "control loop rate in Hz: one position query and one reference per "
-                                            "joint and cycle (option --rate)", range=(0.1, 1000.0)),
+                                            "joint and cycle (option --rate)", range=(motion.MIN_RATE_HZ, MAX_RATE_HZ)),
     Param("nocan", False, "simulate the robot's CAN bus in this process instead of a python-can interface "
                           "(option --nocan)"),
     Param("allow_encoder_commands", False, "let the command service send zero and reset, which take a joint out of "
@@ -471,6 +479,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(strip_ros_args(argv)[1:])
+    if rate_problem(args.rate):
+        parser.error(f"--rate: {rate_problem(args.rate)}")
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
                         format="[daemon] %(levelname)s: %(message)s")
     if args.duration is not None:

@@ -13,8 +13,9 @@ One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread
    the goal through ``motion.limit`` at the moment the joint's frames go out, then, if the target (float32
    counts) changed, the 4-frame SET sequence (acceleration, MOVETO target, trajectory mode, period);
 5. one broadcast ACTUAL_POSITION query; replies decoded in binary until every live node answered or the
-   reply window closes; a node silent for ``stale_after`` is stale (``state.active`` 0, flagged in
-   ``mds-daemon-status``), never reported as fresh; an implausible reply is never taken as a position;
+   reply window closes; a node silent for ``stale_after`` (``STALE_AFTER``, 0.35 s at every rate) is stale
+   (``state.active`` 0, flagged in ``mds-daemon-status``), never reported as fresh; an implausible reply is never
+   taken as a position;
 6. ``mds-state`` (legacy layout, CLOCK_MONOTONIC time) and ``mds-daemon-status``.
 
 **The motion bounds hold on every path.** Each joint keeps a ``motion.Track`` of the last target it was sent
@@ -22,11 +23,15 @@ One cycle (``DaemonLoop.cycle``), at an absolute-time schedule on its own thread
 (speed, acceleration, braking for the joint limits; ``mds_ach.robot.motion``). Whatever made the goal jump -- a mode
 change, a stall of this loop, a collision hold released, bus-off, a restart, an upstream node that moved on --
 the joint ramps. A joint that is not sent to keeps its track (by the definition its velocity becomes 0).
-The track is *re-seeded* at the measured position, at rest, when the daemon starts, after HOME, RESET,
-ZERO_ENCODER and ENABLE, and when a silent node answers again: until the next MOVETO it follows the joint's
-trusted replies, and that MOVETO states exactly where the joint is (a zero step), so the daemon and any
-observer of the log (``mds-ach check-log``) restart from the same point. A joint whose position the daemon
-never knew is not commanded. Targets that had to be limited are flagged (``JOINT_LIMITED``) and counted.
+A step is dated by the moment its target was limited for; its MOVETO carries that very stamp in the CAN log
+(``_send``), so the limiter and the auditor judge the same step. The track is *re-seeded* at the measured
+position, at rest, only where the log shows why: when the daemon starts, and after HOME, RESET, ZERO_ENCODER and
+ENABLE (their frames are on the bus): until the next MOVETO it follows the joint's trusted replies, and that
+MOVETO states exactly where the joint is (a zero step), so the daemon and any observer of the log
+(``mds-ach check-log``) restart from the same point. A silent node is sent nothing; when it answers again it goes
+on from its last target, from rest, within the bounds: its replies lag a moving joint (the node kept going to the
+last target meanwhile), so restarting from the measured position would reverse it. A joint whose position the
+daemon never knew is not commanded. Targets that had to be limited are flagged (``JOINT_LIMITED``) and counted.
 
 **The calibrated frame.** Limits, targets and ``mds-state`` are in the frame whose count 0 is the ROM middle, which
 HOME establishes. ZERO_ENCODER and RESET restart a node's count where the joint stands: the joint is *unreferenced*
@@ -115,6 +120,9 @@ def late_send_tolerance(bounds: motion.MotionBounds, period: float) -> float:
     return max(share, 2e-4)
 
 
+# A node silent this long is stale (state.active 0, sent nothing): 3.5 periods of the original's 10 Hz, at every
+# rate -- a fraction of a period's jitter at 100 Hz must not turn into a silence.
+STALE_AFTER = 0.35  # s
 STALL_PERIODS = 2.0  # a cycle that starts more than this many periods after the previous one: the loop stalled
 # Position replies: a reply further than REPLY_RANGE_MARGIN of the joint's range (at least REPLY_RANGE_MIN) beyond
 # its limits, or implying more than REPLY_SPEED_FACTOR times the velocity bound since the last good reply (plus
@@ -171,6 +179,19 @@ def reply_in_range(cfg: JointConfig, q: float) -> bool:
 
 
 # --- channels --------------------------------------------------------------------------------------------
+
+
+MAX_RATE_HZ = 1000.0  # the fastest loop the daemon accepts (the slowest: motion.MIN_RATE_HZ)
+
+
+def rate_problem(rate_hz: float) -> str:
+    """Why the daemon refuses a loop of ``rate_hz`` ('' if it does not). Slower than ``motion.MIN_RATE_HZ``, each
+    target would carry a large part of a move (at 1 Hz a 1.45 rad move was one target): the bounds are defined for
+    that rate and faster."""
+    if math.isfinite(rate_hz) and motion.MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        return ""
+    return (f"loop rate must be {motion.MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz, got {rate_hz:g} Hz (below "
+            f"{motion.MIN_RATE_HZ:g} Hz each target would carry a large part of a move)")
 
 
 def lock_timeout_for(rate_hz: float) -> float:
@@ -308,6 +329,7 @@ class JointRuntime:
     suspect: tuple[float, float] | None = None  # (q, t) of the last in-range reply while not trusted
     consistent: int = 0  # consistent replies in a row while not trusted
     reseed: bool = True  # the track follows trusted replies until a MOVETO states that position
+    resume_at: float = -math.inf  # after a MOVETO that reached the interface late: no target before this time
     pipeline_reseed: bool = False  # ask the pipeline to restart the joint's reference where it is, once known
     goal_prev: float = math.nan  # the goal when the previous target was computed, and when: the goal's velocity
     goal_t: float = -math.inf
@@ -385,8 +407,9 @@ class DaemonLoop:
         clock: Callable[[], float] = time.monotonic,
         limits: EffectiveLimits | None = None,
     ) -> None:
-        if not (math.isfinite(rate_hz) and 0 < rate_hz <= 1000):
-            raise ValueError(f"loop rate must be in (0, 1000] Hz, got {rate_hz}")
+        problem = rate_problem(rate_hz)
+        if problem:
+            raise ValueError(problem)
         # The one limit authority (issue #17): URDF & joint table, published on mds-limits at start and the
         # range every target is clamped to here, so the daemon clamps exactly what every entry point refuses.
         self.limits = effective_limits.compute(table) if limits is None else limits
@@ -398,10 +421,10 @@ class DaemonLoop:
         self.rate = rate_hz
         self.period = 1.0 / rate_hz
         self.reply_wait = self.period * 0.5 if reply_wait is None else reply_wait
-        self.stale_after = max(3.5 * self.period, 0.02) if stale_after is None else stale_after
+        self.stale_after = STALE_AFTER if stale_after is None else stale_after
         self.ack_timeout = max(2.5 * self.period, 0.05)
         self.L = filters.filter_length(rate_hz) if filter_length is None else filter_length
-        self.bounds = table.motion_bounds(self.period)
+        self.bounds = table.motion_bounds()
         self.collide_gate = collide_gate
         self.nocan = nocan
         self.rt_priority = rt_priority
@@ -902,7 +925,9 @@ class DaemonLoop:
                 continue  # (an unreferenced joint's target would be in a shifted frame: nothing until HOME)
             t = self.clock()  # the limiter counts the time up to these very frames
             if t - jr.last_heard > self.stale_after:
-                continue  # a silent node gets nothing: when it answers again, it restarts from where it is
+                continue  # a silent node gets nothing: when it answers again, it goes on from its last target
+            if t < jr.resume_at:
+                continue  # its last MOVETO reached the interface late (``_send``)
             if jr.reseed:
                 if not self._known(jr, t):
                     continue  # never command a joint from a position the daemon does not know
@@ -936,11 +961,13 @@ class DaemonLoop:
         """The 4-frame SET sequence for target ``q`` (limited for time ``t``) if its float32 counts changed (or a
         re-send is due).
 
-        The track records the MOVETO at the time the interface took it (``io.last_sent``, also the log's stamp),
-        not at ``t``: the next step is limited for the time really elapsed since this frame went out, so a loop
-        preempted between limiting and sending can never put two targets on the bus closer in time than their
-        step allows. A MOVETO that would go out more than ``late_send`` after ``t`` (this thread was preempted or
-        stopped meanwhile) is not sent: its step was sized for a moment long past; the next cycle limits afresh.
+        A step's time is ``t``, the moment its target was limited for: the track records the MOVETO at ``t`` and the
+        CAN log stamps it with ``t`` (``CanIO.send(at=t)``), so the daemon and the auditor judge the same step with
+        the same numbers at every rate, whatever the jitter. The frame must reach the interface within ``late_send``
+        of ``t``: a MOVETO that would go out later (this thread was preempted or stopped meanwhile) is not sent (its
+        step was sized for a moment long past; the next cycle limits afresh). The frame may still have reached the
+        wire as late as the send returned (preempted inside it): ``_rest_after`` holds the joint's next target back
+        just long enough that its step, counted from this stamp, never reaches the wire faster than the bound.
         """
         jr.ref = q
         c32 = f32(jr.cfg.to_counts(q))
@@ -953,16 +980,16 @@ class DaemonLoop:
             if frame is moveto and self.clock() - t > self.late_send:
                 self._late_send(jr, self.clock() - t)
                 return
-            if not self.io.send(frame):
+            if not self.io.send(frame, at=t if frame is moveto else None):
                 return  # counted as a tx error; the target goes out again next cycle
             if frame is moveto:  # it is on the bus (and in the log): this is what the node was told
-                sent_at = self.io.last_sent
                 sent = jr.cfg.to_joint(c32)
-                jr.track.advance(sent, sent_at, self.bounds)
+                jr.track.advance(sent, t, self.bounds)
                 jr.reseed = False
                 jr.ref_c_send = sent
-                jr.ack_due = sent_at + self.ack_timeout
+                jr.ack_due = self.io.last_sent + self.ack_timeout
                 jr.flags |= ds.JOINT_MOVING
+                self._rest_after(jr, t)
         jr.sent_counts = c32
 
     def _late_send(self, jr: JointRuntime, late: float) -> None:
@@ -971,6 +998,27 @@ class DaemonLoop:
         self.status.stalls += 1
         self._warn_rate("late-send", f"{jr.cfg.short}: target withheld, {1e3 * late:.1f} ms late (the loop was "
                                      f"preempted between limiting and sending it); the next cycle limits it afresh")
+
+    def _rest_after(self, jr: JointRuntime, t: float) -> None:
+        """After a MOVETO stamped ``t`` whose send returned ``d`` s later (it reached the wire somewhere between):
+        the joint's next target waits until its step cannot reach the wire faster than the velocity bound.
+
+        The limiter moves at most ``LIMIT_MARGIN * v_max`` over the logged interval ``h`` (up to ``max_interval``),
+        and the wire spacing is at least ``h - d``: waiting until ``h >= d / (1 - LIMIT_MARGIN)`` keeps it within
+        ``v_max`` (a send of d = 1 ms waits 10 ms: no cost at 100 Hz and below). A longer wait is cut short once the
+        logged interval exceeds ``max_interval`` (the next step starts from rest: at most ``S0`` =
+        ``LIMIT_MARGIN * min(v_max, a_max * max_interval) * max_interval``) and the wire spacing is ``S0 / v_max``.
+        """
+        b, sent = self.bounds, self.io.last_sent
+        d = max(sent - t, 0.0)
+        from_rest = motion.LIMIT_MARGIN * min(b.max_velocity, b.max_acceleration * b.max_interval) * b.max_interval
+        jr.resume_at = min(t + d / (1.0 - motion.LIMIT_MARGIN),
+                           max(t + b.max_interval + 1e-6, sent + from_rest / b.max_velocity))
+        if d > self.late_send:
+            self.status.stalls += 1
+            self._warn_rate("slow-send", f"{jr.cfg.short}: a target took {1e3 * d:.1f} ms to reach the interface (the "
+                                         f"loop was preempted inside the send); its next target waits "
+                                         f"{1e3 * (jr.resume_at - sent):.0f} ms so it cannot reach the wire too soon")
 
     def _check_acks(self, now: float) -> None:
         for jr in self.joints.values():
@@ -1067,11 +1115,8 @@ class DaemonLoop:
         """Take a position reply as the joint's position only if it is plausible (see REPLY_*): in range and
         consistent with the last good reply. After an implausible one, REPLIES_TO_TRUST in-range replies in a
         row, each consistent with the one before, make the position trusted again. Replies after a silence
-        longer than ``stale_after`` re-seed the track (a node back online)."""
-        if now - jr.last_heard > self.stale_after:
-            # A node back after a silence: it restarts where it is now, not from what it was told before -- even
-            # when this first reply is refused (the re-seed then waits for the replies that restore the trust).
-            jr.reseed = True
+        longer than ``stale_after`` (a node back online) do not re-seed the track: the node kept going to its last
+        target meanwhile, and its next target starts from there (``_send_targets``)."""
         jr.last_heard = now
         cfg = jr.cfg
         in_range = reply_in_range(self.physical[cfg.address], q)  # where the joint can be, not where it is sent

@@ -188,10 +188,9 @@ class JointTable:
     def enabled(self) -> tuple[JointConfig, ...]:
         return tuple(j for j in self.joints if j.enabled)
 
-    def motion_bounds(self, period: float) -> motion.MotionBounds:
-        """The daemon's last-line bounds for a loop of ``period`` s (mds_ach.robot.motion)."""
-        return motion.MotionBounds(self.max_velocity, self.max_acceleration,
-                                   motion.DEFAULT_INTERVAL_PERIODS * period)
+    def motion_bounds(self) -> motion.MotionBounds:
+        """The daemon's last-line bounds (mds_ach.robot.motion): the same at every supported loop rate."""
+        return motion.MotionBounds(self.max_velocity, self.max_acceleration, motion.MAX_INTERVAL)
 
     def accel_counts(self, joint: JointConfig) -> float:
         return joint.rad_to_counts(math.radians(self.accel_deg_s2))

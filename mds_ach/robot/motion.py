@@ -7,14 +7,19 @@ that passes the audit is a log the daemon could have produced, and vice versa.
 
 Definition, per joint, over the sequence of targets q_i sent at times t_i:
 
+* ``t_i`` is the moment the target was limited for, which is also the time stamp its MOVETO carries in the
+  daemon's CAN log (``DaemonLoop._send``): the daemon and the auditor date a step by the very same number;
 * ``h_i = min(t_i - t_{i-1}, max_interval)``: a stall or a pause never earns a bigger step than one
-  ``max_interval`` (the daemon uses 1.5 periods);
+  ``max_interval`` (``MAX_INTERVAL``, 150 ms at every loop rate: 1.5 periods of the original's 10 Hz, the slowest
+  rate the daemon accepts, so jitter at a faster rate never turns an ordinary cycle into a restart);
 * speed ``|q_i - q_{i-1}| / h_i <= max_velocity``;
 * the step's velocity ``v_i = (q_i - q_{i-1}) / h_i``; the previous velocity is ``v_{i-1}`` if the previous
   target came at most ``max_interval`` earlier, else 0 (the joint was told to stand still meanwhile);
   acceleration ``|v_i - v_prev| / h_i <= max_acceleration``;
-* a re-seed (start-up, HOME, a node whose replies resume after a gap) restarts the sequence at the measured
-  position with velocity 0.
+* a re-seed restarts the sequence at the measured position with velocity 0, only where the log shows why: the
+  daemon's start-up and the setup commands HOME, RESET, ZERO_ENCODER and ENABLE. Nothing else restarts a
+  sequence: a node whose replies resume after a silence goes on from its last target (where it was going), so a
+  restart never reverses a joint that is still moving.
 
 ``limit()`` picks the target closest to the desired one that keeps both bounds at ``margin`` times their
 value (clock jitter between the daemon and a log's time stamps must never turn into a violation);
@@ -29,7 +34,9 @@ from dataclasses import dataclass
 # Defaults of the joint table's `motion:` section (config/joints.yaml).
 DEFAULT_MAX_VELOCITY = 2.0  # rad/s: the speed bound the pipeline promises (filter: 1.57)
 DEFAULT_MAX_ACCELERATION = 8.0  # rad/s^2
-DEFAULT_INTERVAL_PERIODS = 1.5  # max_interval in daemon periods
+MIN_RATE_HZ = 10.0  # the slowest daemon loop the bounds are defined for (the original MDS-Ach rate): a slower
+# loop would put a whole move into a handful of targets
+MAX_INTERVAL = 1.5 / MIN_RATE_HZ  # s: the longest interval a step counts on, at every rate >= MIN_RATE_HZ
 LIMIT_MARGIN = 0.9  # the daemon's limiter stays this far inside the bounds
 # Tolerance of the audit: float32 counts on the wire and float rounding, far below any motion of interest.
 CHECK_TOLERANCE = 1e-6

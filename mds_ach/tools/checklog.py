@@ -9,8 +9,8 @@ upstream. Findings, each with the joint, the log time and the value against its 
 * ``address``: a frame that can move a joint (target, HOME) sent to an address that is not an enabled joint of
   the table, or broadcast to every node;
 * ``no-position`` (only for a log of one whole daemon run, ``whole_run``): a target to a joint before any valid
-  position reply of it, or before the first one after its count restarted or it came back from a silence -- the
-  daemon never commands a joint whose position it does not know;
+  position reply of it, or before the first one after its count restarted -- the daemon never commands a joint
+  whose position it does not know;
 * ``silent`` (``whole_run`` too): a target to a joint that has not answered at all for longer than the stale
   window plus ``max_interval`` (slack for where the daemon and the log date a reply) -- the daemon sends a silent
   node nothing, since the target may never arrive and the node, once back, would jump to it;
@@ -29,16 +29,16 @@ Tracks. A joint's sequence of targets is checked against the track of its previo
 track at the measured position, at rest (:meth:`mds_ach.robot.motion.Track.reseed`): at the joint's first valid
 position reply; after a HOME, RESET, ZERO_ENCODER or encoder SET to it, at its first valid reply (the count
 restarted: a reply from before the command is no start any more); after an ENABLE, at its latest valid reply
-(the node holds where it is); and when its valid replies resume after a gap longer than the stale window (3.5
-periods, the daemon's ``stale_after``). Until the joint's next target the re-seed follows its *latest* valid
-reply, as the daemon's track does: the daemon's first target after a re-seed states that very position. An
-earlier reply is never a start: a joint that moved by itself (homing, moved by hand while disabled) is no longer
-there. The first step after a re-seed passes if it is within bounds from the measured position or from the
-last sent target (the daemon may see a silence end a moment earlier or later than the log shows, and other
-software may not re-seed at all). In a whole daemon run (``whole_run``) the last target is no start after any of
-those commands, nor after a silence longer than the stale window plus ``max_interval`` (one the daemon cannot
-have missed): the daemon then certainly restarts from the measured position, and a target with no measured
-position to start from is a ``no-position`` violation.
+(the node holds where it is). Nothing else re-seeds: only these frames, which the log shows, are a reason to
+restart; a node whose replies resume after a silence goes on from its last target, within the bounds (a restart
+at the measured position would reverse a joint still moving there). Until the joint's next target the re-seed
+follows its *latest* valid reply, as the daemon's track does: the daemon's first target after a re-seed states
+that very position. An earlier reply is never a start: a joint that moved by itself (homing, moved by hand
+while disabled) is no longer there. The first step after a re-seed passes if it is within bounds from the
+measured position or from the last sent target (other software may not re-seed at all). In a whole daemon run
+(``whole_run``) the last target is no start after any of those commands: the daemon then certainly restarts
+from the measured position, and a target with no measured position to start from is a ``no-position``
+violation.
 
 Candidates that pass all stay in play (each is a history the daemon could have had); when none passes, the step
 is a violation (against the candidate it breaks least) and the sequence goes on from that candidate, so every
@@ -49,8 +49,16 @@ plus 5 % of it, at least 0.1 rad); anything else is ignored, as the daemon ignor
 :func:`audit_frames` is the audit itself, on (time, frame) pairs of one daemon run; :func:`audit_file` feeds it
 a log file, and the tests (``test/support/motion_audit.py``) the frames of a daemon they ran.
 
-The daemon period (for ``max_interval`` = 1.5 periods and the stale window) is the median interval of the
-broadcast position query, which the daemon sends once per cycle, or ``--rate``.
+Sent and received. A log that records direction (the daemon's ``--can-log``, python-can .asc/.blf/.trc, candump
+with ``-x``: at least one frame marked Tx) tells the host's frames from the nodes': only frames the host sent
+are host commands; a received frame is a node's reply when it has the replies' ID (0x10), else traffic of
+another sender (counted as ``received_other``, never audited as the host's command). A log without direction
+(``candump -l``, the original MDS-Ach dumps) is read by ID alone: 0x10 is a reply, anything else a command.
+
+The bounds and the stale window are the same at every loop rate the daemon accepts (``motion.MAX_INTERVAL``,
+``daemon_loop.STALE_AFTER``); a step is dated by its frame's stamp, which for the daemon's own log is the time the
+daemon limited it for. The report shows the daemon period (the median interval of the broadcast position query,
+which the daemon sends once per cycle, or ``--rate``) for information.
 """
 
 from __future__ import annotations
@@ -73,7 +81,7 @@ from mds_ach.argtypes import bounded, count, seconds
 from mds_ach.bus import canio, mcb
 from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
 from mds_ach.kinematics import collision
-from mds_ach.nodes.daemon_loop import HOMED_TOLERANCE, reply_in_range
+from mds_ach.nodes.daemon_loop import HOMED_TOLERANCE, STALE_AFTER, reply_in_range
 from mds_ach.paths import config_path
 from mds_ach.robot import config, motion
 from mds_ach.robot.config import ConfigError, JointConfig, JointTable
@@ -82,8 +90,6 @@ from mds_ach.robot.msgs import MDS_JOINT_COUNT
 KINDS = ("non-finite", "limit", "address", "no-position", "silent", "unreferenced", "speed", "acceleration",
          "collision")
 MOTION_KINDS = ("speed", "acceleration")
-STALE_PERIODS = 3.5  # the daemon's stale_after (mds_ach.nodes.daemon_loop): 3.5 periods, at least 20 ms
-MIN_STALE = 0.02
 COUNT_TOLERANCE = 0.5  # counts: float32 rounding of a target at a limit is far below one encoder count
 # Commands after which a node's count restarts or it holds where it is: the next valid reply re-seeds (HOME, a
 # SET of TRAJECTORY_MODE, and encoder SETs are handled with the SETs).
@@ -128,7 +134,11 @@ class FileReport:
     replies_unknown: int = 0  # position replies from nodes not in the joint table
     other_replies: int = 0
     error_frames: int = 0
-    other_frames: int = 0  # extended IDs, wrong lengths
+    other_frames: int = 0  # extended IDs, wrong lengths; with directions also the replies' ID sent by the host
+    directions: bool = False  # the log marks which frames the host sent (Tx) and which it received (Rx)
+    sent_frames: int = 0  # with directions: frames the host sent
+    received_frames: int = 0  # with directions: frames the host received
+    received_other: int = 0  # received frames with a command's ID: another sender's, not the host's commands
     reseeds: int = 0
     unseeded_targets: int = 0  # targets of a joint with no known position (and no earlier target to go on from)
     silent_targets: int = 0  # targets to a joint silent for longer than the stale window (they may not arrive)
@@ -163,11 +173,17 @@ class Report:
 # --------------------------------------------------------------------------------------------- the audit
 
 
-def infer_period(path: str | Path) -> tuple[float | None, int]:
-    """(median interval of the broadcast position queries, number of queries); None below two queries."""
-    times = [m.timestamp for m in _read(path) if _is_position_query(m)]
+def scan(path: str | Path) -> tuple[float | None, int, bool]:
+    """(median interval of the broadcast position queries or None below two, number of queries, whether the log
+    records direction: at least one frame marked as sent by the host)."""
+    times: list[float] = []
+    directions = False
+    for m in _read(path):
+        directions = directions or not m.is_rx
+        if _is_position_query(m):
+            times.append(m.timestamp)
     intervals = [b - a for a, b in zip(times, times[1:], strict=False) if b > a]
-    return (statistics.median(intervals) if intervals else None), len(times)
+    return (statistics.median(intervals) if intervals else None), len(times), directions
 
 
 def _read(path: str | Path, torn: list[str] | None = None) -> Iterator[can.Message]:
@@ -199,7 +215,7 @@ class _JointAudit:
     last_q: float = math.nan  # and what it said (rad)
     last_heard: float = -math.inf  # the latest finite position reply, valid or not (the daemon's last_heard)
     reseed_due: bool = False  # a command restarted the count: the next valid reply re-seeds
-    restart: bool = False  # whole run: the daemon certainly re-seeds, so the last target is no start any more
+    restart: bool = False  # whole run, after a re-seed command: the last target is no start any more
     holding: bool = True  # no target since the start or a setup command: the node holds where it is
     unreferenced: str = ""  # the command that restarted its count away from the homed zero ("": referenced)
     homing: bool = False  # a HOME since: the next reply at the homed zero references the count again
@@ -236,12 +252,23 @@ class _Auditor:
         if msg.is_error_frame:
             self.r.error_frames += 1
             return
+        if self.r.directions:
+            if msg.is_rx:
+                self.r.received_frames += 1
+            else:
+                self.r.sent_frames += 1
         data = bytes(msg.data)
         if msg.is_extended_id or msg.is_remote_frame or len(data) != mcb.DLC:
             self.r.other_frames += 1
             return
+        if self.r.directions and msg.is_rx and msg.arbitration_id != mcb.HOST_SID:
+            self.r.received_other += 1  # another sender's frame (a second host, a node on a wrong ID): not ours
+            return
         if msg.arbitration_id == mcb.HOST_SID:
-            self._reply(t, data)
+            if self.r.directions and not msg.is_rx:
+                self.r.other_frames += 1  # the host never sends on the replies' ID
+            else:
+                self._reply(t, data)
             return
         frame = mcb.decode(msg.arbitration_id, data)
         if _is_position_query(msg):
@@ -262,8 +289,6 @@ class _Auditor:
             return
         q = ja.cfg.to_joint(counts) if math.isfinite(counts) else math.nan
         if math.isfinite(q):
-            if self.whole_run and t - ja.last_heard > self._certain_silence():
-                ja.restart = True  # back after a silence the daemon cannot have missed: it starts where it is
             ja.last_heard = t
         if not reply_in_range(ja.cfg, q):
             self.r.replies_ignored += 1
@@ -274,7 +299,7 @@ class _Auditor:
         if self.model is not None and ja.holding:
             self._set_pose(address, q)  # no target to it (yet, or since HOME...): it is commanded to stay there
         first = ja.last_reply == -math.inf
-        if first or ja.reseed_due or t - ja.last_reply > self.stale:  # after HOME/RESET/ZERO, after a gap
+        if first or ja.reseed_due:  # the first reply, or the first after HOME/RESET/ZERO_ENCODER/ENABLE
             ja.reseed_due = False
             ja.seed = motion.Track(q, 0.0, t)
             self.r.reseeds += 1
@@ -376,7 +401,7 @@ class _Auditor:
         if ja.seed is None and (not ja.sent or ja.restart):
             self.r.unseeded_targets += 1  # nothing known before it: its first step cannot be checked
             if self.whole_run:
-                since = "since its count restarted or it came back" if ja.sent else "of the joint"
+                since = "since its count restarted" if ja.sent else "of the joint"
                 self._find("no-position", t, label, q, math.nan, f"target {q:.4f} rad before any valid position "
                                                                  f"reply {since}")
         if ja.unreferenced:
@@ -467,11 +492,13 @@ def _name(code: int) -> str:
 
 def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds: motion.MotionBounds | None,
                  stale_after: float | None, *, model: Any | None = None, whole_run: bool = False,
-                 record_targets: bool = False, report: FileReport | None = None) -> FileReport:
+                 record_targets: bool = False, report: FileReport | None = None,
+                 directions: bool | None = None) -> FileReport:
     """Audit the frames (time in s, ``can.Message``) of one daemon run, host frames and node replies in order.
 
-    ``bounds`` and ``stale_after`` are the daemon's (``None``: speed and acceleration are not checked, a reply gap
-    never re-seeds). ``whole_run``: the frames start when the daemon started (its own ``--can-log``, a test's
+    ``bounds`` and ``stale_after`` are the daemon's (``None``: speed and acceleration are not checked, no joint is
+    ever silent). ``directions``: the frames' ``is_rx`` tells what the host sent from what it received (None: so if
+    any frame is marked sent). ``whole_run``: the frames start when the daemon started (its own ``--can-log``, a test's
     recorder), so a target before its joint's first position (``no-position``) or to a long silent joint
     (``silent``) is a violation instead of a count.
     ``record_targets`` keeps every target sent, per joint, in ``report.sent``. The findings go into ``report`` as
@@ -479,6 +506,10 @@ def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds:
     """
     report = report if report is not None else FileReport("")
     report.bounds, report.stale_after = bounds, stale_after
+    if directions is None:
+        frames = list(frames)
+        directions = any(not msg.is_rx for _, msg in frames)
+    report.directions = directions
     auditor: _Auditor | None = None
     t = 0.0
     for t, msg in frames:
@@ -499,19 +530,15 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
     report = FileReport(str(path))
     try:
         report.format = canio.log_format(path)
+        period, n, directions = scan(path)
         if rate is not None:
             report.period, report.period_source = 1.0 / rate, f"--rate {rate:g} Hz"
-        else:
-            report.period, n = infer_period(path)
-            if report.period is not None:
-                report.period_source = f"inferred from {n} position queries (median interval)"
-        bounds = stale = None
-        if report.period is not None:
-            bounds = table.motion_bounds(report.period)
-            stale = stale_after if stale_after is not None else max(STALE_PERIODS * report.period, MIN_STALE)
+        elif period is not None:
+            report.period, report.period_source = period, f"inferred from {n} position queries (median interval)"
+        stale = stale_after if stale_after is not None else STALE_AFTER
         torn: list[str] = []
-        audit_frames(((msg.timestamp, msg) for msg in _read(path, torn)), table, bounds, stale, model=model,
-                     whole_run=whole_run, report=report)
+        audit_frames(((msg.timestamp, msg) for msg in _read(path, torn)), table, table.motion_bounds(), stale,
+                     model=model, whole_run=whole_run, report=report, directions=directions)
         if not report.frames:
             report.error = "no CAN frames in the file"
             return report
@@ -520,9 +547,6 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
     except (canio.LogReadError, OSError) as exc:
         report.error = str(exc)
         return report
-    if report.bounds is None and any(report.targets.values()):
-        report.error = ("speed and acceleration not checked: fewer than two broadcast position queries, so the "
-                        "daemon period is unknown; give it with --rate HZ")
     return report
 
 
@@ -559,10 +583,13 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
         start = f", from {datetime.fromtimestamp(r.start_stamp, UTC):%Y-%m-%d %H:%M:%S.%f} UTC"
     out = [f"{r.path} ({r.format or 'unknown format'}): {r.frames} frames over {r.duration:.3f} s{start}"]
     b, stale = r.bounds, r.stale_after
-    if r.period is not None and b is not None and stale is not None:  # set together (audit_file)
-        out.append(f"  period {r.period * 1e3:.2f} ms {r.period_source}; stale window {stale * 1e3:.1f} ms; "
-                   f"bounds {b.max_velocity:g} rad/s, {b.max_acceleration:g} rad/s^2, steps count at most "
-                   f"{b.max_interval * 1e3:.1f} ms")
+    if b is not None and stale is not None:  # set together (audit_file)
+        period = f"period {r.period * 1e3:.2f} ms {r.period_source}" if r.period is not None else "period unknown"
+        out.append(f"  {period}; stale window {stale * 1e3:.1f} ms; bounds {b.max_velocity:g} rad/s, "
+                   f"{b.max_acceleration:g} rad/s^2, steps count at most {b.max_interval * 1e3:.1f} ms")
+    if r.frames and r.directions:
+        out.append(f"  sent by the host {r.sent_frames}, received {r.received_frames} (of these {r.received_other} "
+                   "from another sender with a command's ID: not the host's commands, not audited)")
     if r.frames:
         per_joint = " ".join(f"{j} {n}" for j, n in sorted(r.targets.items()))
         out.append(f"  targets: {sum(r.targets.values())}" + (f" ({per_joint})" if per_joint else ""))
@@ -616,9 +643,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                    "else 'default')")
     p.add_argument("--config", metavar="FILE", help="joint table YAML (default: the installed config/joints.yaml)")
     p.add_argument("--rate", type=bounded(0.0, 10_000.0, above=True, unit="Hz"), metavar="HZ",
-                   help="daemon loop rate (default: inferred from the broadcast position queries)")
+                   help="daemon loop rate, for the report (default: inferred from the broadcast position queries); "
+                        "the bounds and the stale window are the same at every rate the daemon accepts")
     p.add_argument("--stale-after", type=seconds(60.0), metavar="S",
-                   help=f"reply gap after which a joint re-seeds (default {STALE_PERIODS:g} periods, as the daemon)")
+                   help=f"reply gap after which a joint counts as silent (default {STALE_AFTER:g} s, as the daemon)")
     p.add_argument("--whole-run", action="store_true",
                    help="each log starts when the daemon started (its --can-log, or candump started before it): a "
                         "target to a joint before any position reply of it (no-position), or to a joint silent for "

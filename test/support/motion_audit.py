@@ -46,14 +46,17 @@ def read_log(path: str) -> list[tuple[float, can.Message]]:
 
 
 class MemoryLog:
-    """A ``CanIO`` recorder that keeps every frame in memory, stamped by ``clock`` (the tests' simulated time)."""
+    """A ``CanIO`` recorder that keeps every frame in memory, stamped by ``clock`` (the tests' simulated time) as the
+    daemon's ``--can-log`` stamps it: a sent frame with the stamp ``CanIO.send`` gave it (``wall_offset``: the
+    interface's wall-clock offset, taken off again), a received one when it arrived."""
 
-    def __init__(self, clock: Callable[[], float]) -> None:
+    def __init__(self, clock: Callable[[], float], wall_offset: float) -> None:
         self.clock = clock
+        self.wall_offset = wall_offset
         self.frames: list[tuple[float, can.Message]] = []
 
     def __call__(self, msg: can.Message) -> None:
-        self.frames.append((self.clock(), msg))
+        self.frames.append((self.clock() if msg.is_rx else msg.timestamp - self.wall_offset, msg))
 
     def close(self) -> None:
         pass

@@ -41,7 +41,7 @@ class DaemonRig:
         self.clock = ManualClock()
         self.net = SimNetwork.from_table(TABLE, pose=pose, clock=self.clock, bitrate=bitrate)
         self.io = canio.make_canio(nocan=True, network=self.net)
-        self.log = MemoryLog(self.clock)
+        self.log = MemoryLog(self.clock, self.io.wall_offset)
         self.io.recorder = self.log  # every frame, stamped with the simulated time, for the motion audit
         self.channels = DaemonChannels.open()
         self.loop = DaemonLoop(TABLE, self.io, self.channels, rate_hz=rate, nocan=True, clock=self.clock,

@@ -103,7 +103,7 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         # --- version 2: the motion bounds and what it took to keep them
         ("max_velocity", ctypes.c_double),  # rad/s, bound on every sent target (joint table `motion:`)
         ("max_acceleration", ctypes.c_double),  # rad/s^2
-        ("max_interval", ctypes.c_double),  # s, the longest interval a step may count on (1.5 periods)
+        ("max_interval", ctypes.c_double),  # s, the longest interval a step may count on (motion.MAX_INTERVAL)
         ("stalls", ctypes.c_uint32),  # cycles that started more than 2 periods after the previous one
         ("stall_max", ctypes.c_double),  # s, the longest gap between two cycle starts
         ("targets_limited", ctypes.c_uint32),  # targets the daemon had to limit (all joints)
