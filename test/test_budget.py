@@ -122,3 +122,25 @@ def test_the_simulated_bus_carries_the_budgets_frames() -> None:
     warnings = [f for f in received if f.command == mcb.Response.WARNING]
     assert (len(acks), len(replies), len(warnings)) == (4 * budget.joints, budget.nodes, budget.joints)
     assert sent + len(received) == budget.frames
+
+
+@pytest.mark.parametrize("rate, expected, warned", [("max", 22.0, False), ("10", 10.0, False), ("100", 100.0, True)])
+def test_the_daemon_says_its_budget_at_start_and_runs_at_max(clean_shm: None, rate: str, expected: float,
+                                                             warned: bool) -> None:
+    """`--rate max` runs the highest rate within 60 % of the bus; every start says the budget at its rate, and a rate
+    over it is said to be over it (it runs: the motion bounds hold at every rate, issue #25 item 5)."""
+    import subprocess
+    import sys
+
+    from support.channels import newest
+
+    import mds_ach as mds
+    from mds_ach.robot.msgs import daemon_status as ds
+
+    proc = subprocess.run([sys.executable, "-m", "mds_ach.nodes.daemon", "--nocan", "--no-ros", "--rt-priority", "0",
+                           "--duration", "1.0", "--rate", rate], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert f"CAN budget at {expected:g} Hz" in proc.stderr, proc.stderr
+    assert ("more than 60 %" in proc.stderr) == warned, proc.stderr
+    status = newest(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
+    assert status is not None and status.rate_hz == expected

@@ -43,7 +43,7 @@ from mds_ach_interfaces.srv import Command
 from rclpy.node import Node
 
 import mds_ach as mds
-from mds_ach.bus import canio
+from mds_ach.bus import budget, canio
 from mds_ach.bus.canio import CanIO
 from mds_ach.bus.simbus import FaultControl, SimNetwork
 from mds_ach.nodes.daemon_loop import (
@@ -97,8 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
     bus.add_argument("--replay", metavar="FILE", help="feed the node replies of a recorded log back (no robot)")
     bus.add_argument("--replay-speed", type=float, default=1.0, help="replay pacing factor; 0 = as fast as read")
     loop = ap.add_argument_group("loop")
-    loop.add_argument("-r", "--rate", type=float, default=1.0 / mds.MDS_LOOP_PERIOD,
-                      help=f"loop rate in Hz (10; {motion.MIN_RATE_HZ:g} to {MAX_RATE_HZ:g})")
+    loop.add_argument("-r", "--rate", type=budget.rate_argument, default=1.0 / mds.MDS_LOOP_PERIOD, metavar="HZ|max",
+                      help=f"loop rate in Hz (10; {motion.MIN_RATE_HZ:g} to {MAX_RATE_HZ:g}), or 'max': the highest "
+                           "rate whose worst-case CAN traffic fits 60 %% of the bus (mds_ach.bus.budget; printed at "
+                           "start)")
     loop.add_argument("--robot", help="robot variant (isaac, lucas, octavia, default); else $MDS_ACH_ROBOT or the "
                                       "choice saved by `mds-ach changerobot`")
     loop.add_argument("--config", metavar="FILE", help="joint table YAML (default: the calibration XML when there "
@@ -178,10 +180,38 @@ class Daemon:
         self.channels.close()
 
 
+def max_loop_rate(table: config.JointTable, bitrate: int) -> float:
+    """``--rate max``: the highest rate whose worst-case CAN traffic fits 60 % of the bus, within the daemon's range."""
+    return min(max(budget.CycleBudget.for_table(table, bitrate).max_rate(), motion.MIN_RATE_HZ), MAX_RATE_HZ)
+
+
+def say_budget(table: config.JointTable, bitrate: int, rate: float) -> None:
+    """The CAN budget at start. A rate over it still runs, with a warning: the motion bounds hold at every rate the
+    daemon accepts (a late reply or a refused send never moves a joint), but replies then come late and joints may
+    go stale."""
+    cycle = budget.CycleBudget.for_table(table, bitrate)
+    log.info(cycle.describe(rate))
+    problem = cycle.problem(rate)
+    if problem:
+        log.warning("%s; running at %g Hz anyway: replies may come late and joints go stale", problem, rate)
+
+
+def _table(args: argparse.Namespace) -> config.JointTable:
+    return config.load(args.robot, args.config, getattr(args, "anatomy", None), getattr(args, "overlay", None))
+
+
+def resolve_rate(args: argparse.Namespace) -> None:
+    """``--rate max`` (None) becomes a number before anything reads it (the ROS parameter is a double)."""
+    if args.rate is None:
+        args.rate = max_loop_rate(_table(args), args.bitrate or canio.DEFAULT_BITRATE)
+
+
 def build(args: argparse.Namespace) -> Daemon:
     """Joint table, bus, channels and the loop (started, after reading the start pose)."""
-    table = config.load(args.robot, args.config, getattr(args, "anatomy", None), getattr(args, "overlay", None))
+    table = _table(args)
     log.info("joint table: %s", config.describe(table))
+    resolve_rate(args)
+    say_budget(table, args.bitrate or canio.DEFAULT_BITRATE, args.rate)
     if args.sim_faults and not args.nocan:
         raise ValueError("--sim-faults needs --nocan: faults are injected into the simulated bus only")
     network = None
@@ -479,6 +509,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(strip_ros_args(argv)[1:])
+    try:
+        resolve_rate(args)
+    except (ValueError, OSError) as exc:  # the joint table could not be read: build() says the same with its context
+        parser.error(f"--rate max: {exc}")
     if rate_problem(args.rate):
         parser.error(f"--rate: {rate_problem(args.rate)}")
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
