@@ -1,24 +1,16 @@
 """The CAN budget (issue #26 item 5): frames and bits of a worst-case daemon cycle, the bus load at a rate, the
-highest rate within 60 % of the bitrate, and the refusal of a rate the bus cannot carry. Numbers checked by hand."""
+highest rate within 60 % of the bitrate (`--rate max`), and what is said of a rate the bus cannot carry.
+Numbers checked by hand."""
 
 from __future__ import annotations
 
-import argparse
 import math
 
 import can
 import pytest
 
 from mds_ach.bus import mcb
-from mds_ach.bus.budget import (
-    MAX_LOAD,
-    UNLISTED_NODES,
-    CycleBudget,
-    choose_rate,
-    parse_rate,
-    plan_rate,
-    rate_argument,
-)
+from mds_ach.bus.budget import MAX_LOAD, UNLISTED_NODES, CycleBudget
 from mds_ach.bus.simbus import ManualClock, SimNetwork
 from mds_ach.robot import config
 
@@ -58,14 +50,9 @@ def test_a_rate_the_bus_cannot_carry_is_refused_with_the_highest_it_can() -> Non
     assert msg is not None
     assert msg.startswith("100 Hz needs 273 % of the CAN bus (1000000 bit/s) in the worst case")
     assert "202 frames x 135 bits per cycle" in msg and "more than 60 %: use --rate 22 or less (or --rate max)" in msg
-    with pytest.raises(ValueError, match="100 Hz needs 273 %"):
-        choose_rate(100.0, b)
-    assert choose_rate(10.0, b) == 10.0
-    assert choose_rate(None, b) == 22.0  # --rate max
-    rate, line = plan_rate(config.load("default"), MBIT, None)
-    assert rate == 22.0 and line.startswith("CAN budget at 22 Hz: 60.0 % of 1000000 bit/s worst case")
-    with pytest.raises(ValueError, match="use --rate 22 or less"):
-        plan_rate(config.load("default"), MBIT, 50.0)
+    assert b.problem(10.0) is None and b.problem(22.0) is None and b.max_rate() == 22.0  # --rate max
+    assert b.describe(22.0).startswith("CAN budget at 22 Hz: 60.0 % of 1000000 bit/s worst case")
+    assert "use --rate 22 or less" in (b.problem(50.0) or "")
     assert CycleBudget(joints=17, nodes=48, bitrate=500_000).max_rate() == 11.0  # half the bitrate: 11.001 Hz
 
 
@@ -76,22 +63,10 @@ def test_max_rate_is_the_highest_within_the_budget_and_never_above_the_ceiling()
         assert b.load(top) <= MAX_LOAD < b.load(top + 0.1), joints
     tiny = CycleBudget(joints=1, nodes=1, bitrate=MBIT)  # 11 frames: 600 000 / 1485 = 404.04 Hz
     assert tiny.max_rate() == 404.0
-    assert choose_rate(None, tiny, ceiling=100.0) == 100.0
-    assert "no rate fits" in str(pytest.raises(ValueError, choose_rate, None, CycleBudget(10**6, 48, 1000)).value)
+    assert "no rate fits" in (CycleBudget(10**6, 48, 1000).problem(10.0) or "")
 
 
-def test_parse_rate(capsys: pytest.CaptureFixture[str]) -> None:
-    assert parse_rate("max") is None and parse_rate(" MAX ") is None
-    assert parse_rate("10") == 10.0 and parse_rate("22.5") == 22.5
-    for bad in ("0", "-1", "nan", "inf", "fast", ""):
-        with pytest.raises(ValueError):
-            parse_rate(bad)
-    parser = argparse.ArgumentParser(prog="daemon")
-    parser.add_argument("--rate", type=rate_argument)
-    assert parser.parse_args(["--rate", "max"]).rate is None and parser.parse_args(["--rate", "20"]).rate == 20.0
-    with pytest.raises(SystemExit):
-        parser.parse_args(["--rate", "fast"])
-    assert "expected a rate in Hz or 'max', got 'fast'" in capsys.readouterr().err
+def test_a_rate_that_is_no_number_is_a_problem() -> None:
     problem = CycleBudget(1, 1, MBIT).problem(math.nan)
     assert problem is not None and "must be a number > 0" in problem
 

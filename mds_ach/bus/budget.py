@@ -3,8 +3,8 @@
 Why: each cycle the daemon sends the original's 4-SET MOVETO sequence to every joint whose target changed
 (``specs/mds-original.md`` §b.4) and one broadcast position query; every SET is ACKed and every node answers the
 query. With many joints moving at a high rate that no longer fits the bus: frames queue, replies come a cycle
-late, the transmit buffer fills. So a rate is checked against the worst case before the daemon starts, not
-discovered on the wire.
+late, the transmit buffer fills. So the daemon says at start what its rate costs in the worst case (and
+``--rate max`` picks the highest that fits), instead of it being discovered on the wire.
 
 Worst case per cycle, every enabled joint sent a new target every cycle (§b.7's accounting, plus the warning):
 
@@ -28,7 +28,6 @@ frames; x 135 bits x 10 Hz = 206 550 bit/s = 20.7 % of 1 Mbit/s (17.0 % at 111 b
 
 from __future__ import annotations
 
-import argparse
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -127,44 +126,3 @@ class CycleBudget:
         return (f"CAN budget at {rate:g} Hz: {100 * self.load(rate):.1f} % of {self.bitrate} bit/s worst case "
                 f"({100 * best:.1f} % without bit stuffing); {self.accounting()} per cycle; max rate "
                 f"{self.max_rate():g} Hz (<= {100 * MAX_LOAD:.0f} %)")
-
-
-def parse_rate(text: str) -> float | None:
-    """``--rate`` as given: a rate in Hz, or ``max`` (None: the highest the budget allows). ValueError otherwise."""
-    if text.strip().lower() == "max":
-        return None
-    try:
-        rate = float(text)
-    except ValueError:
-        raise ValueError(f"expected a rate in Hz or 'max', got {text!r}") from None
-    if not (math.isfinite(rate) and rate > 0):
-        raise ValueError(f"the loop rate must be a number > 0 Hz, got {text!r}")
-    return rate
-
-
-def rate_argument(text: str) -> float | None:
-    """argparse ``type=`` for ``--rate HZ|max``: :func:`parse_rate`, its message kept in the usage error."""
-    try:
-        return parse_rate(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def choose_rate(requested: float | None, budget: CycleBudget, ceiling: float = math.inf) -> float:
-    """The loop rate to run: ``requested`` if the bus carries it, for None (``max``) the budget's highest, at most
-    ``ceiling`` (the daemon's own upper bound); ValueError with :meth:`CycleBudget.problem`'s message for a rate the
-    bus cannot carry."""
-    rate = min(budget.max_rate(), ceiling) if requested is None else requested
-    problem = budget.problem(rate) if rate > 0 else f"no rate fits the CAN budget ({budget.accounting()})"
-    if problem is not None:
-        raise ValueError(problem)
-    return rate
-
-
-def plan_rate(table: _Table, bitrate: int, requested: float | None,
-              ceiling: float = math.inf) -> tuple[float, str]:
-    """For the daemon's start: (the loop rate to run, the budget's log line at that rate). ``requested`` None is
-    ``--rate max``; a rate the bus cannot carry raises ValueError with the reason and the highest rate allowed."""
-    budget = CycleBudget.for_table(table, bitrate)
-    rate = choose_rate(requested, budget, ceiling)
-    return rate, budget.describe(rate)

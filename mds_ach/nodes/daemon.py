@@ -76,6 +76,16 @@ COMMAND_CODES = {"enable": mds.MDS_CMD_ENABLE, "disable": mds.MDS_CMD_DISABLE, "
 ENCODER_COMMANDS = {mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET: "reset"}
 
 
+def _rate_option(text: str) -> float | None:
+    """``--rate HZ|max``: a number (judged by ``rate_problem``, one message for every bad rate) or ``max`` (None)."""
+    if text.strip().lower() == "max":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a rate in Hz or 'max', got {text!r}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="daemon",
@@ -97,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     bus.add_argument("--replay", metavar="FILE", help="feed the node replies of a recorded log back (no robot)")
     bus.add_argument("--replay-speed", type=float, default=1.0, help="replay pacing factor; 0 = as fast as read")
     loop = ap.add_argument_group("loop")
-    loop.add_argument("-r", "--rate", type=budget.rate_argument, default=1.0 / mds.MDS_LOOP_PERIOD, metavar="HZ|max",
+    loop.add_argument("-r", "--rate", type=_rate_option, default=1.0 / mds.MDS_LOOP_PERIOD, metavar="HZ|max",
                       help=f"loop rate in Hz (10; {motion.MIN_RATE_HZ:g} to {MAX_RATE_HZ:g}), or 'max': the highest "
                            "rate whose worst-case CAN traffic fits 60 %% of the bus (mds_ach.bus.budget; printed at "
                            "start)")
