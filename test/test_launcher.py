@@ -442,6 +442,53 @@ def test_run_in_the_foreground_stops_everything_on_ctrl_c(clean_shm: None, tmp_p
     remove_mds_channels()
 
 
+def _start_viewer(env: dict[str, str]) -> int:
+    """`mds-ach sim --port 0` with this runtime dir; returns the viewer's pid (its start said it ends with the
+    system, its URL file is the user's only)."""
+    from mds_ach.tools import viewer
+
+    proc = mds_ach("sim", "--port", "0", env=env, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "stops with the system" in proc.stdout and "Ctrl-C of `mds-ach run`" in proc.stdout, proc.stdout
+    rt = Path(env["MDS_ACH_RUNTIME_DIR"])
+    assert (rt / viewer.SIM_URL).stat().st_mode & 0o777 == 0o600, "the URL file carries the token"
+    pid = int((rt / viewer.SIM_PID).read_text())
+    assert _pid_alive(pid)
+    return pid
+
+
+@pytest.mark.slow
+def test_run_ctrl_c_ends_the_viewer_too(clean_shm: None, tmp_path: Path) -> None:
+    """Issue 28: the viewer's page can move the robot; it must not outlive `run` (whose help says nothing is left)."""
+    env = system_env(tmp_path)
+    proc, text = _start_run(env)
+    try:
+        viewer_pid = _start_viewer(env)
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, text + rest
+    assert f"viewer     stopped (pid {viewer_pid})" in rest
+    assert not _pid_alive(viewer_pid), "Ctrl-C of run ends the viewer"
+    assert not list(tmp_path.glob("*.pid")) and not (tmp_path / "sim.url").exists()
+    remove_mds_channels()
+
+
+@pytest.mark.slow
+def test_stop_kill_and_killall_end_the_viewer_too(clean_shm: None, tmp_path: Path) -> None:
+    env = system_env(tmp_path)
+    for verb in ("stop", "kill", "killall"):
+        viewer_pid = _start_viewer(env)
+        proc = mds_ach(verb, env=env, timeout=60)
+        assert proc.returncode == 0, proc.stderr
+        wait_for(lambda pid=viewer_pid: not _pid_alive(pid), 10, what=f"the viewer gone after {verb}")  # type: ignore[misc]
+        assert not (tmp_path / "sim.url").exists()
+    remove_mds_channels()
+
+
 @pytest.mark.slow
 def test_run_reports_a_node_that_dies_and_stops_the_rest(clean_shm: None, tmp_path: Path) -> None:
     env = system_env(tmp_path)

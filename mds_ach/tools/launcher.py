@@ -537,6 +537,16 @@ def stop_nodes(names: Iterable[str] = NODES, grace: float = DEFAULT_STOP_GRACE, 
     return list(pids)
 
 
+def stop_viewer(rt: Path | None = None, out: Printer = _out) -> None:
+    """Stop the background 3-D viewer (`mds-ach sim`) of this runtime dir: it ends with the system, so its page
+    (a way to move the robot) is never left open after a stop."""
+    from mds_ach.tools.viewer import stop_viewer as stop  # light: the viewer's heavy imports are lazy
+
+    pid = stop(rt or runtime_dir())
+    if pid is not None:
+        out(f"  {'viewer':<10} stopped (pid {pid})")
+
+
 # --------------------------------------------------------------------------------------------- commands
 
 
@@ -750,6 +760,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
     finally:
         if started:  # whatever happened above (an error included), nothing this run started is left behind
             stop_nodes(NODES, rt=rt, procs=procs, out=out)
+            stop_viewer(rt, out)
         for s, handler in old.items():
             signal.signal(s, handler)
 
@@ -817,7 +828,8 @@ def run_start(args: argparse.Namespace) -> int:
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Start everything in the foreground, print what to do next, and stop everything cleanly "
                      "on Ctrl-C, SIGTERM or SIGHUP (terminal closed), when its output pipe breaks and when its parent "
-                     "exits: nothing is left running (this is what 'make run' does, with --nocan).")
+                     "exits: nothing is left running, the 3-D viewer ('mds-ach sim') included (this is what 'make run' "
+                     "does, with --nocan).")
     _add_nocan(p)
 
 
@@ -828,7 +840,8 @@ def run_run(args: argparse.Namespace) -> int:
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = "Stop the nodes: SIGTERM (clients and pipeline first, the daemon last), SIGKILL after a grace time."
+    p.description = ("Stop the nodes: SIGTERM (clients and pipeline first, the daemon last), SIGKILL after a grace "
+                     "time; without NODE also the 3-D viewer ('mds-ach sim').")
     p.add_argument("--grace", type=seconds(zero=True), default=DEFAULT_STOP_GRACE,
                    help=f"seconds to wait after SIGTERM before SIGKILL (default {DEFAULT_STOP_GRACE:g})")
     p.add_argument("nodes", nargs="*", metavar="NODE", help=f"only these nodes ({', '.join(NODES)})")
@@ -840,6 +853,8 @@ def run_stop(args: argparse.Namespace) -> int:
         _err(f"mds-ach stop: unknown node(s) {', '.join(unknown)}; nodes: {', '.join(NODES)}")
         return 2
     stopped = stop_nodes(args.nodes or NODES, grace=args.grace)
+    if not args.nodes:
+        stop_viewer()
     if not stopped:
         _out("nothing was running")
     return 0
@@ -850,7 +865,9 @@ def add_kill_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_kill(args: argparse.Namespace) -> int:
-    if not stop_nodes(NODES, sig=signal.SIGKILL):
+    stopped = stop_nodes(NODES, sig=signal.SIGKILL)
+    stop_viewer()
+    if not stopped:
         _out("nothing was running")
     return 0
 
@@ -861,6 +878,7 @@ def add_killall_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_killall(args: argparse.Namespace) -> int:
     stop_nodes(NODES, sig=signal.SIGKILL)
+    stop_viewer()
     removed = remove_channels()
     _out(f"removed {len(removed)} channels" + (": " + " ".join(removed) if removed else ""))
     return 0

@@ -22,6 +22,7 @@ import argparse
 import ctypes
 import ipaddress
 import math
+import os
 import signal
 import socket
 import sys
@@ -47,6 +48,7 @@ from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import MODEL_JOINTS, lookup
 from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS, STATUS_NAMES
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
+from mds_ach.tools.viewer_door import Door, guarded, new_token
 
 if TYPE_CHECKING:  # heavy imports stay out of `import mds_ach.tools.viewer` (the `mds-ach sim` start-up path)
     import trimesh
@@ -405,7 +407,13 @@ class Viewer:
         self.options = options
         self.model = kin.load_model(options.urdf)  # None: the package's urdf/mds.urdf
         _use_shipped_client()
-        self.server = viser.ViserServer(host=options.host, port=options.port, label="MDS", verbose=False)
+        self.door = Door(new_token(), options.host)  # the page and its websocket need the token (viewer_door)
+        with guarded(self.door):
+            self.server = viser.ViserServer(host=options.host, port=options.port, label="MDS", verbose=False)
+        if not self.door.installed:  # fail closed: never serve a page that moves the robot without the token
+            self.server.stop()
+            raise OSError("this viser does not serve through websockets.asyncio.server.serve: the token check "
+                          "cannot be installed; refusing to serve")
         # viser opens a public tunnel when a page asks for a share link: never from this viewer.
         self.server.request_share_url = _refuse_share  # type: ignore[method-assign]
         self.server.gui.configure_theme(control_layout="fixed", show_share_button=False, brand_color=(40, 90, 160))
@@ -545,9 +553,15 @@ class Viewer:
             self.slider_status.content = "off: the sliders follow the reference"
 
     def _open_ref_channel(self) -> str:
-        """Open mds-ref-filter for writing (never create it: no running system, no references)."""
+        """Open mds-ref-filter for writing (never create it: no running system, no references). The viewer writes
+        with its own process's rights: a viewer started by a user who may not write the channel stays read-only,
+        whoever opens its page."""
         if self.last_state is None:
             return f"no `{mds.MDS_CHAN_STATE_NAME}` frame yet"
+        path = ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME)
+        if os.path.exists(path) and not os.access(path, os.R_OK | os.W_OK):
+            return (f"read-only: this viewer runs as {_user_name()}, who may not write `{mds.MDS_CHAN_REF_FILTER_NAME}`"
+                    " (only users who may write the reference channels move the robot from the viewer)")
         refs = RefWriter(mds.MDS_CHAN_REF_FILTER_NAME)
         try:
             refs.open()
@@ -656,8 +670,9 @@ class Viewer:
             self.status.content = text
 
     def url(self) -> str:
+        """The page's URL, with the token: the only way in (viewer_door)."""
         host = self.server.get_host()
-        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}"
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}/{self.door.token}/"
 
     def run(self, stop: threading.Event) -> None:
         """Tick at ``rate_hz`` on an absolute schedule until ``stop`` is set."""
@@ -696,6 +711,26 @@ def _use_shipped_client() -> None:
             raise FileNotFoundError(f"viser's web client is missing ({_client_autobuild.build_dir}); reinstall viser")
 
     _client_autobuild.ensure_client_is_built = check
+
+
+def _user_name() -> str:
+    import pwd
+
+    uid = os.geteuid()
+    try:
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except KeyError:
+        return f"uid {uid}"
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable by this user only (0600, atomic): the URL file carries the token."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    tmp.replace(path)
 
 
 def _ik_status_type() -> type[ctypes.Structure]:
@@ -819,11 +854,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"viewer: cannot start: {exc}", file=sys.stderr)
         return 1
     url = viewer.url()
-    print(f"mds-ach viewer: {url}", flush=True)
-    if options.url_file is not None:
-        tmp = options.url_file.with_name(options.url_file.name + ".tmp")
-        tmp.write_text(url + "\n")
-        tmp.replace(options.url_file)
+    if options.url_file is None:
+        print(f"mds-ach viewer: {url}  (the URL carries its access token: keep it to yourself)", flush=True)
+    else:  # the background viewer's log may be readable by others: the token goes only to the 0600 URL file
+        print(f"mds-ach viewer: serving on {url.rsplit('/', 2)[0]}/ (URL with the token in {options.url_file})",
+              flush=True)
+        write_private(options.url_file, url + "\n")
     try:
         viewer.run(stop)
     finally:
@@ -837,10 +873,10 @@ def _is_viewer(argv: list[str]) -> bool:
     return "mds_ach.tools.viewer" in argv
 
 
-def running_viewer() -> int | None:
+def running_viewer(run_dir: Path | None = None) -> int | None:
     """The background viewer's pid, if its pid file names a live viewer (never a recycled pid, a zombie or a
     dead task)."""
-    return background.running_pid(paths.runtime_dir() / SIM_PID, _is_viewer)
+    return background.running_pid((run_dir or paths.runtime_dir()) / SIM_PID, _is_viewer)
 
 
 def start_background(argv: Sequence[str], timeout: float = 60.0) -> int:
@@ -875,18 +911,32 @@ def start_background(argv: Sequence[str], timeout: float = 60.0) -> int:
         background.remove_pid_file(pid_file)
         raise
     print(f"viewer running (pid {proc.pid}): {url_file.read_text().strip()}")
-    print("stop it with: mds-ach sim kill")
+    print(LIFETIME_NOTE.format(url_file=url_file))
     return 0
 
 
-def stop_background(timeout: float = 10.0) -> int:
-    """Stop the background viewer: SIGTERM, then SIGKILL if it is still there after ``timeout`` s."""
-    run_dir = paths.runtime_dir()
-    pid = running_viewer()
+LIFETIME_NOTE = (
+    "The URL carries the viewer's access token (also in {url_file}, readable only by you): without it the page and "
+    "its websocket are refused. The viewer stops with the system: Ctrl-C of `mds-ach run` / `make run`, "
+    "`mds-ach stop`, `kill`, `killall`; `mds-ach sim kill` stops it alone."
+)
+
+
+def stop_viewer(run_dir: Path | None = None, timeout: float = 10.0) -> int | None:
+    """Stop the background viewer of ``run_dir`` (SIGTERM, SIGKILL after ``timeout`` s) and remove its pid and URL
+    files; returns the pid it stopped, None if none ran. Used by `sim kill` and by the launcher's stops."""
+    run_dir = run_dir or paths.runtime_dir()
+    pid = running_viewer(run_dir)
     if pid is not None:
         background.stop_pid(pid, timeout)
     background.remove_pid_file(run_dir / SIM_PID)
     (run_dir / SIM_URL).unlink(missing_ok=True)
+    return pid
+
+
+def stop_background(timeout: float = 10.0) -> int:
+    """`mds-ach sim kill`."""
+    pid = stop_viewer(timeout=timeout)
     print("viewer not running" if pid is None else f"viewer stopped (pid {pid})")
     return 0
 
@@ -894,8 +944,10 @@ def stop_background(timeout: float = 10.0) -> int:
 def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of the `mds-ach sim` verb."""
     parser.description = (
-        "Start the 3-D viewer in the browser in the background and print its URL; `mds-ach sim kill` stops it. "
-        "It only reads the channels, so it can be started and stopped while the system runs."
+        "Start the 3-D viewer in the browser in the background and print its URL, which carries an access token "
+        "(without it the page is refused). It only reads the channels, except the optional sliders (written with "
+        "the rights of the user who starts it), so it can be started and stopped while the system runs. It stops "
+        "with the system (Ctrl-C of `mds-ach run`, `mds-ach stop`); `mds-ach sim kill` stops it alone."
     )
     parser.add_argument("action", nargs="?", choices=["start", "kill"], default="start", help="default: start")
     add_server_arguments(parser)
