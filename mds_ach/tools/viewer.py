@@ -13,7 +13,9 @@ translucent ghost, the collision primitives (toggle), the world objects of confi
 in magenta (from ``mds-collide``) and the last IK target as a marker.
 
 ``python -m mds_ach.tools.viewer`` runs it in the foreground; ``mds-ach sim`` / ``mds-ach sim kill`` run it in the
-background (pid file, URL and log in :func:`mds_ach.paths.runtime_dir`).
+background (pid file, URL and log in :func:`mds_ach.paths.runtime_dir`), and the launcher's stops end it with the
+system. The page and its websocket need the token in the URL (:mod:`mds_ach.tools.viewer_door`); the sliders write
+with the rights of the user who started the viewer.
 """
 
 from __future__ import annotations
@@ -809,7 +811,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m mds_ach.tools.viewer",
         description="3-D view of the MDS robot in the browser, live from the Ach channels: measured pose (solid), "
         "reference (ghost), collision primitives, world objects, collisions (magenta) and the IK target. "
-        "Read-only, except the optional slider panel that writes mds-ref-filter. Ctrl-C stops it. "
+        "Read-only, except the optional slider panel that writes mds-ref-filter (with this user's rights). The URL "
+        "it prints carries an access token: without it the page is refused. Ctrl-C stops it. "
         "`mds-ach sim` runs it in the background.",
     )
     add_server_arguments(parser)
