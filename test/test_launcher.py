@@ -186,6 +186,39 @@ def test_status_reports_a_damaged_state_channel_with_the_fix(clean_shm: None, tm
     assert re.search(r"^\s+daemon\s+stopped$", proc.stdout, re.M), "the rest of the report is still there"
 
 
+def test_status_after_a_stop_says_not_running_and_shows_the_last_frames_as_history(clean_shm: None,
+                                                                                    tmp_path: Path) -> None:
+    """Issue 28 item 4: the daemon's last rate and a 'collision BLOCKED' left in the channels are not the robot now."""
+    from mds_ach.robot.channels import StructChannel
+
+    env = system_env(tmp_path)
+    assert mds_ach("make", "-q", env=env).returncode == 0
+    status = MDS_DAEMON_STATUS()
+    status.time = time.monotonic() - 42.0
+    collide = mds.MDS_COLLIDE()
+    collide.isCollide, collide.joint[mds.COLLIDE_L_HAND].isCollide = 1, 1
+    with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS, create=False) as chan:
+        chan.put(status)
+    with StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE, create=False) as chan:
+        chan.put(collide)
+    proc = mds_ach("status", "--window", "0.1", env=env)
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    out = proc.stdout
+    assert re.search(r"^MDS-Ach is not running", out, re.M), out
+    history = re.search(r"^last seen\s+\(history, not live: .*last daemon frame (\d+) s ago\)$", out, re.M)
+    assert history and 41 <= int(history.group(1)) <= 60, out
+    assert re.search(r"^  collision\s+BLOCKED", out, re.M), "the old verdict is shown indented, under the history"
+    assert not re.search(r"^(daemon|collision|held|limits) ", out, re.M), "nothing of it reads as a live line"
+    assert "STALE" not in out
+
+
+def test_every_exit_code_is_in_the_top_level_help() -> None:
+    out = mds_ach("--help").stdout
+    for code, what in (("0", "ok"), ("1", "failure"), ("2", "usage error"), ("3", "status: a node is not running"),
+                       ("130", "start: interrupted"), ("127", "not found")):
+        assert re.search(rf"^\s+{code}\s+{re.escape(what)}", out, re.M) or f"{code} it" in out, (code, out)
+
+
 def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: Path, other_user: int) -> None:
     env = system_env(tmp_path)
     assert mds_ach("make", "-q", env=env).returncode == 0

@@ -608,6 +608,8 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     rt = rt or runtime_dir()
     lines = [f"runtime dir {rt}"]
     running = running_nodes(rt)
+    if not running:
+        lines.append("MDS-Ach is not running (no node runs; start it with 'mds-ach run nocan' or 'mds-ach start')")
     for name in NODES:
         pid = running.get(name)
         stale = pid is None and pid_path(name, rt).exists()
@@ -644,23 +646,32 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
     mux = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
     gate_input = Latest(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)  # what the gate checks against the limits
+    seen: list[str] = []
     try:
         daemon.read()
-        live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
-        stale_note = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
-        lines.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
-        lines.append("collision  " + collision_summary(collide.read()))
-        lines.append("held       " + held_summary(mux.read()))
+        live = bool(running) and daemon.wait_new(0.5) is not None  # a dead daemon's last frame stays in the channel
+        stale_note = "" if live or daemon.frame is None or not running else "  STALE: no update within 0.5 s"
+        seen.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
+        seen.append("collision  " + collision_summary(collide.read()))
+        seen.append("held       " + held_summary(mux.read()))
         try:
-            lines.append("limits     " + limits_line(current_limits(), gate_input.read()))
+            seen.append("limits     " + limits_line(current_limits(), gate_input.read()))
         except ValueError as exc:  # a broken joint table or URDF: say so, the rest of the status still counts
-            lines.append(f"limits     unknown: {exc}")
+            seen.append(f"limits     unknown: {exc}")
+        if not running and daemon.frame is not None:  # history, never to be read as the robot's state now
+            age = time.monotonic() - float(daemon.frame.time)
+            when = f"{age:.0f} s ago" if 0 <= age < 10 * 86400 else "before this boot or clock"
+            lines.append(f"last seen  (history, not live: what the channels held when the system stopped, "
+                         f"last daemon frame {when})")
+            seen = ["  " + line for line in seen]
+        elif not running:
+            seen = []
     finally:
         daemon.close()
         collide.close()
         mux.close()
         gate_input.close()
-    return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
+    return lines + seen, 1 if problems else (0 if len(running) == len(NODES) else 3)
 
 
 # --------------------------------------------------------------------------------------------- foreground run
@@ -886,9 +897,10 @@ def run_killall(args: argparse.Namespace) -> int:
 
 def add_status_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Which nodes run, the health of every MDS channel (with the command that repairs a damaged "
-                     "one), the state rate, the daemon's loop rate and bus load, and the collision state. Exit "
+                     "one), the state rate, the daemon's loop rate and bus load, and the collision state; when no "
+                     "node runs it says 'not running' and shows what the channels last held as history. Exit "
                      "status 0 when every node runs and every channel is sound, 1 when a channel is damaged or "
-                     "not to be trusted, 3 when a node is not running.")
+                     "not to be trusted, 3 when a node is not running (none included).")
     p.add_argument("--window", type=seconds(60.0), default=1.0, help="seconds to measure the state rate (default 1)")
 
 
