@@ -35,6 +35,7 @@ from mds_ach.robot.choice import effective_robot, name_problem, save_robot
 from mds_ach.robot.config import ROBOT_ENV, XML_ROBOT, ConfigError, available_robots, describe, load
 from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
+from mds_ach.robot.msgs.ik_status import IK_PROBE_MOVE
 from mds_ach.tools import canlink, repair
 from mds_ach.tools.holdcmd import held_summary
 from mds_ach.tools.monitor import (
@@ -346,8 +347,9 @@ class _Heartbeat:
 
 
 class _IkProbe(_Heartbeat):
-    """The IK node publishes only answers, and drops requests sent before it is ready: ask it a request it
-    must refuse (``move = -1``, nothing can move) every 0.5 s until an answer appears on ``mds-ik-state``."""
+    """The IK node publishes only answers, and drops requests sent before it is ready: send it the probe request
+    (``move = IK_PROBE_MOVE``: refused, nothing can move, logged as a probe) every 0.5 s until an answer appears on
+    ``mds-ik-state``."""
 
     def __init__(self) -> None:
         super().__init__(mds.MDS_CHAN_IK_STATE_NAME)
@@ -359,7 +361,7 @@ class _IkProbe(_Heartbeat):
         if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
             return True
         if time.monotonic() >= self.next_probe:
-            self.requests.put(mds.MDS_IK(move=-1))
+            self.requests.put(mds.MDS_IK(move=IK_PROBE_MOVE))
             self.next_probe = time.monotonic() + 0.5
         return False
 
@@ -421,7 +423,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
            out: Printer = _out, group: str | None = None, foreground: bool = False,
            world: str | None = None, anatomy: str | None = None,
-           overlay: str | None = None, params: str | None = None) -> dict[str, subprocess.Popen]:
+           overlay: str | None = None, params: str | None = None, verb: str = "start") -> dict[str, subprocess.Popen]:
     """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
     until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``). ``foreground``: the nodes
     die with this process (``start_node``'s ``die_with_launcher``). ``world``: a world objects file for the
@@ -438,7 +440,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
 
     ``anatomy``/``overlay``: calibration XML for every node (``mds_ach.robot.calibfiles``); the joint table is
     loaded here first, so a bad file starts nothing. A real start (not ``nocan``) without any CAN configuration
-    uses SocketCAN can0 at 1 Mbit/s and brings a SocketCAN link up first (``canlink``)."""
+    uses SocketCAN can0 at 1 Mbit/s and brings a SocketCAN link up first (``canlink``). ``verb``: the command that
+    called (``start``/``run``), named in the hint for the simulated robot."""
     rt = rt or runtime_dir()
     world = world_file(world)
     check_params(params, nocan, out)
@@ -449,7 +452,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
         try:
             out("  CAN link " + canlink.ensure_up(*link))
         except canlink.CanLinkError as exc:
-            raise LaunchError("daemon", f"CAN link: {exc}") from None
+            raise LaunchError("daemon", f"CAN link: {exc}\n  no robot here? the simulated one: "
+                                        f"'mds-ach {verb} nocan'") from None
     try:
         reports = make_channels(group=group)
     except ValueError as exc:  # unknown group
@@ -744,7 +748,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
         started = True
         try:
             procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True, world=world,
-                           anatomy=anatomy, overlay=overlay, params=params)
+                           anatomy=anatomy, overlay=overlay, params=params, verb="run")
         except LaunchError as exc:
             if abort():
                 out("interrupted; everything stopped")
