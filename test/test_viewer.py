@@ -274,13 +274,20 @@ def send_message(ws: object, message: object) -> None:
     ws.send(msgspec.msgpack.encode(message.as_serializable_dict()))  # type: ignore[attr-defined]
 
 
+def _camera_message() -> object:
+    """The first message a page sends: viser registers a client on its first camera message."""
+    from viser import _messages as msg
+
+    return msg.ViewerCameraMessage((1.0, 0.0, 0.0, 0.0), (3.0, 3.0, 3.0), 1.0, 0.01, 100.0, 600, 800, (0.0, 0.0, 0.0),
+                                   (0.0, 0.0, 1.0))
+
+
 def move_through_the_page(url: str, v: viewer.Viewer, joint: str, value: float, origin: str | None = None) -> None:
     """What the issue's attacker did: connect, switch "Send references" on, move a slider."""
     from viser import _messages as msg
 
     with viser_client(url, origin) as ws:
-        send_message(ws, msg.ViewerCameraMessage((1.0, 0.0, 0.0, 0.0), (3.0, 3.0, 3.0), 1.0, 0.01, 100.0, 600, 800,
-                                                 (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)))
+        send_message(ws, _camera_message())
         wait_for(lambda: v.server.get_clients(), 10, what="the client registered")
         send_message(ws, msg.GuiUpdateMessage(v.sliders_on._impl.uuid, {"value": True}))
         wait_for(lambda: v.sliders_on.value or "not sending" in v.slider_status.content, 10, what="the toggle")
@@ -476,6 +483,7 @@ def test_help_exits_zero() -> None:
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_foreground_viewer_stops_cleanly_on_signals(sig: signal.Signals, tmp_path: Path, fresh_shm: None) -> None:
     url_file = tmp_path / "url"
+    pages: list = []
     proc = subprocess.Popen(
         [sys.executable, "-m", "mds_ach.tools.viewer", "--port", "0", "--url-file", str(url_file)],
         stdout=subprocess.PIPE,
@@ -485,13 +493,24 @@ def test_foreground_viewer_stops_cleanly_on_signals(sig: signal.Signals, tmp_pat
     try:
         wait_for(lambda: url_file.is_file() or proc.poll() is not None, 60, what="viewer URL")
         assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+        url = url_file.read_text().strip()
+        assert url_file.stat().st_mode & 0o777 == 0o600, "the URL file carries the token"
+        for _ in range(3):  # open pages (registered clients) while it stops: issue 28's "Task was destroyed"
+            ws = viser_client(url)
+            send_message(ws, _camera_message())
+            pages.append(ws)
         proc.send_signal(sig)
         out, _ = proc.communicate(timeout=20)
     finally:
         if proc.poll() is None:
             proc.kill()
+        for ws in pages:
+            ws.close()
     assert proc.returncode == 0, out
     assert not url_file.exists()
+    for noise in ("Task was destroyed", "Task exception was never retrieved", "Traceback"):
+        assert noise not in out, out
+    assert url.split("/")[3] not in out, "the token is never printed to the (background) log"
 
 
 @pytest.mark.slow

@@ -21,6 +21,7 @@ with the rights of the user who started the viewer.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import ctypes
 import ipaddress
 import math
@@ -689,14 +690,39 @@ class Viewer:
                 delay = 0.0
             stop.wait(max(delay, 0.0))
 
-    def close(self) -> None:
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop writing, then stop the server and wait (up to ``timeout`` s) until its event loop has ended: the
+        port is closed when this returns."""
         for watch in (self.state, self.collide, self.ik, self.ik_state):
             watch.close()
         with self._ref_lock:
             if self._refs is not None:
                 self._refs.close()
                 self._refs = None
+        loop = self.server.get_event_loop()
+        loop.set_exception_handler(_quiet_teardown)
         self.server.stop()
+        deadline = time.monotonic() + timeout
+        while loop.is_running() and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+
+def _quiet_teardown(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+    """The server's event-loop error handler once the viewer closes. viser 1.0 ends a connection's message tasks
+    sloppily when the server stops with pages open: a producer raises StopAsyncIteration nobody retrieves and
+    waiting tasks are dropped pending, which asyncio reports at exit as "Task exception was never retrieved" /
+    "Task was destroyed but it is pending!". Those two, for these causes, are the normal end of a page's
+    connection, not errors; anything else is still reported."""
+    import websockets.exceptions
+
+    exc = context.get("exception")
+    message = str(context.get("message", ""))
+    if message.startswith("Task was destroyed but it is pending") or (
+        message.startswith("Task exception was never retrieved")
+        and isinstance(exc, StopAsyncIteration | websockets.exceptions.ConnectionClosed)
+    ):
+        return
+    loop.default_exception_handler(context)
 
 
 def _use_shipped_client() -> None:
