@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import shutil
 import signal
 import sys
+import textwrap
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -96,6 +98,13 @@ VERBS: dict[str, Verb] = {
 ALIASES: dict[str, str] = {"mk": "make", "create": "make", "remove": "rm", "unlink": "rm"}
 # Verbs whose arguments are another program's command line: its --ros-args belong to that program.
 PASS_THROUGH: frozenset[str] = frozenset({"ros"})
+
+
+def help_paragraph(text: str) -> str:
+    """``text`` wrapped as argparse wraps help, for a verb whose formatter keeps its text as written
+    (``RawDescriptionHelpFormatter``, for a laid-out epilog): its description would otherwise be one long line."""
+    width = max(shutil.get_terminal_size().columns - 2, 40)
+    return textwrap.fill(text, width)
 
 
 def _resolve(target: str) -> Callable:

@@ -37,7 +37,7 @@ from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
 from mds_ach.robot.msgs.ik_status import IK_PROBE_MOVE
 from mds_ach.tools import canlink, repair
-from mds_ach.tools.holdcmd import held_summary
+from mds_ach.tools.holdcmd import held_summary, newest_enabled
 from mds_ach.tools.monitor import (
     TABLE_FILE,
     Latest,
@@ -657,7 +657,7 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
         stale_note = "" if live or daemon.frame is None or not running else "  STALE: no update within 0.5 s"
         seen.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
         seen.append("collision  " + collision_summary(collide.read()))
-        seen.append("held       " + held_summary(mux.read()))
+        seen.append("held       " + held_summary(mux.read(), newest_enabled()))
         try:
             seen.append("limits     " + limits_line(current_limits(), gate_input.read()))
         except ValueError as exc:  # a broken joint table or URDF: say so, the rest of the status still counts
