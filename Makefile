@@ -77,12 +77,15 @@ $(DEV_STAMP): $(STAMP) $(LIBACH) $(IFACES) requirements-dev.txt
 # ISOLATE=1 (default): the ROS nodes stay in a private network namespace (`mds-ach ros-shell` enters it); channels
 # live on the host /dev/shm so that `mds-ach console`, `read` and C clients in other terminals see them.
 # ISOLATE=0: no namespace, the nodes join this machine's ROS graph (ROS_DOMAIN_ID from the environment, default 0).
+# WORLD=FILE: world objects for the collision gate and the IK node (e.g. WORLD=config/table.yaml, the table enabled).
 ISOLATE ?= 1
+WORLD ?=
+RUN_ARGS = --nocan $(if $(WORLD),--world $(WORLD))
 run: $(STAMP) $(LIBACH) $(IFACES)
 ifeq ($(ISOLATE),0)
-	$(VENV)/bin/mds-ach run --nocan
+	$(VENV)/bin/mds-ach run $(RUN_ARGS)
 else
-	MDS_NETNS_SHARE_SHM=1 tools/netns-run $(VENV)/bin/mds-ach run --nocan
+	MDS_NETNS_SHARE_SHM=1 tools/netns-run $(VENV)/bin/mds-ach run $(RUN_ARGS)
 endif
 
 sysdeps:

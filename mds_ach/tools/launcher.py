@@ -28,7 +28,7 @@ from mds_ach import ach
 from mds_ach import procs as background
 from mds_ach.argtypes import seconds
 from mds_ach.kinematics.limits import current_limits, read_published
-from mds_ach.paths import bin_name, runtime_dir
+from mds_ach.paths import bin_name, config_path, runtime_dir
 from mds_ach.robot import calibfiles, contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
 from mds_ach.robot.choice import effective_robot, name_problem, save_robot
@@ -63,6 +63,7 @@ ENTRY_POINTS: dict[str, str] = {
 DEFAULT_START_TIMEOUT = 60.0  # s; first start on a loaded 2-core machine imports torch, fcl and rclpy
 DEFAULT_STOP_GRACE = 5.0  # s between SIGTERM and SIGKILL
 LOG_TAIL_LINES = 25
+WORLD_RECORD = "world"  # in the runtime dir: the world file the collision gate started with (the viewer draws it)
 
 Printer = Callable[[str], None]
 
@@ -478,6 +479,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
                                      die_with_launcher=foreground)
             out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
         wait_ready(procs, checks, timeout, rt, abort)
+        if "collision" in procs:  # what the running gate uses, for `mds-ach sim` (viewer.system_world)
+            (rt / WORLD_RECORD).write_text((world or str(config_path("world.yaml"))) + "\n")
         if starts_daemon:
             (rt / TABLE_FILE).write_text(table_text + "\n")
             if link is not None:

@@ -436,7 +436,8 @@ class Viewer:
         self.problems: list[str] = []  # shown under the status line
         self.collision = self._collision_scene()
         self.world_frame = self.server.scene.add_frame(WORLD_PATH, show_axes=False)
-        self._add_world(options.world or paths.config_path("world.yaml"))
+        self.world_path = options.world or system_world() or paths.config_path("world.yaml")
+        self._add_world(self.world_path)
         self.ik_marker = self.server.scene.add_icosphere(
             f"{self.solid.link_path('torso')}/ik_target", radius=0.03, color=IK_RGB, visible=False, cast_shadow=False
         )
@@ -822,7 +823,9 @@ def add_server_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"scene updates per second (default {DEFAULT_RATE_HZ:g})",
     )
     parser.add_argument("--urdf", type=Path, default=None, help="robot model (default: the package's urdf/mds.urdf)")
-    parser.add_argument("--world", type=Path, default=None, help="world objects YAML (default: config/world.yaml)")
+    parser.add_argument("--world", type=Path, default=None,
+                        help="world objects YAML (default: the running system's, the one its collision gate started "
+                             "with, else config/world.yaml)")
     parser.add_argument(
         "--sliders",
         action=argparse.BooleanOptionalAction,
@@ -896,6 +899,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         if options.url_file is not None:
             options.url_file.unlink(missing_ok=True)
     return 0
+
+
+def system_world(run_dir: Path | None = None) -> Path | None:
+    """The world file the running system's collision gate started with (recorded by the launcher in the runtime
+    dir), so the viewer draws the objects the gate checks; None when no start recorded one."""
+    from mds_ach.tools.launcher import WORLD_RECORD  # lazy, as the launcher imports this module lazily too
+
+    try:
+        text = ((run_dir or paths.runtime_dir()) / WORLD_RECORD).read_text().strip()
+    except OSError:
+        return None
+    return Path(text) if text and Path(text).is_file() else None
 
 
 def _is_viewer(argv: list[str]) -> bool:
