@@ -136,6 +136,25 @@ def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: 
     assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
 
 
+def test_another_users_system_channels_are_explained_in_one_line(clean_shm: None, tmp_path: Path,
+                                                                   other_user: int) -> None:
+    """Issue 28 item 2: after another user's system (`sudo make run`, then `make run` as a normal user: the same
+    /dev/shm) every channel was listed with a fix that cannot work; now one line names both users and the command."""
+    from mds_ach.robot.channels import make_channels
+
+    def their_system() -> int:
+        return 0 if all(r.ok for r in make_channels()) else 1
+
+    assert run_as(NOBODY, NOBODY, their_system) == 0
+    proc = mds_ach("start", "nocan", env=system_env(tmp_path), timeout=120)
+    assert proc.returncode == 1
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert f"belong to nobody (uid {NOBODY}), not to you (root (uid 0))" in lines[0], lines[0]
+    assert "killall', then start again" in lines[0] and "repair --recreate" not in lines[0]
+    assert "started" not in proc.stdout
+
+
 def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path, other_user: int) -> None:
     """Started by hand (not through 'mds-ach start', which checks first), a node still refuses the file."""
     _plant((mds.MDS_CHAN_DAEMON_INPUT_NAME,))

@@ -17,6 +17,7 @@ import os
 import shlex
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -235,6 +236,54 @@ def world_file(path: str | None) -> str | None:
     except ValueError as exc:
         raise LaunchError("", f"--world: {exc}") from None
     return str(Path(path).resolve())
+
+
+def host_user(uid: int) -> str:
+    """A uid as seen here, named as the machine's accounts see it: inside the user namespace of a rootless
+    tools/netns-run the user is uid 0 and every unmapped owner (root's files among them) shows as the overflow uid;
+    /proc/self/uid_map tells them apart."""
+    outside: int | None = uid
+    try:
+        ranges = [tuple(int(x) for x in line.split()) for line in Path("/proc/self/uid_map").read_text().splitlines()]
+        if ranges != [(0, 0, 4294967295)]:  # inside a user namespace
+            outside = next((out + uid - inside for inside, out, count in ranges if inside <= uid < inside + count),
+                           None)
+    except (OSError, ValueError):
+        pass
+    if outside is None:
+        return f"a user outside this user namespace (shown here as uid {uid}; root after 'sudo make run')"
+    import pwd
+
+    try:
+        return f"{pwd.getpwuid(outside).pw_name} (uid {outside})"
+    except KeyError:
+        return f"uid {outside}"
+
+
+def another_users_channels(names: Sequence[str]) -> str | None:
+    """One explanation when the refused channels are another user's system's (issue 28: after `sudo make run`,
+    `make run` as a normal user on the same /dev/shm listed every channel with a fix that cannot work without that
+    user): all owned by one other user, with the modes the stack gives them. None otherwise (a plant: each line
+    says what is wrong)."""
+    from mds_ach.robot import access
+
+    owners = set()
+    for name in names:
+        try:
+            st = os.lstat(ach.shm_path(name))
+        except OSError:
+            return None
+        a_system_made_it = stat.S_ISREG(st.st_mode) and not st.st_mode & 0o777 & ~access.channel_mode(name)
+        if st.st_uid in access.trusted_owners() or not a_system_made_it:
+            return None
+        owners.add(st.st_uid)
+    if len(owners) != 1:
+        return None
+    who = host_user(owners.pop())
+    killall = Path(sys.executable).parent / "mds-ach"
+    return (f"refusing to start: the MDS channels in /dev/shm belong to {who}, not to you ({host_user(os.geteuid())}):"
+            f" a system that user ran here left them (make run shares this machine's /dev/shm). Remove them as that "
+            f"user, e.g. 'sudo {killall} killall', then start again.")
 
 
 def child_env(anatomy: str | None = None, overlay: str | None = None) -> dict[str, str]:
@@ -461,8 +510,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
         raise LaunchError("", str(exc)) from None
     bad = [r for r in reports if not r.ok]
     if bad:
-        raise LaunchError("", "refusing to start, channel problems:\n"
-                          + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
+        raise LaunchError("", another_users_channels([r.name for r in bad]) or "refusing to start, channel "
+                          "problems:\n" + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
     already = running_nodes(rt)
     env = child_env(anatomy, overlay)
     procs: dict[str, subprocess.Popen] = {}
