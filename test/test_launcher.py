@@ -151,7 +151,8 @@ def test_another_users_system_channels_are_explained_in_one_line(clean_shm: None
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, proc.stderr
     assert f"belong to nobody (uid {NOBODY}), not to you (root (uid 0))" in lines[0], lines[0]
-    assert "killall', then start again" in lines[0] and "repair --recreate" not in lines[0]
+    assert "killall' (it also stops that user's nodes), then start again" in lines[0], lines[0]
+    assert "repair --recreate" not in lines[0]
     assert "started" not in proc.stdout
 
 

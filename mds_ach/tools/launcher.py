@@ -282,8 +282,8 @@ def another_users_channels(names: Sequence[str]) -> str | None:
     who = host_user(owners.pop())
     killall = Path(sys.executable).parent / "mds-ach"
     return (f"refusing to start: the MDS channels in /dev/shm belong to {who}, not to you ({host_user(os.geteuid())}):"
-            f" a system that user ran here left them (make run shares this machine's /dev/shm). Remove them as that "
-            f"user, e.g. 'sudo {killall} killall', then start again.")
+            f" a system that user runs or ran here (make run shares this machine's /dev/shm). As that user, stop it "
+            f"and remove them, e.g. 'sudo {killall} killall' (it also stops that user's nodes), then start again.")
 
 
 def child_env(anatomy: str | None = None, overlay: str | None = None) -> dict[str, str]:
