@@ -15,6 +15,7 @@ import math
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -315,6 +316,11 @@ def test_the_page_and_its_websocket_need_the_token(inproc: viewer.Viewer) -> Non
 
     status, body = http_status(url)
     assert status == 200 and b"<html" in body.lower()
+    with socket.create_connection(("127.0.0.1", inproc.server.get_port()), timeout=10) as raw:  # no normalising
+        up = "../" * 20  # viser 1.0 alone serves /etc/passwd for this (any file of the viewer's user)
+        raw.sendall(f"GET /{token}/{up}etc/passwd HTTP/1.1\r\nHost: {base[7:]}\r\n\r\n".encode())
+        answer = raw.recv(65536)
+    assert answer.startswith(b"HTTP/1.1 404") and b"root:" not in answer, answer[:200]
     status, body = http_status(base + f"/{token}")  # redirected to the page
     assert status == 200 and b"<html" in body.lower()
     with viser_client(url) as ws:  # a tool without Origin (not a browser) with the token

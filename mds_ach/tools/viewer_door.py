@@ -104,6 +104,7 @@ class Door:
                                           "viewer's token).\n")
             response.headers.update(SECURITY_HEADERS)
             return response
+        assert behind is not None  # a path without the token is refused above
         if request.headers.get("Upgrade", "").lower() == "websocket":
             return None
         if request.path.partition("?")[0] == f"/{self.token}":  # the page must end in "/": its assets are relative
@@ -112,7 +113,9 @@ class Door:
             response.headers["Location"] = f"/{self.token}/" + (f"?{query}" if query else "")
             response.headers.update(SECURITY_HEADERS)
             return response
-        if inner is None:
+        if inner is None or ".." in behind.partition("?")[0].split("/"):
+            # viser 1.0 maps the path onto its client directory without refusing "..": a raw client could read any
+            # file of the viewer's user (a browser normalises such paths away, so no page ever asks for one)
             return connection.respond(http.HTTPStatus.NOT_FOUND, "not found\n")
         response = inner(connection, dataclasses.replace(request, path=behind))
         if response is not None and hasattr(response, "headers"):
