@@ -34,18 +34,24 @@ setup: $(STAMP) $(LIBACH) $(IFACES)
 
 dev: $(DEV_STAMP)
 
+# pip's resolver then lists the dependencies the --no-deps packages declare (requirements-nodeps.txt) as "not
+# installed", under an ERROR header: they are left out on purpose, so exactly those lines are dropped (a version
+# conflict, "requires X, but you have Y", still shows).
+NODEPS := $(shell sed -E -n 's/^([A-Za-z0-9_.-]+)==.*/\1/p' requirements-nodeps.txt | paste -sd'|')
+PIP_NOISE := ^WARNING: Location|^ERROR: pip's dependency resolver does not currently take into account|^($(NODEPS)) [^ ]+ requires [^ ]+, which is not installed\.$$
 # pip install -e . also compiles mds_ach/ach/_achfast.c (the optional C fast path of mds_ach.ach) and mds_ach/ach/_shmguard.c
 # (the SIGBUS guard for channel mappings) when gcc is there.
 $(STAMP): requirements.txt requirements-nodeps.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c \
 		mds_ach/ach/achcore.h mds_ach/ach/_shmguard.c mds_ach/kinematics/_collfast.c mds_ach/kinematics/_iksearch.c
-	@test -x $(PY) || python3 -m venv $(VENV)
+	@test -x $(PY) || { echo "creating $(VENV) and installing the runtime packages (first run only, ~1.5 min) ..."; \
+		python3 -m venv $(VENV); }
 	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
 	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true
 	@# A venv from before requirements-nodeps.txt has opencv-python, which shares the cv2 package with the headless
 	@# build pinned now: remove it first (a fresh venv skips this).
 	@if compgen -G '$(VENV)/lib/python3*/site-packages/opencv_python-*.dist-info' >/dev/null; then \
 		$(PY) -m pip uninstall -q -y opencv-python; fi
-	$(PY) -m pip install -q -r requirements.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
+	$(PY) -m pip install -q -r requirements.txt 2>&1 | { grep -v -E "$(PIP_NOISE)" || true; }
 	@# viser, yourdfpy, trimesh, python-fcl without the dependencies they declare but never import for us (opencv's
 	@# GUI build, scipy, scikit-image, embreex, Cython...: most of the venv); requirements.txt pins what they import.
 	$(PY) -m pip install -q --no-deps -r requirements-nodeps.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
@@ -71,18 +77,21 @@ $(LIBACH): libach/libach.c libach/ach.h libach/ach.pc.in libach/Makefile mds_ach
 # The test and tooling dependencies (requirements-dev.txt: pytest, ruff, torch for the FK cross-check, ...) on top
 # of the runtime ones; `make setup` / `make run` never install them.
 $(DEV_STAMP): $(STAMP) $(LIBACH) $(IFACES) requirements-dev.txt
-	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v '^WARNING: Location' || true; }
+	$(PY) -m pip install -q -r requirements.txt -r requirements-dev.txt 2>&1 | { grep -v -E "$(PIP_NOISE)" || true; }
 	@touch $@
 
 # ISOLATE=1 (default): the ROS nodes stay in a private network namespace (`mds-ach ros-shell` enters it); channels
 # live on the host /dev/shm so that `mds-ach console`, `read` and C clients in other terminals see them.
 # ISOLATE=0: no namespace, the nodes join this machine's ROS graph (ROS_DOMAIN_ID from the environment, default 0).
+# WORLD=FILE: world objects for the collision gate and the IK node (e.g. WORLD=config/table.yaml, the table enabled).
 ISOLATE ?= 1
+WORLD ?=
+RUN_ARGS = --nocan $(if $(WORLD),--world $(WORLD))
 run: $(STAMP) $(LIBACH) $(IFACES)
 ifeq ($(ISOLATE),0)
-	$(VENV)/bin/mds-ach run --nocan
+	$(VENV)/bin/mds-ach run $(RUN_ARGS)
 else
-	MDS_NETNS_SHARE_SHM=1 tools/netns-run $(VENV)/bin/mds-ach run --nocan
+	MDS_NETNS_SHARE_SHM=1 tools/netns-run $(VENV)/bin/mds-ach run $(RUN_ARGS)
 endif
 
 sysdeps:

@@ -103,8 +103,20 @@ def test_not_permitted_says_exactly_what_to_run(fake_ip: Path, monkeypatch: pyte
     assert expected in str(err.value)
     # no such interface
     (fake_ip / "state").unlink()
-    with pytest.raises(canlink.CanLinkError, match=r"CAN interface can0 not found .*mds-ach start nocan"):
+    with pytest.raises(canlink.CanLinkError, match=r"CAN interface can0 not found .*the simulated robot \('nocan'\)"):
         canlink.ensure_up()
+
+
+@pytest.mark.parametrize("verb", ["start", "run"])
+def test_no_can_interface_names_the_verb_that_was_run(tmp_path: Path, fake_ip: Path, clean_shm: None,
+                                                      verb: str) -> None:
+    """Issue 28: `mds-ach run` without a CAN interface suggested 'mds-ach start nocan'."""
+    env = _real_start_env(tmp_path, fake_ip)  # no link at all: `ip link show` fails
+    proc = mds_ach(verb, "--timeout", "30", env=env, timeout=120)
+    assert proc.returncode == 1
+    assert "CAN interface can0 not found" in proc.stderr and f"'mds-ach {verb} nocan'" in proc.stderr, proc.stderr
+    other = "run" if verb == "start" else "start"
+    assert f"mds-ach {other} nocan" not in proc.stderr
 
 
 def _real_start_env(tmp_path: Path, fake_ip: Path) -> dict[str, str]:

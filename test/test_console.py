@@ -561,3 +561,24 @@ def test_help_exits_zero() -> None:
         proc = subprocess.run([str(VENV_BIN / args[0]), *args[1:]], capture_output=True, text=True, timeout=60)
         assert proc.returncode == 0 and "usage" in proc.stdout.lower()
         assert "goto <joint> <rad>" in proc.stdout
+
+
+@pytest.mark.parametrize(("word", "hint"), [("XYZ", ""), ("LSX", "did you mean LSY, LSR, LSP? ")])
+def test_an_unknown_joint_is_one_line(word: str, hint: str) -> None:
+    """Issue 28: an unknown joint printed the whole help (and 43 names)."""
+    with pytest.raises(CommandError) as info:
+        parse(f"goto {word} 0.1")
+    assert str(info.value) == f"unknown joint {word!r} ({hint}'mds-ach read all' lists every joint)"
+    assert not info.value.show_usage
+    proc = mds_ach("console", "-c", f"goto {word} 0.1")
+    assert proc.returncode == 1 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+@pytest.mark.parametrize("verb", ["read", "console"])
+def test_help_descriptions_are_wrapped(verb: str) -> None:
+    proc = subprocess.run([str(VENV_BIN / "mds-ach"), verb, "--help"], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "COLUMNS": "100"})
+    assert proc.returncode == 0
+    description = proc.stdout.split("\n\n")[1]
+    assert len(description.splitlines()) > 1 and max(len(line) for line in description.splitlines()) <= 98, \
+        description

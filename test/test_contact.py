@@ -169,3 +169,34 @@ def test_the_papers_scenes_stop_at_contact(system: dict[str, str], monkeypatch: 
         state.close()
         holds.close()
     assert commanded
+
+
+@pytest.mark.slow
+def test_the_readme_table_tour_works_as_written(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 28 item 3: the README's step 5 (`make run WORLD=config/table.yaml`, then the `ik … wait` it gives):
+    the hand stops at the table, the viewer draws the world the running gate uses, and no probe WARN in ik.log."""
+    from support import REPO
+
+    from mds_ach.tools import viewer
+
+    table = REPO / "config" / "table.yaml"
+    readme = (REPO / "README.md").read_text()
+    assert "make run\n   WORLD=config/table.yaml" in readme or "make run WORLD=config/table.yaml" in readme
+    command = 'ik left 3 0.35 0.25 -0.5 wait'
+    assert command in readme
+    with running_system(tmp_path, extra=("--world", str(table))) as env:
+        rt = Path(env["MDS_ACH_RUNTIME_DIR"])
+        assert viewer.system_world(rt) == table, "the world the running gate uses is recorded for the viewer"
+        for key, value in env.items():
+            monkeypatch.setenv(key, value)
+        v = viewer.Viewer(viewer.ViewerOptions(port=viewer.free_port("127.0.0.1")))
+        try:
+            assert v.world_path == table and not v.problems
+        finally:
+            v.close()
+        proc = mds_ach("console", "-c", command, env=env, timeout=120)
+        assert proc.returncode == 1 and "the left arm stopped at contact: left hand / table" in proc.stdout + \
+            proc.stderr, proc.stdout + proc.stderr
+        status = mds_ach("status", "--window", "0.2", env=env).stdout
+        assert "collision  BLOCKED: L_HAND" in status, status
+        assert "got -1" not in (rt / "ik.log").read_text(), "the launcher's probe is no warning"

@@ -217,3 +217,21 @@ def test_importing_mds_ach_starts_no_blas_threads() -> None:
     code = "import os, mds_ach, numpy; print(len(os.listdir('/proc/self/task')))"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == "1", proc.stdout + proc.stderr
+
+
+def test_make_drops_only_the_resolver_lines_of_the_no_deps_packages() -> None:
+    """Issue 28: every fresh `make test` printed pip's "dependency resolver … viser requires …" ERROR for the
+    dependencies requirements-nodeps.txt leaves out on purpose. The Makefile drops exactly those lines; a real
+    conflict still shows."""
+    dry = subprocess.run(["make", "-n", "-W", "requirements-dev.txt", "dev"], cwd=REPO, capture_output=True,
+                         text=True, timeout=60)
+    line = next(x for x in dry.stdout.splitlines() if "-r requirements-dev.txt" in x)
+    pip_filter = line.split("2>&1 |", 1)[1].strip()
+    noise = ("ERROR: pip's dependency resolver does not currently take into account all the packages that are "
+             "installed. This behaviour is the source of the following dependency conflicts.\n"
+             "viser 1.0.0 requires nodeenv<2.0.0,>=1.8.0, which is not installed.\n"
+             "viser 1.0.0 requires opencv-python<5.0.0,>=4.0.0.21, which is not installed.\n"
+             "trimesh 4.12.2 requires numpy>=1.20, which is not installed.\n")
+    real = "rclpy 9.0.0 requires numpy>=2, but you have numpy 1.26.4 which is incompatible.\n"
+    out = subprocess.run(["bash", "-c", pip_filter], input=noise + real, capture_output=True, text=True, timeout=30)
+    assert out.stdout == real, out.stdout

@@ -476,3 +476,25 @@ def test_console_parses_hold_and_resume() -> None:
     assert set(cmd.addresses) == set(LEFT_ARM) | {mds.NKY}
     cmd = parse("resume")
     assert isinstance(cmd, Hold) and cmd.action == HOLD_RESUME and cmd.addresses == ()
+
+
+def test_held_joints_are_listed_among_the_enabled_ones_only() -> None:
+    """Issue 28: `hold` (all) listed all 43 joints, disabled ones included."""
+    from mds_ach.robot.joints import JOINTS
+    from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_HELD
+    from mds_ach.tools.holdcmd import enabled_joints, held_summary
+
+    st = MDS_MUX_STATE()
+    for j in JOINTS:
+        st.held[j.address] = MUX_HELD
+    state = mds.MDS_STATE()
+    for address in (mds.LSP, mds.LEP, mds.RSP):
+        state.joint[address].enabled = 1
+    enabled = enabled_joints(state)
+    assert enabled == {mds.LSP, mds.LEP, mds.RSP}
+    assert held_summary(st, enabled) == "held every enabled joint (3) (mds-ach resume)"
+    st.held[mds.LEP] = MUX_CANCELLED
+    line = held_summary(st, enabled)
+    assert line == "held RSP LSP (mds-ach resume); cancelled LEP (until a new command)", line  # table order
+    assert "NKY" not in line and "WST" not in line, "disabled joints are not listed"
+    assert held_summary(st, None).count(" ") > 40, "without a state every joint is named, as before"

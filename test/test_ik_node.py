@@ -246,6 +246,38 @@ def test_old_requests_are_not_commands(clean_shm: None) -> None:
         t.join(5)
 
 
+def test_the_launchers_probe_is_answered_without_a_warning(clean_shm: None) -> None:
+    """Issue 28: every start logged a WARN "bad request: move must be 0 (right) or 1 (left), got -1" in ik.log: the
+    launcher's own readiness probe. It is answered (refused, nothing moves) and logged as a probe; a real bad
+    request still warns."""
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs.ik_status import IK_PROBE_MOVE, PROBE_ANSWER
+
+    put_state(current_pose())
+    logged: list[tuple[str, str]] = []
+    runner = IkRunner(IkService(IkNodeConfig(), arm_limits("default")),
+                      log=lambda level, msg: logged.append((level, msg)))
+    t = threading.Thread(target=runner.run, daemon=True)
+    t.start()
+    try:
+        assert runner.ready.wait(10)
+        with StructChannel(mds.MDS_CHAN_IK_NAME, mds.MDS_IK, create=False) as requests, \
+                StructChannel(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS, create=False) as answers:
+            answers.flush()
+            requests.put(mds.MDS_IK(move=IK_PROBE_MOVE))
+            st = wait_for(lambda: answers.latest(), 5, what="the answer to the probe")
+            assert st.status == IK_BAD_REQUEST and get_message(st) == PROBE_ANSWER and st.arm == -1
+            requests.put(mds.MDS_IK(move=2))
+            st = wait_for(lambda: answers.latest(), 5, what="the answer to the bad request")
+            assert "move must be 0 (right) or 1 (left), got 2" in get_message(st)
+    finally:
+        runner.stop()
+        t.join(5)
+    answered = [(level, msg) for level, msg in logged if "#" in msg]
+    assert [level for level, _ in answered] == ["info", "warn"], answered
+    assert not any("got -1" in msg for _, msg in logged), logged
+
+
 # --------------------------------------------------------------------------------------------- executable
 
 

@@ -136,6 +136,26 @@ def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: 
     assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
 
 
+def test_another_users_system_channels_are_explained_in_one_line(clean_shm: None, tmp_path: Path,
+                                                                   other_user: int) -> None:
+    """Issue 28 item 2: after another user's system (`sudo make run`, then `make run` as a normal user: the same
+    /dev/shm) every channel was listed with a fix that cannot work; now one line names both users and the command."""
+    from mds_ach.robot.channels import make_channels
+
+    def their_system() -> int:
+        return 0 if all(r.ok for r in make_channels()) else 1
+
+    assert run_as(NOBODY, NOBODY, their_system) == 0
+    proc = mds_ach("start", "nocan", env=system_env(tmp_path), timeout=120)
+    assert proc.returncode == 1
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert f"belong to nobody (uid {NOBODY}), not to you (root (uid 0))" in lines[0], lines[0]
+    assert "killall' (it also stops that user's nodes), then start again" in lines[0], lines[0]
+    assert "repair --recreate" not in lines[0]
+    assert "started" not in proc.stdout
+
+
 def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path, other_user: int) -> None:
     """Started by hand (not through 'mds-ach start', which checks first), a node still refuses the file."""
     _plant((mds.MDS_CHAN_DAEMON_INPUT_NAME,))
@@ -184,6 +204,39 @@ def test_status_reports_a_damaged_state_channel_with_the_fix(clean_shm: None, tm
     assert re.search(r"^channel\s+" + expected, proc.stdout, re.M), proc.stdout
     assert re.search(r"^state\s+unreadable", proc.stdout, re.M), proc.stdout
     assert re.search(r"^\s+daemon\s+stopped$", proc.stdout, re.M), "the rest of the report is still there"
+
+
+def test_status_after_a_stop_says_not_running_and_shows_the_last_frames_as_history(clean_shm: None,
+                                                                                    tmp_path: Path) -> None:
+    """Issue 28 item 4: the daemon's last rate and a 'collision BLOCKED' left in the channels are not the robot now."""
+    from mds_ach.robot.channels import StructChannel
+
+    env = system_env(tmp_path)
+    assert mds_ach("make", "-q", env=env).returncode == 0
+    status = MDS_DAEMON_STATUS()
+    status.time = time.monotonic() - 42.0
+    collide = mds.MDS_COLLIDE()
+    collide.isCollide, collide.joint[mds.COLLIDE_L_HAND].isCollide = 1, 1
+    with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS, create=False) as chan:
+        chan.put(status)
+    with StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE, create=False) as chan:
+        chan.put(collide)
+    proc = mds_ach("status", "--window", "0.1", env=env)
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    out = proc.stdout
+    assert re.search(r"^MDS-Ach is not running", out, re.M), out
+    history = re.search(r"^last seen\s+\(history, not live: .*last daemon frame (\d+) s ago\)$", out, re.M)
+    assert history and 41 <= int(history.group(1)) <= 60, out
+    assert re.search(r"^  collision\s+BLOCKED", out, re.M), "the old verdict is shown indented, under the history"
+    assert not re.search(r"^(daemon|collision|held|limits) ", out, re.M), "nothing of it reads as a live line"
+    assert "STALE" not in out
+
+
+def test_every_exit_code_is_in_the_top_level_help() -> None:
+    out = mds_ach("--help").stdout
+    for code, what in (("0", "ok"), ("1", "failure"), ("2", "usage error"), ("3", "status: a node is not running"),
+                       ("130", "start: interrupted"), ("127", "not found")):
+        assert re.search(rf"^\s+{code}\s+{re.escape(what)}", out, re.M) or f"{code} it" in out, (code, out)
 
 
 def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: Path, other_user: int) -> None:
@@ -439,6 +492,53 @@ def test_run_in_the_foreground_stops_everything_on_ctrl_c(clean_shm: None, tmp_p
     assert "stopping" in rest
     assert not any(_pid_alive(p) for p in pids.values()), "Ctrl-C stops every node"
     assert not list(tmp_path.glob("*.pid"))
+    remove_mds_channels()
+
+
+def _start_viewer(env: dict[str, str]) -> int:
+    """`mds-ach sim --port 0` with this runtime dir; returns the viewer's pid (its start said it ends with the
+    system, its URL file is the user's only)."""
+    from mds_ach.tools import viewer
+
+    proc = mds_ach("sim", "--port", "0", env=env, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "stops with the system" in proc.stdout and "Ctrl-C of `mds-ach run`" in proc.stdout, proc.stdout
+    rt = Path(env["MDS_ACH_RUNTIME_DIR"])
+    assert (rt / viewer.SIM_URL).stat().st_mode & 0o777 == 0o600, "the URL file carries the token"
+    pid = int((rt / viewer.SIM_PID).read_text())
+    assert _pid_alive(pid)
+    return pid
+
+
+@pytest.mark.slow
+def test_run_ctrl_c_ends_the_viewer_too(clean_shm: None, tmp_path: Path) -> None:
+    """Issue 28: the viewer's page can move the robot; it must not outlive `run` (whose help says nothing is left)."""
+    env = system_env(tmp_path)
+    proc, text = _start_run(env)
+    try:
+        viewer_pid = _start_viewer(env)
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, text + rest
+    assert f"viewer     stopped (pid {viewer_pid})" in rest
+    assert not _pid_alive(viewer_pid), "Ctrl-C of run ends the viewer"
+    assert not list(tmp_path.glob("*.pid")) and not (tmp_path / "sim.url").exists()
+    remove_mds_channels()
+
+
+@pytest.mark.slow
+def test_stop_kill_and_killall_end_the_viewer_too(clean_shm: None, tmp_path: Path) -> None:
+    env = system_env(tmp_path)
+    for verb in ("stop", "kill", "killall"):
+        viewer_pid = _start_viewer(env)
+        proc = mds_ach(verb, env=env, timeout=60)
+        assert proc.returncode == 0, proc.stderr
+        wait_for(lambda pid=viewer_pid: not _pid_alive(pid), 10, what=f"the viewer gone after {verb}")  # type: ignore[misc]
+        assert not (tmp_path / "sim.url").exists()
     remove_mds_channels()
 
 

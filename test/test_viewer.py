@@ -15,9 +15,11 @@ import math
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -239,6 +241,184 @@ def test_sliders_refuse_to_start_without_a_running_system(inproc: viewer.Viewer)
     assert not ach.exists(mds.MDS_CHAN_REF_FILTER_NAME)
 
 
+# --------------------------------------------------------------------------------------------------
+# the door: the token, the Origin, the user's rights (issue 28)
+# --------------------------------------------------------------------------------------------------
+
+
+def _base(url: str) -> str:
+    """``http://host:port`` of a viewer URL (without the token)."""
+    return url.split("/", 3)[0] + "//" + url.split("/", 3)[2]
+
+
+def http_status(url: str, headers: dict[str, str] | None = None) -> tuple[int, bytes]:
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, headers=headers or {}), timeout=10) as answer:
+            return answer.status, answer.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read()
+
+
+def viser_client(url: str, origin: str | None = None):  # type: ignore[no-untyped-def]
+    """A websocket client speaking viser's protocol to the page's websocket (what the browser's page opens)."""
+    import viser
+    from websockets.sync.client import connect
+
+    ws_url = url.replace("http://", "ws://").rstrip("/")
+    return connect(ws_url, subprotocols=[f"viser-v{viser.__version__}"], open_timeout=10, max_size=None,
+                   origin=origin)  # type: ignore[arg-type]
+
+
+def send_message(ws: object, message: object) -> None:
+    import msgspec
+
+    ws.send(msgspec.msgpack.encode(message.as_serializable_dict()))  # type: ignore[attr-defined]
+
+
+def _camera_message() -> object:
+    """The first message a page sends: viser registers a client on its first camera message."""
+    from viser import _messages as msg
+
+    return msg.ViewerCameraMessage((1.0, 0.0, 0.0, 0.0), (3.0, 3.0, 3.0), 1.0, 0.01, 100.0, 600, 800, (0.0, 0.0, 0.0),
+                                   (0.0, 0.0, 1.0))
+
+
+def move_through_the_page(url: str, v: viewer.Viewer, joint: str, value: float, origin: str | None = None) -> None:
+    """What the issue's attacker did: connect, switch "Send references" on, move a slider."""
+    from viser import _messages as msg
+
+    with viser_client(url, origin) as ws:
+        send_message(ws, _camera_message())
+        wait_for(lambda: v.server.get_clients(), 10, what="the client registered")
+        send_message(ws, msg.GuiUpdateMessage(v.sliders_on._impl.uuid, {"value": True}))
+        wait_for(lambda: v.sliders_on.value or "not sending" in v.slider_status.content, 10, what="the toggle")
+        send_message(ws, msg.GuiUpdateMessage(v.sliders[joint]._impl.uuid, {"value": value}))
+        wait_for(lambda: "sent" in v.slider_status.content or "not" in v.slider_status.content, 10,
+                 what="the slider's answer")
+
+
+def test_the_page_and_its_websocket_need_the_token(inproc: viewer.Viewer) -> None:
+    from websockets.exceptions import InvalidStatus
+
+    url = inproc.url()
+    base = _base(url)
+    token = inproc.door.token
+    assert url == f"{base}/{token}/" and len(token) >= 32
+    for path in ("/", "/index.html", "/assets/", f"/{token[:-1]}/", f"/x{token}/", "/logo.svg", f"/../{token}/"):
+        status, body = http_status(base + path)
+        assert status == 403 and b"<html" not in body.lower(), f"{path}: {status}"
+    with pytest.raises(InvalidStatus) as refused:
+        viser_client(base + "/")
+    assert refused.value.response.status_code == 403
+    with pytest.raises(InvalidStatus) as refused:
+        viser_client(base + "/wrong")
+    assert refused.value.response.status_code == 403
+
+    status, body = http_status(url)
+    assert status == 200 and b"<html" in body.lower()
+    with socket.create_connection(("127.0.0.1", inproc.server.get_port()), timeout=10) as raw:  # no normalising
+        up = "../" * 20  # viser 1.0 alone serves /etc/passwd for this (any file of the viewer's user)
+        raw.sendall(f"GET /{token}/{up}etc/passwd HTTP/1.1\r\nHost: {base[7:]}\r\n\r\n".encode())
+        answer = raw.recv(65536)
+    assert answer.startswith(b"HTTP/1.1 404") and b"root:" not in answer, answer[:200]
+    status, body = http_status(base + f"/{token}")  # redirected to the page
+    assert status == 200 and b"<html" in body.lower()
+    with viser_client(url) as ws:  # a tool without Origin (not a browser) with the token
+        assert ws.recv(timeout=10)
+    with viser_client(url, origin=base) as ws:  # the page's own origin (the browser)
+        assert ws.recv(timeout=10)
+
+
+@pytest.mark.parametrize("origin", ["http://evil.example", "http://127.0.0.1:1", "null"])
+def test_a_foreign_origin_is_refused_even_with_the_token(inproc: viewer.Viewer, origin: str) -> None:
+    from websockets.exceptions import InvalidStatus
+
+    with pytest.raises(InvalidStatus) as refused:
+        viser_client(inproc.url(), origin=origin)
+    assert refused.value.response.status_code == 403
+    status, body = http_status(inproc.url(), {"Host": "evil.example:8080"})  # DNS rebinding: a foreign Host
+    assert status == 403 and b"<html" not in body.lower()
+
+
+def test_only_the_token_moves_the_robot_through_the_sliders(inproc: viewer.Viewer) -> None:
+    """The issue's attack (the websocket with a foreign Origin moves LSP) fails; the same with the token works."""
+    from websockets.exceptions import InvalidStatus
+
+    make_channels()
+    with (
+        StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as state,
+        StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF) as ref_filter,
+    ):
+        state.put(state_frame({"LSP": -0.45}))
+        inproc.tick()
+        for url, origin in ((_base(inproc.url()) + "/", "http://evil.example"), (inproc.url(), "http://evil.example"),
+                            (_base(inproc.url()) + "/", None)):
+            with pytest.raises(InvalidStatus):
+                move_through_the_page(url, inproc, "LSP", -1.3, origin)
+        assert ref_filter.latest() is None and not inproc.sliders_on.value
+        move_through_the_page(inproc.url(), inproc, "LSP", -1.3, _base(inproc.url()))
+        frame = ref_filter.latest()
+        assert frame is not None and frame.joint[mds.LSP].ref == pytest.approx(-1.3)
+
+
+def test_another_user_can_neither_open_the_page_nor_move_the_robot(inproc: viewer.Viewer, tmp_path: Path) -> None:
+    """User nobody (who may not write the channels): no token (the URL file is the starter's, 0600), so no page and
+    no websocket; and a viewer nobody starts runs with nobody's rights: its sliders stay read-only."""
+    from support import NOBODY, other_ids_missing, run_as
+
+    missing = other_ids_missing()
+    if missing:
+        pytest.skip(missing)
+    # Imported here, before the fork: user nobody cannot read the interpreter's files under /root.
+    import encodings.idna  # noqa: F401
+    import http.client  # noqa: F401
+
+    import msgspec  # noqa: F401
+    import websockets.sync.client  # noqa: F401
+    from websockets.exceptions import InvalidStatus
+    url_file = tmp_path / "sim.url"
+    viewer.write_private(url_file, inproc.url() + "\n")
+    tmp_path.chmod(0o755)
+    assert url_file.stat().st_mode & 0o777 == 0o600
+    make_channels()
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as state:
+        state.put(state_frame({"LSP": -0.45}))
+    base = _base(inproc.url())
+
+    def as_nobody() -> int:
+        try:
+            url_file.read_text()
+            return 10  # read the token
+        except PermissionError:
+            pass
+        if http_status(base + "/")[0] != 403 or http_status(base + "/index.html")[0] != 403:
+            return 11
+        try:
+            viser_client(base + "/", origin="http://evil.example").close()
+            return 12
+        except InvalidStatus as exc:
+            if exc.response.status_code != 403:
+                return 13
+        own = viewer.Viewer(viewer.ViewerOptions(port=viewer.free_port("127.0.0.1")))
+        try:
+            own.state.retry = 0.0
+            for _ in range(3):
+                own.tick()
+            own.sliders_on.value = True
+            if own.sliders_on.value or "not sending" not in own.slider_status.content:
+                print(own.slider_status.content)
+                return 14
+            if own.send_goto("LSP", -1.3):
+                return 15
+        finally:
+            own.close()
+        return 0
+
+    assert run_as(NOBODY, NOBODY, as_nobody) == 0
+    with StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, mds.MDS_REF, create=False) as ref_filter:
+        assert ref_filter.latest() is None, "nothing reached mds-ref-filter"
+
+
 def test_quaternions_match_viser() -> None:
     from viser.transforms import SO3
 
@@ -309,6 +489,7 @@ def test_help_exits_zero() -> None:
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_foreground_viewer_stops_cleanly_on_signals(sig: signal.Signals, tmp_path: Path, fresh_shm: None) -> None:
     url_file = tmp_path / "url"
+    pages: list = []
     proc = subprocess.Popen(
         [sys.executable, "-m", "mds_ach.tools.viewer", "--port", "0", "--url-file", str(url_file)],
         stdout=subprocess.PIPE,
@@ -318,13 +499,24 @@ def test_foreground_viewer_stops_cleanly_on_signals(sig: signal.Signals, tmp_pat
     try:
         wait_for(lambda: url_file.is_file() or proc.poll() is not None, 60, what="viewer URL")
         assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
+        url = url_file.read_text().strip()
+        assert url_file.stat().st_mode & 0o777 == 0o600, "the URL file carries the token"
+        for _ in range(3):  # open pages (registered clients) while it stops: issue 28's "Task was destroyed"
+            ws = viser_client(url)
+            send_message(ws, _camera_message())
+            pages.append(ws)
         proc.send_signal(sig)
         out, _ = proc.communicate(timeout=20)
     finally:
         if proc.poll() is None:
             proc.kill()
+        for ws in pages:
+            ws.close()
     assert proc.returncode == 0, out
     assert not url_file.exists()
+    for noise in ("Task was destroyed", "Task exception was never retrieved", "Traceback"):
+        assert noise not in out, out
+    assert url.split("/")[3] not in out, "the token is never printed to the (background) log"
 
 
 @pytest.mark.slow
@@ -545,7 +737,7 @@ def page(browser: Page, live_viewer: str) -> Page:
     camera = "initialCameraPosition={}&initialCameraLookAt={}&initialCameraUp=0,0,1".format(
         *(",".join(str(v) for v in xyz) for xyz in (viewer.CAMERA_POSITION, viewer.CAMERA_LOOK_AT))
     )
-    browser.call("Page.navigate", url=f"{live_viewer}/?{camera}")
+    browser.call("Page.navigate", url=f"{live_viewer}?{camera}")  # the URL ends in "/<token>/"
     wait_for(lambda: "mds-state" in str(browser.evaluate("document.body ? document.body.innerText : ''")), 90,
              interval=0.5, what="the viewer's status line on the page")
     wait_for(lambda: browser.evaluate("document.querySelectorAll('canvas').length"), 60, interval=0.5,

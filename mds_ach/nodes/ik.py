@@ -60,11 +60,13 @@ from mds_ach.robot.msgs.ik_status import (
     IK_BAD_REQUEST,
     IK_NOT_APPLIED,
     IK_NOT_READY,
+    IK_PROBE_MOVE,
     IK_SOLVED,
     IK_STATUS_TOPIC,
     IK_STOPPED_AT_CONTACT,
     IK_UNREACHABLE,
     MDS_IK_STATUS,
+    PROBE_ANSWER,
     set_message,
     status_to_dict,
 )
@@ -137,6 +139,8 @@ class IkService:
         st.seq = self.seq
         st.arm = -1
         move = int(request.move)
+        if move == IK_PROBE_MOVE:  # someone (the launcher) asks whether this node answers
+            return self._refuse(st, IK_BAD_REQUEST, PROBE_ANSWER)
         if move not in ARM_NAMES:
             return self._refuse(st, IK_BAD_REQUEST, f"bad request: move must be 0 (right) or 1 (left), got {move}")
         st.arm = move
@@ -369,7 +373,7 @@ class IkRunner:
 
     def _report(self, st: MDS_IK_STATUS) -> None:
         doc = status_to_dict(st)
-        level = "info" if st.status == IK_SOLVED else "warn"
+        level = "info" if st.status == IK_SOLVED or doc["message"] == PROBE_ANSWER else "warn"
         self.log(level, f"#{doc['seq']} {doc['arm']} {doc['dof']}-DOF {doc['target'][:max(doc['dof'], 0)]}: "
                         f"{doc['message']} ({st.solve_time * 1e3:.1f} ms)")
         if self.on_status is not None:

@@ -82,8 +82,8 @@ def link_state(channel: str) -> LinkState:
     if proc.returncode != 0:
         detail = proc.stderr.strip() or f"exit status {proc.returncode}"
         raise CanLinkError(f"CAN interface {channel} not found ({detail}): plug in the CAN adapter and load its "
-                           f"driver, choose another interface (CAN_INTERFACE/CAN_CHANNEL, ~/.canrc), or start the "
-                           f"simulated robot with 'mds-ach start nocan'")
+                           f"driver, choose another interface (CAN_INTERFACE/CAN_CHANNEL, ~/.canrc), or use the "
+                           f"simulated robot ('nocan')")
     try:
         info = json.loads(proc.stdout)[0]
         data = (info.get("linkinfo") or {}).get("info_data") or {}

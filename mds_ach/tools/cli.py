@@ -13,14 +13,26 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import shutil
 import signal
 import sys
+import textwrap
 from collections.abc import Callable
 from typing import NamedTuple
 
 from mds_ach.nodes.rosargs import strip_ros_args  # cli.strip_ros_args stays importable
 
 PROG = "mds-ach"
+EPILOG = """\
+Run '{prog} VERB --help' for a verb's options.
+
+Exit codes:
+  0    ok
+  1    failure (the message says why)
+  2    usage error; also check-log: a file could not be audited, changerobot: an unknown robot
+  3    status: a node is not running (none running included)
+  130  start: interrupted by Ctrl-C (the nodes it had started are stopped again)
+  ros, ros-shell: the command's own exit status; 126 it cannot be executed, 127 it is not found"""
 
 
 class Verb(NamedTuple):
@@ -88,6 +100,13 @@ ALIASES: dict[str, str] = {"mk": "make", "create": "make", "remove": "rm", "unli
 PASS_THROUGH: frozenset[str] = frozenset({"ros"})
 
 
+def help_paragraph(text: str) -> str:
+    """``text`` wrapped as argparse wraps help, for a verb whose formatter keeps its text as written
+    (``RawDescriptionHelpFormatter``, for a laid-out epilog): its description would otherwise be one long line."""
+    width = max(shutil.get_terminal_size().columns - 2, 40)
+    return textwrap.fill(text, width)
+
+
 def _resolve(target: str) -> Callable:
     module, _, func = target.partition(":")
     return getattr(importlib.import_module(module), func)
@@ -108,7 +127,8 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
         description="MDS-Ach front-end: manage the shared-memory channels and run the system's tools.",
-        epilog=f"Run '{PROG} VERB --help' for a verb's options. Exit codes: 0 ok, 1 failure, 2 usage error.",
+        epilog=EPILOG.format(prog=PROG),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="verb", metavar="VERB")
     for name, verb in VERBS.items():

@@ -13,6 +13,7 @@ Only numpy forward kinematics is used (``get fk``), so the console starts withou
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
 import os
 import signal
@@ -33,6 +34,8 @@ from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
 from mds_ach.robot.msgs.mux_state import MUX_FREE, MUX_HELD
+from mds_ach.tools.cli import help_paragraph
+from mds_ach.tools.holdcmd import enabled_joints, held_summary
 from mds_ach.tools.monitor import Latest, collision_summary
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
 
@@ -150,7 +153,10 @@ def _joint(text: str) -> Joint:
     try:
         return lookup(text)
     except KeyError:
-        raise CommandError(f"unknown joint {text!r}; short names: {' '.join(j.short for j in JOINTS)}") from None
+        close = difflib.get_close_matches(text.upper(), [j.short for j in JOINTS], n=3, cutoff=0.5)
+        hint = f"did you mean {', '.join(close)}? " if close else ""
+        raise CommandError(f"unknown joint {text!r} ({hint}'mds-ach read all' lists every joint)",
+                           usage=False) from None
 
 
 def _arm(text: str) -> str:
@@ -527,10 +533,9 @@ class Console:
                                 reason=f"console {'hold' if cmd.action == lifecycle.HOLD_HOLD else 'resume'}")
         if not ack.ok:
             raise CommandError(ack.message, usage=False)
-        st = ack.state
-        held = [j.short for j in JOINTS if st is not None and st.held[j.address]]
         verb = "held" if cmd.action == lifecycle.HOLD_HOLD else "resumed"
-        self.out(f"{verb}: {cmd.what}; held now: {', '.join(held) if held else 'none'}")
+        summary = held_summary(ack.state, enabled_joints(self.state.read()), resume="resume")
+        self.out(f"{verb}: {cmd.what}; held now: {summary}")
 
     def zeroall(self) -> None:
         """Every enabled joint to 0 rad, or to the value nearest 0 inside its effective limits (the original
@@ -903,10 +908,10 @@ def run_commands(console: Console, commands: Sequence[str]) -> int:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("The MDS-Ach console: move joints (goto), read them (get, get fk) and send Cartesian targets "
-                     "(ik), through the mux, smoothing filter and collision gate. Without -c it is interactive "
-                     "(line editing, history, tab completion); commands are read from stdin when it is not a "
-                     "terminal.")
+    p.description = help_paragraph(
+        "The MDS-Ach console: move joints (goto), read them (get, get fk) and send Cartesian targets (ik), through "
+        "the mux, smoothing filter and collision gate. Without -c it is interactive (line editing, history, tab "
+        "completion); commands are read from stdin when it is not a terminal.")
     p.epilog = USAGE + "\n\nexamples:\n  mds-ach console -c 'get fk left'\n  mds-ach console -c 'goto LSP -0.3 wait' " \
                        "-c 'get LSP'"
     p.formatter_class = argparse.RawDescriptionHelpFormatter

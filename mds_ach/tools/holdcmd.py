@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+import mds_ach as mds
 from mds_ach import ach
+from mds_ach.ach.watch import Latest
 from mds_ach.argtypes import seconds
 from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import JOINTS
@@ -18,17 +20,41 @@ from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_HELD
 
 
-def held_summary(st: MDS_MUX_STATE | None) -> str:
-    """One line for ``mds-ach status`` and the console: which joints the mux holds (and which are cancelled)."""
+def enabled_joints(state: mds.MDS_STATE | None) -> set[int] | None:
+    """Addresses of the joints the daemon drives (``mds-state`` ``joint[].enabled``); None without a state."""
+    if state is None:
+        return None
+    return {j.address for j in JOINTS if state.joint[j.address].enabled}
+
+
+def newest_enabled() -> set[int] | None:
+    """:func:`enabled_joints` of the newest ``mds-state`` frame (None when there is none)."""
+    watch = Latest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+    try:
+        return enabled_joints(watch.read())
+    finally:
+        watch.close()
+
+
+def held_summary(st: MDS_MUX_STATE | None, enabled: set[int] | None = None, resume: str = "mds-ach resume") -> str:
+    """One line for ``mds-ach status``, ``hold`` and the console: which joints the mux holds (and which are
+    cancelled). With ``enabled`` (:func:`enabled_joints`) only those are named: the mux holds the disabled ones too
+    ("hold all" holds every address), but they never move anyway, and 43 names hide the ones that matter."""
     if st is None:
         return "unknown (no mds-mux-state: is the mux running?)"
-    held = [j.short for j in JOINTS if st.held[j.address] == MUX_HELD]
-    cancelled = [j.short for j in JOINTS if st.held[j.address] == MUX_CANCELLED]
+    shown = [j for j in JOINTS if enabled is None or j.address in enabled]
+
+    def names(flag: int) -> str:
+        these = [j.short for j in shown if st.held[j.address] == flag]
+        if enabled and len(these) == len(shown):
+            return f"every enabled joint ({len(these)})"
+        return " ".join(these)
+
     parts = []
-    if held:
-        parts.append(f"held {' '.join(held)} (mds-ach resume)")
-    if cancelled:
-        parts.append(f"cancelled {' '.join(cancelled)} (until a new command)")
+    if held := names(MUX_HELD):
+        parts.append(f"held {held} ({resume})")
+    if cancelled := names(MUX_CANCELLED):
+        parts.append(f"cancelled {cancelled} (until a new command)")
     return "; ".join(parts) if parts else "none"
 
 
@@ -58,7 +84,7 @@ def _run(args: argparse.Namespace, verb: str) -> int:
     if not ack.ok:
         print(f"mds-ach {verb}: {ack.message}", file=sys.stderr)
         return 1
-    print(f"{verb}: {cmd.what}; {ack.message}; held now: {held_summary(ack.state)}")
+    print(f"{verb}: {cmd.what}; {ack.message}; held now: {held_summary(ack.state, newest_enabled())}")
     return 0
 
 

@@ -17,6 +17,7 @@ import os
 import shlex
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -28,15 +29,16 @@ from mds_ach import ach
 from mds_ach import procs as background
 from mds_ach.argtypes import seconds
 from mds_ach.kinematics.limits import current_limits, read_published
-from mds_ach.paths import bin_name, runtime_dir
+from mds_ach.paths import bin_name, config_path, runtime_dir
 from mds_ach.robot import calibfiles, contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
 from mds_ach.robot.choice import effective_robot, name_problem, save_robot
 from mds_ach.robot.config import ROBOT_ENV, XML_ROBOT, ConfigError, available_robots, describe, load
 from mds_ach.robot.msgs import MDS_MUX_STATE
 from mds_ach.robot.msgs.daemon_status import BUS_STATE_NAMES, CMD_OK, MDS_DAEMON_STATUS
+from mds_ach.robot.msgs.ik_status import IK_PROBE_MOVE
 from mds_ach.tools import canlink, repair
-from mds_ach.tools.holdcmd import held_summary
+from mds_ach.tools.holdcmd import held_summary, newest_enabled
 from mds_ach.tools.monitor import (
     TABLE_FILE,
     Latest,
@@ -62,6 +64,7 @@ ENTRY_POINTS: dict[str, str] = {
 DEFAULT_START_TIMEOUT = 60.0  # s; first start on a loaded 2-core machine imports torch, fcl and rclpy
 DEFAULT_STOP_GRACE = 5.0  # s between SIGTERM and SIGKILL
 LOG_TAIL_LINES = 25
+WORLD_RECORD = "world"  # in the runtime dir: the world file the collision gate started with (the viewer draws it)
 
 Printer = Callable[[str], None]
 
@@ -235,6 +238,54 @@ def world_file(path: str | None) -> str | None:
     return str(Path(path).resolve())
 
 
+def host_user(uid: int) -> str:
+    """A uid as seen here, named as the machine's accounts see it: inside the user namespace of a rootless
+    tools/netns-run the user is uid 0 and every unmapped owner (root's files among them) shows as the overflow uid;
+    /proc/self/uid_map tells them apart."""
+    outside: int | None = uid
+    try:
+        ranges = [tuple(int(x) for x in line.split()) for line in Path("/proc/self/uid_map").read_text().splitlines()]
+        if ranges != [(0, 0, 4294967295)]:  # inside a user namespace
+            outside = next((out + uid - inside for inside, out, count in ranges if inside <= uid < inside + count),
+                           None)
+    except (OSError, ValueError):
+        pass
+    if outside is None:
+        return f"a user outside this user namespace (shown here as uid {uid}; root after 'sudo make run')"
+    import pwd
+
+    try:
+        return f"{pwd.getpwuid(outside).pw_name} (uid {outside})"
+    except KeyError:
+        return f"uid {outside}"
+
+
+def another_users_channels(names: Sequence[str]) -> str | None:
+    """One explanation when the refused channels are another user's system's (issue 28: after `sudo make run`,
+    `make run` as a normal user on the same /dev/shm listed every channel with a fix that cannot work without that
+    user): all owned by one other user, with the modes the stack gives them. None otherwise (a plant: each line
+    says what is wrong)."""
+    from mds_ach.robot import access
+
+    owners = set()
+    for name in names:
+        try:
+            st = os.lstat(ach.shm_path(name))
+        except OSError:
+            return None
+        a_system_made_it = stat.S_ISREG(st.st_mode) and not st.st_mode & 0o777 & ~access.channel_mode(name)
+        if st.st_uid in access.trusted_owners() or not a_system_made_it:
+            return None
+        owners.add(st.st_uid)
+    if len(owners) != 1:
+        return None
+    who = host_user(owners.pop())
+    killall = Path(sys.executable).parent / "mds-ach"
+    return (f"refusing to start: the MDS channels in /dev/shm belong to {who}, not to you ({host_user(os.geteuid())}):"
+            f" a system that user runs or ran here (make run shares this machine's /dev/shm). As that user, stop it "
+            f"and remove them, e.g. 'sudo {killall} killall' (it also stops that user's nodes), then start again.")
+
+
 def child_env(anatomy: str | None = None, overlay: str | None = None) -> dict[str, str]:
     """The nodes' environment: ours, unbuffered output for live logs, the saved robot choice, and the calibration
     files of ``--anatomy``/``--overlay`` (as $MDS_ACH_ANATOMY/$MDS_ACH_OVERLAY: every node reads the same table)."""
@@ -346,8 +397,9 @@ class _Heartbeat:
 
 
 class _IkProbe(_Heartbeat):
-    """The IK node publishes only answers, and drops requests sent before it is ready: ask it a request it
-    must refuse (``move = -1``, nothing can move) every 0.5 s until an answer appears on ``mds-ik-state``."""
+    """The IK node publishes only answers, and drops requests sent before it is ready: send it the probe request
+    (``move = IK_PROBE_MOVE``: refused, nothing can move, logged as a probe) every 0.5 s until an answer appears on
+    ``mds-ik-state``."""
 
     def __init__(self) -> None:
         super().__init__(mds.MDS_CHAN_IK_STATE_NAME)
@@ -359,7 +411,7 @@ class _IkProbe(_Heartbeat):
         if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
             return True
         if time.monotonic() >= self.next_probe:
-            self.requests.put(mds.MDS_IK(move=-1))
+            self.requests.put(mds.MDS_IK(move=IK_PROBE_MOVE))
             self.next_probe = time.monotonic() + 0.5
         return False
 
@@ -421,7 +473,7 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
            out: Printer = _out, group: str | None = None, foreground: bool = False,
            world: str | None = None, anatomy: str | None = None,
-           overlay: str | None = None, params: str | None = None) -> dict[str, subprocess.Popen]:
+           overlay: str | None = None, params: str | None = None, verb: str = "start") -> dict[str, subprocess.Popen]:
     """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
     until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``). ``foreground``: the nodes
     die with this process (``start_node``'s ``die_with_launcher``). ``world``: a world objects file for the
@@ -438,7 +490,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
 
     ``anatomy``/``overlay``: calibration XML for every node (``mds_ach.robot.calibfiles``); the joint table is
     loaded here first, so a bad file starts nothing. A real start (not ``nocan``) without any CAN configuration
-    uses SocketCAN can0 at 1 Mbit/s and brings a SocketCAN link up first (``canlink``)."""
+    uses SocketCAN can0 at 1 Mbit/s and brings a SocketCAN link up first (``canlink``). ``verb``: the command that
+    called (``start``/``run``), named in the hint for the simulated robot."""
     rt = rt or runtime_dir()
     world = world_file(world)
     check_params(params, nocan, out)
@@ -449,15 +502,16 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
         try:
             out("  CAN link " + canlink.ensure_up(*link))
         except canlink.CanLinkError as exc:
-            raise LaunchError("daemon", f"CAN link: {exc}") from None
+            raise LaunchError("daemon", f"CAN link: {exc}\n  no robot here? the simulated one: "
+                                        f"'mds-ach {verb} nocan'") from None
     try:
         reports = make_channels(group=group)
     except ValueError as exc:  # unknown group
         raise LaunchError("", str(exc)) from None
     bad = [r for r in reports if not r.ok]
     if bad:
-        raise LaunchError("", "refusing to start, channel problems:\n"
-                          + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
+        raise LaunchError("", another_users_channels([r.name for r in bad]) or "refusing to start, channel "
+                          "problems:\n" + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
     already = running_nodes(rt)
     env = child_env(anatomy, overlay)
     procs: dict[str, subprocess.Popen] = {}
@@ -474,6 +528,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
                                      die_with_launcher=foreground)
             out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
         wait_ready(procs, checks, timeout, rt, abort)
+        if "collision" in procs:  # what the running gate uses, for `mds-ach sim` (viewer.system_world)
+            (rt / WORLD_RECORD).write_text((world or str(config_path("world.yaml"))) + "\n")
         if starts_daemon:
             (rt / TABLE_FILE).write_text(table_text + "\n")
             if link is not None:
@@ -537,6 +593,16 @@ def stop_nodes(names: Iterable[str] = NODES, grace: float = DEFAULT_STOP_GRACE, 
     return list(pids)
 
 
+def stop_viewer(rt: Path | None = None, out: Printer = _out) -> None:
+    """Stop the background 3-D viewer (`mds-ach sim`) of this runtime dir: it ends with the system, so its page
+    (a way to move the robot) is never left open after a stop."""
+    from mds_ach.tools.viewer import stop_viewer as stop  # light: the viewer's heavy imports are lazy
+
+    pid = stop(rt or runtime_dir())
+    if pid is not None:
+        out(f"  {'viewer':<10} stopped (pid {pid})")
+
+
 # --------------------------------------------------------------------------------------------- commands
 
 
@@ -598,6 +664,8 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     rt = rt or runtime_dir()
     lines = [f"runtime dir {rt}"]
     running = running_nodes(rt)
+    if not running:
+        lines.append("MDS-Ach is not running (no node runs; start it with 'mds-ach run nocan' or 'mds-ach start')")
     for name in NODES:
         pid = running.get(name)
         stale = pid is None and pid_path(name, rt).exists()
@@ -634,23 +702,32 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     collide = Latest(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
     mux = Latest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
     gate_input = Latest(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)  # what the gate checks against the limits
+    seen: list[str] = []
     try:
         daemon.read()
-        live = daemon.wait_new(0.5) is not None  # a dead daemon's last frame is still in the channel
-        stale_note = "" if live or daemon.frame is None else "  STALE: no update within 0.5 s"
-        lines.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
-        lines.append("collision  " + collision_summary(collide.read()))
-        lines.append("held       " + held_summary(mux.read()))
+        live = bool(running) and daemon.wait_new(0.5) is not None  # a dead daemon's last frame stays in the channel
+        stale_note = "" if live or daemon.frame is None or not running else "  STALE: no update within 0.5 s"
+        seen.append("daemon     " + daemon_line(daemon.frame, None) + stale_note)
+        seen.append("collision  " + collision_summary(collide.read()))
+        seen.append("held       " + held_summary(mux.read(), newest_enabled()))
         try:
-            lines.append("limits     " + limits_line(current_limits(), gate_input.read()))
+            seen.append("limits     " + limits_line(current_limits(), gate_input.read()))
         except ValueError as exc:  # a broken joint table or URDF: say so, the rest of the status still counts
-            lines.append(f"limits     unknown: {exc}")
+            seen.append(f"limits     unknown: {exc}")
+        if not running and daemon.frame is not None:  # history, never to be read as the robot's state now
+            age = time.monotonic() - float(daemon.frame.time)
+            when = f"{age:.0f} s ago" if 0 <= age < 10 * 86400 else "before this boot or clock"
+            lines.append(f"last seen  (history, not live: what the channels held when the system stopped, "
+                         f"last daemon frame {when})")
+            seen = ["  " + line for line in seen]
+        elif not running:
+            seen = []
     finally:
         daemon.close()
         collide.close()
         mux.close()
         gate_input.close()
-    return lines, 1 if problems else (0 if len(running) == len(NODES) else 3)
+    return lines + seen, 1 if problems else (0 if len(running) == len(NODES) else 3)
 
 
 # --------------------------------------------------------------------------------------------- foreground run
@@ -723,7 +800,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
         started = True
         try:
             procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True, world=world,
-                           anatomy=anatomy, overlay=overlay, params=params)
+                           anatomy=anatomy, overlay=overlay, params=params, verb="run")
         except LaunchError as exc:
             if abort():
                 out("interrupted; everything stopped")
@@ -750,6 +827,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
     finally:
         if started:  # whatever happened above (an error included), nothing this run started is left behind
             stop_nodes(NODES, rt=rt, procs=procs, out=out)
+            stop_viewer(rt, out)
         for s, handler in old.items():
             signal.signal(s, handler)
 
@@ -817,7 +895,8 @@ def run_start(args: argparse.Namespace) -> int:
 def add_run_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Start everything in the foreground, print what to do next, and stop everything cleanly "
                      "on Ctrl-C, SIGTERM or SIGHUP (terminal closed), when its output pipe breaks and when its parent "
-                     "exits: nothing is left running (this is what 'make run' does, with --nocan).")
+                     "exits: nothing is left running, the 3-D viewer ('mds-ach sim') included (this is what 'make run' "
+                     "does, with --nocan).")
     _add_nocan(p)
 
 
@@ -828,7 +907,8 @@ def run_run(args: argparse.Namespace) -> int:
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = "Stop the nodes: SIGTERM (clients and pipeline first, the daemon last), SIGKILL after a grace time."
+    p.description = ("Stop the nodes: SIGTERM (clients and pipeline first, the daemon last), SIGKILL after a grace "
+                     "time; without NODE also the 3-D viewer ('mds-ach sim').")
     p.add_argument("--grace", type=seconds(zero=True), default=DEFAULT_STOP_GRACE,
                    help=f"seconds to wait after SIGTERM before SIGKILL (default {DEFAULT_STOP_GRACE:g})")
     p.add_argument("nodes", nargs="*", metavar="NODE", help=f"only these nodes ({', '.join(NODES)})")
@@ -840,6 +920,8 @@ def run_stop(args: argparse.Namespace) -> int:
         _err(f"mds-ach stop: unknown node(s) {', '.join(unknown)}; nodes: {', '.join(NODES)}")
         return 2
     stopped = stop_nodes(args.nodes or NODES, grace=args.grace)
+    if not args.nodes:
+        stop_viewer()
     if not stopped:
         _out("nothing was running")
     return 0
@@ -850,7 +932,9 @@ def add_kill_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_kill(args: argparse.Namespace) -> int:
-    if not stop_nodes(NODES, sig=signal.SIGKILL):
+    stopped = stop_nodes(NODES, sig=signal.SIGKILL)
+    stop_viewer()
+    if not stopped:
         _out("nothing was running")
     return 0
 
@@ -861,6 +945,7 @@ def add_killall_arguments(p: argparse.ArgumentParser) -> None:
 
 def run_killall(args: argparse.Namespace) -> int:
     stop_nodes(NODES, sig=signal.SIGKILL)
+    stop_viewer()
     removed = remove_channels()
     _out(f"removed {len(removed)} channels" + (": " + " ".join(removed) if removed else ""))
     return 0
@@ -868,9 +953,10 @@ def run_killall(args: argparse.Namespace) -> int:
 
 def add_status_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Which nodes run, the health of every MDS channel (with the command that repairs a damaged "
-                     "one), the state rate, the daemon's loop rate and bus load, and the collision state. Exit "
+                     "one), the state rate, the daemon's loop rate and bus load, and the collision state; when no "
+                     "node runs it says 'not running' and shows what the channels last held as history. Exit "
                      "status 0 when every node runs and every channel is sound, 1 when a channel is damaged or "
-                     "not to be trusted, 3 when a node is not running.")
+                     "not to be trusted, 3 when a node is not running (none included).")
     p.add_argument("--window", type=seconds(60.0), default=1.0, help="seconds to measure the state rate (default 1)")
 
 

@@ -29,6 +29,7 @@ from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import BY_ADDRESS, JOINTS, lookup
 from mds_ach.robot.msgs import get_name
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
+from mds_ach.tools.cli import help_paragraph
 from mds_ach.tools.monitor import (
     Latest,
     collision_block,
@@ -239,9 +240,10 @@ keys: q quits (Ctrl-C too). Output that is not a terminal gets one snapshot, as 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("Live joint table of the running system at ~20 Hz: Joint, Enabled, address, Commanded Pos, "
-                     "Actual Pos, freshness, the collision block and the daemon's rate and bus load. Read-only: "
-                     "it can start and stop at any time without disturbing anything.")
+    p.description = help_paragraph(
+        "Live joint table of the running system at ~20 Hz: Joint, Enabled, address, Commanded Pos, Actual Pos, "
+        "freshness, the collision block and the daemon's rate and bus load. Read-only: it can start and stop at any "
+        "time without disturbing anything.")
     p.epilog = USAGE_EPILOG
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("view", nargs="*", default=["read"], metavar="VIEW", help="read | all | param N | help")

@@ -13,15 +13,19 @@ translucent ghost, the collision primitives (toggle), the world objects of confi
 in magenta (from ``mds-collide``) and the last IK target as a marker.
 
 ``python -m mds_ach.tools.viewer`` runs it in the foreground; ``mds-ach sim`` / ``mds-ach sim kill`` run it in the
-background (pid file, URL and log in :func:`mds_ach.paths.runtime_dir`).
+background (pid file, URL and log in :func:`mds_ach.paths.runtime_dir`), and the launcher's stops end it with the
+system. The page and its websocket need the token in the URL (:mod:`mds_ach.tools.viewer_door`); the sliders write
+with the rights of the user who started the viewer.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import ctypes
 import ipaddress
 import math
+import os
 import signal
 import socket
 import sys
@@ -47,6 +51,7 @@ from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import MODEL_JOINTS, lookup
 from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS, STATUS_NAMES
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
+from mds_ach.tools.viewer_door import Door, guarded, new_token
 
 if TYPE_CHECKING:  # heavy imports stay out of `import mds_ach.tools.viewer` (the `mds-ach sim` start-up path)
     import trimesh
@@ -405,7 +410,13 @@ class Viewer:
         self.options = options
         self.model = kin.load_model(options.urdf)  # None: the package's urdf/mds.urdf
         _use_shipped_client()
-        self.server = viser.ViserServer(host=options.host, port=options.port, label="MDS", verbose=False)
+        self.door = Door(new_token(), options.host)  # the page and its websocket need the token (viewer_door)
+        with guarded(self.door):
+            self.server = viser.ViserServer(host=options.host, port=options.port, label="MDS", verbose=False)
+        if not self.door.installed:  # fail closed: never serve a page that moves the robot without the token
+            self.server.stop()
+            raise OSError("this viser does not serve through websockets.asyncio.server.serve: the token check "
+                          "cannot be installed; refusing to serve")
         # viser opens a public tunnel when a page asks for a share link: never from this viewer.
         self.server.request_share_url = _refuse_share  # type: ignore[method-assign]
         self.server.gui.configure_theme(control_layout="fixed", show_share_button=False, brand_color=(40, 90, 160))
@@ -425,7 +436,8 @@ class Viewer:
         self.problems: list[str] = []  # shown under the status line
         self.collision = self._collision_scene()
         self.world_frame = self.server.scene.add_frame(WORLD_PATH, show_axes=False)
-        self._add_world(options.world or paths.config_path("world.yaml"))
+        self.world_path = options.world or system_world() or paths.config_path("world.yaml")
+        self._add_world(self.world_path)
         self.ik_marker = self.server.scene.add_icosphere(
             f"{self.solid.link_path('torso')}/ik_target", radius=0.03, color=IK_RGB, visible=False, cast_shadow=False
         )
@@ -545,9 +557,15 @@ class Viewer:
             self.slider_status.content = "off: the sliders follow the reference"
 
     def _open_ref_channel(self) -> str:
-        """Open mds-ref-filter for writing (never create it: no running system, no references)."""
+        """Open mds-ref-filter for writing (never create it: no running system, no references). The viewer writes
+        with its own process's rights: a viewer started by a user who may not write the channel stays read-only,
+        whoever opens its page."""
         if self.last_state is None:
             return f"no `{mds.MDS_CHAN_STATE_NAME}` frame yet"
+        path = ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME)
+        if os.path.exists(path) and not os.access(path, os.R_OK | os.W_OK):
+            return (f"read-only: this viewer runs as {_user_name()}, who may not write `{mds.MDS_CHAN_REF_FILTER_NAME}`"
+                    " (only users who may write the reference channels move the robot from the viewer)")
         refs = RefWriter(mds.MDS_CHAN_REF_FILTER_NAME)
         try:
             refs.open()
@@ -656,8 +674,9 @@ class Viewer:
             self.status.content = text
 
     def url(self) -> str:
+        """The page's URL, with the token: the only way in (viewer_door)."""
         host = self.server.get_host()
-        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}"
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}/{self.door.token}/"
 
     def run(self, stop: threading.Event) -> None:
         """Tick at ``rate_hz`` on an absolute schedule until ``stop`` is set."""
@@ -672,14 +691,39 @@ class Viewer:
                 delay = 0.0
             stop.wait(max(delay, 0.0))
 
-    def close(self) -> None:
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop writing, then stop the server and wait (up to ``timeout`` s) until its event loop has ended: the
+        port is closed when this returns."""
         for watch in (self.state, self.collide, self.ik, self.ik_state):
             watch.close()
         with self._ref_lock:
             if self._refs is not None:
                 self._refs.close()
                 self._refs = None
+        loop = self.server.get_event_loop()
+        loop.set_exception_handler(_quiet_teardown)
         self.server.stop()
+        deadline = time.monotonic() + timeout
+        while loop.is_running() and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+
+def _quiet_teardown(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+    """The server's event-loop error handler once the viewer closes. viser 1.0 ends a connection's message tasks
+    sloppily when the server stops with pages open: a producer raises StopAsyncIteration nobody retrieves and
+    waiting tasks are dropped pending, which asyncio reports at exit as "Task exception was never retrieved" /
+    "Task was destroyed but it is pending!". Those two, for these causes, are the normal end of a page's
+    connection, not errors; anything else is still reported."""
+    import websockets.exceptions
+
+    exc = context.get("exception")
+    message = str(context.get("message", ""))
+    if message.startswith("Task was destroyed but it is pending") or (
+        message.startswith("Task exception was never retrieved")
+        and isinstance(exc, StopAsyncIteration | websockets.exceptions.ConnectionClosed)
+    ):
+        return
+    loop.default_exception_handler(context)
 
 
 def _use_shipped_client() -> None:
@@ -696,6 +740,26 @@ def _use_shipped_client() -> None:
             raise FileNotFoundError(f"viser's web client is missing ({_client_autobuild.build_dir}); reinstall viser")
 
     _client_autobuild.ensure_client_is_built = check
+
+
+def _user_name() -> str:
+    import pwd
+
+    uid = os.geteuid()
+    try:
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except KeyError:
+        return f"uid {uid}"
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable by this user only (0600, atomic): the URL file carries the token."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    tmp.replace(path)
 
 
 def _ik_status_type() -> type[ctypes.Structure]:
@@ -759,7 +823,9 @@ def add_server_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"scene updates per second (default {DEFAULT_RATE_HZ:g})",
     )
     parser.add_argument("--urdf", type=Path, default=None, help="robot model (default: the package's urdf/mds.urdf)")
-    parser.add_argument("--world", type=Path, default=None, help="world objects YAML (default: config/world.yaml)")
+    parser.add_argument("--world", type=Path, default=None,
+                        help="world objects YAML (default: the running system's, the one its collision gate started "
+                             "with, else config/world.yaml)")
     parser.add_argument(
         "--sliders",
         action=argparse.BooleanOptionalAction,
@@ -774,7 +840,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m mds_ach.tools.viewer",
         description="3-D view of the MDS robot in the browser, live from the Ach channels: measured pose (solid), "
         "reference (ghost), collision primitives, world objects, collisions (magenta) and the IK target. "
-        "Read-only, except the optional slider panel that writes mds-ref-filter. Ctrl-C stops it. "
+        "Read-only, except the optional slider panel that writes mds-ref-filter (with this user's rights). The URL "
+        "it prints carries an access token: without it the page is refused. Ctrl-C stops it. "
         "`mds-ach sim` runs it in the background.",
     )
     add_server_arguments(parser)
@@ -819,11 +886,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"viewer: cannot start: {exc}", file=sys.stderr)
         return 1
     url = viewer.url()
-    print(f"mds-ach viewer: {url}", flush=True)
-    if options.url_file is not None:
-        tmp = options.url_file.with_name(options.url_file.name + ".tmp")
-        tmp.write_text(url + "\n")
-        tmp.replace(options.url_file)
+    if options.url_file is None:
+        print(f"mds-ach viewer: {url}  (the URL carries its access token: keep it to yourself)", flush=True)
+    else:  # the background viewer's log may be readable by others: the token goes only to the 0600 URL file
+        print(f"mds-ach viewer: serving on {url.rsplit('/', 2)[0]}/ (URL with the token in {options.url_file})",
+              flush=True)
+        write_private(options.url_file, url + "\n")
     try:
         viewer.run(stop)
     finally:
@@ -833,14 +901,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def system_world(run_dir: Path | None = None) -> Path | None:
+    """The world file the running system's collision gate started with (recorded by the launcher in the runtime
+    dir), so the viewer draws the objects the gate checks; None when no start recorded one."""
+    from mds_ach.tools.launcher import WORLD_RECORD  # lazy, as the launcher imports this module lazily too
+
+    try:
+        text = ((run_dir or paths.runtime_dir()) / WORLD_RECORD).read_text().strip()
+    except OSError:
+        return None
+    return Path(text) if text and Path(text).is_file() else None
+
+
 def _is_viewer(argv: list[str]) -> bool:
     return "mds_ach.tools.viewer" in argv
 
 
-def running_viewer() -> int | None:
+def running_viewer(run_dir: Path | None = None) -> int | None:
     """The background viewer's pid, if its pid file names a live viewer (never a recycled pid, a zombie or a
     dead task)."""
-    return background.running_pid(paths.runtime_dir() / SIM_PID, _is_viewer)
+    return background.running_pid((run_dir or paths.runtime_dir()) / SIM_PID, _is_viewer)
 
 
 def start_background(argv: Sequence[str], timeout: float = 60.0) -> int:
@@ -875,18 +955,32 @@ def start_background(argv: Sequence[str], timeout: float = 60.0) -> int:
         background.remove_pid_file(pid_file)
         raise
     print(f"viewer running (pid {proc.pid}): {url_file.read_text().strip()}")
-    print("stop it with: mds-ach sim kill")
+    print(LIFETIME_NOTE.format(url_file=url_file))
     return 0
 
 
-def stop_background(timeout: float = 10.0) -> int:
-    """Stop the background viewer: SIGTERM, then SIGKILL if it is still there after ``timeout`` s."""
-    run_dir = paths.runtime_dir()
-    pid = running_viewer()
+LIFETIME_NOTE = (
+    "The URL carries the viewer's access token (also in {url_file}, readable only by you): without it the page and "
+    "its websocket are refused. The viewer stops with the system: Ctrl-C of `mds-ach run` / `make run`, "
+    "`mds-ach stop`, `kill`, `killall`; `mds-ach sim kill` stops it alone."
+)
+
+
+def stop_viewer(run_dir: Path | None = None, timeout: float = 10.0) -> int | None:
+    """Stop the background viewer of ``run_dir`` (SIGTERM, SIGKILL after ``timeout`` s) and remove its pid and URL
+    files; returns the pid it stopped, None if none ran. Used by `sim kill` and by the launcher's stops."""
+    run_dir = run_dir or paths.runtime_dir()
+    pid = running_viewer(run_dir)
     if pid is not None:
         background.stop_pid(pid, timeout)
     background.remove_pid_file(run_dir / SIM_PID)
     (run_dir / SIM_URL).unlink(missing_ok=True)
+    return pid
+
+
+def stop_background(timeout: float = 10.0) -> int:
+    """`mds-ach sim kill`."""
+    pid = stop_viewer(timeout=timeout)
     print("viewer not running" if pid is None else f"viewer stopped (pid {pid})")
     return 0
 
@@ -894,8 +988,10 @@ def stop_background(timeout: float = 10.0) -> int:
 def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of the `mds-ach sim` verb."""
     parser.description = (
-        "Start the 3-D viewer in the browser in the background and print its URL; `mds-ach sim kill` stops it. "
-        "It only reads the channels, so it can be started and stopped while the system runs."
+        "Start the 3-D viewer in the browser in the background and print its URL, which carries an access token "
+        "(without it the page is refused). It only reads the channels, except the optional sliders (written with "
+        "the rights of the user who starts it), so it can be started and stopped while the system runs. It stops "
+        "with the system (Ctrl-C of `mds-ach run`, `mds-ach stop`); `mds-ach sim kill` stops it alone."
     )
     parser.add_argument("action", nargs="?", choices=["start", "kill"], default="start", help="default: start")
     add_server_arguments(parser)

@@ -23,6 +23,10 @@ STATUS_NAMES: dict[int, str] = {IK_SOLVED: "solved", IK_UNREACHABLE: "unreachabl
                                 IK_NOT_READY: "not ready", IK_NOT_APPLIED: "not applied",
                                 IK_STOPPED_AT_CONTACT: "stopped at contact"}
 IK_MESSAGE_SIZE = 80
+# A readiness probe (the launcher's): an MDS_IK with move = IK_PROBE_MOVE. Refused like any move that names no arm
+# (IK_BAD_REQUEST, nothing moves) with PROBE_ANSWER as its message, and logged as a probe, not as a warning.
+IK_PROBE_MOVE = -1
+PROBE_ANSWER = "probe answered: the IK node is up; nothing moved"
 IK_STATUS_TOPIC = "/mds/ik_status"
 
 
