@@ -248,14 +248,18 @@ class BridgeNode(Node):
         self._ref_pub = self.create_publisher(JointState, topics.JOINT_REFERENCES, state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self._status_pub = self.create_publisher(String, topics.COMMAND_STATUS, COMMAND_QOS)
+        model = load_model(urdf)
         self._js_msg = JointState(name=self._names)
+        # The URDF root, as joint_state_broadcaster's default frame_id (its own parameter default "base_link").
+        self._js_msg.header.frame_id = model.root
         self._velocity = FiniteDifference()  # state thread only
         self._ref_msg = JointState(name=self._names)
+        self._ref_msg.header.frame_id = model.root
         if p("publish_robot_description").value:
             self._desc_pub = self.create_publisher(String, topics.ROBOT_DESCRIPTION, LATCHED_QOS)
             # The URDF with the effective limits, so MoveIt, RViz sliders and planners use what the robot accepts.
             self._desc_pub.publish(String(data=urdf_with_limits(Path(urdf).read_text(), self._effective)))
-        self._tf = TfPublisher(self, load_model(urdf), self._names) if p("publish_tf").value else None
+        self._tf = TfPublisher(self, model, self._names) if p("publish_tf").value else None
         self.create_subscription(JointState, topics.JOINT_COMMAND, self._on_joint_command, COMMAND_QOS)
         self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, COMMAND_QOS)
         self.create_subscription(Float64MultiArray, topics.JOINT_POSITIONS, self._on_positions, COMMAND_QOS)

@@ -106,6 +106,7 @@ def test_tf_is_the_fk_of_the_joint_states_message_with_its_stamp(harness: TfHarn
     stamp = msg.transforms[0].header.stamp
     js = by_stamp[(stamp.sec, stamp.nanosec)]
     q = dict(zip(js.name, js.position, strict=True))
+    assert js.header.frame_id == MODEL.root  # as joint_state_broadcaster's default frame_id
     assert q["LEP"] < -0.5 and q["RSP"] > 0.2, q  # the simulated pose: not the zero pose
     moving = {j.child: j for j in MODEL.joints.values() if j.type != "fixed" and j.name in q}
     assert {t.child_frame_id for t in msg.transforms} == set(moving)
