@@ -50,6 +50,7 @@ setup(
         ("share/" + PACKAGE, ["package.xml"]),
         *tree("urdf"),
         *tree("config"),
+        *tree("launch"),
         ("share/" + PACKAGE + "/include", glob("include/*.h")),
         ("include", glob("include/*.h")),
     ],

@@ -59,7 +59,8 @@ parameters (--ros-args -p name:=value; `ros2 param describe` shows every one):
   state_channel, ref_channel, ik_channel, allow_ungated, state_qos (reliable|sensor_data),
   goal_position_tolerance, goal_velocity_tolerance, path_position_tolerance, goal_time_tolerance,
   stale_timeout, max_state_age, command_mode, trajectory_mode,
-  ik_dof_left, ik_dof_right, ik_frame, urdf, robot, publish_robot_description, diagnostics_period,
+  ik_dof_left, ik_dof_right, ik_frame, urdf, robot, publish_robot_description, publish_tf,
+  diagnostics_period,
   rt_priority (SCHED_FIFO priority of the state thread, 0 = normal)
 
 examples:

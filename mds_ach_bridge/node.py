@@ -48,6 +48,7 @@ import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.ach.glibc import tune_thread
 from mds_ach.kinematics.limits import current_limits, urdf_with_limits
+from mds_ach.kinematics.model import load_model
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
 from mds_ach.nodes.rosnode import Param, declare, ros_log
@@ -61,6 +62,7 @@ from mds_ach_bridge.ik_request import make_request
 from mds_ach_bridge.limits import load_limits
 from mds_ach_bridge.muxwatch import MuxNews, MuxWatch
 from mds_ach_bridge.stamps import state_stamp_ns
+from mds_ach_bridge.tf import TfPublisher
 from mds_ach_bridge.velocity import FiniteDifference
 
 NODE_NAME = "mds_bridge"
@@ -155,6 +157,8 @@ PARAMETERS = (
     Param("urdf", "", "URDF file for robot_description; empty: the package's urdf/mds.urdf"),
     Param("robot", "", "robot variant of the joint table for the limits; empty: $MDS_ACH_ROBOT, else default"),
     Param("publish_robot_description", True, "publish the URDF on robot_description (transient local)"),
+    Param("publish_tf", True, "publish /tf (moving joints, per joint_states message) and /tf_static (fixed joints) "
+                              "from the URDF, as robot_state_publisher does: false when one runs"),
     Param("rt_priority", 0, "SCHED_FIFO priority (1-99) of the state thread, which wakes on every state frame and "
                             "publishes it; 0 = normal scheduling. Needs CAP_SYS_NICE or an rtprio limit; refused: "
                             "logged, normal priority", range=(0, 99)),
@@ -244,13 +248,18 @@ class BridgeNode(Node):
         self._ref_pub = self.create_publisher(JointState, topics.JOINT_REFERENCES, state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         self._status_pub = self.create_publisher(String, topics.COMMAND_STATUS, COMMAND_QOS)
+        model = load_model(urdf)
         self._js_msg = JointState(name=self._names)
+        # The URDF root, as joint_state_broadcaster's default frame_id (its own parameter default "base_link").
+        self._js_msg.header.frame_id = model.root
         self._velocity = FiniteDifference()  # state thread only
         self._ref_msg = JointState(name=self._names)
+        self._ref_msg.header.frame_id = model.root
         if p("publish_robot_description").value:
             self._desc_pub = self.create_publisher(String, topics.ROBOT_DESCRIPTION, LATCHED_QOS)
             # The URDF with the effective limits, so MoveIt, RViz sliders and planners use what the robot accepts.
             self._desc_pub.publish(String(data=urdf_with_limits(Path(urdf).read_text(), self._effective)))
+        self._tf = TfPublisher(self, model, self._names) if p("publish_tf").value else None
         self.create_subscription(JointState, topics.JOINT_COMMAND, self._on_joint_command, COMMAND_QOS)
         self.create_subscription(JointTrajectory, topics.JOINT_TRAJECTORY, self._on_trajectory, COMMAND_QOS)
         self.create_subscription(Float64MultiArray, topics.JOINT_POSITIONS, self._on_positions, COMMAND_QOS)
@@ -368,6 +377,8 @@ class BridgeNode(Node):
             self._ref_msg.header.stamp = stamp
             self._ref_msg.position = array.array("d", [j.ref for j in js])
             self._ref_pub.publish(self._ref_msg)
+        if self._tf is not None:  # last: its 17 transforms (~0.4 ms) delay no feedback
+            self._tf.publish(positions, stamp)
         if not comparable:
             with self._lock:
                 self._counters.clock_fallbacks += 1

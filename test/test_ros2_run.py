@@ -18,7 +18,7 @@ from support import REPO, VENV_BIN
 
 EXECUTABLES = ["daemon", "filter", "mux", "ik", "collision", "bridge", "console", "read", "mds-ach"]
 SOURCES = ["package.xml", "setup.py", "setup.cfg", "resource", "mds_ach", "mds_ach_bridge", "urdf", "config",
-           "include", "mds_ik.py"]
+           "include", "launch", "mds_ik.py"]
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +98,8 @@ def test_share_files_installed(colcon_install: Path) -> None:
                          check=True, cwd="/")
     share = Path(out.stdout.strip())
     assert share == colcon_install / "mds_ach" / "share" / "mds_ach"
-    for rel in ["package.xml", "urdf/mds.urdf", "config/joints.yaml", "include/mds.h"]:
+    for rel in ["package.xml", "urdf/mds.urdf", "config/joints.yaml", "include/mds.h", "launch/mds.launch.py",
+                "config/moveit/mds.srdf", "config/moveit/kinematics.yaml", "config/mds.rviz"]:
         assert (share / rel).is_file(), f"{rel} not installed to share/mds_ach"
 
 

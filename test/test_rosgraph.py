@@ -79,6 +79,27 @@ def test_ros_shell_is_a_shell_in_the_graph(graph: tuple[dict[str, str], str]) ->
     assert f"ROS_DOMAIN_ID={domain}" in proc.stderr and "'exit' leaves it" in proc.stderr, proc.stderr
 
 
+@pytest.mark.ros
+@pytest.mark.slow
+def test_ros_shell_keeps_the_venv_and_the_graph_whatever_bashrc_does(graph: tuple[dict[str, str], str],
+                                                                      tmp_path: Path) -> None:
+    """A ~/.bashrc that puts another Python first and sets another domain (the README tour's step 4 broke on
+    `No module named 'rclpy'`): the shell still runs this venv's python, with rclpy, in the system's graph."""
+    env, printed = graph
+    domain = re.search(r"ROS_DOMAIN_ID=(\d+)", printed).group(1)  # type: ignore[union-attr]
+    other = tmp_path / "otherbin"
+    other.mkdir()
+    (other / "python").symlink_to("/usr/bin/false")
+    (tmp_path / ".bashrc").write_text(f'export PATH="{other}:$PATH"\nexport ROS_DOMAIN_ID=99\necho bashrc-read\n')
+    script = ('echo "python=$(command -v python) domain=$ROS_DOMAIN_ID"; '
+              "python -c 'import rclpy; print(\"rclpy-ok\")'; exit 3\n")
+    proc = _ros({**env, "HOME": str(tmp_path)}, "--shell", "/bin/bash", verb="ros-shell", stdin=script)
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    assert "bashrc-read" in proc.stdout, "the user's ~/.bashrc is still read"
+    assert f"python={VENV_BIN}/python domain={domain}" in proc.stdout, proc.stdout
+    assert "rclpy-ok" in proc.stdout, proc.stdout + proc.stderr
+
+
 def test_ros_without_a_running_system_says_how_to_start_one(tmp_path: Path) -> None:
     proc = _ros(system_env(tmp_path), "true")
     assert proc.returncode == 1

@@ -217,6 +217,11 @@ class RobotModel:
         return poses
 
 
+def joint_transform(joint: Joint, value: float) -> np.ndarray:
+    """4x4 pose of the joint's child link in its parent link's frame at ``value`` (a /tf transform)."""
+    return joint.origin @ _joint_motion(joint, value)
+
+
 def _joint_motion(joint: Joint, value: float) -> np.ndarray:
     T = np.eye(4)
     if joint.type in _REVOLUTE:

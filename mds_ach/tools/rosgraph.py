@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import shutil
 import sys
 from dataclasses import dataclass
@@ -122,6 +123,27 @@ def summary(env: dict[str, str] | None = None) -> str:
             f"  export ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')} reaches it (or 'mds-ach ros-shell')")
 
 
+def bash_rc(env: dict[str, str]) -> str:
+    """A bash rcfile: the user's ``~/.bashrc``, then this venv first on PATH and the graph's settings again, so a
+    ``~/.bashrc`` that puts another Python first or sets its own ROS_DOMAIN_ID cannot take the shell out of the
+    graph (``python`` there must have rclpy and the package)."""
+    keep = {k: v for k, v in env.items() if _is_graph_key(k) or k == "VIRTUAL_ENV"}
+    lines = ['if [ -f "$HOME/.bashrc" ]; then . "$HOME/.bashrc"; fi',
+             f"export PATH={shlex.quote(str(Path(sys.executable).parent))}:\"$PATH\"",
+             *(f"export {k}={shlex.quote(v)}" for k, v in sorted(keep.items())), "hash -r"]
+    return "\n".join(lines) + "\n"
+
+
+def _rcfile(text: str) -> str:
+    """``text`` readable as a file by the exec'd shell, in whatever mount namespace it runs: an inherited pipe,
+    filled and closed here (no file left behind)."""
+    read_fd, write_fd = os.pipe()
+    os.write(write_fd, text.encode())  # a few hundred bytes: far below a pipe's buffer
+    os.close(write_fd)
+    os.set_inheritable(read_fd, True)
+    return f"/proc/self/fd/{read_fd}"
+
+
 def _exec(argv: list[str], verb: str) -> int:
     """Replace this process with ``argv`` inside the graph (its exit status is the verb's)."""
     try:
@@ -129,11 +151,13 @@ def _exec(argv: list[str], verb: str) -> int:
     except GraphError as exc:
         print(f"mds-ach {verb}: {exc}", file=sys.stderr)
         return 1
-    full = command(graph, argv)
     if graph.join and shutil.which("nsenter") is None:
         print(f"mds-ach {verb}: nsenter (util-linux) is needed to enter the system's namespaces", file=sys.stderr)
         return 1
     env = environment(graph)
+    if verb == "ros-shell" and Path(argv[0]).name == "bash":
+        argv = [argv[0], "--rcfile", _rcfile(bash_rc(env)), *argv[1:]]
+    full = command(graph, argv)
     if verb == "ros-shell":
         where = (f"namespaces ({', '.join(graph.join)}) of {graph.node}, pid {graph.pid}" if graph.join
                  else f"environment of {graph.node}, pid {graph.pid}")
