@@ -16,8 +16,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from tf2_msgs.msg import TFMessage
 
-from mds_ach.kinematics.model import Joint, RobotModel, joint_transform
-from mds_ach.tools.viewer import quaternion_wxyz
+from mds_ach.kinematics.model import Joint, RobotModel, joint_transform, quaternion_wxyz
 
 TF = "/tf"  # absolute, like robot_state_publisher and tf2's listeners
 TF_STATIC = "/tf_static"

@@ -422,11 +422,13 @@ def test_another_user_can_neither_open_the_page_nor_move_the_robot(inproc: viewe
 def test_quaternions_match_viser() -> None:
     from viser.transforms import SO3
 
+    from mds_ach.kinematics import model as kin_model
+
     rng = np.random.default_rng(7)
     rotations = [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
     rotations += [SO3.exp(rng.normal(size=3) * 2.0).as_matrix() for _ in range(200)]
     for rotation in rotations:
-        ours = np.array(viewer.quaternion_wxyz(rotation))
+        ours = np.array(kin_model.quaternion_wxyz(rotation))
         theirs = SO3.from_matrix(rotation).wxyz
         assert np.allclose(ours, theirs, atol=1e-9) or np.allclose(ours, -theirs, atol=1e-9)
 

@@ -134,30 +134,9 @@ def _rgb(rgba: Sequence[float] | None) -> tuple[int, int, int]:
     return (r, g, b)
 
 
-def quaternion_wxyz(rotation: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (w, x, y, z) of a 3x3 rotation matrix (Shepperd's method).
-
-    Scalar code on purpose: the viewer converts a few dozen poses per update, where a batched converter
-    (viser's SO3.from_matrix) costs ~30x more per call.
-    """
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = rotation[:3, :3].tolist()
-    trace = m00 + m11 + m22
-    if trace > 0.0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        return 0.25 * s, (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s
-    if m00 > m11 and m00 > m22:
-        s = 2.0 * math.sqrt(1.0 + m00 - m11 - m22)
-        return (m21 - m12) / s, 0.25 * s, (m01 + m10) / s, (m02 + m20) / s
-    if m11 > m22:
-        s = 2.0 * math.sqrt(1.0 + m11 - m00 - m22)
-        return (m02 - m20) / s, (m01 + m10) / s, 0.25 * s, (m12 + m21) / s
-    s = 2.0 * math.sqrt(1.0 + m22 - m00 - m11)
-    return (m10 - m01) / s, (m02 + m20) / s, (m12 + m21) / s, 0.25 * s
-
-
 def _wxyz_position(matrix: np.ndarray) -> tuple[tuple[float, float, float, float], tuple[float, float, float]]:
     x, y, z = matrix[:3, 3].tolist()
-    return quaternion_wxyz(matrix), (x, y, z)
+    return kin.quaternion_wxyz(matrix), (x, y, z)
 
 
 def _add_mesh(
