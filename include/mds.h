@@ -319,6 +319,7 @@ typedef enum mds_ik_status_code {
     MDS_IK_NOT_READY = 3,
     MDS_IK_NOT_APPLIED = 4,
     MDS_IK_STOPPED_AT_CONTACT = 5,
+    MDS_IK_PROBE_MOVE = -1,
 } mds_ik_status_code_t;
 
 /* ---- mds_mux_state_t (MDS_CHAN_MUX_STATE_NAME) ---- */
