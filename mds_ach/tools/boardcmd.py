@@ -10,13 +10,13 @@ allows it (``allow_encoder_commands``). ``enable`` also clears a joint's follow 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.ach.watch import Latest
+from mds_ach.argtypes import seconds
 from mds_ach.paths import runtime_dir
 from mds_ach.robot.joints import lookup
 from mds_ach.robot.msgs.daemon_status import CMD_OK, CMD_REFUSED, MDS_DAEMON_STATUS
@@ -29,7 +29,8 @@ MAX_TIMEOUT = 600.0  # s
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("joints", nargs="+", metavar="JOINT", help="short or long joint names, addresses, or 'all' (every "
                                                               "enabled joint)")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the daemon's answer to each")
+    p.add_argument("--timeout", type=seconds(MAX_TIMEOUT), default=5.0,
+                   help="seconds to wait for the daemon's answer to each")
 
 
 def _targets(names: list[str]) -> list[tuple[str, int]]:
@@ -49,9 +50,6 @@ def _targets(names: list[str]) -> list[tuple[str, int]]:
 def run(args: argparse.Namespace) -> int:
     verb = args.verb
     code = COMMANDS[verb]
-    if not (math.isfinite(args.timeout) and 0 < args.timeout <= MAX_TIMEOUT):
-        print(f"mds-ach {verb}: --timeout must be in (0, {MAX_TIMEOUT:g}] s, got {args.timeout}", file=sys.stderr)
-        return 2
     try:
         targets = _targets(args.joints)
     except ValueError as exc:
