@@ -18,7 +18,6 @@ from mds_ach import ach
 from mds_ach.ach.watch import Latest
 from mds_ach.argtypes import seconds
 from mds_ach.paths import runtime_dir
-from mds_ach.robot.joints import lookup
 from mds_ach.robot.msgs.daemon_status import CMD_OK, CMD_REFUSED, MDS_DAEMON_STATUS
 
 COMMANDS: dict[str, int] = {"enable": mds.MDS_CMD_ENABLE, "home": mds.MDS_CMD_HOME, "zero": mds.MDS_CMD_ZERO_ENCODER,
@@ -33,25 +32,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seconds to wait for the daemon's answer to each")
 
 
-def _targets(names: list[str]) -> list[tuple[str, int]]:
-    """(label, address) per joint; 'all' alone is address 0. Raises ValueError naming a bad name."""
-    if [n.lower() for n in names] == ["all"]:
-        return [("all", 0)]
-    out = []
-    for name in names:
-        try:
-            joint = lookup(name)
-        except KeyError as exc:
-            raise ValueError(exc.args[0]) from None
-        out.append((joint.short, joint.address))
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     verb = args.verb
     code = COMMANDS[verb]
+    from mds_ach.nodes.daemon import (
+        parse_joint_command,  # lazy: the node module loads rclpy; one parser for CLI and ROS
+    )
+
     try:
-        targets = _targets(args.joints)
+        targets = [(label, address) for label, _, address in parse_joint_command(verb, args.joints)]
     except ValueError as exc:
         print(f"mds-ach {verb}: {exc}", file=sys.stderr)
         return 2
