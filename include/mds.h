@@ -174,6 +174,9 @@ typedef enum mds_cmd_code {
     MDS_CMD_RESET = 4,
     MDS_CMD_ZERO_ENCODER = 5,
     MDS_CMD_RESET_BUS = 6,
+    MDS_CMD_MODE = 7,
+    MDS_CMD_ESTOP = 8,
+    MDS_CMD_ESTOP_RESET = 9,
 } mds_cmd_code_t;
 
 /* ---- joints: the array index of every struct is the CAN node address ---- */
@@ -285,7 +288,7 @@ typedef enum mds_joint_address {
 #define MDS_NECK_JOINTS { MDS_JOINT_NKY, MDS_JOINT_NKP1, MDS_JOINT_NKP2, MDS_JOINT_NKR }
 
 /* ---- mds_daemon_status_t (MDS_CHAN_DAEMON_STATUS_NAME): version and joint_flags[] bits ---- */
-#define MDS_DAEMON_STATUS_VERSION 3
+#define MDS_DAEMON_STATUS_VERSION 4
 #define MDS_DAEMON_JOINT_CONFIGURED 0x0001
 #define MDS_DAEMON_JOINT_ENABLED 0x0002
 #define MDS_DAEMON_JOINT_FRESH 0x0004
@@ -297,6 +300,7 @@ typedef enum mds_joint_address {
 #define MDS_DAEMON_JOINT_BAD_REPLY 0x0100
 #define MDS_DAEMON_JOINT_UNREFERENCED 0x0200
 #define MDS_DAEMON_JOINT_FOLLOW_FAULT 0x0400
+#define MDS_DAEMON_JOINT_SLOWED 0x0800
 /* mds_daemon_status_t.bus_state. */
 typedef enum mds_daemon_bus_state {
     MDS_DAEMON_BUS_STATE_ACTIVE = 0,
@@ -591,8 +595,16 @@ typedef struct MDS_PACKED mds_daemon_status {
     uint8_t loop_policy;                                 /* @2087 */
     uint8_t loop_priority;                               /* @2088 */
     uint8_t memory_locked;                               /* @2089 */
+    uint8_t collaborative;                               /* @2090 */
+    double collaborative_speed;                          /* @2091 */
+    double cartesian_speed;                              /* @2099 */
+    double cartesian_speed_max;                          /* @2107 */
+    uint32_t cartesian_slowed;                           /* @2115 */
+    uint32_t cartesian_braking;                          /* @2119 */
+    uint8_t estop;                                       /* @2123 */
+    double estop_time;                                   /* @2124 */
 } mds_daemon_status_t;
-MDS_STATIC_ASSERT(sizeof(mds_daemon_status_t) == 2090, "mds_daemon_status_t must be 2090 bytes");
+MDS_STATIC_ASSERT(sizeof(mds_daemon_status_t) == 2132, "mds_daemon_status_t must be 2132 bytes");
 
 /* mds-hold frame (packed). */
 typedef struct MDS_PACKED mds_hold {

@@ -148,6 +148,9 @@ MDS_CMD_HOME = 3
 MDS_CMD_RESET = 4
 MDS_CMD_ZERO_ENCODER = 5
 MDS_CMD_RESET_BUS = 6
+MDS_CMD_MODE = 7  # value 1: collaborative mode (hands/elbows <= the Cartesian bound), 0: normal
+MDS_CMD_ESTOP = 8  # category-1 e-stop: brake at the bounds, then DISABLE every drive; latched
+MDS_CMD_ESTOP_RESET = 9  # the operator's reset of a latched e-stop (the drives stay disabled until ENABLE)
 
 
 def _export_joint_constants() -> None:

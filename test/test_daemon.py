@@ -1036,7 +1036,7 @@ def test_the_loop_thread_alone_runs_real_time_by_default(clean_shm) -> None:
         # The others (ROS executor, DDS) at normal scheduling, nice -10: they share the interpreter lock with the loop
         assert len(nice) > 3 and {n for name, n in nice if name != "mds-daemon-loop"} == {-10}, nice
         assert (status.version, status.loop_policy, status.loop_priority, status.memory_locked) == (
-            3, os.SCHED_FIFO, 50, 1)
+            ds.DAEMON_STATUS_VERSION, os.SCHED_FIFO, 50, 1)
         assert "loop real-time (SCHED_FIFO 50, memory locked)" in ds.summary_line(status)
         assert "loop thread: SCHED_FIFO 50, memory locked (mlockall)" in out, out
     else:
@@ -1066,7 +1066,8 @@ def test_without_real_time_the_daemon_says_so_once_and_what_it_means(clean_shm, 
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out
     assert threads == [] and locked == 0
-    assert (status.version, status.loop_policy, status.loop_priority, status.memory_locked) == (3, 0, 0, 0)
+    assert (status.version, status.loop_policy, status.loop_priority, status.memory_locked) == (
+        ds.DAEMON_STATUS_VERSION, 0, 0, 0)
     assert "loop not real-time" in ds.summary_line(status)
     said = [line for line in out.splitlines() if "real-time priority" in line]
     assert len(said) == 1, out

@@ -160,7 +160,7 @@ def test_new_struct_sizes() -> None:
     assert ctypes.sizeof(msgs.MDS_CMD) == 16
     assert ctypes.sizeof(msgs.MDS_IK_STATUS) == 214
     assert ctypes.sizeof(msgs.MDS_MUX_STATE) == 920
-    assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2090
+    assert ctypes.sizeof(msgs.MDS_DAEMON_STATUS) == 2132
 
 
 def test_cmd_offsets() -> None:

@@ -46,6 +46,7 @@ import mds_ach as mds
 from mds_ach.bus import budget, canio
 from mds_ach.bus.canio import CanIO
 from mds_ach.bus.simbus import FaultControl, SimNetwork
+from mds_ach.nodes.collaborative import ModeLog
 from mds_ach.nodes.daemon_loop import (
     MAX_RATE_HZ,
     STALE_AFTER,
@@ -72,6 +73,9 @@ COMMAND_CODES = {"enable": mds.MDS_CMD_ENABLE, "disable": mds.MDS_CMD_DISABLE, "
                  "reset": mds.MDS_CMD_RESET, "zero": mds.MDS_CMD_ZERO_ENCODER,
                  "zero_encoder": mds.MDS_CMD_ZERO_ENCODER, "resetbus": mds.MDS_CMD_RESET_BUS,
                  "reset_bus": mds.MDS_CMD_RESET_BUS}
+# The safety commands of the Command service (issue #31): whole-robot, no joints; (code, value).
+SAFETY_COMMANDS = {"collaborative": (mds.MDS_CMD_MODE, 1.0), "normal": (mds.MDS_CMD_MODE, 0.0),
+                   "estop": (mds.MDS_CMD_ESTOP, 0.0), "estop_reset": (mds.MDS_CMD_ESTOP_RESET, 0.0)}
 # Commands that restart a node's encoder count: the joint leaves its calibrated frame (unreferenced until HOME).
 ENCODER_COMMANDS = {mds.MDS_CMD_ZERO_ENCODER: "zero", mds.MDS_CMD_RESET: "reset"}
 
@@ -245,6 +249,8 @@ def build(args: argparse.Namespace) -> Daemon:
         loop = DaemonLoop(table, io, channels, rate_hz=args.rate, reply_wait=args.reply_wait,
                           stale_after=args.stale_after, filter_length=args.filter_length,
                           collide_gate=not args.no_collide_gate, nocan=args.nocan, rt_priority=args.rt_priority)
+        if args.can_log:  # check-log learns when the Cartesian bound applied (collaborative mode)
+            loop.mode_log = ModeLog(args.can_log, io.wall_offset)
         loop.start_up()
     except Exception:
         io.close()
@@ -353,7 +359,17 @@ def diagnostic_status(st: ds.MDS_DAEMON_STATUS, running: bool, stale_names: list
     if not running:
         level = DiagnosticStatus.ERROR
         problems.append("control loop not running")
+    if st.estop != ds.ESTOP_OFF:
+        level = DiagnosticStatus.ERROR
+        problems.append(f"E-STOP {ds.ESTOP_NAMES.get(st.estop, '?')}: nothing moves until `mds-ach estop reset`, "
+                        "then `mds-ach enable all`")
     values = {
+        "mode": "collaborative" if st.collaborative else "normal",
+        "collaborative_speed_mm_s": f"{st.collaborative_speed * 1e3:g}",
+        "cartesian_speed_mm_s": f"{st.cartesian_speed * 1e3:.1f}",
+        "cartesian_speed_max_mm_s": f"{st.cartesian_speed_max * 1e3:.1f}",
+        "cartesian_slowed": str(st.cartesian_slowed), "cartesian_braking": str(st.cartesian_braking),
+        "estop": ds.ESTOP_NAMES.get(st.estop, "?"),
         "rate_hz": f"{st.rate_hz:g}", "measured_rate_hz": f"{st.measured_rate_hz:.3f}",
         "period_error_p50_ms": f"{st.period_error_p50 * 1e3:.3f}",
         "period_error_p99_ms": f"{st.period_error_p99 * 1e3:.3f}",
@@ -450,14 +466,19 @@ class DaemonNode(Node):
         self.diag_pub.publish(msg)
         self.status_pub.publish(daemon_status_msg(st, self.daemon.loop.running, stale, bad, msg.header.stamp))
 
-    def _run(self, code: int, address: int) -> tuple[bool, str]:
+    def _run(self, code: int, address: int, value: float = 0.0) -> tuple[bool, str]:
         """One command through the control loop (which owns the bus): (succeeded, its message)."""
-        cmd = self.daemon.loop.submit(code, address)
+        cmd = self.daemon.loop.submit(code, address, value)
         if not cmd.done.wait(max(2.0, 5 * self.daemon.loop.period)):
             return False, "the control loop did not answer in time"
         return cmd.result == ds.CMD_OK, cmd.message
 
     def _command(self, request: Command.Request, response: Command.Response) -> Command.Response:
+        safety = SAFETY_COMMANDS.get(request.command.strip().lower())
+        if safety is not None:  # the mode and the e-stop: the whole robot
+            ok, text = self._run(safety[0], 0, safety[1])
+            response.success, response.message, response.failed = ok, text, [] if ok else ["all"]
+            return response
         try:
             commands = parse_joint_command(request.command, list(request.joints))
         except ValueError as exc:

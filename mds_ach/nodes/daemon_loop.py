@@ -84,8 +84,10 @@ from mds_ach.bus.constants import (
 )
 from mds_ach.bus.mcb import Response, StateArg
 from mds_ach.kinematics import limits as effective_limits
+from mds_ach.kinematics.cartesian import ramp_time as cartesian_ramp_time
 from mds_ach.kinematics.limits import EffectiveLimits
 from mds_ach.nodes import filters
+from mds_ach.nodes.collaborative import CollaborativeGuard, ModeSink
 from mds_ach.ratelog import RateLimitedLog, logger_fn
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import contracts, motion
@@ -451,6 +453,10 @@ class DaemonLoop:
         self.status.stale_after, self.status.filter_length = self.stale_after, self.L
         self.status.max_velocity, self.status.max_acceleration = self.bounds.max_velocity, self.bounds.max_acceleration
         self.status.max_interval = self.bounds.max_interval
+        # Collaborative mode (issue #31): the hands' and elbows' Cartesian speed, on the same tracks.
+        self.collab = CollaborativeGuard(table, self.bounds, on=table.collaborative)
+        self.mode_log: ModeSink | None = None  # the daemon's --can-log gets the mode changes (ModeLog)
+        self.status.collaborative, self.status.collaborative_speed = int(self.collab.on), self.collab.max_speed
         self.stats = Stats(max(50, min(2000, int(rate_hz * 10))))
         self.commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
         self._cmd_buf = bytearray(max(ctypes.sizeof(MDS_CMD), channels.cmd.data_size))
@@ -484,6 +490,7 @@ class DaemonLoop:
         """
         self._put(self.ch.param, self.table.to_param())
         self._put(self.ch.limits, self.limits.to_msg(now=self.clock()))
+        self._log_mode(self.clock())
         for ch in (self.ch.ref, self.ch.cmd):
             try:
                 ch.flush()
@@ -729,6 +736,8 @@ class DaemonLoop:
             cmd.done.set()
 
     def _execute(self, cmd: Command, now: float) -> tuple[int, str]:
+        if cmd.code == mds.MDS_CMD_MODE:
+            return self._switch_mode(cmd, now)
         if cmd.code == mds.MDS_CMD_RESET_BUS:
             self.io.reopen()
             self.status.bus_resets += 1
@@ -820,7 +829,7 @@ class DaemonLoop:
         without a trusted, fresh position holds its last target."""
         for jr in self.joints.values():
             cfg = jr.cfg
-            jr.flags &= ~(ds.JOINT_CLAMPED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
+            jr.flags &= ~(ds.JOINT_CLAMPED | ds.JOINT_MOVING | ds.JOINT_LIMITED | ds.JOINT_SLOWED)
             if not cfg.within_limits(jr.ref_r):
                 jr.flags |= ds.JOINT_CLAMPED
             if jr.hold is not None:
@@ -919,15 +928,11 @@ class DaemonLoop:
                 return
         if self.bus_state == ds.BUS_STATE_BUS_OFF:
             return  # nothing gets through; `mds-ach resetbus` re-opens the bus
+        planned = self._cartesian_plan(held)
         for a, jr in self.joints.items():
-            if not jr.enabled or not jr.referenced or jr.hold is not None or jr.homing_since is not None \
-                    or a in held:
-                continue  # (an unreferenced joint's target would be in a shifted frame: nothing until HOME)
             t = self.clock()  # the limiter counts the time up to these very frames
-            if t - jr.last_heard > self.stale_after:
-                continue  # a silent node gets nothing: when it answers again, it goes on from its last target
-            if t < jr.resume_at:
-                continue  # its last MOVETO reached the interface late (``_send``)
+            if not self._sendable(a, jr, held, t):
+                continue
             if jr.reseed:
                 if not self._known(jr, t):
                     continue  # never command a joint from a position the daemon does not know
@@ -938,9 +943,77 @@ class DaemonLoop:
                     continue
                 jr.goal = jr.goal_prev = q
                 jr.goal_t = t
+            elif a in planned:
+                q = self.collab.retime(jr.track, planned[a], jr.goal, t, jr.cfg)
             else:
                 q = self._limited(jr, t)
             self._send(a, jr, q, t)
+
+    def _sendable(self, a: int, jr: JointRuntime, held: frozenset[int], t: float) -> bool:
+        """May the joint be sent a target at ``t``?"""
+        if not jr.enabled or not jr.referenced or jr.hold is not None or jr.homing_since is not None or a in held:
+            return False  # (an unreferenced joint's target would be in a shifted frame: nothing until HOME)
+        if t - jr.last_heard > self.stale_after:
+            return False  # a silent node gets nothing: when it answers again, it goes on from its last target
+        return t >= jr.resume_at  # else its last MOVETO reached the interface late (``_send``)
+
+    def _cartesian_plan(self, held: frozenset[int]) -> dict[int, float]:
+        """Collaborative mode: the velocities of this cycle's upper-body steps that keep the hands and elbows within
+        the Cartesian bound (``CollaborativeGuard.plan``); empty in normal mode. The joints' own limiter runs here,
+        at one instant for the group, and each planned joint is sent at that velocity (``retime``)."""
+        if not self.collab.on:
+            return {}
+        t = self.clock()
+        proposals: dict[int, float] = {}
+        tracks: dict[int, motion.Track] = {}
+        for a in self.collab.addresses:
+            jr = self.joints.get(a)
+            if jr is None:
+                continue
+            tracks[a] = jr.track
+            if self._sendable(a, jr, held, t) and not jr.reseed:
+                proposals[a] = self._limited(jr, t)
+        planned = self.collab.plan(tracks, proposals, t)
+        scaled = self.collab.last
+        st = self.status
+        st.cartesian_speed = scaled.speed
+        if scaled.lam > 0:
+            st.cartesian_slowed += 1
+            for a in proposals:
+                self.joints[a].flags |= ds.JOINT_SLOWED
+        if not scaled.within:
+            st.cartesian_braking += 1
+            if t - self.collab.switched_at > self.collab_ramp:
+                self._warn_rate("cartesian", f"collaborative mode: the hands/elbows at {scaled.speed * 1e3:.0f} mm/s "
+                                             f"> {self.collab.max_speed * 1e3:.0f} mm/s even braking at the joint "
+                                             "bounds")
+        else:
+            st.cartesian_speed_max = max(st.cartesian_speed_max, scaled.speed)
+        return planned
+
+    @property
+    def collab_ramp(self) -> float:
+        b = self.bounds
+        return cartesian_ramp_time(b.max_velocity, b.max_acceleration, b.max_interval)
+
+    def _switch_mode(self, cmd: Command, now: float) -> tuple[int, str]:
+        """MDS_CMD_MODE: value 1 collaborative, 0 normal. Never a step: the joints ramp into the new bound."""
+        if cmd.value not in (0.0, 1.0):
+            return ds.CMD_REFUSED, f"mode {cmd.value:g}: use 1 (collaborative) or 0 (normal)"
+        on = cmd.value == 1.0
+        changed = self.collab.switch(on, now)
+        self.status.collaborative = int(on)
+        if changed and on:
+            self.status.cartesian_speed_max = 0.0
+        if changed:
+            self._log_mode(now)
+        bound = f"hands and elbows <= {self.collab.max_speed * 1e3:.0f} mm/s"
+        what = f"collaborative ({bound})" if on else "normal"
+        return ds.CMD_OK, f"mode {what}" + ("" if changed else " (already)")
+
+    def _log_mode(self, now: float) -> None:
+        if self.mode_log is not None:
+            self.mode_log(now, self.collab.max_speed if self.collab.on else 0.0)
 
     def _limited(self, jr: JointRuntime, t: float) -> float:
         """The joint's goal through the motion bounds from its track, at time ``t``; counted when it differs."""
@@ -1238,7 +1311,8 @@ class DaemonLoop:
             # An unreferenced reading is in a shifted frame: never shown as a position (the gate, IK, viewer use it).
             s.pos, s.vel, s.cur = (jr.pos if jr.referenced else math.nan), (jr.vel if fresh else 0.0), jr.cur
             s.enabled, s.active = int(jr.enabled), int(fresh)
-            flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING | ds.JOINT_LIMITED)
+            flags = jr.flags & (ds.JOINT_CLAMPED | ds.JOINT_REFUSED | ds.JOINT_MOVING | ds.JOINT_LIMITED
+                                | ds.JOINT_SLOWED)
             flags |= ds.JOINT_CONFIGURED | (ds.JOINT_ENABLED if jr.enabled else 0)
             flags |= ds.JOINT_FRESH if fresh else 0 if heard else ds.JOINT_STALE
             flags |= 0 if jr.trusted else ds.JOINT_BAD_REPLY

@@ -157,6 +157,8 @@ class JointTable:
     trajectory_period: int = DEFAULT_TRAJECTORY_PERIOD
     max_velocity: float = motion.DEFAULT_MAX_VELOCITY  # rad/s, every sent target (mds_ach.robot.motion)
     max_acceleration: float = motion.DEFAULT_MAX_ACCELERATION  # rad/s^2
+    collaborative: bool = False  # the daemon starts in collaborative mode (mds_ach.kinematics.cartesian)
+    collaborative_speed: float = motion.COLLABORATIVE_MAX_SPEED  # m/s, the hands' and elbows' bound in that mode
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_by_address", {j.address: j for j in self.joints})
@@ -348,6 +350,9 @@ def _load_yaml(robot: str | None, path: str | Path | None) -> JointTable:
                              f"{base_path}: motion: field 'max_velocity_rad_s'", positive=True),
         max_acceleration=_number(motion_cfg.get("max_acceleration_rad_s2", motion.DEFAULT_MAX_ACCELERATION),
                                  f"{base_path}: motion: field 'max_acceleration_rad_s2'", positive=True),
+        collaborative=_flag(motion_cfg.get("collaborative", False), f"{base_path}: motion: field 'collaborative'"),
+        collaborative_speed=_collaborative_speed(motion_cfg.get("collaborative_speed_mm_s"),
+                                                 f"{base_path}: motion: field 'collaborative_speed_mm_s'"),
     )
     validate(table, str(base_path))
     return table
@@ -442,6 +447,23 @@ def _number(value: Any, where: str, positive: bool = False, allow_none: bool = F
     if positive and value <= 0:
         raise ConfigError(f"{where}: must be > 0, got {value!r}")
     return float(value)
+
+
+def _flag(value: Any, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    return value
+
+
+def _collaborative_speed(value: Any, where: str) -> float:
+    """mm/s in the file, m/s in the table; at most the collaborative bound (configurable down only)."""
+    if value is None:
+        return motion.COLLABORATIVE_MAX_SPEED
+    mm_s = _number(value, where, positive=True)
+    if mm_s > motion.COLLABORATIVE_MAX_SPEED * 1e3:
+        raise ConfigError(f"{where}: {mm_s:g} mm/s is above the collaborative bound "
+                          f"{motion.COLLABORATIVE_MAX_SPEED * 1e3:g} mm/s (it may only be set lower)")
+    return mm_s / 1e3
 
 
 def _integer(value: Any, where: str) -> int:
@@ -679,7 +701,10 @@ def to_yaml(table: JointTable, description: str = "") -> str:
               f"  period: 0x{table.trajectory_period:04X}  # ticks of 1/93750 s (0x0727 = 19.53 ms)",
               "motion:  # the daemon's last-line bounds on every sent target (mds_ach.robot.motion)",
               f"  max_velocity_rad_s: {_fmt(table.max_velocity)}",
-              f"  max_acceleration_rad_s2: {_fmt(table.max_acceleration)}", "joints:"]
+              f"  max_acceleration_rad_s2: {_fmt(table.max_acceleration)}",
+              f"  collaborative: {'true' if table.collaborative else 'false'}  # start in collaborative mode",
+              f"  collaborative_speed_mm_s: {_fmt(table.collaborative_speed * 1e3)}  # hands/elbows, <= 250",
+              "joints:"]
     for j in table.joints:
         lines.append(f"  {j.short}:  # range [{j.lower:.4f}, {j.upper:.4f}] rad, cpr {_fmt(j.cpr)}")
         lines += [f"    {k}: {v}" for k, v in _joint_fields(j).items()]

@@ -38,6 +38,9 @@ MIN_RATE_HZ = 10.0  # the slowest daemon loop the bounds are defined for (the or
 # loop would put a whole move into a handful of targets
 MAX_INTERVAL = 1.5 / MIN_RATE_HZ  # s: the longest interval a step counts on, at every rate >= MIN_RATE_HZ
 LIMIT_MARGIN = 0.9  # the daemon's limiter stays this far inside the bounds
+# Collaborative mode (mds_ach.kinematics.cartesian): the hands' and elbows' Cartesian speed bound, ISO 10218-1's
+# "reduced speed". A joint table may set it lower (``motion: collaborative_speed_mm_s``), never higher.
+COLLABORATIVE_MAX_SPEED = 0.25  # m/s
 # Tolerance of the audit: float32 counts on the wire and float rounding, far below any motion of interest.
 CHECK_TOLERANCE = 1e-6
 

@@ -20,6 +20,12 @@ upstream. Findings, each with the joint, the log time and the value against its 
   such a joint nothing until HOME (docs/reliability.md M2);
 * ``speed``, ``acceleration``: :func:`mds_ach.robot.motion.check` on every target, per joint, exactly the definition
   the daemon's limiter enforces;
+* ``cartesian``: in collaborative mode, a batch of targets (one cycle's, between two position queries) that moves
+  a hand or an elbow faster than the mode's bound, with the robot's FK on the sent targets, exactly the definition
+  the daemon enforces (:mod:`mds_ach.kinematics.cartesian`). Which batches were sent in collaborative mode comes
+  from the daemon's mode log next to its ``--can-log`` (``<log>.modes``, :class:`mds_ach.nodes.collaborative.ModeLog`)
+  or ``--collaborative`` (the whole log); for ``ramp_time`` after a switch into the mode the joints may still be
+  braking into the bound. Every audit reports the fastest hand/elbow it saw, in any mode;
 * ``collision`` (``--collisions``): the commanded pose after a batch of targets collides, with the collision
   gate's model and world file. A joint's entry is its latest target; before its first one, and after a HOME,
   RESET, ZERO_ENCODER or ENABLE (the node holds wherever that leaves it), its measured position. The homing
@@ -80,7 +86,8 @@ import numpy as np
 from mds_ach.argtypes import bounded, count, seconds
 from mds_ach.bus import canio, mcb
 from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
-from mds_ach.kinematics import collision
+from mds_ach.kinematics import cartesian, collision
+from mds_ach.nodes.collaborative import MODES_SUFFIX, read_modes
 from mds_ach.nodes.daemon_loop import HOMED_TOLERANCE, STALE_AFTER, reply_in_range
 from mds_ach.paths import config_path
 from mds_ach.robot import config, motion
@@ -88,7 +95,7 @@ from mds_ach.robot.config import ConfigError, JointConfig, JointTable
 from mds_ach.robot.msgs import MDS_JOINT_COUNT
 
 KINDS = ("non-finite", "limit", "address", "no-position", "silent", "unreferenced", "speed", "acceleration",
-         "collision")
+         "cartesian", "collision")
 MOTION_KINDS = ("speed", "acceleration")
 COUNT_TOLERANCE = 0.5  # counts: float32 rounding of a target at a limit is far below one encoder count
 # Commands after which a node's count restarts or it holds where it is: the next valid reply re-seeds (HOME, a
@@ -144,6 +151,11 @@ class FileReport:
     silent_targets: int = 0  # targets to a joint silent for longer than the stale window (they may not arrive)
     sent: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # (time, rad) per joint, if recorded
     poses_checked: int = 0
+    cartesian_max: float = 0.0  # m/s, the fastest hand/elbow of any batch (any mode)
+    cartesian_point: str = ""
+    cartesian_max_collaborative: float = 0.0  # m/s, ... of the batches checked in collaborative mode
+    cartesian_checked: int = 0  # batches checked against the collaborative bound
+    modes_source: str = ""  # where the audit learnt the mode (a mode log, --collaborative)
     findings: list[Finding] = field(default_factory=list)
 
     @property
@@ -225,8 +237,16 @@ class _Auditor:
     """Consumes one log's frames in order and fills a FileReport."""
 
     def __init__(self, table: JointTable, report: FileReport, model: Any | None, t0: float, whole_run: bool,
-                 record: bool) -> None:
+                 record: bool, modes: Sequence[tuple[float, float]] = ()) -> None:
         self.table = table
+        # The Cartesian audit: the group's last targets (rad) and, for this batch, each sent joint's base and velocity.
+        self.modes = sorted(modes)
+        self.cart_addresses = {table[n].address: n for n in cartesian.JOINTS if _in_table(table, n)}
+        self.cart_q: dict[str, float] = {n: table[n].home for n in cartesian.JOINTS if _in_table(table, n)}
+        self.cart_t: dict[str, float] = {}
+        self.batch: dict[str, tuple[float, float]] = {}  # short name -> (base rad, velocity rad/s)
+        self.batch_h = 0.0
+        self.batch_t = math.inf
         self.r = report
         self.bounds = report.bounds
         self.stale = report.stale_after if report.stale_after is not None else math.inf
@@ -389,6 +409,8 @@ class _Auditor:
             return
         cfg = ja.cfg
         q = cfg.to_joint(counts)
+        if dest in self.cart_addresses:
+            self._cartesian_step(t, ja, q)
         if self.record:
             self.r.sent.setdefault(cfg.short, []).append((t, q))
         silence = t - ja.last_heard if math.isfinite(ja.last_heard) else 0.0
@@ -443,6 +465,65 @@ class _Auditor:
                 tracks.append(track)
         ja.sent = tracks
 
+    # ----- the Cartesian bound (collaborative mode)
+
+    def _cartesian_step(self, t: float, ja: _JointAudit, q: float) -> None:
+        """Record this target's step for the batch: from the joint's previous target, or from where a re-seed
+        measured it (the daemon restarts there), with the joint bounds' velocity."""
+        name = self.cart_addresses[ja.cfg.address]
+        interval = (self.bounds.interval if self.bounds is not None
+                    else motion.MotionBounds(1.0, 1.0, motion.MAX_INTERVAL).interval)
+        if ja.seed is not None:
+            base, since = ja.seed.q, ja.seed.t
+        elif name in self.cart_t:
+            base, since = self.cart_q[name], self.cart_t[name]
+        else:
+            base, since = q, t  # nothing known before it: no step
+        h = interval(t - since)
+        self.batch[name] = (base, (q - base) / h if h > 0 else 0.0)
+        self.batch_h = max(self.batch_h, h)
+        self.batch_t = min(self.batch_t, t)
+        self.cart_q[name], self.cart_t[name] = q, t
+
+    def _cartesian_batch(self) -> None:
+        """The batch's speed; a finding if it was sent in collaborative mode after its ramp and exceeds the bound."""
+        batch, h, t = self.batch, self.batch_h, self.batch_t
+        self.batch, self.batch_h, self.batch_t = {}, 0.0, math.inf
+        if not batch or h <= 0:
+            return
+        base = {n: batch[n][0] if n in batch else self.cart_q[n] for n in self.cart_q}
+        for name, ja in ((n, self.joints[a]) for a, n in self.cart_addresses.items()):
+            if name not in batch and ja.seed is not None:
+                base[name] = ja.seed.q  # re-seeded, not sent since: where it was measured
+        speed, point = cartesian.batch_speed(base, {n: v for n, (_, v) in batch.items()}, h)
+        if speed > self.r.cartesian_max:
+            self.r.cartesian_max, self.r.cartesian_point = speed, point
+        bound, since = self._mode_at(t)
+        if bound <= 0:
+            return
+        ramp = cartesian.ramp_time(self.bounds.max_velocity, self.bounds.max_acceleration,
+                                   self.bounds.max_interval) if self.bounds is not None else 0.0
+        if t - since <= ramp:
+            return  # braking into the bound after the switch
+        self.r.cartesian_checked += 1
+        self.r.cartesian_max_collaborative = max(self.r.cartesian_max_collaborative, speed)
+        if speed > bound * (1 + cartesian.CHECK_TOLERANCE) + cartesian.CHECK_TOLERANCE:
+            joints = " ".join(f"{n} {v:+.3f}" for n, (_, v) in sorted(batch.items()) if v)
+            self._find("cartesian", t, point.replace(" ", "-"), speed, bound,
+                       f"{speed * 1e3:.0f} mm/s > {bound * 1e3:g} mm/s in collaborative mode ({point}; "
+                       f"joint velocities rad/s: {joints})")
+
+    def _mode_at(self, t: float) -> tuple[float, float]:
+        """(bound in m/s, 0 = normal; since when collaborative) at log time ``t``."""
+        bound, since = 0.0, -math.inf
+        for stamp, value in self.modes:
+            if stamp > t:
+                break
+            if value > 0 and bound <= 0:
+                since = stamp
+            bound = value
+        return bound, since
+
     # ----- commanded pose (--collisions)
 
     def _set_pose(self, address: int, q: float) -> None:
@@ -450,6 +531,7 @@ class _Auditor:
 
     def end_batch(self, t: float) -> None:
         """After the targets of one cycle (the next position query, or the end of the log): check the pose."""
+        self._cartesian_batch()
         if self.model is None or not self.pose_dirty:
             return
         self.pose_dirty = False
@@ -486,6 +568,14 @@ class _Auditor:
         self.r.findings.append(Finding(kind, t - self.t0, joint, value, bound, text))
 
 
+def _in_table(table: JointTable, short: str) -> bool:
+    try:
+        table[short]
+    except KeyError:
+        return False
+    return True
+
+
 def _name(code: int) -> str:
     return code.name if hasattr(code, "name") else f"0x{code:02X}"
 
@@ -493,7 +583,7 @@ def _name(code: int) -> str:
 def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds: motion.MotionBounds | None,
                  stale_after: float | None, *, model: Any | None = None, whole_run: bool = False,
                  record_targets: bool = False, report: FileReport | None = None,
-                 directions: bool | None = None) -> FileReport:
+                 directions: bool | None = None, modes: Sequence[tuple[float, float]] = ()) -> FileReport:
     """Audit the frames (time in s, ``can.Message``) of one daemon run, host frames and node replies in order.
 
     ``bounds`` and ``stale_after`` are the daemon's (``None``: speed and acceleration are not checked, no joint is
@@ -501,8 +591,10 @@ def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds:
     any frame is marked sent). ``whole_run``: the frames start when the daemon started (its own ``--can-log``, a test's
     recorder), so a target before its joint's first position (``no-position``) or to a long silent joint
     (``silent``) is a violation instead of a count.
-    ``record_targets`` keeps every target sent, per joint, in ``report.sent``. The findings go into ``report`` as
-    they are found (a caller whose frames fail half-way keeps them); a new one if none is given.
+    ``record_targets`` keeps every target sent, per joint, in ``report.sent``. ``modes``: (time, Cartesian bound in
+    m/s, 0 = normal mode) from then on, on the frames' clock (the daemon's mode log; ``(-inf, bound)``: the whole
+    log). The findings go into ``report`` as they are found (a caller whose frames fail half-way keeps them); a new
+    one if none is given.
     """
     report = report if report is not None else FileReport("")
     report.bounds, report.stale_after = bounds, stale_after
@@ -515,7 +607,7 @@ def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds:
     for t, msg in frames:
         if auditor is None:
             report.start_stamp = t
-            auditor = _Auditor(table, report, model, t, whole_run, record_targets)
+            auditor = _Auditor(table, report, model, t, whole_run, record_targets, modes)
         auditor.frame(t, msg)
         report.frames += 1
     if auditor is not None:
@@ -525,10 +617,20 @@ def audit_frames(frames: Iterable[tuple[float, Any]], table: JointTable, bounds:
 
 
 def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None,
-               stale_after: float | None = None, model: Any | None = None, whole_run: bool = False) -> FileReport:
-    """Audit one log (any format :func:`mds_ach.bus.canio.read_log` reads); never raises for a bad file."""
+               stale_after: float | None = None, model: Any | None = None, whole_run: bool = False,
+               collaborative: float = 0.0) -> FileReport:
+    """Audit one log (any format :func:`mds_ach.bus.canio.read_log` reads); never raises for a bad file.
+    ``collaborative`` (m/s): the whole log was sent in collaborative mode with that bound; else the daemon's mode log
+    ``<path>.modes`` says when, if there is one."""
     report = FileReport(str(path))
     try:
+        modes: list[tuple[float, float]] = []
+        mode_file = Path(str(path) + MODES_SUFFIX)
+        if collaborative > 0:
+            modes, report.modes_source = [(-math.inf, collaborative)], f"--collaborative {collaborative * 1e3:g} mm/s"
+        elif mode_file.is_file():
+            modes = read_modes(mode_file.read_text().splitlines(), str(mode_file))
+            report.modes_source = f"mode log {mode_file.name} ({len(modes)} change(s))"
         report.format = canio.log_format(path)
         period, n, directions = scan(path)
         if rate is not None:
@@ -538,23 +640,24 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
         stale = stale_after if stale_after is not None else STALE_AFTER
         torn: list[str] = []
         audit_frames(((msg.timestamp, msg) for msg in _read(path, torn)), table, table.motion_bounds(), stale,
-                     model=model, whole_run=whole_run, report=report, directions=directions)
+                     model=model, whole_run=whole_run, report=report, directions=directions, modes=modes)
         if not report.frames:
             report.error = "no CAN frames in the file"
             return report
         if torn:
             report.warning = f"{torn[0]}: the frames before it are audited"
-    except (canio.LogReadError, OSError) as exc:
+    except (canio.LogReadError, OSError, ValueError) as exc:
         report.error = str(exc)
         return report
     return report
 
 
 def audit(paths: Sequence[str | Path], table: JointTable, *, rate: float | None = None,
-          stale_after: float | None = None, model: Any | None = None, whole_run: bool = False) -> Report:
+          stale_after: float | None = None, model: Any | None = None, whole_run: bool = False,
+          collaborative: float = 0.0) -> Report:
     """Audit each log on its own (one daemon run per file: a restarted daemon re-seeds like a new log)."""
-    return Report([audit_file(p, table, rate=rate, stale_after=stale_after, model=model, whole_run=whole_run)
-                   for p in paths])
+    return Report([audit_file(p, table, rate=rate, stale_after=stale_after, model=model, whole_run=whole_run,
+                              collaborative=collaborative) for p in paths])
 
 
 # --------------------------------------------------------------------------------------------- the report
@@ -608,6 +711,11 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
                        "is not checked")
         if r.poses_checked:
             out.append(f"  commanded poses checked for collisions: {r.poses_checked}")
+        out.append(f"  fastest hand/elbow: {r.cartesian_max * 1e3:.0f} mm/s" + (f" ({r.cartesian_point})" if
+                                                                              r.cartesian_point else "")
+                   + (f"; collaborative mode ({r.modes_source}): {r.cartesian_checked} batch(es) checked, fastest "
+                      f"{r.cartesian_max_collaborative * 1e3:.0f} mm/s" if r.modes_source else
+                      "; no mode log: the collaborative bound is not checked (--collaborative checks the whole log)"))
     if r.warning:
         out.append(f"  warning: {r.warning}")
     if r.error:
@@ -651,6 +759,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="each log starts when the daemon started (its --can-log, or candump started before it): a "
                         "target to a joint before any position reply of it (no-position), or to a joint silent for "
                         "longer than the stale window (silent), is a violation")
+    p.add_argument("--collaborative", nargs="?", type=bounded(0.0, cartesian.MAX_SPEED * 1e3, above=True,
+                                                               unit="mm/s"),
+                   const=cartesian.MAX_SPEED * 1e3, default=None, metavar="MM_S",
+                   help="the whole log was sent in collaborative mode: check that no batch of targets moved a hand or "
+                        f"an elbow faster than MM_S (default {cartesian.MAX_SPEED * 1e3:g} mm/s); without it the "
+                        f"daemon's mode log FILE{MODES_SUFFIX}, if any, says when the mode was on")
     p.add_argument("--collisions", action="store_true",
                    help="also check every commanded pose with the collision gate's model (self and world)")
     p.add_argument("--world", metavar="FILE", help="world objects for --collisions (default: config/world.yaml)")
@@ -673,8 +787,9 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, OSError, ValueError) as exc:
         print(f"mds-ach check-log: {exc}", file=sys.stderr)
         return 2
+    collaborative = args.collaborative / 1e3 if args.collaborative is not None else 0.0
     report = audit(args.files, table, rate=args.rate, stale_after=args.stale_after, model=model,
-                   whole_run=args.whole_run)
+                   whole_run=args.whole_run, collaborative=collaborative)
     print(format_report(report, table, args.max))
     return report.exit_code
 

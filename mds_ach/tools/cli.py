@@ -82,6 +82,11 @@ VERBS: dict[str, Verb] = {
                  "mds_ach.tools.holdcmd:add_arguments", "mds_ach.tools.holdcmd:run_hold"),
     "resume": Verb("let held joints go on to their controllers' targets (JOINT..., left, right, arms, all)",
                    "mds_ach.tools.holdcmd:add_arguments", "mds_ach.tools.holdcmd:run_resume"),
+    "mode": Verb("collaborative|normal: bound the hands' and elbows' Cartesian speed (250 mm/s) at the daemon; "
+                 "no argument: show the mode",
+                 "mds_ach.tools.safetycmd:add_mode_arguments", "mds_ach.tools.safetycmd:run_mode"),
+    "estop": Verb("category-1 e-stop: brake every joint, then DISABLE the drives (latched); 'estop reset' clears it",
+                  "mds_ach.tools.safetycmd:add_estop_arguments", "mds_ach.tools.safetycmd:run_estop"),
     "console": Verb("interactive console: goto, get, get fk, ik (-c CMD for scripts)",
                     "mds_ach.tools.console:add_arguments", "mds_ach.tools.console:run"),
     "read": Verb("live joint table (Joint, Enabled, address, Commanded/Actual Pos, collisions)",

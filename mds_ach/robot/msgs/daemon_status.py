@@ -11,6 +11,9 @@ pipeline nodes (mux, filter, collision gate) watch to restart a joint's referenc
 Version 3 appends how the control loop thread is scheduled (``loop_policy``, ``loop_priority``, ``memory_locked``):
 whether it runs real-time (SCHED_FIFO/SCHED_RR, it then keeps its period under CPU load) or at normal priority
 (it may stall for seconds on a loaded machine; the bus stays safe). The layout of versions 1-2 is unchanged.
+
+Version 4 appends the collaborative mode (``collaborative``, its Cartesian bound and what it took to keep it,
+``mds_ach.kinematics.cartesian``) and the e-stop (``estop``: ESTOP_*; latched across restarts).
 """
 
 from __future__ import annotations
@@ -19,8 +22,15 @@ import ctypes
 
 from mds_ach.robot.msgs.legacy import MDS_JOINT_COUNT, _Packed
 
-DAEMON_STATUS_VERSION = 3  # 2: motion bounds, stalls, limited targets, bad replies, re-seeds, lock_timeouts
+DAEMON_STATUS_VERSION = 4  # 2: motion bounds, stalls, limited targets, bad replies, re-seeds, lock_timeouts
 # 3: the loop thread's scheduling (loop_policy, loop_priority, memory_locked)
+# 4: collaborative mode and e-stop
+
+# ``estop``: the category-1 e-stop's state.
+ESTOP_OFF = 0
+ESTOP_STOPPING = 1  # latched: every joint brakes at the bounds, then the drives get DISABLE
+ESTOP_STOPPED = 2  # latched: the drives were sent DISABLE; nothing moves until `mds-ach estop reset`, then enable
+ESTOP_NAMES = {ESTOP_OFF: "off", ESTOP_STOPPING: "STOPPING", ESTOP_STOPPED: "STOPPED"}
 
 # ``loop_policy``: Linux's policy numbers (os.SCHED_*).
 LOOP_POLICY_NAMES = {0: "SCHED_OTHER", 1: "SCHED_FIFO", 2: "SCHED_RR", 3: "SCHED_BATCH", 5: "SCHED_IDLE"}
@@ -43,6 +53,7 @@ JOINT_LIMITED = 0x80  # this cycle's target was limited to the motion bounds (it
 JOINT_BAD_REPLY = 0x100  # position replies are implausible (out of range, impossible jump): pos holds the last good
 JOINT_UNREFERENCED = 0x200  # its count restarted (ZERO_ENCODER, RESET, HOME timed out): no target, pos NaN until HOME
 JOINT_FOLLOW_FAULT = 0x400  # mode 2/3: replies and the motion disagree (a reply fed back): held until ENABLE or HOME
+JOINT_SLOWED = 0x800  # collaborative mode: this cycle's step was slowed to keep the hands/elbows within the bound
 
 # Command results (``cmd_result``), echoed with ``cmd_seq`` of the last mds-cmd / service command handled.
 CMD_OK = 0
@@ -119,6 +130,15 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         ("loop_policy", ctypes.c_uint8),  # its scheduling policy: 1 SCHED_FIFO, 2 SCHED_RR (real-time), 0 normal
         ("loop_priority", ctypes.c_uint8),  # its real-time priority (1-99), 0 at normal scheduling
         ("memory_locked", ctypes.c_uint8),  # 1: the daemon's memory is locked (mlockall), no page faults to disk
+        # --- version 4: collaborative mode, e-stop
+        ("collaborative", ctypes.c_uint8),  # 1: hands and elbows within collaborative_speed (Cartesian, sent targets)
+        ("collaborative_speed", ctypes.c_double),  # m/s, the bound in collaborative mode
+        ("cartesian_speed", ctypes.c_double),  # m/s, the fastest hand/elbow of the last cycle's targets (any mode)
+        ("cartesian_speed_max", ctypes.c_double),  # m/s, the fastest in collaborative mode since it was switched on
+        ("cartesian_slowed", ctypes.c_uint32),  # cycles whose steps were slowed for the bound
+        ("cartesian_braking", ctypes.c_uint32),  # cycles over the bound while braking into it (after a switch)
+        ("estop", ctypes.c_uint8),  # ESTOP_*
+        ("estop_time", ctypes.c_double),  # CLOCK_MONOTONIC when this daemon latched it (or found it latched)
     ]
 
 
@@ -127,7 +147,7 @@ def flags_text(flags: int) -> str:
     names = ((JOINT_ENABLED, "en"), (JOINT_FRESH, "fresh"), (JOINT_STALE, "STALE"), (JOINT_CLAMPED, "clamped"),
              (JOINT_REFUSED, "REFUSED"), (JOINT_MOVING, "moving"), (JOINT_LIMITED, "limited"),
              (JOINT_BAD_REPLY, "BAD-REPLY"), (JOINT_UNREFERENCED, "UNREFERENCED"),
-             (JOINT_FOLLOW_FAULT, "FOLLOW-FAULT"))
+             (JOINT_FOLLOW_FAULT, "FOLLOW-FAULT"), (JOINT_SLOWED, "slowed"))
     return " ".join(n for bit, n in names if flags & bit) or "-"
 
 
@@ -155,5 +175,18 @@ def summary_line(st: MDS_DAEMON_STATUS) -> str:
     return (f"{st.measured_rate_hz:.1f}/{st.rate_hz:g} Hz, period err p99 {st.period_error_p99 * 1e3:.2f} ms, "
             f"overruns {st.overruns}, loop {loop_scheduling_text(st)}, "
             f"bus {BUS_STATE_NAMES.get(st.bus_state, '?')} {st.bus_load_avg:.0f}%"
-            f"{' (nocan)' if st.nocan else ''}, stale {st.stale_count}"
+            f"{' (nocan)' if st.nocan else ''}, stale {st.stale_count}, {safety_text(st)}"
             + (", " + ", ".join(faults) if faults else ""))
+
+
+def safety_text(st: MDS_DAEMON_STATUS) -> str:
+    """The e-stop and the mode, for people: 'E-STOP STOPPED, collaborative <= 250 mm/s (slowed 12)'."""
+    parts = []
+    if st.estop != ESTOP_OFF:
+        parts.append(f"E-STOP {ESTOP_NAMES.get(st.estop, '?')}")
+    if st.collaborative:
+        mode = f"collaborative <= {st.collaborative_speed * 1e3:.0f} mm/s (max {st.cartesian_speed_max * 1e3:.0f}"
+        parts.append(mode + (f", slowed {st.cartesian_slowed})" if st.cartesian_slowed else ")"))
+    else:
+        parts.append("normal mode")
+    return ", ".join(parts)
