@@ -55,6 +55,7 @@ from mds_ach.nodes.daemon_loop import (
     lock_timeout_for,
     rate_problem,
 )
+from mds_ach.nodes.estop import InputWatcher, default_latch_path, open_input
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.nodes.rosnode import Param, declare, find, run_node
 from mds_ach.nodes.status_msgs import DAEMON_STATUS_TOPIC, daemon_status_msg
@@ -132,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--allow-encoder-commands", action="store_true",
                       help="let the ROS command service send zero and reset (default: only mds-cmd, i.e. `mds-ach "
                            "zero|reset`, may)")
+    loop.add_argument("--estop-input", metavar="PATH",
+                      help="an e-stop button's line input (a FIFO, a serial line such as /dev/ttyUSB0): a line '1', "
+                           "'estop', 'stop' or 'press' latches the e-stop; the input ending or failing does too")
     loop.add_argument("--rt-priority", type=rt_priority, default=DEFAULT_RT_PRIORITY, metavar="N",
                       help="SCHED_FIFO priority (1-99) of the loop thread, with the daemon's memory locked (default "
                            f"{DEFAULT_RT_PRIORITY}); 0 = normal scheduling. Needs root, CAP_SYS_NICE or an rtprio "
@@ -185,8 +189,11 @@ class Daemon:
     channels: DaemonChannels
     network: SimNetwork | None = None
     faults: FaultControl | None = None  # --sim-faults
+    estop_input: InputWatcher | None = None  # --estop-input
 
     def close(self) -> None:
+        if self.estop_input is not None:
+            self.estop_input.close()
         self.loop.stop()
         if self.faults is not None:
             self.faults.close()
@@ -248,7 +255,8 @@ def build(args: argparse.Namespace) -> Daemon:
     try:
         loop = DaemonLoop(table, io, channels, rate_hz=args.rate, reply_wait=args.reply_wait,
                           stale_after=args.stale_after, filter_length=args.filter_length,
-                          collide_gate=not args.no_collide_gate, nocan=args.nocan, rt_priority=args.rt_priority)
+                          collide_gate=not args.no_collide_gate, nocan=args.nocan, rt_priority=args.rt_priority,
+                          estop_latch=default_latch_path())
         if args.can_log:  # check-log learns when the Cartesian bound applied (collaborative mode)
             loop.mode_log = ModeLog(args.can_log, io.wall_offset)
         loop.start_up()
@@ -262,8 +270,17 @@ def build(args: argparse.Namespace) -> Daemon:
     if args.sim_faults and network is not None:  # checked above: --sim-faults needs --nocan, which made a network
         faults = FaultControl(args.sim_faults, network)
         log.warning("test-only fault injection on %s", args.sim_faults)
+    estop_input = None
+    if args.estop_input:
+        try:
+            estop_input = InputWatcher(open_input(args.estop_input), lambda: loop.submit(mds.MDS_CMD_ESTOP))
+        except ValueError:
+            io.close()
+            channels.close()
+            raise
+        log.info("e-stop input: %s", args.estop_input)
     loop.start()
-    return Daemon(loop, io, channels, network, faults)
+    return Daemon(loop, io, channels, network, faults, estop_input)
 
 
 def parse_command(text: str) -> tuple[int, int]:

@@ -64,6 +64,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -84,10 +85,12 @@ from mds_ach.bus.constants import (
 )
 from mds_ach.bus.mcb import Response, StateArg
 from mds_ach.kinematics import limits as effective_limits
+from mds_ach.kinematics.cartesian import brake_velocity
 from mds_ach.kinematics.cartesian import ramp_time as cartesian_ramp_time
 from mds_ach.kinematics.limits import EffectiveLimits
 from mds_ach.nodes import filters
 from mds_ach.nodes.collaborative import CollaborativeGuard, ModeSink
+from mds_ach.nodes.estop import BRAKE_TIMEOUT, REST_SPEED, SETTLE_TIMEOUT, EStopState, Latch
 from mds_ach.ratelog import RateLimitedLog, logger_fn
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import contracts, motion
@@ -408,7 +411,10 @@ class DaemonLoop:
         rt_priority: int = 0,
         clock: Callable[[], float] = time.monotonic,
         limits: EffectiveLimits | None = None,
+        estop_latch: Path | None = None,
     ) -> None:
+        """``estop_latch``: the file that keeps an e-stop latched across restarts (the daemon passes
+        ``estop.default_latch_path()``; None: in memory only)."""
         problem = rate_problem(rate_hz)
         if problem:
             raise ValueError(problem)
@@ -457,6 +463,8 @@ class DaemonLoop:
         self.collab = CollaborativeGuard(table, self.bounds, on=table.collaborative)
         self.mode_log: ModeSink | None = None  # the daemon's --can-log gets the mode changes (ModeLog)
         self.status.collaborative, self.status.collaborative_speed = int(self.collab.on), self.collab.max_speed
+        self.estop = EStopState(Latch(estop_latch))  # the category-1 e-stop (mds_ach.nodes.estop)
+        self.status.estop = self.estop.state
         self.stats = Stats(max(50, min(2000, int(rate_hz * 10))))
         self.commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
         self._cmd_buf = bytearray(max(ctypes.sizeof(MDS_CMD), channels.cmd.data_size))
@@ -507,6 +515,12 @@ class DaemonLoop:
                     break
             if all(math.isfinite(jr.pos) for jr in self.joints.values()):
                 break
+        if self.estop.found_at_start:
+            self.estop.since = self.status.estop_time = self.clock()
+            log.error("e-stop latched (%s): every drive gets DISABLE; nothing moves until `mds-ach estop reset`, "
+                      "then `mds-ach enable all`", self.estop.latch.path)
+            self.estop.pending_disable = {jr.cfg.address for jr in self.joints.values() if jr.cfg.enabled}
+            self._estop_disable()
         answered = 0
         for jr in self.joints.values():
             if math.isfinite(jr.pos):
@@ -738,6 +752,12 @@ class DaemonLoop:
     def _execute(self, cmd: Command, now: float) -> tuple[int, str]:
         if cmd.code == mds.MDS_CMD_MODE:
             return self._switch_mode(cmd, now)
+        if cmd.code in (mds.MDS_CMD_ESTOP, mds.MDS_CMD_ESTOP_RESET):
+            return self._estop_command(cmd, now)
+        if self.estop.active and cmd.code in (mds.MDS_CMD_ENABLE, mds.MDS_CMD_HOME, mds.MDS_CMD_RESET,
+                                              mds.MDS_CMD_ZERO_ENCODER):
+            return ds.CMD_REFUSED, (f"{COMMAND_NAMES.get(cmd.code, cmd.code)} refused: the e-stop is latched "
+                                    "(`mds-ach estop reset` first)")
         if cmd.code == mds.MDS_CMD_RESET_BUS:
             self.io.reopen()
             self.status.bus_resets += 1
@@ -921,6 +941,9 @@ class DaemonLoop:
         return frozenset(held) if held else None
 
     def _send_targets(self) -> None:
+        if self.estop.active:
+            self._estop_cycle()
+            return  # nothing else moves while the e-stop is latched
         held = self._collision_held()
         if held is None or held:
             self.status.collision_holds += 1
@@ -1010,6 +1033,76 @@ class DaemonLoop:
         bound = f"hands and elbows <= {self.collab.max_speed * 1e3:.0f} mm/s"
         what = f"collaborative ({bound})" if on else "normal"
         return ds.CMD_OK, f"mode {what}" + ("" if changed else " (already)")
+
+    def _estop_command(self, cmd: Command, now: float) -> tuple[int, str]:
+        """MDS_CMD_ESTOP: latch and stop (category 1); MDS_CMD_ESTOP_RESET: clear a latch whose stop is complete."""
+        e = self.estop
+        if cmd.code == mds.MDS_CMD_ESTOP:
+            if not e.trigger(now, "mds-cmd" if cmd.seq else "input"):
+                return ds.CMD_OK, f"e-stop already latched ({ds.ESTOP_NAMES[e.state]})"
+            self.status.estop, self.status.estop_time = e.state, now
+            log.error("E-STOP: every joint brakes at the motion bounds, then every drive gets DISABLE")
+            return ds.CMD_OK, "e-stop latched: braking, then DISABLE"
+        if e.state == ds.ESTOP_OFF:
+            return ds.CMD_OK, "e-stop reset: it was not latched"
+        if e.state == ds.ESTOP_STOPPING:
+            return ds.CMD_REFUSED, "e-stop reset refused: the stop is not complete yet (the drives are not disabled)"
+        e.latch.clear()
+        e.state = ds.ESTOP_OFF
+        self.status.estop = e.state
+        return ds.CMD_OK, "e-stop reset: the drives stay disabled until `mds-ach enable all` (each joint restarts " \
+                          "where it stands)"
+
+    def _estop_cycle(self) -> None:
+        """One cycle of a latched e-stop: brake every joint the daemon commands as hard as the acceleration bound
+        allows (its track: audited like every target), then, once the targets stand still and the joints settled
+        (at most ``SETTLE_TIMEOUT``, all in all ``BRAKE_TIMEOUT``), DISABLE every drive."""
+        e = self.estop
+        if e.state == ds.ESTOP_STOPPED:
+            return
+        b = self.bounds
+        a_max = motion.LIMIT_MARGIN * b.max_acceleration
+        if self.bus_state != ds.BUS_STATE_BUS_OFF and not e.pending_disable:
+            for a, jr in self.joints.items():
+                if not jr.enabled or not jr.referenced or jr.reseed or jr.homing_since is not None:
+                    continue  # (never sent since a re-seed: nothing to brake; homing: DISABLE stops it)
+                t = self.clock()
+                if t - jr.last_heard > self.stale_after or t < jr.resume_at:
+                    continue
+                h = b.interval(t - jr.track.t)
+                v0 = jr.track.previous_velocity(t, b)
+                if v0 == 0.0 or h <= 0:
+                    continue
+                q = jr.cfg.clamp(jr.track.q + brake_velocity(v0, a_max, h) * h)
+                jr.goal = jr.goal_prev = q
+                self._send(a, jr, q, t)
+        now = self.clock()
+        commanded = [jr for jr in self.joints.values() if jr.enabled and jr.referenced]
+        if any(jr.track.previous_velocity(now, b) != 0.0 for jr in commanded) and now - e.since < BRAKE_TIMEOUT:
+            return
+        if e.at_rest_since is None:
+            e.at_rest_since = now
+        settled = all(abs(jr.vel) < REST_SPEED for jr in commanded if self._known(jr, now))
+        if not e.pending_disable and (settled or now - e.at_rest_since >= SETTLE_TIMEOUT
+                                      or now - e.since >= BRAKE_TIMEOUT):
+            e.pending_disable = {a for a, jr in self.joints.items() if jr.cfg.enabled}
+        if e.pending_disable:
+            self._estop_disable()
+
+    def _estop_disable(self) -> None:
+        """DISABLE (MCB command 0x1A) to every drive still pending; ESTOP_STOPPED once all went out."""
+        e = self.estop
+        for a in sorted(e.pending_disable):
+            if self.io.send(mcb.encode_disable(a)):
+                e.pending_disable.discard(a)
+                jr = self.joints[a]
+                jr.enabled = False
+                jr.hold = jr.ref_r  # (an ENABLE after the reset re-seeds it where it stands)
+        if not e.pending_disable:
+            e.state = ds.ESTOP_STOPPED
+            self.status.estop = e.state
+            log.error("E-STOP: every drive disabled %.3f s after the e-stop; nothing moves until `mds-ach estop "
+                      "reset`, then `mds-ach enable all`", self.clock() - e.since)
 
     def _log_mode(self, now: float) -> None:
         if self.mode_log is not None:

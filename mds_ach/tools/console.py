@@ -82,6 +82,10 @@ commands (joint names: short or long, e.g. LSP or LeftShoulderExt, any case):
                                      for them (default: all)
   resume [<joints>|left|right|arms|all]
                                      held joints go on to their controllers' targets (default: all)
+  mode <collaborative|normal>        collaborative: the daemon keeps every hand and elbow within the
+                                     Cartesian bound (250 mm/s): moves are slowed, never refused
+  estop [reset]                      category-1 e-stop: brake, then disable the drives (latched);
+                                     'estop reset', then 'mds-ach enable all', to move again
   help                               this text
   exit                               quit (also 'quit' or Ctrl-D)"""
 
@@ -132,11 +136,20 @@ class Hold:
 
 
 @dataclass(frozen=True)
+class Safety:
+    """``mode collaborative|normal``, ``estop [reset]``: an ``MDS_CMD`` to the daemon (``mds_ach.tools.safetycmd``)."""
+
+    code: int
+    value: float
+    what: str
+
+
+@dataclass(frozen=True)
 class Simple:
     name: str  # help, exit, zeroall, empty
 
 
-Command = Goto | Get | GetFk | Ik | Hold | Simple
+Command = Goto | Get | GetFk | Ik | Hold | Safety | Simple
 
 
 def _number(text: str, what: str) -> float:
@@ -226,6 +239,14 @@ def parse(line: str) -> Command:
         return Goto(_joint(args[0]), _number(args[1], "the position"), "wait" in flags, "step" in flags)
     if verb in ("hold", "resume"):
         return _hold(verb, args)
+    if verb == "mode":
+        if len(args) != 1 or args[0].lower() not in ("collaborative", "normal"):
+            raise CommandError("usage: mode <collaborative|normal>")
+        return Safety(mds.MDS_CMD_MODE, 1.0 if args[0].lower() == "collaborative" else 0.0, f"mode {args[0].lower()}")
+    if verb == "estop":
+        if args and [a.lower() for a in args] != ["reset"]:
+            raise CommandError("usage: estop [reset]")
+        return Safety(mds.MDS_CMD_ESTOP_RESET, 0.0, "estop reset") if args else Safety(mds.MDS_CMD_ESTOP, 0.0, "estop")
     if verb == "get":
         if len(args) == 2 and args[0].lower() == "fk":
             return GetFk(_arm(args[1]))
@@ -473,6 +494,8 @@ class Console:
             self.ik(cmd)
         elif isinstance(cmd, Hold):
             self.hold(cmd)
+        elif isinstance(cmd, Safety):
+            self.safety(cmd)
         elif cmd.name == "help":
             self.out(USAGE)
         elif cmd.name == "zeroall":
@@ -536,6 +559,14 @@ class Console:
         verb = "held" if cmd.action == lifecycle.HOLD_HOLD else "resumed"
         summary = held_summary(ack.state, enabled_joints(self.state.read()), resume="resume")
         self.out(f"{verb}: {cmd.what}; held now: {summary}")
+
+    def safety(self, cmd: Safety) -> None:
+        from mds_ach.tools import safetycmd
+
+        ok, text = safetycmd.send(cmd.code, cmd.value, safetycmd.DEFAULT_TIMEOUT)
+        if not ok:
+            raise CommandError(f"{cmd.what}: {text}", usage=False)
+        self.out(f"{cmd.what}: done -- {text}")
 
     def zeroall(self) -> None:
         """Every enabled joint to 0 rad, or to the value nearest 0 inside its effective limits (the original
@@ -737,7 +768,7 @@ def _completer(text: str, index: int) -> str | None:
 
     words = readline.get_line_buffer()[: readline.get_begidx()].split()
     if not words:
-        options = ["goto", "get", "ik", "ik3", "ik5", "hold", "resume", "zeroall", "help", "exit"]
+        options = ["goto", "get", "ik", "ik3", "ik5", "hold", "resume", "mode", "estop", "zeroall", "help", "exit"]
     elif words[0] == "get" and len(words) == 1:
         options = ["fk"] + [j.short for j in JOINTS]
     elif (words[0] in ("ik", "ik3", "ik5") and len(words) == 1) or (words[:2] == ["get", "fk"] and len(words) == 2):

@@ -20,6 +20,7 @@ from mds_ach.paths import runtime_dir
 from mds_ach.robot.msgs import daemon_status as ds
 
 MAX_TIMEOUT = 600.0  # s
+DEFAULT_TIMEOUT = 5.0  # s
 MODES = {"collaborative": 1.0, "normal": 0.0}
 
 
@@ -28,14 +29,16 @@ def add_mode_arguments(p: argparse.ArgumentParser) -> None:
                    help="collaborative: every hand and elbow <= the Cartesian bound (250 mm/s or the joint table's "
                         "lower value) on every target the daemon sends; normal: the joint bounds only. Without it: "
                         "show the mode")
-    p.add_argument("--timeout", type=seconds(MAX_TIMEOUT), default=5.0, help="seconds to wait for the daemon")
+    p.add_argument("--timeout", type=seconds(MAX_TIMEOUT), default=DEFAULT_TIMEOUT,
+                   help="seconds to wait for the daemon")
 
 
 def add_estop_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("action", nargs="?", choices=["reset", "show"],
                    help="reset: clear a latched e-stop (the drives stay disabled until 'mds-ach enable all'); "
                         "show: its state. Without it: E-STOP")
-    p.add_argument("--timeout", type=seconds(MAX_TIMEOUT), default=5.0, help="seconds to wait for the daemon")
+    p.add_argument("--timeout", type=seconds(MAX_TIMEOUT), default=DEFAULT_TIMEOUT,
+                   help="seconds to wait for the daemon")
 
 
 def run_mode(args: argparse.Namespace) -> int:
@@ -66,7 +69,8 @@ def _show(verb: str, timeout: float) -> int:
     return 0
 
 
-def _send(verb: str, code: int, value: float, timeout: float) -> int:
+def send(code: int, value: float, timeout: float) -> tuple[bool, str]:
+    """One safety command on ``mds-cmd``, waited for: (done, what the daemon's status says or why not)."""
     from mds_ach.tools.boardcmd import _answer
     from mds_ach.tools.launcher import send_command  # (the one writer of mds-cmd)
 
@@ -76,19 +80,23 @@ def _send(verb: str, code: int, value: float, timeout: float) -> int:
         try:
             seq = send_command(code, 0, value)
         except ach.AchException as exc:
-            print(f"mds-ach {verb}: cannot write {mds.MDS_CHAN_BOARD_CMD_NAME}: {exc} (is the system started? only "
-                  "the operators' group may write it)", file=sys.stderr)
-            return 1
+            return False, (f"cannot write {mds.MDS_CHAN_BOARD_CMD_NAME}: {exc} (is the system started? only the "
+                           "operators' group may write it)")
         st = _answer(status, seq, timeout)
     finally:
         status.close()
     if st is None:
-        print(f"mds-ach {verb}: no answer from the daemon within {timeout:g} s (is it running? 'mds-ach status'; "
-              f"its log: {runtime_dir() / 'daemon.log'})", file=sys.stderr)
-        return 1
+        return False, (f"no answer from the daemon within {timeout:g} s (is it running? 'mds-ach status'; its log: "
+                       f"{runtime_dir() / 'daemon.log'})")
     if st.cmd_result != ds.CMD_OK:
-        print(f"mds-ach {verb}: refused; the daemon's log says why ({runtime_dir() / 'daemon.log'})",
-              file=sys.stderr)
+        return False, f"refused; the daemon's log says why ({runtime_dir() / 'daemon.log'})"
+    return True, ds.safety_text(st)
+
+
+def _send(verb: str, code: int, value: float, timeout: float) -> int:
+    ok, text = send(code, value, timeout)
+    if not ok:
+        print(f"mds-ach {verb}: {text}", file=sys.stderr)
         return 1
-    print(f"{verb}: done -- {ds.safety_text(st)}")
+    print(f"{verb}: done -- {text}")
     return 0
