@@ -117,6 +117,10 @@ class Controller:
     timeout: float | None  # s after its last change until it goes stale; None = never stale
     seed: bool = False
     legacy: bool = False  # every put is a command (re-puts re-assert), out-of-limit values clamped (not refused)
+    # Dead-man (issue #31): the controller promises a frame at least every ``heartbeat`` s (re-puts count). Once it has
+    # streamed, a longer silence holds the joints it owns (a protective stop: the filter brakes them to rest), never
+    # a continuation of its last command; only a new command (a modified value) releases them. None: no heartbeat.
+    heartbeat: float | None = None
 
 
 def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux config") -> list[Controller]:
@@ -131,7 +135,7 @@ def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux co
             raise ValueError(f"{where}: controllers[{k}] must be a mapping")
         name = str(e.get("name", "")).strip()
         here = f"{where}: controller {name or k!r}"
-        unknown = set(e) - {"name", "channel", "priority", "joints", "timeout", "seed", "legacy"}
+        unknown = set(e) - {"name", "channel", "priority", "joints", "timeout", "seed", "legacy", "heartbeat"}
         if unknown:
             raise ValueError(f"{here}: unknown keys {sorted(unknown)}")
         if not name or len(name.encode()) >= 30:
@@ -151,8 +155,16 @@ def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux co
             timeout = float(timeout)
             if not (math.isfinite(timeout) and timeout > 0):
                 raise ValueError(f"{here}: timeout must be > 0 s (or null for never stale)")
+        heartbeat = e.get("heartbeat")
+        if heartbeat is not None:
+            try:
+                heartbeat = float(heartbeat)
+            except (TypeError, ValueError):
+                heartbeat = math.nan
+            if not (math.isfinite(heartbeat) and heartbeat > 0):
+                raise ValueError(f"{here}: heartbeat must be > 0 s (the longest gap between its frames), or null")
         out.append(Controller(name, channel, priority, joints, timeout, bool(e.get("seed", False)),
-                              bool(e.get("legacy", False))))
+                              bool(e.get("legacy", False)), heartbeat))
     for attr, plural in (("name", "names"), ("channel", "channels"), ("priority", "priorities")):
         values = [getattr(c, attr) for c in out]
         dupes = sorted({str(v) for v in values if values.count(v) > 1})
@@ -230,6 +242,7 @@ class MuxCore:
         self.hold_source = ""
         self.hold_reason = ""  # why the newest request was refused (mds-mux-state hold_reason)
         self.dirty = False  # the held mask or a verdict changed: publish mds-mux-state now, not at the next tick
+        self.beat_lost = np.zeros(n, dtype=bool)  # its heartbeat stopped and its joints were held
 
     def absorb(self, index: int, ref: np.ndarray, mode: np.ndarray) -> None:
         """Take a frame as the controller's previous frame without applying it (old frames at start-up)."""
@@ -278,6 +291,7 @@ class MuxCore:
         name = self.controllers[index].name
         legacy = self.controllers[index].legacy
         self.last_frame[index] = now
+        self.beat_lost[index] = False  # streaming again (the joints it held stay held until a new command)
         self.clamp_message = None
         bad = self._known & ~np.isfinite(ref)
         if bad.any():
@@ -402,6 +416,32 @@ class MuxCore:
             self.held[given] = MUX_FREE
             self.held[here] = MUX_CANCELLED
         return changed, text
+
+    def heartbeats(self, now: float) -> list[str]:
+        """Hold the joints of every controller whose heartbeat stopped (its newest frame is older than its
+        ``heartbeat``, after it streamed at all); one message per controller that stopped."""
+        out = []
+        for i, c in enumerate(self.controllers):
+            if c.heartbeat is None or self.beat_lost[i] or self.last_frame[i] == -math.inf:
+                continue
+            if now - self.last_frame[i] <= c.heartbeat:
+                continue
+            self.beat_lost[i] = True
+            mine = (self.owner == i) & self._known
+            stop = mine & (self.held == MUX_FREE)
+            self.held[stop] = MUX_HELD
+            self._settled[:, mine] = True  # a re-put of the old values is no command: only a new one releases
+            self.dirty = True
+            out.append(f"'{c.name}' sent nothing for {now - self.last_frame[i]:.3f} s (heartbeat {c.heartbeat:g} s): "
+                       + (f"protective stop, {labels(np.flatnonzero(stop))} held until a new command or resume"
+                          if stop.any() else "it owns no joint"))
+        return out
+
+    def next_heartbeat(self) -> float:
+        """When the next heartbeat expires (monotonic s; inf: none pending)."""
+        due = [self.last_frame[i] + c.heartbeat for i, c in enumerate(self.controllers)
+               if c.heartbeat is not None and not self.beat_lost[i] and self.last_frame[i] > -math.inf]
+        return min(due, default=math.inf)
 
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
         """Restart these joints' output where they are (``pipeline.ReseedWatch``); ownership is unchanged. A
@@ -607,7 +647,12 @@ class MuxRunner:
         seq = 0
         next_state = time.monotonic()
         while not self._stop.is_set():
-            timeout = max(0.0, next_state - time.monotonic())
+            lost = core.heartbeats(time.monotonic())  # (checked on every pass: other inputs may keep the queue busy)
+            for text in lost:
+                self.log("warning", text)
+            if lost:
+                next_state = time.monotonic()  # the filter hears of the hold now
+            timeout = max(0.0, min(next_state, core.next_heartbeat()) - time.monotonic())
             try:
                 index, frame, t = self._queue.get(timeout=timeout)
             except queue.Empty:
