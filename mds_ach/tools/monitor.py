@@ -16,6 +16,7 @@ from mds_ach.robot.msgs.daemon_status import (
     JOINT_ENABLED,
     JOINT_FOLLOW_FAULT,
     JOINT_FRESH,
+    JOINT_SLOWED,
     JOINT_STALE,
     JOINT_UNREFERENCED,
     MDS_DAEMON_STATUS,
@@ -86,7 +87,8 @@ def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
     """'yes' when the daemon heard the joint's node recently, 'STALE' when not, 'BAD' when the node answers with
     implausible positions (not trusted), 'UNREF' when its encoder count lost its calibrated zero (ZERO_ENCODER or
     RESET: no motion until HOME), 'FAULT' when a mode 2/3 joint's replies disagree with its motion (held until
-    ENABLE or HOME), '-' for joints it does not poll, '?' without daemon status."""
+    ENABLE or HOME), 'slowed' when collaborative mode slowed its latest step (fresh otherwise), '-' for joints it
+    does not poll, '?' without daemon status."""
     if status is None:
         return "?"
     flags = status.joint_flags[address]
@@ -95,7 +97,7 @@ def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
     if flags & JOINT_FOLLOW_FAULT:
         return "FAULT"
     if flags & JOINT_FRESH:
-        return "yes"
+        return "slowed" if flags & JOINT_SLOWED else "yes"
     if flags & JOINT_STALE:
         return "STALE"
     if flags & JOINT_BAD_REPLY:
