@@ -47,6 +47,7 @@ from trajectory_msgs.msg import JointTrajectory
 import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.ach.glibc import tune_thread
+from mds_ach.ach.watch import Latest
 from mds_ach.kinematics.limits import current_limits, urdf_with_limits
 from mds_ach.kinematics.model import load_model
 from mds_ach.nodes.mux import controller_for
@@ -55,6 +56,7 @@ from mds_ach.nodes.rosnode import Param, declare, ros_log
 from mds_ach.robot import joints, lifecycle
 from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
+from mds_ach.robot.msgs.daemon_status import JOINT_SLOWED, MDS_DAEMON_STATUS
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
 from mds_ach_bridge import actions, follow, topics, trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
@@ -114,6 +116,7 @@ class _Running:
     goal: actions.Goal | None = None  # the FollowJointTrajectory goal it carries out
     written: float | None = None  # monotonic time of its first write
     finished: bool = False  # sampled to its end; kept while its goal waits for the goal tolerance
+    slowed: set[str] = field(default_factory=set)  # its joints the daemon's collaborative mode slowed (#31)
 
 
 @dataclass(frozen=True)
@@ -242,6 +245,7 @@ class BridgeNode(Node):
         self._ref_chan = StructChannel(self._ref_name, MDS_REF)
         self._ik_chan = StructChannel(self._ik_name, MDS_IK)
         self._mux = MuxWatch(self._controller)
+        self._daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)  # collaborative mode: slowed
 
         state_qos = STATE_QOS[qos_name]
         self._js_pub = self.create_publisher(JointState, topics.JOINT_STATES, state_qos)
@@ -615,17 +619,20 @@ class BridgeNode(Node):
         tolerance after the end (within goal_time_tolerance). Returns the feedback to publish (caller holds the
         lock; the state thread)."""
         feedback: list[tuple[Any, ...]] = []
+        slowed = self._slowed_joints()
         for r in list(self._running.values()):
             g = r.goal
             if g is None or g.outcome is not None or g.tolerances is None or not r.traj.anchored:
                 continue
+            r.slowed |= slowed & set(r.traj.names)
             desired, _ = r.traj.sample(now_s)
             actual = {n: positions[n] for n in r.traj.names}
             what = self._what.get(r.serial, "goal")
             if not r.finished:
                 why = follow.path_violation(g.tolerances, desired, actual)
                 if why is not None:
-                    self._stop_running(r, f"path tolerance violated: {why}", code=follow.Result.PATH_TOLERANCE_VIOLATED)
+                    self._stop_running(r, f"path tolerance violated: {why}{_slowed_text(r.slowed)}",
+                                       code=follow.Result.PATH_TOLERANCE_VIOLATED)
                     continue
             else:
                 final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
@@ -634,17 +641,28 @@ class BridgeNode(Node):
                     del self._running[r.serial]
                     worst = max(abs(final[n] - actual[n]) for n in final)
                     self._end_goal(g, actions.SUCCEED, follow.Result.SUCCESSFUL,
-                                   f"{what}: every joint within the goal tolerance (largest error {worst:.4f} rad)")
+                                   f"{what}: every joint within the goal tolerance (largest error {worst:.4f} rad)"
+                                   f"{_slowed_text(r.slowed)}")
                     continue
                 if now_s > r.traj.end + g.tolerances.goal_time:
                     del self._running[r.serial]
                     self._end_goal(g, actions.ABORT, follow.Result.GOAL_TOLERANCE_VIOLATED,
                                    f"{what}: {missing} {g.tolerances.goal_time:g} s after the trajectory's end "
-                                   "(goal_time_tolerance)")
+                                   f"(goal_time_tolerance){_slowed_text(r.slowed)}")
                     continue
             feedback.append((g, r.traj.names, [desired[n] for n in r.traj.names], [actual[n] for n in r.traj.names],
                              [velocities[n] for n in r.traj.names]))
         return feedback
+
+    def _slowed_joints(self) -> set[str]:
+        """The joints whose latest step the daemon's collaborative mode slowed (``JOINT_SLOWED``)."""
+        try:
+            st = self._daemon.read_new()
+        except Exception:  # a damaged status channel: the daemon's own diagnostics report it
+            return set()
+        if st is None or not st.collaborative:
+            return set()
+        return {n for n, a in zip(self._names, self._addresses, strict=True) if st.joint_flags[a] & JOINT_SLOWED}
 
     def _end_goal(self, goal: actions.Goal, how: str, code: int, text: str) -> None:
         """Decide a goal's outcome; the client is told once the lock is released (caller holds the lock)."""
@@ -936,4 +954,12 @@ class BridgeNode(Node):
         for chan in (self._state_chan, self._ref_chan, self._ik_chan):
             chan.close()
         self._mux.close()
+        self._daemon.close()
 
+
+def _slowed_text(slowed: set[str]) -> str:
+    """What a goal's result says when collaborative mode slowed it (issue #31): slowed, not failed in silence."""
+    if not slowed:
+        return ""
+    return (f"; slowed by the daemon's collaborative mode (hands and elbows within its Cartesian bound): "
+            f"{' '.join(sorted(slowed))}")

@@ -368,3 +368,29 @@ def test_the_three_action_servers_are_on_the_graph(probe: Probe) -> None:
     found = dict(get_action_names_and_types(probe.node))
     for c in follow.CONTROLLERS:
         assert found.get(f"/{c}/{follow.ACTION}") == ["control_msgs/action/FollowJointTrajectory"], found
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_goal_slowed_by_collaborative_mode_says_so_in_its_result(probe: Probe) -> None:
+    """Issue #31: in collaborative mode the daemon slows a fast goal (hands and elbows within 250 mm/s); the goal
+    still succeeds, and its result says it was slowed and which joints, instead of saying nothing."""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    from mds_ach.tools.safetycmd import send
+
+    assert send(mds.MDS_CMD_MODE, 1.0, 10.0)[0]
+    try:
+        start = {n: probe.position(n) for n in ("LSP", "LEP")}
+        lo, hi = load_limits()["LEP"]
+        end = [start["LSP"] - 0.7, max(lo + 0.1, min(hi - 0.1, start["LEP"] - 0.7))]
+        goal = _goal(["LSP", "LEP"], [(0.5, end)])  # ~1.4 rad/s: the hand well above 250 mm/s
+        goal.goal_time_tolerance.sec = 20
+        res = probe.result(probe.send("left_arm_controller", goal), 40.0)
+        assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+        assert res.result.error_code == FollowJointTrajectory.Result.SUCCESSFUL
+        text = res.result.error_string
+        assert "slowed by the daemon's collaborative mode" in text and "LSP" in text, text
+    finally:
+        assert send(mds.MDS_CMD_MODE, 0.0, 10.0)[0]
