@@ -896,3 +896,20 @@ def test_browser_follows_the_real_daemon_nocan(page: Page, tmp_path: Path) -> No
             daemon.kill()
             daemon.wait()
         log.close()
+
+
+def test_the_status_shows_the_estop_and_collaborative_mode(inproc: viewer.Viewer) -> None:
+    """Issue #31: the daemon's e-stop and collaborative mode are on the viewer's status line."""
+    from mds_ach.robot.msgs import daemon_status as ds
+
+    make_channels()
+    inproc.daemon.retry = 0.0
+    with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS) as chan:
+        inproc.tick()
+        assert "E-STOP" not in inproc.status.content and "collaborative" not in inproc.status.content
+        chan.put(ds.MDS_DAEMON_STATUS(version=ds.DAEMON_STATUS_VERSION, collaborative=1, collaborative_speed=0.25))
+        inproc.tick()
+        assert "collaborative <= 250 mm/s" in inproc.status.content
+        chan.put(ds.MDS_DAEMON_STATUS(version=ds.DAEMON_STATUS_VERSION, estop=ds.ESTOP_STOPPED))
+        inproc.tick()
+        assert "**E-STOP STOPPED, normal mode**" in inproc.status.content

@@ -33,6 +33,7 @@ from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
+from mds_ach.robot.msgs.daemon_status import JOINT_SLOWED, MDS_DAEMON_STATUS
 from mds_ach.robot.msgs.mux_state import MUX_FREE, MUX_HELD
 from mds_ach.tools.cli import help_paragraph
 from mds_ach.tools.holdcmd import enabled_joints, held_summary
@@ -305,6 +306,7 @@ class Console:
         self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
         self.progress = progress or (lambda: print(".", end="", flush=True))
         self.state = Latest(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        self.slowed: set[int] = set()  # joints collaborative mode slowed during the last wait
 
     def close(self) -> None:
         self.state.close()
@@ -452,8 +454,20 @@ class Console:
         deadline = time.monotonic() + timeout
         next_dot = time.monotonic() + 0.5
         dots = False
+        self.slowed = set()
+        daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)  # collaborative mode: slowed joints
+        try:
+            return self._wait_loop(targets, deadline, next_dot, dots, gave_up, daemon)
+        finally:
+            daemon.close()
+
+    def _wait_loop(self, targets: dict[int, float], deadline: float, next_dot: float, dots: bool,
+                   gave_up: Callable[[], bool], daemon: Latest) -> bool:
         while time.monotonic() < deadline and not gave_up():
             state = self.state.wait_new(0.2) or self.state.read()
+            st = daemon.read_new()
+            if st is not None and st.collaborative:
+                self.slowed |= {a for a in targets if st.joint_flags[a] & JOINT_SLOWED}
             if state is not None and all(abs(state.joint[a].pos - v) <= GOTO_TOLERANCE for a, v in targets.items()):
                 if dots:
                     self.out("")
@@ -465,6 +479,13 @@ class Console:
         if dots:
             self.out("")
         return False
+
+    def _slowed_note(self) -> str:
+        """' (slowed by collaborative mode: LSP LEP)' when the daemon slowed the joints waited for (issue #31)."""
+        if not self.slowed:
+            return ""
+        names = " ".join(mds.BY_ADDRESS[a].short for a in sorted(self.slowed))
+        return f" (slowed by the daemon's collaborative mode, hands and elbows within its Cartesian bound: {names})"
 
     def _not_arrived(self, targets: dict[int, float]) -> str:
         state = self.state.read()
@@ -519,7 +540,7 @@ class Console:
                 why = self._not_arrived({cmd.joint.address: cmd.value})
                 raise CommandError(f"{cmd.joint.short} did not arrive within {GOTO_TIMEOUT:g} s: {why}; "
                                    + self._cancel([cmd.joint.address], "goto timed out"), usage=False)
-            self.out("done")
+            self.out("done" + self._slowed_note())
 
     def _ramp(self, address: int, target: float, state: mds.MDS_STATE) -> tuple[int, float]:
         """The original console's goto: from the joint's current reference toward ``target`` in ``GOTO_STEP``
@@ -705,7 +726,7 @@ class Console:
                 why = self._not_arrived(targets)
                 raise CommandError(f"the {cmd.arm} arm did not arrive within {IK_MOTION_TIMEOUT:g} s: {why}; "
                                    + self._cancel(list(targets), "ik timed out"), usage=False)
-            self.out("done")
+            self.out("done" + self._slowed_note())
 
     def run_line(self, line: str) -> bool:
         """Parse and execute one line, printing errors; True on success. Never raises for bad input."""

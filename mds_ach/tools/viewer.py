@@ -49,6 +49,7 @@ from mds_ach.kinematics.collision import load_world as _load_world
 from mds_ach.kinematics.limits import current_limits
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot.joints import MODEL_JOINTS, lookup
+from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS, safety_text
 from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS, STATUS_NAMES
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
 from mds_ach.tools.viewer_door import Door, guarded, new_token
@@ -426,6 +427,8 @@ class Viewer:
         self.collide = ChannelWatch(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
         self.ik = ChannelWatch(mds.MDS_CHAN_IK_NAME, mds.MDS_IK)
         self.ik_state = ChannelWatch(mds.MDS_CHAN_IK_STATE_NAME, _ik_status_type())
+        # The daemon's e-stop and collaborative mode (issue #31), on the status line.
+        self.daemon = ChannelWatch(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
         self.ik_shown: IkTarget | None = None
         self.last_state: Any = None
         self._last_state_at = 0.0
@@ -647,6 +650,10 @@ class Viewer:
         if self.collision is not None and self.collision.highlighted_parts:
             names = ", ".join(mds.COLLIDE_PART_NAMES[p] for p in sorted(self.collision.highlighted_parts))
             text += f"  \n**collision:** {names}"
+        daemon = self.daemon.read()
+        if daemon is not None and (daemon.estop or daemon.collaborative):
+            safety = safety_text(daemon)
+            text += f"  \n**{safety}**" if daemon.estop else f"  \n{safety}"
         for problem in self.problems:
             text += f"  \n{problem}"
         if self.status.content != text:
@@ -673,7 +680,7 @@ class Viewer:
     def close(self, timeout: float = 5.0) -> None:
         """Stop writing, then stop the server and wait (up to ``timeout`` s) until its event loop has ended: the
         port is closed when this returns."""
-        for watch in (self.state, self.collide, self.ik, self.ik_state):
+        for watch in (self.state, self.collide, self.ik, self.ik_state, self.daemon):
             watch.close()
         with self._ref_lock:
             if self._refs is not None:
