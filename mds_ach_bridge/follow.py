@@ -144,20 +144,29 @@ def goal_missing(tol: Tolerances, final: Mapping[str, float], actual: Mapping[st
     return None
 
 
+SPEED_SLACK = 1.01
+"""A waypoint speed up to 1 % over the published velocity is rounding (a planner timing at exactly the limit)."""
+
+
 def validate(controller: str, goal: FollowJointTrajectory.Goal, now: float, limits: Limits,
-             allow_partial: bool = False, allow_nonzero_end: bool = False) -> trajectory.Trajectory:
+             allow_partial: bool = False, allow_nonzero_end: bool = False,
+             speeds: Mapping[str, float] | None = None) -> trajectory.Trajectory:
     """The goal's trajectory, checked completely, or a ``GoalError`` with the result code and the reason."""
     if goal.multi_dof_trajectory.joint_names or goal.multi_dof_trajectory.points:
         raise GoalError(Result.INVALID_GOAL, "multi_dof_trajectory is not supported (the MDS has no multi-DOF joints)")
-    return validate_trajectory(controller, goal.trajectory, now, limits, allow_partial, allow_nonzero_end)
+    return validate_trajectory(controller, goal.trajectory, now, limits, allow_partial, allow_nonzero_end, speeds)
 
 
 def validate_trajectory(controller: str, msg: JointTrajectory, now: float, limits: Limits,
-                        allow_partial: bool = False, allow_nonzero_end: bool = False) -> trajectory.Trajectory:
+                        allow_partial: bool = False, allow_nonzero_end: bool = False,
+                        speeds: Mapping[str, float] | None = None) -> trajectory.Trajectory:
     """A trajectory for ``controller`` (a goal's or its ``joint_trajectory`` topic's), checked as
     joint_trajectory_controller checks it before accepting it, or a ``GoalError``: every joint of the controller
     unless ``allow_partial`` (its ``allow_partial_joints_goal``; disabled joints are not required), a last point at
-    rest unless ``allow_nonzero_end`` (``allow_nonzero_velocity_at_trajectory_end``), and the topic's checks."""
+    rest unless ``allow_nonzero_end`` (``allow_nonzero_velocity_at_trajectory_end``), and the topic's checks. With
+    ``speeds`` (rad/s by joint: the published velocities, ``mds-limits``) also a timing the joints can follow:
+    neither a point's velocity nor the mean speed between two points above it (a faster goal would be stretched
+    downstream and end late; JTC has no such check, its hardware follows or faults)."""
     own = CONTROLLERS[controller]
     if not msg.joint_names:
         raise GoalError(Result.INVALID_JOINTS, "trajectory.joint_names is empty")
@@ -182,8 +191,36 @@ def validate_trajectory(controller: str, msg: JointTrajectory, now: float, limit
                             f"the last point's velocity is not zero ({', '.join(moving)}): a trajectory ends at rest "
                             f"(allow_nonzero_velocity_at_trajectory_end is false)")
     try:
-        return trajectory.from_message(msg, now, limits)
+        traj = trajectory.from_message(msg, now, limits)
     except trajectory.StaleTrajectoryError as exc:
         raise GoalError(Result.OLD_HEADER_TIMESTAMP, str(exc)) from None
     except CommandError as exc:
         raise GoalError(Result.INVALID_GOAL, str(exc)) from None
+    if speeds is not None:
+        why = too_fast(traj, speeds)
+        if why is not None:
+            raise GoalError(Result.INVALID_GOAL, why)
+    return traj
+
+
+def too_fast(traj: trajectory.Trajectory, speeds: Mapping[str, float]) -> str | None:
+    """Why ``traj`` asks a joint for more than its published velocity (a point's velocity, or the mean speed
+    between two points: a lower bound of what any interpolation needs), or None."""
+    for j, n in enumerate(traj.names):
+        limit = speeds.get(n)
+        if limit is None or not math.isfinite(limit):
+            continue
+        for k in range(len(traj.times)):
+            if traj.velocities is not None and abs(traj.velocities[k][j]) > limit * SPEED_SLACK:
+                return (f"{n}: point {k}'s velocity {traj.velocities[k][j]:+.3f} rad/s is over the {limit:g} rad/s the "
+                        f"joint can follow (mds-limits): time the trajectory within the published limits")
+            if k == 0:
+                continue
+            dt = traj.times[k] - traj.times[k - 1]
+            need = abs(traj.positions[k][j] - traj.positions[k - 1][j]) / dt
+            if need > limit * SPEED_SLACK:
+                return (f"{n}: {need:.3f} rad/s needed between points {k - 1} and {k} "
+                        f"({abs(traj.positions[k][j] - traj.positions[k - 1][j]):.3f} rad in {dt:.3f} s), over the "
+                        f"{limit:g} rad/s the joint can follow (mds-limits): time the trajectory within the "
+                        f"published limits")
+    return None

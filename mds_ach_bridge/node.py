@@ -198,6 +198,8 @@ class BridgeNode(Node):
         urdf = p("urdf").value or str(paths.urdf_path())
         self._effective = current_limits(p("robot").value or None)
         self._limits = load_limits(joints.MODEL_JOINTS, effective=self._effective)
+        # The published velocity of each joint: a goal timed faster is rejected (it would be stretched, late).
+        self._speeds = {n: m[0] for n in self._limits for m in (self._effective.motion(n),) if m is not None}
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._names = list(joints.MODEL_JOINTS)
@@ -537,7 +539,7 @@ class BridgeNode(Node):
                 with self._lock:
                     settings = jtc.Settings.from_values(self._jtc_values)
                 traj = follow.validate_trajectory(controller, msg, now, self._limits, settings.allow_partial,
-                                                  settings.allow_nonzero_end)
+                                                  settings.allow_nonzero_end, self._speeds)
         except CommandError as exc:
             self._reject(topic, str(exc))
             return
@@ -585,7 +587,7 @@ class BridgeNode(Node):
             if refused is not None:
                 raise follow.GoalError(follow.Result.INVALID_GOAL, refused)
             traj = follow.validate(controller, request, now, self._limits, settings.allow_partial,
-                                   settings.allow_nonzero_end)
+                                   settings.allow_nonzero_end, self._speeds)
             tol = follow.tolerances(traj.names, request, settings.path, settings.goal, settings.goal_time)
         except follow.GoalError as exc:
             self._reject(action, f"goal rejected: {follow.CODE_NAMES[exc.code]}: {exc}")

@@ -190,6 +190,24 @@ def test_a_last_point_that_moves_is_refused_unless_allow_nonzero_velocity_at_tra
     assert traj.velocities is not None and traj.velocities[-1] == (0.0, -0.05)
 
 
+def test_a_goal_timed_faster_than_the_published_velocity_is_refused() -> None:
+    """Issue #27 item 4: a goal faster than the joints follow was stretched downstream and reported SUCCESSFUL 1.37 s
+    late; it is refused with the joint, the speed it needs and the limit (point velocities and mean speeds)."""
+    speeds = {"LSP": 1.5, "LEP": 1.5}
+    fast = _goal(["LSP", "LEP"], [(1.0, [0.0, -0.5]), (1.5, [0.9, -0.5])])
+    with pytest.raises(follow.GoalError, match=r"^LSP: 1\.800 rad/s needed between points 0 and 1 \(0\.900 rad in "
+                                               r"0\.500 s\), over the 1\.5 rad/s the joint can follow") as info:
+        follow.validate("left_arm_controller", fast, 100.0, LIMITS, allow_partial=True, speeds=speeds)
+    assert info.value.code == Result.INVALID_GOAL
+    at_limit = _goal(["LSP", "LEP"], [(1.0, [0.0, -0.5]), (1.6, [0.9, -0.5])])  # 1.5 rad/s exactly
+    follow.validate("left_arm_controller", at_limit, 100.0, LIMITS, allow_partial=True, speeds=speeds)
+    declared = _goal(["LSP", "LEP"], [(1.0, [0.0, -0.5]), (3.0, [0.5, -0.5]), (4.0, [0.6, -0.5])],
+                     velocities=[[0.0, 0.0], [1.7, 0.0], [0.0, 0.0]])
+    with pytest.raises(follow.GoalError, match=r"^LSP: point 1's velocity \+1\.700 rad/s is over the 1\.5 rad/s"):
+        follow.validate("left_arm_controller", declared, 100.0, {"LSP": (-5.0, 5.0), "LEP": (-2.4, 0.0)},
+                        allow_partial=True, speeds=speeds)
+
+
 def test_jtc_parameters_are_the_per_joint_defaults_and_success_needs_the_joints_stopped() -> None:
     """constraints.<joint>.trajectory / .goal are the per-joint defaults of a goal's 0 tolerances,
     constraints.stopped_velocity_tolerance the goal velocity tolerance, constraints.goal_time 0 = no limit."""
@@ -394,6 +412,8 @@ REST = [0.0, 0.0, 0.0, -0.5, 0.0, 0.0]  # inside every left-arm joint's limits (
          "LEP: position 2.5 rad is outside the limits"),
         (ARM6, [(1.0, REST)], [[0.0, 0.0, 0.0, -0.1, 0.0, 0.0]], "INVALID_GOAL",
          "the last point's velocity is not zero (LEP -0.1 rad/s)"),
+        (ARM6, [(1.0, REST), (1.2, [0.8, 0.0, 0.0, -0.5, 0.0, 0.0])], None, "INVALID_GOAL",
+         "LSP: 4.000 rad/s needed between points 0 and 1 (0.800 rad in 0.200 s), over the 1.5 rad/s"),
     ],
 )
 def test_a_bad_goal_is_rejected_in_the_goal_callback_with_the_reason_logged(
