@@ -16,7 +16,9 @@ are. RESUME never restarts it.
 
 Several trajectories run at once on disjoint joints (a goal per MoveIt controller, ``follow``/``actions``); a new
 command stops those sharing a joint with it. The state thread also runs the FollowJointTrajectory goals: feedback
-and tolerance checks on every frame, and the goal's end (succeeded, aborted with the reason, canceled).
+and tolerance checks on every frame, and the goal's end (succeeded, aborted with the reason, canceled). Goals are
+checked in the goal callback, and each controller has joint_trajectory_controller's ``controller_state``,
+``joint_trajectory`` and ``query_state`` (``jtc``; mds_ach_bridge/README.md).
 ``joint_states`` carries velocities (``velocity.FiniteDifference``) and an empty effort (docs/operator.md).
 """
 
@@ -375,8 +377,7 @@ class BridgeNode(Node):
         self._js_pub.publish(self._js_msg)
         for goal, *values in feedback:
             goal.feedback(stamp, *values)
-        self._publish_controller_states(stamp, now_ns * 1e-9, running, measured,
-                                        {n: j.ref for n, j in zip(self._names, js, strict=True)})
+        self._publish_controller_states(stamp, now_ns * 1e-9, running, measured, js)
         if self._ref_pub.get_subscription_count() > 0:  # nobody listening: skip the serialisation
             self._ref_msg.header.stamp = stamp
             self._ref_msg.position = array.array("d", [j.ref for j in js])
@@ -594,6 +595,8 @@ class BridgeNode(Node):
             return False
         with self._lock:
             self._checked[id(request)] = (request, traj, tol)
+            while len(self._checked) > 16:  # accepted goals take theirs at once; rclpy failing to make a handle won't
+                del self._checked[next(iter(self._checked))]
         return True
 
     def _on_goal(self, controller: str, handle: Any, server: Any) -> None:
@@ -685,12 +688,14 @@ class BridgeNode(Node):
         return {n: r.traj for r in self._running.values() if r.traj.anchored and not r.finished for n in r.traj.names}
 
     def _publish_controller_states(self, stamp: Time, now_s: float, running: dict[str, trajectory.Trajectory],
-                                   measured: tuple[dict[str, float], dict[str, float]],
-                                   output: dict[str, float]) -> None:
-        """``<controller>/controller_state`` for this frame (state thread), skipped while nobody listens."""
-        for controller, pub in self._state_pubs.items():
-            if pub.get_subscription_count() == 0:
-                continue
+                                   measured: tuple[dict[str, float], dict[str, float]], js: Sequence[Any]) -> None:
+        """``<controller>/controller_state`` for this frame (state thread), skipped while nobody listens; ``js`` the
+        frame's joints in ``_names`` order (their ``ref`` is the output)."""
+        listened = [(c, pub) for c, pub in self._state_pubs.items() if pub.get_subscription_count() > 0]
+        if not listened:
+            return
+        output = {n: j.ref for n, j in zip(self._names, js, strict=True)}
+        for controller, pub in listened:
             names = [n for n in follow.CONTROLLERS[controller] if n in self._limits]
             desired = jtc.reference(running, names, now_s, output)
             pub.publish(jtc.controller_state(names, stamp, desired, *measured, output))
