@@ -542,7 +542,7 @@ def test_a_goal_slowed_by_collaborative_mode_says_so_in_its_result(probe: Probe)
         start = {n: probe.position(n) for n in ("LSP", "LEP")}
         lo, hi = load_limits()["LEP"]
         end = [start["LSP"] - 0.7, max(lo + 0.1, min(hi - 0.1, start["LEP"] - 0.7))]
-        goal = _goal(["LSP", "LEP"], [(1.0, end)])  # 0.7 rad/s on both: the hand well above 250 mm/s
+        goal = _arm_goal({"LSP": [end[0]], "LEP": [end[1]]}, [1.0])  # 0.7 rad/s on both: the hand above 250 mm/s
         goal.goal_time_tolerance.sec = 20
         res = probe.result(probe.send("left_arm_controller", goal), 40.0)
         assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
