@@ -899,19 +899,20 @@ def test_bad_configuration_is_a_clear_error(clean_shm, monkeypatch: pytest.Monke
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
+def test_executable_with_ros(clean_shm, sig: signal.Signals, tmp_path: Path) -> None:
     """`daemon --nocan`: a reference reaches the simulated joint, /diagnostics, /mds/daemon_status and the command
     service (mds_ach_interfaces/srv/Command; the deprecated AddDiagnostics text form on ~/command_text) work, and
     the signal stops it cleanly (exit 0)."""
     import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
     from diagnostic_msgs.srv import AddDiagnostics
     from mds_ach_interfaces.msg import DaemonStatus
     from mds_ach_interfaces.srv import Command
 
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--rate", "20", "--sim-pose", "LEP=-1.0",
                              "--ros-args", "-r", "__node:=mds_daemon"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "MDS_ACH_RUNTIME_DIR": str(tmp_path)})  # (its e-stop latch)
     rclpy.init()
     node = rclpy.create_node("test_daemon_client")
     diags: list[DiagnosticArray] = []
@@ -980,6 +981,20 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
         assert not future.result().success and "mds-ach reset JOINT" in future.result().message
         wait_for(lambda: (st := state_in.latest()) is not None and st.joint[0x4C].active == 1, 10.0,
                  what="LEP still referenced and fresh")
+        # Issue #31: the mode and the e-stop through the same service; /diagnostics shows them
+        future = client.call_async(Command.Request(command="collaborative"))
+        spin_until(future.done, 15.0, "the service reply")
+        assert future.result().success and "collaborative (hands and elbows <= 250 mm/s)" in future.result().message
+        spin_until(lambda: diags and {kv.key: kv.value for kv in diags[-1].status[0].values}.get("mode")
+                   == "collaborative", 15.0, "/diagnostics mode collaborative")
+        future = client.call_async(Command.Request(command="estop"))
+        spin_until(future.done, 15.0, "the service reply")
+        assert future.result().success and (tmp_path / "estop.latched").exists()
+        spin_until(lambda: diags and "E-STOP STOPPED" in diags[-1].status[0].message, 15.0, "/diagnostics E-STOP")
+        assert diags[-1].status[0].level == DiagnosticStatus.ERROR
+        future = client.call_async(Command.Request(command="estop_reset"))
+        spin_until(future.done, 15.0, "the service reply")
+        assert future.result().success and not (tmp_path / "estop.latched").exists(), future.result().message
     finally:
         state_in.close()
         ref_out.close()
