@@ -50,6 +50,7 @@ class CollaborativeGuard:
         self.slots: tuple[int | None, ...] = tuple(
             (table[short].address if _has(table, short) else None) for short in cartesian.JOINTS)
         self.addresses: tuple[int, ...] = tuple(a for a in self.slots if a is not None)
+        self.members = frozenset(self.addresses)
         self.last = cartesian.Scaled(0.0, 0.0, 0.0, True)  # this cycle's plan (the status shows it)
 
     @property

@@ -968,6 +968,8 @@ class DaemonLoop:
                 jr.goal_t = t
             elif a in planned:
                 q = self.collab.retime(jr.track, planned[a], jr.goal, t, jr.cfg)
+            elif self.collab.on and a in self.collab.members:
+                continue  # it became sendable after the plan (its resume time passed): planned next cycle
             else:
                 q = self._limited(jr, t)
             self._send(a, jr, q, t)

@@ -133,7 +133,7 @@ class MDS_DAEMON_STATUS(_Packed):  # noqa: N801 - MDS struct naming
         # --- version 4: collaborative mode, e-stop
         ("collaborative", ctypes.c_uint8),  # 1: hands and elbows within collaborative_speed (Cartesian, sent targets)
         ("collaborative_speed", ctypes.c_double),  # m/s, the bound in collaborative mode
-        ("cartesian_speed", ctypes.c_double),  # m/s, the fastest hand/elbow of the last cycle's targets (any mode)
+        ("cartesian_speed", ctypes.c_double),  # m/s, the fastest hand/elbow of the last cycle's targets (collab. mode)
         ("cartesian_speed_max", ctypes.c_double),  # m/s, the fastest in collaborative mode since it was switched on
         ("cartesian_slowed", ctypes.c_uint32),  # cycles whose steps were slowed for the bound
         ("cartesian_braking", ctypes.c_uint32),  # cycles over the bound while braking into it (after a switch)
