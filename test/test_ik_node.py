@@ -454,3 +454,30 @@ def test_a_stop_at_contact_gets_a_second_answer(clean_shm: None) -> None:
     assert not t.is_alive()
     assert IK_STOPPED_AT_CONTACT == 5 and status_to_dict(MDS_IK_STATUS(status=5))["status_name"] == \
         "stopped at contact"
+
+
+def test_a_solution_the_daemon_will_slow_says_so(clean_shm: None) -> None:
+    """Issue #31: while the daemon is in collaborative mode a solved status notes that the arm is slowed (the daemon
+    keeps the hands and elbows within its Cartesian bound), so the client does not read the slower arm as a fault."""
+    from mds_ach.nodes.ik import SLOWED_NOTE
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs import daemon_status as ds
+
+    put_state(current_pose())
+    runner = IkRunner(IkService(IkNodeConfig(max_iterations=200), arm_limits("default")), log=lambda level, msg: None)
+    t = threading.Thread(target=runner.run, daemon=True)
+    status = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
+    t.start()
+    try:
+        assert runner.ready.wait(10)
+        with IkClient() as client:
+            reply = client.request("right", 3, [0.3, -0.2, 0.0], timeout=10)
+            assert reply.success and SLOWED_NOTE not in reply.message
+            status.put(ds.MDS_DAEMON_STATUS(version=ds.DAEMON_STATUS_VERSION, collaborative=1,
+                                            collaborative_speed=0.25))
+            reply = client.request("right", 3, [0.3, -0.25, 0.0], timeout=10)
+            assert reply.success and reply.message.endswith(SLOWED_NOTE), reply.message
+    finally:
+        runner.stop()
+        t.join(5)
+        status.close()

@@ -46,6 +46,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 
 import mds_ach as mds
+from mds_ach.ach.watch import Latest
 from mds_ach.kinematics import ik
 from mds_ach.kinematics.collision import check_world_file, load_model
 from mds_ach.kinematics.limits import current_limits
@@ -55,6 +56,7 @@ from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start
 from mds_ach.nodes.status_msgs import ik_status_msg, json_alias
 from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
+from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
 from mds_ach.robot.msgs.ik_status import (
     IK_BAD_REQUEST,
@@ -67,6 +69,7 @@ from mds_ach.robot.msgs.ik_status import (
     IK_UNREACHABLE,
     MDS_IK_STATUS,
     PROBE_ANSWER,
+    get_message,
     set_message,
     status_to_dict,
 )
@@ -78,6 +81,7 @@ SafetyFactory = Callable[[np.ndarray, "np.ndarray | None"], ik.SafetyCheck]
 ON_COLLISION = ("approach", "refuse")
 WATCH_SPEED = 0.5  # rad/s: the slowest an arm is assumed to travel while the node watches for its stop at contact
 WATCH_EXTRA = 2.0  # s added to that travel time (filter start-up, gate release)
+SLOWED_NOTE = "slowed: collaborative mode"  # a solved status's note while the daemon bounds the hands (#31)
 
 
 @dataclass
@@ -274,6 +278,8 @@ class IkRunner:
         self._stop = threading.Event()
         self._requests: Any = None
         self._verdicts: VerdictWatch | None = None
+        # The daemon's collaborative mode (issue #31): a solution it will slow says so in its status.
+        self._daemon = Latest(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
         self.ready = threading.Event()
         self.handled = 0
         self.watches: dict[int, _Watch] = {}  # arm -> its newest solved request, until it should have arrived
@@ -319,6 +325,7 @@ class IkRunner:
             out.close()
             self._verdicts.close()
             holds.close()
+            self._daemon.close()
 
     def _watch_stops(self, holds: StructChannel[MDS_HOLD], status_ch: StructChannel[MDS_IK_STATUS]) -> None:
         """Read every new ``mds-hold`` frame; a collision CANCEL of a watched arm gets its request a second
@@ -366,10 +373,20 @@ class IkRunner:
                         st.status = IK_NOT_APPLIED
                         set_message(st, verdict.message + "; nothing moved")
                         return st
+                if self._collaborative():
+                    set_message(st, f"{get_message(st)}; {SLOWED_NOTE}")
                 now = time.monotonic()
                 self.watches[int(st.arm)] = _Watch(MDS_IK_STATUS.from_buffer_copy(st), tuple(outcome.refs), now,
                                                    now + WATCH_EXTRA + travel / WATCH_SPEED)
         return st
+
+    def _collaborative(self) -> bool:
+        """Is the daemon in collaborative mode (its newest status)? Then it slows the arm to the Cartesian bound."""
+        try:
+            st = self._daemon.read()
+        except Exception:  # a damaged status channel: the daemon's diagnostics say so
+            return False
+        return st is not None and bool(st.collaborative)
 
     def _report(self, st: MDS_IK_STATUS) -> None:
         doc = status_to_dict(st)
