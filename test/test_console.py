@@ -547,6 +547,22 @@ def test_zeroall_goes_to_the_nearest_in_range_value_and_says_so(system: dict[str
     for short, value in expected.items():
         assert out.joint[mds.BY_SHORT[short].address].ref == value, short
 
+@pytest.mark.slow
+def test_mode_and_a_goto_slowed_by_collaborative_mode(system: dict[str, str]) -> None:
+    """Issue #31: the console switches the daemon's mode, and a goto the mode slowed says so when it is done."""
+    proc = run_console(system, "mode collaborative", "goto LSP -1.2 wait", "mode normal", "goto LSP -0.9 wait")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert any(line.startswith("mode collaborative: done -- collaborative <= 250 mm/s") for line in lines), lines
+    done = [line for line in lines if line.startswith("done")]
+    assert len(done) == 2, lines
+    assert "slowed by the daemon's collaborative mode" in done[0] and "LSP" in done[0], done
+    assert done[1] == "done", done  # back in normal mode: the joint bounds only
+    assert abs(joint_pos("LSP") + 0.9) < 0.011
+    bad = run_console(system, "mode fast", "estop now")
+    assert bad.returncode != 0 and "usage: mode <collaborative|normal>" in bad.stderr
+
+
 
 def test_console_does_not_import_torch(fake_system: None) -> None:
     code = ("import sys; from mds_ach.tools.console import main; rc = main(['-c', 'get fk left']); "
@@ -583,18 +599,3 @@ def test_help_descriptions_are_wrapped(verb: str) -> None:
     assert len(description.splitlines()) > 1 and max(len(line) for line in description.splitlines()) <= 98, \
         description
 
-
-@pytest.mark.slow
-def test_mode_and_a_goto_slowed_by_collaborative_mode(system: dict[str, str]) -> None:
-    """Issue #31: the console switches the daemon's mode, and a goto the mode slowed says so when it is done."""
-    proc = run_console(system, "mode collaborative", "goto LSP -1.2 wait", "mode normal", "goto LSP -0.3 wait")
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    lines = proc.stdout.splitlines()
-    assert any(line.startswith("mode collaborative: done -- collaborative <= 250 mm/s") for line in lines), lines
-    done = [line for line in lines if line.startswith("done")]
-    assert len(done) == 2, lines
-    assert "slowed by the daemon's collaborative mode" in done[0] and "LSP" in done[0], done
-    assert done[1] == "done", done  # back in normal mode: the joint bounds only
-    assert abs(joint_pos("LSP") + 0.3) < 0.011
-    bad = run_console(system, "mode fast", "estop now")
-    assert bad.returncode != 0 and "usage: mode <collaborative|normal>" in bad.stderr
