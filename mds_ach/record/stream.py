@@ -1,0 +1,138 @@
+"""Every frame of one channel, in order, read as a normal reader: what the recorder takes from each channel.
+
+:class:`mds_ach.ach.watch.Latest` serves monitors (only the newest frame matters); a recording needs every frame a
+writer put, so this reader takes them in sequence (``get`` without ``last``) and counts the ones the ring of
+``frame_count`` frames overwrote before it came (``missed``). Like every reader it only opens existing channels
+(never creates, flushes or writes one), holds the channel lock only for the copy of one frame (the writers' own
+cost, nothing more), and survives channels that vanish or are re-created (``mds-ach killall`` and a new start
+while it records): then it opens the new file and takes its frames from the first.
+
+When it first opens a channel it takes the newest frame already there (e.g. ``mds-limits``, published once when
+the daemon started), stamped with the time it read it; after that only frames that arrive.
+
+Imports: :mod:`mds_ach.ach` only.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from mds_ach.ach.channel import Channel
+from mds_ach.ach.files import exists
+from mds_ach.ach.status import ACH_CANCELED, ACH_CORRUPT, ACH_MISSED_FRAME, ACH_OK, AchException
+from mds_ach.ach.watch import ReplacementCheck
+
+RETRY_S = 0.2
+"""How often a missing channel is looked for again, and the longest wait slice (how fast ``stop`` is seen)."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame as read: its bytes, the wall-clock time (ns) the reader took it, whether it sat in the channel
+    already when the reader opened it (``initial``), and how many frames the ring overwrote before it (``missed``)."""
+
+    data: bytes
+    wall_ns: int
+    initial: bool = False
+    missed: int = 0
+
+
+class FrameStream:
+    """Sequential reader of channel ``name``: ``next(timeout)`` returns the next frame or None."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._chan: Channel | None = None
+        self._check: ReplacementCheck | None = None
+        self._buf = bytearray(0)
+        self._next_look = 0.0
+        self.frames = 0
+        self.missed = 0
+        self.opened = 0  # times the channel was (re-)opened
+        self.error = "not opened yet"
+        self._stopped = False
+
+    def _open(self) -> Frame | None:
+        """Open the channel if it exists; the newest frame already in it, if any."""
+        now = time.monotonic()
+        if now < self._next_look:
+            return None
+        self._next_look = now + RETRY_S
+        if not exists(self.name):
+            self.error = f"channel {self.name} does not exist"
+            return None
+        try:
+            chan = Channel(self.name, create=False)
+        except (OSError, AchException) as exc:
+            self.error = f"cannot open {self.name}: {exc}"
+            return None
+        self._chan, self._check = chan, ReplacementCheck(chan)
+        self._buf = bytearray(chan.data_size)
+        self.opened += 1
+        self.error = ""
+        if self.opened > 1:  # a re-created channel: every frame in it is new
+            return None
+        try:
+            status, size = chan.get(self._buf, last=True)
+        except AchException:
+            return None
+        if status in (ACH_OK, ACH_MISSED_FRAME):
+            self.frames += 1
+            return Frame(bytes(self._buf[:size]), time.time_ns(), initial=True)
+        return None
+
+    def _drop(self, why: str) -> None:
+        if self._chan is not None:
+            try:
+                self._chan.close()
+            except AchException:
+                pass
+        self._chan, self._check = None, None
+        self.error = why
+
+    def next(self, timeout: float = RETRY_S) -> Frame | None:
+        """The next frame, waiting at most ``timeout`` s (a missing channel is looked for every ``RETRY_S``)."""
+        if self._stopped:
+            return None
+        if self._chan is None:
+            first = self._open()
+            if first is not None or self._chan is None:
+                if first is None:
+                    time.sleep(min(timeout, RETRY_S))
+                return first
+        chan = self._chan
+        assert chan is not None and self._check is not None
+        if self._check.due_and_replaced():
+            self._drop(f"channel {self.name} was removed or re-created")
+            self._next_look = 0.0
+            return None
+        before = chan.seq_num
+        try:
+            status, size = chan.get(self._buf, wait=True, timeout=min(timeout, RETRY_S))
+        except AchException as exc:
+            self._drop(f"{self.name}: {exc}")
+            return None
+        if status == ACH_CORRUPT:
+            self._drop(f"channel {self.name} is corrupt")
+            return None
+        if status == ACH_CANCELED:
+            return None
+        if status not in (ACH_OK, ACH_MISSED_FRAME):
+            return None
+        missed = max(0, chan.seq_num - before - 1) if status == ACH_MISSED_FRAME else 0
+        self.frames += 1
+        self.missed += missed
+        return Frame(bytes(self._buf[:size]), time.time_ns(), missed=missed)
+
+    def stop(self) -> None:
+        """Make ``next`` return at once from now on (called from another thread)."""
+        self._stopped = True
+        if self._chan is not None:
+            try:
+                self._chan.cancel()
+            except AchException:
+                pass
+
+    def close(self) -> None:
+        self._drop("closed")
