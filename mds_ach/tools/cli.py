@@ -95,6 +95,8 @@ VERBS: dict[str, Verb] = {
     # recordings (mds_ach.record): record the channels to MCAP, plot a recording, replay it onto the channels
     "record": Verb("record every channel of the running system into an MCAP file (Foxglove, mcap, ROS 2 tools)",
                    "mds_ach.record.recorder:add_arguments", "mds_ach.record.recorder:run"),
+    "plot": Verb("plot a recording or a CAN log: per joint each stage's command, measured, limits, holds, findings",
+                 "mds_ach.record.plot:add_arguments", "mds_ach.record.plot:run"),
     "sim": Verb("3-D viewer in the browser, in the background (prints the URL); 'sim kill' stops it",
                 "mds_ach.tools.viewer:add_sim_arguments", "mds_ach.tools.viewer:run_sim"),
 }
