@@ -312,3 +312,64 @@ def test_record_cli_refuses_bad_input(tmp_path: Path) -> None:
                          capture_output=True, text=True)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert os.path.exists(tmp_path / "a.mcap") is False
+
+
+def test_daemon_can_frames_in_the_recording_and_check_log_audits_it(tmp_path: Path) -> None:
+    """A real daemon (simulated bus) with --can-log; the recorder adds its CAN frames of the recording's span on
+    /can/frames; check-log audits the recording exactly as the CAN log's same frames (item 5)."""
+    from mds_ach.record import canlog
+    from mds_ach.robot import config
+    from mds_ach.tools import checklog
+
+    make_channels()
+    can_log = tmp_path / "can.log"
+    daemon = subprocess.Popen([sys.executable, "-m", "mds_ach.nodes.daemon", "--nocan", "--no-ros", "--rt-priority",
+                               "0", "--can-log", str(can_log)], cwd=REPO, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    path = tmp_path / "run.mcap"
+    stop = threading.Event()
+    try:
+        seen: dict[str, mds.MDS_STATE] = {}
+
+        def live() -> bool:
+            frame = st.latest()
+            if frame is not None:
+                seen["state"] = frame
+            return "state" in seen and bool(seen["state"].joint[lookup("RSP").address].active)
+
+        with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as st:
+            wait_for(live, 60, "a live daemon")
+            start = seen["state"]
+        t, box = run_record(path, stop, can_log=str(can_log))
+        a = lookup("RSP").address
+        with StructChannel(mds.MDS_CHAN_REF_GATED_NAME, mds.MDS_REF, create=False) as gated:
+            ref = mds.MDS_REF()
+            for k in range(30):  # a slow move: within the daemon's speed and acceleration bounds
+                ref.joint[a].ref = start.joint[a].pos + 0.002 * k
+                ref.joint[a].mode = 1
+                gated.put(ref)
+                time.sleep(0.05)
+        time.sleep(0.5)
+        stop.set()
+        t.join(60)
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        daemon.wait(30)
+    result = box["result"]
+    assert result.can_frames > 0
+    frames, cut = canlog.recorded_frames(path)
+    assert cut == "" and len(frames) == result.can_frames
+    logged = list(canlog.frames_between(can_log, frames[0].timestamp - 1e-6, frames[-1].timestamp + 1e-6))
+    assert [(m.arbitration_id, bytes(m.data), m.is_rx) for m in frames] == \
+        [(m.arbitration_id, bytes(m.data), m.is_rx) for m in logged]
+    table = config.load(None, None)
+    rep = checklog.audit_file(path, table)
+    assert rep.error == "" and rep.format == "MCAP recording" and rep.frames == len(frames)
+    assert rep.targets["RSP"] > 0 and rep.findings == []
+    out = subprocess.run([*MDS_ACH, "check-log", str(path)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "MCAP recording" in out.stdout, out.stdout + out.stderr
+    # a recording without CAN frames is refused with the reason, exit 2
+    bare = tmp_path / "bare.mcap"
+    recorder.record(bare, [mds.MDS_CHAN_STATE_NAME], duration=0.3)
+    out = subprocess.run([*MDS_ACH, "check-log", str(bare)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "no CAN frames" in out.stdout and "Traceback" not in out.stderr

@@ -79,3 +79,13 @@ def from_message(decoded: Any, log_ns: int) -> can.Message:
     return can.Message(timestamp=log_ns / 1e9, arbitration_id=int(decoded.id), is_extended_id=bool(decoded.is_extended),
                        is_remote_frame=bool(decoded.is_rtr), is_error_frame=bool(decoded.is_error),
                        is_rx=bool(decoded.is_rx), dlc=int(decoded.dlc), data=bytes(decoded.data))
+
+
+def recorded_frames(path: str | Path) -> tuple[list[can.Message], str]:
+    """The CAN frames of a recording (``/can/frames``) in file order, and why the file ends early ("" if it does
+    not). ``RecordingError`` for a file that is no readable recording."""
+    from mds_ach.record.recording import iter_messages  # the reader needs mcap: loaded only for recordings
+
+    cut: list[str] = []
+    frames = [from_message(r.message, r.log_ns) for r in iter_messages(path, {CAN_TOPIC}, cut)]
+    return frames, "; ".join(cut)
