@@ -1,10 +1,11 @@
 """``mds-ach record``: every channel of a running system into an MCAP file that Foxglove, the ``mcap`` readers and
 ROS 2 tools open.
 
-One reader thread per channel (:class:`mds_ach.record.stream.FrameStream`) takes every frame as it arrives and
-hands it on with the time it took it; one writer (this thread) decodes the frames (:mod:`mds_ach.record.schema`)
-and writes them (:mod:`mds_ach.record.sink`). The readers never wait for the writer: a writer that cannot keep up
-drops frames from its queue and says how many (``dropped``), the channels' writers never notice either way.
+One poller thread looks at every channel every ``POLL_S`` (:class:`mds_ach.record.stream.FrameStream`), takes
+each new frame and hands it on with the time it took it; one writer (this thread) decodes the frames
+(:mod:`mds_ach.record.schema`) and writes them (:mod:`mds_ach.record.sink`). The poller never waits for the
+writer: a writer that cannot keep up drops frames from its queue and says how many (``dropped``); the channels'
+writers never notice either way.
 
 Each message's log time is when the recorder took the frame (wall clock); its publish time is the frame's own stamp
 (``time``/``stamp``, CLOCK_MONOTONIC, moved onto the wall clock) where it has one. ``mds-state`` is also written as
@@ -39,6 +40,9 @@ from mds_ach.robot.msgs import MDS_STATE
 
 LATCHED: frozenset[str] = frozenset({contracts.MDS_CHAN_PARAM_NAME, contracts.MDS_CHAN_LIMITS_NAME})
 """Channels written once when the daemon starts: every part of a split recording starts with their newest frame."""
+POLL_S = 0.002
+"""How often every channel is looked at: mds-state's ring holds two frames, so up to 500 Hz nothing is missed
+(a faster daemon's overwritten frames are counted as ``missed``)."""
 QUEUE_MAX = 20_000
 """Frames waiting for the writer at most (about 300 MB of mds-state); beyond, frames are dropped and counted."""
 PROG = "mds-ach record"
@@ -80,29 +84,35 @@ class Recorder:
         self.offset_ns = time.time_ns() - time.monotonic_ns()  # CLOCK_MONOTONIC -> wall clock
         self.started_ns = time.time_ns()
 
-    def _read(self, name: str) -> None:
-        stream = self.streams[name]
+    def _poll(self) -> None:
+        """Every ``POLL_S``: the new frames of every channel, onto the writer's queue (never waiting for it)."""
+        next_t = time.monotonic()
         while not self._stop.is_set():
-            frame = stream.next()
-            if frame is None:
-                continue
-            try:
-                self.queue.put_nowait((name, frame))
-            except queue.Full:
-                self.dropped += 1
+            for name, stream in self.streams.items():
+                for frame in stream.poll():
+                    try:
+                        self.queue.put_nowait((name, frame))
+                    except queue.Full:
+                        self.dropped += 1
+            next_t += POLL_S
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                next_t = time.monotonic()
 
     def start(self) -> None:
-        for name in self.channels:
-            t = threading.Thread(target=self._read, args=(name,), name=f"record-{name}", daemon=True)
-            t.start()
-            self._threads.append(t)
+        t = threading.Thread(target=self._poll, name="record-poll", daemon=True)
+        t.start()
+        self._threads.append(t)
 
     def stop(self) -> None:
         self._stop.set()
-        for s in self.streams.values():
-            s.stop()
         for t in self._threads:
             t.join(timeout=2.0)
+        for s in self.streams.values():
+            s.stop()
+            s.close()
 
     def write(self, name: str, frame: Frame) -> None:
         c = self.contracts[name]

@@ -3,9 +3,10 @@
 :class:`mds_ach.ach.watch.Latest` serves monitors (only the newest frame matters); a recording needs every frame a
 writer put, so this reader takes them in sequence (``get`` without ``last``) and counts the ones the ring of
 ``frame_count`` frames overwrote before it came (``missed``). Like every reader it only opens existing channels
-(never creates, flushes or writes one), holds the channel lock only for the copy of one frame (the writers' own
-cost, nothing more), and survives channels that vanish or are re-created (``mds-ach killall`` and a new start
-while it records): then it opens the new file and takes its frames from the first.
+(never creates, flushes or writes one) and survives channels that vanish or are re-created (``mds-ach killall``
+and a new start while it records): then it opens the new file and takes its frames from the first. It polls
+(``poll``) instead of sleeping on the channel: it takes the lock only when a frame is there, for the copy of it,
+and a writer's put never wakes it (measured in bench/bench_record.py).
 
 When it first opens a channel it takes the newest frame already there (e.g. ``mds-limits``, published once when
 the daemon started), stamped with the time it read it; after that only frames that arrive.
@@ -20,11 +21,11 @@ from dataclasses import dataclass
 
 from mds_ach.ach.channel import Channel
 from mds_ach.ach.files import exists
-from mds_ach.ach.status import ACH_CANCELED, ACH_CORRUPT, ACH_MISSED_FRAME, ACH_OK, AchException
+from mds_ach.ach.status import ACH_CORRUPT, ACH_MISSED_FRAME, ACH_OK, AchException
 from mds_ach.ach.watch import ReplacementCheck
 
 RETRY_S = 0.2
-"""How often a missing channel is looked for again, and the longest wait slice (how fast ``stop`` is seen)."""
+"""How often a missing channel is looked for again."""
 
 
 @dataclass(frozen=True)
@@ -39,7 +40,7 @@ class Frame:
 
 
 class FrameStream:
-    """Sequential reader of channel ``name``: ``next(timeout)`` returns the next frame or None."""
+    """Sequential reader of channel ``name``: ``poll()`` returns the frames that arrived since the last call."""
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -91,48 +92,47 @@ class FrameStream:
         self._chan, self._check = None, None
         self.error = why
 
-    def next(self, timeout: float = RETRY_S) -> Frame | None:
-        """The next frame, waiting at most ``timeout`` s (a missing channel is looked for every ``RETRY_S``)."""
+    def poll(self) -> list[Frame]:
+        """Every frame that arrived since the last call, oldest first; never waits. The channel's lock is taken only
+        when its newest sequence number (read without the lock) says a frame is there: an idle poll costs the
+        writers nothing, and no reader sleeps on the channel's futex (a writer's wake-up never hands the CPU to
+        the recorder in the middle of its put)."""
         if self._stopped:
-            return None
+            return []
+        out: list[Frame] = []
         if self._chan is None:
             first = self._open()
-            if first is not None or self._chan is None:
-                if first is None:
-                    time.sleep(min(timeout, RETRY_S))
-                return first
+            if first is not None:
+                out.append(first)
+            if self._chan is None:
+                return out
         chan = self._chan
         assert chan is not None and self._check is not None
-        if self._check.due_and_replaced():
-            self._drop(f"channel {self.name} was removed or re-created")
-            self._next_look = 0.0
-            return None
-        before = chan.seq_num
-        try:
-            status, size = chan.get(self._buf, wait=True, timeout=min(timeout, RETRY_S))
-        except AchException as exc:
-            self._drop(f"{self.name}: {exc}")
-            return None
-        if status == ACH_CORRUPT:
-            self._drop(f"channel {self.name} is corrupt")
-            return None
-        if status == ACH_CANCELED:
-            return None
-        if status not in (ACH_OK, ACH_MISSED_FRAME):
-            return None
-        missed = max(0, chan.seq_num - before - 1) if status == ACH_MISSED_FRAME else 0
-        self.frames += 1
-        self.missed += missed
-        return Frame(bytes(self._buf[:size]), time.time_ns(), missed=missed)
+        if chan.last_seq == chan.seq_num:
+            if self._check.due_and_replaced():
+                self._drop(f"channel {self.name} was removed or re-created")
+                self._next_look = 0.0
+            return out
+        while True:
+            before = chan.seq_num
+            try:
+                status, size = chan.get(self._buf)
+            except AchException as exc:
+                self._drop(f"{self.name}: {exc}")
+                return out
+            if status == ACH_CORRUPT:
+                self._drop(f"channel {self.name} is corrupt")
+                return out
+            if status not in (ACH_OK, ACH_MISSED_FRAME):
+                return out
+            missed = max(0, chan.seq_num - before - 1) if status == ACH_MISSED_FRAME else 0
+            self.frames += 1
+            self.missed += missed
+            out.append(Frame(bytes(self._buf[:size]), time.time_ns(), missed=missed))
 
     def stop(self) -> None:
-        """Make ``next`` return at once from now on (called from another thread)."""
+        """Make ``poll`` return nothing from now on."""
         self._stopped = True
-        if self._chan is not None:
-            try:
-                self._chan.cancel()
-            except AchException:
-                pass
 
     def close(self) -> None:
         self._drop("closed")
