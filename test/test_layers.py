@@ -1,8 +1,9 @@
 """The package's layers (issue #16): no lower sub-package imports a higher one, and no import cycle between them.
 
 Order, bottom up: ach < bus < robot < kinematics < net, nodes < tools, record (recordings: check-log reads them,
-their plots use check-log). The top-level helper modules (``paths``, ``procs``, ``logformat``) import nothing of the package and may be used anywhere; ``mds_ach/__init__`` re-exports the
-public names (from robot) and ``mds_ach.ik`` is an alias of ``kinematics.ik``.
+their plots use check-log). The top-level helper modules (``paths``, ``procs``, ``logformat``) import nothing of
+the package and may be used anywhere; ``mds_ach/__init__`` re-exports the public names (from robot) and
+``mds_ach.ik`` is an alias of ``kinematics.ik``.
 """
 
 from __future__ import annotations
