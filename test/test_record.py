@@ -381,3 +381,10 @@ def test_daemon_can_frames_in_the_recording_and_check_log_audits_it(tmp_path: Pa
     recorder.record(bare, [mds.MDS_CHAN_STATE_NAME], duration=0.3)
     out = subprocess.run([*MDS_ACH, "check-log", str(bare)], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "no CAN frames" in out.stdout and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("verb", ["record", "plot", "replay"])
+def test_verbs_have_help(verb: str) -> None:
+    out = subprocess.run([*MDS_ACH, verb, "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.startswith(f"usage: mds-ach {verb}"), out.stderr
+    assert "Foxglove" in out.stdout or "daemon" in out.stdout or "stage" in out.stdout

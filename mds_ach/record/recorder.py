@@ -300,6 +300,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     channels = args.channels or list(contracts.ALL_CHANNELS)
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # past ulimit -f a write fails (EFBIG) instead of killing us
+    signal.signal(signal.SIGHUP, _interrupt)  # a closed terminal ends the recording like Ctrl-C: the file finished
     say = None if args.quiet else (lambda text: print(f"{PROG}: {text}", file=sys.stderr, flush=True))
     if say is not None:
         say(f"recording {len(channels)} channels to {path}" + (" (split)" if args.split else "")
@@ -315,6 +316,10 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print(summary(result))
     return 1 if result.stopped_by.startswith("disk full") else 0
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def summary(r: RecordResult) -> str:
