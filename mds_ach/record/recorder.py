@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mds_ach import ach
 from mds_ach.argtypes import bounded
 from mds_ach.record import canlog
 from mds_ach.record import schema as wire
@@ -305,6 +306,8 @@ def run(args: argparse.Namespace) -> int:
     if say is not None:
         say(f"recording {len(channels)} channels to {path}" + (" (split)" if args.split else "")
             + ("; Ctrl-C stops" if args.duration is None else f" for {args.duration:g} s"))
+    if say is not None and not any(ach.exists(name) for name in channels):
+        say("no channel exists yet (is the system started?): frames are recorded as soon as they appear")
     try:
         result = record(path, channels, duration=args.duration, split=args.split, can_log=args.can_log,
                         progress=say)
