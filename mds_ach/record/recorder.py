@@ -83,7 +83,6 @@ class Recorder:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.offset_ns = time.time_ns() - time.monotonic_ns()  # CLOCK_MONOTONIC -> wall clock
-        self.started_ns = time.time_ns()
 
     def _poll(self) -> None:
         """Every ``POLL_S``: the new frames of every channel, onto the writer's queue (never waiting for it)."""
