@@ -126,10 +126,10 @@ class Recorder:
         own = wire.frame_time(decoded)
         publish = int(own * 1e9) + self.offset_ns if own is not None else frame.wall_ns
         self.sink.write(wire.topic(name), (ws.name, ws.text), ws.to_message(decoded), frame.wall_ns, publish,
-                        latch=name in LATCHED)
+                        latch=name in LATCHED, sequence=frame.seq)
         if c.struct is MDS_STATE:
             self.sink.write(wire.JOINT_STATES_TOPIC, (wire.JOINT_STATE_TYPE, wire.JOINT_STATE_TEXT),
-                            wire.joint_state(decoded, publish), frame.wall_ns, publish)
+                            wire.joint_state(decoded, publish), frame.wall_ns, publish, sequence=frame.seq)
         st.frames += 1
 
     def drain(self, until: float) -> bool:

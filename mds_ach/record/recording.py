@@ -44,12 +44,13 @@ def is_recording(path: str | Path) -> bool:
 @dataclass(frozen=True)
 class Recorded:
     """One message: topic, log time (ns, wall clock: when the recorder took it), publish time (ns: the frame's own
-    stamp where it has one) and the decoded ROS 2 message."""
+    stamp where it has one), the decoded ROS 2 message and its sequence (the frame's Ach sequence number mod 2^32)."""
 
     topic: str
     log_ns: int
     publish_ns: int
     message: Any
+    sequence: int = 0
 
 
 @dataclass
@@ -123,7 +124,8 @@ def iter_messages(path: str | Path, topics: set[str] | None = None,
                             continue  # not a ROS 2 message: not ours
                         decoders[ch.id] = decoder
                     n += 1
-                    yield Recorded(ch.topic, record.log_time, record.publish_time, decoder(record.data))
+                    yield Recorded(ch.topic, record.log_time, record.publish_time, decoder(record.data),
+                                   record.sequence)
                 elif isinstance(record, DataEnd | Footer):
                     complete = True
         except InvalidMagic:

@@ -46,6 +46,7 @@ class Latched:
     message: dict[str, Any]
     log_ns: int
     publish_ns: int
+    sequence: int = 0
 
 
 class _CheckedFile:
@@ -140,7 +141,8 @@ class RecordingSink:
         if self.metadata:
             self._writer.add_metadata("mds_ach", self.metadata)
         for latched in self._latched.values():
-            self._write(latched.topic, latched.schema, latched.message, latched.log_ns, latched.publish_ns)
+            self._write(latched.topic, latched.schema, latched.message, latched.log_ns, latched.publish_ns,
+                        latched.sequence)
 
     def _check_room(self, directory: Path, size: int) -> None:
         st = os.statvfs(directory)
@@ -153,16 +155,18 @@ class RecordingSink:
             raise DiskFullError(f"the file-size limit of this process (ulimit -f: {limit} bytes) is reached")
 
     def _write(self, topic: str, schema: tuple[str, str], message: dict[str, Any], log_ns: int,
-               publish_ns: int) -> None:
+               publish_ns: int, sequence: int = 0) -> None:
         assert self._writer is not None
         registered = self._schemas.get(schema)
         if registered is None:
             registered = self._schemas[schema] = self._writer.register_msgdef(*schema)
-        self._writer.write_message(topic, registered, message, log_time=log_ns, publish_time=publish_ns)
+        self._writer.write_message(topic, registered, message, log_time=log_ns, publish_time=publish_ns,
+                                   sequence=sequence % 2**32)
 
     def write(self, topic: str, schema: tuple[str, str], message: dict[str, Any], log_ns: int, publish_ns: int,
-              latch: bool = False) -> None:
-        """One message (``schema`` = (ROS 2 type, definition)); ``latch``: also start every later part with it.
+              latch: bool = False, sequence: int = 0) -> None:
+        """One message (``schema`` = (ROS 2 type, definition)); ``latch``: also start every later part with it;
+        ``sequence``: the MCAP message's sequence (the frame's Ach sequence number, modulo 2^32).
         Raises ``DiskFullError`` (the part is finished first) when there is no room left."""
         now = time.monotonic()
         if now >= self._next_check:
@@ -178,9 +182,9 @@ class RecordingSink:
                 self._finish_part()
                 self._open_part()
         if latch:
-            self._latched[topic] = Latched(topic, schema, message, log_ns, publish_ns)
+            self._latched[topic] = Latched(topic, schema, message, log_ns, publish_ns, sequence)
         try:
-            self._write(topic, schema, message, log_ns, publish_ns)
+            self._write(topic, schema, message, log_ns, publish_ns, sequence)
         except OSError as exc:
             self._fail(exc)
         self.messages += 1

@@ -30,11 +30,13 @@ RETRY_S = 0.2
 
 @dataclass(frozen=True)
 class Frame:
-    """One frame as read: its bytes, the wall-clock time (ns) the reader took it, whether it sat in the channel
-    already when the reader opened it (``initial``), and how many frames the ring overwrote before it (``missed``)."""
+    """One frame as read: its bytes, the wall-clock time (ns) the reader took it, its sequence number in the
+    channel (Ach's, from 1 when the channel was made), whether it sat in the channel already when the reader opened
+    it (``initial``), and how many frames the ring overwrote before it (``missed``)."""
 
     data: bytes
     wall_ns: int
+    seq: int = 0
     initial: bool = False
     missed: int = 0
 
@@ -80,7 +82,7 @@ class FrameStream:
             return None
         if status in (ACH_OK, ACH_MISSED_FRAME):
             self.frames += 1
-            return Frame(bytes(self._buf[:size]), time.time_ns(), initial=True)
+            return Frame(bytes(self._buf[:size]), time.time_ns(), chan.seq_num, initial=True)
         return None
 
     def _drop(self, why: str) -> None:
@@ -128,7 +130,7 @@ class FrameStream:
             missed = max(0, chan.seq_num - before - 1) if status == ACH_MISSED_FRAME else 0
             self.frames += 1
             self.missed += missed
-            out.append(Frame(bytes(self._buf[:size]), time.time_ns(), missed=missed))
+            out.append(Frame(bytes(self._buf[:size]), time.time_ns(), chan.seq_num, missed=missed))
 
     def stop(self) -> None:
         """Make ``poll`` return nothing from now on."""
