@@ -286,7 +286,7 @@ def test_system_restart_while_recording_and_split(tmp_path: Path) -> None:
         with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as ch:
             for k in range(20, 40):
                 ch.put(state_frame(k))
-                time.sleep(0.05)
+                time.sleep(0.1)
         time.sleep(1.5)
     finally:
         stop.set()

@@ -24,8 +24,11 @@ from mds_ach.ach.files import exists
 from mds_ach.ach.status import ACH_CORRUPT, ACH_MISSED_FRAME, ACH_OK, AchException
 from mds_ach.ach.watch import ReplacementCheck
 
-RETRY_S = 0.2
-"""How often a missing channel is looked for again."""
+RETRY_S = 0.05
+"""How often a missing channel is looked for again (a stat per channel): a re-created channel is found before its
+ring (two frames of ``mds-state``) overflows at the rates a restarted daemon starts with."""
+REPLACED_S = 0.1
+"""How often an idle channel is checked for having been removed or re-created (a stat and an fstat)."""
 
 
 @dataclass(frozen=True)
@@ -70,7 +73,7 @@ class FrameStream:
         except (OSError, AchException) as exc:
             self.error = f"cannot open {self.name}: {exc}"
             return None
-        self._chan, self._check = chan, ReplacementCheck(chan)
+        self._chan, self._check = chan, ReplacementCheck(chan, REPLACED_S)
         self._buf = bytearray(chan.data_size)
         self.opened += 1
         self.error = ""
