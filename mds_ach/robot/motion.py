@@ -22,7 +22,8 @@ Definition, per joint, over the sequence of targets q_i sent at times t_i:
   restart never reverses a joint that is still moving.
 
 ``limit()`` picks the target closest to the desired one that keeps both bounds at ``margin`` times their
-value (clock jitter between the daemon and a log's time stamps must never turn into a violation);
+value (clock jitter between the daemon and a log's time stamps must never turn into a violation) and from which
+it could still stop at the desired one (which may stop at once: the collision gate at a contact);
 ``check()`` reports what a recorded step breaks.
 """
 
