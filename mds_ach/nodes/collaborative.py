@@ -95,19 +95,21 @@ class CollaborativeGuard:
 
     def retime(self, track: motion.Track, velocity: float, goal: float, t: float, cfg: JointConfig) -> float:
         """The target at ``t`` for a joint planned to move at ``velocity``: within the joint bounds at ``t``, never
-        past ``goal`` unless braking within the bound requires it, inside the joint's limits."""
+        faster than it could still stop at ``goal`` unless braking within the bound requires it, inside the joint's
+        limits."""
         b = self.bounds
         h = b.interval(t - track.t)
         if h <= 0:
             return track.q
-        a_step = motion.LIMIT_MARGIN * b.max_acceleration * h
+        a_max = motion.LIMIT_MARGIN * b.max_acceleration
         v0 = track.previous_velocity(t, b)
-        v = min(max(velocity, v0 - a_step), v0 + a_step)
-        q = track.q + v * h
-        passed = (q - goal) * (goal - track.q) > 0 if v else False
-        if passed and abs((goal - track.q) / h - v0) <= a_step:
-            q = goal
-        return cfg.clamp(q)
+        # As motion.limit: never a step from which the target could not stop at the goal (the plan's step was sized
+        # for an earlier moment, a shorter interval); the acceleration bound wins.
+        d = goal - track.q
+        reach = motion._stop_speed(abs(d), h, a_max)  # noqa: SLF001 - the limiter's own rule, not a copy of it
+        v = min(velocity, reach) if d >= 0 else max(velocity, -reach)
+        v = min(max(v, v0 - a_max * h), v0 + a_max * h)
+        return cfg.clamp(track.q + v * h)
 
 
 def _has(table: JointTable, short: str) -> bool:
