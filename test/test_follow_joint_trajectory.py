@@ -357,6 +357,36 @@ def test_a_default_qos_subscriber_gets_joint_states_at_the_state_rate_with_veloc
 
 @pytest.mark.ros
 @pytest.mark.slow
+def test_a_goal_slowed_by_collaborative_mode_says_so_in_its_result(probe: Probe) -> None:
+    """Issue #31: in collaborative mode the daemon slows a fast goal (hands and elbows within 250 mm/s); the goal
+    still succeeds, and its result says it was slowed and which joints, instead of saying nothing. (Runs first of
+    the goals: from the start pose, the move is clear of the body.)"""
+    from action_msgs.msg import GoalStatus
+    from control_msgs.action import FollowJointTrajectory
+
+    from mds_ach.tools.safetycmd import send
+
+    start = {n: probe.position(n) for n in ("LSP", "LEP")}
+    assert send(mds.MDS_CMD_MODE, 1.0, 10.0)[0]
+    try:
+        lo, hi = load_limits()["LEP"]
+        end = [start["LSP"] - 0.7, max(lo + 0.1, min(hi - 0.1, start["LEP"] - 0.7))]
+        goal = _arm_goal({"LSP": [end[0]], "LEP": [end[1]]}, [1.0])  # 0.7 rad/s on both: the hand above 250 mm/s
+        goal.goal_time_tolerance.sec = 20
+        res = probe.result(probe.send("left_arm_controller", goal), 40.0)
+        assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+        assert res.result.error_code == FollowJointTrajectory.Result.SUCCESSFUL
+        text = res.result.error_string
+        assert "slowed by the daemon's collaborative mode" in text and "LSP" in text, text
+    finally:
+        assert send(mds.MDS_CMD_MODE, 0.0, 10.0)[0]
+        back = _arm_goal({"LSP": [start["LSP"]], "LEP": [start["LEP"]]}, [2.0])  # the next tests start there
+        back.goal_time_tolerance.sec = 10
+        assert probe.result(probe.send("left_arm_controller", back), 30.0).status == GoalStatus.STATUS_SUCCEEDED
+
+
+@pytest.mark.ros
+@pytest.mark.slow
 def test_a_two_point_goal_for_lsp_lep_succeeds_within_the_goal_tolerance(probe: Probe) -> None:
     from control_msgs.action import FollowJointTrajectory
     from control_msgs.msg import JointTolerance
@@ -525,32 +555,6 @@ def test_the_three_action_servers_are_on_the_graph(probe: Probe) -> None:
     found = dict(get_action_names_and_types(probe.node))
     for c in follow.CONTROLLERS:
         assert found.get(f"/{c}/{follow.ACTION}") == ["control_msgs/action/FollowJointTrajectory"], found
-
-
-@pytest.mark.ros
-@pytest.mark.slow
-def test_a_goal_slowed_by_collaborative_mode_says_so_in_its_result(probe: Probe) -> None:
-    """Issue #31: in collaborative mode the daemon slows a fast goal (hands and elbows within 250 mm/s); the goal
-    still succeeds, and its result says it was slowed and which joints, instead of saying nothing."""
-    from action_msgs.msg import GoalStatus
-    from control_msgs.action import FollowJointTrajectory
-
-    from mds_ach.tools.safetycmd import send
-
-    assert send(mds.MDS_CMD_MODE, 1.0, 10.0)[0]
-    try:
-        start = {n: probe.position(n) for n in ("LSP", "LEP")}
-        lo, hi = load_limits()["LEP"]
-        end = [start["LSP"] - 0.7, max(lo + 0.1, min(hi - 0.1, start["LEP"] - 0.7))]
-        goal = _arm_goal({"LSP": [end[0]], "LEP": [end[1]]}, [1.0])  # 0.7 rad/s on both: the hand above 250 mm/s
-        goal.goal_time_tolerance.sec = 20
-        res = probe.result(probe.send("left_arm_controller", goal), 40.0)
-        assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
-        assert res.result.error_code == FollowJointTrajectory.Result.SUCCESSFUL
-        text = res.result.error_string
-        assert "slowed by the daemon's collaborative mode" in text and "LSP" in text, text
-    finally:
-        assert send(mds.MDS_CMD_MODE, 0.0, 10.0)[0]
 
 
 @pytest.mark.ros
