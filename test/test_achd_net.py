@@ -22,8 +22,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from support import VENV_BIN, in_netns, run_as, wait_for
+from support import VENV_BIN, golems, in_netns, run_as, wait_for
 from support.netsim import Host, Sshd, Veth, reachable
+from support.pty_session import PtySession
 
 import mds_ach as mds
 from mds_ach import ach
@@ -130,6 +131,83 @@ def test_server_refuses_with_achd_error_headers(server, request_bytes, status, f
     assert fragment in headers.message
     assert sock.recv(100) == b""  # and closes
     sock.close()
+
+
+@pytest.mark.parametrize("name", [mds.MDS_CHAN_BOARD_CMD_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME])
+def test_a_refused_write_says_why_in_words_golems_achd_prints_whole(clean_shm, name):
+    """Issue #29 item 2: `achd push mds-cmd` (the original `mds-ach remote`) is refused with the reason and what to
+    do instead; golems' achd prints the message (its header parser ends a value at ':' or '=', so none)."""
+    _need_netns()
+    ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    srv = achd.Server(("127.0.0.1",), 0).start()
+    try:
+        sock, headers = _raw_session(srv.ports[0], ap.encode_request(name, "tcp", "pull"))
+        sock.close()
+    finally:
+        srv.stop()
+        srv.join()
+    assert headers.status == ap.ACH_EACCES
+    assert headers.message.startswith(f"channel {name} may not be written from the network -- ")
+    assert ":" not in headers.message and "=" not in headers.message
+    assert ("mds-ach enable|home|zero|reset JOINT" if name == mds.MDS_CHAN_BOARD_CMD_NAME
+            else "write mds-ref-filter or mds-ref") in headers.message
+
+
+def test_the_original_remote_script_with_golems_achd(clean_shm, tmp_path: Path):
+    """Issue #29 item 2: the original `mds-ach remote` runs four golems `achd -r` links to the robot. Three work;
+    `push mds-cmd` is refused on purpose (setup commands are not levels a reconnect may replay, and pass no safety
+    stage; the original never read mds-cmd): golems' achd prints the reason and that link alone exits, at once
+    although `-r` (a refused request is not a lost connection)."""
+    _need_netns()
+    achd_bin = golems.tool("achd")
+    for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_PARAM_NAME, "station-ref"):
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
+    ach.create(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)  # the station's
+    srv = achd.Server(("127.0.0.1",), 0, dead_after_s=2.0).start()  # the default write rules of `remote serve`
+    port = str(srv.ports[0])
+    # One /dev/shm here: the station's channels get other names (-z names the robot's), as on two hosts.
+    links = [("push", "station-ref", mds.MDS_CHAN_REF_NAME), ("pull", "station-state", mds.MDS_CHAN_STATE_NAME),
+             ("pull", "station-param", mds.MDS_CHAN_PARAM_NAME)]
+    procs = [subprocess.Popen([str(achd_bin), "-r", "-p", port, "-z", robot, verb, "127.0.0.1", local],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+             for verb, local, robot in links]
+    try:
+        with PtySession([str(achd_bin), "-r", "-p", port, "push", "127.0.0.1", mds.MDS_CHAN_BOARD_CMD_NAME]) as cmd:
+            cmd.expect("status: ACH_EACCES", timeout=20)
+            cmd.expect("Server error: channel mds-cmd may not be written from the network -- its setup commands "
+                       "(enable, disable, home, zero, reset) pass no safety stage", timeout=5)
+            cmd.expect("never read mds-cmd, so this link carried nothing; the other links work\r\n")
+            assert cmd.wait(10) == 1
+        assert "mds-cmd" not in str(srv.stats)  # never served
+        wait_for(lambda: len(srv.stats) == 3, 20, what="the three other links served")
+        with ach.Channel("station-ref", create=False) as ref, \
+                ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as state, \
+                ach.Channel(mds.MDS_CHAN_PARAM_NAME, create=False) as param:
+            def arrived(name: str) -> bool:
+                if not ach.exists(name):
+                    return False
+                with ach.Channel(name, create=False) as ch:
+                    return ch.last_seq > 0
+
+            def flowing() -> bool:  # frames put after the links connected (golems' achd flushes at connect)
+                ref.put(_ref(-0.2))
+                state.put(msgs.MDS_STATE())
+                param.put(msgs.MDS_JOINT_PARAM())
+                return all(arrived(n) for n in (mds.MDS_CHAN_REF_NAME, "station-state", "station-param"))
+
+            try:
+                wait_for(flowing, 20, what="frames over the three links")
+            except AssertionError:
+                raise AssertionError({n: arrived(n) for n in (mds.MDS_CHAN_REF_NAME, "station-state", "station-param")},
+                                     srv.stats, [p.poll() for p in procs]) from None
+        assert all(p.poll() is None for p in procs), [p.stderr.read() for p in procs if p.poll() is not None]
+        assert msgs.MDS_REF.from_bytes(_frames(mds.MDS_CHAN_REF_NAME)[-1]).joint[mds.LSP].ref == -0.2
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait(10)
+        srv.stop()
+        srv.join()
 
 
 def test_link_refused_reports_the_server_message(server):

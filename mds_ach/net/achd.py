@@ -804,6 +804,26 @@ class AccessPolicy:
         return any(fnmatch.fnmatchcase(channel, p) for p in patterns)
 
 
+WHY_NOT_WRITABLE: dict[str, str] = {
+    contracts.MDS_CHAN_BOARD_CMD_NAME:
+        "its setup commands (enable, disable, home, zero, reset) pass no safety stage and are not levels (a "
+        "reconnect may send one again); run them on the robot (mds-ach enable|home|zero|reset JOINT, e.g. over "
+        "ssh). The original MDS-Ach never read mds-cmd, so this link carried nothing; the other links work",
+    contracts.MDS_CHAN_DAEMON_INPUT_NAME:
+        "it is what the daemon executes; write mds-ref-filter or mds-ref, whose frames pass the mux, the filter "
+        "and the collision gate",
+}
+"""Why the default write rules refuse these channels, in the refusal a client is sent: golems' achd prints it
+(``Server error: ...``) before it exits, ``-r`` or not (a refused request is not a lost connection). No ':' or
+'=' in them: golems' header parser ends a value there."""
+
+
+def refusal_message(channel: str, verb: str) -> str:
+    """The message of an ``ACH_EACCES`` refusal for ``channel`` (``verb``: read or written); one line."""
+    why = WHY_NOT_WRITABLE.get(channel) if verb == "written" else None
+    return f"channel {channel} may not be {verb} from the network" + (f" -- {why}" if why else "")
+
+
 def is_local_peer(host: str) -> bool:
     """Loopback (127.0.0.0/8, ::1, or IPv4-mapped loopback): this machine's tools and SSH-tunnelled operators."""
     try:
@@ -998,7 +1018,7 @@ class Server:
                 self.refused += 1
                 verb = "read" if direction == "push" else "written"
                 log.warning("%s: refused, channel %s may not be %s from the network", who, name, verb)
-                _refuse(sock, ap.ACH_EACCES, f"channel {name} may not be {verb} from the network")
+                _refuse(sock, ap.ACH_EACCES, refusal_message(name, verb))
                 return
             try:
                 chan = ach.Channel(name, create=False)
