@@ -19,17 +19,20 @@ import os
 import select
 import socket
 import subprocess
+from functools import partial
 from pathlib import Path
 
 import pytest
 from support import VENV_BIN, golems, in_netns, run_as, wait_for
 from support.netsim import Host, Sshd, Veth, reachable
 from support.pty_session import PtySession
+from support.rig import DaemonRig
 
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.net import achd
 from mds_ach.net import protocol as ap
+from mds_ach.nodes import daemon_loop
 from mds_ach.robot import msgs
 
 OP_IP = "10.77.0.1"
@@ -160,14 +163,15 @@ def test_the_original_remote_script_with_golems_achd(clean_shm, tmp_path: Path):
     although `-r` (a refused request is not a lost connection)."""
     _need_netns()
     achd_bin = golems.tool("achd")
-    for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_PARAM_NAME, "station-ref"):
+    for name in (mds.MDS_CHAN_REF_NAME, mds.MDS_CHAN_STATE_NAME, mds.MDS_CHAN_PARAM_NAME, "test-station-ref"):
         ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)
     ach.create(mds.MDS_CHAN_BOARD_CMD_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE)  # the station's
     srv = achd.Server(("127.0.0.1",), 0, dead_after_s=2.0).start()  # the default write rules of `remote serve`
     port = str(srv.ports[0])
     # One /dev/shm here: the station's channels get other names (-z names the robot's), as on two hosts.
-    links = [("push", "station-ref", mds.MDS_CHAN_REF_NAME), ("pull", "station-state", mds.MDS_CHAN_STATE_NAME),
-             ("pull", "station-param", mds.MDS_CHAN_PARAM_NAME)]
+    links = [("push", "test-station-ref", mds.MDS_CHAN_REF_NAME),
+             ("pull", "test-station-state", mds.MDS_CHAN_STATE_NAME),
+             ("pull", "test-station-param", mds.MDS_CHAN_PARAM_NAME)]
     procs = [subprocess.Popen([str(achd_bin), "-r", "-p", port, "-z", robot, verb, "127.0.0.1", local],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
              for verb, local, robot in links]
@@ -180,7 +184,7 @@ def test_the_original_remote_script_with_golems_achd(clean_shm, tmp_path: Path):
             assert cmd.wait(10) == 1
         assert "mds-cmd" not in str(srv.stats)  # never served
         wait_for(lambda: len(srv.stats) == 3, 20, what="the three other links served")
-        with ach.Channel("station-ref", create=False) as ref, \
+        with ach.Channel("test-station-ref", create=False) as ref, \
                 ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as state, \
                 ach.Channel(mds.MDS_CHAN_PARAM_NAME, create=False) as param:
             def arrived(name: str) -> bool:
@@ -193,13 +197,13 @@ def test_the_original_remote_script_with_golems_achd(clean_shm, tmp_path: Path):
                 ref.put(_ref(-0.2))
                 state.put(msgs.MDS_STATE())
                 param.put(msgs.MDS_JOINT_PARAM())
-                return all(arrived(n) for n in (mds.MDS_CHAN_REF_NAME, "station-state", "station-param"))
+                return all(arrived(n) for n in targets)
 
+            targets = (mds.MDS_CHAN_REF_NAME, "test-station-state", "test-station-param")
             try:
                 wait_for(flowing, 20, what="frames over the three links")
             except AssertionError:
-                raise AssertionError({n: arrived(n) for n in (mds.MDS_CHAN_REF_NAME, "station-state", "station-param")},
-                                     srv.stats, [p.poll() for p in procs]) from None
+                raise AssertionError({n: arrived(n) for n in targets}, srv.stats, [p.poll() for p in procs]) from None
         assert all(p.poll() is None for p in procs), [p.stderr.read() for p in procs if p.poll() is not None]
         assert msgs.MDS_REF.from_bytes(_frames(mds.MDS_CHAN_REF_NAME)[-1]).joint[mds.LSP].ref == -0.2
     finally:
@@ -208,6 +212,96 @@ def test_the_original_remote_script_with_golems_achd(clean_shm, tmp_path: Path):
             p.wait(10)
         srv.stop()
         srv.join()
+
+
+def _first_frames_of_a_pull(port: int, name: str, written_before: bytes, written_after: list[bytes]) -> list[bytes]:
+    """What a pulling link (ours, with achd's get-last) delivers when ``written_before`` was put before it
+    connected and ``written_after`` once it runs (one by one, each waited for)."""
+    with ach.Channel(name, create=False) as src:
+        src.put(written_before)
+        link = achd.Link("pull", "127.0.0.1", f"test-got-{name}", remote_channel=name, port=port,
+                         reconnect=False).start()
+        try:
+            assert link.connected.wait(10), link.stats.last_error
+            got: list[bytes] = []
+            with ach.Channel(f"test-got-{name}", create=False) as dst:
+                buf = bytearray(dst.data_size)
+                def delivered(frame: bytes, n: int) -> bool:
+                    src.put(frame)  # again until it arrives: the serving side may still be flushing
+                    status, size = dst.get(buf, wait=True, timeout=0.2)
+                    while status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+                        got.append(bytes(buf[:size]))
+                        status, size = dst.get(buf)
+                    return len(got) > n and got[-1] == frame
+
+                for frame in written_after:
+                    wait_for(partial(delivered, frame, len(got)), 10, what=f"{frame!r} over the link")
+            return list(dict.fromkeys(got))  # a frame put twice while waiting counts once
+        finally:
+            link.stop()
+            link.join(5)
+
+
+@pytest.mark.parametrize("server_kind", ["ours", "ours --newest-on-connect", "golems achd serve"])
+def test_a_pull_starts_with_the_first_frame_written_after_the_client_connected(clean_shm, server_kind):
+    """Issue #29 item 3: golems' achd flushes the channel when a client connects; our server does the same by
+    default (a pull never starts with a frame written before the client connected), and with
+    ``send_latest_on_connect`` (``--newest-on-connect``) starts with the newest frame instead."""
+    _need_netns()
+    ach.create("test-state", 10, 64)
+    if server_kind == "golems achd serve":
+        with golems.Inetd(golems.tool("achd")) as inetd:
+            got = _first_frames_of_a_pull(inetd.port, "test-state", b"before", [b"after-1", b"after-2"])
+    else:
+        newest = server_kind.endswith("--newest-on-connect")
+        srv = achd.Server(("127.0.0.1",), 0, **({"send_latest_on_connect": True} if newest else {})).start()
+        try:
+            got = _first_frames_of_a_pull(srv.ports[0], "test-state", b"before", [b"after-1", b"after-2"])
+        finally:
+            srv.stop()
+            srv.join()
+        if newest:
+            assert got == [b"before", b"after-1", b"after-2"]
+            return
+    assert got == [b"after-1", b"after-2"]
+
+
+@pytest.mark.parametrize("server_kind", ["ours", "golems achd serve"])
+def test_a_station_connecting_after_the_daemon_started_gets_mds_param(clean_shm, server_kind):
+    """Issue #29 item 3: a station's link to golems' `achd serve` (and to ours: the same first-frame rule) never
+    gets a frame written before it connected, whatever it asks (get-last picks the newest of the frames that
+    arrive afterwards) -- and the daemon puts mds-param once at start. So the daemon puts it again every second
+    (``PARAM_PERIOD``): a station that connects later has the joint names within a second of robot time."""
+    _need_netns()
+    rig = DaemonRig()
+    rig.loop.start_up()  # mds-param, once, before any station connected
+    inetd = golems.Inetd(golems.tool("achd")) if server_kind == "golems achd serve" else None
+    srv = achd.Server(("127.0.0.1",), 0).start() if inetd is None else None
+    port = inetd.port if inetd is not None else srv.ports[0]
+    link = achd.Link("pull", "127.0.0.1", "test-station-param", remote_channel=mds.MDS_CHAN_PARAM_NAME,
+                     port=port).start()
+    try:
+        assert link.connected.wait(10), link.stats.last_error
+        param = msgs.MDS_JOINT_PARAM()
+
+        def names() -> bool:
+            with ach.Channel("test-station-param", create=False) as station:
+                return station.get(param, last=True)[0] in (ach.ACH_OK, ach.ACH_MISSED_FRAME)
+
+        rig.step(2)
+        assert not names(), "the frame put before the station connected is not sent (achd's rule)"
+        rig.step(round(daemon_loop.PARAM_PERIOD / rig.loop.period))  # one period of robot time
+        wait_for(names, 10, what="mds-param at the station")
+        assert msgs.get_name(param.joint[mds.LSP].nameshort) == "LSP"
+    finally:
+        link.stop()
+        link.join(5)
+        if inetd is not None:
+            inetd.close()
+        if srv is not None:
+            srv.stop()
+            srv.join()
+        rig.close()
 
 
 def test_link_refused_reports_the_server_message(server):

@@ -11,9 +11,12 @@ our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` 
   bad modes), are dropped and counted, never written; an ``mds-hold`` request the mux would refuse (a CANCEL
   target past the limits or away from the joint's reference, ``check_cancel``) is not written either, and the
   connection is answered with achd's error block (``ACH_EINVAL`` and the reason) and closed;
-* a client reconnects after a drop and re-sends its newest frame; our server starts a sending
-  connection with the channel's newest frame (achd flushes it), so a reconnect never loses the newest
-  frame and a late client gets ``mds-param`` at once;
+* a client reconnects after a drop and re-sends its newest frame, so a reconnect never loses the newest frame.
+  Our server, like achd, starts a sending connection with the first frame written after the client connected
+  (achd flushes the channel); ``send_latest_on_connect`` (``--newest-on-connect``) starts it with the newest
+  frame instead. Neither achd offers a pulling client a frame written before it connected (``get-last`` picks
+  the newest of the frames that arrive afterwards): the level channels a station needs at once are re-published
+  by their writers (the daemon puts ``mds-param`` every second, the collision gate ``mds-collide`` at 10 Hz);
 * queues are bounded and the newest frame wins: the channel ring is the only queue, read newest-first
   with get-last, and the socket send buffer is kept small;
 * no peer can lock others out: each remote address may hold a few connections (``max_per_peer``), loopback
@@ -854,7 +857,7 @@ class Server:
         port: int = ap.ACHD_PORT,
         *,
         policy: AccessPolicy | None = None,
-        send_latest_on_connect: bool = True,
+        send_latest_on_connect: bool = False,
         dead_after_s: float = 5.0,
         max_clients: int = MAX_CLIENTS,
         max_per_peer: int = MAX_PER_PEER,
@@ -1122,6 +1125,18 @@ def add_server_limit_arguments(p: argparse.ArgumentParser, prefix: str = "") -> 
                         f"(default {IDLE_TIMEOUT_S:g}; 0: never)")
 
 
+def add_connect_start_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """Which frame a pulling client gets first: golems' achd's (the first one written after it connected) unless
+    ``--newest-on-connect``."""
+    first = p.add_mutually_exclusive_group()
+    first.add_argument("--newest-on-connect", action="store_true",
+                       help=f"{prefix}start each pull with the channel's newest frame, even one written before "
+                            "the client connected (default: like golems' achd, the first frame written after)")
+    first.add_argument("--flush-on-connect", action="store_true",
+                       help=f"{prefix}like golems' achd, never send a frame written before the client connected "
+                            "(the default)")
+
+
 class ServerLimits(TypedDict):
     """The connection limits of ``Server`` that the command line sets."""
 
@@ -1167,7 +1182,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help=f"serve: channel pattern clients may push into (default {', '.join(SAFE_WRITABLE)})",
     )
-    ap_.add_argument("--flush-on-connect", action="store_true", help="serve: like achd, never send old frames")
+    add_connect_start_arguments(ap_, "serve: ")
     add_server_limit_arguments(ap_, "serve: ")
     ap_.add_argument("-v", "--verbose", action="store_true", help="log every connection")
     return ap_
@@ -1188,7 +1203,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             server = Server(
                 args.bind or ("127.0.0.1",), args.port, policy=policy,
-                send_latest_on_connect=not args.flush_on_connect, **server_limits(args),
+                send_latest_on_connect=args.newest_on_connect, **server_limits(args),
             ).start()
         except ValueError as exc:
             print(f"achd: {exc}", file=sys.stderr)

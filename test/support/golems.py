@@ -47,3 +47,54 @@ def tool(name: str) -> Path:
         pytest.skip(f"golems' {name} is not installed (build github.com/golems/ach and set ${ENV} to the "
                     f"directory holding {name})")
     return path
+
+
+class Inetd:
+    """golems' ``achd serve`` the way a lab runs it, under inetd (``8076 stream tcp nowait nobody achd achd
+    serve``): every accepted connection runs one ``achd serve`` with the socket as its stdin and stdout. Listens on
+    127.0.0.1, any free port (``port``); ``with Inetd(achd) as srv: ...`` stops it and every server it ran."""
+
+    def __init__(self, achd: Path) -> None:
+        import socket
+        import threading
+
+        self.achd = achd
+        self._sock = socket.socket()
+        self._sock.bind(("127.0.0.1", 0))
+        self._sock.listen(16)
+        self._sock.settimeout(0.2)
+        self.port = self._sock.getsockname()[1]
+        self.procs: list[subprocess.Popen] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._accept, daemon=True)
+        self._thread.start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except OSError:
+                continue
+            with conn:
+                conn.settimeout(None)
+                self.procs.append(subprocess.Popen([str(self.achd), "serve"], stdin=conn.fileno(),
+                                                   stdout=conn.fileno(), stderr=subprocess.DEVNULL))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self._sock.close()
+        for proc in self.procs:
+            proc.terminate()
+        for proc in self.procs:
+            try:
+                proc.wait(5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+
+    def __enter__(self) -> Inetd:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
