@@ -402,11 +402,28 @@ class _Conn:
                     pass
 
 
+UDP_RECEIVE_BUFFER_BYTES = 4 * 1024 * 1024
+"""Receive buffer of a datagram socket (capped by the kernel's ``net.core.rmem_max``): room for about 150
+``mds-state`` datagrams (14 KB, fragmented), so a receiver that was not scheduled for a while (a loaded machine)
+finds them queued instead of dropped by the kernel (``RcvbufErrors`` in /proc/net/snmp). The default (208 KiB)
+held 7: under CPU load our receiver lost up to 100 of 6,000 frames there where golems' C receiver lost 1."""
+UDP_SEND_WAIT_S = 0.05
+"""A datagram send that finds the socket buffer full waits this long for room, as golems' achd does (it polls
+for POLLOUT before every send), before the datagram is counted as lost."""
+PEER_CHECK_S = 0.02
+"""How often a sending loop that is busy with frames looks at its TCP connection (a system call): not for every
+frame, which at 1 kHz was a quarter of the sender's time."""
+
+
 def _udp_socket(tcp: socket.socket) -> socket.socket:
     """A datagram socket on the TCP connection's local address, any port (achd binds INADDR_ANY)."""
     udp = socket.socket(tcp.family, socket.SOCK_DGRAM)
     udp.bind((tcp.getsockname()[0], 0))
     udp.setblocking(False)
+    try:
+        udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER_BYTES)
+    except OSError:  # the kernel caps it at rmem_max; a refusal only leaves the default
+        pass
     return udp
 
 
@@ -473,9 +490,13 @@ def _send(conn: _Conn, payload: bytes, stats: LinkStats) -> None:
         return
     try:
         assert conn.udp_peer is not None  # set together with conn.udp
-        conn.udp.sendto(payload, conn.udp_peer)
+        try:
+            conn.udp.sendto(payload, conn.udp_peer)
+        except BlockingIOError:  # socket buffer full: wait a little for room, as achd waits for POLLOUT
+            select.select([], [conn.udp], [], UDP_SEND_WAIT_S)
+            conn.udp.sendto(payload, conn.udp_peer)
     except BlockingIOError:
-        stats.send_errors += 1  # socket buffer full: this datagram is lost, the next one is newer anyway
+        stats.send_errors += 1  # still full: this datagram is lost, the next one is newer anyway
         return
     except OSError as exc:  # e.g. ENETUNREACH while the link is down: the TCP control link decides
         stats.send_errors += 1
@@ -513,11 +534,15 @@ def _run_sender(
         _send(conn, first, stats)
         source.sent, last_sent = first, time.monotonic()
         source.sent_at = last_sent
+    checked = -math.inf
     while not stop.is_set():
         watch.check()
         idle.check()
-        if _peer_closed(conn, refusals):
-            raise ConnectionLostError("peer closed the connection")
+        now = time.monotonic()
+        if now - checked >= PEER_CHECK_S:
+            checked = now
+            if _peer_closed(conn, refusals):
+                raise ConnectionLostError("peer closed the connection")
         if period and last_sent:
             remaining = last_sent + period - time.monotonic()
             if remaining > 0:
@@ -1037,23 +1062,24 @@ class Server:
                 udp_port = conn.udp.getsockname()[1]
                 assert headers.remote_port is not None  # validated: a UDP request names its port
                 conn.udp_peer = (peer[0], headers.remote_port)
+            stats = LinkStats(connects=1)
+            rule = rule_for(name)
+            source, first = None, None
+            if direction == "push":  # before the response, as achd: a frame put once the client is told it is
+                source = _Source(chan, rule, bool(headers.get_last), stats)  # connected is never flushed away
+                if self.send_latest_on_connect:
+                    first = source.next(0.0, last=True, wait=False)
+                else:
+                    chan.flush()
             sock.sendall(ap.encode_response(frame_count, data_size // frame_count, udp_port))
             sock.settimeout(self.dead_after_s)
-            stats = LinkStats(connects=1)
             key = f"{who} {direction} {name} ({headers.transport})"
             with self._lock:
                 self.stats[key] = stats
                 while len(self.stats) > MAX_SERVED_STATS:  # keep the newest connections' counters
                     del self.stats[next(iter(self.stats))]
             log.info("%s: serving %s %s via %s", who, direction, name, headers.transport)
-            rule = rule_for(name)
-            if direction == "push":
-                source = _Source(chan, rule, bool(headers.get_last), stats)
-                first = None
-                if self.send_latest_on_connect:
-                    first = source.next(0.0, last=True, wait=False)
-                else:
-                    chan.flush()
+            if source is not None:
                 _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first, self.idle_timeout_s)
             else:
                 limits = RefLimitCheck.for_channel(chan, name) or HoldCheck.for_channel(name)  # before the flush
