@@ -641,3 +641,16 @@ def test_help_descriptions_are_wrapped(verb: str) -> None:
     description = proc.stdout.split("\n\n")[1]
     assert len(description.splitlines()) > 1 and max(len(line) for line in description.splitlines()) <= 98, \
         description
+
+
+def test_a_reader_that_stops_reading_ends_the_console_quietly() -> None:
+    """Issue #29 item 6: `mds-ach console -c ... | head -1` ended in a BrokenPipeError traceback. Now it stops as a
+    tool killed by SIGPIPE does: no traceback, status 141, no later command run."""
+    for argv in ([str(VENV_BIN / "mds-ach"), "console"], [str(VENV_BIN / "mds-ach-console")]):
+        proc = subprocess.Popen([*argv, *["-c", "help"] * 200], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdout is not None and proc.stderr is not None
+        first = proc.stdout.readline()  # `head -1`
+        proc.stdout.close()
+        err = proc.stderr.read().decode()
+        assert proc.wait(60) == 141 and first.startswith(b"commands"), err
+        assert err == "", err

@@ -159,6 +159,24 @@ def main(argv: list[str] | None = None) -> int:
         return int(_resolve(args._handler)(args) or 0)
     except KeyboardInterrupt:
         return 0
+    except BrokenPipeError:  # `mds-ach console -c ... | head -1`: the reader is gone
+        return stdout_closed()
+
+
+SIGPIPE_EXIT = 128 + signal.SIGPIPE
+"""Exit status after the reader of stdout went away: what a process killed by SIGPIPE reports."""
+
+
+def stdout_closed() -> int:
+    """The reader of our stdout closed the pipe: stop quietly, as a tool killed by SIGPIPE does, instead of a
+    BrokenPipeError traceback (Python ignores SIGPIPE). stdout is pointed at /dev/null first, so the final flush
+    at exit does not raise again. Returns the exit status (``SIGPIPE_EXIT``)."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return SIGPIPE_EXIT
 
 
 if __name__ == "__main__":

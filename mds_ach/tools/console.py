@@ -34,7 +34,7 @@ from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
 from mds_ach.robot.msgs.mux_state import MUX_FREE, MUX_HELD
-from mds_ach.tools.cli import help_paragraph
+from mds_ach.tools.cli import help_paragraph, stdout_closed
 from mds_ach.tools.holdcmd import enabled_joints, held_summary
 from mds_ach.tools.monitor import Latest, collision_summary
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
@@ -1012,7 +1012,10 @@ def main(argv: list[str] | None = None) -> int:
     argv = strip_ros_args(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="console")
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    try:
+        return run(parser.parse_args(argv))
+    except BrokenPipeError:  # `mds-ach-console -c ... | head -1`
+        return stdout_closed()
 
 
 if __name__ == "__main__":
