@@ -55,6 +55,8 @@ VERBS: dict[str, Verb] = {
     "limits": Verb("the joint limits each joint can follow (range, velocity, acceleration); --moveit-yaml writes "
                    "MoveIt's joint_limits.yaml",
                    "mds_ach.tools.limitscmd:add_arguments", "mds_ach.tools.limitscmd:run"),
+    "py2to3": Verb("convert an original MDS-Ach Python 2 program to Python 3 (print, import ach, raw_input, ...)",
+                   "mds_ach.tools.py2to3:add_arguments", "mds_ach.tools.py2to3:run"),
     "check-log": Verb("audit a CAN log: targets finite, in limits, to enabled joints, within speed/acceleration",
                       "mds_ach.tools.checklog:add_arguments", "mds_ach.tools.checklog:run"),
     # operator verbs (mds_ach.tools.launcher, console, read)

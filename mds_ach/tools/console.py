@@ -497,9 +497,9 @@ class Console:
                                usage=False)
 
     def _wait_arrival(self, targets: dict[int, float], timeout: float,
-                      gave_up: Callable[[], bool] = lambda: False) -> bool:
-        """Print a dot per half second until every target joint's measured position is within tolerance (False
-        after ``timeout`` s, or as soon as ``gave_up()``)."""
+                      gave_up: Callable[[], bool] = lambda: False, show: bool = True) -> bool:
+        """Print a dot per half second (``show``) until every target joint's measured position is within
+        tolerance (False after ``timeout`` s, or as soon as ``gave_up()``)."""
         deadline = time.monotonic() + timeout
         next_dot = time.monotonic() + 0.5
         dots = False
@@ -509,7 +509,7 @@ class Console:
                 if dots:
                     self.out("")
                 return True
-            if time.monotonic() >= next_dot:
+            if show and time.monotonic() >= next_dot:
                 self.progress()
                 dots = True
                 next_dot += 0.5
@@ -562,7 +562,7 @@ class Console:
             self._put_refs({cmd.joint.address: cmd.value}, state)
         self._confirm_applied({cmd.joint.address: cmd.value}, sent_at)
         if cmd.wait:
-            if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT):
+            if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT, show=False):
                 why = self._not_arrived({cmd.joint.address: cmd.value})
                 raise CommandError(f"{cmd.joint.short} did not arrive within {GOTO_TIMEOUT:g} s: {why}; "
                                    + self._cancel([cmd.joint.address], "goto timed out"), usage=False)
