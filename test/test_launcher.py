@@ -28,6 +28,7 @@ from support.system import mds_ach, running_system, system_env
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.robot import access as channel_access
 from mds_ach.robot.config import load
 from mds_ach.robot.msgs import get_name
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
@@ -134,6 +135,26 @@ def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: 
         assert f"mds-ach repair --recreate {name}" in proc.stderr
     assert "started" not in proc.stdout, "no node was started"
     assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
+
+
+@pytest.mark.slow
+def test_start_tightens_channels_made_the_original_way(clean_shm: None, tmp_path: Path) -> None:
+    """Issue #29 item 1: the original's `ach -1 mk NAME -m 10 -n 3000` (0644) and `chmod 777`, by the stack's own
+    user: `start` gives them the stack's modes in place, one line each, and starts."""
+    for name in mds.ALL_CHANNELS:
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o644)
+    os.chmod(ach.shm_path(mds.MDS_CHAN_REF_NAME), 0o777)
+    env = system_env(tmp_path)
+    proc = mds_ach("start", "nocan", "--only", "daemon", env=env, timeout=200)
+    try:
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        assert f"  channel {mds.MDS_CHAN_REF_NAME}: 10 x 3000 B, mode 0777 -> 0660" in proc.stdout
+        assert f"  channel {mds.MDS_CHAN_DAEMON_INPUT_NAME}: 10 x 3000 B, mode 0644 -> 0640" in proc.stdout
+        assert proc.stdout.count(" -> 06") == len(mds.ALL_CHANNELS)
+        for name in mds.ALL_CHANNELS:
+            assert os.stat(ach.shm_path(name)).st_mode & 0o777 == channel_access.channel_mode(name), name
+    finally:
+        mds_ach("stop", env=env, timeout=60)
 
 
 def test_another_users_system_channels_are_explained_in_one_line(clean_shm: None, tmp_path: Path,

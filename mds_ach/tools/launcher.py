@@ -508,6 +508,9 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
         reports = make_channels(group=group)
     except ValueError as exc:  # unknown group
         raise LaunchError("", str(exc)) from None
+    for r in reports:
+        if r.action == "tightened":  # made by the stack's own user the original way (ach mk, chmod 777)
+            out(f"  channel {r.name}: {r.detail}")
     bad = [r for r in reports if not r.ok]
     if bad:
         raise LaunchError("", another_users_channels([r.name for r in bad]) or "refusing to start, channel "
