@@ -11,6 +11,7 @@ PACKAGE = "mds_ach"
 # common command (`read`, `daemon`, `filter`); in <prefix>/lib/mds_ach (what `ros2 run mds_ach <node>` runs) they keep
 # the bare node name. setup.py applies the same rule.
 BIN_PREFIX = "mds-ach-"
+CHANNEL_PREFIX_ENV = "MDS_ACH_CHANNEL_PREFIX"  # read here for the runtime dir; checked and used in robot/contracts
 _SOURCE_ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -62,9 +63,13 @@ def host_uid() -> int:
 
 def runtime_dir() -> Path:
     """Pid files and logs of `mds-ach start`: $MDS_ACH_RUNTIME_DIR, else $XDG_RUNTIME_DIR/mds-ach, else
-    /tmp/mds-ach-<uid> (the uid outside a user namespace: see host_uid)."""
+    /tmp/mds-ach-<uid> (the uid outside a user namespace: see host_uid). A second system on this host, whose
+    channels carry a prefix ($MDS_ACH_CHANNEL_PREFIX, mds_ach.robot.contracts), gets its own by default:
+    ``mds-ach-<prefix>`` / ``/tmp/mds-ach-<uid>-<prefix>``, so its pid files never stand for the first one's."""
     env = os.environ.get("MDS_ACH_RUNTIME_DIR")
     if env:
         return Path(env)
-    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/mds-ach-{host_uid()}"
-    return Path(base) / "mds-ach" if os.environ.get("XDG_RUNTIME_DIR") else Path(base)
+    prefix = os.environ.get(CHANNEL_PREFIX_ENV, "").strip("-_.")
+    suffix = f"-{prefix}" if prefix else ""
+    xdg = os.environ.get("XDG_RUNTIME_DIR")
+    return Path(xdg) / f"mds-ach{suffix}" if xdg else Path(f"/tmp/mds-ach-{host_uid()}{suffix}")

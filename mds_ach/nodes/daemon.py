@@ -19,7 +19,7 @@ Setup commands reach it two ways:
   ``load_namespace`` = ``"<command> [joint|all]"``, the reply's ``success``/``message`` the result (the same rule
   for ``zero`` and ``reset``).
 
-Its health goes to ``/mds/daemon_status`` (``mds_ach_interfaces/msg/DaemonStatus``) with ``/diagnostics``.
+Its health goes to ``mds/daemon_status`` (``mds_ach_interfaces/msg/DaemonStatus``) with ``/diagnostics``.
 
 ROS parameters ``robot``, ``rate``, ``nocan`` and ``rt_priority`` (defaults from the command line) serve launch files.
 The real-time loop runs on its own thread (see :mod:`mds_ach.nodes.daemon_loop`); the executor only serves the
@@ -56,7 +56,7 @@ from mds_ach.nodes.daemon_loop import (
 )
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.nodes.rosnode import Param, declare, find, run_node
-from mds_ach.nodes.status_msgs import DAEMON_STATUS_TOPIC, daemon_status_msg
+from mds_ach.nodes.status_msgs import DAEMON_STATUS_TOPIC, DIAGNOSTICS_TOPIC, daemon_status_msg
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import config, motion
 from mds_ach.robot.joints import BY_ADDRESS, lookup
@@ -426,7 +426,7 @@ class DaemonNode(Node):
         self.daemon = build(args)
         self._channel_errors = 0
         self._stalls = 0
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.status_pub = self.create_publisher(DaemonStatus, DAEMON_STATUS_TOPIC, 10)
         self.create_timer(1.0, self._diagnostics)
         self.create_service(Command, "~/command", self._command)

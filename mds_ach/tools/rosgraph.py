@@ -19,13 +19,14 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from mds_ach.paths import runtime_dir
+from mds_ach.paths import CHANNEL_PREFIX_ENV, runtime_dir
 
 # The node whose graph we want first: the bridge publishes /joint_states; any other node shares its namespaces.
 GRAPH_NODES: tuple[str, ...] = ("bridge", "daemon", "mux", "filter", "collision", "ik")
 # What makes two processes one ROS graph, taken from the running node (and dropped from ours when it lacks them).
 GRAPH_ENV_PREFIXES: tuple[str, ...] = ("ROS_", "RMW_", "FASTRTPS_", "FASTDDS_", "CYCLONEDDS_")
-GRAPH_ENV_KEYS: tuple[str, ...] = ("AMENT_PREFIX_PATH", "MDS_NETNS_ACTIVE", "MDS_ACH_RUNTIME_DIR", "MDS_ACH_ROBOT")
+GRAPH_ENV_KEYS: tuple[str, ...] = ("AMENT_PREFIX_PATH", "MDS_NETNS_ACTIVE", "MDS_ACH_RUNTIME_DIR", "MDS_ACH_ROBOT",
+                                  CHANNEL_PREFIX_ENV)
 # nsenter's options per namespace kind, in the order the kernel needs them (the user namespace first).
 NAMESPACES: tuple[str, ...] = ("user", "mnt", "net")
 
@@ -110,10 +111,13 @@ def command(graph: Graph, argv: list[str], cwd: str | None = None) -> list[str]:
     return ["nsenter", f"--target={graph.pid}", *(f for ns in graph.join for f in flags[ns]), "--", *argv]
 
 
-def summary(env: dict[str, str] | None = None) -> str:
-    """What ``mds-ach run`` prints about its ROS 2 graph: the domain, and how to get into it."""
+def summary(env: dict[str, str] | None = None, namespace: str | None = None) -> str:
+    """What ``mds-ach run`` prints about its ROS 2 graph: the domain, the nodes' ROS namespace when there is one,
+    and how to get into it."""
     env = dict(os.environ if env is None else env)
     domain = env.get("ROS_DOMAIN_ID") or "0 (default)"
+    if namespace and namespace != "/":
+        domain += f", nodes in the ROS namespace {namespace} ({namespace}/joint_states, {namespace}/mds_daemon/...)"
     if env.get("MDS_NETNS_ACTIVE") == "1":
         return (f"ROS 2 graph: ROS_DOMAIN_ID={domain}, in this system's private network namespace (loopback only).\n"
                 "  mds-ach ros-shell            a shell inside that graph (examples/ros_*.py, rclpy scripts)\n"
