@@ -88,6 +88,25 @@ def test_every_name_of_every_node_is_under_the_namespace_and_the_params_sections
         assert "namespace  /robot1" in status.stdout, status.stdout
 
 
+def test_no_json_alias_and_no_borrowed_text_service_is_left(clean_shm: None, tmp_path: Path, probe: Probe) -> None:
+    """Issue #27 item 6: after their release of deprecation the ``<topic>/json`` String aliases and the daemon's text
+    command on the borrowed ``diagnostic_msgs/srv/AddDiagnostics`` are gone; every status is typed."""
+    with running_system(tmp_path):
+        probe.spin_until(lambda: NODE_NAMES <= probe.nodes_in("/"), 60.0, "the six nodes")
+        last = {"/tf", "/joint_states", "/left_arm_controller/follow_joint_trajectory"}
+        probe.spin_until(lambda: last <= probe.names_of("mds_bridge", "/"), 30.0, f"the bridge's {last}")
+        topics = dict(probe.node.get_topic_names_and_types())
+        services = dict(probe.node.get_service_names_and_types())
+        assert [t for t in topics if t.endswith("/json")] == []
+        assert [s for s, types in services.items() if "diagnostic_msgs/srv/AddDiagnostics" in types] == []
+        assert "/mds_daemon/command_text" not in services
+        typed = {"/mds/mux_state": "mds_ach_interfaces/msg/MuxState",
+                 "/mds/collision": "mds_ach_interfaces/msg/CollisionState",
+                 "/mds/ik_status": "mds_ach_interfaces/msg/IkStatus",
+                 "/mds/daemon_status": "mds_ach_interfaces/msg/DaemonStatus"}
+        assert {name: topics.get(name) for name in typed} == {name: [kind] for name, kind in typed.items()}
+
+
 def test_a_params_section_outside_the_namespace_is_refused_before_anything_starts(clean_shm: None,
                                                                                   tmp_path: Path) -> None:
     params = tmp_path / "params.yaml"

@@ -58,14 +58,14 @@ arm's reference move while it withholds that arm, and never sends accumulated di
 
 Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``mds/collision``
 (``mds_ach_interfaces/msg/CollisionState``: predicted pairs, current contacts, parts, per unit held / releasing /
-escaping / stopped, refusals and the override state; the JSON document of ``decision_to_dict`` stays on
-``mds/collision/json``, std_msgs/String, deprecated, one release). Top-level ``isCollide``: **1** = the gate holds
-an arm: the flagged parts are those of the held arms, and the daemon holds exactly those arms; **2** = a predicted
-collision was passed by the expert override; **3** = in contact (measured or commanded) but nothing held: only moves
-out of it are passed, the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part:
-``isCollide`` as above; ``collision`` counts the checks of the current episode (saturating at ``counter_max``, 0
-when clear); ``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration of the episode. ``time`` =
-CLOCK_MONOTONIC of the report (the stamp the daemon echoes), ``time_dt`` = time since the previous report.
+escaping / stopped, refusals and the override state; made from the document of ``decision_to_dict``). Top-level
+``isCollide``: **1** = the gate holds an arm: the flagged parts are those of the held arms, and the daemon holds
+exactly those arms; **2** = a predicted collision was passed by the expert override; **3** = in contact (measured or
+commanded) but nothing held: only moves out of it are passed, the flagged parts are the parts in contact, the daemon
+holds nothing; 0 = clear. Per part: ``isCollide`` as above; ``collision`` counts the checks of the current episode
+(saturating at ``counter_max``, 0 when clear); ``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration
+of the episode. ``time`` = CLOCK_MONOTONIC of the report (the stamp the daemon echoes), ``time_dt`` = time since the
+previous report.
 
 **Expert override** (never the default, never silent): publish the number of seconds on
 ``mds/collision/override`` (std_msgs/Float64), e.g.
@@ -92,7 +92,7 @@ from typing import Any
 import numpy as np
 from mds_ach_interfaces.msg import CollisionState
 from rclpy.node import Node
-from std_msgs.msg import Float64, String
+from std_msgs.msg import Float64
 
 import mds_ach as mds
 from mds_ach import paths
@@ -111,7 +111,7 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
-from mds_ach.nodes.status_msgs import COLLISION_TOPIC, collision_state_msg, json_alias
+from mds_ach.nodes.status_msgs import COLLISION_TOPIC, collision_state_msg
 from mds_ach.ratelog import RateLimitedLog
 from mds_ach.robot import lifecycle
 from mds_ach.robot.channels import StructChannel
@@ -1043,9 +1043,8 @@ PARAMETERS = (
 
 
 class CollisionNode(Node):
-    """The collision gate: ``GateRunner`` on its own thread; reports on ``mds/collision`` (typed; deprecated JSON:
-    ``mds/collision/json``), takes expert overrides
-    (seconds) on ``mds/collision/override``."""
+    """The collision gate: ``GateRunner`` on its own thread; reports on ``mds/collision`` (typed), takes expert
+    overrides (seconds) on ``mds/collision/override``."""
 
     def __init__(self, config: str | None = None, world: str | None = None, urdf: str | None = None,
                  margin: float | None = None) -> None:
@@ -1059,7 +1058,6 @@ class CollisionNode(Node):
         self.margin: float = declare(self, find(PARAMETERS, "margin"), configured if margin is None else margin)
         model, gate_cfg, lower, upper = build_gate_parts(path, world_path, urdf_path, self.margin)
         self.pub = self.create_publisher(CollisionState, COLLISION_TOPIC, 10)
-        self.json_pub = self.create_publisher(String, json_alias(COLLISION_TOPIC), 10)  # deprecated
         self.create_subscription(Float64, COLLISION_TOPIC + "/override", self._on_override, 10)
         self._last_pub = -math.inf
         self._last_doc = ""
@@ -1077,7 +1075,6 @@ class CollisionNode(Node):
             return
         if key != self._last_doc or now - self._last_pub >= 1.0 / gate.config.report_rate:
             self.pub.publish(collision_state_msg(doc, self.get_clock().now().to_msg()))
-            self.json_pub.publish(String(data=json.dumps(doc)))
             self._last_doc, self._last_pub = key, now
 
     def shutdown(self) -> None:

@@ -24,14 +24,12 @@ the order x, y, z, roll, pitch, yaw from ``t_x t_y t_z r_x r_y r_z``; robot fram
    ``IK_STOPPED_AT_CONTACT`` and "stopped at contact: right hand / left hand".
 
 Every request gets an answer on ``mds-ik-state`` (``MDS_IK_STATUS``, see ``mds_ach.robot.msgs.ik_status``) and on the
-ROS topic ``mds/ik_status`` (``mds_ach_interfaces/msg/IkStatus``, transient local; the JSON of ``status_to_dict``
-stays on ``mds/ik_status/json``, std_msgs/String, deprecated, one release).
+ROS topic ``mds/ik_status`` (``mds_ach_interfaces/msg/IkStatus``, transient local, made from ``status_to_dict``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import threading
 import time
@@ -43,7 +41,6 @@ import numpy as np
 from mds_ach_interfaces.msg import IkStatus
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
-from std_msgs.msg import String
 
 import mds_ach as mds
 from mds_ach.kinematics import ik
@@ -52,7 +49,7 @@ from mds_ach.kinematics.limits import current_limits
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import current_reference, make_ref
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
-from mds_ach.nodes.status_msgs import ik_status_msg, json_alias
+from mds_ach.nodes.status_msgs import ik_status_msg
 from mds_ach.robot import contracts
 from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
@@ -483,13 +480,11 @@ class IkNode(Node):
         # The status topic appears once requests are being taken: a client that sees it can ask at once.
         self.runner.ready.wait(10.0)
         qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.json_pub = self.create_publisher(String, json_alias(IK_STATUS_TOPIC), qos)  # deprecated
         self.pub = self.create_publisher(IkStatus, IK_STATUS_TOPIC, qos)
 
     def _publish(self, st: MDS_IK_STATUS) -> None:
         if self.pub is not None and self.context.ok():
             doc = status_to_dict(st)
-            self.json_pub.publish(String(data=json.dumps(doc)))
             self.pub.publish(ik_status_msg(doc, self.get_clock().now().to_msg()))
 
     def shutdown(self) -> None:

@@ -30,8 +30,7 @@ keep "modified only" and whole-frame refusal: their senders validate and stream 
 Event-based: one thread per input blocks on its channel and queues frames; the mux thread applies them in
 arrival order and publishes ``mds-ref-mux`` on every output change. Ownership and ages go to
 ``mds-mux-state`` (``mds_ach.robot.msgs.MDS_MUX_STATE``) and to the ROS topic ``mds/mux_state``
-(``mds_ach_interfaces/msg/MuxState``; the JSON document of ``state_to_dict`` stays on ``mds/mux_state/json``,
-std_msgs/String, deprecated, one release).
+(``mds_ach_interfaces/msg/MuxState``, made from the document of ``state_to_dict``).
 
 At start the output is the current reference (``mds-ref-gated``, else ``mds-state`` joint[].ref), published once
 so the filter holds still; frames already waiting in the input channels are taken as each controller's
@@ -43,7 +42,6 @@ read-modify-write clients start from the real pose instead of zeros.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import queue
 import threading
@@ -57,7 +55,6 @@ import numpy as np
 import yaml
 from mds_ach_interfaces.msg import MuxState
 from rclpy.node import Node
-from std_msgs.msg import String
 
 import mds_ach as mds
 from mds_ach.kinematics.limits import EffectiveLimits, current_limits
@@ -74,7 +71,7 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
-from mds_ach.nodes.status_msgs import MUX_STATE_TOPIC, json_alias, mux_state_msg
+from mds_ach.nodes.status_msgs import MUX_STATE_TOPIC, mux_state_msg
 from mds_ach.paths import config_path
 from mds_ach.ratelog import EVERY_S, RateLimitedLog
 from mds_ach.robot import contracts
@@ -699,8 +696,7 @@ PARAMETERS = (
 
 
 class MuxNode(Node):
-    """The mux: ``MuxRunner`` on its own thread, its state also on ``mds/mux_state`` (typed) and, deprecated,
-    ``mds/mux_state/json``."""
+    """The mux: ``MuxRunner`` on its own thread, its state also on ``mds/mux_state`` (typed)."""
 
     def __init__(self, config: str | None = None) -> None:
         super().__init__(NODE_NAME)
@@ -708,7 +704,6 @@ class MuxNode(Node):
         cfg = load_config(path)
         self.state_rate: float = declare(self, find(PARAMETERS, "state_rate"), cfg["state_rate"])
         self.pub = self.create_publisher(MuxState, MUX_STATE_TOPIC, 10)
-        self.json_pub = self.create_publisher(String, json_alias(MUX_STATE_TOPIC), 10)  # deprecated
         self._joints = [joint_label(a) for a in KNOWN_ADDRESSES]
         self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state)
         self.thread = start_worker(self, self.runner.run, "mux")
@@ -717,7 +712,6 @@ class MuxNode(Node):
         if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
             doc = state_to_dict(st)
             self.pub.publish(mux_state_msg(doc, self._joints, self.get_clock().now().to_msg()))
-            self.json_pub.publish(String(data=json.dumps(doc)))
 
     def shutdown(self) -> None:
         self.runner.stop()

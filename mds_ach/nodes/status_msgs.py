@@ -1,9 +1,9 @@
 """Typed ROS status topics (``mds_ach_interfaces``) built from the nodes' status documents.
 
 Each node already builds one document per report (``mux.state_to_dict``, ``collision.decision_to_dict``,
-``ik_status.status_to_dict``); the typed message is made from that same document, so the typed topic and the
-deprecated JSON alias (``std_msgs/String`` on ``<topic>/json``, one release) can never disagree. Types and fields:
-interfaces/mds_ach_interfaces/msg/.
+``ik_status.status_to_dict``: also what ``mds-ach`` tools print); the typed message is made from that same document,
+so the topic and the tools can never disagree. Types and fields: interfaces/mds_ach_interfaces/msg/. (The JSON
+``<topic>/json`` aliases and the daemon's text command service were removed after their release of deprecation.)
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from mds_ach.robot.msgs import daemon_status as ds
 from mds_ach.robot.msgs.ik_status import IK_STATUS_TOPIC
 
 __all__ = ["COLLISION_TOPIC", "DAEMON_STATUS_TOPIC", "DIAGNOSTICS_TOPIC", "IK_STATUS_TOPIC", "MUX_STATE_TOPIC",
-           "collision_state_msg", "daemon_status_msg", "ik_status_msg", "json_alias", "mux_state_msg"]
+           "collision_state_msg", "daemon_status_msg", "ik_status_msg", "mux_state_msg"]
 
 COLLISION_TOPIC = "mds/collision"  # relative, like every name of every node: a namespace moves them all
 MUX_STATE_TOPIC = "mds/mux_state"
@@ -35,11 +35,6 @@ DAEMON_STATUS_TOPIC = "mds/daemon_status"
 DIAGNOSTICS_TOPIC = "diagnostics"  # /diagnostics outside a namespace, where diagnostic_aggregator listens
 COLLISION_UNITS = ("left", "right", "body")  # the gate's units: both arms, waist + neck
 _HELD = {"held": MuxState.HELD, "cancelled": MuxState.CANCELLED}
-
-
-def json_alias(topic: str) -> str:
-    """The deprecated ``std_msgs/String`` JSON topic kept one release beside a typed one."""
-    return topic + "/json"
 
 
 def _num(value: float | None) -> float:

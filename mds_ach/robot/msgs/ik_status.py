@@ -1,8 +1,8 @@
 """``mds-ik-state``: the IK node's answer to each ``mds-ik`` request (new; the original printed to its console).
 
 One ``MDS_IK_STATUS`` frame per handled request, also published on the ROS topic ``mds/ik_status``
-(``mds_ach_interfaces/msg/IkStatus``, made from ``status_to_dict``; that JSON on ``mds/ik_status/json``,
-deprecated). Stdlib + ctypes only, so clients (console, viewer, C code) read it without rclpy or numpy.
+(``mds_ach_interfaces/msg/IkStatus``, made from ``status_to_dict``). Stdlib + ctypes only, so clients (console,
+viewer, C code) read it without rclpy or numpy.
 """
 
 from __future__ import annotations
