@@ -23,7 +23,6 @@ and tolerance checks on every frame, and the goal's end (succeeded, aborted with
 from __future__ import annotations
 
 import array
-import json
 import math
 import threading
 import time
@@ -36,6 +35,7 @@ from typing import Any
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
+from mds_ach_interfaces.msg import CommandStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -52,6 +52,7 @@ from mds_ach.kinematics.model import load_model
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
 from mds_ach.nodes.rosnode import Param, declare, ros_log
+from mds_ach.nodes.status_msgs import command_status_msg
 from mds_ach.robot import contracts, joints, lifecycle
 from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
@@ -248,7 +249,7 @@ class BridgeNode(Node):
         self._js_pub = self.create_publisher(JointState, topics.JOINT_STATES, state_qos)
         self._ref_pub = self.create_publisher(JointState, topics.JOINT_REFERENCES, state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        self._status_pub = self.create_publisher(String, topics.COMMAND_STATUS, COMMAND_QOS)
+        self._status_pub = self.create_publisher(CommandStatus, topics.COMMAND_STATUS, COMMAND_QOS)
         model = load_model(urdf)
         self._js_msg = JointState(name=self._names)
         # The URDF root, as joint_state_broadcaster's default frame_id (its own parameter default "base_link").
@@ -788,9 +789,10 @@ class BridgeNode(Node):
             self._publish_status(e.doc | {"message": e.doc.get("message", e.text)})
 
     def _publish_status(self, doc: dict[str, Any]) -> None:
-        """One event on mds/command_status (JSON): what happened to a command, and why."""
+        """One event on mds/command_status (``mds_ach_interfaces/msg/CommandStatus``): what happened to a command,
+        and why."""
         try:
-            self._status_pub.publish(String(data=json.dumps({"time": time.time(), **doc})))
+            self._status_pub.publish(command_status_msg(doc, self.get_clock().now().to_msg()))
         except Exception:  # noqa: BLE001 - the context is shutting down; the log has the event already
             pass
 

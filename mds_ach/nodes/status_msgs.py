@@ -17,6 +17,7 @@ from mds_ach_interfaces.msg import (
     CollisionPair,
     CollisionState,
     CollisionUnit,
+    CommandStatus,
     DaemonStatus,
     IkStatus,
     MuxController,
@@ -27,7 +28,7 @@ from mds_ach.robot.msgs import daemon_status as ds
 from mds_ach.robot.msgs.ik_status import IK_STATUS_TOPIC
 
 __all__ = ["COLLISION_TOPIC", "DAEMON_STATUS_TOPIC", "DIAGNOSTICS_TOPIC", "IK_STATUS_TOPIC", "MUX_STATE_TOPIC",
-           "collision_state_msg", "daemon_status_msg", "ik_status_msg", "mux_state_msg"]
+           "collision_state_msg", "command_status_msg", "daemon_status_msg", "ik_status_msg", "mux_state_msg"]
 
 COLLISION_TOPIC = "mds/collision"  # relative, like every name of every node: a namespace moves them all
 MUX_STATE_TOPIC = "mds/mux_state"
@@ -120,4 +121,13 @@ def daemon_status_msg(st: ds.MDS_DAEMON_STATUS, running: bool, stale: Sequence[s
         targets_limited=int(st.targets_limited), bad_replies=int(st.bad_replies),
         channel_errors=int(st.channel_errors), stale_joints=list(stale), bad_reply_joints=list(bad_replies),
         cmd_seq=int(st.cmd_seq), cmd_result=int(st.cmd_result))
+    return _stamped(msg, stamp)
+
+
+def command_status_msg(doc: Mapping[str, Any], stamp: Time | None = None) -> CommandStatus:
+    """The bridge's ``mds/command_status`` from one of its event documents (``event``, ``command``, ``message``;
+    ``owner`` and ``frames`` for a mux refusal, ``code`` for a goal's end)."""
+    msg = CommandStatus(event=str(doc["event"]), command=str(doc.get("command", "")),
+                        message=str(doc.get("message", "")), owner=str(doc.get("owner", "")),
+                        frames=int(doc.get("frames", 0)), code=str(doc.get("code", "")))
     return _stamped(msg, stamp)
