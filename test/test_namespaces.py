@@ -86,6 +86,8 @@ def test_every_name_of_every_node_is_under_the_namespace_and_the_params_sections
         assert st is not None and st.rate_hz == pytest.approx(25.0)  # the /robot1/mds_daemon section
         status = mds_ach("status", env=env)
         assert "namespace  /robot1" in status.stdout, status.stdout
+        echo = mds_ach("ros", "echo", "joint_states", "-n", "1", env=env)  # relative: the system's namespace
+        assert echo.returncode == 0 and "frame_id: base_link" in echo.stdout, echo.stdout + echo.stderr
 
 
 def test_no_json_alias_and_no_borrowed_text_service_is_left(clean_shm: None, tmp_path: Path, probe: Probe) -> None:

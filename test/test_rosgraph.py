@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import yaml
 from support import REPO, VENV_BIN
 from support.system import isolated_run, system_env
 
@@ -98,6 +99,34 @@ def test_ros_shell_keeps_the_venv_and_the_graph_whatever_bashrc_does(graph: tupl
     assert "bashrc-read" in proc.stdout, "the user's ~/.bashrc is still read"
     assert f"python={VENV_BIN}/python domain={domain}" in proc.stdout, proc.stdout
     assert "rclpy-ok" in proc.stdout, proc.stdout + proc.stderr
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_topics_echo_and_hz_need_no_ros2_command_line(graph: tuple[dict[str, str], str]) -> None:
+    """Issue #27 item 6: a pip-only user (no `ros2`) lists the topics, echoes one and measures its rate with
+    `mds-ach ros topics|echo|hz`, built on rclpy, inside the system's graph."""
+    env, _ = graph
+    topics = _ros(env, "topics")
+    assert topics.returncode == 0, topics.stderr
+    rows = {line.split()[0]: line for line in topics.stdout.splitlines()}
+    assert "sensor_msgs/msg/JointState  (1 pub" in rows["/joint_states"], topics.stdout
+    assert "mds_ach_interfaces/msg/CommandStatus" in rows["/mds/command_status"], topics.stdout
+    echo = _ros(env, "echo", "joint_states", "-n", "2")
+    assert echo.returncode == 0, echo.stderr
+    docs = [yaml.safe_load(part) for part in echo.stdout.split("---") if part.strip()]
+    assert len(docs) == 2 and docs[0]["name"][0] == "LSP" and len(docs[0]["position"]) == len(docs[0]["name"])
+    assert docs[0]["header"]["frame_id"] == "base_link"
+    latched = _ros(env, "echo", "robot_description", "-n", "1")  # transient local: arrives to a late subscriber
+    assert latched.returncode == 0 and "<robot" in latched.stdout, latched.stderr
+    hz = _ros(env, "hz", "joint_states", "--duration", "4")
+    assert hz.returncode == 0, hz.stderr
+    rates = [float(m.group(1)) for m in re.finditer(r"average rate: ([\d.]+) Hz", hz.stdout)]
+    assert rates and 7.0 < rates[-1] < 13.0, hz.stdout  # the daemon's 10 Hz
+    missing = _ros(env, "echo", "nope", "--wait", "1")
+    assert missing.returncode == 1 and missing.stdout == ""
+    assert missing.stderr.startswith("mds-ach ros echo: no publisher of /nope within 1 s;"), missing.stderr
+    assert len(missing.stderr.splitlines()) == 1, missing.stderr
 
 
 def test_ros_without_a_running_system_says_how_to_start_one(tmp_path: Path) -> None:

@@ -1,4 +1,5 @@
-"""``mds-ach ros-shell`` and ``mds-ach ros CMD...``: a shell, or one command, inside the running system's ROS 2 graph.
+"""``mds-ach ros-shell`` and ``mds-ach ros CMD...``: a shell, or one command, inside the running system's ROS 2 graph
+(``mds-ach ros topics|echo|hz``: ``mds_ach.tools.rostopic``, for a ROS without the ``ros2`` command line).
 
 ``make run`` starts the nodes in a private network namespace (tools/netns-run: DDS on loopback only) with a random
 ``ROS_DOMAIN_ID``, and for a normal user inside a user namespace too, so a second terminal sees no ROS graph at all.
@@ -122,7 +123,8 @@ def summary(env: dict[str, str] | None = None, namespace: str | None = None) -> 
         return (f"ROS 2 graph: ROS_DOMAIN_ID={domain}, in this system's private network namespace (loopback only).\n"
                 "  mds-ach ros-shell            a shell inside that graph (examples/ros_*.py, rclpy scripts)\n"
                 "  mds-ach ros CMD...           one command inside it, e.g.\n"
-                "                               mds-ach ros python examples/ros_joint_state_subscriber.py --count 5")
+                "                               mds-ach ros python examples/ros_joint_state_subscriber.py --count 5\n"
+                "  mds-ach ros topics|echo|hz   its topics, one's messages, its rate (no ros2 command line needed)")
     return (f"ROS 2 graph: ROS_DOMAIN_ID={domain} on this machine's network (not isolated): any shell with\n"
             f"  export ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')} reaches it (or 'mds-ach ros-shell')")
 
@@ -189,10 +191,16 @@ def run_shell(args: argparse.Namespace) -> int:
     return _exec([shell, "-i"], "ros-shell")
 
 
+TOPIC_VERBS = ("topics", "echo", "hz")  # mds_ach.tools.rostopic: what `ros2 topic` would do, on rclpy alone
+
+
 def add_ros_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Run one command inside the running system's ROS 2 graph (see 'mds-ach ros-shell'), e.g. "
                      "'mds-ach ros python examples/ros_joint_state_subscriber.py --count 5'. Its exit status is "
-                     "the command's.")
+                     "the command's. Built in, for a ROS without the ros2 command line (pip): 'mds-ach ros topics' "
+                     "(every topic, type, publishers and subscribers), 'mds-ach ros echo TOPIC [-n N]' (messages as "
+                     "YAML), 'mds-ach ros hz TOPIC [--duration S]' (its rate); relative names are the system's "
+                     "(its --namespace), '--help' after the verb for its options.")
     p.add_argument("command", nargs=argparse.REMAINDER, metavar="CMD [ARGS...]", help="the command and its arguments")
 
 
@@ -202,6 +210,18 @@ def run_ros(args: argparse.Namespace) -> int:
         argv = argv[1:]
     if not argv:
         print("mds-ach ros: give a command, e.g. 'mds-ach ros python examples/ros_joint_state_subscriber.py' "
-              "(or 'mds-ach ros-shell' for a shell)", file=sys.stderr)
+              "or 'mds-ach ros topics' (or 'mds-ach ros-shell' for a shell)", file=sys.stderr)
         return 2
+    if argv[0] in TOPIC_VERBS or argv[0] == "--namespace":
+        argv = topic_command(argv)
     return _exec(argv, "ros")
+
+
+def topic_command(argv: list[str]) -> list[str]:
+    """``mds-ach ros topics|echo|hz ...`` as the command run in the graph: this interpreter's
+    ``mds_ach.tools.rostopic``, relative names resolved in the running system's namespace (unless given)."""
+    from mds_ach.tools.launcher import recorded_namespace
+
+    if "--namespace" not in argv:
+        argv = ["--namespace", recorded_namespace() or "/", *argv]
+    return [sys.executable, "-m", "mds_ach.tools.rostopic", *argv]
