@@ -5,7 +5,9 @@ that is neither in its network namespace nor on its domain."""
 from __future__ import annotations
 
 import os
+import pwd
 import re
+import socket
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,6 +17,7 @@ import yaml
 from support import REPO, VENV_BIN
 from support.system import isolated_run, system_env
 
+from mds_ach.paths import host_uid
 from mds_ach.tools import rosgraph
 
 
@@ -127,6 +130,24 @@ def test_topics_echo_and_hz_need_no_ros2_command_line(graph: tuple[dict[str, str
     assert missing.returncode == 1 and missing.stdout == ""
     assert missing.stderr.startswith("mds-ach ros echo: no publisher of /nope within 1 s;"), missing.stderr
     assert len(missing.stderr.splitlines()) == 1, missing.stderr
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_ros_shell_prompt_says_what_it_is_and_who_the_user_really_is(graph: tuple[dict[str, str], str],
+                                                                    tmp_path: Path) -> None:
+    """Issue 28: inside a rootless system's user namespace the user is uid 0, and the prompt said `root@...`; now
+    `(mds-ach ros) USER@HOST:DIR$ ` with the real user, in bash after ~/.bashrc (which may set its own) and in sh."""
+    env, _ = graph
+    user, host = pwd.getpwuid(host_uid()).pw_name, socket.gethostname().split(".")[0]
+    sign = "#" if host_uid() == 0 else "$"
+    (tmp_path / ".bashrc").write_text("PS1='mine> '\n")
+    bash = _ros({**env, "HOME": str(tmp_path)}, "--shell", "/bin/bash", verb="ros-shell",
+                stdin='echo "prompt=[$PS1] uid=$(id -u)"; exit 3\n')
+    assert bash.returncode == 3, bash.stdout + bash.stderr
+    assert f"prompt=[(mds-ach ros) {user}@{host}:\\w{sign} ]" in bash.stdout, bash.stdout
+    sh = _ros(env, "--shell", "/bin/sh", verb="ros-shell", stdin='echo "prompt=[$PS1]"; exit 3\n')
+    assert f"prompt=[(mds-ach ros) {user}@{host}{sign} ]" in sh.stdout, sh.stdout + sh.stderr
 
 
 def test_ros_without_a_running_system_says_how_to_start_one(tmp_path: Path) -> None:

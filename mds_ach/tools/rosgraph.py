@@ -20,7 +20,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from mds_ach.paths import CHANNEL_PREFIX_ENV, runtime_dir
+from mds_ach.paths import CHANNEL_PREFIX_ENV, host_uid, runtime_dir
 
 # The node whose graph we want first: the bridge publishes /joint_states; any other node shares its namespaces.
 GRAPH_NODES: tuple[str, ...] = ("bridge", "daemon", "mux", "filter", "collision", "ik")
@@ -129,14 +129,31 @@ def summary(env: dict[str, str] | None = None, namespace: str | None = None) -> 
             f"  export ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')} reaches it (or 'mds-ach ros-shell')")
 
 
+def prompt(bash: bool = True) -> str:
+    """The shell prompt inside the graph: what the shell is and who the user really is. Inside the user namespace
+    of a rootless system the user is uid 0, so the shell's own ``\\u`` would say ``root@...`` (issue 28). ``bash``:
+    with the working directory (``\\w``, which sh does not expand)."""
+    import pwd
+    import socket
+
+    uid = host_uid()
+    try:
+        user = pwd.getpwuid(uid).pw_name
+    except KeyError:
+        user = f"uid{uid}"
+    where = ":\\w" if bash else ""
+    return f"(mds-ach ros) {user}@{socket.gethostname().split('.')[0]}{where}{'#' if uid == 0 else '$'} "
+
+
 def bash_rc(env: dict[str, str]) -> str:
-    """A bash rcfile: the user's ``~/.bashrc``, then this venv first on PATH and the graph's settings again, so a
-    ``~/.bashrc`` that puts another Python first or sets its own ROS_DOMAIN_ID cannot take the shell out of the
-    graph (``python`` there must have rclpy and the package)."""
+    """A bash rcfile: the user's ``~/.bashrc``, then this venv first on PATH, the graph's settings again and our
+    prompt, so a ``~/.bashrc`` that puts another Python first or sets its own ROS_DOMAIN_ID cannot take the shell
+    out of the graph (``python`` there must have rclpy and the package)."""
     keep = {k: v for k, v in env.items() if _is_graph_key(k) or k == "VIRTUAL_ENV"}
     lines = ['if [ -f "$HOME/.bashrc" ]; then . "$HOME/.bashrc"; fi',
              f"export PATH={shlex.quote(str(Path(sys.executable).parent))}:\"$PATH\"",
-             *(f"export {k}={shlex.quote(v)}" for k, v in sorted(keep.items())), "hash -r"]
+             *(f"export {k}={shlex.quote(v)}" for k, v in sorted(keep.items())), "hash -r",
+             f"PS1={shlex.quote(prompt())}"]
     return "\n".join(lines) + "\n"
 
 
@@ -161,6 +178,8 @@ def _exec(argv: list[str], verb: str) -> int:
         print(f"mds-ach {verb}: nsenter (util-linux) is needed to enter the system's namespaces", file=sys.stderr)
         return 1
     env = environment(graph)
+    if verb == "ros-shell":
+        env["PS1"] = prompt(bash=False)  # sh and dash read it from the environment; bash's comes after ~/.bashrc
     if verb == "ros-shell" and Path(argv[0]).name == "bash":
         argv = [argv[0], "--rcfile", _rcfile(bash_rc(env)), *argv[1:]]
     full = command(graph, argv)
