@@ -45,20 +45,64 @@ def bin_name(node: str) -> str:
     return node if node.startswith("mds-ach") else BIN_PREFIX + node
 
 
+IDENTITY_MAP = [(0, 0, 4294967295)]  # /proc/self/uid_map outside any user namespace
+OVERFLOW_UID = 65534  # what a user namespace shows for an owner it does not map (/proc/sys/kernel/overflowuid)
+
+
+def _uid_map() -> list[tuple[int, int, int]]:
+    try:
+        with open("/proc/self/uid_map") as f:
+            return [(int(a), int(b), int(c)) for a, b, c in (line.split() for line in f)]
+    except (OSError, ValueError):
+        return IDENTITY_MAP
+
+
+def outside_uid(uid: int) -> int | None:
+    """``uid`` as this process sees it, as the machine's accounts see it: mapped through /proc/self/uid_map inside a
+    user namespace; None for an id the namespace does not map (it shows every such owner as ``OVERFLOW_UID``)."""
+    ranges = _uid_map()
+    if ranges == IDENTITY_MAP:
+        return uid
+    return next((out + uid - inside for inside, out, count in ranges if inside <= uid < inside + count), None)
+
+
 def host_uid() -> int:
     """Our uid as the machine's user accounts see it. Inside the user namespace of a rootless tools/netns-run a
     normal user appears as root (uid 0); /proc/self/uid_map maps that back, so that every terminal of that user,
     inside or outside the namespace, agrees on the runtime directory."""
     uid = os.getuid()
+    found = outside_uid(uid)
+    return uid if found is None else found
+
+
+def user_label(uid: int) -> str:
+    """A file owner or process user as the machine names it, ``alice (uid 1000)``: inside the user namespace of a
+    rootless ``make run`` the user is uid 0 and every owner the namespace does not map (root's files after ``sudo
+    make run`` among them) shows as uid 65534, so the ids seen here would name the wrong users (issue 28)."""
+    import pwd
+
+    outside = outside_uid(uid)
+    unmapped = (f"a user this user namespace does not map (shown here as uid {uid}; root, if the files come from "
+                "'sudo make run')")
+    if outside is None:
+        return unmapped
     try:
-        with open("/proc/self/uid_map") as f:
-            for line in f:
-                inside, outside, count = (int(x) for x in line.split())
-                if inside <= uid < inside + count:
-                    return outside + uid - inside
-    except (OSError, ValueError):
-        pass
-    return uid
+        name = f"{pwd.getpwuid(outside).pw_name} (uid {outside})"
+    except KeyError:
+        name = f"uid {outside}"
+    if uid == OVERFLOW_UID and _uid_map() != IDENTITY_MAP:  # mapped here (--map-auto), yet also every unmapped owner
+        return f"{pwd.getpwuid(uid).pw_name if _known(uid) else name} or {unmapped}"
+    return name
+
+
+def _known(uid: int) -> bool:
+    import pwd
+
+    try:
+        pwd.getpwuid(uid)
+    except KeyError:
+        return False
+    return True
 
 
 def runtime_dir() -> Path:

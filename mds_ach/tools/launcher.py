@@ -29,7 +29,7 @@ from mds_ach import ach
 from mds_ach import procs as background
 from mds_ach.argtypes import ros_namespace, seconds
 from mds_ach.kinematics.limits import current_limits, read_published
-from mds_ach.paths import CHANNEL_PREFIX_ENV, bin_name, config_path, runtime_dir
+from mds_ach.paths import CHANNEL_PREFIX_ENV, bin_name, config_path, runtime_dir, user_label
 from mds_ach.robot import calibfiles, contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
 from mds_ach.robot.choice import effective_robot, name_problem, save_robot
@@ -252,35 +252,15 @@ def world_file(path: str | None) -> str | None:
     return str(Path(path).resolve())
 
 
-def host_user(uid: int) -> str:
-    """A uid as seen here, named as the machine's accounts see it: inside the user namespace of a rootless
-    tools/netns-run the user is uid 0 and every unmapped owner (root's files among them) shows as the overflow uid;
-    /proc/self/uid_map tells them apart."""
-    outside: int | None = uid
-    try:
-        ranges = [tuple(int(x) for x in line.split()) for line in Path("/proc/self/uid_map").read_text().splitlines()]
-        if ranges != [(0, 0, 4294967295)]:  # inside a user namespace
-            outside = next((out + uid - inside for inside, out, count in ranges if inside <= uid < inside + count),
-                           None)
-    except (OSError, ValueError):
-        pass
-    if outside is None:
-        return f"a user outside this user namespace (shown here as uid {uid}; root after 'sudo make run')"
-    import pwd
-
-    try:
-        return f"{pwd.getpwuid(outside).pw_name} (uid {outside})"
-    except KeyError:
-        return f"uid {outside}"
-
-
-def another_users_channels(names: Sequence[str]) -> str | None:
+def another_users_channels(names: Sequence[str], then: str = "start again") -> str | None:
     """One explanation when the refused channels are another user's system's (issue 28: after `sudo make run`,
     `make run` as a normal user on the same /dev/shm listed every channel with a fix that cannot work without that
-    user): all owned by one other user, with the modes the stack gives them. None otherwise (a plant: each line
-    says what is wrong)."""
+    user): all owned by one other user, with the modes the stack gives them; both users as the machine names them
+    (``paths.user_label``). None otherwise (a plant: each line says what is wrong). ``then``: what to do after."""
     from mds_ach.robot import access
 
+    if set(names) != {n for n in mds.ALL_CHANNELS if os.path.lexists(ach.shm_path(n))}:
+        return None  # some are ours: a plant, not another user's system
     owners = set()
     for name in names:
         try:
@@ -293,11 +273,12 @@ def another_users_channels(names: Sequence[str]) -> str | None:
         owners.add(st.st_uid)
     if len(owners) != 1:
         return None
-    who = host_user(owners.pop())
-    killall = Path(sys.executable).parent / "mds-ach"
-    return (f"refusing to start: the MDS channels in /dev/shm belong to {who}, not to you ({host_user(os.geteuid())}):"
-            f" a system that user runs or ran here (make run shares this machine's /dev/shm). As that user, stop it "
-            f"and remove them, e.g. 'sudo {killall} killall' (it also stops that user's nodes), then start again.")
+    who = user_label(owners.pop())
+    script = Path(sys.executable).parent / "mds-ach"
+    killall = str(script) if script.is_file() else f"{sys.executable} -m mds_ach.tools.cli"
+    return (f"the MDS channels in /dev/shm belong to {who}, not to you ({user_label(os.geteuid())}): a system that "
+            f"user runs or ran here (make run shares this machine's /dev/shm). As that user, stop it and remove them, "
+            f"e.g. 'sudo {killall} killall' (it also stops that user's nodes), then {then}.")
 
 
 def child_env(anatomy: str | None = None, overlay: str | None = None) -> dict[str, str]:
@@ -529,7 +510,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
         raise LaunchError("", str(exc)) from None
     bad = [r for r in reports if not r.ok]
     if bad:
-        raise LaunchError("", another_users_channels([r.name for r in bad]) or "refusing to start, channel "
+        theirs = another_users_channels([r.name for r in bad])
+        raise LaunchError("", f"refusing to start: {theirs}" if theirs else "refusing to start, channel "
                           "problems:\n" + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
     already = running_nodes(rt)
     env = child_env(anatomy, overlay)
@@ -707,7 +689,8 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
                                                     if xml and robot != XML_ROBOT else ""))
     lines.append("table      " + table_line(read_published(), recorded_table(rt)))
     problems = channel_problems()
-    lines += [f"channel    {name}: {text}" for name, text in problems.items()]
+    theirs = another_users_channels(list(problems), then="'mds-ach status' again") if problems else None
+    lines += [f"channels   {theirs}"] if theirs else [f"channel    {name}: {text}" for name, text in problems.items()]
     if not problems and any(ach.exists(n) for n in mds.ALL_CHANNELS):
         lines.append(f"channels   ok ({len(mds.ALL_CHANNELS)})")
     try:
