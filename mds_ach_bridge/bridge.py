@@ -36,8 +36,8 @@ topics (relative: remap with --ros-args -r old:=new, or move with -r __ns:=/robo
   {topics.JOINT_REFERENCES:<24} out  sensor_msgs/JointState      the daemon's reference (state.ref)
   {topics.ROBOT_DESCRIPTION:<24} out  std_msgs/String             the URDF (transient local)
   {topics.DIAGNOSTICS:<24} out  diagnostic_msgs/DiagnosticArray  stream health, command counters
-  {topics.COMMAND_STATUS:<24} out  std_msgs/String             JSON per command event (accepted, rejected,
-                                   refused by the mux + owner, stopped, finished)
+  {topics.COMMAND_STATUS:<24} out  mds_ach_interfaces/CommandStatus  one per command event (accepted,
+                                   rejected, refused by the mux + owner, stopped, finished, goal ends)
   {topics.JOINT_COMMAND:<24} in   sensor_msgs/JointState      positions by joint name
   {topics.JOINT_POSITIONS:<24} in   std_msgs/Float64MultiArray  {len(joints.MODEL_JOINTS)} positions in this order:
                                    {' '.join(joints.MODEL_JOINTS)}
@@ -49,6 +49,8 @@ services:
   {topics.RESUME_SERVICE:<24} std_srvs/Trigger  release held joints; a stopped trajectory is not restarted
 actions (control_msgs/action/FollowJointTrajectory, for MoveIt: config/moveit_controllers.yaml):
 {ACTIONS}
+  and per controller, as joint_trajectory_controller: <controller>/{topics.CONTROLLER_STATE} (out, one per state
+  frame), <controller>/{topics.CONTROLLER_TRAJECTORY} (in), <controller>/{topics.QUERY_STATE} (service)
 A frame the mux refuses (another controller owns a joint) is logged once with the owner; a trajectory that
 is refused, held, aborted or preempted stops and its joints are cancelled where they are.
 IK targets are in the robot frame (frame_id '' or 'torso': between the shoulders, x forward, y left,
@@ -57,7 +59,9 @@ p-x p-y p-z t-x t-y t-z: 3 = position only, 6 = full pose).
 
 parameters (--ros-args -p name:=value; `ros2 param describe` shows every one):
   state_channel, ref_channel, ik_channel, allow_ungated, state_qos (reliable|sensor_data),
-  goal_position_tolerance, goal_velocity_tolerance, path_position_tolerance, goal_time_tolerance,
+  joint_trajectory_controller's (mds_ach_bridge/README.md): allow_partial_joints_goal,
+  allow_nonzero_velocity_at_trajectory_end, constraints.stopped_velocity_tolerance, constraints.goal_time,
+  constraints.<joint>.trajectory, constraints.<joint>.goal,
   stale_timeout, max_state_age, command_mode, trajectory_mode,
   ik_dof_left, ik_dof_right, ik_frame, urdf, robot, publish_robot_description, publish_tf,
   diagnostics_period,
