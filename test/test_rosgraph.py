@@ -115,6 +115,9 @@ def test_topics_echo_and_hz_need_no_ros2_command_line(graph: tuple[dict[str, str
     rows = {line.split()[0]: line for line in topics.stdout.splitlines()}
     assert "sensor_msgs/msg/JointState  (1 pub" in rows["/joint_states"], topics.stdout
     assert "mds_ach_interfaces/msg/CommandStatus" in rows["/mds/command_status"], topics.stdout
+    assert not [name for name in rows if "/_action/" in name], "hidden topics only with --all, as ros2 topic list"
+    every = _ros(env, "topics", "--all")
+    assert "/left_arm_controller/follow_joint_trajectory/_action/status" in every.stdout, every.stdout
     echo = _ros(env, "echo", "joint_states", "-n", "2")
     assert echo.returncode == 0, echo.stderr
     docs = [yaml.safe_load(part) for part in echo.stdout.split("---") if part.strip()]

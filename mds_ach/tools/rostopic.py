@@ -113,9 +113,15 @@ class Graph:
         self.node.create_subscription(message_class(type_name), topic, callback, qos)
 
 
+def hidden(name: str) -> bool:
+    """ROS's hidden names (a token starting with ``_``: actions' ``_action/feedback``...), left out of a listing
+    unless asked for, as ``ros2 topic list`` does."""
+    return any(token.startswith("_") for token in name.split("/"))
+
+
 def run_topics(graph: Graph, args: argparse.Namespace, out: Callable[[str], None]) -> int:
     graph.spin_for(args.wait)
-    topics = graph.topics()
+    topics = {name: types for name, types in graph.topics().items() if args.all or not hidden(name)}
     if not topics:
         out("(no topics: is the system running? 'mds-ach status')")
         return 1
@@ -191,6 +197,8 @@ def build_parser(prog: str = "mds-ach ros") -> argparse.ArgumentParser:
     topics = sub.add_parser("topics", help="every topic of the graph with its type and publisher/subscriber counts")
     topics.add_argument("--wait", type=seconds(60.0), default=DISCOVERY,
                         help=f"seconds of discovery before listing (default {DISCOVERY:g})")
+    topics.add_argument("--all", "-a", action="store_true",
+                        help="also the hidden topics (actions' _action/feedback and _action/status)")
     echo = sub.add_parser("echo", help="print a topic's messages as YAML (Ctrl-C stops)")
     echo.add_argument("topic", help="e.g. joint_states, mds/command_status, /robot2/joint_states")
     echo.add_argument("--count", "-n", type=bounded(1, 1_000_000, integer=True), default=None,
