@@ -138,13 +138,14 @@ def run_echo(graph: Graph, args: argparse.Namespace, out: Callable[[str], None])
     got: list[Any] = []
 
     def on_message(msg: Any) -> None:
-        got.append(msg)
-        out(render(msg))
+        if args.count is None or len(got) < args.count:  # one spin may deliver several: never more than asked
+            got.append(msg)
+            out(render(msg))
 
     graph.subscribe(topic, type_name, on_message)
     deadline = math.inf if args.timeout is None else time.monotonic() + args.timeout
     while (args.count is None or len(got) < args.count) and time.monotonic() < deadline:
-        graph.spin_for(0.2)
+        graph.spin_for(0.2, lambda: args.count is not None and len(got) >= args.count)
     if args.count is not None and len(got) < args.count:
         raise TopicError(f"{len(got)} of {args.count} message(s) on {topic} within {args.timeout:g} s")
     return 0
