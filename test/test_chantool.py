@@ -16,6 +16,7 @@ from support import NOBODY, VENV_BIN, other_ids_missing, run_as
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.paths import user_label
 from mds_ach.robot import access as channel_access
 from mds_ach.robot.channels import make_channels, remove_channels
 from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE, set_name
@@ -129,8 +130,8 @@ def test_make_and_repair_refuse_channels_another_user_planted(run, other_user: i
     rc, out, err = run("make")
     assert rc == 1
     for name in mds.ALL_CHANNELS:
-        assert f"channel '{name}': /dev/shm/achshm-{name} is owned by uid {NOBODY} (nobody), not by the stack's " \
-               f"user (uid 0 (root)) or root" in err
+        assert f"channel '{name}': /dev/shm/achshm-{name} is owned by {user_label(NOBODY)}, not by the stack's " \
+               f"user ({user_label(0)}) or root" in err
         assert f"mds-ach repair --recreate {name} (as root if another user owns the file" in err
     rc, out, err = run("repair", "--check")
     assert rc == 1 and "ok " not in out
@@ -448,7 +449,7 @@ def test_clients_refuse_channels_another_user_planted(run, other_user: int, how:
     rc, out, err = run(*argv)
     assert rc == 1, (out, err)
     assert "Traceback" not in out + err
-    want = "is a symbolic link" if how == "symlink" else f"is owned by uid {NOBODY} (nobody), neither you"
+    want = "is a symbolic link" if how == "symlink" else f"is owned by {user_label(NOBODY)}, neither you"
     assert want in out + err and f"mds-ach repair --recreate {channel}" in out + err
     assert target.read_bytes() == before
 

@@ -29,6 +29,7 @@ from support.system import mds_ach, running_system, system_env
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.robot import access as channel_access
+from mds_ach.paths import user_label
 from mds_ach.robot.config import load
 from mds_ach.robot.msgs import get_name
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
@@ -131,7 +132,7 @@ def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: 
     assert proc.returncode == 1
     assert "refusing to start, channel problems:" in proc.stderr
     for name in mds.ALL_CHANNELS:
-        assert f"{name}: /dev/shm/achshm-{name} is owned by uid {NOBODY} (nobody)" in proc.stderr
+        assert f"{name}: /dev/shm/achshm-{name} is owned by {user_label(NOBODY)}" in proc.stderr
         assert f"mds-ach repair --recreate {name}" in proc.stderr
     assert "started" not in proc.stdout, "no node was started"
     assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
@@ -171,7 +172,7 @@ def test_another_users_system_channels_are_explained_in_one_line(clean_shm: None
     assert proc.returncode == 1
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, proc.stderr
-    assert f"belong to nobody (uid {NOBODY}), not to you (root (uid 0))" in lines[0], lines[0]
+    assert f"belong to {user_label(NOBODY)}, not to you ({user_label(0)})" in lines[0], lines[0]
     assert "killall' (it also stops that user's nodes), then start again" in lines[0], lines[0]
     assert "repair --recreate" not in lines[0]
     assert "started" not in proc.stdout
@@ -184,7 +185,8 @@ def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path, other_u
     daemon = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--duration", "30"], env=env,
                             capture_output=True, text=True, timeout=120)
     assert daemon.returncode == 2, daemon.stderr
-    assert f"refusing channel 'mds-ref-gated': /dev/shm/achshm-mds-ref-gated is owned by uid {NOBODY}" in daemon.stderr
+    assert f"refusing channel 'mds-ref-gated': /dev/shm/achshm-mds-ref-gated is owned by {user_label(NOBODY)}" in \
+        daemon.stderr
     assert "mds-ach repair --recreate mds-ref-gated" in daemon.stderr
     mux = subprocess.run([str(VENV_BIN / "mds-ach-mux")], env=env, capture_output=True, text=True, timeout=120)
     assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref-gated for its start reference
@@ -270,7 +272,8 @@ def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: P
     _plant((mds.MDS_CHAN_BOARD_CMD_NAME,))
     proc = mds_ach("status", "--window", "0.1", env=env)
     assert proc.returncode == 1
-    assert re.search(rf"^channel\s+mds-cmd: unsafe: /dev/shm/achshm-mds-cmd is owned by uid {NOBODY} .*"
+    owner = re.escape(user_label(NOBODY))
+    assert re.search(rf"^channel\s+mds-cmd: unsafe: /dev/shm/achshm-mds-cmd is owned by {owner}, .*"
                      r"mds-ach repair --recreate mds-cmd", proc.stdout, re.M), proc.stdout
 
 

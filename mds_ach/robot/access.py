@@ -35,10 +35,10 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
-import pwd
 import stat
 
 from mds_ach import ach
+from mds_ach.paths import user_label
 from mds_ach.robot import contracts
 
 CHANNEL_MODE = 0o660
@@ -80,13 +80,6 @@ def trusted_owners() -> set[int]:
     return {os.geteuid(), 0}
 
 
-def _user(uid: int) -> str:
-    try:
-        return f"uid {uid} ({pwd.getpwuid(uid).pw_name})"
-    except KeyError:
-        return f"uid {uid}"
-
-
 def problem(name: str, st: os.stat_result, mode: int = CHANNEL_MODE, gid: int | None = None) -> str | None:
     """Why the stack must not use channel ``name`` whose file has status ``st``, or None when it may.
 
@@ -97,8 +90,8 @@ def problem(name: str, st: os.stat_result, mode: int = CHANNEL_MODE, gid: int | 
         return f"{ach.shm_path(name)} is not a regular file"
     owners = trusted_owners()
     if st.st_uid not in owners:
-        me = _user(os.geteuid())
-        return (f"{ach.shm_path(name)} is owned by {_user(st.st_uid)}, not by the stack's user ({me}) or root: "
+        me = user_label(os.geteuid())
+        return (f"{ach.shm_path(name)} is owned by {user_label(st.st_uid)}, not by the stack's user ({me}) or root: "
                 "another user created it and can write or truncate it")
     allowed = channel_mode(name, mode)
     extra = st.st_mode & 0o777 & ~allowed
@@ -185,9 +178,9 @@ def client_problem(name: str, path: str, st: os.stat_result) -> str | None:
     stack = stack_owner()
     if st.st_uid == stack:
         return None
-    who = f"the stack's user ({_user(stack)}, owner of {DAEMON_INPUT})" if stack is not None else \
+    who = f"the stack's user ({user_label(stack)}, owner of {DAEMON_INPUT})" if stack is not None else \
         f"the stack's user (unknown: no {DAEMON_INPUT})"
-    return (f"refused: {path} is owned by {_user(st.st_uid)}, neither you ({_user(os.geteuid())}), "
+    return (f"refused: {path} is owned by {user_label(st.st_uid)}, neither you ({user_label(os.geteuid())}), "
             f"root nor {who}: another user created it and would see what you write and choose what you read; "
             f"{recreate_hint(name)}")
 

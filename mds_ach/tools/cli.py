@@ -92,7 +92,8 @@ VERBS: dict[str, Verb] = {
                    "mds_ach.net.remote:add_arguments", "mds_ach.net.remote:run"),
     "ros-shell": Verb("a shell inside the running system's ROS 2 graph (its network namespace and ROS_DOMAIN_ID)",
                       "mds_ach.tools.rosgraph:add_shell_arguments", "mds_ach.tools.rosgraph:run_shell"),
-    "ros": Verb("run one command inside the running system's ROS 2 graph: 'mds-ach ros python examples/...'",
+    "ros": Verb("run one command inside the running system's ROS 2 graph: 'mds-ach ros python examples/...'; "
+                "'mds-ach ros topics|echo TOPIC|hz TOPIC' without a ros2 command line",
                 "mds_ach.tools.rosgraph:add_ros_arguments", "mds_ach.tools.rosgraph:run_ros"),
     # recordings (mds_ach.record): record the channels to MCAP, plot a recording, replay it onto the channels
     "record": Verb("record every channel of the running system into an MCAP file (Foxglove, mcap, ROS 2 tools)",
