@@ -28,8 +28,8 @@ from support.system import mds_ach, running_system, system_env
 
 import mds_ach as mds
 from mds_ach import ach
-from mds_ach.robot import access as channel_access
 from mds_ach.paths import user_label
+from mds_ach.robot import access as channel_access
 from mds_ach.robot.config import load
 from mds_ach.robot.msgs import get_name
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
