@@ -712,7 +712,8 @@ class MuxNode(Node):
         self.thread = start_worker(self, self.runner.run, "mux")
 
     def _on_state(self, st: MDS_MUX_STATE) -> None:
-        if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
+        listening = self.pub.get_subscription_count() > 0 or self.json_pub.get_subscription_count() > 0
+        if listening and self.context.ok():  # nobody listening: nothing to build; not after SIGINT/SIGTERM
             doc = state_to_dict(st)
             self.pub.publish(mux_state_msg(doc, self._joints, self.get_clock().now().to_msg()))
             self.json_pub.publish(String(data=json.dumps(doc)))
