@@ -941,6 +941,8 @@ class GateRunner:
                 reseed = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
                 if reseed is not None:
                     gate.reseed(*reseed)
+                    if latest is not None:  # the input is old there too (the filter re-seeds them): not pending
+                        latest[0][reseed[0]] = reseed[1]
                     self.log("info", f"re-seeded {labels(reseed[0])} where the joints are")
                 if frame is not None:
                     latest = ref_arrays(frame)

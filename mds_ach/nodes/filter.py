@@ -1,7 +1,11 @@
 """Reference smoother (``ros2 run mds_ach filter``): ``mds-ref-mux`` -> per-joint filter -> ``mds-ref-smooth``.
 
-Runs at a fixed rate (parameter ``rate``, by default config/filter.yaml ``rate``: 40 Hz like the deployed
-mds-filter) on an absolute schedule and publishes every tick, so the collision gate sees a steady stream.
+Event-driven, time-based: a new ``mds-ref-mux`` frame is stepped at once (no tick to wait for), the ramps advance
+by the time since the previous step (at most one period), and while the output moves it ticks at ``rate``
+(parameter, by default config/filter.yaml ``rate``: 40 Hz like the deployed mds-filter) so a ramp goes on with no
+new input. At rest (every joint on its target, at rest) it sleeps until the next input, re-publishing its output
+once per ``IDLE_PERIOD`` (1 s) as a heartbeat; the collision gate re-decides by itself while its own decision
+unfolds (``collision.Gate.pending``).
 Per-joint modes (the maths is ``mds_ach.nodes.filters``, shared with the daemon):
 
 * ``velocity_limit`` (default): constant-speed ramp, 1.57 rad/s, snapping onto the target within one step,
@@ -362,7 +366,8 @@ def owner_names(st: MDS_MUX_STATE) -> tuple[str | None, ...]:
 
 
 class FilterRunner:
-    """The real-time loop: channels + ``FilterCore`` on an absolute schedule. ``run()`` blocks until ``stop()``."""
+    """The loop: channels + ``FilterCore``, stepped on each input and at ``rate`` while moving (module doc).
+    ``run()`` blocks until ``stop()``."""
 
     def __init__(self, params: FilterParams, log: Callable[[str, str], None] | None = None,
                  sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
