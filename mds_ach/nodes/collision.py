@@ -159,6 +159,7 @@ _MASK_FOR = {apart: _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]] for apart, c
 
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
+IDLE_REPORT_PERIOD = 0.5  # s: mds-collide at rest (no input, nothing held, no contact, no override for 1 s)
 STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
 AHEAD_STEP = 0.05  # rad (fastest joint): spacing of the poses checked along an arm's braking path
 
@@ -925,6 +926,7 @@ class GateRunner:
                 self.log("info", msg)
             collide.put(gate.report(time.monotonic()))
             self.ready.set()
+            last_active = time.monotonic()
             latest: tuple[np.ndarray, np.ndarray] | None = None  # the newest input (ref, mode)
             seen_pos: np.ndarray | None = None  # the measured pose the newest decision was made with
             wait = report_period
@@ -971,14 +973,18 @@ class GateRunner:
                                           f"{sorted(decision.result.pairs)}")
                         last_override_log = now
                 self.refusals.tick()
+                busy = latest is not None and gate.pending(*latest)
+                if frame is not None or busy or gate.current.collides or gate.override_remaining(now) > 0:
+                    last_active = now
+                # reports at report_rate while anything goes on (and 1 s after), every IDLE_REPORT_PERIOD at rest
+                period = report_period if now - last_active <= 1.0 else max(report_period, IDLE_REPORT_PERIOD)
                 reported = frame is not None
-                if not reported and now - gate.last_report >= report_period:
+                if not reported and now - gate.last_report >= period - 1e-3:
                     guard.call(collide.name, collide.put, gate.report(now))
                     reported = True
                 if reported and self.on_report is not None:
                     self.on_report(decision, gate, now)
-                busy = latest is not None and gate.pending(*latest)
-                wait = self.config.input_period if busy else report_period
+                wait = self.config.input_period if busy else period
         finally:
             for ch in (inp, out, collide, state_ch, hold_ch, watch):
                 ch.close()
