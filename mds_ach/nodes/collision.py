@@ -946,11 +946,22 @@ class GateRunner:
                     if latest is not None:  # the input is old there too (the filter re-seeds them): not pending
                         latest[0][reseed[0]] = reseed[1]
                     self.log("info", f"re-seeded {labels(reseed[0])} where the joints are")
+                moved = _moved(seen_pos, observed, now, self.config.state_timeout)
+                repeat = False  # the input again (the filter's heartbeat at rest): nothing to decide anew
                 if frame is not None:
-                    latest = ref_arrays(frame)
-                elif latest is not None and (gate.pending(*latest) or reseed is not None
-                                             or _moved(seen_pos, observed, now, self.config.state_timeout)):
+                    new = ref_arrays(frame)
+                    repeat = (latest is not None and np.array_equal(new[0], latest[0])
+                              and np.array_equal(new[1], latest[1]) and reseed is None and not moved
+                              and not gate.pending(*new) and not gate.current.collides
+                              and gate.override_until == -math.inf)
+                    latest = new
+                    if repeat:
+                        frame = None
+                elif latest is not None and (gate.pending(*latest) or reseed is not None or moved):
                     frame = make_ref(*latest)  # the same input again: its timed decision goes on, or the robot moved
+                if repeat:  # the same output again, with its report first (as after a decision)
+                    guard.call(collide.name, collide.put, gate.report(now))
+                    guard.call(out.name, out.put, make_ref(gate.ref, gate.mode))
                 decision = None
                 if frame is not None and latest is not None:
                     seen_pos = _pose(observed, now, self.config.state_timeout)
@@ -978,7 +989,7 @@ class GateRunner:
                     last_active = now
                 # reports at report_rate while anything goes on (and 1 s after), every IDLE_REPORT_PERIOD at rest
                 period = report_period if now - last_active <= 1.0 else max(report_period, IDLE_REPORT_PERIOD)
-                reported = frame is not None
+                reported = frame is not None or repeat
                 if not reported and now - gate.last_report >= period - 1e-3:
                     guard.call(collide.name, collide.put, gate.report(now))
                     reported = True
