@@ -959,9 +959,11 @@ class GateRunner:
                         frame = None
                 elif latest is not None and (gate.pending(*latest) or reseed is not None or moved):
                     frame = make_ref(*latest)  # the same input again: its timed decision goes on, or the robot moved
-                if repeat:  # the same output again, with its report first (as after a decision)
+                if repeat:  # the same output again, with its report first (as after a decision), counted the same
                     guard.call(collide.name, collide.put, gate.report(now))
                     guard.call(out.name, out.put, make_ref(gate.ref, gate.mode))
+                    self.processed += 1
+                    self.refused_count += bool(refusing)
                 decision = None
                 if frame is not None and latest is not None:
                     seen_pos = _pose(observed, now, self.config.state_timeout)
