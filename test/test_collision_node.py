@@ -353,6 +353,38 @@ def test_a_released_arm_waits_until_the_daemon_took_the_cleared_flag(model, echo
     assert np.abs(gate.ref[L] - target[L]).max() < 1e-9  # and then it goes on to its target
 
 
+def test_a_hold_is_released_after_the_filter_came_to_rest(model) -> None:
+    """The filter publishes only while its output moves (an event-driven pipeline, #26 item 6), so the input
+    stream stops while the gate still holds an arm. The runner then re-processes the newest input at the filter's
+    period while ``Gate.pending`` says the decision is unfolding: the held arm is released and reaches its target
+    with no new input, and the gate then says it has nothing pending (it sleeps until the next frame)."""
+    from mds_ach.nodes.collision import Observed
+
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
+    core.set_target(target, ZERO_MODE)
+    now, latest, silent_steps = 0.0, None, 0
+    for k in range(int(8.0 / DT)):
+        if k == int(3.0 / DT):
+            target[R] = HOME[R]  # the right arm backs off; the left one is released once it is out of the way
+            core.set_target(target, ZERO_MODE)
+        now += DT
+        if core.moving() or latest is None:
+            latest = (core.step(), core.mode.copy())
+        elif gate.pending(*latest):
+            silent_steps += 1  # the filter rests: the runner re-decides on its newest input
+        else:
+            continue
+        gate.process(*latest, now, Observed(gate.ref.copy(), now, gate.last_report))
+        gate.report(now)
+    assert silent_steps > 0, "the left arm was released while the filter still moved: the scenario tests nothing"
+    assert np.abs(gate.ref[L] - target[L]).max() < 1e-9  # released and on its target with no new input
+    assert not gate.pending(*latest)
+
+
 def test_arms_in_measured_contact_are_held_and_can_be_moved_apart(model) -> None:
     """Both arms pushed into contact (e.g. compliant arms moved by hand): reported and held while their references
     stand still; a reference that brings them closer is refused, one that moves an arm away passes (escaping)."""

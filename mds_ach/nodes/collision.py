@@ -159,6 +159,7 @@ _MASK_FOR = {apart: _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]] for apart, c
 
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
+IDLE_REPORT_PERIOD = 0.5  # s: mds-collide at rest (no input, nothing held, no contact, no override for 1 s)
 STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
 AHEAD_STEP = 0.05  # rad (fastest joint): spacing of the poses checked along an arm's braking path
 
@@ -511,13 +512,29 @@ class Gate:
 
     # ----- the decision
 
+    def _invalid(self, ref: np.ndarray, mode: np.ndarray) -> np.ndarray:
+        """The entries validation refuses (kept at their last output): NaN/Inf, out of limits, unknown mode."""
+        return ~np.isfinite(ref) | (ref < self.lower) | (ref > self.upper) | (mode < 0) | (mode > 3)
+
+    def pending(self, ref: np.ndarray, mode: np.ndarray) -> bool:
+        """Would processing the same input ``ref``/``mode`` again change something? True while a unit is held or
+        releasing, an arm settles at a contact, a released joint ramps back, or a valid input value is not
+        passed yet (the speed bound, a hold, a rest). The runner then re-processes its newest input at the
+        filter's period (``input_period``): the input stream stops when the filter comes to rest, the gate's
+        timed transitions (``release_time``, the daemon's echo, the ramp back) must not."""
+        if self._settle_since or self._ramp.any() or any(u.state != FREE for u in self.units.values()):
+            return True
+        ref = np.asarray(ref, dtype=float)
+        differs = (ref != self.ref) & self._known & ~self._invalid(ref, np.asarray(mode))
+        return bool(differs.any())
+
     def process(self, ref: np.ndarray, mode: np.ndarray, now: float, observed: Observed | None = None) -> Decision:
         self._measured = None
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         cand = ref.copy()
         cand_mode = mode.copy()
-        bad = ~np.isfinite(ref) | (ref < self.lower) | (ref > self.upper) | (mode < 0) | (mode > 3)
+        bad = self._invalid(ref, mode)
         cand[bad] = self.ref[bad]
         cand_mode[bad] = self.mode[bad]
         refused = tuple(int(a) for a in np.flatnonzero(bad & self._known))
@@ -824,6 +841,24 @@ class DecisionTimes:
         return self._ring[:len(self)].copy()
 
 
+def _pose(observed: Observed | None, now: float, timeout: float) -> np.ndarray | None:
+    """The measured pose the gate decides with (None: no recent ``mds-state``, as in ``Gate.process``)."""
+    return observed.pos if observed is not None and now - observed.time <= timeout else None
+
+
+def _moved(seen: np.ndarray | None, observed: Observed | None, now: float, timeout: float,
+           tolerance: float = 1e-4) -> bool:
+    """Has the measured pose changed (beyond ``tolerance`` rad, or become known or unknown) since the newest
+    decision? The gate then decides again on the same input: a joint pushed into contact at rest is held."""
+    pos = _pose(observed, now, timeout)
+    if pos is None or seen is None:
+        return (pos is None) != (seen is None)
+    known = np.isfinite(pos)
+    if not np.array_equal(known, np.isfinite(seen)):
+        return True
+    return bool(np.any(np.abs(pos[known] - seen[known]) > tolerance))
+
+
 class GateRunner:
     """Channels around ``Gate``: wait for ``mds-ref-smooth``, decide with the newest ``mds-state`` (measured pose,
     echoed ``mds-collide``), put ``mds-ref-gated`` and ``mds-collide``."""
@@ -891,8 +926,15 @@ class GateRunner:
                 self.log("info", msg)
             collide.put(gate.report(time.monotonic()))
             self.ready.set()
+            last_active = time.monotonic()
+            latest: tuple[np.ndarray, np.ndarray] | None = None  # the newest input (ref, mode)
+            seen_pos: np.ndarray | None = None  # the measured pose the newest decision was made with
+            wait = report_period
             while not self._stop.is_set():
-                frame = guard.call(inp.name, inp.wait, timeout=report_period)  # broken input: hold, report
+                # Event-driven: a new mds-ref-smooth frame wakes the gate at once. Between frames it wakes for its
+                # report (report_rate) or, while a decision on the newest input is still unfolding, at the
+                # filter's period (Gate.pending).
+                frame = guard.call(inp.name, inp.wait, timeout=wait)  # broken input: hold, report
                 now = time.monotonic()
                 override_log = self._apply_overrides(gate, now, override_log)
                 state = guard.call(state_ch.name, state_ch.latest)  # a broken state: keep the last one
@@ -901,11 +943,32 @@ class GateRunner:
                 reseed = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
                 if reseed is not None:
                     gate.reseed(*reseed)
+                    if latest is not None:  # the input is old there too (the filter re-seeds them): not pending
+                        latest[0][reseed[0]] = reseed[1]
                     self.log("info", f"re-seeded {labels(reseed[0])} where the joints are")
-                decision = None
+                moved = _moved(seen_pos, observed, now, self.config.state_timeout)
+                repeat = False  # the input again (the filter's heartbeat at rest): nothing to decide anew
                 if frame is not None:
+                    new = ref_arrays(frame)
+                    repeat = (latest is not None and np.array_equal(new[0], latest[0])
+                              and np.array_equal(new[1], latest[1]) and reseed is None and not moved
+                              and not gate.pending(*new) and not gate.current.collides
+                              and gate.override_until == -math.inf)
+                    latest = new
+                    if repeat:
+                        frame = None
+                elif latest is not None and (gate.pending(*latest) or reseed is not None or moved):
+                    frame = make_ref(*latest)  # the same input again: its timed decision goes on, or the robot moved
+                if repeat:  # the same output again, with its report first (as after a decision), counted the same
+                    guard.call(collide.name, collide.put, gate.report(now))
+                    guard.call(out.name, out.put, make_ref(gate.ref, gate.mode))
+                    self.processed += 1
+                    self.refused_count += bool(refusing)
+                decision = None
+                if frame is not None and latest is not None:
+                    seen_pos = _pose(observed, now, self.config.state_timeout)
                     t0 = time.perf_counter()
-                    decision = gate.process(*ref_arrays(frame), now, observed)
+                    decision = gate.process(*latest, now, observed)
                     self.check_times.add(time.perf_counter() - t0)
                     # The report before the reference: the daemon reads the reference first, then the report, so
                     # whenever it sees a held reference it also sees the hold.
@@ -923,12 +986,18 @@ class GateRunner:
                                           f"{sorted(decision.result.pairs)}")
                         last_override_log = now
                 self.refusals.tick()
-                reported = frame is not None
-                if not reported and now - gate.last_report >= report_period:
+                busy = latest is not None and gate.pending(*latest)
+                if frame is not None or busy or gate.current.collides or gate.override_remaining(now) > 0:
+                    last_active = now
+                # reports at report_rate while anything goes on (and 1 s after), every IDLE_REPORT_PERIOD at rest
+                period = report_period if now - last_active <= 1.0 else max(report_period, IDLE_REPORT_PERIOD)
+                reported = frame is not None or repeat
+                if not reported and now - gate.last_report >= period - 1e-3:
                     guard.call(collide.name, collide.put, gate.report(now))
                     reported = True
                 if reported and self.on_report is not None:
                     self.on_report(decision, gate, now)
+                wait = self.config.input_period if busy else period
         finally:
             for ch in (inp, out, collide, state_ch, hold_ch, watch):
                 ch.close()
@@ -1071,6 +1140,8 @@ class CollisionNode(Node):
         self.runner.request_override(float(msg.data))
 
     def _on_report(self, decision: Decision | None, gate: Gate, now: float) -> None:
+        if self.pub.get_subscription_count() == 0 and self.json_pub.get_subscription_count() == 0:
+            return  # nobody listening: no document to build (a subscriber gets the next report, within 1/report_rate)
         doc = decision_to_dict(decision, gate, now, self.runner.refused_count)
         key = json.dumps({k: v for k, v in doc.items() if k != "time"})
         if not self.context.ok():  # shutting down after SIGINT/SIGTERM

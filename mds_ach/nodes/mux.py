@@ -100,6 +100,11 @@ from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
 
 DEFAULT_STATE_RATE = 10.0
 HOLD_INPUT = -1
+IDLE_STATE_PERIOD = 0.5
+"""s: ``mds-mux-state`` at rest (nothing received, nothing changed); half of ``muxverdict.LIVE_AGE``."""
+READER_TIMEOUT = 5.0
+"""s: the input readers' wait; a put wakes them at once and ``stop()`` cancels the wait, so this only bounds how
+long a reader sleeps (each wake-up costs CPU at rest)."""
 """Queue index of an ``mds-hold`` request (controller inputs are 0..n-1)."""
 
 
@@ -421,6 +426,15 @@ class MuxCore:
         self.dirty |= changed
         return changed
 
+    def next_stale(self) -> float:
+        """When the next controller that owns joints goes stale (``release_stale`` then changes something), or inf:
+        the runner waits until then, not a polling period."""
+        due = math.inf
+        for i, c in enumerate(self.controllers):
+            if c.timeout is not None and self.last_change[i] > -math.inf and (self.owner == i).any():
+                due = min(due, float(self.last_change[i]) + c.timeout + 1e-3)
+        return due
+
     def state(self, now: float, seq: int = 0) -> MDS_MUX_STATE:
         st = MDS_MUX_STATE()
         for a in range(MDS_JOINT_COUNT):
@@ -584,7 +598,7 @@ class MuxRunner:
         # the channel up again once `mds-ach repair` fixed it.
         guard = ChannelGuard(self.log, self._stop)
         while not self._stop.is_set():
-            frame = guard.call(ch.name, ch.wait, timeout=0.5)
+            frame = guard.call(ch.name, ch.wait, timeout=READER_TIMEOUT)
             if frame is not None:
                 self._queue.put((index, frame, time.monotonic()))
 
@@ -592,7 +606,7 @@ class MuxRunner:
         """Every ``mds-hold`` request in order (StructChannel.wait_next): each one counts, none is skipped."""
         guard = ChannelGuard(self.log, self._stop)
         while not self._stop.is_set():
-            frame = guard.call(self._hold_ch.name, self._hold_ch.wait_next, timeout=0.5)
+            frame = guard.call(self._hold_ch.name, self._hold_ch.wait_next, timeout=READER_TIMEOUT)
             if frame is not None:
                 self._queue.put((HOLD_INPUT, frame, time.monotonic()))
 
@@ -604,10 +618,14 @@ class MuxRunner:
         return self._current_ref
 
     def _loop(self, core: MuxCore, out: Any, state_ch: Any, watch: ReseedWatch) -> None:
+        """Apply the queued frames in arrival order. ``mds-mux-state`` goes out at once after a hold or a verdict
+        change, within ``state_period`` after any other frame, at the moment a controller goes stale
+        (``MuxCore.next_stale``) and otherwise every ``IDLE_STATE_PERIOD``: at rest the mux sleeps."""
         seq = 0
         next_state = time.monotonic()
+        last_state = -math.inf
         while not self._stop.is_set():
-            timeout = max(0.0, next_state - time.monotonic())
+            timeout = max(0.0, min(next_state, core.next_stale()) - time.monotonic())
             try:
                 index, frame, t = self._queue.get(timeout=timeout)
             except queue.Empty:
@@ -630,11 +648,14 @@ class MuxRunner:
                         self.refusals(f"{name} clamped", core.clamp_message, kind=core.clamped_kind(index))
                 if changed:
                     self._publish(core, out)
+                next_state = min(next_state, last_state + self.state_period)  # its verdict within a state period
                 if core.dirty:  # a hold or a verdict: the filter and the requester hear it now
                     next_state = time.monotonic()
                 elif not self._queue.empty():
                     continue
             now = time.monotonic()
+            if core.release_stale(now):  # a controller went stale: its joints are free now, and said so
+                next_state = now
             if now >= next_state:
                 self.refusals.tick()
                 if self._unsent:  # mds-ref-mux was unwritable: try the newest merge again, once a state period
@@ -645,7 +666,8 @@ class MuxRunner:
                 self._guard.put(state_ch, st)  # a damaged mds-mux-state: the next period tries again
                 if self.on_state is not None:
                     self.on_state(st)
-                next_state = now + self.state_period
+                last_state = now
+                next_state = now + IDLE_STATE_PERIOD
 
     def _log_refusal(self, text: str) -> None:
         """A refused hold request: counted, logged through the refusal log (the first, then a count per window)."""
@@ -690,8 +712,9 @@ NODE_NAME = "mux"  # the ROS node name (`ros2 param`, the sections of a params f
 PARAMETERS = (
     Param("config", "", "mux YAML (controllers, priorities, timeouts); empty: the package's config/mux.yaml "
                         "(option --config)"),
-    Param("state_rate", DEFAULT_STATE_RATE, "publish rate of mds-mux-state and /mds/mux_state in Hz; overrides "
-                                            "the config's state_rate", range=(0.1, 1000.0),
+    Param("state_rate", DEFAULT_STATE_RATE, "rate of mds-mux-state and /mds/mux_state in Hz while frames arrive (at "
+                                            "rest every 0.5 s, at once on a hold, a verdict change or a release); "
+                                            "overrides the config's state_rate", range=(0.1, 1000.0),
           default_doc="config `state_rate` (`10.0`)"),
 )
 
@@ -712,7 +735,8 @@ class MuxNode(Node):
         self.thread = start_worker(self, self.runner.run, "mux")
 
     def _on_state(self, st: MDS_MUX_STATE) -> None:
-        if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
+        listening = self.pub.get_subscription_count() > 0 or self.json_pub.get_subscription_count() > 0
+        if listening and self.context.ok():  # nobody listening: nothing to build; not after SIGINT/SIGTERM
             doc = state_to_dict(st)
             self.pub.publish(mux_state_msg(doc, self._joints, self.get_clock().now().to_msg()))
             self.json_pub.publish(String(data=json.dumps(doc)))
