@@ -682,6 +682,70 @@ def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
     assert not t.is_alive()
 
 
+def _state(pos: np.ndarray) -> mds.MDS_STATE:
+    """An mds-state frame as the daemon puts it now: every joint fresh at ``pos``."""
+    st = mds.MDS_STATE()
+    st.time = time.monotonic()
+    for a in range(N):
+        st.joint[a].pos = st.joint[a].ref = pos[a]
+        st.joint[a].active = 1
+    return st
+
+
+def test_at_rest_a_measured_pose_moved_into_contact_is_held_within_one_daemon_cycle(clean_shm: None, model) -> None:
+    """The gate sleeps at rest (no input, its report every 0.5 s), but it wakes on every mds-state frame: two
+    compliant arms pushed together by hand while nothing is commanded are reported and held within one daemon
+    cycle (10 Hz), not at its next idle report. The contact arrives right after an idle report, the worst phase
+    for a gate that only looks at mds-state when it wakes for something else."""
+    from mds_ach.robot.channels import StructChannel
+
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
+    lower, upper = joint_limits(model)
+    logs: list[str] = []
+    runner = GateRunner(model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
+    t = threading.Thread(target=runner.run, daemon=True)
+    collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+    state = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+    pushed = HOME.copy()
+    pushed[L], pushed[R] = solve("left", [0.40, 0.05, -0.10]), solve("right", [0.40, 0.05, -0.10])
+    assert model.check(model.q_from_ref(pushed)).collides
+    measured = [HOME]
+    done = threading.Event()
+
+    def daemon() -> None:  # mds-state at the daemon's 10 Hz, with the newest measured pose
+        while not done.is_set():
+            state.put(_state(measured[0]))
+            done.wait(0.1)
+
+    beat = threading.Thread(target=daemon, daemon=True)
+    try:
+        beat.start()
+        t.start()
+        assert runner.ready.wait(30), logs
+        _put(mds.MDS_CHAN_REF_SMOOTH_NAME, HOME)  # the filter's output, then nothing: it rests
+        wait_for(lambda: runner.processed >= 1, 10, what="the gate to pass the filter's frame")
+        time.sleep(1.5)  # at rest: nothing new for more than a second
+        collide.latest()
+        report = wait_for(lambda: collide.wait(timeout=1.0), 5, what="an idle report")
+        assert report.isCollide == 0
+        measured[0] = pushed
+        state.put(_state(pushed))
+        t0 = time.monotonic()
+        report = wait_for(lambda: (c := collide.wait(timeout=1.0)) is not None and c.isCollide == 1 and c, 5,
+                          what="the contact on mds-collide")
+        took = time.monotonic() - t0
+        assert took <= 0.1, f"the contact was reported {took * 1e3:.0f} ms after the mds-state frame that showed it"
+        assert report.joint[mds.COLLIDE_L_HAND].isCollide and report.joint[mds.COLLIDE_R_HAND].isCollide
+    finally:
+        runner.stop()
+        done.set()
+        t.join(5)
+        beat.join(5)
+        for ch in (collide, state):
+            ch.close()
+    assert not t.is_alive()
+
+
 def test_the_hold_is_put_on_mds_collide_before_the_held_reference(clean_shm: None, table_model,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """The hand-off to the daemon is ordered: the gate puts a hold's report on mds-collide before the held reference

@@ -1,10 +1,11 @@
 """The reference pipeline hands a command on as an event and costs next to nothing at rest (#26 items 5, 6).
 
 On the whole system (``mds-ach start nocan``): a 50 Hz stream on ``mds-ref-filter`` reaches ``mds-ref-gated`` (the
-daemon's input: the daemon's own period is not in it) within 5 ms p99 of each put, not at the filter's next tick;
-at rest every node together uses at most 5 % of one core, counted in CPU time (utime + stime of every process and
-its children), so a busy machine does not inflate it. The measurements are ``bench/bench_events.py``'s, the rows
-of ``make bench``.
+daemon's input: the daemon's own period is not in it) within 5 ms p99 of each put, not at the filter's next tick,
+on a busy machine (CPU hogs beside it: the hand-off threads run SCHED_FIFO, ``pipeline.HANDOFF_RT_PRIORITY``); at
+rest every node together uses at most 5 % of one core, counted in CPU time (utime + stime of every process and its
+children), so a busy machine does not inflate it. The measurements are ``bench/bench_events.py``'s, the rows of
+``make bench``.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support import may_use_sched_fifo
+from support.hogs import CpuHogs
 from support.system import running_system
 
 import mds_ach as mds
@@ -33,22 +36,21 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
         yield runtime
 
 
-def test_stream_reaches_the_daemon_input_within_5ms_p99(system: Path) -> None:
-    """Up to three runs of 300 puts (6 s each): the best p99 must be within 5 ms. A stage that polls at the filter's
-    40 Hz gives a p99 near its 25 ms period in every run; an event-driven pipeline on a machine shared with other
-    work can still see one run's tail stretched by the scheduler (three processes woken in turn)."""
-    runs = []
-    for _ in range(3):
+def test_stream_reaches_the_daemon_input_within_5ms_p99_beside_cpu_hogs(system: Path) -> None:
+    """One run of 300 puts (6 s) beside two CPU hogs. At normal priority the three hops (mux, filter, gate) each
+    wait for a CPU behind busy processes: 30-50 ms p99 on the shared 2-core machine. The harness's own threads
+    (putter, recorders) also run SCHED_FIFO, so their wake-ups are not counted against the pipeline."""
+    if not may_use_sched_fifo():
+        pytest.skip("no SCHED_FIFO here: neither the hand-off threads nor the harness can run real-time, and the "
+                    "latency bound is given for real-time hand-offs (docs/reliability.md E)")
+    with CpuHogs(2, 60.0):
         lat = bench_events.handoff_latency(mds.MDS_CHAN_REF_FILTER_NAME, count=300)
-        gated = np.array(lat[mds.MDS_CHAN_DAEMON_INPUT_NAME]) * 1e3
-        assert len(gated) >= 290, f"only {len(gated)} of 300 puts reached mds-ref-gated"
-        runs.append({name: (float(np.percentile(np.array(v) * 1e3, 50)), float(np.percentile(np.array(v) * 1e3, 99)))
-                     for name, v in lat.items()})
-        if runs[-1][mds.MDS_CHAN_DAEMON_INPUT_NAME][1] <= 5.0:
-            break
-    best = min(r[mds.MDS_CHAN_DAEMON_INPUT_NAME][1] for r in runs)
-    text = "; ".join(", ".join(f"{n} p50 {a:.2f} p99 {b:.2f}" for n, (a, b) in r.items()) for r in runs)
-    assert best <= 5.0, f"mds-ref-filter -> each stage (ms), per run: {text}"
+    assert lat.realtime, "the harness did not get SCHED_FIFO"
+    gated = np.array(lat.stages[mds.MDS_CHAN_DAEMON_INPUT_NAME]) * 1e3
+    assert len(gated) >= 290, f"only {len(gated)} of 300 puts reached mds-ref-gated"
+    text = ", ".join(f"{n} p50 {np.percentile(v, 50) * 1e3:.2f} p99 {np.percentile(v, 99) * 1e3:.2f}"
+                     for n, v in lat.stages.items())
+    assert np.percentile(gated, 99) <= 5.0, f"mds-ref-filter -> each stage (ms): {text}"
 
 
 def test_whole_system_at_rest_uses_at_most_5_percent_of_a_core(system: Path) -> None:

@@ -101,10 +101,12 @@ from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import filters
 from mds_ach.nodes.pipeline import (
+    HANDOFF_RT_PRIORITY,
     KNOWN_ADDRESSES,
     ChannelGuard,
     ReseedWatch,
-    cancel_wait,
+    Wakeup,
+    handoff_thread,
     labels,
     make_ref,
     ref_arrays,
@@ -866,7 +868,9 @@ class GateRunner:
     def __init__(self, model: Any, config: GateConfig, lower: np.ndarray, upper: np.ndarray,
                  log: Callable[[str, str], None] | None = None,
                  on_report: Callable[[Decision | None, Gate, float], None] | None = None,
-                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
+                 rt_priority: int = 0) -> None:
+        self.rt_priority = rt_priority  # SCHED_FIFO of the loop and its Wakeup readers (pipeline.HANDOFF_RT_PRIORITY)
         self.model = model
         self.config = config
         self.lower, self.upper = lower, upper
@@ -879,7 +883,7 @@ class GateRunner:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._override_requests: list[float] = []
-        self._inp: Any = None
+        self._wakeup: Wakeup | None = None  # the gate's inputs (mds-ref-smooth, mds-state), from run() on
         self.gate: Gate | None = None
         self.ready = threading.Event()
         self.processed = 0
@@ -889,8 +893,8 @@ class GateRunner:
 
     def stop(self) -> None:
         self._stop.set()
-        if self._inp is not None:
-            cancel_wait(self._inp)
+        if self._wakeup is not None:
+            self._wakeup.cancel()
 
     def request_override(self, seconds: float) -> None:
         """Thread-safe: queue an expert-override request (applied by the gate thread)."""
@@ -898,18 +902,21 @@ class GateRunner:
             self._override_requests.append(float(seconds))
 
     def run(self) -> None:
+        handoff_thread(self.rt_priority, "gate", self.log)
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
         ref, mode, source = found
         gate = Gate(self.model, self.config, ref, mode, time.monotonic(), self.lower, self.upper)
-        self._inp = inp = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+        inp = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
         out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
         collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
         hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
         observed: Observed | None = None
         inp.latest()  # a frame already waiting is an old command: act only on frames that arrive from now on
+        self._wakeup = wakeup = Wakeup((inp.name, state_ch.name), (mds.MDS_REF, MDS_STATE), self.log,
+                                             self.rt_priority)
         self.gate = gate
         report_period = 1.0 / self.config.report_rate
         override_log = 0.0
@@ -927,14 +934,17 @@ class GateRunner:
             collide.put(gate.report(time.monotonic()))
             self.ready.set()
             last_active = time.monotonic()
-            latest: tuple[np.ndarray, np.ndarray] | None = None  # the newest input (ref, mode)
+            # the newest input (ref, mode); until one arrives, the reference the gate started from
+            latest: tuple[np.ndarray, np.ndarray] = (gate.ref.copy(), gate.mode.copy())
             seen_pos: np.ndarray | None = None  # the measured pose the newest decision was made with
             wait = report_period
             while not self._stop.is_set():
-                # Event-driven: a new mds-ref-smooth frame wakes the gate at once. Between frames it wakes for its
-                # report (report_rate) or, while a decision on the newest input is still unfolding, at the
-                # filter's period (Gate.pending).
-                frame = guard.call(inp.name, inp.wait, timeout=wait)  # broken input: hold, report
+                # Event-driven: a new mds-ref-smooth frame wakes the gate at once, and so does each mds-state frame
+                # (the daemon's period), so a measured pose that moves is decided on within one daemon cycle. Between
+                # frames it wakes for its report (report_rate) or, while a decision on the newest input is still
+                # unfolding, at the filter's period (Gate.pending).
+                wakeup.wait(wait)
+                frame = guard.call(inp.name, inp.latest)  # broken input: hold, report
                 now = time.monotonic()
                 override_log = self._apply_overrides(gate, now, override_log)
                 state = guard.call(state_ch.name, state_ch.latest)  # a broken state: keep the last one
@@ -943,21 +953,20 @@ class GateRunner:
                 reseed = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
                 if reseed is not None:
                     gate.reseed(*reseed)
-                    if latest is not None:  # the input is old there too (the filter re-seeds them): not pending
-                        latest[0][reseed[0]] = reseed[1]
+                    latest[0][reseed[0]] = reseed[1]  # the input is old there too (the filter re-seeds them)
                     self.log("info", f"re-seeded {labels(reseed[0])} where the joints are")
                 moved = _moved(seen_pos, observed, now, self.config.state_timeout)
                 repeat = False  # the input again (the filter's heartbeat at rest): nothing to decide anew
                 if frame is not None:
                     new = ref_arrays(frame)
-                    repeat = (latest is not None and np.array_equal(new[0], latest[0])
+                    repeat = (np.array_equal(new[0], latest[0])
                               and np.array_equal(new[1], latest[1]) and reseed is None and not moved
                               and not gate.pending(*new) and not gate.current.collides
                               and gate.override_until == -math.inf)
                     latest = new
                     if repeat:
                         frame = None
-                elif latest is not None and (gate.pending(*latest) or reseed is not None or moved):
+                elif gate.pending(*latest) or reseed is not None or moved:
                     frame = make_ref(*latest)  # the same input again: its timed decision goes on, or the robot moved
                 if repeat:  # the same output again, with its report first (as after a decision), counted the same
                     guard.call(collide.name, collide.put, gate.report(now))
@@ -965,7 +974,7 @@ class GateRunner:
                     self.processed += 1
                     self.refused_count += bool(refusing)
                 decision = None
-                if frame is not None and latest is not None:
+                if frame is not None:
                     seen_pos = _pose(observed, now, self.config.state_timeout)
                     t0 = time.perf_counter()
                     decision = gate.process(*latest, now, observed)
@@ -986,7 +995,7 @@ class GateRunner:
                                           f"{sorted(decision.result.pairs)}")
                         last_override_log = now
                 self.refusals.tick()
-                busy = latest is not None and gate.pending(*latest)
+                busy = gate.pending(*latest)
                 if frame is not None or busy or gate.current.collides or gate.override_remaining(now) > 0:
                     last_active = now
                 # reports at report_rate while anything goes on (and 1 s after), every IDLE_REPORT_PERIOD at rest
@@ -999,7 +1008,7 @@ class GateRunner:
                     self.on_report(decision, gate, now)
                 wait = self.config.input_period if busy else period
         finally:
-            for ch in (inp, out, collide, state_ch, hold_ch, watch):
+            for ch in (wakeup, inp, out, collide, state_ch, hold_ch, watch):
                 ch.close()
             if len(self.check_times):
                 ms = self.check_times.values() * 1e3
@@ -1132,7 +1141,8 @@ class CollisionNode(Node):
         self.create_subscription(Float64, COLLISION_TOPIC + "/override", self._on_override, 10)
         self._last_pub = -math.inf
         self._last_doc = ""
-        self.runner = GateRunner(model, gate_cfg, lower, upper, log=ros_log(self), on_report=self._on_report)
+        self.runner = GateRunner(model, gate_cfg, lower, upper, log=ros_log(self), on_report=self._on_report,
+                                 rt_priority=HANDOFF_RT_PRIORITY)
         self.thread = start_worker(self, self.runner.run, "collision")
 
     def _on_override(self, msg: Float64) -> None:

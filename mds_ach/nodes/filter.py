@@ -57,9 +57,11 @@ from rclpy.node import Node
 import mds_ach as mds
 from mds_ach.nodes import filters
 from mds_ach.nodes.pipeline import (
+    HANDOFF_RT_PRIORITY,
     ChannelGuard,
     ReseedWatch,
     cancel_wait,
+    handoff_thread,
     labels,
     make_ref,
     ref_arrays,
@@ -370,7 +372,9 @@ class FilterRunner:
     ``run()`` blocks until ``stop()``."""
 
     def __init__(self, params: FilterParams, log: Callable[[str, str], None] | None = None,
-                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
+                 rt_priority: int = 0) -> None:
+        self.rt_priority = rt_priority  # SCHED_FIFO of the loop (pipeline.HANDOFF_RT_PRIORITY)
         self.params = params
         self.log = log or (lambda level, msg: print(f"[filter] {level}: {msg}", flush=True))
         self.ignored = RateLimitedLog(self.log)  # a bad input can repeat every cycle: one line per change
@@ -388,6 +392,7 @@ class FilterRunner:
             cancel_wait(self._inp)
 
     def run(self) -> None:
+        handoff_thread(self.rt_priority, "filter", self.log)
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
@@ -499,7 +504,7 @@ class FilterNode(Node):
         configured = load_config(path).rate  # the config's own rate is the parameter's default
         self.rate: float = declare(self, find(PARAMETERS, "rate"), configured if rate is None else rate)
         self.params = load_config(path, self.rate)
-        self.runner = FilterRunner(self.params, log=ros_log(self))
+        self.runner = FilterRunner(self.params, log=ros_log(self), rt_priority=HANDOFF_RT_PRIORITY)
         self.thread = start_worker(self, self.runner.run, "filter")
 
     def shutdown(self) -> None:

@@ -62,10 +62,12 @@ from std_msgs.msg import String
 import mds_ach as mds
 from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes.pipeline import (
+    HANDOFF_RT_PRIORITY,
     KNOWN_ADDRESSES,
     ChannelGuard,
     ReseedWatch,
     cancel_wait,
+    handoff_thread,
     joint_label,
     labels,
     make_ref,
@@ -507,8 +509,9 @@ class MuxRunner:
                  on_state: Callable[[MDS_MUX_STATE], None] | None = None,
                  output: str = mds.MDS_CHAN_REF_MUX_NAME,
                  sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
-                 log_every: float = EVERY_S) -> None:
+                 log_every: float = EVERY_S, rt_priority: int = 0) -> None:
         self.controllers = list(controllers)
+        self.rt_priority = rt_priority  # SCHED_FIFO of the readers and the loop (pipeline.HANDOFF_RT_PRIORITY)
         self.state_period = 1.0 / state_rate
         self.log = log or (lambda level, msg: print(f"[mux] {level}: {msg}", flush=True))
         # A refused frame can repeat at the writer's rate: one line per change of reason, repeats counted
@@ -541,6 +544,7 @@ class MuxRunner:
             cancel_wait(self._hold_ch)
 
     def run(self) -> None:
+        handoff_thread(self.rt_priority, "mux", self.log)
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
@@ -596,6 +600,7 @@ class MuxRunner:
         ch = self._inputs[index]
         # A client that died inside a put leaves its input ACH_CORRUPT: keep this thread alive, say so, and pick
         # the channel up again once `mds-ach repair` fixed it.
+        handoff_thread(self.rt_priority, f"mux-in {self.controllers[index].name}")
         guard = ChannelGuard(self.log, self._stop)
         while not self._stop.is_set():
             frame = guard.call(ch.name, ch.wait, timeout=READER_TIMEOUT)
@@ -604,6 +609,7 @@ class MuxRunner:
 
     def _hold_reader(self) -> None:
         """Every ``mds-hold`` request in order (StructChannel.wait_next): each one counts, none is skipped."""
+        handoff_thread(self.rt_priority, "mux-hold")
         guard = ChannelGuard(self.log, self._stop)
         while not self._stop.is_set():
             frame = guard.call(self._hold_ch.name, self._hold_ch.wait_next, timeout=READER_TIMEOUT)
@@ -731,7 +737,8 @@ class MuxNode(Node):
         self.pub = self.create_publisher(MuxState, MUX_STATE_TOPIC, 10)
         self.json_pub = self.create_publisher(String, json_alias(MUX_STATE_TOPIC), 10)  # deprecated
         self._joints = [joint_label(a) for a in KNOWN_ADDRESSES]
-        self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state)
+        self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state,
+                                rt_priority=HANDOFF_RT_PRIORITY)
         self.thread = start_worker(self, self.runner.run, "mux")
 
     def _on_state(self, st: MDS_MUX_STATE) -> None:
