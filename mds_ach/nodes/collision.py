@@ -852,6 +852,32 @@ class DecisionTimes:
         return self._ring[:len(self)].copy()
 
 
+class _StateNews:
+    """Is an ``mds-state`` frame news for the gate: a measured pose that moved (beyond ``tolerance`` rad since the
+    frame that last woke it) or became known or unknown, or the daemon's echo of a newer report? At rest the daemon
+    puts the same pose every cycle: the gate's loop is not woken for it (``pipeline.Wakeup``, its reader's thread)."""
+
+    def __init__(self, tolerance: float = 1e-4) -> None:
+        self.tolerance = tolerance
+        self._pos: np.ndarray | None = None
+        self._echo = -math.inf
+
+    def __call__(self, state: MDS_STATE) -> bool:
+        seen = Observed.from_state(state)
+        moved = self._pos is None or seen.collide_time != self._echo or _differs(self._pos, seen.pos, self.tolerance)
+        if moved:
+            self._pos, self._echo = seen.pos, seen.collide_time
+        return moved
+
+
+def _differs(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
+    """Do two measured poses differ: a joint known in one and not the other, or beyond ``tolerance`` rad?"""
+    known = np.isfinite(a)
+    if not np.array_equal(known, np.isfinite(b)):
+        return True
+    return bool(np.any(np.abs(a[known] - b[known]) > tolerance))
+
+
 def _pose(observed: Observed | None, now: float, timeout: float) -> np.ndarray | None:
     """The measured pose the gate decides with (None: no recent ``mds-state``, as in ``Gate.process``)."""
     return observed.pos if observed is not None and now - observed.time <= timeout else None
@@ -864,10 +890,7 @@ def _moved(seen: np.ndarray | None, observed: Observed | None, now: float, timeo
     pos = _pose(observed, now, timeout)
     if pos is None or seen is None:
         return (pos is None) != (seen is None)
-    known = np.isfinite(pos)
-    if not np.array_equal(known, np.isfinite(seen)):
-        return True
-    return bool(np.any(np.abs(pos[known] - seen[known]) > tolerance))
+    return _differs(pos, seen, tolerance)
 
 
 class GateRunner:
@@ -925,7 +948,7 @@ class GateRunner:
         observed: Observed | None = None
         inp.latest()  # a frame already waiting is an old command: act only on frames that arrive from now on
         self._wakeup = wakeup = Wakeup((inp.name, state_ch.name), (mds.MDS_REF, MDS_STATE), self.log,
-                                             self.rt_priority)
+                                             self.rt_priority, news={state_ch.name: _StateNews()})
         self.gate = gate
         report_period = 1.0 / self.config.report_rate
         override_log = 0.0
@@ -948,8 +971,8 @@ class GateRunner:
             seen_pos: np.ndarray | None = None  # the measured pose the newest decision was made with
             wait = report_period
             while not self._stop.is_set():
-                # Event-driven: a new mds-ref-smooth frame wakes the gate at once, and so does each mds-state frame
-                # (the daemon's period), so a measured pose that moves is decided on within one daemon cycle. Between
+                # Event-driven: a new mds-ref-smooth frame wakes the gate at once, and so does an mds-state frame with a
+                # measured pose that moved (_StateNews), so it is decided on within one daemon cycle. Between
                 # frames it wakes for its report (report_rate) or, while a decision on the newest input is still
                 # unfolding, at the filter's period (Gate.pending).
                 wakeup.wait(wait)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import fnmatch
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -244,14 +244,16 @@ class Wakeup:
     """Wakes one loop on a new frame on any of several channels, so a node with two inputs sleeps until either
     moves instead of polling one of them. A thread per channel blocks on a handle of its own and sets an event; the
     loop waits on the event (``wait``) and then reads its channels itself (``latest``): a frame that arrives while
-    the loop works leaves the event set, so no wake-up is lost."""
+    the loop works leaves the event set, so no wake-up is lost. ``news`` (per channel name, optional) tells a
+    reader which frames are worth a wake-up (called on that reader's thread): e.g. not the same pose again."""
 
     READER_TIMEOUT = 5.0
     """s: how long a reader sleeps between looks at ``stop`` when nothing arrives (``close`` cancels the wait)."""
 
     def __init__(self, names: Sequence[str], ctypes: Sequence[type], log: Callable[[str, str], None],
-                 rt_priority: int = 0) -> None:
+                 rt_priority: int = 0, news: Mapping[str, Callable[[Any], bool]] | None = None) -> None:
         self._rt_priority = rt_priority
+        self._news = dict(news or {})
         self._event = threading.Event()
         self._stop = threading.Event()
         self._guard = ChannelGuard(log, self._stop)
@@ -263,9 +265,11 @@ class Wakeup:
 
     def _watch(self, ch: StructChannel[Any]) -> None:
         handoff_thread(self._rt_priority, f"wake {ch.name}")
+        news = self._news.get(ch.name, lambda frame: True)
         while not self._stop.is_set():
-            if self._guard.call(ch.name, ch.wait, timeout=self.READER_TIMEOUT) is not None:
-                self._event.set()
+            if (frame := self._guard.call(ch.name, ch.wait, timeout=self.READER_TIMEOUT)) is not None:
+                if news(frame):
+                    self._event.set()
             elif self._guard.failing(ch.name):  # a broken channel answers at once: look again later
                 self._stop.wait(0.5)
 
