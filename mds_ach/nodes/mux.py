@@ -102,12 +102,12 @@ from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
 
 DEFAULT_STATE_RATE = 10.0
 HOLD_INPUT = -1
+"""Queue index of an ``mds-hold`` request (controller inputs are 0..n-1)."""
 IDLE_STATE_PERIOD = 0.5
 """s: ``mds-mux-state`` at rest (nothing received, nothing changed); half of ``muxverdict.LIVE_AGE``."""
 READER_TIMEOUT = 5.0
 """s: the input readers' wait; a put wakes them at once and ``stop()`` cancels the wait, so this only bounds how
 long a reader sleeps (each wake-up costs CPU at rest)."""
-"""Queue index of an ``mds-hold`` request (controller inputs are 0..n-1)."""
 
 
 # --------------------------------------------------------------------------------------------- config
