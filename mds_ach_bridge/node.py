@@ -209,12 +209,15 @@ class BridgeNode(Node):
         self._names = list(joints.MODEL_JOINTS)
         self._addresses = [joints.BY_SHORT[n].address for n in self._names]
         self._lock = threading.Lock()
+        # One writer of the reference channel at a time (the state thread, a position command written at once by
+        # its callback), held from building a frame to its put, so frames reach the mux in the order they were built.
+        self._write_lock = threading.Lock()
         self._counters = _Counters()
         self._pending: dict[str, float] = {}  # accepted position commands not yet written
         self._running: dict[int, _Running] = {}  # by serial, in start order
         self._goal_ends: list[actions.Goal] = []  # goals that ended under the lock, told to the client after it
         self._frame: MDS_REF | None = None  # the bridge's reference, created on the first write
-        self._unsent = False  # state thread only: the newest frame could not be written (a damaged channel)
+        self._unsent = False  # under _write_lock: the newest frame could not be written (a damaged channel)
         self._late_rejections: list[tuple[str, str]] = []  # found on the state thread under the lock, logged after it
         # Lifecycle: commands get a serial; the state thread remembers which ones each write carried.
         self._controller = controller_for(self._ref_name)  # the bridge's name in the mux (config/mux.yaml)
@@ -222,7 +225,7 @@ class BridgeNode(Node):
         self._what: dict[int, str] = {}  # serial -> "trajectory #3 (LSP, LEP)" for the messages
         self._pending_cmds: list[int] = []  # serials of the commands in _pending
         self._carried: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())  # what _next_reference's frame carries
-        self._writes: deque[_Write] = deque(maxlen=WRITE_RECORDS)  # state thread only
+        self._writes: deque[_Write] = deque(maxlen=WRITE_RECORDS)  # appended under _write_lock, read under _lock
         self._reported: deque[int] = deque(maxlen=WRITE_RECORDS)  # serials whose refusal was logged already
         self._cancels: list[tuple[tuple[str, ...], str]] = []  # (joints, reason) to CANCEL, sent outside the lock
         self._resync: set[str] = set()  # joints of a stopped trajectory: the frame's value is not where they hold
@@ -346,27 +349,29 @@ class BridgeNode(Node):
         # What the mux did since the last cycle: before anything else is written.
         news = self._guard.call(self._mux.states.name, self._mux.poll, default=MuxNews())
         # The reference first: it is one put, and a pending command should not wait for two publishes.
-        with self._lock:
-            was_stalled = self._stalled
-            self._stalled = False
-            self._last_frame_mono = mono
-            self._counters.frames += 1
-            self._take_mux_news(news)
-            ref = self._next_reference(state, now_ns * 1e-9)
-            if ref is None and self._unsent:  # the newest frame did not get through: write it again
-                ref = self._frame
-            carried = self._carried
-            measured = (dict(zip(self._names, positions, strict=True)), dict(zip(self._names, velocities, strict=True)))
-            self._measured = measured
-            feedback = self._follow_goals(now_ns * 1e-9, *measured)
-            running = self._running_by_joint()
-            late, self._late_rejections = self._late_rejections, []
-        if ref is not None:
-            self._writes.append(_Write(time.monotonic(), *carried))
-            self._unsent = not self._guard.put(self._ref_chan, ref)  # reported; the next cycle writes it again
-            if not self._unsent:
-                with self._lock:
-                    self._counters.references_written += 1
+        with self._write_lock:
+            with self._lock:
+                was_stalled = self._stalled
+                self._stalled = False
+                self._last_frame_mono = mono
+                self._counters.frames += 1
+                self._take_mux_news(news)
+                ref = self._next_reference(state, now_ns * 1e-9)
+                if ref is None and self._unsent:  # the newest frame did not get through: write it again
+                    ref = self._frame
+                carried = self._carried
+                measured = (dict(zip(self._names, positions, strict=True)),
+                            dict(zip(self._names, velocities, strict=True)))
+                self._measured = measured
+                feedback = self._follow_goals(now_ns * 1e-9, *measured)
+                running = self._running_by_joint()
+                late, self._late_rejections = self._late_rejections, []
+            if ref is not None:
+                self._writes.append(_Write(time.monotonic(), *carried))
+                self._unsent = not self._guard.put(self._ref_chan, ref)  # reported; the next cycle writes it again
+                if not self._unsent:
+                    with self._lock:
+                        self._counters.references_written += 1
         for topic, reason in late:
             self._reject(topic, reason)
         self._emit()
@@ -450,13 +455,31 @@ class BridgeNode(Node):
                     del self._running[r.serial]
                 what = self._what.get(r.serial, "trajectory")
                 self._events.append(_Event("info", f"{what} finished", {"event": "finished", "command": what}))
+        self._carried = (tuple(sampled), self._apply_pending())
+        return self._frame
+
+    def _apply_pending(self) -> tuple[int, ...]:
+        """Put the accepted position commands into the frame; their serials (caller holds the lock)."""
         commands: tuple[int, ...] = ()
         if self._pending:
             self._apply(self._pending, self._command_mode)
             self._pending = {}
             commands, self._pending_cmds = tuple(self._pending_cmds), []
-        self._carried = (tuple(sampled), commands)
-        return self._frame
+        return commands
+
+    def _write_commands(self) -> None:
+        """Write the accepted position commands now, not at the next state frame: a command is an event (#26 item
+        5). Before the bridge's first frame (built from the first state frame) the state thread writes them."""
+        with self._write_lock:
+            with self._lock:
+                if not self._pending or self._frame is None:
+                    return
+                commands = self._apply_pending()
+                self._writes.append(_Write(time.monotonic(), (), commands))
+            self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again
+            if not self._unsent:
+                with self._lock:
+                    self._counters.references_written += 1
 
     def _base_frame(self, state: MDS_STATE) -> MDS_REF:
         """What the first frame holds for the joints no command touches (caller holds the lock).
@@ -522,6 +545,8 @@ class BridgeNode(Node):
                 self._counters.accepted += 1
         if reason is not None:
             self._reject(topic, reason)
+        else:
+            self._write_commands()
         self._emit()
 
     def _on_joint_command(self, msg: JointState) -> None:
