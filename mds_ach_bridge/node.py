@@ -52,8 +52,10 @@ from mds_ach.kinematics.model import load_model
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
 from mds_ach.nodes.rosnode import Param, declare, ros_log
+from mds_ach.robot import config as joint_config
 from mds_ach.robot import joints, lifecycle
 from mds_ach.robot.channels import ChannelGuard, StructChannel
+from mds_ach.robot.feedforward import CycleClock, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
 from mds_ach_bridge import actions, follow, topics, trajectory
@@ -211,6 +213,9 @@ class BridgeNode(Node):
         urdf = p("urdf").value or str(paths.urdf_path())
         self._effective = current_limits(p("robot").value or None)
         self._limits = load_limits(joints.MODEL_JOINTS, effective=self._effective)
+        # The MOVETO acceleration the daemon commands: trajectories are sent as their stopping points at it.
+        self._moveto_accel = math.radians(joint_config.load(self._effective.robot).accel_deg_s2)
+        self._cycle = CycleClock()  # state thread only: the daemon's period, from the state frames' stamps
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._names = list(joints.MODEL_JOINTS)
@@ -339,6 +344,12 @@ class BridgeNode(Node):
         js = [state.joint[a] for a in self._addresses]
         positions = [j.pos for j in js]
         velocities = self._velocity.update(state.time, positions)
+        self._cycle.update(state.time)
+        # When the frame was measured, on the node's clock (trajectories are timed on it), and when the target
+        # written now is due (``feedforward.CycleClock.lookahead``).
+        stamp_ns, comparable = state_stamp_ns(now_ns, mono, state.time, self._max_age)
+        measured_s = stamp_ns * 1e-9
+        due_s = measured_s + self._cycle.lookahead()
         # What the mux did since the last cycle: before anything else is written.
         news = self._guard.call(self._mux.states.name, self._mux.poll, default=MuxNews())
         # The reference first: it is one put, and a pending command should not wait for two publishes.
@@ -348,11 +359,11 @@ class BridgeNode(Node):
             self._last_frame_mono = mono
             self._counters.frames += 1
             self._take_mux_news(news)
-            ref = self._next_reference(state, now_ns * 1e-9)
+            ref = self._next_reference(state, due_s)
             if ref is None and self._unsent:  # the newest frame did not get through: write it again
                 ref = self._frame
             carried = self._carried
-            feedback = self._follow_goals(now_ns * 1e-9, dict(zip(self._names, positions, strict=True)),
+            feedback = self._follow_goals(measured_s, dict(zip(self._names, positions, strict=True)),
                                           dict(zip(self._names, velocities, strict=True)))
             late, self._late_rejections = self._late_rejections, []
         if ref is not None:
@@ -365,7 +376,6 @@ class BridgeNode(Node):
             self._reject(topic, reason)
         self._emit()
 
-        stamp_ns, comparable = state_stamp_ns(now_ns, mono, state.time, self._max_age)
         stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
         self._js_msg.header.stamp = stamp
         self._js_msg.position = array.array("d", positions)
@@ -404,8 +414,12 @@ class BridgeNode(Node):
 
     # ------------------------------------------------------------------------------------ ROS -> reference
 
-    def _next_reference(self, state: MDS_STATE, now_s: float) -> MDS_REF | None:
+    def _next_reference(self, state: MDS_STATE, due_s: float) -> MDS_REF | None:
         """The frame to write this cycle, or None when nothing changed (caller holds the lock).
+
+        A running trajectory is sampled at ``due_s`` (the time the daemon's MOVETO of this frame aims at) and
+        written as its stopping point at the MOVETO acceleration (``mds_ach.robot.feedforward``), clamped to the
+        limits: the MCB then passes the trajectory's position with its velocity instead of lagging it.
 
         Sets ``_carried``: the serials of the trajectory and commands in the frame, to name them if it is refused.
         """
@@ -432,8 +446,8 @@ class BridgeNode(Node):
                     else:
                         self._end_goal(r.goal, actions.ABORT, follow.Result.INVALID_GOAL, str(exc))
                     continue
-            values, done = r.traj.sample(now_s)
-            self._apply(values, self._trajectory_mode)
+            values, speeds, done = r.traj.sample_state(due_s)
+            self._apply(self._feedforward(values, speeds), self._trajectory_mode)
             sampled.append(r.serial)
             if r.written is None:
                 r.written = time.monotonic()
@@ -450,6 +464,14 @@ class BridgeNode(Node):
             commands, self._pending_cmds = tuple(self._pending_cmds), []
         self._carried = (tuple(sampled), commands)
         return self._frame
+
+    def _feedforward(self, values: dict[str, float], speeds: dict[str, float]) -> dict[str, float]:
+        """The MOVETO targets for a desired state: its stopping points, within the limits."""
+        out = {}
+        for n, q in values.items():
+            lower, upper = self._limits[n]
+            out[n] = min(max(stopping_point(q, speeds[n], self._moveto_accel), lower), upper)
+        return out
 
     def _base_frame(self, state: MDS_STATE) -> MDS_REF:
         """What the first frame holds for the joints no command touches (caller holds the lock).

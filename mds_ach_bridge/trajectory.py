@@ -63,13 +63,20 @@ class Trajectory:
 
     def sample(self, now: float) -> tuple[dict[str, float], bool]:
         """Positions at ``now`` and whether the trajectory is finished (anchor it first)."""
+        values, _, done = self.sample_state(now)
+        return values, done
+
+    def sample_state(self, now: float) -> tuple[dict[str, float], dict[str, float], bool]:
+        """Positions and velocities at ``now``, and whether the trajectory is finished (anchor it first). Linear
+        segments move at their slope; before the start and after the end the joints are at rest."""
         if not self.anchored:
             raise ValueError("sample() on a trajectory that does not start at t = 0; anchor() it first")
         t = now - self.start
+        rest = dict.fromkeys(self.names, 0.0)
         if t <= 0.0:
-            return dict(zip(self.names, self.positions[0], strict=True)), False
+            return dict(zip(self.names, self.positions[0], strict=True)), rest, False
         if t >= self.times[-1]:
-            return dict(zip(self.names, self.positions[-1], strict=True)), True
+            return dict(zip(self.names, self.positions[-1], strict=True)), rest, True
         k = bisect.bisect_right(self.times, t) - 1  # times[k] <= t < times[k+1]
         t0, t1 = self.times[k], self.times[k + 1]
         h = t1 - t0
@@ -77,6 +84,7 @@ class Trajectory:
         p0, p1 = self.positions[k], self.positions[k + 1]
         if self.velocities is None:
             values = [a + (b - a) * s for a, b in zip(p0, p1, strict=True)]
+            speeds = [(b - a) / h for a, b in zip(p0, p1, strict=True)]
         else:
             v0, v1 = self.velocities[k], self.velocities[k + 1]
             h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
@@ -84,7 +92,13 @@ class Trajectory:
             values = [
                 h00 * a + h10 * h * va + h01 * b + h11 * h * vb for a, b, va, vb in zip(p0, p1, v0, v1, strict=True)
             ]
-        return dict(zip(self.names, values, strict=True)), False
+            # d/dt of the basis functions (d/ds divided by h)
+            d00, d10 = (6 * s**2 - 6 * s) / h, 3 * s**2 - 4 * s + 1
+            d01, d11 = (-6 * s**2 + 6 * s) / h, 3 * s**2 - 2 * s
+            speeds = [
+                d00 * a + d10 * va + d01 * b + d11 * vb for a, b, va, vb in zip(p0, p1, v0, v1, strict=True)
+            ]
+        return dict(zip(self.names, values, strict=True)), dict(zip(self.names, speeds, strict=True)), False
 
 
 def build(

@@ -1,0 +1,213 @@
+"""Trajectory-tracking measurements on the running simulated robot (issue #26), shared by the tests and ``make bench``.
+
+* ``Profile``: a MoveIt-style time-parameterized move of some joints (minimum-jerk, or a trapezoid at given velocity
+  and acceleration), exact at any time, and its ``JointTrajectory`` (points every ``dt`` with positions, velocities
+  and accelerations, the first at the start state, as MoveIt's time parameterization sends them).
+* ``TrackingProbe``: a client node with the FollowJointTrajectory clients and a ``/joint_states`` recorder; ``run``
+  sends a goal starting ``lead`` s in the future (``header.stamp``, so the desired motion is known exactly) and
+  returns a ``Tracking``: the largest |desired - measured| while it ran, the final error, when the result came,
+  and the best-fit lag.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from .spin import Spinner
+
+MINJERK_PEAK_VELOCITY = 1.875  # x D / T
+MINJERK_PEAK_ACCELERATION = 5.7735  # x D / T^2 (10 / sqrt(3))
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Joints ``names`` moving from ``start`` by ``delta`` (rad, per joint) on the unit shape ``shape``."""
+
+    names: tuple[str, ...]
+    start: tuple[float, ...]
+    delta: tuple[float, ...]
+    duration: float
+    shape: Callable[[float], tuple[float, float, float]]  # t -> (s, ds/dt, d2s/dt2), s from 0 to 1
+
+    def at(self, t: float) -> tuple[list[float], list[float], list[float]]:
+        s, ds, dds = self.shape(min(max(t, 0.0), self.duration))
+        if t <= 0.0 or t >= self.duration:
+            ds = dds = 0.0
+        return ([q + d * s for q, d in zip(self.start, self.delta, strict=True)],
+                [d * ds for d in self.delta], [d * dds for d in self.delta])
+
+    @property
+    def end(self) -> list[float]:
+        return self.at(self.duration)[0]
+
+    def message(self, stamp_s: float, dt: float = 0.1):
+        """The ``trajectory_msgs/JointTrajectory``: a point every ``dt`` s and one at the end."""
+        from builtin_interfaces.msg import Duration
+        from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+        msg = JointTrajectory(joint_names=list(self.names))
+        msg.header.stamp.sec, msg.header.stamp.nanosec = int(stamp_s), int((stamp_s % 1.0) * 1e9)
+        n = max(1, math.ceil(self.duration / dt - 1e-9))
+        for k in range(n + 1):
+            t = min(k * dt, self.duration)
+            q, v, a = self.at(t)
+            msg.points.append(JointTrajectoryPoint(
+                positions=q, velocities=v, accelerations=a,
+                time_from_start=Duration(sec=int(t), nanosec=int(round((t % 1.0) * 1e9)) % 1_000_000_000)))
+        return msg
+
+
+def minimum_jerk(names: Sequence[str], start: Sequence[float], delta: Sequence[float], duration: float) -> Profile:
+    def shape(t: float) -> tuple[float, float, float]:
+        s = t / duration
+        return (10 * s**3 - 15 * s**4 + 6 * s**5, (30 * s**2 - 60 * s**3 + 30 * s**4) / duration,
+                (60 * s - 180 * s**2 + 120 * s**3) / duration**2)
+
+    return Profile(tuple(names), tuple(start), tuple(delta), duration, shape)
+
+
+def trapezoid(names: Sequence[str], start: Sequence[float], delta: Sequence[float], velocity: float,
+              acceleration: float) -> Profile:
+    """The largest joint moves at ``velocity`` / ``acceleration`` (a triangle if it is too short); the others scaled."""
+    dist = max(abs(d) for d in delta)
+    ta = velocity / acceleration
+    if acceleration * ta * ta > dist:  # never reaches the speed
+        ta = math.sqrt(dist / acceleration)
+    peak = acceleration * ta
+    tc = (dist - acceleration * ta * ta) / peak
+    total = 2 * ta + tc
+
+    def shape(t: float) -> tuple[float, float, float]:
+        if t < ta:
+            return 0.5 * acceleration * t * t / dist, acceleration * t / dist, acceleration / dist
+        if t < ta + tc:
+            return (0.5 * acceleration * ta * ta + peak * (t - ta)) / dist, peak / dist, 0.0
+        r = max(total - t, 0.0)
+        return 1.0 - 0.5 * acceleration * r * r / dist, acceleration * r / dist, -acceleration / dist
+
+    return Profile(tuple(names), tuple(start), tuple(delta), total, shape)
+
+
+def minjerk_amplitude(duration: float, velocity: float, acceleration: float) -> float:
+    """The largest minimum-jerk move of ``duration`` s within ``velocity`` and ``acceleration``."""
+    return min(velocity * duration / MINJERK_PEAK_VELOCITY, acceleration * duration**2 / MINJERK_PEAK_ACCELERATION)
+
+
+@dataclass(frozen=True)
+class Tracking:
+    """How a goal was executed, on the measured positions (``/joint_states``)."""
+
+    max_error: float  # rad: largest |desired - measured| from the start to the end of the trajectory
+    final_error: float  # rad: largest |end - measured| when the result came
+    result_after: float  # s from the trajectory's start to its result
+    lag: float  # s: the delay of the desired motion that fits the measured one best
+    status: int
+    error_string: str
+    duration: float
+
+    @property
+    def allowance(self) -> float:
+        """MoveIt's default execution allowance: 1.2 T + 0.5 s."""
+        return 1.2 * self.duration + 0.5
+
+    def describe(self) -> str:
+        return (f"max error {self.max_error:.4f} rad, final {self.final_error:.4f} rad, lag {1e3 * self.lag:.0f} ms, "
+                f"result {self.result_after:.2f} s after the start (allowance {self.allowance:.2f} s)")
+
+
+class TrackingProbe(Spinner):
+    """FollowJointTrajectory clients and a ``/joint_states`` recorder (stamp, name -> position)."""
+
+    def __init__(self, name: str = "tracking_probe") -> None:
+        from control_msgs.action import FollowJointTrajectory
+        from rclpy.action import ActionClient
+        from sensor_msgs.msg import JointState
+
+        self.open_node(name)
+        self.states: list[tuple[float, dict[str, float]]] = []
+        self._lock = threading.Lock()
+
+        def record(msg: JointState) -> None:
+            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            with self._lock:
+                self.states.append((stamp, dict(zip(msg.name, msg.position, strict=True))))
+
+        self.node.create_subscription(JointState, "/joint_states", record, 50)
+        self.clients = {c: ActionClient(self.node, FollowJointTrajectory, f"/{c}/follow_joint_trajectory")
+                        for c in ("left_arm_controller", "right_arm_controller", "head_controller")}
+        for c, client in self.clients.items():
+            self.spin_until(client.server_is_ready, 60.0, f"the {c} action server")
+        self.spin_until(lambda: self.states, 30.0, "/joint_states")
+
+    def now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def position(self, name: str) -> float:
+        return self.states[-1][1][name]
+
+    def since(self, t: float) -> list[tuple[float, dict[str, float]]]:
+        with self._lock:
+            return [s for s in self.states if s[0] >= t]
+
+    def send(self, controller: str, msg, tolerance: float | None = None):
+        """Send a goal with ``msg`` as its trajectory (goal tolerance ``tolerance`` on every joint); its handle."""
+        from control_msgs.action import FollowJointTrajectory
+        from control_msgs.msg import JointTolerance
+
+        goal = FollowJointTrajectory.Goal(trajectory=msg)
+        if tolerance is not None:
+            goal.goal_tolerance = [JointTolerance(name=n, position=tolerance) for n in msg.joint_names]
+        sent = self.clients[controller].send_goal_async(goal)
+        self.spin_until(sent.done, 20.0, "the goal response")
+        handle = sent.result()
+        assert handle is not None and handle.accepted
+        return handle
+
+    def result(self, handle, timeout: float = 30.0):
+        got = handle.get_result_async()
+        self.spin_until(got.done, timeout, "the goal's result")
+        return got.result()
+
+    def run(self, controller: str, profile: Profile, lead: float = 0.3, tolerance: float = 0.01) -> Tracking:
+        """Execute ``profile`` starting ``lead`` s from now and measure it."""
+        start = self.now() + lead
+        handle = self.send(controller, profile.message(start), tolerance)
+        res = self.result(handle, timeout=profile.duration + 30.0)
+        done = self.now()
+        self.spin_for(0.05)
+        states = [(t, q) for t, q in self.since(start) if t <= done]
+        during = [(t, q) for t, q in states if t <= start + profile.duration]
+        assert during, "no /joint_states while the goal ran"
+
+        def error(t: float, q: dict[str, float], shift: float = 0.0) -> float:
+            want = profile.at(t - start - shift)[0]
+            return max(abs(w - q[n]) for n, w in zip(profile.names, want, strict=True))
+
+        max_error = max(error(t, q) for t, q in during)
+        final = states[-1][1] if states else during[-1][1]
+        final_error = max(abs(w - final[n]) for n, w in zip(profile.names, profile.end, strict=True))
+        lags = [k * 0.005 for k in range(-40, 121)]
+        lag = min(lags, key=lambda s: sum(error(t, q, s) ** 2 for t, q in during))
+        return Tracking(max_error, final_error, done - start, lag, res.status, res.result.error_string,
+                        profile.duration)
+
+    def close(self) -> None:
+        for client in self.clients.values():
+            client.destroy()
+        self.close_node()
+
+
+def room(position: float, lower: float, upper: float, margin: float = 0.05) -> tuple[float, float]:
+    """How far a joint at ``position`` can move down and up within its limits less ``margin``."""
+    return max(0.0, position - lower - margin), max(0.0, upper - margin - position)
+
+
+def wait_until(pred: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
