@@ -55,7 +55,7 @@ from mds_ach.nodes.rosnode import Param, declare, ros_log
 from mds_ach.robot import config as joint_config
 from mds_ach.robot import joints, lifecycle
 from mds_ach.robot.channels import ChannelGuard, StructChannel
-from mds_ach.robot.feedforward import CycleClock, stopping_point
+from mds_ach.robot.feedforward import Braking, CycleClock, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
 from mds_ach_bridge import actions, follow, topics, trajectory
@@ -116,6 +116,23 @@ class _Running:
     goal: actions.Goal | None = None  # the FollowJointTrajectory goal it carries out
     written: float | None = None  # monotonic time of its first write
     finished: bool = False  # sampled to its end; kept while its goal waits for the goal tolerance
+    due: float | None = None  # the time its newest written targets were sampled for (node clock)
+    desired: dict[str, tuple[float, float]] = field(default_factory=dict)  # (position, velocity) there, per joint
+    floors: dict[str, _Floor] = field(default_factory=dict)  # a replaced motion's braking, per joint (``_Floor``)
+
+
+@dataclass(frozen=True)
+class _Floor:
+    """A joint whose previous motion was replaced while moving: its target already sent or in flight is the
+    stopping point ``value`` (moving in direction ``sign``), which the MCB may already be braking onto. A new target
+    short of it would make the joint pass it and come back, so the joint's targets stay at ``value`` until the new
+    trajectory's own targets pass it (``forward``: the new trajectory goes on beyond it) or, when the new trajectory
+    goes back, until the joint has come to rest there (``rest``, node clock)."""
+
+    value: float
+    sign: float
+    rest: float
+    forward: bool
 
 
 @dataclass(frozen=True)
@@ -238,6 +255,10 @@ class BridgeNode(Node):
         self._reported: deque[int] = deque(maxlen=WRITE_RECORDS)  # serials whose refusal was logged already
         self._cancels: list[tuple[tuple[str, ...], str]] = []  # (joints, reason) to CANCEL, sent outside the lock
         self._resync: set[str] = set()  # joints of a stopped trajectory: the frame's value is not where they hold
+        # The commanded motion of joints whose trajectory stopped or was replaced while moving: they brake at the
+        # MOVETO acceleration from their desired state at the last written target onto its stopping point. A new
+        # trajectory for them starts from this state (position and velocity), as joint_trajectory_controller does.
+        self._braking: dict[str, Braking] = {}
         self._events: list[_Event] = []
         self._started = time.monotonic()
         self._last_frame_mono: float | None = None
@@ -431,14 +452,22 @@ class BridgeNode(Node):
             self._frame = self._base_frame(state)
         sampled: list[int] = []
         for r in active:
+            if r.written is None:
+                self._replace(r)
             if not r.traj.anchored:
-                # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample.
+                # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample;
+                # a joint still braking from a replaced motion starts from its commanded state (position, velocity).
                 current = {
                     n: state.joint[a].ref_r if n in self._resync else self._frame.joint[a].ref
                     for n in r.traj.names for a in (joints.BY_SHORT[n].address,)
                 }  # fmt: skip
+                speed = dict.fromkeys(r.traj.names, 0.0)
+                for n in r.traj.names:
+                    b = self._braking.get(n)
+                    if b is not None:
+                        current[n], speed[n] = b.at(r.traj.start)
                 try:
-                    r.traj = r.traj.anchor(current, self._limits)
+                    r.traj = r.traj.anchor(current, self._limits, speed)
                 except CommandError as exc:
                     del self._running[r.serial]
                     if r.goal is None:
@@ -447,7 +476,10 @@ class BridgeNode(Node):
                         self._end_goal(r.goal, actions.ABORT, follow.Result.INVALID_GOAL, str(exc))
                     continue
             values, speeds, done = r.traj.sample_state(due_s)
-            self._apply(self._feedforward(values, speeds), self._trajectory_mode)
+            r.due, r.desired = due_s, {n: (values[n], speeds[n]) for n in values}
+            self._apply(self._floored(r, self._feedforward(values, speeds), due_s), self._trajectory_mode)
+            for n in r.traj.names:
+                self._braking.pop(n, None)
             sampled.append(r.serial)
             if r.written is None:
                 r.written = time.monotonic()
@@ -459,11 +491,37 @@ class BridgeNode(Node):
                 self._events.append(_Event("info", f"{what} finished", {"event": "finished", "command": what}))
         commands: tuple[int, ...] = ()
         if self._pending:
+            for n in self._pending:
+                self._braking.pop(n, None)
             self._apply(self._pending, self._command_mode)
             self._pending = {}
             commands, self._pending_cmds = tuple(self._pending_cmds), []
         self._carried = (tuple(sampled), commands)
         return self._frame
+
+    def _replace(self, r: _Running) -> None:
+        """A new trajectory's joints that were braking from a replaced motion keep their braking target until the
+        new one's targets pass it (``_Floor``): the joint stops within the braking distance from its commanded
+        velocity and never goes back to meet a trajectory that goes on the same way (caller holds the lock)."""
+        final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
+        for n in r.traj.names:
+            b = self._braking.get(n)
+            if b is None or b.v0 == 0.0:
+                continue
+            value = stopping_point(b.q0, b.v0, b.accel)
+            sign = math.copysign(1.0, b.v0)
+            r.floors[n] = _Floor(value, sign, b.t0 + abs(b.v0) / b.accel, sign * (final[n] - value) > 0.0)
+
+    @staticmethod
+    def _floored(r: _Running, targets: dict[str, float], due_s: float) -> dict[str, float]:
+        """``targets`` with the joints of ``r.floors`` kept at their braking target while it applies."""
+        for n, f in list(r.floors.items()):
+            short = f.sign * (targets[n] - f.value) < 0.0
+            if short and (f.forward or due_s < f.rest):
+                targets[n] = f.value
+            else:
+                del r.floors[n]
+        return targets
 
     def _feedforward(self, values: dict[str, float], speeds: dict[str, float]) -> dict[str, float]:
         """The MOVETO targets for a desired state: its stopping points, within the limits."""
@@ -715,6 +773,9 @@ class BridgeNode(Node):
         Returns its description (caller holds the lock)."""
         what = self._what.get(r.serial, "trajectory")
         self._running.pop(r.serial, None)
+        if not r.finished and r.due is not None:  # its joints brake from the last written target (feedforward)
+            for n, (q, v) in r.desired.items():
+                self._braking[n] = Braking(q, v, r.due, self._moveto_accel)
         if not r.finished:
             names = tuple(n for n in r.traj.names if n not in keep)
             self._resync.update(names)

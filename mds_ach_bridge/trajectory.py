@@ -43,14 +43,17 @@ class Trajectory:
     def anchored(self) -> bool:
         return self.times[0] == 0.0
 
-    def anchor(self, current: Mapping[str, float], limits: Limits) -> Trajectory:
-        """Start from ``current`` at t = 0 when the first point is later (velocity 0 there for cubics)."""
+    def anchor(self, current: Mapping[str, float], limits: Limits,
+               velocity: Mapping[str, float] | None = None) -> Trajectory:
+        """Start from ``current`` at t = 0 when the first point is later, with ``velocity`` there for cubics (the
+        commanded state, as joint_trajectory_controller starts from its desired state; default at rest)."""
         if self.anchored:
             return self
         missing = [n for n in self.names if n not in current]
         if missing:
             raise CommandError(f"no current reference for {', '.join(missing)} to start from")
-        vels = None if self.velocities is None else ((0.0,) * len(self.names), *self.velocities)
+        start = tuple(float((velocity or {}).get(n, 0.0)) for n in self.names)
+        vels = None if self.velocities is None else (start, *self.velocities)
         traj = replace(
             self,
             times=(0.0, *self.times),

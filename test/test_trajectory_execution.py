@@ -119,3 +119,114 @@ def test_moveit_goals_at_the_published_limits_are_tracked_on_time(probe: Trackin
         start, delta = _move(probe, minjerk_amplitude(duration, v, a) * 0.98)
         lines.append(_check("minimum jerk", minimum_jerk(ARM, start, delta, duration), probe))
     print("\n".join(lines))
+
+
+# --------------------------------------------------------------------------------------------- replace and cancel
+
+
+def _period(probe: TrackingProbe) -> float:
+    stamps = [t for t, _ in probe.states[-30:]]
+    gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False))
+    return gaps[len(gaps) // 2]
+
+
+def _position_at(probe: TrackingProbe, name: str, t: float) -> float:
+    """The measured position at ``t``, interpolated between the /joint_states around it."""
+    states = probe.since(t - 1.0)
+    before = [s for s in states if s[0] <= t][-1]
+    after = next((s for s in states if s[0] > t), before)
+    if after[0] == before[0]:
+        return before[1][name]
+    w = (t - before[0]) / (after[0] - before[0])
+    return before[1][name] + w * (after[1][name] - before[1][name])
+
+
+def _cruise(probe: TrackingProbe, speed: float, distance: float) -> tuple[Profile, float, float]:
+    """Start a trapezoid on LSP at ``speed`` over ``distance`` (the way it has room); wait until it cruises.
+    Returns the profile, its start time and the direction."""
+    _, a = _published()
+    start, delta = _move(probe, distance)
+    profile = trapezoid(("LSP",), start[:1], delta[:1], speed, a)
+    t0 = probe.now() + 0.2
+    handle = probe.send(CONTROLLER, profile.message(t0))
+    ramp = speed / a
+    probe.spin_until(lambda: probe.now() > t0 + ramp + 0.2, 10.0, "LSP at its cruising speed")
+    return profile, t0, math.copysign(1.0, delta[0]), handle
+
+
+def _after(probe: TrackingProbe, t: float, name: str = "LSP") -> list[float]:
+    return [q[name] for s, q in probe.since(t)]
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("speed", [0.38, 0.9])
+def test_cancel_brakes_from_the_commanded_velocity(probe: TrackingProbe, speed: float) -> None:
+    """Cancelling a goal cruising at ``speed``: the arm travels at most v^2/2a + v period + 0.02 rad after the request
+    (a: the published acceleration) and never comes back. Before #26 (cancel held the reference, which ran ahead of
+    the arm): 0.17-0.26 rad more at 0.38 rad/s, stopping 0.54 s after the request."""
+    from action_msgs.msg import GoalStatus
+
+    _, a = _published()
+    profile, t0, sign, handle = _cruise(probe, speed, 1.6)
+    period = _period(probe)
+    t_request = probe.now()
+    cancel = handle.cancel_goal_async()
+    probe.spin_until(cancel.done, 10.0, "the cancel response")
+    res = probe.result(handle, 10.0)
+    assert res.status == GoalStatus.STATUS_CANCELED, res.result.error_string
+    probe.spin_for(2.0)  # stopped for good
+    q_request = _position_at(probe, "LSP", t_request)
+    v = abs(profile.at(t_request - t0)[1][0])
+    after = [sign * (q - q_request) for q in _after(probe, t_request)]
+    travel, rest = max(after), after[-1]
+    bound = v * v / (2 * a) + v * period + 0.02
+    report = (f"cancel at {v:.3f} rad/s: travel {travel:.4f} rad after the request (bound {bound:.4f}), "
+              f"came back {travel - rest:.4f} rad")
+    print(report)
+    assert travel <= bound, report
+    assert travel - rest <= 0.01, report
+    end = profile.end[0]
+    assert sign * (end - probe.position("LSP")) > 0.1, f"the cancel came too late to show: {report}"
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("direction", ["on", "back"])
+def test_a_replacing_goal_starts_from_the_commanded_state(probe: TrackingProbe, direction: str) -> None:
+    """A goal replaced mid-way by one starting at the measured state, at rest (what MoveIt sends): going on the same
+    way, the arm never reverses more than 0.01 rad; going back, it goes at most v^2/2a + v period + 0.01 rad past
+    the replacement point (a: the published acceleration, v: the velocity there). Both goals end as they should.
+    Before #26: the reference stepped back to the measured pose, the arm ran on 0.10-0.2 rad and reversed."""
+    from action_msgs.msg import GoalStatus
+
+    v_pub, a = _published()
+    speed = 0.8
+    first, t0, sign, handle = _cruise(probe, speed, 1.6)
+    period = _period(probe)
+    t_replace = probe.now()
+    here = probe.position("LSP")
+    v = abs(first.at(t_replace - t0)[1][0])
+    if direction == "on":
+        second = minimum_jerk(("LSP",), (here,), (sign * 0.6,), 2.0)
+    else:
+        second = minimum_jerk(("LSP",), (here,), (-sign * 0.6,), 2.0)
+    replaced = probe.send(CONTROLLER, second.message(0.0), tolerance=FINAL_ERROR)  # stamp 0: starts on receipt
+    res = probe.result(handle, 10.0)
+    assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
+    res = probe.result(replaced, 20.0)
+    assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+    q_replace = _position_at(probe, "LSP", t_replace)
+    path = [sign * (q - q_replace) for q in _after(probe, t_replace)]
+    if direction == "on":
+        back = max(max(path[: k + 1]) - path[k] for k in range(len(path)))
+        report = f"replaced at {v:.3f} rad/s, going on: came back {back:.4f} rad"
+        print(report)
+        assert back <= 0.01, report
+    else:
+        past = max(path)
+        bound = v * v / (2 * a) + v * period + 0.01
+        report = f"replaced at {v:.3f} rad/s, going back: {past:.4f} rad past the replacement point (bound {bound:.4f})"
+        print(report)
+        assert past <= bound, report
+    assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR
