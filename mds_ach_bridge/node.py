@@ -119,6 +119,7 @@ class _Running:
     due: float | None = None  # the time its newest written targets were sampled for (node clock)
     desired: dict[str, tuple[float, float]] = field(default_factory=dict)  # (position, velocity) there, per joint
     floors: dict[str, _Floor] = field(default_factory=dict)  # a replaced motion's braking, per joint (``_Floor``)
+    ramps: dict[str, float] = field(default_factory=dict)  # joints going back from a floor: their last target
 
 
 @dataclass(frozen=True)
@@ -127,7 +128,9 @@ class _Floor:
     stopping point ``value`` (moving in direction ``sign``), which the MCB may already be braking onto. A new target
     short of it would make the joint pass it and come back, so the joint's targets stay at ``value`` until the new
     trajectory's own targets pass it (``forward``: the new trajectory goes on beyond it) or, when the new trajectory
-    goes back, until the joint has come to rest there (``rest``, node clock)."""
+    goes back, until the joint has come to rest there (``rest``, node clock); then its targets go from ``value`` to
+    the new trajectory's at the published velocity (a jump would make the daemon's limiter, 7.2 rad/s^2, carry the
+    targets past the new ones and back)."""
 
     value: float
     sign: float
@@ -512,15 +515,24 @@ class BridgeNode(Node):
             sign = math.copysign(1.0, b.v0)
             r.floors[n] = _Floor(value, sign, b.t0 + abs(b.v0) / b.accel, sign * (final[n] - value) > 0.0)
 
-    @staticmethod
-    def _floored(r: _Running, targets: dict[str, float], due_s: float) -> dict[str, float]:
-        """``targets`` with the joints of ``r.floors`` kept at their braking target while it applies."""
+    def _floored(self, r: _Running, targets: dict[str, float], due_s: float) -> dict[str, float]:
+        """``targets`` with the joints of ``r.floors`` kept at their braking target while it applies, and those going
+        back from it moving towards the new targets at the published velocity (``_Floor``)."""
         for n, f in list(r.floors.items()):
             short = f.sign * (targets[n] - f.value) < 0.0
             if short and (f.forward or due_s < f.rest):
                 targets[n] = f.value
-            else:
-                del r.floors[n]
+                continue
+            del r.floors[n]
+            if short:
+                r.ramps[n] = f.value
+        for n, last in list(r.ramps.items()):
+            motion = self._effective.motion(n)
+            step = (motion[0] if motion is not None else 0.5) * self._cycle.period
+            if abs(targets[n] - last) <= step:
+                del r.ramps[n]
+                continue
+            targets[n] = r.ramps[n] = last + math.copysign(step, targets[n] - last)
         return targets
 
     def _feedforward(self, values: dict[str, float], speeds: dict[str, float]) -> dict[str, float]:

@@ -14,7 +14,18 @@ from collections.abc import Iterator
 
 import pytest
 from support.system import running_system
-from support.tracking import Profile, TrackingProbe, minimum_jerk, minjerk_amplitude, room, trapezoid
+from support.tracking import (
+    Profile,
+    TrackingProbe,
+    cruise,
+    minimum_jerk,
+    minjerk_amplitude,
+    move_with_room,
+    published,
+    state_period,
+    stop_report,
+    trapezoid,
+)
 
 from mds_ach.kinematics.limits import current_limits
 from mds_ach.robot.feedforward import Braking, CycleClock, stopping_point
@@ -45,7 +56,7 @@ def test_the_cycle_clock_takes_the_median_frame_interval_and_ignores_stalls() ->
         clock.update(100.0 + 0.05 * k + (0.004 if k % 3 == 0 else 0.0))
     clock.update(101.5)  # a stall of a second: not a period
     assert clock.period == pytest.approx(0.05, abs=0.005)
-    assert clock.lookahead() == pytest.approx(2 * clock.period)
+    assert clock.lookahead() == pytest.approx(2 * clock.period - CycleClock.SEND_TO_STATE)
 
 
 def test_the_published_limits_keep_the_stopping_points_within_the_daemons_bounds() -> None:
@@ -75,24 +86,6 @@ def probe(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TrackingProbe]:
             p.close()
 
 
-def _published() -> tuple[float, float]:
-    limits = current_limits()
-    v = min(limits.motion(n)[0] for n in ARM)
-    a = min(limits.motion(n)[1] for n in ARM)
-    return v, a
-
-
-def _move(probe: TrackingProbe, amplitude: float, toward_more_room: bool = True) -> tuple[list[float], list[float]]:
-    """Start positions and per-joint moves of up to ``amplitude`` rad, each joint the way it has more room."""
-    ranges = current_limits().by_short(ARM)
-    start = [probe.position(n) for n in ARM]
-    delta = []
-    for n, q in zip(ARM, start, strict=True):
-        down, up = room(q, *ranges[n])
-        delta.append(min(amplitude, up) if (up >= down) == toward_more_room else -min(amplitude, down))
-    return start, delta
-
-
 def _check(what: str, profile: Profile, probe: TrackingProbe) -> str:
     from action_msgs.msg import GoalStatus
 
@@ -111,51 +104,17 @@ def test_moveit_goals_at_the_published_limits_are_tracked_on_time(probe: Trackin
     """Min-jerk goals of 1, 2 and 4 s and a trapezoid at the published velocity and acceleration, on the left arm:
     max |desired - measured| <= 0.05 rad while running, final error <= 0.01 rad, the result within MoveIt's
     allowance 1.2 T + 0.5 s. Before #26 (sampled at 10 Hz, smoothed again, the MOVETO's lag): 0.07-0.35 rad."""
-    v, a = _published()
+    v, a = published(ARM)
     lines = []
-    start, delta = _move(probe, 3.0)  # to the far end first: room for the long moves
+    start, delta = move_with_room(probe, ARM, 3.0)  # to the far end first: room for the long moves
     lines.append(_check("trapezoid", trapezoid(ARM, start, delta, v, a), probe))
     for duration in (4.0, 2.0, 1.0):
-        start, delta = _move(probe, minjerk_amplitude(duration, v, a) * 0.98)
+        start, delta = move_with_room(probe, ARM, minjerk_amplitude(duration, v, a) * 0.98)
         lines.append(_check("minimum jerk", minimum_jerk(ARM, start, delta, duration), probe))
     print("\n".join(lines))
 
 
 # --------------------------------------------------------------------------------------------- replace and cancel
-
-
-def _period(probe: TrackingProbe) -> float:
-    stamps = [t for t, _ in probe.states[-30:]]
-    gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False))
-    return gaps[len(gaps) // 2]
-
-
-def _position_at(probe: TrackingProbe, name: str, t: float) -> float:
-    """The measured position at ``t``, interpolated between the /joint_states around it."""
-    states = probe.since(t - 1.0)
-    before = [s for s in states if s[0] <= t][-1]
-    after = next((s for s in states if s[0] > t), before)
-    if after[0] == before[0]:
-        return before[1][name]
-    w = (t - before[0]) / (after[0] - before[0])
-    return before[1][name] + w * (after[1][name] - before[1][name])
-
-
-def _cruise(probe: TrackingProbe, speed: float, distance: float) -> tuple[Profile, float, float]:
-    """Start a trapezoid on LSP at ``speed`` over ``distance`` (the way it has room); wait until it cruises.
-    Returns the profile, its start time and the direction."""
-    _, a = _published()
-    start, delta = _move(probe, distance)
-    profile = trapezoid(("LSP",), start[:1], delta[:1], speed, a)
-    t0 = probe.now() + 0.2
-    handle = probe.send(CONTROLLER, profile.message(t0))
-    ramp = speed / a
-    probe.spin_until(lambda: probe.now() > t0 + ramp + 0.2, 10.0, "LSP at its cruising speed")
-    return profile, t0, math.copysign(1.0, delta[0]), handle
-
-
-def _after(probe: TrackingProbe, t: float, name: str = "LSP") -> list[float]:
-    return [q[name] for s, q in probe.since(t)]
 
 
 @pytest.mark.ros
@@ -167,27 +126,23 @@ def test_cancel_brakes_from_the_commanded_velocity(probe: TrackingProbe, speed: 
     the arm): 0.17-0.26 rad more at 0.38 rad/s, stopping 0.54 s after the request."""
     from action_msgs.msg import GoalStatus
 
-    _, a = _published()
-    profile, t0, sign, handle = _cruise(probe, speed, 1.6)
-    period = _period(probe)
+    _, a = published(ARM)
+    c = cruise(probe, CONTROLLER, "LSP", speed, 1.6)
+    period = state_period(probe)
     t_request = probe.now()
-    cancel = handle.cancel_goal_async()
+    cancel = c.handle.cancel_goal_async()
     probe.spin_until(cancel.done, 10.0, "the cancel response")
-    res = probe.result(handle, 10.0)
+    res = probe.result(c.handle, 10.0)
     assert res.status == GoalStatus.STATUS_CANCELED, res.result.error_string
     probe.spin_for(2.0)  # stopped for good
-    q_request = _position_at(probe, "LSP", t_request)
-    v = abs(profile.at(t_request - t0)[1][0])
-    after = [sign * (q - q_request) for q in _after(probe, t_request)]
-    travel, rest = max(after), after[-1]
+    v, travel, back = stop_report(probe, c, "LSP", t_request)
     bound = v * v / (2 * a) + v * period + 0.02
-    report = (f"cancel at {v:.3f} rad/s: travel {travel:.4f} rad after the request (bound {bound:.4f}), "
-              f"came back {travel - rest:.4f} rad")
+    report = f"cancel at {v:.3f} rad/s: travel {travel:.4f} rad after the request (bound {bound:.4f}), came back " \
+             f"{back:.4f} rad"
     print(report)
     assert travel <= bound, report
-    assert travel - rest <= 0.01, report
-    end = profile.end[0]
-    assert sign * (end - probe.position("LSP")) > 0.1, f"the cancel came too late to show: {report}"
+    assert back <= 0.01, report
+    assert c.sign * (c.profile.end[0] - probe.position("LSP")) > 0.1, f"the cancel came too late to show: {report}"
 
 
 @pytest.mark.ros
@@ -200,31 +155,23 @@ def test_a_replacing_goal_starts_from_the_commanded_state(probe: TrackingProbe, 
     Before #26: the reference stepped back to the measured pose, the arm ran on 0.10-0.2 rad and reversed."""
     from action_msgs.msg import GoalStatus
 
-    v_pub, a = _published()
-    speed = 0.8
-    first, t0, sign, handle = _cruise(probe, speed, 1.6)
-    period = _period(probe)
+    _, a = published(ARM)
+    c = cruise(probe, CONTROLLER, "LSP", 0.8, 1.6)
+    period = state_period(probe)
     t_replace = probe.now()
-    here = probe.position("LSP")
-    v = abs(first.at(t_replace - t0)[1][0])
-    if direction == "on":
-        second = minimum_jerk(("LSP",), (here,), (sign * 0.6,), 2.0)
-    else:
-        second = minimum_jerk(("LSP",), (here,), (-sign * 0.6,), 2.0)
+    step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3  # back: within what it travelled
+    second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
     replaced = probe.send(CONTROLLER, second.message(0.0), tolerance=FINAL_ERROR)  # stamp 0: starts on receipt
-    res = probe.result(handle, 10.0)
+    res = probe.result(c.handle, 10.0)
     assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
     res = probe.result(replaced, 20.0)
     assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
-    q_replace = _position_at(probe, "LSP", t_replace)
-    path = [sign * (q - q_replace) for q in _after(probe, t_replace)]
+    v, past, back = stop_report(probe, c, "LSP", t_replace)
     if direction == "on":
-        back = max(max(path[: k + 1]) - path[k] for k in range(len(path)))
         report = f"replaced at {v:.3f} rad/s, going on: came back {back:.4f} rad"
         print(report)
         assert back <= 0.01, report
     else:
-        past = max(path)
         bound = v * v / (2 * a) + v * period + 0.01
         report = f"replaced at {v:.3f} rad/s, going back: {past:.4f} rad past the replacement point (bound {bound:.4f})"
         print(report)

@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from .spin import Spinner
 
@@ -119,6 +120,45 @@ class Tracking:
                 f"result {self.result_after:.2f} s after the start (allowance {self.allowance:.2f} s)")
 
 
+def fit(profile: Profile, samples: Sequence[tuple[float, dict[str, float]]]) -> tuple[float, float]:
+    """(largest |desired - measured|, best-fit lag in s) of measured ``samples`` (time from the start, positions)."""
+    def error(t: float, q: dict[str, float], shift: float = 0.0) -> float:
+        want = profile.at(t - shift)[0]
+        return max(abs(w - q[n]) for n, w in zip(profile.names, want, strict=True))
+
+    lags = [k * 0.005 for k in range(-40, 201)]
+    lag = min(lags, key=lambda s: sum(error(t, q, s) ** 2 for t, q in samples))
+    return max(error(t, q) for t, q in samples), lag
+
+
+def direct_path(profile: Profile, rate: float = 10.0) -> tuple[float, float]:
+    """The anchor: the original's direct path on the simulated MCB's model (``simbus.trajectory_step``, the MOVETO
+    acceleration of the default joint table): the desired position sent as the MOVETO target once per cycle at
+    ``rate``. Returns (largest error, best-fit lag) over the MCB's trajectory ticks."""
+    import numpy as np
+
+    from mds_ach.bus import mcb, simbus
+    from mds_ach.robot import config
+
+    table = config.load()
+    accel = np.full(len(profile.names), math.radians(table.accel_deg_s2))
+    tick = table.trajectory_period / mcb.TRAJECTORY_TICK_HZ
+    pos = np.array(profile.start, dtype=float)
+    vel = np.zeros_like(pos)
+    samples: list[tuple[float, dict[str, float]]] = []
+    t, next_tick, target = 0.0, tick, pos.copy()
+    while t <= profile.duration:
+        target = np.array(profile.at(t)[0])
+        while next_tick <= t + 1.0 / rate:
+            pos, vel = simbus.trajectory_step(pos, vel, target, np.full_like(pos, 10.0), accel,
+                                              np.full_like(pos, tick))
+            if next_tick <= profile.duration:
+                samples.append((next_tick, dict(zip(profile.names, pos.tolist(), strict=True))))
+            next_tick += tick
+        t += 1.0 / rate
+    return fit(profile, samples)
+
+
 class TrackingProbe(Spinner):
     """FollowJointTrajectory clients and a ``/joint_states`` recorder (stamp, name -> position)."""
 
@@ -183,15 +223,9 @@ class TrackingProbe(Spinner):
         during = [(t, q) for t, q in states if t <= start + profile.duration]
         assert during, "no /joint_states while the goal ran"
 
-        def error(t: float, q: dict[str, float], shift: float = 0.0) -> float:
-            want = profile.at(t - start - shift)[0]
-            return max(abs(w - q[n]) for n, w in zip(profile.names, want, strict=True))
-
-        max_error = max(error(t, q) for t, q in during)
+        max_error, lag = fit(profile, [(t - start, q) for t, q in during])
         final = states[-1][1] if states else during[-1][1]
         final_error = max(abs(w - final[n]) for n, w in zip(profile.names, profile.end, strict=True))
-        lags = [k * 0.005 for k in range(-40, 121)]
-        lag = min(lags, key=lambda s: sum(error(t, q, s) ** 2 for t, q in during))
         return Tracking(max_error, final_error, done - start, lag, res.status, res.result.error_string,
                         profile.duration)
 
@@ -211,3 +245,79 @@ def wait_until(pred: Callable[[], bool], timeout: float, what: str) -> None:
     while not pred():
         assert time.monotonic() < deadline, f"timed out waiting for {what}"
         time.sleep(0.02)
+
+
+def published(names: Sequence[str]) -> tuple[float, float]:
+    """The smallest published (velocity, acceleration) of ``names`` (``mds-limits``: what each joint can follow)."""
+    from mds_ach.kinematics.limits import current_limits
+
+    limits = current_limits()
+    return min(limits.motion(n)[0] for n in names), min(limits.motion(n)[1] for n in names)
+
+
+def move_with_room(probe: TrackingProbe, names: Sequence[str], amplitude: float,
+                   ) -> tuple[list[float], list[float]]:
+    """Start positions and per-joint moves of up to ``amplitude`` rad, each joint the way it has more room."""
+    from mds_ach.kinematics.limits import current_limits
+
+    ranges = current_limits().by_short(tuple(names))
+    start = [probe.position(n) for n in names]
+    delta = []
+    for n, q in zip(names, start, strict=True):
+        down, up = room(q, *ranges[n])
+        delta.append(min(amplitude, up) if up >= down else -min(amplitude, down))
+    return start, delta
+
+
+def state_period(probe: TrackingProbe) -> float:
+    """The median interval of the recent /joint_states (the daemon's period)."""
+    stamps = [t for t, _ in probe.states[-30:]]
+    gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False))
+    return gaps[len(gaps) // 2]
+
+
+def position_at(probe: TrackingProbe, name: str, t: float) -> float:
+    """The measured position at ``t``, interpolated between the /joint_states around it."""
+    states = probe.since(t - 1.0)
+    before = [s for s in states if s[0] <= t][-1]
+    after = next((s for s in states if s[0] > t), before)
+    if after[0] == before[0]:
+        return before[1][name]
+    w = (t - before[0]) / (after[0] - before[0])
+    return before[1][name] + w * (after[1][name] - before[1][name])
+
+
+def positions_after(probe: TrackingProbe, t: float, name: str) -> list[float]:
+    return [q[name] for _, q in probe.since(t)]
+
+
+@dataclass(frozen=True)
+class Cruise:
+    """A trapezoid goal on one joint, started and cruising: its profile, start time, direction and goal handle."""
+
+    profile: Profile
+    start: float
+    sign: float
+    handle: Any
+
+
+def cruise(probe: TrackingProbe, controller: str, name: str, speed: float, distance: float) -> Cruise:
+    """Start a trapezoid on ``name`` at ``speed`` (the published acceleration) over up to ``distance`` the way it has
+    room; return once it cruises."""
+    _, a = published((name,))
+    start, delta = move_with_room(probe, (name,), distance)
+    profile = trapezoid((name,), start, delta, speed, a)
+    t0 = probe.now() + 0.2
+    handle = probe.send(controller, profile.message(t0))
+    probe.spin_until(lambda: probe.now() > t0 + speed / a + 0.2, 10.0, f"{name} at its cruising speed")
+    return Cruise(profile, t0, math.copysign(1.0, delta[0]), handle)
+
+
+def stop_report(probe: TrackingProbe, c: Cruise, name: str, t_request: float) -> tuple[float, float, float]:
+    """After a stop requested at ``t_request``: (commanded velocity then, travel after the request, how far it came
+    back from its furthest point)."""
+    q_request = position_at(probe, name, t_request)
+    v = abs(c.profile.at(t_request - c.start)[1][0])
+    path = [c.sign * (q - q_request) for q in positions_after(probe, t_request, name)]
+    back = max(max(path[: k + 1]) - path[k] for k in range(len(path)))
+    return v, max(path), back
