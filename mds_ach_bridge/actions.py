@@ -1,15 +1,16 @@
 """The rclpy side of the FollowJointTrajectory servers: one per controller of ``follow.CONTROLLERS``.
 
-The bridge's state thread runs the goals (it samples their trajectories, checks their tolerances and publishes
-their feedback on every state frame); the executor only takes goals and cancel requests in. rclpy runs an action's
-execute callback as an executor task, and a task that waits is resumed on every executor turn (a busy loop on the
-bridge's single executor thread). So a goal's execute callback is started only when the goal has ended: it applies
-the outcome the bridge decided (succeed, abort, canceled) and returns the result at once. Until then the goal's
-status is ACCEPTED (not EXECUTING); clients such as MoveIt and ``ros2 action send_goal`` only wait for the result.
+As joint_trajectory_controller does, a goal is checked in the goal callback (``on_request``): a goal the bridge
+cannot run (wrong or missing joints, bad times, limits, old stamp, a moving last point, a tolerance that means
+nothing, no live state stream) is rejected there, before anything moves. The action protocol's goal response has
+no room for a reason, so it goes to the bridge's log and ``mds/command_status`` (a rejected goal has no result).
 
-A goal the bridge cannot run (wrong joints, bad times, limits, old stamp, a tolerance that means nothing) is
-accepted and ended at once as aborted with the result code and the reason in ``error_string``: the action
-protocol's goal response has no room for a reason, and MoveIt logs a result's error_string.
+The bridge's state thread runs the accepted goals (it samples their trajectories, checks their tolerances and
+publishes their feedback on every state frame); the executor only takes goals and cancel requests in. rclpy runs
+an action's execute callback as an executor task, and a task that waits is resumed on every executor turn (a busy
+loop on the bridge's single executor thread). So ``_Server`` splits ``execute()``: on acceptance it only marks the
+goal EXECUTING (the status clients see while it runs); the execute task is started when the goal has ended, applies
+the outcome the bridge decided (succeed, abort, canceled) and returns the result at once.
 """
 
 from __future__ import annotations
@@ -29,12 +30,22 @@ from mds_ach_bridge import follow
 SUCCEED, ABORT, CANCELED = "succeeded", "aborted", "canceled"
 
 
+class _Server(ActionServer):
+    """An ActionServer whose ``ServerGoalHandle.execute()`` without a callback only sets the status EXECUTING: the
+    execute task (which delivers the result) is started by ``Goal.publish_end`` once the goal has ended."""
+
+    def notify_execute(self, goal_handle: ServerGoalHandle, execute_callback: Any) -> None:
+        if execute_callback is not None:
+            super().notify_execute(goal_handle, execute_callback)
+
+
 class Goal:
     """One accepted goal: its handle, controller and tolerances, and how it ended (set once, by the bridge)."""
 
-    def __init__(self, handle: ServerGoalHandle, controller: str) -> None:
+    def __init__(self, handle: ServerGoalHandle, controller: str, server: ActionServer) -> None:
         self.handle = handle
         self.controller = controller
+        self._server = server
         self.tolerances: follow.Tolerances | None = None
         self.outcome: tuple[str, int, str] | None = None  # (SUCCEED|ABORT|CANCELED, result code, error_string)
         self._published = threading.Event()
@@ -46,12 +57,16 @@ class Goal:
         self.outcome = (how, code, text)
         return True
 
+    def executing(self) -> None:
+        """Status EXECUTING (from ACCEPTED), published now; nothing runs on the executor until ``publish_end``."""
+        self.handle.execute()
+
     def publish_end(self) -> None:
         """Hand the decided outcome to the client: start the execute callback, which returns the result."""
         if self.outcome is None or self._published.is_set():
             return
         self._published.set()
-        self.handle.execute(self._execute)
+        self._server.notify_execute(self.handle, self._execute)
 
     def _execute(self, handle: ServerGoalHandle) -> FollowJointTrajectory.Result:
         assert self.outcome is not None
@@ -65,27 +80,28 @@ class Goal:
         return FollowJointTrajectory.Result(error_code=code, error_string=text)
 
     def feedback(self, stamp: Time, names: Sequence[str], desired: Sequence[float], actual: Sequence[float],
-                 velocity: Sequence[float]) -> None:
+                 velocity: Sequence[float], desired_velocity: Sequence[float]) -> None:
         """One feedback message: desired (the trajectory sampled now), actual (measured), error = desired - actual."""
         fb = FollowJointTrajectory.Feedback(joint_names=list(names))
         fb.header.stamp = stamp
         fb.desired.positions = [float(v) for v in desired]
+        fb.desired.velocities = [float(v) for v in desired_velocity]
         fb.actual.positions = [float(v) for v in actual]
         fb.actual.velocities = [float(v) for v in velocity]
         fb.error.positions = [d - a for d, a in zip(fb.desired.positions, fb.actual.positions, strict=True)]
+        fb.error.velocities = [d - a for d, a in zip(fb.desired.velocities, fb.actual.velocities, strict=True)]
         try:
             self.handle.publish_feedback(fb)
         except Exception:  # noqa: BLE001 - the goal or the context went away; its result tells the rest
             pass
 
 
-def create_servers(node: Node, on_goal: Callable[[str, ServerGoalHandle], None],
+def create_servers(node: Node, on_request: Callable[[str, Any], bool],
+                   on_goal: Callable[[str, ServerGoalHandle, ActionServer], None],
                    on_cancel: Callable[[ServerGoalHandle], bool]) -> list[ActionServer]:
-    """``<controller>/follow_joint_trajectory`` for every controller; ``on_goal`` validates and starts a goal,
-    ``on_cancel`` stops it and says whether it was still running."""
-    def accept(_request: Any) -> GoalResponse:
-        return GoalResponse.ACCEPT  # checked in on_goal, so a bad goal's reason reaches the client in its result
-
+    """``<controller>/follow_joint_trajectory`` for every controller; ``on_request`` checks a goal request (False:
+    rejected, the reason logged), ``on_goal`` starts an accepted goal, ``on_cancel`` stops it and says whether it
+    was still running."""
     def cancel(handle: ServerGoalHandle) -> CancelResponse:
         return CancelResponse.ACCEPT if on_cancel(handle) else CancelResponse.REJECT
 
@@ -94,9 +110,13 @@ def create_servers(node: Node, on_goal: Callable[[str, ServerGoalHandle], None],
         return FollowJointTrajectory.Result(error_code=FollowJointTrajectory.Result.INVALID_GOAL,
                                             error_string="internal: goal executed without an outcome")
 
-    servers = []
+    servers: list[ActionServer] = []
     for controller in follow.CONTROLLERS:
-        servers.append(ActionServer(
-            node, FollowJointTrajectory, f"{controller}/{follow.ACTION}", unused, goal_callback=accept,
-            handle_accepted_callback=lambda h, c=controller: on_goal(c, h), cancel_callback=cancel))
+        server = _Server(
+            node, FollowJointTrajectory, f"{controller}/{follow.ACTION}", unused,
+            goal_callback=lambda request, c=controller: GoalResponse.ACCEPT if on_request(c, request)
+            else GoalResponse.REJECT,
+            cancel_callback=cancel)
+        server.register_handle_accepted_callback(lambda h, c=controller, s=server: on_goal(c, h, s))
+        servers.append(server)
     return servers

@@ -49,6 +49,8 @@ services:
   {topics.RESUME_SERVICE:<24} std_srvs/Trigger  release held joints; a stopped trajectory is not restarted
 actions (control_msgs/action/FollowJointTrajectory, for MoveIt: config/moveit_controllers.yaml):
 {ACTIONS}
+  and per controller, as joint_trajectory_controller: <controller>/{topics.CONTROLLER_STATE} (out, one per state
+  frame), <controller>/{topics.CONTROLLER_TRAJECTORY} (in), <controller>/{topics.QUERY_STATE} (service)
 A frame the mux refuses (another controller owns a joint) is logged once with the owner; a trajectory that
 is refused, held, aborted or preempted stops and its joints are cancelled where they are.
 IK targets are in the robot frame (frame_id '' or 'torso': between the shoulders, x forward, y left,
@@ -57,7 +59,9 @@ p-x p-y p-z t-x t-y t-z: 3 = position only, 6 = full pose).
 
 parameters (--ros-args -p name:=value; `ros2 param describe` shows every one):
   state_channel, ref_channel, ik_channel, allow_ungated, state_qos (reliable|sensor_data),
-  goal_position_tolerance, goal_velocity_tolerance, path_position_tolerance, goal_time_tolerance,
+  joint_trajectory_controller's (mds_ach_bridge/README.md): allow_partial_joints_goal,
+  allow_nonzero_velocity_at_trajectory_end, constraints.stopped_velocity_tolerance, constraints.goal_time,
+  constraints.<joint>.trajectory, constraints.<joint>.goal,
   stale_timeout, max_state_age, command_mode, trajectory_mode,
   ik_dof_left, ik_dof_right, ik_frame, urdf, robot, publish_robot_description, publish_tf,
   diagnostics_period,

@@ -16,13 +16,16 @@ are. RESUME never restarts it.
 
 Several trajectories run at once on disjoint joints (a goal per MoveIt controller, ``follow``/``actions``); a new
 command stops those sharing a joint with it. The state thread also runs the FollowJointTrajectory goals: feedback
-and tolerance checks on every frame, and the goal's end (succeeded, aborted with the reason, canceled).
+and tolerance checks on every frame, and the goal's end (succeeded, aborted with the reason, canceled). Goals are
+checked in the goal callback, and each controller has joint_trajectory_controller's ``controller_state``,
+``joint_trajectory`` and ``query_state`` (``jtc``; mds_ach_bridge/README.md).
 ``joint_states`` carries velocities (``velocity.FiniteDifference``) and an empty effort (docs/operator.md).
 """
 
 from __future__ import annotations
 
 import array
+import functools
 import json
 import math
 import threading
@@ -34,6 +37,8 @@ from pathlib import Path
 from typing import Any
 
 from builtin_interfaces.msg import Time
+from control_msgs.msg import JointTrajectoryControllerState
+from control_msgs.srv import QueryTrajectoryState
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import SetParametersResult
@@ -58,7 +63,7 @@ from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.feedforward import Braking, CycleClock, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
-from mds_ach_bridge import actions, follow, topics, trajectory
+from mds_ach_bridge import actions, follow, jtc, topics, trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
 from mds_ach_bridge.ik_request import make_request
 from mds_ach_bridge.limits import load_limits
@@ -185,19 +190,7 @@ PARAMETERS = (
                             "publishes it; 0 = normal scheduling. Needs CAP_SYS_NICE or an rtprio limit; refused: "
                             "logged, normal priority", range=(0, 99)),
     Param("diagnostics_period", 1.0, "seconds between /diagnostics messages", range=SECONDS),
-    Param("goal_position_tolerance", 0.02,
-          "FollowJointTrajectory: default goal tolerance (rad) for a joint whose goal_tolerance position is 0; 0 = "
-          "not checked", range=(0.0, 3.2), read_only=False),
-    Param("goal_velocity_tolerance", 0.0,
-          "FollowJointTrajectory: default goal tolerance (rad/s) of the measured velocity at the end; 0 = not checked",
-          range=(0.0, 10.0), read_only=False),
-    Param("path_position_tolerance", 0.0,
-          "FollowJointTrajectory: default path tolerance (rad): largest desired - measured error while moving; "
-          "0 = not checked",
-          range=(0.0, 3.2), read_only=False),
-    Param("goal_time_tolerance", 2.0,
-          "FollowJointTrajectory: default time (s) after the trajectory's end to meet the goal tolerance",
-          range=(0.0, 600.0), read_only=False),
+    *jtc.PARAMETERS,  # joint_trajectory_controller's, for every controller (mds_ach_bridge/README.md)
 )
 
 
@@ -221,10 +214,7 @@ class BridgeNode(Node):
             raise ValueError(f"state_qos must be one of {', '.join(STATE_QOS)}, not {qos_name!r}")
         self._rt_priority: int = p("rt_priority").value
         self._stale_timeout: float = p("stale_timeout").value
-        self._goal_position_tolerance: float = p("goal_position_tolerance").value
-        self._goal_velocity_tolerance: float = p("goal_velocity_tolerance").value
-        self._path_position_tolerance: float = p("path_position_tolerance").value
-        self._goal_time_tolerance: float = p("goal_time_tolerance").value
+        self._jtc_values: dict[str, Any] = {name: p(name).value for name in jtc.NAMES}
         self._max_age: float = p("max_state_age").value
         self._command_mode: int = p("command_mode").value
         self._trajectory_mode: int = p("trajectory_mode").value
@@ -233,6 +223,8 @@ class BridgeNode(Node):
         urdf = p("urdf").value or str(paths.urdf_path())
         self._effective = current_limits(p("robot").value or None)
         self._limits = load_limits(joints.MODEL_JOINTS, effective=self._effective)
+        # The published velocity of each joint: a goal timed faster is rejected (it would be stretched, late).
+        self._speeds = {n: m[0] for n in self._limits for m in (self._effective.motion(n),) if m is not None}
         # The MOVETO acceleration the daemon commands: trajectories are sent as their stopping points at it.
         self._moveto_accel = math.radians(joint_config.load(self._effective.robot).accel_deg_s2)
         self._cycle = CycleClock()  # state thread only: the daemon's period, from the state frames' stamps
@@ -263,6 +255,10 @@ class BridgeNode(Node):
         # trajectory for them starts from this state (position and velocity), as joint_trajectory_controller does.
         self._braking: dict[str, Braking] = {}
         self._events: list[_Event] = []
+        # Goal requests checked in the goal callback, by id(request): (request, trajectory, tolerances), taken by the
+        # accepted callback that follows (rclpy hands both the same request object).
+        self._checked: dict[int, tuple[Any, trajectory.Trajectory, follow.Tolerances]] = {}
+        self._measured: tuple[dict[str, float], dict[str, float]] | None = None  # newest frame's positions, velocities
         self._started = time.monotonic()
         self._last_frame_mono: float | None = None
         self._stalled = False
@@ -297,7 +293,15 @@ class BridgeNode(Node):
         self.create_timer(p("diagnostics_period").value, self._publish_diagnostics)
         self.create_service(Trigger, topics.HOLD_SERVICE, self._on_hold)
         self.create_service(Trigger, topics.RESUME_SERVICE, self._on_resume)
-        self._action_servers = actions.create_servers(self, self._on_goal, self._on_goal_cancel)
+        self._action_servers = actions.create_servers(self, self._on_goal_request, self._on_goal, self._on_goal_cancel)
+        # joint_trajectory_controller's other endpoints, for each controller.
+        self._state_pubs = {c: self.create_publisher(JointTrajectoryControllerState, f"{c}/{topics.CONTROLLER_STATE}",
+                                                     10) for c in follow.CONTROLLERS}
+        for c in follow.CONTROLLERS:
+            self.create_subscription(JointTrajectory, f"{c}/{topics.CONTROLLER_TRAJECTORY}",
+                                     functools.partial(self._on_trajectory, controller=c), COMMAND_QOS)
+            self.create_service(QueryTrajectoryState, f"{c}/{topics.QUERY_STATE}",
+                                functools.partial(self._on_query_state, c))
 
         self._stop = threading.Event()
         # A damaged channel (a writer killed mid-put, a scribbled header) must not stop the bridge or its state
@@ -335,9 +339,8 @@ class BridgeNode(Node):
                     self._stale_timeout = prm.value
                 elif prm.name == "max_state_age":
                     self._max_age = prm.value
-                elif prm.name in ("goal_position_tolerance", "goal_velocity_tolerance", "path_position_tolerance",
-                                  "goal_time_tolerance"):
-                    setattr(self, "_" + prm.name, prm.value)
+                elif prm.name in jtc.NAMES:
+                    self._jtc_values[prm.name] = prm.value
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------------------------ state -> ROS
@@ -387,8 +390,10 @@ class BridgeNode(Node):
             if ref is None and self._unsent:  # the newest frame did not get through: write it again
                 ref = self._frame
             carried = self._carried
-            feedback = self._follow_goals(measured_s, dict(zip(self._names, positions, strict=True)),
-                                          dict(zip(self._names, velocities, strict=True)))
+            measured = (dict(zip(self._names, positions, strict=True)), dict(zip(self._names, velocities, strict=True)))
+            self._measured = measured
+            feedback = self._follow_goals(measured_s, *measured)
+            running = self._running_by_joint()
             late, self._late_rejections = self._late_rejections, []
         if ref is not None:
             self._writes.append(_Write(time.monotonic(), *carried))
@@ -407,6 +412,7 @@ class BridgeNode(Node):
         self._js_pub.publish(self._js_msg)
         for goal, *values in feedback:
             goal.feedback(stamp, *values)
+        self._publish_controller_states(stamp, measured_s, running, measured, js)
         if self._ref_pub.get_subscription_count() > 0:  # nobody listening: skip the serialisation
             self._ref_msg.header.stamp = stamp
             self._ref_msg.position = array.array("d", [j.ref for j in js])
@@ -615,21 +621,31 @@ class BridgeNode(Node):
     def _on_positions(self, msg: Float64MultiArray) -> None:
         self._accept_positions(topics.JOINT_POSITIONS, lambda: positions_from_array(msg.data, self._limits))
 
-    def _on_trajectory(self, msg: JointTrajectory) -> None:
+    def _on_trajectory(self, msg: JointTrajectory, controller: str | None = None) -> None:
+        """``mds/joint_trajectory`` (any joints), or ``<controller>/joint_trajectory``: that controller's joints,
+        checked as its goals are (joint_trajectory_controller's topic)."""
         now = self.get_clock().now().nanoseconds * 1e-9
+        topic = topics.JOINT_TRAJECTORY if controller is None else f"{controller}/{topics.CONTROLLER_TRAJECTORY}"
         try:
-            traj = trajectory.from_message(msg, now, self._limits)
+            if controller is None:
+                traj = trajectory.from_message(msg, now, self._limits)
+            else:
+                with self._lock:
+                    settings = jtc.Settings.from_values(self._jtc_values)
+                traj = follow.validate_trajectory(controller, msg, now, self._limits, settings.allow_partial,
+                                                  settings.allow_nonzero_end, self._speeds)
         except CommandError as exc:
-            self._reject(topics.JOINT_TRAJECTORY, str(exc))
+            self._reject(topic, str(exc))
             return
         with self._lock:
             reason = self._refuse_reason()
             if reason is None:
-                serial = self._new_command(f"trajectory #{{}} ({', '.join(traj.names)})")
+                serial = self._new_command(f"{'' if controller is None else controller + ' '}trajectory #{{}} "
+                                           f"({', '.join(traj.names)})")
                 replaced = self._preempt(traj.names, self._what[serial])
                 self._start(serial, traj)
         if reason is not None:
-            self._reject(topics.JOINT_TRAJECTORY, reason)
+            self._reject(topic, reason)
             return
         self._emit()
         self._announce_accepted(serial, replaced,
@@ -651,28 +667,45 @@ class BridgeNode(Node):
 
     # ------------------------------------------------------------------------------------ FollowJointTrajectory
 
-    def _on_goal(self, controller: str, handle: Any) -> None:
-        """A goal for ``<controller>/follow_joint_trajectory``: validate it (the topic's checks), then run it like a
-        trajectory from the topic; it preempts the controller's running goal and anything else on its joints."""
-        goal = actions.Goal(handle, controller)
-        now = self.get_clock().now().nanoseconds * 1e-9
+    def _on_goal_request(self, controller: str, request: Any) -> bool:
+        """The goal callback of ``<controller>/follow_joint_trajectory``: check the goal completely (the topic's
+        checks, the controller's joints, its tolerances, a live state stream), as joint_trajectory_controller does
+        before accepting. False rejects it; the reason goes to the log and mds/command_status (a rejected goal has no
+        result to carry it)."""
         action = f"{controller}/{follow.ACTION}"
-        try:
-            traj = follow.validate(controller, handle.request, now, self._limits)
-            goal.tolerances = follow.tolerances(
-                traj.names, handle.request,
-                follow.Tolerance(self._path_position_tolerance or math.inf),
-                follow.Tolerance(self._goal_position_tolerance or math.inf, self._goal_velocity_tolerance or math.inf),
-                self._goal_time_tolerance)
-        except follow.GoalError as exc:
-            with self._lock:
-                goal.end(actions.ABORT, exc.code, str(exc))
-            self._reject(action, f"{follow.CODE_NAMES[exc.code]}: {exc}")
-            goal.publish_end()
-            return
+        now = self.get_clock().now().nanoseconds * 1e-9
         with self._lock:
-            reason = self._refuse_reason()
+            settings = jtc.Settings.from_values(self._jtc_values)
+            refused = self._refuse_reason()
+        try:
+            if refused is not None:
+                raise follow.GoalError(follow.Result.INVALID_GOAL, refused)
+            traj = follow.validate(controller, request, now, self._limits, settings.allow_partial,
+                                   settings.allow_nonzero_end, self._speeds)
+            tol = follow.tolerances(traj.names, request, settings.path, settings.goal, settings.goal_time)
+        except follow.GoalError as exc:
+            self._reject(action, f"goal rejected: {follow.CODE_NAMES[exc.code]}: {exc}")
+            return False
+        with self._lock:
+            self._checked[id(request)] = (request, traj, tol)
+            while len(self._checked) > 16:  # accepted goals take theirs at once; rclpy failing to make a handle won't
+                del self._checked[next(iter(self._checked))]
+        return True
+
+    def _on_goal(self, controller: str, handle: Any, server: Any) -> None:
+        """An accepted goal (checked by ``_on_goal_request``): mark it EXECUTING and run it like a trajectory from
+        the topic; it preempts the controller's running goal and anything else on its joints."""
+        goal = actions.Goal(handle, controller, server)
+        goal.executing()
+        action = f"{controller}/{follow.ACTION}"
+        with self._lock:
+            checked = self._checked.pop(id(handle.request), None)
+            reason = self._refuse_reason()  # it may have stalled since the goal callback
+            if checked is None or checked[0] is not handle.request:
+                reason = "internal: an accepted goal that was not checked"
             if reason is None:
+                assert checked is not None
+                _, traj, goal.tolerances = checked
                 serial = self._new_command(f"{controller} goal #{{}} ({', '.join(traj.names)})")
                 mine = tuple(r.serial for r in self._running.values()
                              if r.goal is not None and r.goal.controller == controller)
@@ -712,21 +745,26 @@ class BridgeNode(Node):
             if g is None or g.outcome is not None or g.tolerances is None or not r.traj.anchored:
                 continue
             desired, _ = r.traj.sample(now_s)
+            desired_velocity = jtc.velocity(r.traj, now_s)
             actual = {n: positions[n] for n in r.traj.names}
             what = self._what.get(r.serial, "goal")
             if not r.finished:
-                why = follow.path_violation(g.tolerances, desired, actual)
+                why = follow.path_violation(g.tolerances, desired, actual, desired_velocity, velocities)
                 if why is not None:
                     self._stop_running(r, f"path tolerance violated: {why}", code=follow.Result.PATH_TOLERANCE_VIOLATED)
                     continue
             else:
                 final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
-                missing = follow.goal_missing(g.tolerances, final, actual, velocities)
+                final_velocity = dict(zip(r.traj.names, r.traj.velocities[-1], strict=True)) if r.traj.velocities \
+                    else None
+                missing = follow.goal_missing(g.tolerances, final, actual, velocities, final_velocity)
                 if missing is None:
                     del self._running[r.serial]
                     worst = max(abs(final[n] - actual[n]) for n in final)
+                    fastest = max(abs(velocities[n]) for n in final)
                     self._end_goal(g, actions.SUCCEED, follow.Result.SUCCESSFUL,
-                                   f"{what}: every joint within the goal tolerance (largest error {worst:.4f} rad)")
+                                   f"{what}: every joint within the goal tolerance (largest error {worst:.4f} rad, "
+                                   f"largest speed {fastest:.4f} rad/s)")
                     continue
                 if now_s > r.traj.end + g.tolerances.goal_time:
                     del self._running[r.serial]
@@ -735,8 +773,39 @@ class BridgeNode(Node):
                                    "(goal_time_tolerance)")
                     continue
             feedback.append((g, r.traj.names, [desired[n] for n in r.traj.names], [actual[n] for n in r.traj.names],
-                             [velocities[n] for n in r.traj.names]))
+                             [velocities[n] for n in r.traj.names], [desired_velocity[n] for n in r.traj.names]))
         return feedback
+
+    def _running_by_joint(self) -> dict[str, trajectory.Trajectory]:
+        """The trajectory each joint follows now (anchored, not finished), by joint (caller holds the lock)."""
+        return {n: r.traj for r in self._running.values() if r.traj.anchored and not r.finished for n in r.traj.names}
+
+    def _publish_controller_states(self, stamp: Time, now_s: float, running: dict[str, trajectory.Trajectory],
+                                   measured: tuple[dict[str, float], dict[str, float]], js: Sequence[Any]) -> None:
+        """``<controller>/controller_state`` for this frame (state thread), skipped while nobody listens; ``js`` the
+        frame's joints in ``_names`` order (their ``ref`` is the output)."""
+        listened = [(c, pub) for c, pub in self._state_pubs.items() if pub.get_subscription_count() > 0]
+        if not listened:
+            return
+        output = {n: j.ref for n, j in zip(self._names, js, strict=True)}
+        for controller, pub in listened:
+            names = [n for n in follow.CONTROLLERS[controller] if n in self._limits]
+            desired = jtc.reference(running, names, now_s, output)
+            pub.publish(jtc.controller_state(names, stamp, desired, *measured, output))
+
+    def _on_query_state(self, controller: str, request: Any, response: Any) -> Any:
+        """``<controller>/query_state``: the controller's trajectory sampled at the requested time (JTC's service)."""
+        with self._lock:
+            running, measured, refused = self._running_by_joint(), self._measured, self._refuse_reason()
+        names = [n for n in follow.CONTROLLERS[controller] if n in self._limits]
+        response.name = names
+        if measured is None:
+            response.success, response.message = False, refused or "no state frame yet"
+            return response
+        answer = jtc.query(names, running, trajectory.seconds(request.time), *measured)
+        response.success, response.message = answer.success, answer.message
+        response.position, response.velocity = answer.position, answer.velocity
+        return response
 
     def _end_goal(self, goal: actions.Goal, how: str, code: int, text: str) -> None:
         """Decide a goal's outcome; the client is told once the lock is released (caller holds the lock)."""

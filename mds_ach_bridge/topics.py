@@ -25,3 +25,9 @@ CONTROLLERS: dict[str, tuple[str, ...]] = {
     "head_controller": joints.TORSO + joints.NECK,
 }
 """Controller name -> its joints, as config/moveit_controllers.yaml tells MoveIt's simple controller manager."""
+CONTROLLER_STATE = "controller_state"
+"""control_msgs/JointTrajectoryControllerState at ``<controller>/controller_state``, one per state frame."""
+CONTROLLER_TRAJECTORY = "joint_trajectory"
+"""trajectory_msgs/JointTrajectory in at ``<controller>/joint_trajectory`` (the controller's joints only)."""
+QUERY_STATE = "query_state"
+"""control_msgs/srv/QueryTrajectoryState at ``<controller>/query_state``."""

@@ -38,7 +38,14 @@ JAZZY_HASHES = {
     "control_msgs/msg/JointTolerance": "RIHS01_c254f9cece0f3b733017b6990fd46d1326e25242d6b8844398c97d9a88e7d648",
     "control_msgs/msg/JointComponentTolerance":
         "RIHS01_739ea7566931944d33830fa10f1bf5e7a7fbdc3172bce7a7eaac642bd6e3ffa4",
+    # joint_trajectory_controller's ~/controller_state (issue #27 item 4): the hash a running Jazzy JTC advertises
+    # (`ros2 topic info -v /<controller>/controller_state`, interfaces/README.md).
+    "control_msgs/msg/JointTrajectoryControllerState":
+        "RIHS01_51d8dd89cc624cbe9daaeeb4d80d6de9b86168ffdc3be41fefc0953e3c26e480",
 }
+# Built from the Jazzy definition (docs.ros.org/en/jazzy/p/control_msgs/srv/QueryTrajectoryState), field for field;
+# no published hash was at hand to compare with, so this pins the build, not the match.
+QUERY_STATE_HASH = "RIHS01_4a0935dffef18bc5b9e101c9d03d84e681ecd4cebd724b8f11fde008751a325a"
 
 
 def _share(package: str) -> Path:
@@ -83,7 +90,27 @@ def test_control_msgs_type_hashes_are_the_jazzy_ones() -> None:
     share = _share("control_msgs")
     got = _hashes(share / "action" / "FollowJointTrajectory.json")
     got.update(_hashes(share / "msg" / "JointTolerance.json"))
+    got.update(_hashes(share / "msg" / "JointTrajectoryControllerState.json"))
     assert {name: got.get(name) for name in JAZZY_HASHES} == JAZZY_HASHES
+    query = _hashes(share / "srv" / "QueryTrajectoryState.json")
+    assert query["control_msgs/srv/QueryTrajectoryState"] == QUERY_STATE_HASH
+
+
+def test_the_joint_trajectory_controller_types_have_the_jazzy_fields() -> None:
+    """Issue #27 item 4: ~/controller_state and ~/query_state's types, as control_msgs 5.x defines them on Jazzy."""
+    from control_msgs.msg import JointTrajectoryControllerState
+    from control_msgs.srv import QueryTrajectoryState
+
+    point, multi = "trajectory_msgs/JointTrajectoryPoint", "trajectory_msgs/MultiDOFJointTrajectoryPoint"
+    assert JointTrajectoryControllerState.get_fields_and_field_types() == {
+        "header": "std_msgs/Header", "joint_names": "sequence<string>", "reference": point, "feedback": point,
+        "error": point, "output": point, "multi_dof_joint_names": "sequence<string>", "multi_dof_reference": multi,
+        "multi_dof_feedback": multi, "multi_dof_error": multi, "multi_dof_output": multi,
+        "speed_scaling_factor": "double"}
+    assert QueryTrajectoryState.Request.get_fields_and_field_types() == {"time": "builtin_interfaces/Time"}
+    assert QueryTrajectoryState.Response.get_fields_and_field_types() == {
+        "success": "boolean", "message": "string", "name": "sequence<string>", "position": "sequence<double>",
+        "velocity": "sequence<double>", "acceleration": "sequence<double>"}
 
 
 def test_interfaces_rebuild_only_when_their_files_change() -> None:
