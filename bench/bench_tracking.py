@@ -91,7 +91,7 @@ def _replacement_rows(probe: TrackingProbe) -> list[Row]:
         t_replace = probe.now()
         step = -c.sign * 0.3 if direction == "back" else c.sign * 0.6  # back: within what it travelled
         second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
-        replaced = probe.send(CONTROLLER, second.message(0.0), tolerance=0.01)
+        replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=0.01)
         first = probe.result(c.handle, 10.0).result.error_string
         res = probe.result(replaced, 20.0)
         if res.status != GoalStatus.STATUS_SUCCEEDED or "preempted" not in first:

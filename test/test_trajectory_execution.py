@@ -161,7 +161,8 @@ def test_a_replacing_goal_starts_from_the_commanded_state(probe: TrackingProbe, 
     t_replace = probe.now()
     step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3  # back: within what it travelled
     second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
-    replaced = probe.send(CONTROLLER, second.message(0.0), tolerance=FINAL_ERROR)  # stamp 0: starts on receipt
+    # stamp 0: starts on receipt, as MoveIt sends it
+    replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=FINAL_ERROR)
     res = probe.result(c.handle, 10.0)
     assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
     res = probe.result(replaced, 20.0)

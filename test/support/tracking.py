@@ -45,19 +45,22 @@ class Profile:
     def end(self) -> list[float]:
         return self.at(self.duration)[0]
 
-    def message(self, stamp_s: float, dt: float = 0.1):
-        """The ``trajectory_msgs/JointTrajectory``: a point every ``dt`` s and one at the end."""
+    def message(self, stamp_s: float, dt: float = 0.1, still: dict[str, float] | None = None):
+        """The ``trajectory_msgs/JointTrajectory``: a point every ``dt`` s and one at the end; the joints of ``still``
+        (name -> position) stay where they are (a controller takes goals for all of its joints)."""
         from builtin_interfaces.msg import Duration
         from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-        msg = JointTrajectory(joint_names=list(self.names))
+        still = {n: q for n, q in (still or {}).items() if n not in self.names}
+        msg = JointTrajectory(joint_names=[*self.names, *still])
         msg.header.stamp.sec, msg.header.stamp.nanosec = int(stamp_s), int((stamp_s % 1.0) * 1e9)
         n = max(1, math.ceil(self.duration / dt - 1e-9))
         for k in range(n + 1):
             t = min(k * dt, self.duration)
             q, v, a = self.at(t)
+            rest = [0.0] * len(still)
             msg.points.append(JointTrajectoryPoint(
-                positions=q, velocities=v, accelerations=a,
+                positions=[*q, *still.values()], velocities=[*v, *rest], accelerations=[*a, *rest],
                 time_from_start=Duration(sec=int(t), nanosec=int(round((t % 1.0) * 1e9)) % 1_000_000_000)))
         return msg
 
@@ -193,6 +196,12 @@ class TrackingProbe(Spinner):
         with self._lock:
             return [s for s in self.states if s[0] >= t]
 
+    def goal_message(self, controller: str, profile: Profile, stamp_s: float):
+        """``profile``'s trajectory for ``controller``: its other joints stay where they are now."""
+        from mds_ach_bridge.follow import CONTROLLERS
+
+        return profile.message(stamp_s, still={n: self.position(n) for n in CONTROLLERS[controller]})
+
     def send(self, controller: str, msg, tolerance: float | None = None):
         """Send a goal with ``msg`` as its trajectory (goal tolerance ``tolerance`` on every joint); its handle."""
         from control_msgs.action import FollowJointTrajectory
@@ -215,7 +224,7 @@ class TrackingProbe(Spinner):
     def run(self, controller: str, profile: Profile, lead: float = 0.3, tolerance: float = 0.01) -> Tracking:
         """Execute ``profile`` starting ``lead`` s from now and measure it."""
         start = self.now() + lead
-        handle = self.send(controller, profile.message(start), tolerance)
+        handle = self.send(controller, self.goal_message(controller, profile, start), tolerance)
         res = self.result(handle, timeout=profile.duration + 30.0)
         done = self.now()
         self.spin_for(0.05)
@@ -308,7 +317,7 @@ def cruise(probe: TrackingProbe, controller: str, name: str, speed: float, dista
     start, delta = move_with_room(probe, (name,), distance)
     profile = trapezoid((name,), start, delta, speed, a)
     t0 = probe.now() + 0.2
-    handle = probe.send(controller, profile.message(t0))
+    handle = probe.send(controller, probe.goal_message(controller, profile, t0))
     probe.spin_until(lambda: probe.now() > t0 + speed / a + 0.2, 10.0, f"{name} at its cruising speed")
     return Cruise(profile, t0, math.copysign(1.0, delta[0]), handle)
 
