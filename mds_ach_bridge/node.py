@@ -462,7 +462,7 @@ class BridgeNode(Node):
         sampled: list[int] = []
         for r in active:
             if r.written is None:
-                self._replace(r)
+                self._replace(r, due_s)
             if not r.traj.anchored:
                 # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample;
                 # a joint still braking from a replaced motion starts from its commanded state (position, velocity).
@@ -473,7 +473,7 @@ class BridgeNode(Node):
                 speed = dict.fromkeys(r.traj.names, 0.0)
                 for n in r.traj.names:
                     b = self._braking.get(n)
-                    if b is not None:
+                    if b is not None and b.moving(r.traj.start):  # at rest: where the daemon's reference is
                         current[n], speed[n] = b.at(r.traj.start)
                 try:
                     r.traj = r.traj.anchor(current, self._limits, speed)
@@ -508,14 +508,14 @@ class BridgeNode(Node):
         self._carried = (tuple(sampled), commands)
         return self._frame
 
-    def _replace(self, r: _Running) -> None:
+    def _replace(self, r: _Running, due_s: float) -> None:
         """A new trajectory's joints that were braking from a replaced motion keep their braking target until the
         new one's targets pass it (``_Floor``): the joint stops within the braking distance from its commanded
         velocity and never goes back to meet a trajectory that goes on the same way (caller holds the lock)."""
         final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
         for n in r.traj.names:
             b = self._braking.get(n)
-            if b is None or b.v0 == 0.0:
+            if b is None or not b.moving(due_s):  # (at rest it may have been moved since by another controller)
                 continue
             value = stopping_point(b.q0, b.v0, b.accel)
             sign = math.copysign(1.0, b.v0)

@@ -47,6 +47,7 @@ def test_the_stopping_point_is_where_braking_at_the_moveto_acceleration_ends() -
     assert brake.at(10.0) == (0.0, 1.0)
     assert brake.at(10.25) == pytest.approx((0.25 - 0.5 * 2.0 * 0.0625, 0.5))
     assert brake.at(11.0) == (pytest.approx(0.25), 0.0)
+    assert brake.moving(10.4) and not brake.moving(10.5) and not Braking(0.3, 0.0, 10.0, 2.0).moving(10.0)
 
 
 def test_the_cycle_clock_takes_the_median_frame_interval_and_ignores_stalls() -> None:

@@ -42,6 +42,10 @@ class Braking:
     t0: float
     accel: float
 
+    def moving(self, t: float) -> bool:
+        """Still braking at ``t``?"""
+        return self.v0 != 0.0 and t < self.t0 + abs(self.v0) / self.accel
+
     def at(self, t: float) -> tuple[float, float]:
         """(position, velocity) at ``t``; before ``t0`` the state at ``t0``."""
         dt = max(0.0, t - self.t0)
