@@ -526,60 +526,65 @@ def test_at_the_contact_the_daemons_target_arrives_before_the_arm_is_flagged(mod
     assert model.margin - 1e-9 <= gap <= model.margin + TOUCH
 
 
-def _with_the_daemon(gate: Gate, target: np.ndarray, seconds: float) -> tuple[list, np.ndarray]:
-    """The gate between the default filter (40 Hz) and the daemon's limiter (``motion.limit`` at the daemon's period
-    and bounds, desired velocity estimated from the references as the daemon does), which withholds flagged arms.
-    Returns the gate's decisions and the daemon's targets at every cycle (rows)."""
+def _with_the_daemon(gate: Gate, target: np.ndarray, seconds: float, rate: float = 10.0) -> tuple[list, np.ndarray]:
+    """The gate between the default filter (40 Hz) and the daemon's limiter (``motion.limit`` at the daemon's bounds
+    and loop ``rate``, desired velocity estimated from the references per cycle as the daemon does), which withholds
+    flagged arms. A daemon cycle reads the newest gated reference (the frames of the gate's 40 Hz up to it) and the
+    gate sees the daemon's newest target. Returns the gate's decisions and the daemon's targets at every cycle."""
     from mds_ach.nodes.collision import Observed
-    from mds_ach.robot import motion
+    from mds_ach.robot import config, motion
 
-    period = mds.MDS_LOOP_PERIOD  # the daemon loop: 10 Hz
-    bounds = motion.MotionBounds(motion.DEFAULT_MAX_VELOCITY, motion.DEFAULT_MAX_ACCELERATION, 1.5 * period)
+    period = 1.0 / rate
+    bounds = config.load().motion_bounds()  # the daemon's own: the same at every rate
     core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
     core.set_target(target, ZERO_MODE)
     now = t_daemon = gate.last_time
     tracks = {int(a): motion.Track(float(gate.ref[a]), 0.0, now) for a in MODEL_ADDR}
     goals = {a: (float(gate.ref[a]), now) for a in tracks}
-    sent = gate.ref.copy()
+    sent, ref, withheld = gate.ref.copy(), gate.ref.copy(), set()
     decisions, sends = [], []
     for _ in range(int(seconds / DT)):
         now += DT
-        d = gate.process(core.step(), core.mode, now, Observed(sent.copy(), now, now, sent.copy()))
-        decisions.append(d)
-        withheld = set(L) if "left" in d.held or "all" in d.held else set()
-        withheld |= set(R) if "right" in d.held or "all" in d.held else set()
-        while t_daemon + period <= now:
+        while t_daemon + period <= now + 1e-9:  # the daemon's cycles up to this frame read the previous one
             t_daemon += period
             for a, tr in tracks.items():
                 if a in withheld:
                     continue
                 prev, t_prev = goals[a]
                 h = t_daemon - t_prev
-                v = (d.ref[a] - prev) / h if 0 < h <= bounds.max_interval else 0.0
-                goals[a] = (float(d.ref[a]), t_daemon)
-                q = motion.limit(tr, float(d.ref[a]), t_daemon, bounds, desired_velocity=v)
+                v = (ref[a] - prev) / h if 0 < h <= bounds.max_interval else 0.0
+                goals[a] = (float(ref[a]), t_daemon)
+                q = motion.limit(tr, float(ref[a]), t_daemon, bounds, desired_velocity=v)
                 tr.advance(q, t_daemon, bounds)
                 sent[a] = q
             sends.append(sent.copy())
+        d = gate.process(core.step(), core.mode, now, Observed(sent.copy(), now, now, sent.copy()))
+        decisions.append(d)
+        ref = d.ref
+        withheld = set(L) if "left" in d.held or "all" in d.held else set()
+        withheld |= set(R) if "right" in d.held or "all" in d.held else set()
     return decisions, np.array(sends)
 
 
+@pytest.mark.parametrize("rate", [10.0, 100.0, 200.0])
 @pytest.mark.parametrize("scene", ["both at once", "to the resting hand"])
-def test_the_daemon_follows_the_braking_onto_the_contact_never_into_it(model, scene: str) -> None:
+def test_the_daemon_follows_the_braking_onto_the_contact_never_into_it(model, scene: str, rate: float) -> None:
     """An arm approaching a contact brakes within ``brake_accel`` (below the daemon's acceleration bound) so that
     it can stop at the margin: the daemon's rate-limited targets -- what the motors are sent -- follow it onto
-    the contact and never pass it (an abrupt stop at the margin was passed by up to v^2/2a: 2-6 cm)."""
+    the contact and never pass it (an abrupt stop at the margin was passed by up to v^2/2a: 2-6 cm). At 100 and
+    200 Hz the daemon's targets trailed the gate's reference and then closed in on it faster than the gate braked
+    it: they ran 2 cm past it, the hands into contact (the 100 Hz adversary's collisions)."""
     gate = make_gate(model, approach_iterations=APPROACH)
     point = [0.40, 0.0, -0.10]
     target = HOME.copy()
     if scene == "to the resting hand":
         target[L] = solve("left", point)
-        _with_the_daemon(gate, target, 3.0)
+        _with_the_daemon(gate, target, 3.0, rate)
     target[L], target[R] = solve("left", point), solve("right", point)
-    decisions, sends = _with_the_daemon(gate, target, 5.0)
+    decisions, sends = _with_the_daemon(gate, target, 5.0, rate)
     gaps = np.array([hand_clearance(model, q) for q in sends])
     assert gaps.min() >= model.margin - 1e-6, f"the daemon's targets {(model.margin - gaps.min()) * 1e3:.1f} mm " \
-                                              f"into the contact"
+                                              f"inside the margin (hand clearance {gaps.min() * 1e3:.1f} mm)"
     assert gaps[-1] <= model.margin + TOUCH, f"the daemon stopped the hands {gaps[-1] * 1e3:.1f} mm apart"
     assert np.abs(sends[-1][MODEL_ADDR] - gate.ref[MODEL_ADDR]).max() < 1e-4  # at rest where the gate holds it
     assert decisions[-1].held

@@ -11,6 +11,7 @@ import ctypes
 import logging
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -247,8 +248,9 @@ def test_disabled_joints_get_no_frames(rig: DaemonRig) -> None:
 def test_mode_0_filter_reaches_95_percent_in_4_seconds(clean_shm, rate: float) -> None:
     """The first-order filter from where the joint is. The first target after start-up states that position
     (the re-seed), the filter runs from the next cycle. At 10 Hz it is within the motion bounds and goes out
-    exactly; at 50 Hz its first steps accelerate harder than the bound allows and are limited, which costs a
-    few cycles, never more."""
+    exactly; at 50 Hz its first steps accelerate harder than the bound allows, and the target then trails the
+    filter by the distance it needs to stop at it (it could stop wherever the filter's goal is: motion.limit), at
+    most 0.03 rad here: limited, but 95 % is still reached within a few cycles of 4 s."""
     r = DaemonRig(rate=rate, bitrate=None)
     try:
         r.loop.start_up()
@@ -270,7 +272,9 @@ def test_mode_0_filter_reaches_95_percent_in_4_seconds(clean_shm, rate: float) -
             assert fraction[n - 2] < 0.95 <= fraction[n - 1] + 1e-6  # (float32 counts on the wire)
             assert limited == 0
         else:
-            assert fraction[0] < 1 / L and 0 < limited < 10
+            assert fraction[0] < 1 / L and limited > 0
+            ideal = [1 - (1 - 1 / L) ** (k + 1) for k in range(len(fraction))]  # the filter's own sequence
+            assert max(i - f for i, f in zip(ideal, fraction, strict=True)) * (target - start) <= 0.03
             assert fraction[n - 2] < 0.95 <= fraction[n + 2]
         assert r.audit().violations == []
         if rate == 10.0:
@@ -1072,6 +1076,7 @@ def test_without_real_time_the_daemon_says_so_once_and_what_it_means(clean_shm, 
     assert len(said) == 1, out
     assert "stall" in said[0] and "the bus stays safe: nothing is sent late" in said[0], said
     assert "late_send_tolerance" in said[0]
+    said = [re.sub(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3} ", "", line) for line in said]  # the time stamp
     if how == "refused":
         assert said[0].startswith("[daemon] WARNING: loop thread runs WITHOUT a real-time priority (SCHED_FIFO 50 "
                                   "refused (Operation not permitted))"), said

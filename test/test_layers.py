@@ -1,8 +1,9 @@
 """The package's layers (issue #16): no lower sub-package imports a higher one, and no import cycle between them.
 
-Order, bottom up: ach < bus < robot < kinematics < net, nodes < tools. The top-level helper modules
-(``paths``, ``procs``) import nothing of the package and may be used anywhere; ``mds_ach/__init__`` re-exports the
-public names (from robot) and ``mds_ach.ik`` is an alias of ``kinematics.ik``.
+Order, bottom up: ach < bus < robot < kinematics < net, nodes < tools, record (recordings: check-log reads them,
+their plots use check-log). The top-level helper modules (``paths``, ``procs``, ``logformat``) import nothing of
+the package and may be used anywhere; ``mds_ach/__init__`` re-exports the public names (from robot) and
+``mds_ach.ik`` is an alias of ``kinematics.ik``.
 """
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mds_ach"
-RANK = {"ach": 0, "bus": 1, "robot": 2, "kinematics": 3, "net": 4, "nodes": 4, "tools": 5}
-BASE = {"paths", "procs"}  # import nothing of mds_ach; usable from every layer
+RANK = {"ach": 0, "bus": 1, "robot": 2, "kinematics": 3, "net": 4, "nodes": 4, "tools": 5, "record": 5}
+BASE = {"paths", "procs", "logformat"}  # import nothing of mds_ach; usable from every layer
 
 
 def _imports(path: Path) -> set[str]:

@@ -67,19 +67,49 @@ def _trapezoid(distance: float, v: float, a: float, t: float) -> float:
     return distance - 0.5 * a * max(t_end - t, 0.0) ** 2
 
 
-def test_a_reference_moving_within_the_bounds_is_followed_exactly() -> None:
-    """What the filter sends (1.57 rad/s, 4 rad/s^2) passes the limiter unchanged: no lag, nothing limited. A
-    limiter that assumed every target stands still would trail it by its braking distance (0.3 rad)."""
+def test_a_reference_moving_within_the_bounds_is_trailed_by_its_braking_distance_and_never_passed() -> None:
+    """What the filter sends (1.57 rad/s, 4 rad/s^2) is followed within the bounds, nothing ever past it: the target
+    trails the reference by at most the distance it needs to stop at it (it could stop where the reference is,
+    whenever the reference stops), and arrives with it."""
     track, h = Track(0.0, 0.0, 0.0), 0.1
     previous = 0.0
+    a = 0.9 * BOUNDS.max_acceleration
     for k in range(1, 40):
         now = k * h
         desired = _trapezoid(2.0, 1.57, 4.0, now)
         q = limit(track, desired, now, BOUNDS, desired_velocity=(desired - previous) / h)
-        assert q == pytest.approx(desired, abs=1e-9), (now, q, desired)
         assert check(track, q, now, BOUNDS) == []
+        v = (q - track.q) / h
+        assert q <= desired + 1e-12, (now, q, desired)
+        assert desired - q <= v * v / (2 * a) + v * h + 1e-9, (now, q, desired)  # within its stopping distance
         track.advance(q, now, BOUNDS)
         previous = desired
+    assert track.q == pytest.approx(2.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("rate", [10.0, 100.0, 200.0])
+def test_a_target_closing_in_on_a_reference_that_stops_never_passes_it(rate: float) -> None:
+    """A reference that stops at once (the collision gate stops an arm at a contact more abruptly than the bounds
+    allow) is never passed: the target is always able to stop where the reference is. Before, a target following
+    it at speed ran on past it by up to v^2/2a (0.084 rad at 10 Hz here), into the contact; at 100 Hz the same
+    happened to a target closing in on a reference it trailed (test_collision_node.py, the 100 Hz adversary)."""
+    h, frame = 1.0 / rate, 0.025  # the daemon's period; the gate's frames (40 Hz)
+    track = Track(0.0, 0.0, 0.0)
+    stop_at = 0.6  # where the gate stops the reference (a contact ahead)
+    goal = goal_prev = 0.0
+    t_prev = 0.0
+    for k in range(1, round(1.5 * rate)):
+        now = k * h
+        t_frame = math.floor(now / frame + 1e-9) * frame  # the newest gate frame the daemon has read
+        reference = 1.5 * t_frame  # moving at 1.5 rad/s (the published velocity), stopped at once at the contact
+        goal_prev, goal = goal, min(reference, stop_at)
+        velocity = (goal - goal_prev) / (now - t_prev)  # as the daemon estimates it: per cycle
+        t_prev = now
+        q = limit(track, goal, now, BOUNDS, desired_velocity=velocity)
+        assert check(track, q, now, BOUNDS) == [], (now, q)
+        assert q <= stop_at + 1e-9, f"{q - stop_at:.4f} rad past the reference where it stopped (t {now:.3f} s)"
+        track.advance(q, now, BOUNDS)
+    assert track.q == pytest.approx(stop_at, abs=1e-6)
 
 
 @settings(max_examples=300, deadline=None)

@@ -896,3 +896,43 @@ def test_browser_follows_the_real_daemon_nocan(page: Page, tmp_path: Path) -> No
             daemon.kill()
             daemon.wait()
         log.close()
+
+
+def test_live_plot_follows_every_state_frame_at_the_state_rate(inproc: viewer.Viewer) -> None:
+    """Issue 30 item 3: the panel's chart holds the last N s of commanded (ref) and measured (pos) of the chosen
+    joints, one point per state frame the viewer applied; it is re-sent only when a frame arrived and at most
+    MAX_SEND_HZ; other joints are chosen by name (an unknown one is named, not shown)."""
+    from mds_ach.tools import viewer_plot
+
+    plot = inproc.plot
+    assert plot.joints == ["LSP", "LEP"]
+    make_channels()
+    sent: list[tuple[float, float, float]] = []
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as chan:
+        for k in range(12):
+            pos, ref = -0.01 * k, -0.02 * k
+            chan.put(state_frame({"LSP": pos, "LEP": 0.5 * pos}, {"LSP": ref, "LEP": 0.5 * ref}))
+            inproc.tick()
+            sent.append((pos, ref, 0.5 * pos))
+            time.sleep(1.0 / viewer_plot.MAX_SEND_HZ + 0.01)
+    data = plot.chart.data
+    assert len(data) == 5 and len(data[0]) == 12
+    assert np.all(np.diff(data[0]) > 0) and data[0][-1] <= 0.0 and data[0][0] >= -plot.window
+    assert np.array_equal(data[1], [r for _, r, _ in sent]) and np.array_equal(data[2], [p for p, _, _ in sent])
+    assert np.array_equal(data[4], [p for _, _, p in sent])
+    assert [s["label"] for s in plot.chart.series] == ["t (s)", "LSP ref", "LSP pos", "LEP ref", "LEP pos"]
+    sends = plot.sends
+    inproc.tick()  # no new frame: nothing sent
+    assert plot.sends == sends
+    plot.choose("rep, XYZ")
+    assert plot.joints == ["REP"] and "XYZ" in plot.note.content
+    assert [s["label"] for s in plot.chart.series] == ["t (s)", "REP ref", "REP pos"]
+    # a burst faster than MAX_SEND_HZ: every frame is in the ring, the chart is sent at most at that rate
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE) as chan:
+        t0, sends, n0 = time.monotonic(), plot.sends, plot.n
+        for k in range(40):
+            chan.put(state_frame({"REP": 0.01 * k}))
+            inproc.tick()
+        elapsed = time.monotonic() - t0
+    assert plot.n - n0 == 40
+    assert plot.sends - sends <= elapsed * viewer_plot.MAX_SEND_HZ + 1

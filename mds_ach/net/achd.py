@@ -45,7 +45,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Any, TypedDict
 
-from mds_ach import ach
+from mds_ach import ach, logformat
 from mds_ach.ach.watch import ReplacementCheck, replaced
 from mds_ach.net import protocol as ap
 from mds_ach.net.peeruid import peer_uid
@@ -1155,7 +1155,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="achd: %(message)s")
+    logformat.setup_python_logging("achd", logging.INFO if args.verbose else logging.WARNING)
     stop = threading.Event()
     install_stop_signals(stop.set)
     if args.verb == "serve":

@@ -43,6 +43,7 @@ from mds_ach_interfaces.srv import Command
 from rclpy.node import Node
 
 import mds_ach as mds
+from mds_ach import logformat
 from mds_ach.bus import budget, canio
 from mds_ach.bus.canio import CanIO
 from mds_ach.bus.simbus import FaultControl, SimNetwork
@@ -525,8 +526,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--rate max: {exc}")
     if rate_problem(args.rate):
         parser.error(f"--rate: {rate_problem(args.rate)}")
-    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
-                        format="[daemon] %(levelname)s: %(message)s")
+    logformat.setup_python_logging("daemon", logging.DEBUG if args.debug else logging.INFO)
     if args.duration is not None:
         timer = threading.Timer(args.duration, lambda: signal.raise_signal(signal.SIGTERM))
         timer.daemon = True

@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
+from mds_ach import logformat
 from mds_ach.argtypes import bounded
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.robot import access as channel_access
@@ -214,6 +215,7 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    logformat.use_ros_console_format()  # every line of the node's log with its time (rcutils reads it at init)
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node: StoppableNode | None = None
     status = 0

@@ -22,7 +22,8 @@ Definition, per joint, over the sequence of targets q_i sent at times t_i:
   restart never reverses a joint that is still moving.
 
 ``limit()`` picks the target closest to the desired one that keeps both bounds at ``margin`` times their
-value (clock jitter between the daemon and a log's time stamps must never turn into a violation);
+value (clock jitter between the daemon and a log's time stamps must never turn into a violation) and from which
+it could still stop at the desired one (which may stop at once: the collision gate at a contact);
 ``check()`` reports what a recorded step breaks.
 """
 
@@ -99,11 +100,13 @@ def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin
     """The target to send at ``now``: as close to ``desired`` as the bounds allow, braking in time.
 
     Velocity-limited and acceleration-limited. ``desired_velocity`` is how fast ``desired`` itself moves (0: a
-    target at rest): the limiter closes the gap relative to that motion, so a reference that moves within the
-    bounds is followed exactly instead of trailing it by the braking distance. A step never goes past ``desired``
-    unless the acceleration bound requires it: a target that stops (or jumps back) more abruptly than the bounds
-    allow is passed by at most ``v^2 / (2 a)`` (never a jump), but not beyond ``lower``/``upper``: the limiter brakes
-    for those like for a target at rest (exactly so while the steps are regular; the caller clamps as a last resort).
+    target at rest): the limiter closes the gap relative to that motion, but never faster than it could still stop
+    at ``desired`` itself: whatever the reference does next (it may stop at once, where the collision gate stops an
+    arm), the target does not pass it while the steps are regular. A moving reference is therefore trailed by about
+    its braking distance ``v^2 / (2 a)`` at speed ``v`` (the MCB's own MOVETO trails it further). A step goes past
+    ``desired`` only if the acceleration bound requires it (a reference that jumps back toward a target moving on,
+    a longer step than the last): by at most ``v^2 / (2 a)``, never a jump, and never beyond ``lower``/``upper``:
+    the limiter brakes for those like for a target at rest (the caller clamps as a last resort).
     """
     h = bounds.interval(now - track.t)
     if h <= 0:
@@ -114,11 +117,15 @@ def limit(track: Track, desired: float, now: float, bounds: MotionBounds, margin
     gap = desired - track.q - v_goal * h  # what is left to close after moving along with the target
     v = v_goal + math.copysign(_stop_speed(abs(gap), h, a_max), gap)
     v = min(max(v, -v_max, -_stop_speed(track.q - lower, h, a_max)), v_max, _stop_speed(upper - track.q, h, a_max))
-    # Never plan past ``desired`` in this step: ``desired_velocity`` is an estimate (from sampled references) and the
-    # reference may have stopped where the collision gate holds it; only the acceleration bound below may carry the
-    # target past it, by what braking within the bound requires.
+    # Never a step from which the target could not stop at ``desired`` within the bounds: the reference may stop
+    # there at any moment (the collision gate stops an arm at a contact more abruptly than the bounds allow, and
+    # ``desired_velocity`` is an estimate from sampled references: at 100 Hz a 40 Hz input reads 0 or 2.5 times its
+    # speed). A target that trailed the reference and closed in on it at speed passed it by v^2/2a, into the contact
+    # the gate stopped the reference at (the 100 Hz adversary). So the target lies between the previous one and
+    # ``desired``; only the acceleration bound below may carry it past, if the track came in faster than allowed.
     d = desired - track.q
-    v = min(v, d / h) if d >= 0 else max(v, d / h)
+    reach = _stop_speed(abs(d), h, a_max)
+    v = min(v, reach) if d >= 0 else max(v, -reach)
     # The acceleration bound wins: if the track came in faster than allowed, brake as hard as allowed.
     v = min(max(v, v0 - a_max * h), v0 + a_max * h)
     return track.q + v * h

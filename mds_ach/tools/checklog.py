@@ -49,6 +49,9 @@ plus 5 % of it, at least 0.1 rad); anything else is ignored, as the daemon ignor
 :func:`audit_frames` is the audit itself, on (time, frame) pairs of one daemon run; :func:`audit_file` feeds it
 a log file, and the tests (``test/support/motion_audit.py``) the frames of a daemon they ran.
 
+Recordings. A recording of ``mds-ach record --can-log`` (MCAP, told by its magic bytes) holds the daemon's CAN
+frames on ``/can/frames`` with their direction: they are audited like the CAN log they came from.
+
 Sent and received. A log that records direction (the daemon's ``--can-log``, python-can .asc/.blf/.trc, candump
 with ``-x``: at least one frame marked Tx) tells the host's frames from the nodes': only frames the host sent
 are host commands; a received frame is a node's reply when it has the replies' ID (0x10), else traffic of
@@ -83,6 +86,7 @@ from mds_ach.bus.mcb import Command, StateArg, TrajectoryMode
 from mds_ach.kinematics import collision
 from mds_ach.nodes.daemon_loop import HOMED_TOLERANCE, STALE_AFTER, reply_in_range
 from mds_ach.paths import config_path
+from mds_ach.record import canlog, recording
 from mds_ach.robot import config, motion
 from mds_ach.robot.config import ConfigError, JointConfig, JointTable
 from mds_ach.robot.msgs import MDS_JOINT_COUNT
@@ -528,6 +532,9 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
                stale_after: float | None = None, model: Any | None = None, whole_run: bool = False) -> FileReport:
     """Audit one log (any format :func:`mds_ach.bus.canio.read_log` reads); never raises for a bad file."""
     report = FileReport(str(path))
+    if recording.is_recording(path):
+        return _audit_recording(path, table, report, rate=rate, stale_after=stale_after, model=model,
+                                whole_run=whole_run)
     try:
         report.format = canio.log_format(path)
         period, n, directions = scan(path)
@@ -547,6 +554,34 @@ def audit_file(path: str | Path, table: JointTable, *, rate: float | None = None
     except (canio.LogReadError, OSError) as exc:
         report.error = str(exc)
         return report
+    return report
+
+
+def _audit_recording(path: str | Path, table: JointTable, report: FileReport, *, rate: float | None,
+                     stale_after: float | None, model: Any | None, whole_run: bool) -> FileReport:
+    """``audit_file`` for a recording (``mds-ach record --can-log``): the daemon's CAN frames it holds."""
+    report.format = "MCAP recording"
+    try:
+        frames, cut = canlog.recorded_frames(path)
+    except recording.RecordingError as exc:
+        report.error = str(exc)
+        return report
+    if not frames:
+        report.error = (f"the recording has no CAN frames ({canlog.CAN_TOPIC}): record with 'mds-ach record "
+                        "--can-log FILE' (the daemon's --can-log)")
+        return report
+    times = [m.timestamp for m in frames if _is_position_query(m)]
+    gaps = [b - a for a, b in zip(times, times[1:], strict=False) if b > a]
+    if rate is not None:
+        report.period, report.period_source = 1.0 / rate, f"--rate {rate:g} Hz"
+    elif gaps:
+        report.period = statistics.median(gaps)
+        report.period_source = f"inferred from {len(times)} position queries (median interval)"
+    audit_frames(((m.timestamp, m) for m in frames), table, table.motion_bounds(),
+                 stale_after if stale_after is not None else STALE_AFTER, model=model, whole_run=whole_run,
+                 report=report, directions=any(not m.is_rx for m in frames))
+    if cut:
+        report.warning = f"{cut}: the frames before it are audited"
     return report
 
 
@@ -634,11 +669,13 @@ def _file_lines(r: FileReport, max_listed: int) -> list[str]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Audit recorded CAN traffic (daemon --can-log, candump -l, python-can .asc/.blf/.csv/.log/.trc, "
-                     "the original MDS-Ach text dumps) against the safety invariants: every target finite, inside "
+                     "the original MDS-Ach text dumps, a recording of 'mds-ach record --can-log') against the safety "
+                     "invariants: every target finite, inside "
                      "its joint's limits, to an enabled joint, within the speed and acceleration bounds of the "
                      "joint table (mds_ach.robot.motion); optionally no commanded collision. Exit status 0 clean, "
                      "1 violations, 2 a file could not be audited.")
-    p.add_argument("files", nargs="+", metavar="FILE", help="CAN logs; each is audited on its own")
+    p.add_argument("files", nargs="+", metavar="FILE",
+                   help="CAN logs or recordings (.mcap, their CAN frames); each is audited on its own")
     p.add_argument("--robot", help="robot variant of the joint table (default: $MDS_ACH_ROBOT, the saved choice, "
                                    "else 'default')")
     p.add_argument("--config", metavar="FILE", help="joint table YAML (default: the installed config/joints.yaml)")

@@ -92,6 +92,13 @@ VERBS: dict[str, Verb] = {
                       "mds_ach.tools.rosgraph:add_shell_arguments", "mds_ach.tools.rosgraph:run_shell"),
     "ros": Verb("run one command inside the running system's ROS 2 graph: 'mds-ach ros python examples/...'",
                 "mds_ach.tools.rosgraph:add_ros_arguments", "mds_ach.tools.rosgraph:run_ros"),
+    # recordings (mds_ach.record): record the channels to MCAP, plot a recording, replay it onto the channels
+    "record": Verb("record every channel of the running system into an MCAP file (Foxglove, mcap, ROS 2 tools)",
+                   "mds_ach.record.recorder:add_arguments", "mds_ach.record.recorder:run"),
+    "plot": Verb("plot a recording or a CAN log: per joint each stage's command, measured, limits, holds, findings",
+                 "mds_ach.record.plot:add_arguments", "mds_ach.record.plot:run"),
+    "replay": Verb("write a recording's reported state back onto the channels (--to-channels); refused while a daemon "
+                   "is live", "mds_ach.record.replay:add_arguments", "mds_ach.record.replay:run"),
     "sim": Verb("3-D viewer in the browser, in the background (prints the URL); 'sim kill' stops it",
                 "mds_ach.tools.viewer:add_sim_arguments", "mds_ach.tools.viewer:run_sim"),
 }

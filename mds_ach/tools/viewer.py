@@ -52,6 +52,7 @@ from mds_ach.robot.joints import MODEL_JOINTS, lookup
 from mds_ach.robot.msgs.ik_status import IK_SOLVED, IK_UNREACHABLE, MDS_IK_STATUS, STATUS_NAMES
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
 from mds_ach.tools.viewer_door import Door, guarded, new_token
+from mds_ach.tools.viewer_plot import LivePlot
 
 if TYPE_CHECKING:  # heavy imports stay out of `import mds_ach.tools.viewer` (the `mds-ach sim` start-up path)
     import trimesh
@@ -436,6 +437,7 @@ class Viewer:
         self._ref_lock = threading.Lock()
         self._refs: RefWriter | None = None  # set while the sliders are on
         self._build_gui()
+        self.plot = LivePlot(self.server.gui)  # commanded vs measured, last N s (viewer_plot)
 
     # ---- scene setup -------------------------------------------------------------------------------
 
@@ -606,6 +608,7 @@ class Viewer:
             for target in (request and ik_request_target(request), answer and ik_status_target(answer)):
                 if target is not None:  # the answer, read second, wins over its request
                     self._show_ik_target(target)
+        self.plot.refresh(now)
         self._update_status(now)
         return changed
 
@@ -621,6 +624,7 @@ class Viewer:
         self.last_state = state
         self._last_state_at = now
         self.state_frames += 1
+        self.plot.add(now, state)
         if self.sliders_on is not None and not self.sliders_on.value:
             for name, value in reference.items():
                 slider = self.sliders[name]
