@@ -58,9 +58,9 @@ from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
 from mds_ach.nodes.rosnode import Param, declare, ros_log
 from mds_ach.robot import config as joint_config
-from mds_ach.robot import joints, lifecycle
+from mds_ach.robot import joints, lifecycle, motion
 from mds_ach.robot.channels import ChannelGuard, StructChannel
-from mds_ach.robot.feedforward import Braking, CycleClock, stopping_point
+from mds_ach.robot.feedforward import Braking, CycleClock, limiter_lead, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
 from mds_ach_bridge import actions, follow, jtc, topics, trajectory
@@ -228,6 +228,10 @@ class BridgeNode(Node):
         # The MOVETO acceleration the daemon commands: trajectories are sent as their stopping points at it.
         self._moveto_accel = math.radians(joint_config.load(self._effective.robot).accel_deg_s2)
         self._cycle = CycleClock()  # state thread only: the daemon's period, from the state frames' stamps
+        # The daemon's limiter at its margin: its targets trail a moving reference by their braking distance at this.
+        table = joint_config.load(self._effective.robot)
+        self._limiter_accel = motion.LIMIT_MARGIN * table.motion_bounds().max_acceleration
+        self._intended: dict[str, float] = {}  # the newest intended daemon target per trajectory joint (the lock)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._names = list(joints.MODEL_JOINTS)
@@ -486,7 +490,7 @@ class BridgeNode(Node):
                     continue
             values, speeds, done = r.traj.sample_state(due_s)
             r.due, r.desired = due_s, {n: (values[n], speeds[n]) for n in values}
-            self._apply(self._floored(r, self._feedforward(values, speeds), due_s), self._trajectory_mode)
+            self._apply(self._lead(self._floored(r, self._feedforward(values, speeds), due_s)), self._trajectory_mode)
             for n in r.traj.names:
                 self._braking.pop(n, None)
             sampled.append(r.serial)
@@ -540,6 +544,18 @@ class BridgeNode(Node):
                 continue
             targets[n] = r.ramps[n] = last + math.copysign(step, targets[n] - last)
         return targets
+
+    def _lead(self, targets: dict[str, float]) -> dict[str, float]:
+        """The references that make the daemon's limiter send ``targets`` (``feedforward.limiter_lead``: ahead by
+        the braking distance of the target sequence's step speed at the limiter's acceleration), within the limits."""
+        period = self._cycle.period
+        out = {}
+        for n, t in targets.items():
+            step = (t - self._intended.get(n, t)) / period
+            self._intended[n] = t
+            lower, upper = self._limits[n]
+            out[n] = min(max(t + limiter_lead(step, self._limiter_accel), lower), upper)
+        return out
 
     def _feedforward(self, values: dict[str, float], speeds: dict[str, float]) -> dict[str, float]:
         """The MOVETO targets for a desired state: its stopping points, within the limits."""
@@ -854,6 +870,8 @@ class BridgeNode(Node):
         Returns its description (caller holds the lock)."""
         what = self._what.get(r.serial, "trajectory")
         self._running.pop(r.serial, None)
+        for n in r.traj.names:
+            self._intended.pop(n, None)
         if not r.finished and r.due is not None:  # its joints brake from the last written target (feedforward)
             for n, (q, v) in r.desired.items():
                 self._braking[n] = Braking(q, v, r.due, self._moveto_accel)

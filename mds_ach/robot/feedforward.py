@@ -32,6 +32,15 @@ def stopping_point(q: float, v: float, accel: float) -> float:
     return q + v * abs(v) / (2.0 * accel)
 
 
+def limiter_lead(step_velocity: float, accel: float) -> float:
+    """How far ahead of the target it should send a reference must be, for the daemon's limiter (``motion.limit``)
+    to send that target: the limiter never plans a step from which it could not stop at its reference with its
+    acceleration bound ``accel`` (so a reference the collision gate stops at once is never passed), i.e. a target
+    sequence moving at ``step_velocity`` trails its reference by ``v|v| / 2 accel``. The target lands on the intended
+    one; frozen there (a cancel, a hold), the daemon's target brakes onto the reference within its bounds."""
+    return step_velocity * abs(step_velocity) / (2.0 * accel)
+
+
 @dataclass(frozen=True)
 class Braking:
     """A joint braking at ``accel`` from ``q0`` with speed ``v0`` at time ``t0`` (what the MCB does with a target
