@@ -231,6 +231,7 @@ class BridgeNode(Node):
         # The daemon's limiter at its margin: its targets trail a moving reference by their braking distance at this.
         table = joint_config.load(self._effective.robot)
         self._limiter_accel = motion.LIMIT_MARGIN * table.motion_bounds().max_acceleration
+        self._limiter_speed = motion.LIMIT_MARGIN * table.motion_bounds().max_velocity
         self._intended: dict[str, float] = {}  # the newest intended daemon target per trajectory joint (the lock)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -490,7 +491,8 @@ class BridgeNode(Node):
                     continue
             values, speeds, done = r.traj.sample_state(due_s)
             r.due, r.desired = due_s, {n: (values[n], speeds[n]) for n in values}
-            self._apply(self._lead(self._floored(r, self._feedforward(values, speeds), due_s)), self._trajectory_mode)
+            targets = self._floored(r, self._feedforward(values, speeds), due_s)
+            self._apply(targets if done else self._lead(targets), self._trajectory_mode)  # the end: exactly there
             for n in r.traj.names:
                 self._braking.pop(n, None)
             sampled.append(r.serial)
@@ -551,7 +553,9 @@ class BridgeNode(Node):
         period = self._cycle.period
         out = {}
         for n, t in targets.items():
-            step = (t - self._intended.get(n, t)) / period
+            # A step the limiter cannot take in one cycle anyway (a linear trajectory's corner) gets no more lead than
+            # its speed bound allows.
+            step = min(max((t - self._intended.get(n, t)) / period, -self._limiter_speed), self._limiter_speed)
             self._intended[n] = t
             lower, upper = self._limits[n]
             out[n] = min(max(t + limiter_lead(step, self._limiter_accel), lower), upper)

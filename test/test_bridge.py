@@ -25,8 +25,8 @@ from support.spin import Spinner
 import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.kinematics import model as kinematics
-from mds_ach.robot import config, joints
-from mds_ach.robot.feedforward import stopping_point
+from mds_ach.robot import config, joints, motion
+from mds_ach.robot.feedforward import limiter_lead, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_STATE
 from mds_ach_bridge import trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
@@ -555,15 +555,26 @@ def test_trajectory_from_another_process_moves_the_simulated_joint(harness: Harn
     traj = trajectory.build(["WST"], [(0.5, [a], []), (1.5, [b], [])], 0.0, limits).anchor({"WST": start_value}, limits)
     accel = math.radians(config.load().accel_deg_s2)
 
+    bounds = config.load().motion_bounds()
+    period = 1.0 / RATE  # the daemon's
+
     def target(x: float) -> float:
         q, v, _ = traj.sample_state(x)
         return min(max(stopping_point(q["WST"], v["WST"], accel), lo), hi)
 
+    def reference(x: float) -> float:
+        """The target ahead by what the daemon's limiter trails it (``feedforward.limiter_lead``) over a period."""
+        speed = motion.LIMIT_MARGIN * bounds.max_velocity
+        step = min(max((target(x) - target(x - period)) / period, -speed), speed)
+        lead = limiter_lead(step, motion.LIMIT_MARGIN * bounds.max_acceleration)
+        return min(max(target(x) + lead, lo), hi)
+
     for t, r, _ in samples:
         # Linear segments: the path's extremes sit at the waypoints (each side), so sample those too.
         lags = [t + 0.25 - i * 0.01 for i in range(76)]
-        lags += [w + e for w in (0.5, 1.5) for e in (-1e-6, 1e-6) if t - 0.5 <= w <= t + 0.25]
-        path = [target(x) for x in lags]
+        lags += [w + e + d for w in (0.5, 1.5) for e in (-1e-6, 1e-6) for d in (0.0, period)
+                 if t - 0.5 <= w + d <= t + 0.25]
+        path = [f(x) for x in lags for f in (target, reference)]
         assert min(path) - 1e-9 <= r <= max(path) + 1e-9, f"WST reference {r} at t={t:.3f} s is off the trajectory"
 
 
