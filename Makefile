@@ -43,7 +43,7 @@ PIP_NOISE := ^WARNING: Location|^ERROR: pip's dependency resolver does not curre
 # (the SIGBUS guard for channel mappings) when gcc is there.
 $(STAMP): requirements.txt requirements-nodeps.txt setup.py setup.cfg package.xml mds_ach/ach/_achfast.c \
 		mds_ach/ach/achcore.h mds_ach/ach/_shmguard.c mds_ach/kinematics/_collfast.c mds_ach/kinematics/_iksearch.c
-	@test -x $(PY) || { echo "creating $(VENV) and installing the runtime packages (first run only, ~1.5 min) ..."; \
+	@test -x $(PY) || { echo "creating $(VENV) and installing the runtime packages (first run only: a few minutes, the ROS interface packages are compiled once) ..."; \
 		python3 -m venv $(VENV); }
 	@# setuptools >= 70.1 builds the editable install without the separate wheel package (torch used to pull it in).
 	$(PY) -m pip install -q --upgrade pip setuptools==84.2.1 2>&1 | grep -v '^WARNING: Location' || true

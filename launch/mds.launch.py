@@ -42,6 +42,7 @@ def _nodes(context):
     nocan = LaunchConfiguration("nocan").perform(context).lower() in ("true", "1", "yes")
     world = LaunchConfiguration("world").perform(context)
     params = LaunchConfiguration("params").perform(context)
+    namespace = LaunchConfiguration("namespace").perform(context)  # mds-ach start --namespace
     actions = []
     for exe, name in NODES:
         arguments = ["--nocan"] if exe == "daemon" and nocan else []
@@ -49,7 +50,7 @@ def _nodes(context):
         if world and exe in WORLD_NODES:
             arguments += ["--world", os.path.abspath(world)]
             parameters.append({"world": os.path.abspath(world)})  # after the file: wins over it
-        actions.append(Node(package="mds_ach", executable=exe, name=name, arguments=arguments,
+        actions.append(Node(package="mds_ach", executable=exe, name=name, namespace=namespace, arguments=arguments,
                             parameters=parameters, output="screen"))
     return actions
 
@@ -67,6 +68,8 @@ def generate_launch_description():
     return LaunchDescription([
         DeclareLaunchArgument("nocan", default_value="false", description="the simulated bus (mds-ach run nocan)"),
         DeclareLaunchArgument("world", default_value="", description="world objects file for collision and ik"),
+        DeclareLaunchArgument("namespace", default_value="",
+                              description="ROS namespace of every node (mds-ach start --namespace)"),
         DeclareLaunchArgument("params", default_value=os.path.join(share, "config", "params.yaml"),
                               description="ROS 2 params file for every node"),
         make,

@@ -234,6 +234,9 @@ const char *ach_result_to_string(ach_status_t result);
 /* A description of this thread's most recent error. */
 const char *ach_errstr(void);
 
+/* Set this thread's error description (what ach_errstr returns next), as golems' libach exports. */
+void ach_set_errstr(const char *str);
+
 /* Print the channel's header to stderr (debugging). */
 void ach_dump(struct ach_header *shm);
 

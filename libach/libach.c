@@ -98,6 +98,9 @@ static enum ach_status errno_status(int err) {
 
 const char *ach_errstr(void) { return errbuf; }
 
+/* golems' libach exports this too (its callers: achd, the DNS lookups); a copy, so the caller's string may go. */
+void ach_set_errstr(const char *str) { snprintf(errbuf, sizeof errbuf, "%s", str ? str : ""); }
+
 const char *ach_result_to_string(ach_status_t result) {
     static const char *const names[] = {
         "ACH_OK",      "ACH_OVERFLOW", "ACH_INVALID_NAME", "ACH_BAD_SHM_FILE", "ACH_FAILED_SYSCALL",

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 from collections.abc import Callable
 
 SECONDS_MAX = 3600.0
@@ -66,3 +67,18 @@ def count(minimum: int, maximum: int) -> Callable[[str], float]:
 def port() -> Callable[[str], float]:
     """A TCP/UDP port, 1..65535."""
     return count(*PORT)
+
+
+ROS_NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def ros_namespace(text: str) -> str:
+    """A ROS 2 namespace for ``--namespace``: ``robot1``, ``/robot1`` or ``lab/robot1``, returned absolute
+    (``/robot1``). Each token is a ROS name token (a letter or ``_``, then letters, digits, ``_``): rcl would
+    refuse anything else at node start, six times, after the channels were made."""
+    tokens = text.strip("/").split("/")
+    if not text.strip("/") or not all(ROS_NAME_TOKEN.fullmatch(t) for t in tokens):
+        raise argparse.ArgumentTypeError(
+            f"{text[:80]!r} is not a ROS namespace: give names of letters, digits and '_' (not starting with a digit) "
+            "separated by '/', e.g. robot1 or lab/robot1")
+    return "/" + "/".join(tokens)

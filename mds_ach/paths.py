@@ -11,6 +11,7 @@ PACKAGE = "mds_ach"
 # common command (`read`, `daemon`, `filter`); in <prefix>/lib/mds_ach (what `ros2 run mds_ach <node>` runs) they keep
 # the bare node name. setup.py applies the same rule.
 BIN_PREFIX = "mds-ach-"
+CHANNEL_PREFIX_ENV = "MDS_ACH_CHANNEL_PREFIX"  # read here for the runtime dir; checked and used in robot/contracts
 _SOURCE_ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -44,27 +45,75 @@ def bin_name(node: str) -> str:
     return node if node.startswith("mds-ach") else BIN_PREFIX + node
 
 
+IDENTITY_MAP = [(0, 0, 4294967295)]  # /proc/self/uid_map outside any user namespace
+OVERFLOW_UID = 65534  # what a user namespace shows for an owner it does not map (/proc/sys/kernel/overflowuid)
+
+
+def _uid_map() -> list[tuple[int, int, int]]:
+    try:
+        with open("/proc/self/uid_map") as f:
+            return [(int(a), int(b), int(c)) for a, b, c in (line.split() for line in f)]
+    except (OSError, ValueError):
+        return IDENTITY_MAP
+
+
+def outside_uid(uid: int) -> int | None:
+    """``uid`` as this process sees it, as the machine's accounts see it: mapped through /proc/self/uid_map inside a
+    user namespace; None for an id the namespace does not map (it shows every such owner as ``OVERFLOW_UID``)."""
+    ranges = _uid_map()
+    if ranges == IDENTITY_MAP:
+        return uid
+    return next((out + uid - inside for inside, out, count in ranges if inside <= uid < inside + count), None)
+
+
 def host_uid() -> int:
     """Our uid as the machine's user accounts see it. Inside the user namespace of a rootless tools/netns-run a
     normal user appears as root (uid 0); /proc/self/uid_map maps that back, so that every terminal of that user,
     inside or outside the namespace, agrees on the runtime directory."""
     uid = os.getuid()
+    found = outside_uid(uid)
+    return uid if found is None else found
+
+
+def user_label(uid: int) -> str:
+    """A file owner or process user as the machine names it, ``alice (uid 1000)``: inside the user namespace of a
+    rootless ``make run`` the user is uid 0 and every owner the namespace does not map (root's files after ``sudo
+    make run`` among them) shows as uid 65534, so the ids seen here would name the wrong users (issue 28)."""
+    import pwd
+
+    outside = outside_uid(uid)
+    unmapped = (f"a user this user namespace does not map (shown here as uid {uid}; root, if the files come from "
+                "'sudo make run')")
+    if outside is None:
+        return unmapped
     try:
-        with open("/proc/self/uid_map") as f:
-            for line in f:
-                inside, outside, count = (int(x) for x in line.split())
-                if inside <= uid < inside + count:
-                    return outside + uid - inside
-    except (OSError, ValueError):
-        pass
-    return uid
+        name = f"{pwd.getpwuid(outside).pw_name} (uid {outside})"
+    except KeyError:
+        name = f"uid {outside}"
+    if uid == OVERFLOW_UID and _uid_map() != IDENTITY_MAP:  # mapped here (--map-auto), yet also every unmapped owner
+        return f"{pwd.getpwuid(uid).pw_name if _known(uid) else name} or {unmapped}"
+    return name
+
+
+def _known(uid: int) -> bool:
+    import pwd
+
+    try:
+        pwd.getpwuid(uid)
+    except KeyError:
+        return False
+    return True
 
 
 def runtime_dir() -> Path:
     """Pid files and logs of `mds-ach start`: $MDS_ACH_RUNTIME_DIR, else $XDG_RUNTIME_DIR/mds-ach, else
-    /tmp/mds-ach-<uid> (the uid outside a user namespace: see host_uid)."""
+    /tmp/mds-ach-<uid> (the uid outside a user namespace: see host_uid). A second system on this host, whose
+    channels carry a prefix ($MDS_ACH_CHANNEL_PREFIX, mds_ach.robot.contracts), gets its own by default:
+    ``mds-ach-<prefix>`` / ``/tmp/mds-ach-<uid>-<prefix>``, so its pid files never stand for the first one's."""
     env = os.environ.get("MDS_ACH_RUNTIME_DIR")
     if env:
         return Path(env)
-    base = os.environ.get("XDG_RUNTIME_DIR") or f"/tmp/mds-ach-{host_uid()}"
-    return Path(base) / "mds-ach" if os.environ.get("XDG_RUNTIME_DIR") else Path(base)
+    prefix = os.environ.get(CHANNEL_PREFIX_ENV, "").strip("-_.")
+    suffix = f"-{prefix}" if prefix else ""
+    xdg = os.environ.get("XDG_RUNTIME_DIR")
+    return Path(xdg) / f"mds-ach{suffix}" if xdg else Path(f"/tmp/mds-ach-{host_uid()}{suffix}")

@@ -36,8 +36,8 @@ topics (relative: remap with --ros-args -r old:=new, or move with -r __ns:=/robo
   {topics.JOINT_REFERENCES:<24} out  sensor_msgs/JointState      the daemon's reference (state.ref)
   {topics.ROBOT_DESCRIPTION:<24} out  std_msgs/String             the URDF (transient local)
   {topics.DIAGNOSTICS:<24} out  diagnostic_msgs/DiagnosticArray  stream health, command counters
-  {topics.COMMAND_STATUS:<24} out  std_msgs/String             JSON per command event (accepted, rejected,
-                                   refused by the mux + owner, stopped, finished)
+  {topics.COMMAND_STATUS:<24} out  mds_ach_interfaces/CommandStatus  one per command event (accepted,
+                                   rejected, refused by the mux + owner, stopped, finished, goal ends)
   {topics.JOINT_COMMAND:<24} in   sensor_msgs/JointState      positions by joint name
   {topics.JOINT_POSITIONS:<24} in   std_msgs/Float64MultiArray  {len(joints.MODEL_JOINTS)} positions in this order:
                                    {' '.join(joints.MODEL_JOINTS)}

@@ -4,7 +4,7 @@ Threads: a dedicated state thread blocks on the state channel (newest frame wins
 frame, writes the bridge's reference if there is something new (the newest accepted command, or the
 running trajectory sampled at this cycle) and publishes ``joint_states`` and ``mds/joint_references``.
 The executor thread only runs subscription callbacks, which validate a command completely and hand it
-over under a lock, the diagnostics timer and the /mds/hold, /mds/resume services. A frame is never published
+over under a lock, the diagnostics timer and the mds/hold, mds/resume services. A frame is never published
 twice; when the daemon stalls the topics fall silent and /diagnostics reports it.
 
 Lifecycle (issue 17): before each write the state thread reads what the mux did since the last cycle
@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import array
 import functools
-import json
 import math
 import threading
 import time
@@ -41,6 +40,7 @@ from control_msgs.msg import JointTrajectoryControllerState
 from control_msgs.srv import QueryTrajectoryState
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
+from mds_ach_interfaces.msg import CommandStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -57,8 +57,9 @@ from mds_ach.kinematics.model import load_model
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
 from mds_ach.nodes.rosnode import Param, declare, ros_log
+from mds_ach.nodes.status_msgs import command_status_msg
 from mds_ach.robot import config as joint_config
-from mds_ach.robot import joints, lifecycle, motion
+from mds_ach.robot import contracts, joints, lifecycle, motion
 from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.feedforward import Braking, CycleClock, limiter_lead, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
@@ -154,14 +155,14 @@ class _Event:
 
 SECONDS = (0.001, 3600.0)
 PARAMETERS = (
-    Param("state_channel", mds.MDS_CHAN_STATE_NAME, "Ach channel of mds_state_t frames"),
-    Param("ref_channel", mds.MDS_CHAN_REF_ROS_NAME,
+    Param("state_channel", contracts.base_name(mds.MDS_CHAN_STATE_NAME), "Ach channel of mds_state_t frames"),
+    Param("ref_channel", contracts.base_name(mds.MDS_CHAN_REF_ROS_NAME),
           "Ach channel the bridge writes its mds_ref_t to: its mux input (default), or mds-ref-filter when no mux "
           "runs"),
-    Param("ik_channel", mds.MDS_CHAN_IK_NAME, "Ach channel for mds_ik_t requests"),
+    Param("ik_channel", contracts.base_name(mds.MDS_CHAN_IK_NAME), "Ach channel for mds_ik_t requests"),
     Param("allow_ungated", False,
-          f"allow ref_channel = {mds.MDS_CHAN_DAEMON_INPUT_NAME} (the daemon's input), which bypasses mux, filter and "
-          "collision gate (simulation tests only)"),
+          f"allow ref_channel = {contracts.base_name(mds.MDS_CHAN_DAEMON_INPUT_NAME)} (the daemon's input), which "
+          "bypasses mux, filter and collision gate (simulation tests only)"),
     Param("state_qos", "reliable", "QoS of joint_states and mds/joint_references: reliable (default, what "
                                    "robot_state_publisher, RViz and MoveIt subscribe with) or sensor_data "
                                    "(best effort)"),
@@ -201,9 +202,10 @@ class BridgeNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         self._declare_parameters()
         p = self.get_parameter
-        self._state_name: str = p("state_channel").value
-        self._ref_name: str = p("ref_channel").value
-        self._ik_name: str = p("ik_channel").value
+        # channel parameters name the original channels; $MDS_ACH_CHANNEL_PREFIX makes them this system's
+        self._state_name: str = contracts.channel_name(p("state_channel").value)
+        self._ref_name: str = contracts.channel_name(p("ref_channel").value)
+        self._ik_name: str = contracts.channel_name(p("ik_channel").value)
         if self._ref_name == mds.MDS_CHAN_DAEMON_INPUT_NAME and not p("allow_ungated").value:
             raise ValueError(
                 f"ref_channel '{self._ref_name}' goes straight to the daemon, past the mux, filter and collision gate; "
@@ -277,7 +279,7 @@ class BridgeNode(Node):
         self._js_pub = self.create_publisher(JointState, topics.JOINT_STATES, state_qos)
         self._ref_pub = self.create_publisher(JointState, topics.JOINT_REFERENCES, state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        self._status_pub = self.create_publisher(String, topics.COMMAND_STATUS, COMMAND_QOS)
+        self._status_pub = self.create_publisher(CommandStatus, topics.COMMAND_STATUS, COMMAND_QOS)
         model = load_model(urdf)
         self._js_msg = JointState(name=self._names)
         # The URDF root, as joint_state_broadcaster's default frame_id (its own parameter default "base_link").
@@ -973,20 +975,21 @@ class BridgeNode(Node):
             self._publish_status(e.doc | {"message": e.doc.get("message", e.text)})
 
     def _publish_status(self, doc: dict[str, Any]) -> None:
-        """One event on mds/command_status (JSON): what happened to a command, and why."""
+        """One event on mds/command_status (``mds_ach_interfaces/msg/CommandStatus``): what happened to a command,
+        and why."""
         try:
-            self._status_pub.publish(String(data=json.dumps({"time": time.time(), **doc})))
+            self._status_pub.publish(command_status_msg(doc, self.get_clock().now().to_msg()))
         except Exception:  # noqa: BLE001 - the context is shutting down; the log has the event already
             pass
 
     def _on_hold(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """/mds/hold: stop the bridge's trajectory first (its next frame would release a held joint), then HOLD
+        """mds/hold: stop the bridge's trajectory first (its next frame would release a held joint), then HOLD
         every joint through the mux; success only when the mux acknowledged it."""
         with self._lock:
-            stopped = " and ".join(self._stop_all("hold requested on /mds/hold"))
+            stopped = " and ".join(self._stop_all(f"hold requested on {topics.HOLD_SERVICE}"))
         self._emit()
         self._flush_cancels()
-        ack = self._mux_request(lifecycle.HOLD_HOLD, "ROS /mds/hold")
+        ack = self._mux_request(lifecycle.HOLD_HOLD, f"ROS {topics.HOLD_SERVICE}")
         response.success = ack.ok
         if ack.ok and ack.state is not None:
             held = [a for a in range(mds.MDS_JOINT_COUNT) if ack.state.held[a] == MUX_HELD]
@@ -998,8 +1001,8 @@ class BridgeNode(Node):
             response.message = ack.message
         if stopped:
             response.message += f"; {stopped} stopped and will not continue (resume does not restart it)"
-        self._log_answer("/mds/hold", ack.ok, response.message)
-        self._publish_status({"event": "hold" if ack.ok else "hold failed", "command": "/mds/hold",
+        self._log_answer(topics.HOLD_SERVICE, ack.ok, response.message)
+        self._publish_status({"event": "hold" if ack.ok else "hold failed", "command": topics.HOLD_SERVICE,
                               "message": response.message})
         return response
 
@@ -1019,9 +1022,9 @@ class BridgeNode(Node):
             self.get_logger().warning(f"{service}: {message}")
 
     def _on_resume(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """/mds/resume: release held joints through the mux. A trajectory the bridge stopped is not restarted, and
+        """mds/resume: release held joints through the mux. A trajectory the bridge stopped is not restarted, and
         cancelled joints stay where they are until a new command."""
-        ack = self._mux_request(lifecycle.HOLD_RESUME, "ROS /mds/resume")
+        ack = self._mux_request(lifecycle.HOLD_RESUME, f"ROS {topics.RESUME_SERVICE}")
         response.success = ack.ok
         if ack.ok and ack.state is not None:
             still = [a for a in range(mds.MDS_JOINT_COUNT) if ack.state.held[a] != MUX_FREE]
@@ -1030,8 +1033,8 @@ class BridgeNode(Node):
             response.message += "; a stopped trajectory is not restarted (send it again)"
         else:
             response.message = ack.message
-        self._log_answer("/mds/resume", ack.ok, response.message)
-        self._publish_status({"event": "resume" if ack.ok else "resume failed", "command": "/mds/resume",
+        self._log_answer(topics.RESUME_SERVICE, ack.ok, response.message)
+        self._publish_status({"event": "resume" if ack.ok else "resume failed", "command": topics.RESUME_SERVICE,
                               "message": response.message})
         return response
 

@@ -18,8 +18,8 @@ from tf2_msgs.msg import TFMessage
 
 from mds_ach.kinematics.model import Joint, RobotModel, joint_transform, quaternion_wxyz
 
-TF = "/tf"  # absolute, like robot_state_publisher and tf2's listeners
-TF_STATIC = "/tf_static"
+TF = "tf"  # relative: /tf outside a namespace (where tf2's listeners look); /NS/tf under one, so two robots' same
+TF_STATIC = "tf_static"  # link names never mix on one tree (RViz: remap or set its TF topic to /NS/tf)
 TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 TF_STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -1,7 +1,8 @@
-"""Topic names of the bridge (relative, so a namespace or a remap moves them; /diagnostics stays global)."""
+"""Topic names of the bridge: all relative, so a namespace (``mds-ach start --namespace``) or a remap moves them."""
 
 from __future__ import annotations
 
+from mds_ach.nodes.status_msgs import DIAGNOSTICS_TOPIC
 from mds_ach.robot import joints
 
 JOINT_STATES = "joint_states"  # sensor_msgs/JointState, measured positions, one message per mds-state frame
@@ -11,11 +12,11 @@ JOINT_TRAJECTORY = "mds/joint_trajectory"  # trajectory_msgs/JointTrajectory in
 JOINT_POSITIONS = "mds/joint_positions"  # std_msgs/Float64MultiArray in: one value per MODEL_JOINTS entry
 IK_LEFT = "mds/ik/left"  # geometry_msgs/PoseStamped in: left hand target -> mds-ik
 IK_RIGHT = "mds/ik/right"  # geometry_msgs/PoseStamped in: right hand target -> mds-ik
-COMMAND_STATUS = "mds/command_status"  # std_msgs/String out: JSON, one per command event (accepted, refused, ...)
+COMMAND_STATUS = "mds/command_status"  # mds_ach_interfaces/CommandStatus out: one per command event (accepted, ...)
 HOLD_SERVICE = "mds/hold"  # std_srvs/Trigger: hold every joint (through the mux), stop the bridge's trajectory
 RESUME_SERVICE = "mds/resume"  # std_srvs/Trigger: release held joints (a stopped trajectory is not restarted)
 ROBOT_DESCRIPTION = "robot_description"  # std_msgs/String, transient local: the URDF
-DIAGNOSTICS = "/diagnostics"  # diagnostic_msgs/DiagnosticArray
+DIAGNOSTICS = DIAGNOSTICS_TOPIC  # diagnostic_msgs/DiagnosticArray ("diagnostics": /diagnostics outside a namespace)
 
 FOLLOW_JOINT_TRAJECTORY = "follow_joint_trajectory"
 """control_msgs/action/FollowJointTrajectory at ``<controller>/follow_joint_trajectory``, for MoveIt."""

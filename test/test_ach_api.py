@@ -90,7 +90,8 @@ def test_valid_names(name: str) -> None:
 
 @pytest.mark.parametrize("name", ["", "x" * 64, ".hidden", "a/b", "a b", "na\u00efve", "a\0b", "semi;colon", 7, None])
 def test_invalid_names(clean_shm: None, name: object) -> None:
-    calls = (ach.validate_name, ach.Channel, lambda n: ach.create(n, 1, 1), ach.unlink, ach.exists)
+    opened = ach.Channel if name is not None else ach.Channel().open  # Channel(): the classic unopened handle
+    calls = (ach.validate_name, opened, lambda n: ach.create(n, 1, 1), ach.unlink, ach.exists)
     for call in calls:
         with pytest.raises(ach.AchException) as info:
             call(name)

@@ -7,7 +7,6 @@ refuse the bridge's frames; they talk to the bridge over DDS (inside tools/netns
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import signal
@@ -19,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mds_ach_interfaces.msg import CommandStatus
 from support import VENV_BIN, in_netns, remove_mds_channels
 from support.spin import Spinner
 
@@ -104,7 +104,6 @@ class System(Spinner):
     def __init__(self, tmp: Path) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from sensor_msgs.msg import JointState
-        from std_msgs.msg import String
         from std_srvs.srv import Trigger
         from trajectory_msgs.msg import JointTrajectory
 
@@ -126,7 +125,7 @@ class System(Spinner):
         self.status: list[dict] = []
         n = self.node
         n.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
-        n.create_subscription(String, "/mds/command_status", lambda m: self.status.append(json.loads(m.data)), 10)
+        n.create_subscription(CommandStatus, "/mds/command_status", self._on_status, 10)
         self.command = n.create_publisher(JointState, "/mds/joint_command", 10)
         self.trajectory = n.create_publisher(JointTrajectory, "/mds/joint_trajectory", 10)
         self.hold = n.create_client(Trigger, "/mds/hold")
@@ -136,6 +135,12 @@ class System(Spinner):
         self.spin_until(lambda: self.hold.service_is_ready() and self.resume.service_is_ready(), 30.0,
                         "/mds/hold and /mds/resume")
         self.spin_until(lambda: self.diags, 30.0, "the bridge's diagnostics")
+
+    def _on_status(self, m: CommandStatus) -> None:
+        """mds/command_status is typed (mds_ach_interfaces/msg/CommandStatus, issue #27 item 6), stamped."""
+        assert m.header.stamp.sec > 0, m
+        self.status.append({"event": m.event, "command": m.command, "message": m.message, "owner": m.owner,
+                            "frames": m.frames, "code": m.code})
 
     @property
     def core(self) -> MuxCore:
@@ -272,6 +277,7 @@ def test_refused_frames_are_reported_once_with_the_owner(system: System) -> None
     system.spin_until(lambda: any(e["event"] == "refused" for e in system.status), 10.0, "the refusal")
     refusal = next(e for e in system.status if e["event"] == "refused")
     assert refusal["owner"] == "teleop" and "LSP owned by 'teleop' (priority 40)" in refusal["message"]
+    assert refusal["frames"] >= 1 and refusal["code"] == "" and refusal["event"] == CommandStatus.REFUSED
     assert "mds/joint_command command #" in refusal["command"]
     system.spin_until(lambda: (d := system.commands_diag()) is not None and d.level == DiagnosticStatus.WARN
                       and "refused by the mux" in d.message and "teleop" in d.message, 10.0, "the WARN diagnostic")

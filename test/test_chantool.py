@@ -16,6 +16,7 @@ from support import NOBODY, VENV_BIN, other_ids_missing, run_as
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.paths import user_label
 from mds_ach.robot import access as channel_access
 from mds_ach.robot.channels import make_channels, remove_channels
 from mds_ach.robot.msgs import MDS_CMD, MDS_COLLIDE, MDS_IK, MDS_JOINT_PARAM, MDS_REF, MDS_STATE, set_name
@@ -129,8 +130,8 @@ def test_make_and_repair_refuse_channels_another_user_planted(run, other_user: i
     rc, out, err = run("make")
     assert rc == 1
     for name in mds.ALL_CHANNELS:
-        assert f"channel '{name}': /dev/shm/achshm-{name} is owned by uid {NOBODY} (nobody), not by the stack's " \
-               f"user (uid 0 (root)) or root" in err
+        assert f"channel '{name}': /dev/shm/achshm-{name} is owned by {user_label(NOBODY)}, not by the stack's " \
+               f"user ({user_label(0)}) or root" in err
         assert f"mds-ach repair --recreate {name} (as root if another user owns the file" in err
     rc, out, err = run("repair", "--check")
     assert rc == 1 and "ok " not in out
@@ -143,14 +144,54 @@ def test_make_and_repair_refuse_channels_another_user_planted(run, other_user: i
     assert run("make")[0] == 0 and run("repair", "--check")[0] == 0
 
 
-def test_make_refuses_an_open_mode_even_from_a_trusted_owner(run) -> None:
+def test_make_tightens_channels_the_stacks_user_made_too_open(run) -> None:
+    """Issue #29 item 1: the original made its channels with `ach -1 mk NAME -m 10 -n 3000` (mode 0644 under the
+    usual umask) and then `chmod 777 /dev/shm/achshm-mds*`. Made by the stack's own user and open in no process,
+    they are tightened in place (frames kept), one line each; a daemon input left 0660 gets 0640."""
     ach.create(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o660)
-    ach.create(mds.MDS_CHAN_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o664)
-    rc, _, err = run("make")
-    assert rc == 1
-    assert "achshm-mds-ref-gated has mode 0660, which allows more than 0640 (extra bits 0020): only the stack may " \
-           "write the daemon's input" in err
-    assert "achshm-mds-state has mode 0664, which allows more than 0660 (extra bits 0004)" in err
+    ach.create(mds.MDS_CHAN_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o644)
+    ach.create(mds.MDS_CHAN_REF_FILTER_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o644)
+    os.chmod(ach.shm_path(mds.MDS_CHAN_REF_FILTER_NAME), 0o777)
+    with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as ch:
+        ch.put(MDS_STATE())
+    inode = os.stat(ach.shm_path(mds.MDS_CHAN_STATE_NAME)).st_ino
+    rc, out, err = run("make")
+    assert (rc, err) == (0, "")
+    assert (mode_of(mds.MDS_CHAN_DAEMON_INPUT_NAME), mode_of(mds.MDS_CHAN_STATE_NAME),
+            mode_of(mds.MDS_CHAN_REF_FILTER_NAME)) == (0o640, 0o660, 0o660)
+    assert f"{mds.MDS_CHAN_STATE_NAME:<20} tightened 10 x 3000 B, mode 0644 -> 0660" in out
+    assert f"{mds.MDS_CHAN_REF_FILTER_NAME:<20} tightened 10 x 3000 B, mode 0777 -> 0660" in out
+    assert f"{mds.MDS_CHAN_DAEMON_INPUT_NAME:<20} tightened 10 x 3000 B, mode 0660 -> 0640" in out
+    assert out.count("tightened") == 3
+    assert os.stat(ach.shm_path(mds.MDS_CHAN_STATE_NAME)).st_ino == inode  # in place
+    with ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False) as ch:
+        assert ch.last_seq == 1  # frames kept
+    rc, out, _ = run("make")
+    assert rc == 0 and "tightened" not in out  # once
+
+
+def test_make_refuses_a_too_open_channel_that_another_process_has_open(run) -> None:
+    """A process that opened the channel while it was world-writable keeps write access after a chmod: the
+    stack then refuses as before (nothing changed) and says why."""
+    ach.create(mds.MDS_CHAN_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o666)
+    code = (f"import sys; from mds_ach import ach; c = ach.Channel({mds.MDS_CHAN_STATE_NAME!r}, create=False); "
+            "print('open', flush=True); sys.stdin.read()")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "open\n"
+        rc, _, err = run("make")
+        assert rc == 1
+        assert f"{ach.shm_path(mds.MDS_CHAN_STATE_NAME)} has mode 0666 and is open in another process" in err
+        assert mode_of(mds.MDS_CHAN_STATE_NAME) == 0o666
+    finally:
+        holder.communicate("")
+    rc, out, _ = run("make")
+    assert rc == 0 and "mode 0666 -> 0660" in out
+
+
+def test_make_still_refuses_a_channel_of_another_group(run) -> None:
+    """Only the mode of the stack's own files is adopted: a configured group must still match."""
+    ach.create(mds.MDS_CHAN_STATE_NAME, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o660)
     rc, _, err = run("make", "--group", other_group().gr_name)
     assert rc == 1 and f"not to the configured group {other_group().gr_gid}" in err
 
@@ -408,7 +449,7 @@ def test_clients_refuse_channels_another_user_planted(run, other_user: int, how:
     rc, out, err = run(*argv)
     assert rc == 1, (out, err)
     assert "Traceback" not in out + err
-    want = "is a symbolic link" if how == "symlink" else f"is owned by uid {NOBODY} (nobody), neither you"
+    want = "is a symbolic link" if how == "symlink" else f"is owned by {user_label(NOBODY)}, neither you"
     assert want in out + err and f"mds-ach repair --recreate {channel}" in out + err
     assert target.read_bytes() == before
 

@@ -815,12 +815,12 @@ def test_collision_help() -> None:
 @pytest.mark.ros
 @pytest.mark.slow
 def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path) -> None:
-    """/mds/collision is typed (mds_ach_interfaces/msg/CollisionState) and carries what the deprecated JSON alias
-    /mds/collision/json carries, report for report."""
+    """/mds/collision is typed (mds_ach_interfaces/msg/CollisionState): a held left arm with its hand among the
+    parts, the expert override taken and reported, each unit in its one state."""
     import rclpy
     from mds_ach_interfaces.msg import CollisionState, CollisionUnit
     from rclpy.node import Node
-    from std_msgs.msg import Float64, String
+    from std_msgs.msg import Float64
 
     world = tmp_path / "world.yaml"
     world.write_text(json.dumps(TABLE))  # JSON is YAML
@@ -829,9 +829,7 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
                             stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = Node("test_collision_client")
-    docs: list[dict] = []
     msgs: list[CollisionState] = []
-    node.create_subscription(String, "/mds/collision/json", lambda m: docs.append(json.loads(m.data)), 10)
     node.create_subscription(CollisionState, "/mds/collision", msgs.append, 10)
 
     def held(m: CollisionState) -> list[str]:
@@ -842,9 +840,9 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
     smooth = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
     try:
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not (docs and override.get_subscription_count()):
+        while time.monotonic() < deadline and not (msgs and override.get_subscription_count()):
             rclpy.spin_once(node, timeout_sec=0.1)
-        assert docs and override.get_subscription_count(), proc.poll()
+        assert msgs and override.get_subscription_count(), proc.poll()
         into_table = HOME.copy()
         into_table[L] = solve("left", [0.40, 0.25, -0.50])
 
@@ -856,28 +854,15 @@ def test_collision_node_reports_and_takes_an_override(clean_shm: None, tmp_path)
                 if pred():
                     return
             proc.send_signal(signal.SIGTERM)
-            raise AssertionError(f"timed out waiting for {what}; last: {docs[-1:]}; node: {proc.communicate()[0]}")
+            raise AssertionError(f"timed out waiting for {what}; last: {msgs[-1:]}; node: {proc.communicate()[0]}")
 
-        feed_until(lambda: any(held(m) == ["left"] and "L_HAND" in m.parts for m in msgs)
-                   and any(d["held"] == ["left"] and "L_HAND" in d["parts"] for d in docs), "a held left arm")
+        feed_until(lambda: any(held(m) == ["left"] and "L_HAND" in m.parts for m in msgs), "a held left arm")
         override.publish(Float64(data=2.0))
-        feed_until(lambda: any(m.overridden and m.override_remaining > 0 for m in msgs)
-                   and any(d["overridden"] and d["override_remaining"] > 0 for d in docs), "the override")
-        by_time = {d["time"]: d for d in docs}
-        pairs = [(m, by_time[m.time]) for m in msgs if m.time in by_time]
-        assert any(d["held"] for _, d in pairs) and any(d["overridden"] for _, d in pairs)
-        for m, d in pairs:
-            assert (m.collision, list(m.parts), m.measured, list(m.refused), m.refused_count, m.overridden,
-                    m.override_remaining, m.margin) == (d["collision"], d["parts"], d["measured"], d["refused"],
-                                                       d["refused_count"], d["overridden"], d["override_remaining"],
-                                                       d["margin"])
-            assert [[p.a, p.b] for p in m.pairs] == d["pairs"] and [[p.a, p.b] for p in m.contact] == d["contact"]
+        feed_until(lambda: any(m.overridden and m.override_remaining > 0 for m in msgs), "the override")
+        for m in msgs:
             assert [u.unit for u in m.units] == ["left", "right", "body"]
-            assert held(m) == d["held"] or (d["held"] == ["all"] and len(held(m)) == 3)
-            assert [u.unit for u in m.units if u.state == CollisionUnit.RELEASING] == \
-                [u for u in ("left", "right", "body") if u in d["releasing"] and u not in held(m)]
-            assert [u.unit for u in m.units if u.escaping] == d["escaping"]
-            assert {u.unit: u.stopped_reason for u in m.units if u.stopped} == d["stopped"]
+            assert {u.state for u in m.units} <= {CollisionUnit.FREE, CollisionUnit.HELD, CollisionUnit.RELEASING}
+            assert m.margin == pytest.approx(0.02) and m.header.stamp.sec > 0
     finally:
         smooth.close()
         node.destroy_node()

@@ -29,6 +29,8 @@ def xml_dir(shared_dir: Path) -> Path:
 
 def _same(a: config.JointConfig, b: config.JointConfig) -> None:
     for f in fields(a):
+        if not f.compare:  # what a file left unstated (JointConfig.published): the YAML states everything
+            continue
         va, vb = getattr(a, f.name), getattr(b, f.name)
         if isinstance(va, float):
             assert va == pytest.approx(vb, abs=1e-12), (a.short, f.name)
@@ -132,8 +134,8 @@ def test_param_and_state_fill() -> None:
     back = MDS_JOINT_PARAM.from_bytes(bytes(param))
     for j in t:
         p = back.joint[j.address]
-        assert (p.address, p.enabled, get_name(p.name), get_name(p.nameshort)) == (j.address, int(j.enabled), j.name,
-                                                                                  j.short)
+        assert (p.address, p.enabled, get_name(p.name), get_name(p.nameshort)) == (
+            j.address, int(j.enabled), j.name, joints.published_short(j.address, j.short))
         assert (p.rom, p.offset, p.direction, p.rom_margin) == (j.rom, j.offset, j.direction, j.rom_margin)
         assert p.encoderresolution * p.gearratio * p.encoderconfig_tickspercount == pytest.approx(j.cpr)
         assert get_name(p.HomeType) == j.homing.type and p.HomeError == j.homing.error
@@ -143,6 +145,32 @@ def test_param_and_state_fill() -> None:
     t.fill_state(state)
     assert get_name(state.joint[0x5F].nameshort) == "LSP" and state.joint[0x5F].direction == -1
     assert state.joint[0x31].enabled == 0 and state.joint[0x30].enabled == 1
+
+
+def test_mds_param_from_the_original_xml_is_what_the_original_parser_published(shared_dir: Path) -> None:
+    """Issue #29 item 6: the original's parser padded each text it set with spaces to all 30 bytes (no NUL) and
+    left unset fields zero; mdsach.xml names nodes 0x31, 0x32, 0x3f LYP, LYP, RYP; a missing rom.margin stayed
+    0.0 in the frame (the limits still take 5 % for it)."""
+    configs = shared_dir / "mds-reference" / "configs"
+    table = config.from_xml(configs / "anatomy.xml", configs / "mdsach.xml")
+    raw = bytes(table.to_param())
+    param = MDS_JOINT_PARAM.from_bytes(raw)
+    size = MDS_JOINT_PARAM.joint.size // 100  # one mds_jnt_param_t: 290 B
+    for j in table:
+        p = param.joint[j.address]
+        for name in ("name", "nameshort", "coordsys", "HomeType", "HomeTarget"):
+            at = j.address * size + getattr(type(p), name).offset
+            field_bytes = raw[at:at + 30]
+            text = field_bytes.rstrip(b" ")
+            assert b"\0" not in field_bytes and text and field_bytes == text.ljust(30, b" "), (j.short, name)
+    assert [get_name(param.joint[a].nameshort) for a in (0x31, 0x32, 0x3F)] == ["LYP", "LYP", "RYP"]
+    assert get_name(param.joint[0x4C].nameshort) == "LEP" and get_name(param.joint[0x4C].name) == "LeftElbowFlex"
+    assert raw[:size] == bytes(size), "an address without a muscle stays all zero"
+    assert param.joint[0x3A].rom_margin == 0.0 and table["NKY"].rom_margin == 0.05  # HeadPan has no rom.margin
+    assert param.joint[0x4C].rom_margin == table["LEP"].rom_margin > 0
+    state = MDS_STATE()
+    table.fill_state(state)
+    assert [get_name(state.joint[a].nameshort) for a in (0x31, 0x32, 0x3F)] == ["LYP", "LYP", "RYP"]
 
 
 def test_robot_selection(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

@@ -24,6 +24,7 @@ from support.system import arm_pos, arm_refs, chain_fk, joint_pos, joint_ref, md
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach.kinematics.limits import current_limits
+from mds_ach.robot.config import load
 from mds_ach.robot.joints import JOINTS
 from mds_ach.robot.msgs.mux_state import MUX_HELD
 from mds_ach.tools import console
@@ -178,7 +179,7 @@ def test_a_goto_to_the_value_the_channel_holds_is_a_command_after_another_contro
         assert runner.ready.wait(10), logs
         lsp = mds.BY_SHORT["LSP"].address
         assert con.run_line("goto LSP -0.3"), out
-        assert out[-1] == "LSP -> -0.30000 rad (sent to mds-ref-filter)"
+        assert re.fullmatch(r"\.+done", out[-1]), out  # the original's dots and 'done'
         with StructChannel(mds.MDS_CHAN_REF_IK_NAME, mds.MDS_REF) as ik:  # the IK controller moves LSP
             ref, mode = ref_arrays(_newest_mux_output())
             ref[lsp] = -0.1
@@ -238,6 +239,61 @@ def test_without_a_system_commands_fail_with_a_clear_message() -> None:
     assert not any(os.path.exists(f"/dev/shm/achshm-{n}") for n in mds.ALL_CHANNELS), "the console created channels"
 
 
+@pytest.mark.parametrize(("value", "printed"), [(0.244, "0.244"), (-0.5, "-0.5"), (0.0, "0.0"), (-0.0, "-0.0"),
+                                               (1e-05, "1e-05"), (0.24551, "0.24551"), (-0.65881, "-0.65881"),
+                                               (3.0, "3.0"), (123456.12345, "123456.12345")])
+def test_floats_print_as_python_2_printed_them(value: float, printed: str) -> None:
+    """The original console was Python 2: `print 'x = ', round(v, 5)` wrote str(v) -- 12 significant digits, '.0'
+    on a whole number -- not a fixed 5 decimals (issue #29 item 4)."""
+    assert console.py2_str(value) == printed
+
+
+def test_get_fk_and_ik_lines_have_the_original_spacing() -> None:
+    """Python 2's print put a space between items: two spaces after each '=', the header's 'for  left  arm';
+    ik3 and ik5 both said 'N-3'."""
+    assert console.format_fk("left", (0.244, 0.24551, -0.6588125), (0.0, -0.0, 1.5707963)) == [
+        "6DOF FK - for  left  arm", "pos:\tx =  0.244 \ty =  0.24551 \tz =  -0.65881",
+        "rot:\tx =  0.0 \ty =  -0.0 \tz =  1.5708"]
+    assert console.format_ik("right", (0.3, -0.2, 0.0, 0.0, 0.1), (0.3000042, -0.19999, 1e-06)) == [
+        "N-3 DOF IK Solution - for  right  arm", "des:\tx =  0.3 \ty =  -0.2 \tz =  0.0",
+        "ret:\tx =  0.3 \ty =  -0.19999 \tz =  0.0", "dif:\tx =  -0.0 \ty =  -1e-05 \tz =  -0.0"]
+
+
+@pytest.mark.parametrize(("start", "target", "dots"), [(0.0, 0.25, 3), (0.0, 0.0, 1), (0.0, -0.05, 1),
+                                                       (-1.0, -1.2, 2), (0.5, 0.15, 4)])
+def test_goto_prints_a_dot_per_step_of_the_original(start: float, target: float, dots: int) -> None:
+    assert console.original_steps(start, target) == dots
+
+
+def test_the_original_verbs_print_what_the_original_printed(fake_system: None) -> None:
+    """stdout of get, get fk and ik3/ik5 (solve only) is the original's lines and nothing else; notes go to stderr;
+    an unknown verb is ignored (one line on stderr, not a failure) as the original ignored it."""
+    out: list[str] = []
+    err: list[str] = []
+    con = console.Console(out=out.append, err=err.append, progress=lambda: None)
+    try:
+        assert con.run_line("get LSP")
+        ref = f"{next(j.home for j in load() if j.short == 'LSP'):.5f}"
+        assert out == [f"LeftShoulderExt  State =  {ref}  rad", f"LeftShoulderExt  Ref   =  {ref}  rad"], out
+        out.clear()
+        assert con.run_line("get fk left")
+        assert len(out) == 3 and out[0] == "6DOF FK - for  left  arm"
+        assert all(re.fullmatch(r"(pos|rot):\tx =  \S+ \ty =  \S+ \tz =  \S+", line) for line in out[1:]), out
+        out.clear()
+        for line in ("ik3 left 0.3 0.2 0", "ik5 left 0.3 0.2 0.0 1.2 -0.3"):
+            assert con.run_line(line), err
+        assert [x.split(":")[0] for x in out] == ["N-3 DOF IK Solution - for  left  arm", "des", "ret", "dif"] * 2
+        out.clear()
+        err.clear()
+        assert con.run_line("fly")
+        assert out == [] and err == ["  unknown command 'fly': ignored, as the original console did ('help' lists "
+                                     "the commands)"]
+        assert console.run_commands(con, ["fly", "get LSP"]) == 0
+        assert out[-1].startswith("LeftShoulderExt  Ref   =")
+    finally:
+        con.close()
+
+
 # --------------------------------------------------------------------------------------------- the real system
 
 
@@ -247,23 +303,24 @@ def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]
         yield env
 
 
-def run_console(env: dict[str, str], *commands: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
-    args = [str(VENV_BIN / "mds-ach"), "console"]
+def run_console(env: dict[str, str], *commands: str, timeout: float = 60.0,
+                verbose: bool = False) -> subprocess.CompletedProcess:
+    args = [str(VENV_BIN / "mds-ach"), "console"] + (["--verbose"] if verbose else [])
     for c in commands:
         args += ["-c", c]
     return subprocess.run(args, env=env, capture_output=True, text=True, timeout=timeout)
 
 
-FK_RE = re.compile(r"6DOF FK - for  (left|right)  arm\npos:\tx = (\S+) \ty = (\S+) \tz = (\S+)\n"
-                   r"rot:\tx = (\S+) \ty = (\S+) \tz = (\S+)")
+FK_RE = re.compile(r"6DOF FK - for  (left|right)  arm\npos:\tx =  (\S+) \ty =  (\S+) \tz =  (\S+)\n"
+                   r"rot:\tx =  (\S+) \ty =  (\S+) \tz =  (\S+)")
 
 
 def parse_fk(text: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     out = {}
     for m in FK_RE.finditer(text):
         values = [float(v) for v in m.groups()[1:]]
-        for v in m.groups()[1:]:
-            assert re.fullmatch(r"-?\d+\.\d{5}", v), f"not 5 decimals: {v}"
+        for v in m.groups()[1:]:  # Python 2's print of round(v, 5): 0.244, -0.5, 0.0, 1e-05
+            assert v == console.py2_str(round(float(v), 5)), f"not as the original printed it: {v}"
         out[m.group(1)] = (np.array(values[:3]), np.array(values[3:]))
     return out
 
@@ -282,10 +339,10 @@ def test_get_fk_prints_the_pose_of_the_current_references(system: dict[str, str]
 
 @pytest.mark.slow
 def test_goto_moves_the_joint_through_the_pipeline(system: dict[str, str]) -> None:
-    proc = run_console(system, "goto LSP -0.3 wait", "get LSP")
+    proc = run_console(system, "goto LSP -0.3 wait", "get LSP", verbose=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "LSP -> -0.30000 rad (sent to mds-ref-filter)" in proc.stdout
-    assert "done" in proc.stdout
+    assert "LSP -> -0.30000 rad (sent to mds-ref-filter)" in proc.stdout  # --verbose
+    assert re.search(r"^\.+done$", proc.stdout, re.M), proc.stdout
     assert abs(joint_pos("LSP") + 0.3) < 0.011
     # the original printed the joint's long (anatomy) name
     m = re.search(r"^LeftShoulderExt  State =  (-?\d+\.\d{5})  rad\nLeftShoulderExt  Ref   =  (-?\d+\.\d{5})  rad$",
@@ -343,12 +400,13 @@ def test_bad_input_prints_the_problem_and_the_usage(system: dict[str, str]) -> N
     proc = run_console(system, "get LSP", "goto LSP", "get LSP")
     assert proc.returncode == 1
     assert proc.stdout.count("State =") == 1, "commands after a failure must not run in -c mode"
+    assert proc.stdout.endswith("rad\n  Invalid input... \n"), "the original's line for a bad goto"
     assert "usage: goto <joint> <rad>" in proc.stderr and "commands (joint names" in proc.stderr
 
 
 @pytest.mark.slow
 def test_ik_moves_the_arm_to_the_target_and_reports_the_fk(system: dict[str, str]) -> None:
-    proc = run_console(system, "ik left 3 0.3 0.2 0.0 wait", timeout=90)
+    proc = run_console(system, "ik left 3 0.3 0.2 0.0 wait", timeout=90, verbose=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "solved" in proc.stdout and "done" in proc.stdout
     reported = parse_fk(proc.stdout)["left"][0]
@@ -361,7 +419,7 @@ def test_ik_moves_the_arm_to_the_target_and_reports_the_fk(system: dict[str, str
 def test_goto_waits_while_a_higher_priority_controller_holds_the_joint(system: dict[str, str]) -> None:
     proc = run_console(system, "ik left 3 0.32 0.22 0.0", "goto LWY 0.3 wait", timeout=90)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "waiting for the mux to release LWY (held by 'ik')" in proc.stdout
+    assert "waiting for the mux to release LWY (held by 'ik')" in proc.stderr
     assert abs(joint_pos("LWY") - 0.3) < 0.011, "the goto is applied once the IK controller lets go"
 
 
@@ -370,7 +428,7 @@ def test_ik_unreachable_moves_nothing(system: dict[str, str]) -> None:
     before = arm_refs("right")
     proc = run_console(system, "ik right 3 2.0 0.0 0.0", timeout=90)
     assert proc.returncode == 1
-    assert "unreachable" in proc.stdout
+    assert "unreachable" in proc.stderr and proc.stdout == "", "the original's ik printed nothing"
     time.sleep(0.3)
     np.testing.assert_allclose(arm_refs("right"), before, atol=1e-9)
 
@@ -456,7 +514,7 @@ def test_commands_are_not_applied_while_the_mux_is_down(system: dict[str, str]) 
             assert proc.returncode == 1, f"{command}: {proc.stdout} {proc.stderr}"
             assert "not applied: mux not running (no new frame on mds-mux-state within 1 s); start it: " \
                    "mds-ach start --only mux; nothing sent" in proc.stderr, proc.stderr
-            assert "->" not in proc.stdout and "solved" not in proc.stdout, proc.stdout
+            assert "done" not in proc.stdout and "solved" not in proc.stdout, proc.stdout
         with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan:
             assert chan.last_seq == sent_before, "nothing was written for the mux to find later"
         assert [joint_ref(s) for s in ("LSP", "LEP", "RSP")] == before, "nothing moved"
@@ -465,7 +523,7 @@ def test_commands_are_not_applied_while_the_mux_is_down(system: dict[str, str]) 
         assert restart.returncode == 0, restart.stdout + restart.stderr
     proc = run_console(system, "goto LSP -0.2 wait")
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "LSP -> -0.20000 rad (sent to mds-ref-filter)" in proc.stdout and abs(joint_pos("LSP") + 0.2) < 0.011
+    assert proc.stdout.endswith("done\n") and abs(joint_pos("LSP") + 0.2) < 0.011
 
 
 @pytest.mark.slow
@@ -478,12 +536,12 @@ def test_goto_step_ramps_like_the_original(system: dict[str, str]) -> None:
     with ach.Channel(mds.MDS_CHAN_REF_FILTER_NAME, create=False) as chan:
         seq0 = chan.last_seq
         t0 = time.monotonic()
-        proc = run_console(system, "goto LEP -0.75 step wait", "get LEP")
+        proc = run_console(system, "goto LEP -0.75 step wait", "get LEP", verbose=True)
         elapsed = time.monotonic() - t0
         written = chan.last_seq - seq0
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    m = re.search(r"^(\.+)\nLEP -> -0\.75000 rad in (\d+) steps of 0\.1 rad every 0\.1 s \(sent to mds-ref-filter\)$",
-                  proc.stdout, re.M)
+    m = re.search(r"^(\.+)done\nLEP -> -0\.75000 rad in (\d+) steps of 0\.1 rad every 0\.1 s "
+                  r"\(sent to mds-ref-filter\)$", proc.stdout, re.M)
     assert m, proc.stdout
     steps = int(m.group(2))
     assert len(m.group(1)) == steps
@@ -503,12 +561,12 @@ def test_ik3_without_set_solves_and_prints_only(system: dict[str, str]) -> None:
         proc = run_console(system, "ik3 left 0.3 0.2 0.0", "ik5 left 0.3 0.2 0.0 1.2 -0.3")
         assert (chan.last_seq, ikch.last_seq) == seqs, "nothing was sent"
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    for dof in (3, 5):
-        assert f"N-{dof} DOF IK Solution - for  left  arm" in proc.stdout, proc.stdout
-    m = re.search(r"^ret:\tx = (\S+) \ty = (\S+) \tz = (\S+)$", proc.stdout, re.M)
+    assert proc.stdout.count("N-3 DOF IK Solution - for  left  arm\ndes:\tx =  0.3 \ty =  0.2 \tz =  0.0\n") == 2, \
+        proc.stdout  # the original said N-3 for ik5 too
+    m = re.search(r"^ret:\tx =  (\S+) \ty =  (\S+) \tz =  (\S+)$", proc.stdout, re.M)
     assert m, proc.stdout
     np.testing.assert_allclose([float(v) for v in m.groups()], [0.3, 0.2, 0.0], atol=1e-3)
-    assert proc.stdout.count("not sent: add 'set'") == 2
+    assert len(proc.stdout.splitlines()) == 8, "the original's four lines each, nothing more"
     time.sleep(0.3)  # give a wrong motion time to show
     np.testing.assert_allclose(arm_refs("left"), before, atol=1e-9)
 
@@ -517,7 +575,8 @@ def test_ik3_without_set_solves_and_prints_only(system: dict[str, str]) -> None:
 def test_ik3_set_moves_the_arm_through_the_ik_node(system: dict[str, str]) -> None:
     proc = run_console(system, "ik3 left 0.35 0.25 -0.05 set wait", timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "solved:" in proc.stdout and "done" in proc.stdout
+    assert proc.stdout.startswith("N-3 DOF IK Solution - for  left  arm\ndes:\tx =  0.35 \ty =  0.25 \tz =  -0.05\n")
+    assert proc.stdout.endswith("done\n") and "solved:" not in proc.stdout
     np.testing.assert_allclose(chain_fk(arm_pos("left"), "left")[0], [0.35, 0.25, -0.05], atol=0.02)
 
 
@@ -536,10 +595,10 @@ def test_zeroall_goes_to_the_nearest_in_range_value_and_says_so(system: dict[str
             expected[j.short] = min(max(0.0, rng[0]), rng[1])
     clamped = {s: v for s, v in expected.items() if v != 0.0}
     assert {"LEP", "REP"} <= set(clamped), clamped  # otherwise this test shows nothing
-    proc = run_console(system, "zeroall", timeout=120)
+    proc = run_console(system, "zeroall", timeout=120, verbose=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert f"{len(expected)} enabled joints -> 0 rad (sent to mds-ref-filter)" in proc.stdout
-    line = next(x for x in proc.stdout.splitlines() if x.startswith("0 rad is outside the limits"))
+    assert f"{len(expected)} enabled joints -> 0 rad (sent to mds-ref-filter)" in proc.stdout  # --verbose
+    line = next(x for x in proc.stderr.splitlines() if x.startswith("0 rad is outside the limits"))
     for short, value in clamped.items():
         assert f"{short} {value:.5f} (range [" in line, line
     assert f"of {len(clamped)}; nearest in range" in line
@@ -582,3 +641,16 @@ def test_help_descriptions_are_wrapped(verb: str) -> None:
     description = proc.stdout.split("\n\n")[1]
     assert len(description.splitlines()) > 1 and max(len(line) for line in description.splitlines()) <= 98, \
         description
+
+
+def test_a_reader_that_stops_reading_ends_the_console_quietly() -> None:
+    """Issue #29 item 6: `mds-ach console -c ... | head -1` ended in a BrokenPipeError traceback. Now it stops as a
+    tool killed by SIGPIPE does: no traceback, status 141, no later command run."""
+    for argv in ([str(VENV_BIN / "mds-ach"), "console"], [str(VENV_BIN / "mds-ach-console")]):
+        proc = subprocess.Popen([*argv, *["-c", "help"] * 200], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdout is not None and proc.stderr is not None
+        first = proc.stdout.readline()  # `head -1`
+        proc.stdout.close()
+        err = proc.stderr.read().decode()
+        assert proc.wait(60) == 141 and first.startswith(b"commands"), err
+        assert err == "", err

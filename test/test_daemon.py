@@ -905,11 +905,9 @@ def test_bad_configuration_is_a_clear_error(clean_shm, monkeypatch: pytest.Monke
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
     """`daemon --nocan`: a reference reaches the simulated joint, /diagnostics, /mds/daemon_status and the command
-    service (mds_ach_interfaces/srv/Command; the deprecated AddDiagnostics text form on ~/command_text) work, and
-    the signal stops it cleanly (exit 0)."""
+    service (mds_ach_interfaces/srv/Command) work, and the signal stops it cleanly (exit 0)."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from diagnostic_msgs.srv import AddDiagnostics
     from mds_ach_interfaces.msg import DaemonStatus
     from mds_ach_interfaces.srv import Command
 
@@ -923,7 +921,6 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
     statuses: list[DaemonStatus] = []
     node.create_subscription(DaemonStatus, "/mds/daemon_status", statuses.append, 10)
     client = node.create_client(Command, "/mds_daemon/command")
-    text_client = node.create_client(AddDiagnostics, "/mds_daemon/command_text")
     state_in = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
     ref_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
     try:
@@ -955,8 +952,7 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
         spin_until(lambda: statuses, 15.0, "/mds/daemon_status")
         assert statuses[-1].running and statuses[-1].nocan and statuses[-1].bus_state_name == "active"
         assert statuses[-1].rate_hz == 20.0 and statuses[-1].bus_load > 0 and statuses[-1].cycle > 0
-        spin_until(lambda: client.service_is_ready() and text_client.service_is_ready(), 15.0,
-                   "the command services")
+        spin_until(client.service_is_ready, 15.0, "the command service")
         future = client.call_async(Command.Request(command="home", joints=["LEP", "REP"]))
         spin_until(future.done, 15.0, "the service reply")
         reply = future.result()
@@ -968,18 +964,12 @@ def test_executable_with_ros(clean_shm, sig: signal.Signals) -> None:
         future = client.call_async(Command.Request(command="fly", joints=[]))
         spin_until(future.done, 15.0, "the service reply")
         assert not future.result().success and "unknown command 'fly'" in future.result().message
-        future = text_client.call_async(AddDiagnostics.Request(load_namespace="home LEP"))
-        spin_until(future.done, 15.0, "the service reply")
-        assert future.result().success and "LEP" in future.result().message
-        future = text_client.call_async(AddDiagnostics.Request(load_namespace="home NOPE"))
-        spin_until(future.done, 15.0, "the service reply")
-        assert not future.result().success and "unknown joint" in future.result().message
         # Encoder commands need the operators' authority (mds-cmd): refused from ROS by default (issue #25 item 1).
         future = client.call_async(Command.Request(command="zero", joints=["LEP"]))
         spin_until(future.done, 15.0, "the service reply")
         reply = future.result()
         assert not reply.success and "mds-ach zero JOINT" in reply.message and list(reply.failed) == ["LEP"]
-        future = text_client.call_async(AddDiagnostics.Request(load_namespace="reset LEP"))
+        future = client.call_async(Command.Request(command="reset", joints=["LEP"]))
         spin_until(future.done, 15.0, "the service reply")
         assert not future.result().success and "mds-ach reset JOINT" in future.result().message
         wait_for(lambda: (st := state_in.latest()) is not None and st.joint[0x4C].active == 1, 10.0,

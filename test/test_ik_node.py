@@ -13,6 +13,7 @@ import threading
 import numpy as np
 import pytest
 from support import VENV_BIN, wait_for
+from support.channels import newest
 
 import mds_ach as mds
 from mds_ach import ik
@@ -297,13 +298,12 @@ def test_ik_refuses_mds_ref_as_output() -> None:
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) -> None:
     """Answers on mds-ik-state and on /mds/ik_status (mds_ach_interfaces/msg/IkStatus), which carries what the
-    deprecated JSON alias /mds/ik_status/json carries."""
+    channel carries, answer for answer."""
     import rclpy
     from mds_ach_interfaces.msg import IkStatus
-    from std_msgs.msg import String
 
     from mds_ach.robot.channels import StructChannel
-    from mds_ach.robot.msgs.ik_status import IK_STATUS_TOPIC
+    from mds_ach.robot.msgs.ik_status import IK_STATUS_TOPIC, status_to_dict
 
     put_state(current_pose())
     proc = subprocess.Popen([str(VENV_BIN / "mds-ach-ik")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -314,7 +314,6 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
 
     typed: list[IkStatus] = []
     latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    node.create_subscription(String, IK_STATUS_TOPIC + "/json", lambda m: got.append(json.loads(m.data)), latched)
     node.create_subscription(IkStatus, IK_STATUS_TOPIC, typed.append, latched)
     out = StructChannel(mds.MDS_CHAN_REF_IK_NAME, mds.MDS_REF)
     try:
@@ -332,8 +331,12 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
             client.requests.put(bad)
             refused = wait_for(lambda: client.answers.latest(), 20, what="the answer to the bad request")
             assert refused.status == IK_BAD_REQUEST
+            got.append(status_to_dict(refused))
             reply = client.request("left", 5, ik.getPosCurrentFromOrder(pose, ik.DOF_ORDERS[5]), timeout=30)
         assert reply.success, reply.message
+        answer = newest(mds.MDS_CHAN_IK_STATE_NAME, MDS_IK_STATUS)
+        assert answer is not None and answer.seq == reply.seq
+        got.append(status_to_dict(answer))
         frame = wait_for(lambda: out.latest(), 5, what="the solution on mds-ref-ik")
         assert np.allclose(ref_arrays(frame)[0][LEFT_ADDR], reply.q)
 
@@ -341,7 +344,7 @@ def test_ik_node_answers_on_channels_and_ros_topic(clean_shm: None, sig: int) ->
             rclpy.spin_once(node, timeout_sec=0.05)
             return len(got) >= 2 and len(typed) >= 2
 
-        wait_for(topic, 20, what=f"both answers on {IK_STATUS_TOPIC} and its JSON alias")
+        wait_for(topic, 20, what=f"both answers on {IK_STATUS_TOPIC}")
         assert [m.status for m in typed] == [IkStatus.BAD_REQUEST, IkStatus.SOLVED]
         assert typed[-1].arm == "left" and typed[-1].dof == 5 and typed[-1].seq == reply.seq
         assert list(typed[-1].q) == pytest.approx(list(reply.q))

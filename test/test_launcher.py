@@ -28,6 +28,8 @@ from support.system import mds_ach, running_system, system_env
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.paths import user_label
+from mds_ach.robot import access as channel_access
 from mds_ach.robot.config import load
 from mds_ach.robot.msgs import get_name
 from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
@@ -130,10 +132,30 @@ def test_start_refuses_channels_another_user_planted(clean_shm: None, tmp_path: 
     assert proc.returncode == 1
     assert "refusing to start, channel problems:" in proc.stderr
     for name in mds.ALL_CHANNELS:
-        assert f"{name}: /dev/shm/achshm-{name} is owned by uid {NOBODY} (nobody)" in proc.stderr
+        assert f"{name}: /dev/shm/achshm-{name} is owned by {user_label(NOBODY)}" in proc.stderr
         assert f"mds-ach repair --recreate {name}" in proc.stderr
     assert "started" not in proc.stdout, "no node was started"
     assert not list(tmp_path.glob("*.pid")) and _processes_of(tmp_path) == []
+
+
+@pytest.mark.slow
+def test_start_tightens_channels_made_the_original_way(clean_shm: None, tmp_path: Path) -> None:
+    """Issue #29 item 1: the original's `ach -1 mk NAME -m 10 -n 3000` (0644) and `chmod 777`, by the stack's own
+    user: `start` gives them the stack's modes in place, one line each, and starts."""
+    for name in mds.ALL_CHANNELS:
+        ach.create(name, mds.CHANNEL_FRAME_COUNT, mds.CHANNEL_FRAME_SIZE, mode=0o644)
+    os.chmod(ach.shm_path(mds.MDS_CHAN_REF_NAME), 0o777)
+    env = system_env(tmp_path)
+    proc = mds_ach("start", "nocan", "--only", "daemon", env=env, timeout=200)
+    try:
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        assert f"  channel {mds.MDS_CHAN_REF_NAME}: 10 x 3000 B, mode 0777 -> 0660" in proc.stdout
+        assert f"  channel {mds.MDS_CHAN_DAEMON_INPUT_NAME}: 10 x 3000 B, mode 0644 -> 0640" in proc.stdout
+        assert proc.stdout.count(" -> 06") == len(mds.ALL_CHANNELS)
+        for name in mds.ALL_CHANNELS:
+            assert os.stat(ach.shm_path(name)).st_mode & 0o777 == channel_access.channel_mode(name), name
+    finally:
+        mds_ach("stop", env=env, timeout=60)
 
 
 def test_another_users_system_channels_are_explained_in_one_line(clean_shm: None, tmp_path: Path,
@@ -150,7 +172,7 @@ def test_another_users_system_channels_are_explained_in_one_line(clean_shm: None
     assert proc.returncode == 1
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, proc.stderr
-    assert f"belong to nobody (uid {NOBODY}), not to you (root (uid 0))" in lines[0], lines[0]
+    assert f"belong to {user_label(NOBODY)}, not to you ({user_label(0)})" in lines[0], lines[0]
     assert "killall' (it also stops that user's nodes), then start again" in lines[0], lines[0]
     assert "repair --recreate" not in lines[0]
     assert "started" not in proc.stdout
@@ -163,7 +185,8 @@ def test_nodes_refuse_a_planted_channel(clean_shm: None, tmp_path: Path, other_u
     daemon = subprocess.run([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--duration", "30"], env=env,
                             capture_output=True, text=True, timeout=120)
     assert daemon.returncode == 2, daemon.stderr
-    assert f"refusing channel 'mds-ref-gated': /dev/shm/achshm-mds-ref-gated is owned by uid {NOBODY}" in daemon.stderr
+    assert f"refusing channel 'mds-ref-gated': /dev/shm/achshm-mds-ref-gated is owned by {user_label(NOBODY)}" in \
+        daemon.stderr
     assert "mds-ach repair --recreate mds-ref-gated" in daemon.stderr
     mux = subprocess.run([str(VENV_BIN / "mds-ach-mux")], env=env, capture_output=True, text=True, timeout=120)
     assert mux.returncode == 1, mux.stdout + mux.stderr  # the mux reads mds-ref-gated for its start reference
@@ -249,7 +272,8 @@ def test_status_of_sound_channels_and_a_foreign_one(clean_shm: None, tmp_path: P
     _plant((mds.MDS_CHAN_BOARD_CMD_NAME,))
     proc = mds_ach("status", "--window", "0.1", env=env)
     assert proc.returncode == 1
-    assert re.search(rf"^channel\s+mds-cmd: unsafe: /dev/shm/achshm-mds-cmd is owned by uid {NOBODY} .*"
+    owner = re.escape(user_label(NOBODY))
+    assert re.search(rf"^channel\s+mds-cmd: unsafe: /dev/shm/achshm-mds-cmd is owned by {owner}, .*"
                      r"mds-ach repair --recreate mds-cmd", proc.stdout, re.M), proc.stdout
 
 

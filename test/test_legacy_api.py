@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 import mds_ach as mds
+from mds_ach import ach
+from mds_ach.paths import user_label
 from mds_ach.robot import legacy_names
 
 # Values straight from the original develop-branch mds_ach.py / mds.h (specs/mds-original.md §a), independent of
@@ -153,5 +155,24 @@ def test_a_legacy_write_never_reaches_a_file_another_user_planted(clean_shm: Non
     before = theirs.read_bytes()
     with pytest.raises(ach.AchException) as exc:
         ach.Channel(mds.MDS_CHAN_REF_NAME).put(bytes(mds.MDS_REF()))
-    assert ("is a symbolic link" if how == "symlink" else "is owned by uid 65534 (nobody)") in str(exc.value)
+    assert ("is a symbolic link" if how == "symlink" else f"is owned by {user_label(NOBODY)}") in str(exc.value)
     assert theirs.read_bytes() == before
+
+
+def test_the_classic_bindings_unopened_channel_open_and_result_string(clean_shm: None) -> None:
+    """Issue #29 item 6: golems' binding lets a program make ``ach.Channel()`` and ``open()`` it later, and asks the
+    handle for ``result_string(status)``; both were missing (TypeError, AttributeError)."""
+    c = ach.Channel()
+    assert c.closed
+    c.open("test-classic", 4, 64)  # created when missing, as Channel(name) does
+    c.put(b"hello")
+    buf = bytearray(64)
+    assert c.get(buf, wait=False, last=True) == (ach.ACH_OK, 5)
+    assert c.result_string(ach.ACH_OVERFLOW) == "ACH_OVERFLOW" and ach.Channel.result_string(0) == "ACH_OK"
+    with pytest.raises(ach.AchException) as info:
+        c.open("test-classic")
+    assert info.value.status == ach.ACH_EINVAL and "close() it first" in str(info.value)
+    c.close()
+    c.open("test-classic")  # a closed handle opens again
+    assert c.get(buf, last=True) == (ach.ACH_OK, 5)
+    c.close()

@@ -351,12 +351,14 @@ def test_mux_help() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -> None:
-    """/mds/mux_state is typed (mds_ach_interfaces/msg/MuxState) and carries what the deprecated JSON alias
-    /mds/mux_state/json carries, report for report."""
+    """/mds/mux_state is typed (mds_ach_interfaces/msg/MuxState) and carries what mds-mux-state carries, report
+    for report."""
     import rclpy
     from mds_ach_interfaces.msg import MuxState
     from rclpy.node import Node
-    from std_msgs.msg import String
+
+    from mds_ach.robot.channels import StructChannel
+    from mds_ach.robot.msgs import MDS_MUX_STATE
 
     ref, _ = _start_ref()
     _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, ref)
@@ -367,7 +369,11 @@ def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -
     msgs: list[MuxState] = []
     docs: list[dict] = []
     node.create_subscription(MuxState, "/mds/mux_state", msgs.append, 10)
-    node.create_subscription(String, "/mds/mux_state/json", lambda m: docs.append(json.loads(m.data)), 10)
+    frames = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+
+    def read_frames() -> None:
+        while (frame := frames.next()) is not None:
+            docs.append(state_to_dict(frame))
 
     def owner(m: MuxState, joint: str) -> str:
         return m.owner[list(m.joint_names).index(joint)]
@@ -378,6 +384,7 @@ def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -
         while time.monotonic() < deadline and not (any(owner(m, "LSP") == "ik" for m in msgs)
                                                    and any(d["owners"].get("LSP") == "ik" for d in docs)):
             rclpy.spin_once(node, timeout_sec=0.1)
+            read_frames()
             if msgs and not sent:
                 _put(mds.MDS_CHAN_REF_IK_NAME, _frame(ref, LSP=-0.3))
                 sent = True
@@ -396,6 +403,7 @@ def test_mux_node_publishes_state_and_stops_cleanly(clean_shm: None, sig: int) -
                 d["hold"].values())
         assert "LSP" in msgs[-1].joint_names and msgs[-1].header.stamp.sec > 0
     finally:
+        frames.close()
         node.destroy_node()
         rclpy.shutdown()
         proc.send_signal(sig)

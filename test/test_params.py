@@ -44,7 +44,10 @@ def test_shipped_params_file_loads_with_the_defaults() -> None:
 
 @pytest.mark.parametrize(("doc", "expected"), [
     ({"daemon": {"ros__parameters": {"rate": 20.0}}}, "unknown node 'daemon' (its ROS node name is 'mds_daemon')"),
-    ({"/**": {"ros__parameters": {"rate": 20.0}}}, "wildcard"),
+    ({"/*/filter": {"ros__parameters": {"rate": 20.0}}}, "this wildcard is not supported here; use /** (every node)"),
+    ({"/**": {"ros__parameters": {"rat": 20.0}}}, "/**: unknown parameter 'rat': no node declares it"),
+    ({"/**": {"ros__parameters": {"rate": 5.0}}}, "/**: rate: 5.0 is out of range [10 … 1000] (for mds_daemon)"),
+    ({"/1robot/filter": {"ros__parameters": {"rate": 20.0}}}, "'/1robot' is not a ROS namespace"),
     ({"filter": {"ros__parameters": {"rat": 20.0}}}, "filter: unknown parameter 'rat'; filter declares: config, rate"),
     ({"filter": {"ros__parameters": {"rate": "fast"}}}, "filter: rate: must be a double, got str 'fast'"),
     ({"filter": {"ros__parameters": {"rate": True}}}, "filter: rate: must be a double, got bool True"),
@@ -69,6 +72,22 @@ def test_every_problem_is_listed_and_integers_are_doubles() -> None:
         check(doc, ALL)
     assert len(str(err.value).splitlines()) == 3, err.value
     assert check({"mds_daemon": {"ros__parameters": {"rate": 25}}}, ALL) == {"mds_daemon": {"rate": 25}}
+
+
+def test_wildcard_and_namespace_sections_reach_the_nodes_of_their_namespace_in_file_order() -> None:
+    """rcl's matching (issue #27 item 3): /** every node that declares the parameter, /**/NODE that node in any
+    namespace, /NS/NODE only in NS; a later section wins; another namespace's section is checked but not applied;
+    a bare NODE section cannot reach namespaced nodes and is refused for them."""
+    doc = {"/**": {"ros__parameters": {"rate": 20.0}},
+           "/**/mds_daemon": {"ros__parameters": {"rate": 30.0}},
+           "/robot1/mds_daemon": {"ros__parameters": {"rate": 40.0}},
+           "/robot2/filter": {"ros__parameters": {"rate": 50.0}}}
+    assert check(doc, ALL) == {"mds_daemon": {"rate": 30.0}, "filter": {"rate": 20.0}}
+    assert check(doc, ALL, "/robot1") == {"mds_daemon": {"rate": 40.0}, "filter": {"rate": 20.0}}
+    assert check(doc, ALL, "/robot2") == {"mds_daemon": {"rate": 30.0}, "filter": {"rate": 50.0}}
+    with pytest.raises(ParamsFileError, match="write /\\*\\*/filter: \\(any namespace\\) or /robot1/filter:"):
+        check({"filter": {"ros__parameters": {"rate": 20.0}}}, ALL, "/robot1")
+    assert set(load(params.default_path(), namespace="/robot1")) == {n.ros_name for n in ALL}  # the shipped file
 
 
 def test_a_file_that_is_not_yaml_or_missing_names_the_file(tmp_path: Path) -> None:

@@ -21,6 +21,7 @@ import mds_ach as mds
 from mds_ach import ach
 from mds_ach.robot.channels import StructChannel, make_channels
 from mds_ach.robot.config import load
+from mds_ach.robot.joints import published_short
 from mds_ach.robot.msgs.daemon_status import (
     JOINT_CONFIGURED,
     JOINT_ENABLED,
@@ -129,7 +130,7 @@ def test_all_shows_every_joint(publisher: Publisher) -> None:
     proc = read_once("all")
     assert proc.returncode == 0, proc.stderr
     rows = re.findall(r"^(\w+)\s+\w+\s+([01])\s+0x00[0-9a-f]{2}\s", proc.stdout, re.M)
-    assert [r[0] for r in rows] == [j.short for j in mds.JOINTS]
+    assert [r[0] for r in rows] == [published_short(j.address, j.short) for j in mds.JOINTS]  # LYP twice, RYP
     assert ("LF1", "0") in rows
 
 

@@ -192,6 +192,31 @@ def test_make_run_and_mds_ach_ros_as_a_normal_user(user: NormalUser) -> None:
         assert re.search(r"bridge\s+running", status.stdout), status.stdout + status.stderr
 
 
+def test_root_channels_in_the_shared_shm_name_the_real_users_in_one_line(clean_shm: None, user: NormalUser) -> None:
+    """Issue 28 item 2: after `sudo make run` (root's channels stay in the host's /dev/shm) a normal user's `make
+    run` shares that /dev/shm from inside its user namespace, where it is uid 0 and root's files show as uid 65534.
+    `mds-ach status` and `start` say it in one line, both users as the machine names them, with the command; the
+    per-channel lines printed `uid 65534 (nobody)` and `(uid 0 (root))`."""
+    if not user.prefix:
+        pytest.skip("needs root to leave root's channels for the user")
+    made = subprocess.run([sys.executable, "-m", "mds_ach.tools.cli", "make"], capture_output=True, text=True,
+                          timeout=60)
+    assert made.returncode == 0, made.stderr
+    name = pwd.getpwuid(int(user.prefix[1].split("=")[1])).pw_name
+    env = {k: v for k, v in user.env.items() if k != "MDS_NETNS_ACTIVE"} | {
+        "MDS_NETNS_SHARE_SHM": "1", "MDS_ACH_RUNTIME_DIR": str(user.home / "run")}
+    for verb in (["status"], ["start", "nocan"]):
+        proc = subprocess.run([*user.prefix, NETNS_RUN, user.python, "-m", "mds_ach.tools.cli", *verb], env=env,
+                              capture_output=True, text=True, timeout=120, cwd=user.home)
+        out = proc.stdout + proc.stderr
+        lines = [line for line in out.splitlines() if "/dev/shm" in line]
+        assert len(lines) == 1, out
+        assert "root, if the files come from 'sudo make run'" in lines[0] and f"not to you ({name} (uid " in \
+            lines[0], lines[0]
+        assert "uid 0 (root)" not in out and "(nobody)" not in out and "killall" in lines[0], out
+        assert proc.returncode == 1, out
+
+
 # The tests that act as another user inside the tests' namespace (support.run_as, chown to another group).
 OTHER_USER_TESTS = (
     "test/test_chantool.py::test_make_group_and_mode",

@@ -5,15 +5,19 @@ that is neither in its network namespace nor on its domain."""
 from __future__ import annotations
 
 import os
+import pwd
 import re
+import socket
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import yaml
 from support import REPO, VENV_BIN
 from support.system import isolated_run, system_env
 
+from mds_ach.paths import host_uid
 from mds_ach.tools import rosgraph
 
 
@@ -98,6 +102,55 @@ def test_ros_shell_keeps_the_venv_and_the_graph_whatever_bashrc_does(graph: tupl
     assert "bashrc-read" in proc.stdout, "the user's ~/.bashrc is still read"
     assert f"python={VENV_BIN}/python domain={domain}" in proc.stdout, proc.stdout
     assert "rclpy-ok" in proc.stdout, proc.stdout + proc.stderr
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_topics_echo_and_hz_need_no_ros2_command_line(graph: tuple[dict[str, str], str]) -> None:
+    """Issue #27 item 6: a pip-only user (no `ros2`) lists the topics, echoes one and measures its rate with
+    `mds-ach ros topics|echo|hz`, built on rclpy, inside the system's graph."""
+    env, _ = graph
+    topics = _ros(env, "topics")
+    assert topics.returncode == 0, topics.stderr
+    rows = {line.split()[0]: line for line in topics.stdout.splitlines()}
+    assert "sensor_msgs/msg/JointState  (1 pub" in rows["/joint_states"], topics.stdout
+    assert "mds_ach_interfaces/msg/CommandStatus" in rows["/mds/command_status"], topics.stdout
+    assert not [name for name in rows if "/_action/" in name], "hidden topics only with --all, as ros2 topic list"
+    every = _ros(env, "topics", "--all")
+    assert "/left_arm_controller/follow_joint_trajectory/_action/status" in every.stdout, every.stdout
+    echo = _ros(env, "echo", "joint_states", "-n", "2")
+    assert echo.returncode == 0, echo.stderr
+    docs = [yaml.safe_load(part) for part in echo.stdout.split("---") if part.strip()]
+    assert len(docs) == 2 and docs[0]["name"][0] == "LSP" and len(docs[0]["position"]) == len(docs[0]["name"])
+    assert docs[0]["header"]["frame_id"] == "base_link"
+    latched = _ros(env, "echo", "robot_description", "-n", "1")  # transient local: arrives to a late subscriber
+    assert latched.returncode == 0 and "<robot" in latched.stdout, latched.stderr
+    hz = _ros(env, "hz", "joint_states", "--duration", "4")
+    assert hz.returncode == 0, hz.stderr
+    rates = [float(m.group(1)) for m in re.finditer(r"average rate: ([\d.]+) Hz", hz.stdout)]
+    assert rates and 7.0 < rates[-1] < 13.0, hz.stdout  # the daemon's 10 Hz
+    missing = _ros(env, "echo", "nope", "--wait", "1")
+    assert missing.returncode == 1 and missing.stdout == ""
+    assert missing.stderr.startswith("mds-ach ros echo: no publisher of /nope within 1 s;"), missing.stderr
+    assert len(missing.stderr.splitlines()) == 1, missing.stderr
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_ros_shell_prompt_says_what_it_is_and_who_the_user_really_is(graph: tuple[dict[str, str], str],
+                                                                    tmp_path: Path) -> None:
+    """Issue 28: inside a rootless system's user namespace the user is uid 0, and the prompt said `root@...`; now
+    `(mds-ach ros) USER@HOST:DIR$ ` with the real user, in bash after ~/.bashrc (which may set its own) and in sh."""
+    env, _ = graph
+    user, host = pwd.getpwuid(host_uid()).pw_name, socket.gethostname().split(".")[0]
+    sign = "#" if host_uid() == 0 else "$"
+    (tmp_path / ".bashrc").write_text("PS1='mine> '\n")
+    bash = _ros({**env, "HOME": str(tmp_path)}, "--shell", "/bin/bash", verb="ros-shell",
+                stdin='echo "prompt=[$PS1] uid=$(id -u)"; exit 3\n')
+    assert bash.returncode == 3, bash.stdout + bash.stderr
+    assert f"prompt=[(mds-ach ros) {user}@{host}:\\w{sign} ]" in bash.stdout, bash.stdout
+    sh = _ros(env, "--shell", "/bin/sh", verb="ros-shell", stdin='echo "prompt=[$PS1]"; exit 3\n')
+    assert f"prompt=[(mds-ach ros) {user}@{host}{sign} ]" in sh.stdout, sh.stdout + sh.stderr
 
 
 def test_ros_without_a_running_system_says_how_to_start_one(tmp_path: Path) -> None:

@@ -72,6 +72,7 @@ from mds_ach.ach.status import (
     ACH_STALE_FRAMES,
     ACH_TIMEOUT,
     AchException,
+    result_string,
 )
 
 if TYPE_CHECKING:  # the C extension is optional at run time (see _load_fast)
@@ -148,24 +149,43 @@ class Channel:
     busy lock.
     """
 
-    def __init__(self, name: str, frame_count: int = 0, frame_size: int = 0, *, create: bool = True,
+    def __init__(self, name: str | None = None, frame_count: int = 0, frame_size: int = 0, *, create: bool = True,
                  mode: int = 0o660, condvar_wait: bool = False, fast: bool = True, lock_timeout: float | None = None):
-        self.name = validate_name(name)
+        self.name = ""
         self._condvar_wait = condvar_wait
         self._want_fast = fast
+        self._create_missing = create
+        self._mode = mode
         self._closed = True  # until fully open, so __del__ / close() are harmless
+        self._active: list[int] = []
         self.lock_timeout = lock_timeout
+        if name is not None:  # the classic binding: Channel() is a handle to open() later
+            self.open(name, frame_count, frame_size)
+
+    def open(self, name: str, frame_count: int = 0, frame_size: int = 0) -> None:
+        """The classic binding's ``open``: open channel ``name`` in this handle, made without a name or closed;
+        a missing channel is created first (``frame_count`` x ``frame_size``, 0: 16 x 512) unless the handle was
+        made with ``create=False``."""
+        if not self._closed:
+            raise AchException(ACH_EINVAL, f"this handle has channel {self.name!r} open: close() it first",
+                               channel=self.name)
+        self.name = validate_name(name)
         try:
             self._open()
         except AchException as exc:
-            if exc.status != ACH_ENOENT or not create:
+            if exc.status != ACH_ENOENT or not self._create_missing:
                 raise
             try:
-                _create(name, frame_count, frame_size, mode=mode)
+                _create(name, frame_count, frame_size, mode=self._mode)
             except AchException as exc2:
                 if exc2.status != ACH_EEXIST:  # lost a creation race: fine, open theirs
                     raise
             self._open()
+
+    @staticmethod
+    def result_string(status: int) -> str:
+        """The classic binding's ``result_string``: the status name, e.g. ``"ACH_OK"`` (``status.result_string``)."""
+        return result_string(status)
 
     # -- open / close ------------------------------------------------------------------------------
 
@@ -245,7 +265,7 @@ class Channel:
             except ValueError:  # a libc whose mutex size differs from the layout: stay in Python
                 self._fast = None
         self._cancel = False
-        self._active: list[int] = []
+        self._active = []
         self._release_lock = threading.Lock()
         self._released = False
         self._closed = False

@@ -11,9 +11,12 @@ our client talks to ``achd serve`` (inetd), and the C client ``achd push|pull`` 
   bad modes), are dropped and counted, never written; an ``mds-hold`` request the mux would refuse (a CANCEL
   target past the limits or away from the joint's reference, ``check_cancel``) is not written either, and the
   connection is answered with achd's error block (``ACH_EINVAL`` and the reason) and closed;
-* a client reconnects after a drop and re-sends its newest frame; our server starts a sending
-  connection with the channel's newest frame (achd flushes it), so a reconnect never loses the newest
-  frame and a late client gets ``mds-param`` at once;
+* a client reconnects after a drop and re-sends its newest frame, so a reconnect never loses the newest frame.
+  Our server, like achd, starts a sending connection with the first frame written after the client connected
+  (achd flushes the channel); ``send_latest_on_connect`` (``--newest-on-connect``) starts it with the newest
+  frame instead. Neither achd offers a pulling client a frame written before it connected (``get-last`` picks
+  the newest of the frames that arrive afterwards): the level channels a station needs at once are re-published
+  by their writers (the daemon puts ``mds-param`` every second, the collision gate ``mds-collide`` at 10 Hz);
 * queues are bounded and the newest frame wins: the channel ring is the only queue, read newest-first
   with get-last, and the socket send buffer is kept small;
 * no peer can lock others out: each remote address may hold a few connections (``max_per_peer``), loopback
@@ -399,11 +402,28 @@ class _Conn:
                     pass
 
 
+UDP_RECEIVE_BUFFER_BYTES = 4 * 1024 * 1024
+"""Receive buffer of a datagram socket (capped by the kernel's ``net.core.rmem_max``): room for about 150
+``mds-state`` datagrams (14 KB, fragmented), so a receiver that was not scheduled for a while (a loaded machine)
+finds them queued instead of dropped by the kernel (``RcvbufErrors`` in /proc/net/snmp). The default (208 KiB)
+held 7: under CPU load our receiver lost up to 100 of 6,000 frames there where golems' C receiver lost 1."""
+UDP_SEND_WAIT_S = 0.05
+"""A datagram send that finds the socket buffer full waits this long for room, as golems' achd does (it polls
+for POLLOUT before every send), before the datagram is counted as lost."""
+PEER_CHECK_S = 0.02
+"""How often a sending loop that is busy with frames looks at its TCP connection (a system call): not for every
+frame, which at 1 kHz was a quarter of the sender's time."""
+
+
 def _udp_socket(tcp: socket.socket) -> socket.socket:
     """A datagram socket on the TCP connection's local address, any port (achd binds INADDR_ANY)."""
     udp = socket.socket(tcp.family, socket.SOCK_DGRAM)
     udp.bind((tcp.getsockname()[0], 0))
     udp.setblocking(False)
+    try:
+        udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER_BYTES)
+    except OSError:  # the kernel caps it at rmem_max; a refusal only leaves the default
+        pass
     return udp
 
 
@@ -470,9 +490,13 @@ def _send(conn: _Conn, payload: bytes, stats: LinkStats) -> None:
         return
     try:
         assert conn.udp_peer is not None  # set together with conn.udp
-        conn.udp.sendto(payload, conn.udp_peer)
+        try:
+            conn.udp.sendto(payload, conn.udp_peer)
+        except BlockingIOError:  # socket buffer full: wait a little for room, as achd waits for POLLOUT
+            select.select([], [conn.udp], [], UDP_SEND_WAIT_S)
+            conn.udp.sendto(payload, conn.udp_peer)
     except BlockingIOError:
-        stats.send_errors += 1  # socket buffer full: this datagram is lost, the next one is newer anyway
+        stats.send_errors += 1  # still full: this datagram is lost, the next one is newer anyway
         return
     except OSError as exc:  # e.g. ENETUNREACH while the link is down: the TCP control link decides
         stats.send_errors += 1
@@ -510,11 +534,15 @@ def _run_sender(
         _send(conn, first, stats)
         source.sent, last_sent = first, time.monotonic()
         source.sent_at = last_sent
+    checked = -math.inf
     while not stop.is_set():
         watch.check()
         idle.check()
-        if _peer_closed(conn, refusals):
-            raise ConnectionLostError("peer closed the connection")
+        now = time.monotonic()
+        if now - checked >= PEER_CHECK_S:
+            checked = now
+            if _peer_closed(conn, refusals):
+                raise ConnectionLostError("peer closed the connection")
         if period and last_sent:
             remaining = last_sent + period - time.monotonic()
             if remaining > 0:
@@ -804,6 +832,26 @@ class AccessPolicy:
         return any(fnmatch.fnmatchcase(channel, p) for p in patterns)
 
 
+WHY_NOT_WRITABLE: dict[str, str] = {
+    contracts.MDS_CHAN_BOARD_CMD_NAME:
+        "its setup commands (enable, disable, home, zero, reset) pass no safety stage and are not levels (a "
+        "reconnect may send one again); run them on the robot (mds-ach enable|home|zero|reset JOINT, e.g. over "
+        "ssh). The original MDS-Ach never read mds-cmd, so this link carried nothing; the other links work",
+    contracts.MDS_CHAN_DAEMON_INPUT_NAME:
+        "it is what the daemon executes; write mds-ref-filter or mds-ref, whose frames pass the mux, the filter "
+        "and the collision gate",
+}
+"""Why the default write rules refuse these channels, in the refusal a client is sent: golems' achd prints it
+(``Server error: ...``) before it exits, ``-r`` or not (a refused request is not a lost connection). No ':' or
+'=' in them: golems' header parser ends a value there."""
+
+
+def refusal_message(channel: str, verb: str) -> str:
+    """The message of an ``ACH_EACCES`` refusal for ``channel`` (``verb``: read or written); one line."""
+    why = WHY_NOT_WRITABLE.get(channel) if verb == "written" else None
+    return f"channel {channel} may not be {verb} from the network" + (f" -- {why}" if why else "")
+
+
 def is_local_peer(host: str) -> bool:
     """Loopback (127.0.0.0/8, ::1, or IPv4-mapped loopback): this machine's tools and SSH-tunnelled operators."""
     try:
@@ -834,7 +882,7 @@ class Server:
         port: int = ap.ACHD_PORT,
         *,
         policy: AccessPolicy | None = None,
-        send_latest_on_connect: bool = True,
+        send_latest_on_connect: bool = False,
         dead_after_s: float = 5.0,
         max_clients: int = MAX_CLIENTS,
         max_per_peer: int = MAX_PER_PEER,
@@ -998,7 +1046,7 @@ class Server:
                 self.refused += 1
                 verb = "read" if direction == "push" else "written"
                 log.warning("%s: refused, channel %s may not be %s from the network", who, name, verb)
-                _refuse(sock, ap.ACH_EACCES, f"channel {name} may not be {verb} from the network")
+                _refuse(sock, ap.ACH_EACCES, refusal_message(name, verb))
                 return
             try:
                 chan = ach.Channel(name, create=False)
@@ -1014,23 +1062,24 @@ class Server:
                 udp_port = conn.udp.getsockname()[1]
                 assert headers.remote_port is not None  # validated: a UDP request names its port
                 conn.udp_peer = (peer[0], headers.remote_port)
+            stats = LinkStats(connects=1)
+            rule = rule_for(name)
+            source, first = None, None
+            if direction == "push":  # before the response, as achd: a frame put once the client is told it is
+                source = _Source(chan, rule, bool(headers.get_last), stats)  # connected is never flushed away
+                if self.send_latest_on_connect:
+                    first = source.next(0.0, last=True, wait=False)
+                else:
+                    chan.flush()
             sock.sendall(ap.encode_response(frame_count, data_size // frame_count, udp_port))
             sock.settimeout(self.dead_after_s)
-            stats = LinkStats(connects=1)
             key = f"{who} {direction} {name} ({headers.transport})"
             with self._lock:
                 self.stats[key] = stats
                 while len(self.stats) > MAX_SERVED_STATS:  # keep the newest connections' counters
                     del self.stats[next(iter(self.stats))]
             log.info("%s: serving %s %s via %s", who, direction, name, headers.transport)
-            rule = rule_for(name)
-            if direction == "push":
-                source = _Source(chan, rule, bool(headers.get_last), stats)
-                first = None
-                if self.send_latest_on_connect:
-                    first = source.next(0.0, last=True, wait=False)
-                else:
-                    chan.flush()
+            if source is not None:
                 _run_sender(conn, source, stats, self._stop, headers.period_ns or 0, first, self.idle_timeout_s)
             else:
                 limits = RefLimitCheck.for_channel(chan, name) or HoldCheck.for_channel(name)  # before the flush
@@ -1102,6 +1151,18 @@ def add_server_limit_arguments(p: argparse.ArgumentParser, prefix: str = "") -> 
                         f"(default {IDLE_TIMEOUT_S:g}; 0: never)")
 
 
+def add_connect_start_arguments(p: argparse.ArgumentParser, prefix: str = "") -> None:
+    """Which frame a pulling client gets first: golems' achd's (the first one written after it connected) unless
+    ``--newest-on-connect``."""
+    first = p.add_mutually_exclusive_group()
+    first.add_argument("--newest-on-connect", action="store_true",
+                       help=f"{prefix}start each pull with the channel's newest frame, even one written before "
+                            "the client connected (default: like golems' achd, the first frame written after)")
+    first.add_argument("--flush-on-connect", action="store_true",
+                       help=f"{prefix}like golems' achd, never send a frame written before the client connected "
+                            "(the default)")
+
+
 class ServerLimits(TypedDict):
     """The connection limits of ``Server`` that the command line sets."""
 
@@ -1147,7 +1208,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         help=f"serve: channel pattern clients may push into (default {', '.join(SAFE_WRITABLE)})",
     )
-    ap_.add_argument("--flush-on-connect", action="store_true", help="serve: like achd, never send old frames")
+    add_connect_start_arguments(ap_, "serve: ")
     add_server_limit_arguments(ap_, "serve: ")
     ap_.add_argument("-v", "--verbose", action="store_true", help="log every connection")
     return ap_
@@ -1168,7 +1229,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             server = Server(
                 args.bind or ("127.0.0.1",), args.port, policy=policy,
-                send_latest_on_connect=not args.flush_on_connect, **server_limits(args),
+                send_latest_on_connect=args.newest_on_connect, **server_limits(args),
             ).start()
         except ValueError as exc:
             print(f"achd: {exc}", file=sys.stderr)

@@ -430,7 +430,7 @@ def run_serve(args: argparse.Namespace, stop: threading.Event) -> int:
         log.warning("clients may write %s: that bypasses the mux, filter and collision gate", ", ".join(risky))
     try:
         server = achd.Server(binds, args.port, policy=policy, dead_after_s=args.dead_after,
-                             **achd.server_limits(args)).start()
+                             send_latest_on_connect=args.newest_on_connect, **achd.server_limits(args)).start()
     except ValueError as exc:
         print(f"mds-ach remote serve: {exc}", file=sys.stderr)
         return 2
@@ -495,6 +495,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="serve: channels clients may read (default the state channels)")
     p.add_argument("--background", action="store_true", help="serve: run in the background")
     achd.add_server_limit_arguments(p, "serve: ")
+    achd.add_connect_start_arguments(p, "serve: ")
 
 
 def _check(args: argparse.Namespace) -> str | None:
@@ -591,6 +592,8 @@ def _serve_argv(args: argparse.Namespace) -> list[str]:
     for flag, values in (("--bind", args.bind), ("--allow-write", args.allow_write), ("--allow-read", args.allow_read)):
         for v in values or ():
             argv += [flag, v]
+    if args.newest_on_connect:
+        argv.append("--newest-on-connect")
     return argv
 
 

@@ -6,7 +6,7 @@ Every reference is checked before it can reach the daemon, in this order:
 1. **Validation.** NaN/Inf or out-of-limit values (the effective limits, ``mds_ach.kinematics.limits``: URDF
    & joint table, the numbers every entry point refuses) and unknown ref modes (not 0..3) are never passed on:
    those joints keep their last sent value and mode. The refusal is logged once per change of what is refused
-   and counted (``refused_count`` in ``/mds/collision``).
+   and counted (``refused_count`` in ``mds/collision``).
 2. **Speed bound.** No joint moves faster than ``max_velocity`` between two outputs (wall time; a pause
    credits at most ``max_dt``; the first reference after start moves nothing). Joints that were held come
    back at ``release_velocity`` (the filter's speed) until they have caught up with the input.
@@ -43,7 +43,7 @@ once per hold episode the runner puts a ``HOLD_CANCEL`` on ``mds-hold`` for its 
 held at (source ``collision``, reason ``stopped at contact: right hand / left hand``), so the mux ends that
 target and the arm does not go on to it later when the obstacle moves away; only a new command moves it. An arm
 held because the other arm (or the waist, or its measured pose) came to it is not cancelled: its command did not
-fail. ``/mds/collision`` reports ``stopped`` (arm -> ``stopped at contact: <its part> / <the other part>``) until
+fail. ``mds/collision`` reports ``stopped`` (arm -> ``stopped at contact: <its part> / <the other part>``) until
 that arm's reference moves again. Until then its input does not bring it back toward the contact: what is left of
 the cancelled command (the mux may not have applied the cancel yet) finds the arm resting or held, as at the stop,
 never approaching it again (which would stop it at another point and cancel again).
@@ -56,24 +56,24 @@ taken a report without the flag (``mds-state`` echoes ``mds-collide`` in ``state
 bounds the wait), and only then moves the arm on, at ``release_velocity``. The daemon therefore never sees an
 arm's reference move while it withholds that arm, and never sends accumulated distance in one frame.
 
-Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``/mds/collision``
+Reports: ``mds-collide`` (legacy ``MDS_COLLIDE``, part indices ``COLLIDE_*``) and ``mds/collision``
 (``mds_ach_interfaces/msg/CollisionState``: predicted pairs, current contacts, parts, per unit held / releasing /
-escaping / stopped, refusals and the override state; the JSON document of ``decision_to_dict`` stays on
-``/mds/collision/json``, std_msgs/String, deprecated, one release). Top-level ``isCollide``: **1** = the gate holds
-an arm: the flagged parts are those of the held arms, and the daemon holds exactly those arms; **2** = a predicted
-collision was passed by the expert override; **3** = in contact (measured or commanded) but nothing held: only moves
-out of it are passed, the flagged parts are the parts in contact, the daemon holds nothing; 0 = clear. Per part:
-``isCollide`` as above; ``collision`` counts the checks of the current episode (saturating at ``counter_max``, 0
-when clear); ``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration of the episode. ``time`` =
-CLOCK_MONOTONIC of the report (the stamp the daemon echoes), ``time_dt`` = time since the previous report.
+escaping / stopped, refusals and the override state; made from the document of ``decision_to_dict``). Top-level
+``isCollide``: **1** = the gate holds an arm: the flagged parts are those of the held arms, and the daemon holds
+exactly those arms; **2** = a predicted collision was passed by the expert override; **3** = in contact (measured or
+commanded) but nothing held: only moves out of it are passed, the flagged parts are the parts in contact, the daemon
+holds nothing; 0 = clear. Per part: ``isCollide`` as above; ``collision`` counts the checks of the current episode
+(saturating at ``counter_max``, 0 when clear); ``time`` = CLOCK_MONOTONIC of its last contact; ``time_dt`` = duration
+of the episode. ``time`` = CLOCK_MONOTONIC of the report (the stamp the daemon echoes), ``time_dt`` = time since the
+previous report.
 
 **Expert override** (never the default, never silent): publish the number of seconds on
-``/mds/collision/override`` (std_msgs/Float64), e.g.
-``ros2 topic pub --once /mds/collision/override std_msgs/msg/Float64 "{data: 3.0}"``. For that long (at most
+``mds/collision/override`` (std_msgs/Float64), e.g.
+``ros2 topic pub --once mds/collision/override std_msgs/msg/Float64 "{data: 3.0}"``. For that long (at most
 ``override_max``, config) predicted collisions are reported but not blocked; validation and the speed bound
 still apply, and held arms are released as above. It expires by itself; 0 or a negative value ends it at once.
 Start, every second while active, and end are logged at WARN/ERROR level; mds-collide shows ``isCollide = 2``
-while it passes a collision and ``/mds/collision`` carries ``override_remaining``.
+while it passes a collision and ``mds/collision`` carries ``override_remaining``.
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ from typing import Any
 import numpy as np
 from mds_ach_interfaces.msg import CollisionState
 from rclpy.node import Node
-from std_msgs.msg import Float64, String
+from std_msgs.msg import Float64
 
 import mds_ach as mds
 from mds_ach import paths
@@ -111,7 +111,7 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
-from mds_ach.nodes.status_msgs import COLLISION_TOPIC, collision_state_msg, json_alias
+from mds_ach.nodes.status_msgs import COLLISION_TOPIC, collision_state_msg
 from mds_ach.ratelog import RateLimitedLog
 from mds_ach.robot import lifecycle
 from mds_ach.robot.channels import StructChannel
@@ -762,7 +762,7 @@ def contact_pair(contact: Any, arm: str) -> str:
 
 
 def decision_to_dict(d: Decision | None, gate: Gate, now: float, refused_count: int = 0) -> dict[str, Any]:
-    """The JSON document of /mds/collision (``refused_count``: references refused by validation so far)."""
+    """The JSON document of mds/collision (``refused_count``: references refused by validation so far)."""
     res = d.result if d is not None else gate.current
     now_contacts = d.contacts if d is not None else gate.current
     return {
@@ -848,7 +848,7 @@ class GateRunner:
         self.gate: Gate | None = None
         self.ready = threading.Event()
         self.processed = 0
-        self.refused_count = 0  # references with at least one refused joint (/mds/collision "refused_count")
+        self.refused_count = 0  # references with at least one refused joint (mds/collision "refused_count")
         self.cancels = 0  # HOLD_CANCEL frames sent for arms stopped at contact
         self.check_times = DecisionTimes()
 
@@ -999,8 +999,8 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Collision gate: reads mds-ref-smooth, writes mds-ref-gated (the daemon's input). Checks each "
                     "reference (limits, speed bound, self-collision and world objects with python-fcl) and holds "
                     "the affected arm at its last safe reference on a predicted collision. Reports on mds-collide "
-                    "and /mds/collision. "
-                    "Expert override: publish seconds (std_msgs/Float64) on /mds/collision/override.",
+                    "and mds/collision. "
+                    "Expert override: publish seconds (std_msgs/Float64) on mds/collision/override.",
         epilog="Example: ros2 run mds_ach collision --world my_world.yaml --margin 0.03",
     )
     p.add_argument("--config", help="gate YAML (default: the package's config/collision.yaml)")
@@ -1043,9 +1043,8 @@ PARAMETERS = (
 
 
 class CollisionNode(Node):
-    """The collision gate: ``GateRunner`` on its own thread; reports on ``/mds/collision`` (typed; deprecated JSON:
-    ``/mds/collision/json``), takes expert overrides
-    (seconds) on ``/mds/collision/override``."""
+    """The collision gate: ``GateRunner`` on its own thread; reports on ``mds/collision`` (typed), takes expert
+    overrides (seconds) on ``mds/collision/override``."""
 
     def __init__(self, config: str | None = None, world: str | None = None, urdf: str | None = None,
                  margin: float | None = None) -> None:
@@ -1059,7 +1058,6 @@ class CollisionNode(Node):
         self.margin: float = declare(self, find(PARAMETERS, "margin"), configured if margin is None else margin)
         model, gate_cfg, lower, upper = build_gate_parts(path, world_path, urdf_path, self.margin)
         self.pub = self.create_publisher(CollisionState, COLLISION_TOPIC, 10)
-        self.json_pub = self.create_publisher(String, json_alias(COLLISION_TOPIC), 10)  # deprecated
         self.create_subscription(Float64, COLLISION_TOPIC + "/override", self._on_override, 10)
         self._last_pub = -math.inf
         self._last_doc = ""
@@ -1077,7 +1075,6 @@ class CollisionNode(Node):
             return
         if key != self._last_doc or now - self._last_pub >= 1.0 / gate.config.report_rate:
             self.pub.publish(collision_state_msg(doc, self.get_clock().now().to_msg()))
-            self.json_pub.publish(String(data=json.dumps(doc)))
             self._last_doc, self._last_pub = key, now
 
     def shutdown(self) -> None:

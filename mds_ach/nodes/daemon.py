@@ -14,12 +14,9 @@ Setup commands reach it two ways:
   ``all``: every enabled joint), run joint by joint; ``success`` when all succeeded, ``message`` one line per
   joint, ``failed`` the joints that did not. Example: ``ros2 service call /mds_daemon/command
   mds_ach_interfaces/srv/Command "{command: home, joints: [LEP, REP]}"``. ``zero`` and ``reset`` are refused there
-  unless the parameter ``allow_encoder_commands`` is true (``refused_from_ros``);
-* deprecated (one release): ``~/command_text`` of the borrowed type ``diagnostic_msgs/srv/AddDiagnostics``,
-  ``load_namespace`` = ``"<command> [joint|all]"``, the reply's ``success``/``message`` the result (the same rule
-  for ``zero`` and ``reset``).
+  unless the parameter ``allow_encoder_commands`` is true (``refused_from_ros``).
 
-Its health goes to ``/mds/daemon_status`` (``mds_ach_interfaces/msg/DaemonStatus``) with ``/diagnostics``.
+Its health goes to ``mds/daemon_status`` (``mds_ach_interfaces/msg/DaemonStatus``) with ``/diagnostics``.
 
 ROS parameters ``robot``, ``rate``, ``nocan`` and ``rt_priority`` (defaults from the command line) serve launch files.
 The real-time loop runs on its own thread (see :mod:`mds_ach.nodes.daemon_loop`); the executor only serves the
@@ -37,7 +34,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from diagnostic_msgs.srv import AddDiagnostics
 from mds_ach_interfaces.msg import DaemonStatus
 from mds_ach_interfaces.srv import Command
 from rclpy.node import Node
@@ -57,7 +53,7 @@ from mds_ach.nodes.daemon_loop import (
 )
 from mds_ach.nodes.rosargs import strip_ros_args
 from mds_ach.nodes.rosnode import Param, declare, find, run_node
-from mds_ach.nodes.status_msgs import DAEMON_STATUS_TOPIC, daemon_status_msg
+from mds_ach.nodes.status_msgs import DAEMON_STATUS_TOPIC, DIAGNOSTICS_TOPIC, daemon_status_msg
 from mds_ach.robot import access as channel_access
 from mds_ach.robot import config, motion
 from mds_ach.robot.joints import BY_ADDRESS, lookup
@@ -427,11 +423,10 @@ class DaemonNode(Node):
         self.daemon = build(args)
         self._channel_errors = 0
         self._stalls = 0
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.status_pub = self.create_publisher(DaemonStatus, DAEMON_STATUS_TOPIC, 10)
         self.create_timer(1.0, self._diagnostics)
         self.create_service(Command, "~/command", self._command)
-        self.create_service(AddDiagnostics, "~/command_text", self._command_text)  # deprecated
 
     def _diagnostics(self) -> None:
         st = self.daemon.loop.snapshot()
@@ -475,21 +470,6 @@ class DaemonNode(Node):
             if not ok:
                 failed.append(label)
         response.success, response.message, response.failed = not failed, "\n".join(lines), failed
-        return response
-
-    def _command_text(self, request: AddDiagnostics.Request, response: AddDiagnostics.Response
-                      ) -> AddDiagnostics.Response:
-        """Deprecated: the text form on the borrowed AddDiagnostics type (``~/command_text``)."""
-        try:
-            code, address = parse_command(request.load_namespace)
-        except ValueError as exc:
-            response.success, response.message = False, str(exc)
-            return response
-        refused = refused_from_ros(code, self.allow_encoder_commands)
-        if refused is not None:
-            response.success, response.message = False, refused
-            return response
-        response.success, response.message = self._run(code, address)
         return response
 
     def shutdown(self) -> None:

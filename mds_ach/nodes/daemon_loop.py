@@ -123,6 +123,9 @@ def late_send_tolerance(bounds: motion.MotionBounds, period: float) -> float:
 # A node silent this long is stale (state.active 0, sent nothing): 3.5 periods of the original's 10 Hz, at every
 # rate -- a fraction of a period's jitter at 100 Hz must not turn into a silence.
 STALE_AFTER = 0.35  # s
+PARAM_PERIOD = 1.0  # s
+"""``mds-param`` is put again this often: achd (golems' and ours by default) sends a pulling station only frames
+written after it connected, and a station without ``mds-param`` has no joint names."""
 STALL_PERIODS = 2.0  # a cycle that starts more than this many periods after the previous one: the loop stalled
 # Position replies: a reply further than REPLY_RANGE_MARGIN of the joint's range (at least REPLY_RANGE_MIN) beyond
 # its limits, or implying more than REPLY_SPEED_FACTOR times the velocity bound since the last good reply (plus
@@ -470,6 +473,8 @@ class DaemonLoop:
         self._first_reply: dict[int, tuple[float, float]] = {}  # address -> (q, t) of its first reply to the query
         self.start_time = clock()
         self.status.start_time = self.start_time
+        self._param = self.table.to_param()  # the joint table does not change while the daemon runs
+        self._param_at = -math.inf
 
     # --- start-up --------------------------------------------------------------------------------------
 
@@ -482,7 +487,8 @@ class DaemonLoop:
         made a joint that was merely slow show home and then jump to where it is). No motion frame is sent until a
         reference changes. Old frames on ``mds-ref-gated``/``mds-cmd`` are skipped. Returns how many joints answered.
         """
-        self._put(self.ch.param, self.table.to_param())
+        self._put(self.ch.param, self._param)
+        self._param_at = self.clock()
         self._put(self.ch.limits, self.limits.to_msg(now=self.clock()))
         for ch in (self.ch.ref, self.ch.cmd):
             try:
@@ -645,6 +651,9 @@ class DaemonLoop:
         self._fill_state(now)
         self.state.time = time.monotonic()
         self._put(self.ch.state, self.state)
+        if start - self._param_at >= PARAM_PERIOD:  # the same table again, for stations that connected since
+            self._put(self.ch.param, self._param)
+            self._param_at = start
         self._publish_status(start, deadline, cpu0)
 
     def _latest(self, channel):

@@ -24,14 +24,12 @@ the order x, y, z, roll, pitch, yaw from ``t_x t_y t_z r_x r_y r_z``; robot fram
    ``IK_STOPPED_AT_CONTACT`` and "stopped at contact: right hand / left hand".
 
 Every request gets an answer on ``mds-ik-state`` (``MDS_IK_STATUS``, see ``mds_ach.robot.msgs.ik_status``) and on the
-ROS topic ``/mds/ik_status`` (``mds_ach_interfaces/msg/IkStatus``, transient local; the JSON of ``status_to_dict``
-stays on ``/mds/ik_status/json``, std_msgs/String, deprecated, one release).
+ROS topic ``mds/ik_status`` (``mds_ach_interfaces/msg/IkStatus``, transient local, made from ``status_to_dict``).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import threading
 import time
@@ -43,7 +41,6 @@ import numpy as np
 from mds_ach_interfaces.msg import IkStatus
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
-from std_msgs.msg import String
 
 import mds_ach as mds
 from mds_ach.kinematics import ik
@@ -52,7 +49,8 @@ from mds_ach.kinematics.limits import current_limits
 from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import current_reference, make_ref
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
-from mds_ach.nodes.status_msgs import ik_status_msg, json_alias
+from mds_ach.nodes.status_msgs import ik_status_msg
+from mds_ach.robot import contracts
 from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
@@ -393,7 +391,7 @@ def _build_parser() -> argparse.ArgumentParser:
                     "move nothing.",
         epilog="Example: ros2 run mds_ach ik --output mds-ref-filter   (legacy set-up without the mux)",
     )
-    p.add_argument("--output", default=mds.MDS_CHAN_REF_IK_NAME,
+    p.add_argument("--output", default=contracts.base_name(mds.MDS_CHAN_REF_IK_NAME),
                    help="channel for the solutions (default: mds-ref-ik; mds-ref-filter without the mux)")
     p.add_argument("--tolerance",
                    type=find(PARAMETERS, "tolerance").arg_type(), default=ik.DEFAULT_TOLERANCE,
@@ -427,9 +425,9 @@ def build_service(args: argparse.Namespace, log: Callable[[str, str], None]) -> 
 NODE_NAME = "ik"  # the ROS node name (`ros2 param`, the sections of a params file)
 
 PARAMETERS = (
-    Param("output", mds.MDS_CHAN_REF_IK_NAME, "channel for the solutions: mds-ref-ik (the mux's ik input) or "
-                                              "mds-ref-filter without a mux; never mds-ref or mds-ref-gated "
-                                              "(option --output)"),
+    Param("output", contracts.base_name(mds.MDS_CHAN_REF_IK_NAME),
+          "channel for the solutions: mds-ref-ik (the mux's ik input) or mds-ref-filter without a mux; never mds-ref "
+          "or mds-ref-gated (option --output)"),
     Param("tolerance", float(ik.DEFAULT_TOLERANCE), "position error (m) below which a request is solved; angles "
                                                     "within 0.01 rad, checked separately (option --tolerance)",
           range=(1e-9, 1.0)),
@@ -450,7 +448,7 @@ PARAMETERS = (
 
 
 class IkNode(Node):
-    """The IK service: ``IkRunner`` on its own thread; every answer also on ``/mds/ik_status`` (JSON)."""
+    """The IK service: ``IkRunner`` on its own thread; every answer also on ``mds/ik_status`` (JSON)."""
 
     def __init__(self, output: str | None = None, tolerance: float | None = None,
                  max_iterations: int | None = None, timeout: float | None = None,
@@ -461,7 +459,7 @@ class IkNode(Node):
         given = {"output": output, "tolerance": tolerance, "max_iterations": max_iterations, "timeout": timeout,
                  "collision_check": collision_check, "robot": robot, "on_collision": on_collision, "world": world}
         values = {p.name: declare(self, p, given[p.name]) for p in PARAMETERS}
-        config = IkNodeConfig(output=values["output"], tolerance=values["tolerance"],
+        config = IkNodeConfig(output=contracts.channel_name(values["output"]), tolerance=values["tolerance"],
                               max_iterations=values["max_iterations"], timeout=values["timeout"],
                               collision_check=values["collision_check"], on_collision=values["on_collision"])
         world_path = values["world"] or None
@@ -482,13 +480,11 @@ class IkNode(Node):
         # The status topic appears once requests are being taken: a client that sees it can ask at once.
         self.runner.ready.wait(10.0)
         qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.json_pub = self.create_publisher(String, json_alias(IK_STATUS_TOPIC), qos)  # deprecated
         self.pub = self.create_publisher(IkStatus, IK_STATUS_TOPIC, qos)
 
     def _publish(self, st: MDS_IK_STATUS) -> None:
         if self.pub is not None and self.context.ok():
             doc = status_to_dict(st)
-            self.json_pub.publish(String(data=json.dumps(doc)))
             self.pub.publish(ik_status_msg(doc, self.get_clock().now().to_msg()))
 
     def shutdown(self) -> None:

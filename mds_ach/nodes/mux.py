@@ -29,9 +29,8 @@ keep "modified only" and whole-frame refusal: their senders validate and stream 
 
 Event-based: one thread per input blocks on its channel and queues frames; the mux thread applies them in
 arrival order and publishes ``mds-ref-mux`` on every output change. Ownership and ages go to
-``mds-mux-state`` (``mds_ach.robot.msgs.MDS_MUX_STATE``) and to the ROS topic ``/mds/mux_state``
-(``mds_ach_interfaces/msg/MuxState``; the JSON document of ``state_to_dict`` stays on ``/mds/mux_state/json``,
-std_msgs/String, deprecated, one release).
+``mds-mux-state`` (``mds_ach.robot.msgs.MDS_MUX_STATE``) and to the ROS topic ``mds/mux_state``
+(``mds_ach_interfaces/msg/MuxState``, made from the document of ``state_to_dict``).
 
 At start the output is the current reference (``mds-ref-gated``, else ``mds-state`` joint[].ref), published once
 so the filter holds still; frames already waiting in the input channels are taken as each controller's
@@ -43,7 +42,6 @@ read-modify-write clients start from the real pose instead of zeros.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import queue
 import threading
@@ -57,7 +55,6 @@ import numpy as np
 import yaml
 from mds_ach_interfaces.msg import MuxState
 from rclpy.node import Node
-from std_msgs.msg import String
 
 import mds_ach as mds
 from mds_ach.kinematics.limits import EffectiveLimits, current_limits
@@ -74,9 +71,10 @@ from mds_ach.nodes.pipeline import (
     wait_current_reference,
 )
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
-from mds_ach.nodes.status_msgs import MUX_STATE_TOPIC, json_alias, mux_state_msg
+from mds_ach.nodes.status_msgs import MUX_STATE_TOPIC, mux_state_msg
 from mds_ach.paths import config_path
 from mds_ach.ratelog import EVERY_S, RateLimitedLog
+from mds_ach.robot import contracts
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, Name30, get_name
 from mds_ach.robot.msgs.hold import HOLD_ACTIONS, HOLD_HOLD, HOLD_RESUME, MDS_HOLD, check_cancel, check_hold
@@ -139,6 +137,7 @@ def parse_controllers(entries: Sequence[Mapping[str, Any]], where: str = "mux co
         channel = str(e.get("channel", "")).strip()
         if not channel:
             raise ValueError(f"{here}: needs an input channel")
+        channel = contracts.channel_name(channel)  # the file names the original channels; a prefixed system's own
         if channel in (mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME):
             raise ValueError(f"{here}: {channel} is a pipeline output, not a controller input")
         try:
@@ -450,7 +449,7 @@ class MuxCore:
 
 
 def state_to_dict(st: MDS_MUX_STATE) -> dict[str, Any]:
-    """The JSON document of /mds/mux_state: controllers (name, priority, stale, ages, newest verdict, refusals),
+    """The JSON document of mds/mux_state: controllers (name, priority, stale, ages, newest verdict, refusals),
     joint owners, held joints and the newest hold request handled."""
     names = st.controller_names()
     held = {MUX_HELD: "held", MUX_CANCELLED: "cancelled"}
@@ -678,7 +677,7 @@ def _build_parser() -> argparse.ArgumentParser:
         prog="mux",
         description="Joint mux: merges the controllers' reference channels (config/mux.yaml) into mds-ref-mux. "
                     "A joint changes only when a permitted controller changed it and no fresher, higher-priority "
-                    "controller owns it. Ownership: mds-mux-state channel and /mds/mux_state (JSON).",
+                    "controller owns it. Ownership: mds-mux-state channel and mds/mux_state (JSON).",
         epilog="Example: ros2 run mds_ach mux --config my_mux.yaml   (ROS args: --ros-args -r __node:=mux2)",
     )
     p.add_argument("--config", help="mux YAML (default: the package's config/mux.yaml)")
@@ -690,15 +689,14 @@ NODE_NAME = "mux"  # the ROS node name (`ros2 param`, the sections of a params f
 PARAMETERS = (
     Param("config", "", "mux YAML (controllers, priorities, timeouts); empty: the package's config/mux.yaml "
                         "(option --config)"),
-    Param("state_rate", DEFAULT_STATE_RATE, "publish rate of mds-mux-state and /mds/mux_state in Hz; overrides "
+    Param("state_rate", DEFAULT_STATE_RATE, "publish rate of mds-mux-state and mds/mux_state in Hz; overrides "
                                             "the config's state_rate", range=(0.1, 1000.0),
           default_doc="config `state_rate` (`10.0`)"),
 )
 
 
 class MuxNode(Node):
-    """The mux: ``MuxRunner`` on its own thread, its state also on ``/mds/mux_state`` (typed) and, deprecated,
-    ``/mds/mux_state/json``."""
+    """The mux: ``MuxRunner`` on its own thread, its state also on ``mds/mux_state`` (typed)."""
 
     def __init__(self, config: str | None = None) -> None:
         super().__init__(NODE_NAME)
@@ -706,7 +704,6 @@ class MuxNode(Node):
         cfg = load_config(path)
         self.state_rate: float = declare(self, find(PARAMETERS, "state_rate"), cfg["state_rate"])
         self.pub = self.create_publisher(MuxState, MUX_STATE_TOPIC, 10)
-        self.json_pub = self.create_publisher(String, json_alias(MUX_STATE_TOPIC), 10)  # deprecated
         self._joints = [joint_label(a) for a in KNOWN_ADDRESSES]
         self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state)
         self.thread = start_worker(self, self.runner.run, "mux")
@@ -715,7 +712,6 @@ class MuxNode(Node):
         if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
             doc = state_to_dict(st)
             self.pub.publish(mux_state_msg(doc, self._joints, self.get_clock().now().to_msg()))
-            self.json_pub.publish(String(data=json.dumps(doc)))
 
     def shutdown(self) -> None:
         self.runner.stop()

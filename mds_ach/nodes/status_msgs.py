@@ -1,9 +1,9 @@
 """Typed ROS status topics (``mds_ach_interfaces``) built from the nodes' status documents.
 
 Each node already builds one document per report (``mux.state_to_dict``, ``collision.decision_to_dict``,
-``ik_status.status_to_dict``); the typed message is made from that same document, so the typed topic and the
-deprecated JSON alias (``std_msgs/String`` on ``<topic>/json``, one release) can never disagree. Types and fields:
-interfaces/mds_ach_interfaces/msg/.
+``ik_status.status_to_dict``: also what ``mds-ach`` tools print); the typed message is made from that same document,
+so the topic and the tools can never disagree. Types and fields: interfaces/mds_ach_interfaces/msg/. (The JSON
+``<topic>/json`` aliases and the daemon's text command service were removed after their release of deprecation.)
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from mds_ach_interfaces.msg import (
     CollisionPair,
     CollisionState,
     CollisionUnit,
+    CommandStatus,
     DaemonStatus,
     IkStatus,
     MuxController,
@@ -26,19 +27,15 @@ from mds_ach_interfaces.msg import (
 from mds_ach.robot.msgs import daemon_status as ds
 from mds_ach.robot.msgs.ik_status import IK_STATUS_TOPIC
 
-__all__ = ["COLLISION_TOPIC", "DAEMON_STATUS_TOPIC", "IK_STATUS_TOPIC", "MUX_STATE_TOPIC", "collision_state_msg",
-           "daemon_status_msg", "ik_status_msg", "json_alias", "mux_state_msg"]
+__all__ = ["COLLISION_TOPIC", "DAEMON_STATUS_TOPIC", "DIAGNOSTICS_TOPIC", "IK_STATUS_TOPIC", "MUX_STATE_TOPIC",
+           "collision_state_msg", "command_status_msg", "daemon_status_msg", "ik_status_msg", "mux_state_msg"]
 
-COLLISION_TOPIC = "/mds/collision"
-MUX_STATE_TOPIC = "/mds/mux_state"
-DAEMON_STATUS_TOPIC = "/mds/daemon_status"
+COLLISION_TOPIC = "mds/collision"  # relative, like every name of every node: a namespace moves them all
+MUX_STATE_TOPIC = "mds/mux_state"
+DAEMON_STATUS_TOPIC = "mds/daemon_status"
+DIAGNOSTICS_TOPIC = "diagnostics"  # /diagnostics outside a namespace, where diagnostic_aggregator listens
 COLLISION_UNITS = ("left", "right", "body")  # the gate's units: both arms, waist + neck
 _HELD = {"held": MuxState.HELD, "cancelled": MuxState.CANCELLED}
-
-
-def json_alias(topic: str) -> str:
-    """The deprecated ``std_msgs/String`` JSON topic kept one release beside a typed one."""
-    return topic + "/json"
 
 
 def _num(value: float | None) -> float:
@@ -57,7 +54,7 @@ def _stamped(msg: Any, stamp: Time | None) -> Any:
 
 
 def mux_state_msg(doc: Mapping[str, Any], joints: Sequence[str], stamp: Time | None = None) -> MuxState:
-    """``/mds/mux_state`` from ``mux.state_to_dict``: every joint of ``joints`` with its owner ("" = none) and
+    """``mds/mux_state`` from ``mux.state_to_dict``: every joint of ``joints`` with its owner ("" = none) and
     hold state, every controller."""
     msg = MuxState(time=float(doc["time"]))
     msg.controllers = [
@@ -81,7 +78,7 @@ def _pairs(pairs: Iterable[Sequence[str]]) -> list[CollisionPair]:
 
 
 def collision_state_msg(doc: Mapping[str, Any], stamp: Time | None = None) -> CollisionState:
-    """``/mds/collision`` from ``collision.decision_to_dict``: the lists of held / releasing / escaping / stopped
+    """``mds/collision`` from ``collision.decision_to_dict``: the lists of held / releasing / escaping / stopped
     units become one ``CollisionUnit`` per unit (left, right, body), always all three."""
     held = set(doc["held"])
     units = []
@@ -100,7 +97,7 @@ def collision_state_msg(doc: Mapping[str, Any], stamp: Time | None = None) -> Co
 
 
 def ik_status_msg(doc: Mapping[str, Any], stamp: Time | None = None) -> IkStatus:
-    """``/mds/ik_status`` from ``ik_status.status_to_dict`` (null numbers become NaN)."""
+    """``mds/ik_status`` from ``ik_status.status_to_dict`` (null numbers become NaN)."""
     msg = IkStatus(seq=int(doc["seq"]), status=int(doc["status"]), status_name=doc["status_name"], arm=doc["arm"],
                    dof=int(doc["dof"]), iterations=int(doc["iterations"]), error=_num(doc["error"]),
                    solve_time=_num(doc["solve_time"]), target=[_num(v) for v in doc["target"]],
@@ -110,7 +107,7 @@ def ik_status_msg(doc: Mapping[str, Any], stamp: Time | None = None) -> IkStatus
 
 def daemon_status_msg(st: ds.MDS_DAEMON_STATUS, running: bool, stale: Sequence[str], bad_replies: Sequence[str],
                       stamp: Time | None = None) -> DaemonStatus:
-    """``/mds/daemon_status``: the summary of an ``mds-daemon-status`` frame (names of stale / untrusted joints
+    """``mds/daemon_status``: the summary of an ``mds-daemon-status`` frame (names of stale / untrusted joints
     resolved by the caller, which knows the joint table)."""
     msg = DaemonStatus(
         time=float(st.time), running=bool(running), cycle=int(st.cycle), rate_hz=float(st.rate_hz),
@@ -124,4 +121,13 @@ def daemon_status_msg(st: ds.MDS_DAEMON_STATUS, running: bool, stale: Sequence[s
         targets_limited=int(st.targets_limited), bad_replies=int(st.bad_replies),
         channel_errors=int(st.channel_errors), stale_joints=list(stale), bad_reply_joints=list(bad_replies),
         cmd_seq=int(st.cmd_seq), cmd_result=int(st.cmd_result))
+    return _stamped(msg, stamp)
+
+
+def command_status_msg(doc: Mapping[str, Any], stamp: Time | None = None) -> CommandStatus:
+    """The bridge's ``mds/command_status`` from one of its event documents (``event``, ``command``, ``message``;
+    ``owner`` and ``frames`` for a mux refusal, ``code`` for a goal's end)."""
+    msg = CommandStatus(event=str(doc["event"]), command=str(doc.get("command", "")),
+                        message=str(doc.get("message", "")), owner=str(doc.get("owner", "")),
+                        frames=int(doc.get("frames", 0)), code=str(doc.get("code", "")))
     return _stamped(msg, stamp)

@@ -15,7 +15,10 @@ So the stack (``mds-ach make``/``start``, the daemon and the pipeline nodes) acc
 * when a group is configured (``mds-ach make --group``), it belongs to that group.
 
 A refused file is re-created by ``mds-ach repair --recreate NAME`` (as root when another user owns it: the
-sticky bit keeps the stack's user from removing it).
+sticky bit keeps the stack's user from removing it). One the stack's own user made too open (the original's
+``ach mk`` gives 0644, its ``mds-ach make`` ran ``chmod 777``) is tightened in place instead (:func:`tighten`,
+at ``mds-ach make``/``start``), but only while no other process has it open: a handle opened while the file was
+open to everybody keeps its write access after a chmod.
 
 Operator clients (console, read, hold, examples, the legacy API) run as other users, so they cannot demand the
 stack's rules of ownership and mode; but they must not read or write a file a third user planted either (it
@@ -29,11 +32,13 @@ stack creates it, and the stack refuses to start on one another user planted.
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import os
-import pwd
 import stat
 
 from mds_ach import ach
+from mds_ach.paths import user_label
 from mds_ach.robot import contracts
 
 CHANNEL_MODE = 0o660
@@ -75,13 +80,6 @@ def trusted_owners() -> set[int]:
     return {os.geteuid(), 0}
 
 
-def _user(uid: int) -> str:
-    try:
-        return f"uid {uid} ({pwd.getpwuid(uid).pw_name})"
-    except KeyError:
-        return f"uid {uid}"
-
-
 def problem(name: str, st: os.stat_result, mode: int = CHANNEL_MODE, gid: int | None = None) -> str | None:
     """Why the stack must not use channel ``name`` whose file has status ``st``, or None when it may.
 
@@ -92,8 +90,8 @@ def problem(name: str, st: os.stat_result, mode: int = CHANNEL_MODE, gid: int | 
         return f"{ach.shm_path(name)} is not a regular file"
     owners = trusted_owners()
     if st.st_uid not in owners:
-        me = _user(os.geteuid())
-        return (f"{ach.shm_path(name)} is owned by {_user(st.st_uid)}, not by the stack's user ({me}) or root: "
+        me = user_label(os.geteuid())
+        return (f"{ach.shm_path(name)} is owned by {user_label(st.st_uid)}, not by the stack's user ({me}) or root: "
                 "another user created it and can write or truncate it")
     allowed = channel_mode(name, mode)
     extra = st.st_mode & 0o777 & ~allowed
@@ -104,6 +102,59 @@ def problem(name: str, st: os.stat_result, mode: int = CHANNEL_MODE, gid: int | 
     if gid is not None and st.st_gid != gid:
         return f"{ach.shm_path(name)} belongs to group {st.st_gid}, not to the configured group {gid}"
     return None
+
+
+def _open_elsewhere(path: str) -> bool:
+    """Does any other open file description (any process, any user) have the file at ``path`` open for writing
+    or mapped? Every Ach handle opens and maps its channel read-write, so this is "does anybody use it now".
+
+    A write lease is granted only when no other file description writes the file (``fcntl(2)``,
+    ``F_SETLEASE``); only the file's owner may ask for one, which the stack's user is here."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        fcntl.fcntl(fd, fcntl.F_SETLEASE, fcntl.F_WRLCK)
+        fcntl.fcntl(fd, fcntl.F_SETLEASE, fcntl.F_UNLCK)
+        return False
+    except OSError as exc:
+        if exc.errno in (errno.EAGAIN, errno.EBUSY):
+            return True
+        raise
+    finally:
+        os.close(fd)
+
+
+def tighten(name: str, mode: int = CHANNEL_MODE) -> str | None:
+    """Give channel ``name`` -- a regular file of the stack's own user that allows more than the configured
+    mode -- that mode, in place. Returns what changed (``"mode 0644 -> 0660"``), or None when the file is not
+    such a file (``problem`` then says whether and why it is refused).
+
+    Raises ``UntrustedChannelError`` when another process has it open (it may have opened it while the file was
+    open to others, and keeps that access after a chmod); nothing is changed then. The check is repeated after
+    the chmod, for an ``open()`` that passed its permission check just before it."""
+    path = ach.shm_path(name)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    allowed = channel_mode(name, mode)
+    if not stat.S_ISREG(st.st_mode) or st.st_uid != os.geteuid() or st.st_mode & 0o777 & ~allowed == 0:
+        return None
+    busy = (f"refusing channel '{name}': {path} has mode {st.st_mode & 0o777:04o} and is open in another "
+            "process, which may have opened it while it was open to others; stop the processes using it and run "
+            f"this again, or {recreate_hint(name)}")
+    if _open_elsewhere(path):
+        raise UntrustedChannelError(busy)
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    try:
+        now = os.fstat(fd)
+        if (now.st_dev, now.st_ino) != (st.st_dev, st.st_ino):
+            return None  # replaced meanwhile: the caller's check judges the new file
+        os.fchmod(fd, allowed)
+    finally:
+        os.close(fd)
+    if _open_elsewhere(path):
+        raise UntrustedChannelError(busy)
+    return f"mode {st.st_mode & 0o777:04o} -> {allowed:04o}"
 
 
 def stack_owner() -> int | None:
@@ -127,9 +178,9 @@ def client_problem(name: str, path: str, st: os.stat_result) -> str | None:
     stack = stack_owner()
     if st.st_uid == stack:
         return None
-    who = f"the stack's user ({_user(stack)}, owner of {DAEMON_INPUT})" if stack is not None else \
+    who = f"the stack's user ({user_label(stack)}, owner of {DAEMON_INPUT})" if stack is not None else \
         f"the stack's user (unknown: no {DAEMON_INPUT})"
-    return (f"refused: {path} is owned by {_user(st.st_uid)}, neither you ({_user(os.geteuid())}), "
+    return (f"refused: {path} is owned by {user_label(st.st_uid)}, neither you ({user_label(os.geteuid())}), "
             f"root nor {who}: another user created it and would see what you write and choose what you read; "
             f"{recreate_hint(name)}")
 

@@ -272,7 +272,7 @@ class ChannelReport:
     """What ``make_channels`` did with one channel; ``ok`` False means it needs attention."""
 
     name: str
-    action: str  # "created", "exists" or "error"
+    action: str  # "created", "exists", "tightened" (``check_existing``) or "error"
     detail: str = ""
 
     @property
@@ -281,9 +281,22 @@ class ChannelReport:
 
 
 def check_existing(name: str, frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_size: int = mds.CHANNEL_FRAME_SIZE,
-                   mode: int = channel_access.CHANNEL_MODE, gid: int | None = None) -> ChannelReport:
+                   mode: int = channel_access.CHANNEL_MODE, gid: int | None = None,
+                   tighten: bool = False) -> ChannelReport:
     """Is the existing channel ``name`` one the stack may use: trusted (owner, mode, group), an Ach file, of the
-    expected geometry? The report's detail says what is wrong and what to do."""
+    expected geometry? The report's detail says what is wrong and what to do.
+
+    With ``tighten``, a channel of the stack's own user that is too open (the original's ``ach mk`` made 0644,
+    its ``chmod 777``) gets the configured mode in place when nobody has it open (``channel_access.tighten``):
+    action ``tightened``, the detail says what changed."""
+    tightened = ""
+    if tighten:
+        try:
+            tightened = channel_access.tighten(name, mode) or ""
+        except channel_access.UntrustedChannelError as exc:
+            return ChannelReport(name, "error", str(exc))
+        except OSError as exc:
+            return ChannelReport(name, "error", f"cannot tighten {ach.shm_path(name)}: {exc.strerror}")
     why = channel_access.path_problem(name, mode, gid)
     if why is not None:
         return ChannelReport(name, "error", f"{why}; {channel_access.recreate_hint(name)}")
@@ -295,6 +308,9 @@ def check_existing(name: str, frame_count: int = mds.CHANNEL_FRAME_COUNT, frame_
     if (count, size) != (frame_count, frame_size):
         return ChannelReport(name, "error", f"exists as {count} x {size} B, expected {frame_count} x {frame_size} B; "
                                             f"remove it (mds-ach rm {name}) to re-create it")
+    if tightened:
+        return ChannelReport(name, "tightened", f"{count} x {size} B, {tightened} (it was open to more users than "
+                                                "the stack gives access)")
     return ChannelReport(name, "exists", f"{count} x {size} B")
 
 
@@ -311,7 +327,9 @@ def make_channels(
     ``mode`` may only restrict ``CHANNEL_MODE`` (0660); the daemon's input gets it without group write
     (``channel_access.channel_mode``). ``group`` (name or gid) is given to the channels created here, so members
     of that group can run the clients. An existing channel is accepted only when the stack may trust it (owner,
-    mode, group: ``channel_access``). Returns one report per channel; see ``ChannelReport.ok``.
+    mode, group: ``channel_access``); one the stack's own user made too open is tightened in place
+    (``check_existing``).
+    Returns one report per channel; see ``ChannelReport.ok``.
     """
     channel_access.check_configured_mode(mode)
     gid = _resolve_group(group)
@@ -322,7 +340,7 @@ def make_channels(
             ach.create(name, frame_count, frame_size, mode=chan_mode)
         except ach.AchException as exc:
             if exc.status == ach.ACH_EEXIST:
-                reports.append(check_existing(name, frame_count, frame_size, mode, gid))
+                reports.append(check_existing(name, frame_count, frame_size, mode, gid, tighten=True))
             else:
                 reports.append(ChannelReport(name, "error", exc.reason))
             continue

@@ -33,6 +33,7 @@ import argparse
 import logging
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -48,7 +49,7 @@ from mds_ach.robot.choice import (  # re-exported: config.ROBOT_ENV etc. are pub
     available_robots,
     effective_robot,
 )
-from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_JOINT_PARAM, MDS_JOINT_STATE, MDS_STATE, set_name
+from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_JOINT_PARAM, MDS_JOINT_STATE, MDS_STATE, set_name, set_padded
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +108,9 @@ class JointConfig:
     coordsys: str = "semantic"
     homing: Homing = field(default_factory=Homing)
     gains: Gains = field(default_factory=Gains)
+    published: tuple[tuple[str, float | str], ...] = field(default=(), compare=False)
+    """``mds-param`` fields to publish as the calibration file gave them where the table uses a default the file
+    did not state (from XML: a missing ``rom.margin`` is 0.0 in the original's frame, 5 % in our limits)."""
 
     @property
     def cpr(self) -> float:
@@ -209,11 +213,16 @@ class JointTable:
             p.safetymargin, p.encoderconfig_tickspercount = j.safety_margin, j.ticks_per_count
             p.rom_margin, p.offset, p.direction = j.rom_margin, j.offset, j.direction
             p.enabled, p.address = int(j.enabled), j.address
-            set_name(p, "coordsys", j.coordsys)
-            set_name(p, "HomeType", h.type)
-            set_name(p, "HomeTarget", h.target)
-            set_name(p, "name", j.name)
-            set_name(p, "nameshort", j.short)
+            texts = {"coordsys": j.coordsys, "HomeType": h.type, "HomeTarget": h.target, "name": j.name,
+                     "nameshort": node_table.published_short(j.address, j.short)}
+            for key, value in j.published:
+                if key in texts:
+                    texts[key] = str(value)
+                else:
+                    setattr(p, key, value)
+            for key, text in texts.items():  # as the original parser: space padded, a field not given stays 0
+                if text:
+                    set_padded(p, key, text)
         return param
 
     def fill_state(self, state: MDS_STATE) -> None:
@@ -222,7 +231,7 @@ class JointTable:
             s: MDS_JOINT_STATE = state.joint[j.address]
             s.address, s.enabled, s.offset, s.direction = j.address, int(j.enabled), j.offset, j.direction
             set_name(s, "name", j.name)
-            set_name(s, "nameshort", j.short)
+            set_name(s, "nameshort", node_table.published_short(j.address, j.short))
 
 
 # --- YAML ------------------------------------------------------------------------------------------------
@@ -565,6 +574,18 @@ def validate(table: JointTable, where: str = "joint table", require_all: bool = 
 # --- import from the original XML --------------------------------------------------------------------------
 
 
+def _unstated(numbers: Mapping[str, float | None],
+              texts: Mapping[str, str | None]) -> tuple[tuple[str, float | str], ...]:
+    """The ``mds-param`` fields the table fills with a default because the file did not state them, as the
+    original's frame had them: 0.0 and an empty text (``JointConfig.published``)."""
+    out: list[tuple[str, float | str]] = []
+    for key, field_name in (("rom.margin", "rom_margin"), ("safetymargin", "safetymargin")):
+        if numbers[key] is None:
+            out.append((field_name, 0.0))
+    out += [(key, "") for key in ("coordsys", "HomeType", "HomeTarget") if not texts[key]]
+    return tuple(out)
+
+
 def from_xml(anatomy_path: str | Path, mdsach_path: str | Path | None = None, robot: str = DEFAULT_ROBOT,
              require_all: bool = False) -> JointTable:
     """A table from Xitome ``anatomy.xml`` (+ MDS-Ach ``mdsach.xml`` overlay), loaded as they are.
@@ -608,6 +629,7 @@ def from_xml(anatomy_path: str | Path, mdsach_path: str | Path | None = None, ro
                           error=n["HomeError"] or 0.0, buffer=n["HomeBuffer"] or 0.0,
                           timeout=n["HomeTimeout"] or 0.0),
             gains=Gains(n["MCB.P"], n["MCB.I"], n["MCB.D"], n["MCB.M"]),
+            published=_unstated(n, m.texts),
         ))
     sources = (str(anatomy_path),) + ((str(mdsach_path),) if mdsach_path else ())
     table = JointTable(tuple(joints), robot=robot, sources=sources)

@@ -19,10 +19,13 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Generic, Literal, TypeVar
 
+from mds_ach.paths import CHANNEL_PREFIX_ENV
 from mds_ach.robot.msgs import (
     MDS_CMD,
     MDS_COLLIDE,
@@ -56,23 +59,59 @@ REMOTE = "achd"  # a network peer through our achd server (mds-ach remote, C ach
 CLIENTS = "clients"  # user programs: legacy C/Python clients, the examples
 
 # --- channel names (the C macros of include/mds.h carry the same names) ------------------------------------
-MDS_CHAN_REF_NAME = "mds-ref"
-MDS_CHAN_REF_FILTER_NAME = "mds-ref-filter"
-MDS_CHAN_STATE_NAME = "mds-state"
-MDS_CHAN_PARAM_NAME = "mds-param"
-MDS_CHAN_IK_NAME = "mds-ik"
-MDS_CHAN_COLLIDE_NAME = "mds-collide"
-MDS_CHAN_BOARD_CMD_NAME = "mds-cmd"  # the C name; the old Python's "mds-board-cmd" was a bug
-MDS_CHAN_REF_IK_NAME = "mds-ref-ik"
-MDS_CHAN_REF_ROS_NAME = "mds-ref-ros"
-MDS_CHAN_REF_MUX_NAME = "mds-ref-mux"
-MDS_CHAN_REF_SMOOTH_NAME = "mds-ref-smooth"
-MDS_CHAN_IK_STATE_NAME = "mds-ik-state"
-MDS_CHAN_MUX_STATE_NAME = "mds-mux-state"
-MDS_CHAN_DAEMON_STATUS_NAME = "mds-daemon-status"
-MDS_CHAN_HOLD_NAME = "mds-hold"
-MDS_CHAN_LIMITS_NAME = "mds-limits"
-MDS_CHAN_REF_GATED_NAME = "mds-ref-gated"
+CHANNEL_PREFIX_MAX = 24  # the longest name (mds-daemon-status, 17) + 24 stays far below Ach's 64-byte names
+_PREFIX_CHARS = re.compile(r"[a-z0-9][a-z0-9_.-]*")
+
+
+def prefix_problem(prefix: str) -> str | None:
+    """Why ``prefix`` cannot start channel names (it becomes part of a /dev/shm file name), or None."""
+    if len(prefix) > CHANNEL_PREFIX_MAX or not _PREFIX_CHARS.fullmatch(prefix):
+        return (f"{CHANNEL_PREFIX_ENV}={prefix[:40]!r} is not a channel-name prefix: give 1..{CHANNEL_PREFIX_MAX} "
+                "lower-case letters, digits, '.', '_' or '-', starting with a letter or digit (e.g. r2-)")
+    return None
+
+
+def _channel_prefix() -> str:
+    """The prefix every MDS channel name gets in this process: ``$MDS_ACH_CHANNEL_PREFIX`` (a second system on one
+    host, e.g. ``r2-``: ``r2-mds-state``), empty by default (the original names). Read once, at import: every
+    name below is built from it. A bad one stops the program (a silent fallback to the unprefixed names would
+    drive the other system's robot)."""
+    prefix = os.environ.get(CHANNEL_PREFIX_ENV, "")
+    if prefix and (problem := prefix_problem(prefix)):
+        raise SystemExit(f"mds_ach: {problem}")
+    return prefix
+
+
+CHANNEL_PREFIX = _channel_prefix()
+
+
+def base_name(name: str) -> str:
+    """A channel name without this process's prefix: the original name (include/mds.h, config/mux.yaml)."""
+    return name[len(CHANNEL_PREFIX):] if CHANNEL_PREFIX and name.startswith(CHANNEL_PREFIX) else name
+
+
+def channel_name(base: str) -> str:
+    """The channel named ``base`` in the original (``mds-state``, a config/mux.yaml input) for this process."""
+    return CHANNEL_PREFIX + base
+
+
+MDS_CHAN_REF_NAME = CHANNEL_PREFIX + "mds-ref"
+MDS_CHAN_REF_FILTER_NAME = CHANNEL_PREFIX + "mds-ref-filter"
+MDS_CHAN_STATE_NAME = CHANNEL_PREFIX + "mds-state"
+MDS_CHAN_PARAM_NAME = CHANNEL_PREFIX + "mds-param"
+MDS_CHAN_IK_NAME = CHANNEL_PREFIX + "mds-ik"
+MDS_CHAN_COLLIDE_NAME = CHANNEL_PREFIX + "mds-collide"
+MDS_CHAN_BOARD_CMD_NAME = CHANNEL_PREFIX + "mds-cmd"  # the C name; the old Python's "mds-board-cmd" was a bug
+MDS_CHAN_REF_IK_NAME = CHANNEL_PREFIX + "mds-ref-ik"
+MDS_CHAN_REF_ROS_NAME = CHANNEL_PREFIX + "mds-ref-ros"
+MDS_CHAN_REF_MUX_NAME = CHANNEL_PREFIX + "mds-ref-mux"
+MDS_CHAN_REF_SMOOTH_NAME = CHANNEL_PREFIX + "mds-ref-smooth"
+MDS_CHAN_IK_STATE_NAME = CHANNEL_PREFIX + "mds-ik-state"
+MDS_CHAN_MUX_STATE_NAME = CHANNEL_PREFIX + "mds-mux-state"
+MDS_CHAN_DAEMON_STATUS_NAME = CHANNEL_PREFIX + "mds-daemon-status"
+MDS_CHAN_HOLD_NAME = CHANNEL_PREFIX + "mds-hold"
+MDS_CHAN_LIMITS_NAME = CHANNEL_PREFIX + "mds-limits"
+MDS_CHAN_REF_GATED_NAME = CHANNEL_PREFIX + "mds-ref-gated"
 MDS_CHAN_DAEMON_INPUT_NAME = MDS_CHAN_REF_GATED_NAME
 """What the daemon executes: the collision gate's output, the one channel only the gate writes (``stack_only``).
 Every use goes through this name. It is not ``mds-ref``: in the original the daemon executed ``mds-ref`` and
@@ -249,7 +288,7 @@ controller), so a remote reference still passes the mux, filter and collision ga
 REMOTE_READABLE: tuple[str, ...] = tuple(c.name for c in CHANNELS if REMOTE in c.readers)
 """What the robot side of ``mds-ach remote`` shares: everything an operator monitors."""
 
-REF_INPUT_PREFIX = "mds-ref-"
+REF_INPUT_PREFIX = CHANNEL_PREFIX + "mds-ref-"
 
 
 def reference_input(name: str) -> Contract[MDS_REF]:

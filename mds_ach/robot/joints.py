@@ -66,6 +66,10 @@ JOINTS: tuple[Joint, ...] = tuple(
     )
 )
 
+ORIGINAL_SHORT: dict[int, str] = {0x31: "LYP", 0x32: "LYP", 0x3F: "RYP"}
+"""The short names the original ``mdsach.xml`` gave the nodes renamed here (two of them the same): what its
+``mds-param`` and ``mds-state`` carried in ``nameshort``, and so what ours carry (``published_short``)."""
+
 BY_ADDRESS: dict[int, Joint] = {j.address: j for j in JOINTS}
 BY_SHORT: dict[str, Joint] = {j.short: j for j in JOINTS}
 BY_NAME: dict[str, Joint] = {j.name: j for j in JOINTS}
@@ -77,6 +81,12 @@ NECK: tuple[str, ...] = ("NKY", "NKP1", "NKP2", "NKR")
 TORSO: tuple[str, ...] = ("WST",)
 # The joints the URDF models and /joint_states carries, in a fixed documented order.
 MODEL_JOINTS: tuple[str, ...] = LEFT_ARM + RIGHT_ARM + TORSO + NECK
+
+
+def published_short(address: int, short: str) -> str:
+    """The ``nameshort`` the legacy frames carry for the joint at ``address`` (``ORIGINAL_SHORT``, else
+    ``short``)."""
+    return ORIGINAL_SHORT.get(address, short)
 
 
 def lookup(name: str) -> Joint:

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from typing import Any
 
+from mds_ach.robot.contracts import MDS_CHAN_COLLIDE_NAME
 from mds_ach.robot.joints import BY_NAME, BY_SHORT
 from mds_ach.robot.msgs.legacy import MDS_CHAR_PARAM_BUFFER_SIZE, MDS_JOINT_COUNT
 
@@ -62,7 +63,7 @@ MAX_SAFE_STACK = 1024 * 1024  # bytes
 MDS_CHAN_CAN_DAEMON_NAME = "mds-can-daemon"
 MDS_CHAN_VIRTUAL_TO_SIM_NAME = "mds-virtual-to-sim"
 MDS_CHAN_VIRTUAL_FROM_SIM_NAME = "mds-virtual-from-sim"
-MDS_CHAN_COLLLIDE_NAME = "mds-collide"  # sic: the original mds_ach.py's spelling of MDS_CHAN_COLLIDE_NAME
+MDS_CHAN_COLLLIDE_NAME = MDS_CHAN_COLLIDE_NAME  # sic: the original mds_ach.py's spelling of MDS_CHAN_COLLIDE_NAME
 
 # The original mds.h's jointNames[] (a Hubo leftover: 42 names indexed 0..41, not by CAN address).
 HUBO_JOINT_NAMES: tuple[str, ...] = (

@@ -1,7 +1,7 @@
 """The command lifecycle client: hold / resume / cancel requests to the mux (``mds-hold``) and its answer.
 
 One small API so every entry point (console ``hold``/``resume`` and a timed-out ``goto ... wait``,
-``mds-ach hold``/``resume``, the bridge's ``/mds/hold``/``/mds/resume`` and aborted trajectories, the
+``mds-ach hold``/``resume``, the bridge's ``mds/hold``/``mds/resume`` and aborted trajectories, the
 collision gate, examples and user programs) asks the same way and waits for the same acknowledgement: the
 mux handles every request in order and echoes the newest ``seq`` in ``mds-mux-state`` (``hold_seq``,
 ``hold_status``), publishing at once. Semantics: ``mds_ach.robot.msgs.hold``.

@@ -61,8 +61,9 @@ def add_make_arguments(p: argparse.ArgumentParser) -> None:
                      f"read-write), {mds.MDS_CHAN_DAEMON_INPUT_NAME} 0640 (only the stack writes what the daemon "
                      "executes). Channels that already exist are checked, never clobbered: one owned by another "
                      "user (not you, not root), with a looser mode or another group than configured is refused "
-                     "(exit 1; 'mds-ach repair --recreate NAME' replaces it). See docs/operator.md, 'Users and "
-                     "permissions'.")
+                     "(exit 1; 'mds-ach repair --recreate NAME' replaces it); one of yours that is too open (the "
+                     "original's 'ach mk' and 'chmod 777') gets the mode in place unless another process has it "
+                     "open. See docs/operator.md, 'Users and permissions'.")
     p.add_argument("--group", metavar="GROUP", help="give the new channels to this group (name or gid) so its "
                                                     "members (operators) can run clients; existing channels must "
                                                     "belong to it")

@@ -157,7 +157,7 @@ def _channel_section() -> list[str]:
         only = ", stack only" if c.stack_only else ""
         out.append(f"/* {c_type_name(c.struct)}{origin}{only}: {c.purpose}. */")
         out.append(f"/*   written by {', '.join(c.writers)}; read by {', '.join(c.readers)} */")
-        out.append(f'#define {c.macro} "{c.name}"')
+        out.append(f'#define {c.macro} "{contracts.base_name(c.name)}"')
     daemon_input = contracts.BY_NAME[contracts.MDS_CHAN_DAEMON_INPUT_NAME].macro
     out.append("/* What the daemon executes: the collision gate's output, only the stack's user writes it.")
     out.append("   Legacy clients write MDS_CHAN_REF_NAME (\"mds-ref\"): the mux's 'direct' input, limit-checked")
@@ -167,7 +167,7 @@ def _channel_section() -> list[str]:
     out.append("   channel of that name exists), and the original mds_ach.py's spelling of MDS_CHAN_COLLIDE_NAME. */")
     for name in ("MDS_CHAN_CAN_DAEMON_NAME", "MDS_CHAN_VIRTUAL_TO_SIM_NAME", "MDS_CHAN_VIRTUAL_FROM_SIM_NAME",
                  "MDS_CHAN_COLLLIDE_NAME"):
-        out.append(f'#define {name} "{getattr(legacy_names, name)}"')
+        out.append(f'#define {name} "{contracts.base_name(getattr(legacy_names, name))}"')
     return out
 
 

@@ -55,6 +55,8 @@ VERBS: dict[str, Verb] = {
     "limits": Verb("the joint limits each joint can follow (range, velocity, acceleration); --moveit-yaml writes "
                    "MoveIt's joint_limits.yaml",
                    "mds_ach.tools.limitscmd:add_arguments", "mds_ach.tools.limitscmd:run"),
+    "py2to3": Verb("convert an original MDS-Ach Python 2 program to Python 3 (print, import ach, raw_input, ...)",
+                   "mds_ach.tools.py2to3:add_arguments", "mds_ach.tools.py2to3:run"),
     "check-log": Verb("audit a CAN log: targets finite, in limits, to enabled joints, within speed/acceleration",
                       "mds_ach.tools.checklog:add_arguments", "mds_ach.tools.checklog:run"),
     # operator verbs (mds_ach.tools.launcher, console, read)
@@ -90,7 +92,8 @@ VERBS: dict[str, Verb] = {
                    "mds_ach.net.remote:add_arguments", "mds_ach.net.remote:run"),
     "ros-shell": Verb("a shell inside the running system's ROS 2 graph (its network namespace and ROS_DOMAIN_ID)",
                       "mds_ach.tools.rosgraph:add_shell_arguments", "mds_ach.tools.rosgraph:run_shell"),
-    "ros": Verb("run one command inside the running system's ROS 2 graph: 'mds-ach ros python examples/...'",
+    "ros": Verb("run one command inside the running system's ROS 2 graph: 'mds-ach ros python examples/...'; "
+                "'mds-ach ros topics|echo TOPIC|hz TOPIC' without a ros2 command line",
                 "mds_ach.tools.rosgraph:add_ros_arguments", "mds_ach.tools.rosgraph:run_ros"),
     # recordings (mds_ach.record): record the channels to MCAP, plot a recording, replay it onto the channels
     "record": Verb("record every channel of the running system into an MCAP file (Foxglove, mcap, ROS 2 tools)",
@@ -166,6 +169,24 @@ def main(argv: list[str] | None = None) -> int:
         return int(_resolve(args._handler)(args) or 0)
     except KeyboardInterrupt:
         return 0
+    except BrokenPipeError:  # `mds-ach console -c ... | head -1`: the reader is gone
+        return stdout_closed()
+
+
+SIGPIPE_EXIT = 128 + signal.SIGPIPE
+"""Exit status after the reader of stdout went away: what a process killed by SIGPIPE reports."""
+
+
+def stdout_closed() -> int:
+    """The reader of our stdout closed the pipe: stop quietly, as a tool killed by SIGPIPE does, instead of a
+    BrokenPipeError traceback (Python ignores SIGPIPE). stdout is pointed at /dev/null first, so the final flush
+    at exit does not raise again. Returns the exit status (``SIGPIPE_EXIT``)."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return SIGPIPE_EXIT
 
 
 if __name__ == "__main__":

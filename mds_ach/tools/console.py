@@ -22,7 +22,7 @@ import termios
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,7 +34,7 @@ from mds_ach.robot import lifecycle
 from mds_ach.robot.joints import BY_SHORT, JOINTS, LEFT_ARM, RIGHT_ARM, Joint, lookup
 from mds_ach.robot.msgs import MDS_MUX_STATE, get_name
 from mds_ach.robot.msgs.mux_state import MUX_FREE, MUX_HELD
-from mds_ach.tools.cli import help_paragraph
+from mds_ach.tools.cli import help_paragraph, stdout_closed
 from mds_ach.tools.holdcmd import enabled_joints, held_summary
 from mds_ach.tools.monitor import Latest, collision_summary
 from mds_ach.tools.refwriter import RefWriteError, RefWriter
@@ -94,6 +94,58 @@ class CommandError(Exception):
         self.show_usage = usage
 
 
+class UnknownCommandError(CommandError):
+    """A first word that is no command: the original console ignored such a line, and so does this one (one
+    line on stderr, no usage, not a failure)."""
+
+
+ORIGINAL_INVALID = "  Invalid input... "
+"""What the original printed (stdout) when ``goto``, ``ik3`` or ``ik5`` failed; printed for them here too, the
+reason following on stderr."""
+ORIGINAL_INVALID_VERBS = ("goto", "ik3", "ik5")
+
+
+def report_error(console: Console, line: str, exc: CommandError) -> bool:
+    """Print why ``line`` failed: the original's stdout line for its verbs, the reason (and usage) on stderr.
+    Returns whether it counts as a failure (an unknown command does not: the original ignored it)."""
+    if isinstance(exc, UnknownCommandError):
+        console.err(f"  {exc}: ignored, as the original console did ('help' lists the commands)")
+        return False
+    words = line.split()
+    if words and words[0].lower() in ORIGINAL_INVALID_VERBS:
+        console.out(ORIGINAL_INVALID)
+    console.err(f"  {exc}")
+    if exc.show_usage:
+        console.err(USAGE)
+    return True
+
+
+def py2_str(value: float) -> str:
+    """``value`` as the original's Python 2 ``print`` wrote a float: ``str()``, i.e. 12 significant digits and
+    ``.0`` on a whole number (``0.244``, ``-0.5``, ``0.0``, ``1e-05``)."""
+    text = format(value, ".12g")
+    return text if any(c in text for c in ".en") else text + ".0"  # 'n': nan and inf stay as they are
+
+
+def py2_xyz(label: str, v: Sequence[float]) -> str:
+    """The original's ``print 'pos:\tx = ', round(x,5), '\ty = ', ...`` line: Python 2's print put a space
+    between the items, so two spaces after each ``=`` and one before each tab."""
+    x, y, z = (py2_str(round(float(c), 5)) for c in v[:3])
+    return f"{label}:\tx =  {x} \ty =  {y} \tz =  {z}"
+
+
+def original_steps(start: float, target: float) -> int:
+    """How many steps (dots) the original console's ``goto`` took from ``start`` to ``target``: GOTO_STEP
+    toward it while further than that, then the target itself."""
+    steps, pos = 0, start
+    while True:
+        steps += 1
+        delta = target - pos
+        if abs(delta) <= GOTO_STEP:
+            return steps
+        pos += math.copysign(GOTO_STEP, delta)
+
+
 # --------------------------------------------------------------------------------------------- parsing
 
 
@@ -103,6 +155,7 @@ class Goto:
     value: float
     wait: bool = False
     step: bool = False  # ramp like the original console (GOTO_STEP every GOTO_STEP_PERIOD)
+    filter: bool = field(default=False, compare=False)  # the original's 'goto filter ...': it printed nothing
 
 
 @dataclass(frozen=True)
@@ -122,6 +175,7 @@ class Ik:
     values: tuple[float, ...]
     wait: bool = False
     send: bool = True  # False: the original ik3/ik5 without 'set' (solve and print only)
+    shorthand: bool = field(default=False, compare=False)  # ik3/ik5: prints the original's 'N-3 DOF' lines
 
 
 @dataclass(frozen=True)
@@ -204,7 +258,7 @@ def _ik_shorthand(dof: int, args: list[str]) -> Ik:
         raise CommandError(f"'wait' needs 'set' (without it ik{dof} only solves and prints); {usage}")
     arm = _arm(args[0])
     values = tuple(_number(v, IK_COMPONENTS[i]) for i, v in enumerate(args[1:]))
-    return Ik(arm, dof, values, wait="wait" in flags, send="set" in flags)
+    return Ik(arm, dof, values, wait="wait" in flags, send="set" in flags, shorthand=True)
 
 
 def parse(line: str) -> Command:
@@ -218,12 +272,14 @@ def parse(line: str) -> Command:
             raise CommandError(f"'{verb}' takes no arguments")
         return Simple({"h": "help", "?": "help", "quit": "exit"}.get(verb, verb))
     if verb == "goto":
-        if args and args[0].lower() == "filter":  # the original's 'goto filter <JNT> <rad>'
+        filtered = bool(args) and args[0].lower() == "filter"  # the original's 'goto filter <JNT> <rad>'
+        if filtered:
             args = args[1:]
         flags, args = _trailing_flags(args, ("wait", "step"))
         if len(args) != 2:
             raise CommandError("usage: goto <joint> <rad> [step] [wait]")
-        return Goto(_joint(args[0]), _number(args[1], "the position"), "wait" in flags, "step" in flags)
+        return Goto(_joint(args[0]), _number(args[1], "the position"), "wait" in flags, "step" in flags,
+                    filter=filtered)
     if verb in ("hold", "resume"):
         return _hold(verb, args)
     if verb == "get":
@@ -252,7 +308,7 @@ def parse(line: str) -> Command:
             raise CommandError(f"ik {arm} {dof} needs {dof} value(s) ({names}), got {len(args) - 2}")
         values = tuple(_number(v, IK_COMPONENTS[i]) for i, v in enumerate(args[2:]))
         return Ik(arm, dof, values, wait)
-    raise CommandError(f"unknown command {words[0]!r}")
+    raise UnknownCommandError(f"unknown command {words[0]!r}", usage=False)
 
 
 # --------------------------------------------------------------------------------------------- the console
@@ -268,18 +324,29 @@ def fk_pose(q: Sequence[float], arm: str) -> tuple[tuple[float, float, float], t
 
 
 def format_fk(arm: str, pos: Sequence[float], rot: Sequence[float]) -> list[str]:
-    """The original's ``get fk`` lines (5 decimals)."""
-    return [f"6DOF FK - for  {arm}  arm",
-            f"pos:\tx = {pos[0]:.5f} \ty = {pos[1]:.5f} \tz = {pos[2]:.5f}",
-            f"rot:\tx = {rot[0]:.5f} \ty = {rot[1]:.5f} \tz = {rot[2]:.5f}"]
+    """The original's ``get fk`` lines, as its Python 2 ``print`` wrote them (values rounded to 5 decimals)."""
+    return [f"6DOF FK - for  {arm}  arm", py2_xyz("pos", pos), py2_xyz("rot", rot)]
+
+
+def format_ik(arm: str, des: Sequence[float], ret: Sequence[float]) -> list[str]:
+    """The original's ``ik3``/``ik5`` lines: the header says ``N-3`` for both, then the desired, reached and
+    difference positions (x, y, z)."""
+    dif = [d - r for d, r in zip(des[:3], ret[:3], strict=True)]
+    return [f"N-3 DOF IK Solution - for  {arm}  arm", py2_xyz("des", des), py2_xyz("ret", ret),
+            py2_xyz("dif", dif)]
 
 
 class Console:
     """Executes parsed commands against the running system. ``out``/``err`` print one line each, ``progress``
-    one dot while a ``wait`` is pending."""
+    one dot while a ``wait`` is pending.
+
+    The original's commands print exactly what the original printed on stdout (scripts parse it); what this
+    console adds (where a command went, the IK solution, notes) goes to stdout only with ``verbose``, warnings to
+    stderr."""
 
     def __init__(self, out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None,
-                 progress: Callable[[], None] | None = None) -> None:
+                 progress: Callable[[], None] | None = None, verbose: bool = False) -> None:
+        self.verbose = verbose
         self.out = out or _default_out
         self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
         self.progress = progress or (lambda: print(".", end="", flush=True))
@@ -287,6 +354,11 @@ class Console:
 
     def close(self) -> None:
         self.state.close()
+
+    def say(self, text: str) -> None:
+        """A line the original did not print: on stdout with ``verbose`` only."""
+        if self.verbose:
+            self.out(text)
 
     # -- helpers ----------------------------------------------------------------------------------
 
@@ -381,7 +453,7 @@ class Console:
                                        f"{RELEASE_TIMEOUT:g} s; nothing sent (see 'mds-ach dump mds-mux-state')",
                                        usage=False)
                 if not said:
-                    self.out(f"waiting for the mux to release {text} ...")
+                    self.err(f"waiting for the mux to release {text} ...")
                     said = True
                 st = chan.wait_new(0.2) or st
         finally:
@@ -425,9 +497,9 @@ class Console:
                                usage=False)
 
     def _wait_arrival(self, targets: dict[int, float], timeout: float,
-                      gave_up: Callable[[], bool] = lambda: False) -> bool:
-        """Print a dot per half second until every target joint's measured position is within tolerance (False
-        after ``timeout`` s, or as soon as ``gave_up()``)."""
+                      gave_up: Callable[[], bool] = lambda: False, show: bool = True) -> bool:
+        """Print a dot per half second (``show``) until every target joint's measured position is within
+        tolerance (False after ``timeout`` s, or as soon as ``gave_up()``)."""
         deadline = time.monotonic() + timeout
         next_dot = time.monotonic() + 0.5
         dots = False
@@ -437,7 +509,7 @@ class Console:
                 if dots:
                     self.out("")
                 return True
-            if time.monotonic() >= next_dot:
+            if show and time.monotonic() >= next_dot:
                 self.progress()
                 dots = True
                 next_dot += 0.5
@@ -489,14 +561,16 @@ class Console:
         else:
             self._put_refs({cmd.joint.address: cmd.value}, state)
         self._confirm_applied({cmd.joint.address: cmd.value}, sent_at)
-        how = f" in {steps} steps of {GOTO_STEP:g} rad every {GOTO_STEP_PERIOD:g} s" if cmd.step else ""
-        self.out(f"{cmd.joint.short} -> {cmd.value:.5f} rad{how} (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
         if cmd.wait:
-            if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT):
+            if not self._wait_arrival({cmd.joint.address: cmd.value}, GOTO_TIMEOUT, show=False):
                 why = self._not_arrived({cmd.joint.address: cmd.value})
                 raise CommandError(f"{cmd.joint.short} did not arrive within {GOTO_TIMEOUT:g} s: {why}; "
                                    + self._cancel([cmd.joint.address], "goto timed out"), usage=False)
-            self.out("done")
+        if not cmd.filter:  # the original: a dot per 0.1 rad step, then 'done'; 'goto filter' printed nothing
+            dots = "" if cmd.step else "." * original_steps(float(state.joint[cmd.joint.address].ref), cmd.value)
+            self.out(dots + "done")
+        how = f" in {steps} steps of {GOTO_STEP:g} rad every {GOTO_STEP_PERIOD:g} s" if cmd.step else ""
+        self.say(f"{cmd.joint.short} -> {cmd.value:.5f} rad{how} (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
 
     def _ramp(self, address: int, target: float, state: mds.MDS_STATE) -> tuple[int, float]:
         """The original console's goto: from the joint's current reference toward ``target`` in ``GOTO_STEP``
@@ -517,7 +591,6 @@ class Console:
                 break
             next_at += GOTO_STEP_PERIOD
             time.sleep(max(0.0, next_at - time.monotonic()))
-        self.out("")
         return steps, sent_at
 
     def _cancel(self, addresses: list[int], reason: str) -> str:
@@ -566,9 +639,9 @@ class Console:
         sent_at = time.monotonic()
         self._put_refs(targets, state)
         self._confirm_applied(targets, sent_at)
-        self.out(f"{len(targets)} enabled joints -> 0 rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
-        if nearest:
-            self.out(f"0 rad is outside the limits ({limits.describe()}) of {len(nearest)}; nearest in range: "
+        self.say(f"{len(targets)} enabled joints -> 0 rad (sent to {mds.MDS_CHAN_REF_FILTER_NAME})")
+        if nearest:  # the original printed nothing: a note, on stderr
+            self.err(f"0 rad is outside the limits ({limits.describe()}) of {len(nearest)}; nearest in range: "
                      + ", ".join(nearest))
 
     def _refuse_held(self, targets: dict[int, float]) -> None:
@@ -601,7 +674,7 @@ class Console:
         self.out(f"{name}  Ref   =  {js.ref:.5f}  rad")
         age = self.state.age()
         if age is not None and age > 1.0:
-            self.out(f"(state is {age:.1f} s old: is the daemon running?)")
+            self.err(f"(state is {age:.1f} s old: is the daemon running?)")
 
     def get_fk(self, arm: str) -> None:
         state = self._state()
@@ -637,27 +710,29 @@ class Console:
         order = order_for_dof(cmd.dof)
         result = solve(list(cmd.values), order, cmd.arm, q0)
         got = getPosCurrentFromOrder(getFkArm(result.q, cmd.arm), order)
-        des = list(cmd.values)
-        dif = [d - g for d, g in zip(des, got, strict=True)]
-        self.out(f"N-{cmd.dof} DOF IK Solution - for  {cmd.arm}  arm")
-        for label, v in (("des", des), ("ret", got), ("dif", dif)):
-            self.out(f"{label}:\tx = {v[0]:.5f} \ty = {v[1]:.5f} \tz = {v[2]:.5f}")
+        for line in format_ik(cmd.arm, list(cmd.values), [float(g) for g in got]):
+            self.out(line)
         joints = ", ".join(f"{s} {v:.5f}" for s, v in zip(shorts, result.q, strict=True))
         if not result.success:
-            self.out(f"no solution within {result.iterations} iterations (closest: {joints}); nothing sent")
+            self.err(f"no solution within {result.iterations} iterations (closest: {joints}); nothing sent")
             raise CommandError(f"ik{cmd.dof} {cmd.arm}: target not reachable", usage=False)
-        self.out(f"joints: {joints}")
-        self.out(f"not sent: add 'set' to move the arm (ik{cmd.dof} {cmd.arm} ... set)")
+        self.say(f"joints: {joints}")
+        self.say(f"not sent: add 'set' to move the arm (ik{cmd.dof} {cmd.arm} ... set)")
 
     def _ik_result(self, cmd: Ik, reply: IkReply, sent_at: float, client: IkClient) -> None:
         """Print the answer; with ``wait``, follow the arm until it arrives or the gate stops it at contact."""
         if not reply.success:
-            self.out(reply.message or "unreachable; nothing moved")
+            self.err(reply.message or "unreachable; nothing moved")
             raise CommandError(f"ik {cmd.arm} {cmd.dof}: target not reachable", usage=False)
-        self.out(f"solved: error {reply.error:.5f} in {reply.iterations} iterations "
-                 f"({reply.time * 1000:.1f} ms)")
+        if cmd.shorthand:  # ik3/ik5 ... set: the original printed its solution lines, then put it
+            from mds_ach.kinematics.ik import getFkArm, getPosCurrentFromOrder, order_for_dof  # lazy: numpy
+
+            got = getPosCurrentFromOrder(getFkArm(list(reply.q), cmd.arm), order_for_dof(cmd.dof))
+            for line in format_ik(cmd.arm, list(cmd.values), [float(g) for g in got]):
+                self.out(line)
+        self.say(f"solved: error {reply.error:.5f} in {reply.iterations} iterations ({reply.time * 1000:.1f} ms)")
         for line in format_fk(cmd.arm, *fk_pose(reply.q, cmd.arm)):
-            self.out(line)
+            self.say(line)
         targets = {BY_SHORT[s].address: float(v) for s, v in zip(ARMS[cmd.arm][1], reply.q, strict=True)}
         self._confirm_applied(targets, sent_at, mds.MDS_CHAN_REF_IK_NAME)  # the IK node's output, a mux input
         if cmd.wait:
@@ -682,10 +757,7 @@ class Console:
             self.execute(parse(line))
             return True
         except CommandError as exc:
-            self.err(f"  {exc}")
-            if exc.show_usage:
-                self.err(USAGE)
-            return False
+            return not report_error(self, line, exc)
 
 
 _DEFAULT_CONTROLLERS = {mds.MDS_CHAN_REF_FILTER_NAME: "default", mds.MDS_CHAN_REF_IK_NAME: "ik"}
@@ -860,20 +932,14 @@ def interactive(console: Console) -> int:
             try:
                 cmd = parse(line)
             except CommandError as exc:
-                console.err(f"  {exc}")
-                if exc.show_usage:
-                    console.err(USAGE)
-                status = 1
+                status = 1 if report_error(console, line, exc) else status
                 continue
             if isinstance(cmd, Simple) and cmd.name == "exit":
                 break
             try:
                 console.execute(cmd)
             except CommandError as exc:
-                console.err(f"  {exc}")
-                if exc.show_usage:
-                    console.err(USAGE)
-                status = 1
+                status = 1 if report_error(console, line, exc) else status
             except KeyboardInterrupt:
                 console.out("\n  interrupted")
     finally:
@@ -888,19 +954,16 @@ def run_commands(console: Console, commands: Sequence[str]) -> int:
         try:
             cmd = parse(line)
         except CommandError as exc:
-            console.err(f"  {exc}")
-            if exc.show_usage:
-                console.err(USAGE)
-            return 1
+            if report_error(console, line, exc):
+                return 1
+            continue
         if isinstance(cmd, Simple) and cmd.name == "exit":
             return 0
         try:
             console.execute(cmd)
         except CommandError as exc:
-            console.err(f"  {exc}")
-            if exc.show_usage:
-                console.err(USAGE)
-            return 1
+            if report_error(console, line, exc):
+                return 1
     return 0
 
 
@@ -917,11 +980,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("-c", "--command", action="append", default=[], metavar="CMD",
                    help="run CMD and exit (repeatable; stops at the first failure, exit status 1)")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="also print what the original console did not: where a command went, the IK solution "
+                        "and its pose, how many joints zeroall moved")
     p.add_argument("legacy", nargs="?", choices=["read"], help=argparse.SUPPRESS)  # 'mds_console.py read'
 
 
 def run(args: argparse.Namespace) -> int:
-    console = Console()
+    console = Console(verbose=args.verbose)
     previous = signal.signal(signal.SIGTERM, _sigterm)
     try:
         if args.command:
@@ -946,7 +1012,10 @@ def main(argv: list[str] | None = None) -> int:
     argv = strip_ros_args(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="console")
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    try:
+        return run(parser.parse_args(argv))
+    except BrokenPipeError:  # `mds-ach-console -c ... | head -1`
+        return stdout_closed()
 
 
 if __name__ == "__main__":

@@ -27,9 +27,9 @@ from pathlib import Path
 import mds_ach as mds
 from mds_ach import ach
 from mds_ach import procs as background
-from mds_ach.argtypes import seconds
+from mds_ach.argtypes import ros_namespace, seconds
 from mds_ach.kinematics.limits import current_limits, read_published
-from mds_ach.paths import bin_name, config_path, runtime_dir
+from mds_ach.paths import CHANNEL_PREFIX_ENV, bin_name, config_path, runtime_dir, user_label
 from mds_ach.robot import calibfiles, contracts
 from mds_ach.robot.channels import StructChannel, check_existing, make_channels, remove_channels
 from mds_ach.robot.choice import effective_robot, name_problem, save_robot
@@ -65,6 +65,7 @@ DEFAULT_START_TIMEOUT = 60.0  # s; first start on a loaded 2-core machine import
 DEFAULT_STOP_GRACE = 5.0  # s between SIGTERM and SIGKILL
 LOG_TAIL_LINES = 25
 WORLD_RECORD = "world"  # in the runtime dir: the world file the collision gate started with (the viewer draws it)
+NAMESPACE_RECORD = "namespace"  # in the runtime dir: the ROS namespace the nodes were started in ('/': none)
 
 Printer = Callable[[str], None]
 
@@ -175,19 +176,32 @@ WORLD_NODES = ("collision", "ik")  # the nodes that check collisions, so take th
 
 
 def node_args(name: str, nocan: bool, world: str | None = None, can_args: Sequence[str] = (),
-              params: str | None = None) -> list[str]:
+              params: str | None = None, namespace: str | None = None) -> list[str]:
     """Node ``name``'s command-line arguments. ``params``: a checked params file, passed as ``--ros-args
-    --params-file``; the launcher's own options (``--world``) follow it as ``-p``, so they win over the file."""
+    --params-file``; the launcher's own options (``--world``) follow it as ``-p``, so they win over the file.
+    ``namespace`` (absolute, ``/robot1``): every node's ``__ns``, so every topic, service and action of the system
+    (all relative) moves under it."""
     args = ["--nocan"] if name == "daemon" and nocan else []
     if name == "daemon" and not nocan:
         args += list(can_args)
     if world and name in WORLD_NODES:
         args += ["--world", world]
+    ros: list[str] = []
     if params:
-        args += ["--ros-args", "--params-file", params]
+        ros += ["--params-file", params]
         if world and name in WORLD_NODES:
-            args += ["-p", f"world:={world}"]
-    return args
+            ros += ["-p", f"world:={world}"]
+    if namespace and namespace != "/":
+        ros += ["-r", f"__ns:={namespace}"]
+    return args + (["--ros-args", *ros] if ros else [])
+
+
+def recorded_namespace(rt: Path | None = None) -> str | None:
+    """The namespace the running system's nodes were started in (``NAMESPACE_RECORD``), None when unknown."""
+    try:
+        return (rt or runtime_dir()).joinpath(NAMESPACE_RECORD).read_text().strip() or None
+    except OSError:
+        return None
 
 
 def params_choice(path: str | None, no_params: bool = False) -> str | None:
@@ -203,15 +217,15 @@ def params_choice(path: str | None, no_params: bool = False) -> str | None:
     return str(shipped) if shipped.is_file() else None
 
 
-def check_params(path: str | None, nocan: bool, out: Printer = _out) -> None:
-    """Refuse (LaunchError) a params file that does not fit the nodes' declarations, or whose ``nocan`` for the
-    daemon disagrees with this start's mode; prints which file is used."""
+def check_params(path: str | None, nocan: bool, out: Printer = _out, namespace: str = "/") -> None:
+    """Refuse (LaunchError) a params file that does not fit the nodes' declarations (started in ``namespace``), or
+    whose ``nocan`` for the daemon disagrees with this start's mode; prints which file is used."""
     if path is None:
         return
     from mds_ach.tools import params  # lazy: imports the node modules (rclpy), only for a start with a file
 
     try:
-        values = params.load(path)
+        values = params.load(path, namespace=namespace)
     except params.ParamsFileError as exc:
         raise LaunchError("", f"{exc}\n  (nothing was started; 'python -m mds_ach.tools.params' prints a valid file "
                               "with every parameter)") from None
@@ -238,35 +252,15 @@ def world_file(path: str | None) -> str | None:
     return str(Path(path).resolve())
 
 
-def host_user(uid: int) -> str:
-    """A uid as seen here, named as the machine's accounts see it: inside the user namespace of a rootless
-    tools/netns-run the user is uid 0 and every unmapped owner (root's files among them) shows as the overflow uid;
-    /proc/self/uid_map tells them apart."""
-    outside: int | None = uid
-    try:
-        ranges = [tuple(int(x) for x in line.split()) for line in Path("/proc/self/uid_map").read_text().splitlines()]
-        if ranges != [(0, 0, 4294967295)]:  # inside a user namespace
-            outside = next((out + uid - inside for inside, out, count in ranges if inside <= uid < inside + count),
-                           None)
-    except (OSError, ValueError):
-        pass
-    if outside is None:
-        return f"a user outside this user namespace (shown here as uid {uid}; root after 'sudo make run')"
-    import pwd
-
-    try:
-        return f"{pwd.getpwuid(outside).pw_name} (uid {outside})"
-    except KeyError:
-        return f"uid {outside}"
-
-
-def another_users_channels(names: Sequence[str]) -> str | None:
+def another_users_channels(names: Sequence[str], then: str = "start again") -> str | None:
     """One explanation when the refused channels are another user's system's (issue 28: after `sudo make run`,
     `make run` as a normal user on the same /dev/shm listed every channel with a fix that cannot work without that
-    user): all owned by one other user, with the modes the stack gives them. None otherwise (a plant: each line
-    says what is wrong)."""
+    user): all owned by one other user, with the modes the stack gives them; both users as the machine names them
+    (``paths.user_label``). None otherwise (a plant: each line says what is wrong). ``then``: what to do after."""
     from mds_ach.robot import access
 
+    if set(names) != {n for n in mds.ALL_CHANNELS if os.path.lexists(ach.shm_path(n))}:
+        return None  # some are ours: a plant, not another user's system
     owners = set()
     for name in names:
         try:
@@ -279,11 +273,12 @@ def another_users_channels(names: Sequence[str]) -> str | None:
         owners.add(st.st_uid)
     if len(owners) != 1:
         return None
-    who = host_user(owners.pop())
-    killall = Path(sys.executable).parent / "mds-ach"
-    return (f"refusing to start: the MDS channels in /dev/shm belong to {who}, not to you ({host_user(os.geteuid())}):"
-            f" a system that user runs or ran here (make run shares this machine's /dev/shm). As that user, stop it "
-            f"and remove them, e.g. 'sudo {killall} killall' (it also stops that user's nodes), then start again.")
+    who = user_label(owners.pop())
+    script = Path(sys.executable).parent / "mds-ach"
+    killall = str(script) if script.is_file() else f"{sys.executable} -m mds_ach.tools.cli"
+    return (f"the MDS channels in /dev/shm belong to {who}, not to you ({user_label(os.geteuid())}): a system that "
+            f"user runs or ran here (make run shares this machine's /dev/shm). As that user, stop it and remove them, "
+            f"e.g. 'sudo {killall} killall' (it also stops that user's nodes), then {then}.")
 
 
 def child_env(anatomy: str | None = None, overlay: str | None = None) -> dict[str, str]:
@@ -473,7 +468,8 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
            rt: Path | None = None, abort: Callable[[], bool] = lambda: False,
            out: Printer = _out, group: str | None = None, foreground: bool = False,
            world: str | None = None, anatomy: str | None = None,
-           overlay: str | None = None, params: str | None = None, verb: str = "start") -> dict[str, subprocess.Popen]:
+           overlay: str | None = None, params: str | None = None, verb: str = "start",
+           namespace: str | None = None) -> dict[str, subprocess.Popen]:
     """Create the channels (given to ``group`` if set), start ``names`` (those not already running) and wait
     until ``mds-state`` is live and each started node is up (see ``READY_CHANNELS``). ``foreground``: the nodes
     die with this process (``start_node``'s ``die_with_launcher``). ``world``: a world objects file for the
@@ -491,10 +487,14 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
     ``anatomy``/``overlay``: calibration XML for every node (``mds_ach.robot.calibfiles``); the joint table is
     loaded here first, so a bad file starts nothing. A real start (not ``nocan``) without any CAN configuration
     uses SocketCAN can0 at 1 Mbit/s and brings a SocketCAN link up first (``canlink``). ``verb``: the command that
-    called (``start``/``run``), named in the hint for the simulated robot."""
+    called (``start``/``run``), named in the hint for the simulated robot. ``namespace``: the ROS namespace of
+    every node (``node_args``); with ``names`` a part of a running system, default: the one it was started in."""
     rt = rt or runtime_dir()
     world = world_file(world)
-    check_params(params, nocan, out)
+    if namespace is None and running_nodes(rt):
+        namespace = recorded_namespace(rt)
+    namespace = namespace or "/"
+    check_params(params, nocan, out, namespace)
     starts_daemon = "daemon" in names and read_pid("daemon", rt) is None
     table_text = check_table(anatomy, overlay, out) if starts_daemon else ""
     can_args, link = can_plan(nocan) if starts_daemon else ([], None)
@@ -508,9 +508,13 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
         reports = make_channels(group=group)
     except ValueError as exc:  # unknown group
         raise LaunchError("", str(exc)) from None
+    for r in reports:
+        if r.action == "tightened":  # made by the stack's own user the original way (ach mk, chmod 777)
+            out(f"  channel {r.name}: {r.detail}")
     bad = [r for r in reports if not r.ok]
     if bad:
-        raise LaunchError("", another_users_channels([r.name for r in bad]) or "refusing to start, channel "
+        theirs = another_users_channels([r.name for r in bad])
+        raise LaunchError("", f"refusing to start: {theirs}" if theirs else "refusing to start, channel "
                           "problems:\n" + "\n".join(f"  {r.name}: {r.detail}" for r in bad))
     already = running_nodes(rt)
     env = child_env(anatomy, overlay)
@@ -524,10 +528,12 @@ def launch(nocan: bool, timeout: float = DEFAULT_START_TIMEOUT, names: Sequence[
             check = _readiness(name)
             if check is not None:
                 checks[name] = check
-            procs[name] = start_node(name, node_args(name, nocan, world, can_args, params), rt, env,
+            procs[name] = start_node(name, node_args(name, nocan, world, can_args, params, namespace), rt, env,
                                      die_with_launcher=foreground)
             out(f"  {name:<10} started (pid {procs[name].pid}, log {log_path(name, rt)})")
         wait_ready(procs, checks, timeout, rt, abort)
+        if procs:
+            (rt / NAMESPACE_RECORD).write_text(namespace + "\n")
         if "collision" in procs:  # what the running gate uses, for `mds-ach sim` (viewer.system_world)
             (rt / WORLD_RECORD).write_text((world or str(config_path("world.yaml"))) + "\n")
         if starts_daemon:
@@ -663,7 +669,13 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
     trusted, 3 a node is not running. Never raises for a damaged channel: it is reported with the repair hint."""
     rt = rt or runtime_dir()
     lines = [f"runtime dir {rt}"]
+    if contracts.CHANNEL_PREFIX:
+        prefix = contracts.CHANNEL_PREFIX
+        lines.append(f"channels   named {prefix}mds-* (${CHANNEL_PREFIX_ENV}={prefix})")
     running = running_nodes(rt)
+    namespace = recorded_namespace(rt) if running else None
+    if namespace and namespace != "/":
+        lines.append(f"namespace  {namespace} (ROS: {namespace}/joint_states, {namespace}/mds_daemon/command, ...)")
     if not running:
         lines.append("MDS-Ach is not running (no node runs; start it with 'mds-ach run nocan' or 'mds-ach start')")
     for name in NODES:
@@ -680,7 +692,8 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
                                                     if xml and robot != XML_ROBOT else ""))
     lines.append("table      " + table_line(read_published(), recorded_table(rt)))
     problems = channel_problems()
-    lines += [f"channel    {name}: {text}" for name, text in problems.items()]
+    theirs = another_users_channels(list(problems), then="'mds-ach status' again") if problems else None
+    lines += [f"channels   {theirs}"] if theirs else [f"channel    {name}: {text}" for name, text in problems.items()]
     if not problems and any(ach.exists(n) for n in mds.ALL_CHANNELS):
         lines.append(f"channels   ok ({len(mds.ALL_CHANNELS)})")
     try:
@@ -735,7 +748,7 @@ def status_report(rt: Path | None = None, window: float = 1.0) -> tuple[list[str
 
 NEXT_STEPS = """\
 MDS-Ach is running{mode}. Node logs: {rt}
-In another terminal (same machine){activate}:
+In another terminal (same machine){activate}{prefix}:
   mds-ach read                 live joint table (q quits)
   mds-ach console              goto / get / get fk / ik  (try: get fk left, goto LSP -0.3)
   mds-ach status               nodes, loop rate, bus load, collisions
@@ -752,6 +765,13 @@ def _activate_hint() -> str:
     return f", after `source {activate}`" if activate.is_file() else ""
 
 
+def _prefix_hint() -> str:
+    """A system with prefixed channel names is seen only by clients with the same prefix."""
+    if not contracts.CHANNEL_PREFIX:
+        return ""
+    return f", with `export {CHANNEL_PREFIX_ENV}={contracts.CHANNEL_PREFIX}` (this system's channels)"
+
+
 def _surviving(out: Printer) -> Printer:
     """``out``, but a write error (the reader or the terminal is gone) never stops the caller."""
     def safe(text: str) -> None:
@@ -765,7 +785,7 @@ def _surviving(out: Printer) -> Printer:
 
 def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str | None = None,
                    world: str | None = None, anatomy: str | None = None, overlay: str | None = None,
-                   params: str | None = None) -> int:
+                   params: str | None = None, namespace: str | None = None) -> int:
     """``mds-ach run``: start everything, print what to do next, supervise, stop cleanly. Leaves no orphans.
 
     It stops every node on Ctrl-C, SIGTERM and SIGHUP (the terminal closed), when its output is gone (``make run |
@@ -800,7 +820,7 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
         started = True
         try:
             procs = launch(nocan, timeout, rt=rt, abort=abort, out=out, group=group, foreground=True, world=world,
-                           anatomy=anatomy, overlay=overlay, params=params, verb="run")
+                           anatomy=anatomy, overlay=overlay, params=params, verb="run", namespace=namespace)
         except LaunchError as exc:
             if abort():
                 out("interrupted; everything stopped")
@@ -808,7 +828,8 @@ def run_foreground(nocan: bool, timeout: float, out: Printer = _out, group: str 
             _err(f"mds-ach run: {exc}")
             return 1
         out(NEXT_STEPS.format(mode=" on the simulated robot (nocan)" if nocan else "", rt=rt,
-                              activate=_activate_hint(), ros=ros_graph_summary()))
+                              activate=_activate_hint(), ros=ros_graph_summary(namespace=namespace),
+                              prefix=_prefix_hint()))
         failed = None
         while not abort() and failed is None:
             failed = _dead(procs)
@@ -857,6 +878,10 @@ def _add_nocan(p: argparse.ArgumentParser) -> None:
                    help="ROS 2 params file for the nodes (<node>: ros__parameters: ...), checked before anything "
                         "starts; default: the package's config/params.yaml when it exists (docs/parameters.md)")
     p.add_argument("--no-params", action="store_true", help="pass no params file: the nodes' built-in defaults")
+    p.add_argument("--namespace", metavar="NAME", type=ros_namespace,
+                   help="ROS namespace of every node (e.g. robot1: /robot1/joint_states, /robot1/mds_daemon/command, "
+                        "...), for several robots on one ROS graph; default: none (/joint_states). A params file's "
+                        "sections then need /**/NODE: (as config/params.yaml has) or /NAME/NODE:")
 
 
 def add_start_arguments(p: argparse.ArgumentParser) -> None:
@@ -880,7 +905,7 @@ def run_start(args: argparse.Namespace) -> int:
     _out(f"starting MDS-Ach{' (nocan: simulated bus)' if nocan else ''}; runtime dir {rt}")
     try:
         launch(nocan, args.timeout, names, rt, group=args.group, world=args.world, anatomy=args.anatomy,
-               overlay=args.overlay, params=params_choice(args.params, args.no_params))
+               overlay=args.overlay, params=params_choice(args.params, args.no_params), namespace=args.namespace)
     except LaunchError as exc:
         _err(f"mds-ach start: {exc}")
         return 1
@@ -903,7 +928,7 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
 def run_run(args: argparse.Namespace) -> int:
     return run_foreground(args.mode == "nocan" or args.nocan_flag, args.timeout, group=args.group,
                           world=args.world, anatomy=args.anatomy, overlay=args.overlay,
-                          params=params_choice(args.params, args.no_params))
+                          params=params_choice(args.params, args.no_params), namespace=args.namespace)
 
 
 def add_stop_arguments(p: argparse.ArgumentParser) -> None:

@@ -105,7 +105,7 @@ def joint_fresh(status: ctypes.Structure | None, address: int) -> str:
 
 def gate_refusals(gate_input: mds.MDS_REF | None, limits: EffectiveLimits) -> list[str]:
     """What the collision gate refuses now (it holds those joints at their last value): the joints of its input
-    (``mds-ref-smooth``) outside the effective limits, or not finite. The gate's counter is on /mds/collision."""
+    (``mds-ref-smooth``) outside the effective limits, or not finite. The gate's counter is on mds/collision."""
     if gate_input is None:
         return []
     out = []

@@ -1,6 +1,7 @@
 """ROS 2 parameters files for the six nodes: ``config/params.yaml`` and the ones given to ``mds-ach start --params``.
 
-The file is the standard ROS 2 format (``<node name>: ros__parameters: {name: value}``), passed to each node as
+The file is the standard ROS 2 format (``<node name>: ros__parameters: {name: value}``; ``/**/<node>``, ``/<ns>/<node>``
+and ``/**`` sections for namespaced nodes, ``mds-ach start --namespace``), passed to each node as
 ``--ros-args --params-file FILE``. rclpy alone would ignore a misspelt node or parameter and stop only the one node
 whose value is out of range, after the others started; ``load`` checks the whole file against what the nodes
 declare (their ``PARAMETERS``) so that a bad file is refused before anything starts.
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
+import re
 import sys
 import textwrap
 from collections.abc import Mapping, Sequence
@@ -27,6 +29,7 @@ from mds_ach.nodes.rosnode import Param, ParamValue
 from mds_ach.paths import config_path
 
 PARAMS_FILE = "params.yaml"  # in config/
+ROS_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 # launcher node name -> the module that declares its NODE_NAME and PARAMETERS (imported on first use: rclpy)
 NODE_MODULES: dict[str, str] = {
     "daemon": "mds_ach.nodes.daemon",
@@ -98,6 +101,8 @@ HEADER = """\
 # exists; `--params FILE` uses another one, `--no-params` none. The file is checked against what the nodes declare
 # before anything starts: an unknown node or parameter, a wrong type or a value out of range is refused.
 # With `ros2 run`: ros2 run mds_ach filter --ros-args --params-file config/params.yaml
+# Sections are /**/NODE: NODE in any namespace, so the file also serves `mds-ach start --namespace NAME`; a section
+# for one robot of several is /NAME/NODE:, one for every node /**: (each parameter checked for every node declaring it).
 #
 # GENERATED from the nodes' PARAMETERS (python -m mds_ach.tools.params --write); test_params.py keeps it in step.
 # Values are the defaults. Commented lines: the default comes from the node's own config file (an active line would
@@ -109,7 +114,7 @@ def render(all_nodes: Sequence[NodeParams] | None = None) -> str:
     """The text of ``config/params.yaml`` for ``all_nodes`` (default: every node), with every declared parameter."""
     lines = [HEADER.rstrip("\n")]
     for node in all_nodes if all_nodes is not None else nodes():
-        lines += ["", f"{node.ros_name}:  # mds-ach start --only {node.name}", "  ros__parameters:"]
+        lines += ["", f"{WILDCARD}/{node.ros_name}:  # mds-ach start --only {node.name}", "  ros__parameters:"]
         for p in node.params:
             why = LAUNCHER_SET.get((node.name, p.name))
             if why is None and p.default_doc is not None:
@@ -155,19 +160,76 @@ def check_value(param: Param, value: Any) -> str | None:
     return None
 
 
-def _node_key(key: str, by_ros: Mapping[str, NodeParams], by_name: Mapping[str, NodeParams]) -> str | None:
-    """The problem with a top-level key, or None if it names a node."""
-    bare = key[1:] if key.startswith("/") else key
+WILDCARD = "/**"
+"""rcl's wildcard: ``/**`` (every node of every namespace) and ``/**/NODE`` (NODE in any namespace)."""
+
+
+@dataclass(frozen=True)
+class Section:
+    """What a top-level key of a params file addresses, as rcl matches it against a node's fully qualified name:
+    ``namespace`` ``/``, ``/robot1`` or None for any (``/**``), and ``node`` (None: every node)."""
+
+    key: str
+    namespace: str | None
+    node: NodeParams | None
+
+    def applies(self, node: NodeParams, namespace: str) -> bool:
+        return (self.namespace is None or self.namespace == namespace) and self.node in (None, node)
+
+
+def _section(key: str, by_ros: Mapping[str, NodeParams], by_name: Mapping[str, NodeParams]) -> Section | str:
+    """The section a top-level key names, or the problem with it. Accepted: ``NODE``/``/NODE`` (no namespace),
+    ``/NS/NODE`` (NS may have several tokens), ``/**`` and ``/**/NODE``."""
+    if key == WILDCARD:
+        return Section(key, None, None)
+    any_namespace = key.startswith(WILDCARD + "/")
+    tokens = key[len(WILDCARD):].strip("/").split("/") if any_namespace else key.strip("/").split("/")
+    namespace = None if any_namespace else "/" + "/".join(tokens[:-1])
+    bare = tokens[-1]
+    if any("*" in token for token in tokens):
+        return (f"{key!r}: this wildcard is not supported here; use /** (every node), /**/NODE (NODE in any namespace) "
+                "or /NAMESPACE/NODE")
+    if namespace is not None and not all(ROS_TOKEN.fullmatch(t) for t in namespace.strip("/").split("/") if t):
+        return f"{key!r}: {namespace!r} is not a ROS namespace"
     if bare in by_ros:
-        return None
-    if "*" in key:
-        return f"{key!r}: wildcard sections are not supported here; give each node its own section"
+        return Section(key, namespace, by_ros[bare])
     hint = f" (its ROS node name is {by_name[bare].ros_name!r})" if bare in by_name else ""
     return f"unknown node {key!r}{hint}; nodes: {', '.join(n.ros_name for n in by_ros.values())}"
 
 
-def check(doc: Any, all_nodes: Sequence[NodeParams] | None = None) -> dict[str, dict[str, ParamValue]]:
-    """``{ROS node name: {parameter: value}}`` from a parsed params file; ParamsFileError listing every problem."""
+def _check_section(section: Section, given: Mapping[str, Any], known: Sequence[NodeParams],
+                   problems: list[str]) -> dict[str, ParamValue]:
+    """The section's valid values; every problem appended (a wildcard section's parameter must be declared by a
+    node it reaches, and fit every such node)."""
+    flat: dict[str, Any] = {}
+    _flatten("", given, flat)
+    reached = [section.node] if section.node is not None else list(known)
+    values: dict[str, ParamValue] = {}
+    for name, value in flat.items():
+        declaring = [(n, p) for n in reached for p in n.params if p.name == name]
+        if not declaring:
+            if section.node is not None:
+                problems.append(f"{section.key}: unknown parameter {name!r}; {section.node.ros_name} declares: "
+                                f"{', '.join(p.name for p in section.node.params)}")
+            else:
+                problems.append(f"{section.key}: unknown parameter {name!r}: no node declares it")
+            continue
+        whys = [f"{section.key}: {name}: {why}" + (f" (for {n.ros_name})" if section.node is None else "")
+                for n, p in declaring if (why := check_value(p, value)) is not None]
+        if whys:
+            problems += whys
+            continue
+        values[name] = value
+    return values
+
+
+def check(doc: Any, all_nodes: Sequence[NodeParams] | None = None,
+          namespace: str = "/") -> dict[str, dict[str, ParamValue]]:
+    """``{ROS node name: {parameter: value}}`` that the nodes started in ``namespace`` get from a parsed params
+    file (sections applied in file order, as rcl does: a later one wins); ParamsFileError listing every problem.
+    Every section is checked, also those for another namespace (one file may serve several robots); a section for
+    the nodes outside any namespace (``mds_daemon:``) when they start in one is refused: rcl would silently ignore
+    it."""
     known = list(all_nodes) if all_nodes is not None else nodes()
     by_ros = {n.ros_name: n for n in known}
     by_name = {n.name: n for n in known}
@@ -177,42 +239,41 @@ def check(doc: Any, all_nodes: Sequence[NodeParams] | None = None) -> dict[str, 
         raise ParamsFileError("expected a mapping of node names (<node>: ros__parameters: {...})")
     problems: list[str] = []
     result: dict[str, dict[str, ParamValue]] = {}
-    for key, section in doc.items():
+    for key, body in doc.items():
         key = str(key)
-        why = _node_key(key, by_ros, by_name)
-        if why is not None:
-            problems.append(why)
+        section = _section(key, by_ros, by_name)
+        if isinstance(section, str):
+            problems.append(section)
             continue
-        node = by_ros[key.lstrip("/")]
-        if not isinstance(section, Mapping) or set(section) != {"ros__parameters"}:
+        if not isinstance(body, Mapping) or set(body) != {"ros__parameters"}:
             problems.append(f"{key}: expected exactly one key, ros__parameters")
             continue
-        given = section["ros__parameters"]
+        given = body["ros__parameters"]
         if not isinstance(given, Mapping) or not given:
             problems.append(f"{key}: ros__parameters must map parameter names to values (rcl refuses an empty one)")
             continue
-        flat: dict[str, Any] = {}
-        _flatten("", given, flat)
-        declared = {p.name: p for p in node.params}
-        values = result.setdefault(node.ros_name, {})
-        for name, value in flat.items():
-            param = declared.get(name)
-            if param is None:
-                problems.append(f"{key}: unknown parameter {name!r}; {node.ros_name} declares: "
-                                f"{', '.join(declared)}")
-                continue
-            why = check_value(param, value)
-            if why is not None:
-                problems.append(f"{key}: {name}: {why}")
-                continue
-            values[name] = value
+        values = _check_section(section, given, known, problems)
+        if section.namespace == "/" and namespace != "/":
+            assert section.node is not None
+            problems.append(f"{key}: this section is for {section.node.ros_name} outside any namespace, but the nodes "
+                            f"start in {namespace}: write /**/{section.node.ros_name}: (any namespace) or "
+                            f"{namespace}/{section.node.ros_name}:")
+            continue
+        for node in known:
+            if section.applies(node, namespace):
+                declared = {p.name for p in node.params}
+                mine = {k: v for k, v in values.items() if k in declared}
+                if mine or section.node is not None:
+                    result.setdefault(node.ros_name, {}).update(mine)
     if problems:
         raise ParamsFileError("\n".join(problems))
     return result
 
 
-def load(path: str | Path, all_nodes: Sequence[NodeParams] | None = None) -> dict[str, dict[str, ParamValue]]:
-    """Read and check a params file; ParamsFileError (naming the file) if it cannot be used."""
+def load(path: str | Path, all_nodes: Sequence[NodeParams] | None = None,
+         namespace: str = "/") -> dict[str, dict[str, ParamValue]]:
+    """Read and check a params file for nodes started in ``namespace`` (``check``); ParamsFileError (naming the
+    file) if it cannot be used."""
     import yaml  # lazy: only when a file is used
 
     try:
@@ -224,7 +285,7 @@ def load(path: str | Path, all_nodes: Sequence[NodeParams] | None = None) -> dic
     except yaml.YAMLError as exc:
         raise ParamsFileError(f"params file {path}: not valid YAML: {exc}") from None
     try:
-        return check(doc, all_nodes)
+        return check(doc, all_nodes, namespace)
     except ParamsFileError as exc:
         lines = str(exc).splitlines()
         raise ParamsFileError(f"params file {path}:\n" + "\n".join(f"  {line}" for line in lines)) from None

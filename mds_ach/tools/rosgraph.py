@@ -1,4 +1,5 @@
-"""``mds-ach ros-shell`` and ``mds-ach ros CMD...``: a shell, or one command, inside the running system's ROS 2 graph.
+"""``mds-ach ros-shell`` and ``mds-ach ros CMD...``: a shell, or one command, inside the running system's ROS 2 graph
+(``mds-ach ros topics|echo|hz``: ``mds_ach.tools.rostopic``, for a ROS without the ``ros2`` command line).
 
 ``make run`` starts the nodes in a private network namespace (tools/netns-run: DDS on loopback only) with a random
 ``ROS_DOMAIN_ID``, and for a normal user inside a user namespace too, so a second terminal sees no ROS graph at all.
@@ -19,13 +20,14 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from mds_ach.paths import runtime_dir
+from mds_ach.paths import CHANNEL_PREFIX_ENV, host_uid, runtime_dir
 
 # The node whose graph we want first: the bridge publishes /joint_states; any other node shares its namespaces.
 GRAPH_NODES: tuple[str, ...] = ("bridge", "daemon", "mux", "filter", "collision", "ik")
 # What makes two processes one ROS graph, taken from the running node (and dropped from ours when it lacks them).
 GRAPH_ENV_PREFIXES: tuple[str, ...] = ("ROS_", "RMW_", "FASTRTPS_", "FASTDDS_", "CYCLONEDDS_")
-GRAPH_ENV_KEYS: tuple[str, ...] = ("AMENT_PREFIX_PATH", "MDS_NETNS_ACTIVE", "MDS_ACH_RUNTIME_DIR", "MDS_ACH_ROBOT")
+GRAPH_ENV_KEYS: tuple[str, ...] = ("AMENT_PREFIX_PATH", "MDS_NETNS_ACTIVE", "MDS_ACH_RUNTIME_DIR", "MDS_ACH_ROBOT",
+                                  CHANNEL_PREFIX_ENV)
 # nsenter's options per namespace kind, in the order the kernel needs them (the user namespace first).
 NAMESPACES: tuple[str, ...] = ("user", "mnt", "net")
 
@@ -110,27 +112,48 @@ def command(graph: Graph, argv: list[str], cwd: str | None = None) -> list[str]:
     return ["nsenter", f"--target={graph.pid}", *(f for ns in graph.join for f in flags[ns]), "--", *argv]
 
 
-def summary(env: dict[str, str] | None = None) -> str:
-    """What ``mds-ach run`` prints about its ROS 2 graph: the domain, and how to get into it."""
+def summary(env: dict[str, str] | None = None, namespace: str | None = None) -> str:
+    """What ``mds-ach run`` prints about its ROS 2 graph: the domain, the nodes' ROS namespace when there is one,
+    and how to get into it."""
     env = dict(os.environ if env is None else env)
     domain = env.get("ROS_DOMAIN_ID") or "0 (default)"
+    if namespace and namespace != "/":
+        domain += f", nodes in the ROS namespace {namespace} ({namespace}/joint_states, {namespace}/mds_daemon/...)"
     if env.get("MDS_NETNS_ACTIVE") == "1":
         return (f"ROS 2 graph: ROS_DOMAIN_ID={domain}, in this system's private network namespace (loopback only).\n"
                 "  mds-ach ros-shell            a shell inside that graph (examples/ros_*.py, rclpy scripts)\n"
                 "  mds-ach ros CMD...           one command inside it, e.g.\n"
-                "                               mds-ach ros python examples/ros_joint_state_subscriber.py --count 5")
+                "                               mds-ach ros python examples/ros_joint_state_subscriber.py --count 5\n"
+                "  mds-ach ros topics|echo|hz   its topics, one's messages, its rate (no ros2 command line needed)")
     return (f"ROS 2 graph: ROS_DOMAIN_ID={domain} on this machine's network (not isolated): any shell with\n"
             f"  export ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')} reaches it (or 'mds-ach ros-shell')")
 
 
+def prompt(bash: bool = True) -> str:
+    """The shell prompt inside the graph: what the shell is and who the user really is. Inside the user namespace
+    of a rootless system the user is uid 0, so the shell's own ``\\u`` would say ``root@...`` (issue 28). ``bash``:
+    with the working directory (``\\w``, which sh does not expand)."""
+    import pwd
+    import socket
+
+    uid = host_uid()
+    try:
+        user = pwd.getpwuid(uid).pw_name
+    except KeyError:
+        user = f"uid{uid}"
+    where = ":\\w" if bash else ""
+    return f"(mds-ach ros) {user}@{socket.gethostname().split('.')[0]}{where}{'#' if uid == 0 else '$'} "
+
+
 def bash_rc(env: dict[str, str]) -> str:
-    """A bash rcfile: the user's ``~/.bashrc``, then this venv first on PATH and the graph's settings again, so a
-    ``~/.bashrc`` that puts another Python first or sets its own ROS_DOMAIN_ID cannot take the shell out of the
-    graph (``python`` there must have rclpy and the package)."""
+    """A bash rcfile: the user's ``~/.bashrc``, then this venv first on PATH, the graph's settings again and our
+    prompt, so a ``~/.bashrc`` that puts another Python first or sets its own ROS_DOMAIN_ID cannot take the shell
+    out of the graph (``python`` there must have rclpy and the package)."""
     keep = {k: v for k, v in env.items() if _is_graph_key(k) or k == "VIRTUAL_ENV"}
     lines = ['if [ -f "$HOME/.bashrc" ]; then . "$HOME/.bashrc"; fi',
              f"export PATH={shlex.quote(str(Path(sys.executable).parent))}:\"$PATH\"",
-             *(f"export {k}={shlex.quote(v)}" for k, v in sorted(keep.items())), "hash -r"]
+             *(f"export {k}={shlex.quote(v)}" for k, v in sorted(keep.items())), "hash -r",
+             f"PS1={shlex.quote(prompt())}"]
     return "\n".join(lines) + "\n"
 
 
@@ -155,6 +178,8 @@ def _exec(argv: list[str], verb: str) -> int:
         print(f"mds-ach {verb}: nsenter (util-linux) is needed to enter the system's namespaces", file=sys.stderr)
         return 1
     env = environment(graph)
+    if verb == "ros-shell":
+        env["PS1"] = prompt(bash=False)  # sh and dash read it from the environment; bash's comes after ~/.bashrc
     if verb == "ros-shell" and Path(argv[0]).name == "bash":
         argv = [argv[0], "--rcfile", _rcfile(bash_rc(env)), *argv[1:]]
     full = command(graph, argv)
@@ -185,10 +210,16 @@ def run_shell(args: argparse.Namespace) -> int:
     return _exec([shell, "-i"], "ros-shell")
 
 
+TOPIC_VERBS = ("topics", "echo", "hz")  # mds_ach.tools.rostopic: what `ros2 topic` would do, on rclpy alone
+
+
 def add_ros_arguments(p: argparse.ArgumentParser) -> None:
     p.description = ("Run one command inside the running system's ROS 2 graph (see 'mds-ach ros-shell'), e.g. "
                      "'mds-ach ros python examples/ros_joint_state_subscriber.py --count 5'. Its exit status is "
-                     "the command's.")
+                     "the command's. Built in, for a ROS without the ros2 command line (pip): 'mds-ach ros topics' "
+                     "(every topic, type, publishers and subscribers), 'mds-ach ros echo TOPIC [-n N]' (messages as "
+                     "YAML), 'mds-ach ros hz TOPIC [--duration S]' (its rate); relative names are the system's "
+                     "(its --namespace), '--help' after the verb for its options.")
     p.add_argument("command", nargs=argparse.REMAINDER, metavar="CMD [ARGS...]", help="the command and its arguments")
 
 
@@ -198,6 +229,18 @@ def run_ros(args: argparse.Namespace) -> int:
         argv = argv[1:]
     if not argv:
         print("mds-ach ros: give a command, e.g. 'mds-ach ros python examples/ros_joint_state_subscriber.py' "
-              "(or 'mds-ach ros-shell' for a shell)", file=sys.stderr)
+              "or 'mds-ach ros topics' (or 'mds-ach ros-shell' for a shell)", file=sys.stderr)
         return 2
+    if argv[0] in TOPIC_VERBS or argv[0] == "--namespace":
+        argv = topic_command(argv)
     return _exec(argv, "ros")
+
+
+def topic_command(argv: list[str]) -> list[str]:
+    """``mds-ach ros topics|echo|hz ...`` as the command run in the graph: this interpreter's
+    ``mds_ach.tools.rostopic``, relative names resolved in the running system's namespace (unless given)."""
+    from mds_ach.tools.launcher import recorded_namespace
+
+    if "--namespace" not in argv:
+        argv = ["--namespace", recorded_namespace() or "/", *argv]
+    return [sys.executable, "-m", "mds_ach.tools.rostopic", *argv]

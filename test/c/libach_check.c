@@ -211,6 +211,14 @@ static int api(const char *name) {
     CHECK(strcmp(ach_result_to_string(ACH_OK), "ACH_OK") == 0, "name of 0");
     CHECK(strcmp(ach_result_to_string(ACH_STALE_FRAMES), "ACH_EAGAIN") == 0, "name of 5");
     CHECK(strcmp(ach_result_to_string(ACH_ENOTSUP), "ACH_ENOTSUP") == 0, "name of 19");
+    {
+        char mine[] = "set by the client";
+        ach_set_errstr(mine); /* golems' libach exports it; clients and tools call it */
+        mine[0] = 'X';        /* a copy is kept */
+        CHECK(strcmp(ach_errstr(), "set by the client") == 0, "ach_set_errstr: ach_errstr() is '%s'", ach_errstr());
+        ach_set_errstr(NULL);
+        CHECK(strcmp(ach_errstr(), "") == 0, "ach_set_errstr(NULL): '%s'", ach_errstr());
+    }
     CHECK(ACH_O_WAIT == 1 && ACH_O_LAST == 2 && ACH_O_COPY == 4 && ACH_O_RELTIME == 8 && ACH_O_NONBLOCK == 0 &&
               ACH_O_FIRST == 0,
           "option values");

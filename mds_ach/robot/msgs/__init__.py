@@ -38,6 +38,7 @@ from mds_ach.robot.msgs.legacy import (
     _Packed,
     get_name,
     set_name,
+    set_padded,
 )
 from mds_ach.robot.msgs.limits import MDS_LIMITS
 from mds_ach.robot.msgs.mux_state import MDS_MUX_STATE
@@ -71,4 +72,5 @@ __all__ = [
     "Packed",
     "get_name",
     "set_name",
+    "set_padded",
 ]

@@ -14,7 +14,7 @@ then the joint holds where its reference is (not at ``target``), so no CANCEL mo
 tolerance. Otherwise the whole request is refused (``check_cancel``: the mux and the network server use it).
 
 Writers: the console (``hold``/``resume``, a ``goto ... wait`` that timed out), ``mds-ach hold``/``resume``,
-the bridge (``/mds/hold``, ``/mds/resume``), the collision gate (an arm stopped at contact), user programs.
+the bridge (``mds/hold``, ``mds/resume``), the collision gate (an arm stopped at contact), user programs.
 The mux reads every frame in order and acknowledges the newest ``seq`` it handled in ``mds-mux-state``.
 Stdlib + ctypes only, so C clients and the console use it without numpy or rclpy.
 """

@@ -1,8 +1,8 @@
 """``mds-ik-state``: the IK node's answer to each ``mds-ik`` request (new; the original printed to its console).
 
-One ``MDS_IK_STATUS`` frame per handled request, also published on the ROS topic ``/mds/ik_status``
-(``mds_ach_interfaces/msg/IkStatus``, made from ``status_to_dict``; that JSON on ``/mds/ik_status/json``,
-deprecated). Stdlib + ctypes only, so clients (console, viewer, C code) read it without rclpy or numpy.
+One ``MDS_IK_STATUS`` frame per handled request, also published on the ROS topic ``mds/ik_status``
+(``mds_ach_interfaces/msg/IkStatus``, made from ``status_to_dict``). Stdlib + ctypes only, so clients (console,
+viewer, C code) read it without rclpy or numpy.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ IK_MESSAGE_SIZE = 80
 # (IK_BAD_REQUEST, nothing moves) with PROBE_ANSWER as its message, and logged as a probe, not as a warning.
 IK_PROBE_MOVE = -1
 PROBE_ANSWER = "probe answered: the IK node is up; nothing moved"
-IK_STATUS_TOPIC = "/mds/ik_status"
+IK_STATUS_TOPIC = "mds/ik_status"  # relative: a namespace moves it
 
 
 class MDS_IK_STATUS(_Packed):  # noqa: N801 - MDS struct naming

@@ -188,6 +188,16 @@ def set_name(field_owner: ctypes.Structure, field: str, text: str) -> None:
     setattr(field_owner, field, raw)
 
 
+def set_padded(field_owner: ctypes.Structure, field: str, text: str) -> None:
+    """Write ``text`` into a char[30] field padded with spaces to all 30 bytes, as the original's Python parser
+    wrote ``mds-param`` (``get_name`` reads both paddings); refuse names that do not fit."""
+    raw = text.encode("ascii")
+    if len(raw) > MDS_CHAR_PARAM_BUFFER_SIZE:
+        raise ValueError(f"name {text!r} longer than {MDS_CHAR_PARAM_BUFFER_SIZE} characters")
+    ctypes.memmove(ctypes.addressof(field_owner) + getattr(type(field_owner), field).offset,
+                   raw.ljust(MDS_CHAR_PARAM_BUFFER_SIZE, b" "), MDS_CHAR_PARAM_BUFFER_SIZE)
+
+
 def get_name(raw: bytes) -> str:
     """Decode a char[30] field: stop at NUL, drop the space padding the old parser added."""
     return raw.split(b"\0", 1)[0].decode("ascii", "replace").strip()
