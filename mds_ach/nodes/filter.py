@@ -18,13 +18,14 @@ Per-joint modes (the maths is ``mds_ach.nodes.filters``, shared with the daemon)
   so the reference stays compliant to where the joint really is. Falls back to ``ema`` without a state.
 * ``pass``: no smoothing.
 
-**Per controller** (config ``controllers``): the joints a given mux controller owns (``mds-mux-state`` owner[])
-use that controller's parameters instead. By default the mux's ``direct`` controller (``mds-ref``, the channel
-the original daemon executed, written by expert clients) is ``pass``: "unsmoothed" means only this stage is
-skipped for those joints. The filter stays in the path and nothing else is bypassed: the mux still refuses
-out-of-limit frames, the collision gate still checks every reference (and bounds its speed, ``max_velocity`` in
-config/collision.yaml), and the daemon still limits speed and acceleration (config/joints.yaml ``motion:``),
-so a step put on ``mds-ref`` reaches the motors as a bounded ramp.
+**Per controller** (config ``controllers``): the joints a given mux controller owns (``mds-mux-state`` owner[]) use
+that controller's parameters instead (with ``modes``: only for its frames in those ref modes; the bridge's
+trajectory targets, mode 1, pass unsmoothed while its position commands, mode 0, are smoothed). By default the mux's
+``direct`` controller (``mds-ref``, the channel the original daemon executed, written by expert clients) is
+``pass``: "unsmoothed" means only this stage is skipped for those joints. The filter stays in the path and nothing
+else is bypassed: the mux still refuses out-of-limit frames, the collision gate still checks every reference (and
+bounds its speed, ``max_velocity`` in config/collision.yaml), and the daemon still limits speed and acceleration
+(config/joints.yaml ``motion:``), so a step put on ``mds-ref`` reaches the motors as a bounded ramp.
 
 Why the velocity limiter is the default: its timing is predictable (a move of d rad takes d / 1.57 s, small
 moves are quick), it never overshoots, and it is what the robot ran in 2015; the EMA makes every move take
@@ -94,13 +95,20 @@ class FilterParams:
     mark_smoothed: bool = True  # mode 0 out of a smoothing joint becomes mode 1 (the daemon passes it through)
     controllers: Mapping[str, tuple[int, float, float, float]] = field(default_factory=dict)
     """Mux controller name -> (mode, max_velocity, max_accel, length) for the joints it owns."""
+    controller_modes: Mapping[str, frozenset[int]] = field(default_factory=dict)
+    """Mux controller name -> the ref modes of its frames its parameters apply to (absent: every mode)."""
 
-    def for_owners(self, owners: Sequence[str | None]) -> FilterParams:
+    def for_owners(self, owners: Sequence[str | None], ref_modes: Sequence[int] | np.ndarray | None = None,
+                   ) -> FilterParams:
         """These parameters with the joints owned (``owners[address]``: controller name or None) by a configured
-        controller switched to that controller's parameters."""
+        controller switched to that controller's parameters (only where the joint's frame mode, ``ref_modes``, is one
+        of the controller's ``modes``, if it has any)."""
         arrays = {k: getattr(self, k).copy() for k in _PARAM_ARRAYS}
         for a, name in enumerate(owners):
             values = self.controllers.get(name) if name is not None else None
+            only = self.controller_modes.get(name) if name is not None else None
+            if only is not None and (ref_modes is None or int(ref_modes[a]) not in only):
+                values = None
             if values is not None:
                 for k, v in zip(_PARAM_ARRAYS, values, strict=True):
                     arrays[k][a] = v
@@ -164,11 +172,19 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
     if not isinstance(controllers, Mapping):
         raise ValueError(f"{where}: controllers must map mux controller names to parameters")
     by_controller: dict[str, tuple[int, float, float, float]] = {}
+    modes_of: dict[str, frozenset[int]] = {}
     for name, entry in controllers.items():
         here = f"{where}: controllers.{name}"
         if not isinstance(entry, Mapping) or "joints" in entry:
             raise ValueError(f"{here}: needs parameters ({', '.join(sorted(_PARAM_KEYS))}) for the joints that "
                              "controller owns")
+        if "modes" in entry:
+            given = entry["modes"]
+            if not isinstance(given, list) or not given or any(m not in (0, 1, 2, 3) for m in given):
+                raise ValueError(f"{here}: modes must be a list of ref modes (0 filter, 1 pass-through, 2 compliant, "
+                                 f"3 encoder filter), got {given!r}")
+            modes_of[str(name)] = frozenset(int(m) for m in given)
+            entry = {k: v for k, v in entry.items() if k != "modes"}
         c = _joint_params(entry, base, here)
         by_controller[str(name)] = (MODES.index(c["mode"]), c["max_velocity"],
                                     math.inf if c["max_accel"] is None else c["max_accel"],
@@ -181,6 +197,7 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
         length=np.array([filters.filter_length(rate, p["settle_time"], p["settle_fraction"]) for p in per]),
         mark_smoothed=bool(data.get("mark_smoothed", True)),
         controllers=by_controller,
+        controller_modes=modes_of,
     )
 
 
@@ -235,6 +252,8 @@ class FilterCore:
         take = ok & ~self.held
         self.target[take] = ref[take]
         self.mode[ok] = np.asarray(mode, dtype=np.int16)[ok]
+        if self.base.controller_modes:  # a controller's parameters may depend on its frames' mode
+            self._apply_params()
         if not ok.all():
             return f"ignored non-finite targets for {labels(np.flatnonzero(~ok))}"
         return None
@@ -248,7 +267,11 @@ class FilterCore:
             self.owners = owners
             return
         self.owners = owners
-        new = self.base.for_owners(owners)
+        self._apply_params()
+
+    def _apply_params(self) -> None:
+        """The parameters in effect for the current owners and frame modes (``set_owners``)."""
+        new = self.base.for_owners(self.owners, self.mode)
         switched = new.mode != self.p.mode
         self.vel[switched] = 0.0
         self.p = new
