@@ -14,8 +14,9 @@ import traceback
 
 from bench.common import Row
 
-MODULES = ["bench_ach", "bench_libach", "bench_daemon", "bench_ik", "bench_collision", "bench_bridge", "bench_network",
-           "bench_viewer", "bench_record", "bench_safety", "bench_setup"]
+MODULES = ["bench_ach", "bench_libach", "bench_daemon", "bench_events", "bench_ik", "bench_collision", "bench_bridge",
+           "bench_tracking", "bench_network", "bench_viewer", "bench_record", "bench_safety",
+           "bench_setup"]
 
 
 def _fmt(v: float | None, unit: str = "") -> str:

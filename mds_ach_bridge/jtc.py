@@ -95,15 +95,10 @@ def defaults() -> dict[str, Any]:
 # ------------------------------------------------------------------------------------ what a controller reports
 
 
-def velocity(traj: Trajectory, t: float, h: float = 1e-3) -> dict[str, float]:
-    """The desired velocity at ``t``: a central difference of the samples (the executor owns the interpolation);
-    0 outside the trajectory, where it holds. ``traj`` must be anchored."""
-    lo, hi = max(traj.start, t - h), min(traj.end, t + h)
-    if hi <= lo:
-        return dict.fromkeys(traj.names, 0.0)
-    a, _ = traj.sample(lo)
-    b, _ = traj.sample(hi)
-    return {n: (b[n] - a[n]) / (hi - lo) for n in traj.names}
+def velocity(traj: Trajectory, t: float) -> dict[str, float]:
+    """The desired velocity at ``t``: the executor's own (``Trajectory.sample_state``, the derivative of what it
+    executes); 0 outside the trajectory, where it holds. ``traj`` must be anchored."""
+    return traj.sample_state(t)[1]
 
 
 def reference(running: Mapping[str, Trajectory], names: Sequence[str], t: float,

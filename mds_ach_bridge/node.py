@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import array
 import functools
+import math
 import threading
 import time
 from collections import deque
@@ -58,8 +59,10 @@ from mds_ach.nodes.mux import controller_for
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, labels
 from mds_ach.nodes.rosnode import Param, declare, ros_log
 from mds_ach.nodes.status_msgs import command_status_msg
-from mds_ach.robot import contracts, joints, lifecycle
+from mds_ach.robot import config as joint_config
+from mds_ach.robot import contracts, joints, lifecycle, motion
 from mds_ach.robot.channels import ChannelGuard, StructChannel
+from mds_ach.robot.feedforward import Braking, CycleClock, limiter_lead, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.daemon_status import JOINT_SLOWED, MDS_DAEMON_STATUS
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
@@ -122,6 +125,26 @@ class _Running:
     written: float | None = None  # monotonic time of its first write
     finished: bool = False  # sampled to its end; kept while its goal waits for the goal tolerance
     slowed: set[str] = field(default_factory=set)  # its joints the daemon's collaborative mode slowed (#31)
+    due: float | None = None  # the time its newest written targets were sampled for (node clock)
+    desired: dict[str, tuple[float, float]] = field(default_factory=dict)  # (position, velocity) there, per joint
+    floors: dict[str, _Floor] = field(default_factory=dict)  # a replaced motion's braking, per joint (``_Floor``)
+    ramps: dict[str, float] = field(default_factory=dict)  # joints going back from a floor: their last target
+
+
+@dataclass(frozen=True)
+class _Floor:
+    """A joint whose previous motion was replaced while moving: its target already sent or in flight is the
+    stopping point ``value`` (moving in direction ``sign``), which the MCB may already be braking onto. A new target
+    short of it would make the joint pass it and come back, so the joint's targets stay at ``value`` until the new
+    trajectory's own targets pass it (``forward``: the new trajectory goes on beyond it) or, when the new trajectory
+    goes back, until the joint has come to rest there (``rest``, node clock); then its targets go from ``value`` to
+    the new trajectory's at the published velocity (a jump would make the daemon's limiter, 7.2 rad/s^2, carry the
+    targets past the new ones and back)."""
+
+    value: float
+    sign: float
+    rest: float
+    forward: bool
 
 
 @dataclass(frozen=True)
@@ -207,17 +230,28 @@ class BridgeNode(Node):
         self._limits = load_limits(joints.MODEL_JOINTS, effective=self._effective)
         # The published velocity of each joint: a goal timed faster is rejected (it would be stretched, late).
         self._speeds = {n: m[0] for n in self._limits for m in (self._effective.motion(n),) if m is not None}
+        # The MOVETO acceleration the daemon commands: trajectories are sent as their stopping points at it.
+        self._moveto_accel = math.radians(joint_config.load(self._effective.robot).accel_deg_s2)
+        self._cycle = CycleClock()  # state thread only: the daemon's period, from the state frames' stamps
+        # The daemon's limiter at its margin: its targets trail a moving reference by their braking distance at this.
+        table = joint_config.load(self._effective.robot)
+        self._limiter_accel = motion.LIMIT_MARGIN * table.motion_bounds().max_acceleration
+        self._limiter_speed = motion.LIMIT_MARGIN * table.motion_bounds().max_velocity
+        self._intended: dict[str, float] = {}  # the newest intended daemon target per trajectory joint (the lock)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._names = list(joints.MODEL_JOINTS)
         self._addresses = [joints.BY_SHORT[n].address for n in self._names]
         self._lock = threading.Lock()
+        # One writer of the reference channel at a time (the state thread, a position command written at once by
+        # its callback), held from building a frame to its put, so frames reach the mux in the order they were built.
+        self._write_lock = threading.Lock()
         self._counters = _Counters()
         self._pending: dict[str, float] = {}  # accepted position commands not yet written
         self._running: dict[int, _Running] = {}  # by serial, in start order
         self._goal_ends: list[actions.Goal] = []  # goals that ended under the lock, told to the client after it
         self._frame: MDS_REF | None = None  # the bridge's reference, created on the first write
-        self._unsent = False  # state thread only: the newest frame could not be written (a damaged channel)
+        self._unsent = False  # under _write_lock: the newest frame could not be written (a damaged channel)
         self._late_rejections: list[tuple[str, str]] = []  # found on the state thread under the lock, logged after it
         # Lifecycle: commands get a serial; the state thread remembers which ones each write carried.
         self._controller = controller_for(self._ref_name)  # the bridge's name in the mux (config/mux.yaml)
@@ -225,10 +259,14 @@ class BridgeNode(Node):
         self._what: dict[int, str] = {}  # serial -> "trajectory #3 (LSP, LEP)" for the messages
         self._pending_cmds: list[int] = []  # serials of the commands in _pending
         self._carried: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())  # what _next_reference's frame carries
-        self._writes: deque[_Write] = deque(maxlen=WRITE_RECORDS)  # state thread only
+        self._writes: deque[_Write] = deque(maxlen=WRITE_RECORDS)  # appended under _write_lock, read under _lock
         self._reported: deque[int] = deque(maxlen=WRITE_RECORDS)  # serials whose refusal was logged already
         self._cancels: list[tuple[tuple[str, ...], str]] = []  # (joints, reason) to CANCEL, sent outside the lock
         self._resync: set[str] = set()  # joints of a stopped trajectory: the frame's value is not where they hold
+        # The commanded motion of joints whose trajectory stopped or was replaced while moving: they brake at the
+        # MOVETO acceleration from their desired state at the last written target onto its stopping point. A new
+        # trajectory for them starts from this state (position and velocity), as joint_trajectory_controller does.
+        self._braking: dict[str, Braking] = {}
         self._events: list[_Event] = []
         # Goal requests checked in the goal callback, by id(request): (request, trajectory, tolerances), taken by the
         # accepted callback that follows (rclpy hands both the same request object).
@@ -347,35 +385,42 @@ class BridgeNode(Node):
         js = [state.joint[a] for a in self._addresses]
         positions = [j.pos for j in js]
         velocities = self._velocity.update(state.time, positions)
+        self._cycle.update(state.time)
+        # When the frame was measured, on the node's clock (trajectories are timed on it), and when the target
+        # written now is due (``feedforward.CycleClock.lookahead``).
+        stamp_ns, comparable = state_stamp_ns(now_ns, mono, state.time, self._max_age)
+        measured_s = stamp_ns * 1e-9
+        due_s = measured_s + self._cycle.lookahead()
         # What the mux did since the last cycle: before anything else is written.
         news = self._guard.call(self._mux.states.name, self._mux.poll, default=MuxNews())
         # The reference first: it is one put, and a pending command should not wait for two publishes.
-        with self._lock:
-            was_stalled = self._stalled
-            self._stalled = False
-            self._last_frame_mono = mono
-            self._counters.frames += 1
-            self._take_mux_news(news)
-            ref = self._next_reference(state, now_ns * 1e-9)
-            if ref is None and self._unsent:  # the newest frame did not get through: write it again
-                ref = self._frame
-            carried = self._carried
-            measured = (dict(zip(self._names, positions, strict=True)), dict(zip(self._names, velocities, strict=True)))
-            self._measured = measured
-            feedback = self._follow_goals(now_ns * 1e-9, *measured)
-            running = self._running_by_joint()
-            late, self._late_rejections = self._late_rejections, []
-        if ref is not None:
-            self._writes.append(_Write(time.monotonic(), *carried))
-            self._unsent = not self._guard.put(self._ref_chan, ref)  # reported; the next cycle writes it again
-            if not self._unsent:
-                with self._lock:
-                    self._counters.references_written += 1
+        with self._write_lock:
+            with self._lock:
+                was_stalled = self._stalled
+                self._stalled = False
+                self._last_frame_mono = mono
+                self._counters.frames += 1
+                self._take_mux_news(news)
+                ref = self._next_reference(state, due_s)
+                if ref is None and self._unsent:  # the newest frame did not get through: write it again
+                    ref = self._frame
+                carried = self._carried
+                measured = (dict(zip(self._names, positions, strict=True)),
+                            dict(zip(self._names, velocities, strict=True)))
+                self._measured = measured
+                feedback = self._follow_goals(measured_s, *measured)
+                running = self._running_by_joint()
+                late, self._late_rejections = self._late_rejections, []
+            if ref is not None:
+                self._writes.append(_Write(time.monotonic(), *carried))
+                self._unsent = not self._guard.put(self._ref_chan, ref)  # reported; the next cycle writes it again
+                if not self._unsent:
+                    with self._lock:
+                        self._counters.references_written += 1
         for topic, reason in late:
             self._reject(topic, reason)
         self._emit()
 
-        stamp_ns, comparable = state_stamp_ns(now_ns, mono, state.time, self._max_age)
         stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
         self._js_msg.header.stamp = stamp
         self._js_msg.position = array.array("d", positions)
@@ -383,7 +428,7 @@ class BridgeNode(Node):
         self._js_pub.publish(self._js_msg)
         for goal, *values in feedback:
             goal.feedback(stamp, *values)
-        self._publish_controller_states(stamp, now_ns * 1e-9, running, measured, js)
+        self._publish_controller_states(stamp, measured_s, running, measured, js)
         if self._ref_pub.get_subscription_count() > 0:  # nobody listening: skip the serialisation
             self._ref_msg.header.stamp = stamp
             self._ref_msg.position = array.array("d", [j.ref for j in js])
@@ -415,8 +460,12 @@ class BridgeNode(Node):
 
     # ------------------------------------------------------------------------------------ ROS -> reference
 
-    def _next_reference(self, state: MDS_STATE, now_s: float) -> MDS_REF | None:
+    def _next_reference(self, state: MDS_STATE, due_s: float) -> MDS_REF | None:
         """The frame to write this cycle, or None when nothing changed (caller holds the lock).
+
+        A running trajectory is sampled at ``due_s`` (the time the daemon's MOVETO of this frame aims at) and
+        written as its stopping point at the MOVETO acceleration (``mds_ach.robot.feedforward``), clamped to the
+        limits: the MCB then passes the trajectory's position with its velocity instead of lagging it.
 
         Sets ``_carried``: the serials of the trajectory and commands in the frame, to name them if it is refused.
         """
@@ -428,14 +477,22 @@ class BridgeNode(Node):
             self._frame = self._base_frame(state)
         sampled: list[int] = []
         for r in active:
+            if r.written is None:
+                self._replace(r, due_s)
             if not r.traj.anchored:
-                # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample.
+                # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample;
+                # a joint still braking from a replaced motion starts from its commanded state (position, velocity).
                 current = {
                     n: state.joint[a].ref_r if n in self._resync else self._frame.joint[a].ref
                     for n in r.traj.names for a in (joints.BY_SHORT[n].address,)
                 }  # fmt: skip
+                speed = dict.fromkeys(r.traj.names, 0.0)
+                for n in r.traj.names:
+                    b = self._braking.get(n)
+                    if b is not None and b.moving(r.traj.start):  # at rest: where the daemon's reference is
+                        current[n], speed[n] = b.at(r.traj.start)
                 try:
-                    r.traj = r.traj.anchor(current, self._limits)
+                    r.traj = r.traj.anchor(current, self._limits, speed)
                 except CommandError as exc:
                     del self._running[r.serial]
                     if r.goal is None:
@@ -443,8 +500,12 @@ class BridgeNode(Node):
                     else:
                         self._end_goal(r.goal, actions.ABORT, follow.Result.INVALID_GOAL, str(exc))
                     continue
-            values, done = r.traj.sample(now_s)
-            self._apply(values, self._trajectory_mode)
+            values, speeds, done = r.traj.sample_state(due_s)
+            r.due, r.desired = due_s, {n: (values[n], speeds[n]) for n in values}
+            targets = self._floored(r, self._feedforward(values, speeds), due_s)
+            self._apply(targets if done else self._lead(targets), self._trajectory_mode)  # the end: exactly there
+            for n in r.traj.names:
+                self._braking.pop(n, None)
             sampled.append(r.serial)
             if r.written is None:
                 r.written = time.monotonic()
@@ -454,13 +515,88 @@ class BridgeNode(Node):
                     del self._running[r.serial]
                 what = self._what.get(r.serial, "trajectory")
                 self._events.append(_Event("info", f"{what} finished", {"event": "finished", "command": what}))
+        self._carried = (tuple(sampled), self._apply_pending())
+        return self._frame
+
+    def _apply_pending(self) -> tuple[int, ...]:
+        """Put the accepted position commands into the frame; their serials (caller holds the lock)."""
         commands: tuple[int, ...] = ()
         if self._pending:
+            for n in self._pending:
+                self._braking.pop(n, None)
             self._apply(self._pending, self._command_mode)
             self._pending = {}
             commands, self._pending_cmds = tuple(self._pending_cmds), []
-        self._carried = (tuple(sampled), commands)
-        return self._frame
+        return commands
+
+    def _write_commands(self) -> None:
+        """Write the accepted position commands now, not at the next state frame: a command is an event (#26 item
+        5). Before the bridge's first frame (built from the first state frame) the state thread writes them."""
+        with self._write_lock:
+            with self._lock:
+                if not self._pending or self._frame is None:
+                    return
+                commands = self._apply_pending()
+                self._writes.append(_Write(time.monotonic(), (), commands))
+            self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again
+            if not self._unsent:
+                with self._lock:
+                    self._counters.references_written += 1
+
+    def _replace(self, r: _Running, due_s: float) -> None:
+        """A new trajectory's joints that were braking from a replaced motion keep their braking target until the
+        new one's targets pass it (``_Floor``): the joint stops within the braking distance from its commanded
+        velocity and never goes back to meet a trajectory that goes on the same way (caller holds the lock)."""
+        final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
+        for n in r.traj.names:
+            b = self._braking.get(n)
+            if b is None or not b.moving(due_s):  # (at rest it may have been moved since by another controller)
+                continue
+            value = stopping_point(b.q0, b.v0, b.accel)
+            sign = math.copysign(1.0, b.v0)
+            r.floors[n] = _Floor(value, sign, b.t0 + abs(b.v0) / b.accel, sign * (final[n] - value) > 0.0)
+
+    def _floored(self, r: _Running, targets: dict[str, float], due_s: float) -> dict[str, float]:
+        """``targets`` with the joints of ``r.floors`` kept at their braking target while it applies, and those going
+        back from it moving towards the new targets at the published velocity (``_Floor``)."""
+        for n, f in list(r.floors.items()):
+            short = f.sign * (targets[n] - f.value) < 0.0
+            if short and (f.forward or due_s < f.rest):
+                targets[n] = f.value
+                continue
+            del r.floors[n]
+            if short:
+                r.ramps[n] = f.value
+        for n, last in list(r.ramps.items()):
+            motion = self._effective.motion(n)
+            step = (motion[0] if motion is not None else 0.5) * self._cycle.period
+            if abs(targets[n] - last) <= step:
+                del r.ramps[n]
+                continue
+            targets[n] = r.ramps[n] = last + math.copysign(step, targets[n] - last)
+        return targets
+
+    def _lead(self, targets: dict[str, float]) -> dict[str, float]:
+        """The references that make the daemon's limiter send ``targets`` (``feedforward.limiter_lead``: ahead by
+        the braking distance of the target sequence's step speed at the limiter's acceleration), within the limits."""
+        period = self._cycle.period
+        out = {}
+        for n, t in targets.items():
+            # A step the limiter cannot take in one cycle anyway (a linear trajectory's corner) gets no more lead than
+            # its speed bound allows.
+            step = min(max((t - self._intended.get(n, t)) / period, -self._limiter_speed), self._limiter_speed)
+            self._intended[n] = t
+            lower, upper = self._limits[n]
+            out[n] = min(max(t + limiter_lead(step, self._limiter_accel), lower), upper)
+        return out
+
+    def _feedforward(self, values: dict[str, float], speeds: dict[str, float]) -> dict[str, float]:
+        """The MOVETO targets for a desired state: its stopping points, within the limits."""
+        out = {}
+        for n, q in values.items():
+            lower, upper = self._limits[n]
+            out[n] = min(max(stopping_point(q, speeds[n], self._moveto_accel), lower), upper)
+        return out
 
     def _base_frame(self, state: MDS_STATE) -> MDS_REF:
         """What the first frame holds for the joints no command touches (caller holds the lock).
@@ -526,6 +662,8 @@ class BridgeNode(Node):
                 self._counters.accepted += 1
         if reason is not None:
             self._reject(topic, reason)
+        else:
+            self._write_commands()
         self._emit()
 
     def _on_joint_command(self, msg: JointState) -> None:
@@ -780,6 +918,11 @@ class BridgeNode(Node):
         Returns its description (caller holds the lock)."""
         what = self._what.get(r.serial, "trajectory")
         self._running.pop(r.serial, None)
+        for n in r.traj.names:
+            self._intended.pop(n, None)
+        if not r.finished and r.due is not None:  # its joints brake from the last written target (feedforward)
+            for n, (q, v) in r.desired.items():
+                self._braking[n] = Braking(q, v, r.due, self._moveto_accel)
         if not r.finished:
             names = tuple(n for n in r.traj.names if n not in keep)
             self._resync.update(names)

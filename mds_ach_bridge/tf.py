@@ -51,5 +51,8 @@ class TfPublisher:
                                                        for j in model.joints.values() if j.type == "fixed"]))
 
     def publish(self, positions: Sequence[float], stamp: Time) -> None:
-        """One TFMessage for one ``joint_states`` message (same positions, same stamp)."""
+        """One TFMessage for one ``joint_states`` message (same positions, same stamp); none while nobody listens
+        (17 transforms are built per frame: the bridge's largest cost at rest; a listener gets the next frame's)."""
+        if self._pub.get_subscription_count() == 0:
+            return
         self._pub.publish(TFMessage(transforms=[transform_stamped(j, positions[i], stamp) for i, j in self._moving]))

@@ -43,14 +43,17 @@ class Trajectory:
     def anchored(self) -> bool:
         return self.times[0] == 0.0
 
-    def anchor(self, current: Mapping[str, float], limits: Limits) -> Trajectory:
-        """Start from ``current`` at t = 0 when the first point is later (velocity 0 there for cubics)."""
+    def anchor(self, current: Mapping[str, float], limits: Limits,
+               velocity: Mapping[str, float] | None = None) -> Trajectory:
+        """Start from ``current`` at t = 0 when the first point is later, with ``velocity`` there for cubics (the
+        commanded state, as joint_trajectory_controller starts from its desired state; default at rest)."""
         if self.anchored:
             return self
         missing = [n for n in self.names if n not in current]
         if missing:
             raise CommandError(f"no current reference for {', '.join(missing)} to start from")
-        vels = None if self.velocities is None else ((0.0,) * len(self.names), *self.velocities)
+        start = tuple(float((velocity or {}).get(n, 0.0)) for n in self.names)
+        vels = None if self.velocities is None else (start, *self.velocities)
         traj = replace(
             self,
             times=(0.0, *self.times),
@@ -63,13 +66,20 @@ class Trajectory:
 
     def sample(self, now: float) -> tuple[dict[str, float], bool]:
         """Positions at ``now`` and whether the trajectory is finished (anchor it first)."""
+        values, _, done = self.sample_state(now)
+        return values, done
+
+    def sample_state(self, now: float) -> tuple[dict[str, float], dict[str, float], bool]:
+        """Positions and velocities at ``now``, and whether the trajectory is finished (anchor it first). Linear
+        segments move at their slope; before the start and after the end the joints are at rest."""
         if not self.anchored:
             raise ValueError("sample() on a trajectory that does not start at t = 0; anchor() it first")
         t = now - self.start
+        rest = dict.fromkeys(self.names, 0.0)
         if t <= 0.0:
-            return dict(zip(self.names, self.positions[0], strict=True)), False
+            return dict(zip(self.names, self.positions[0], strict=True)), rest, False
         if t >= self.times[-1]:
-            return dict(zip(self.names, self.positions[-1], strict=True)), True
+            return dict(zip(self.names, self.positions[-1], strict=True)), rest, True
         k = bisect.bisect_right(self.times, t) - 1  # times[k] <= t < times[k+1]
         t0, t1 = self.times[k], self.times[k + 1]
         h = t1 - t0
@@ -77,6 +87,7 @@ class Trajectory:
         p0, p1 = self.positions[k], self.positions[k + 1]
         if self.velocities is None:
             values = [a + (b - a) * s for a, b in zip(p0, p1, strict=True)]
+            speeds = [(b - a) / h for a, b in zip(p0, p1, strict=True)]
         else:
             v0, v1 = self.velocities[k], self.velocities[k + 1]
             h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
@@ -84,7 +95,13 @@ class Trajectory:
             values = [
                 h00 * a + h10 * h * va + h01 * b + h11 * h * vb for a, b, va, vb in zip(p0, p1, v0, v1, strict=True)
             ]
-        return dict(zip(self.names, values, strict=True)), False
+            # d/dt of the basis functions (d/ds divided by h)
+            d00, d10 = (6 * s**2 - 6 * s) / h, 3 * s**2 - 4 * s + 1
+            d01, d11 = (-6 * s**2 + 6 * s) / h, 3 * s**2 - 2 * s
+            speeds = [
+                d00 * a + d10 * va + d01 * b + d11 * vb for a, b, va, vb in zip(p0, p1, v0, v1, strict=True)
+            ]
+        return dict(zip(self.names, values, strict=True)), dict(zip(self.names, speeds, strict=True)), False
 
 
 def build(

@@ -25,7 +25,8 @@ from support.spin import Spinner
 import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.kinematics import model as kinematics
-from mds_ach.robot import joints
+from mds_ach.robot import config, joints, motion
+from mds_ach.robot.feedforward import limiter_lead, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_STATE
 from mds_ach_bridge import trajectory
 from mds_ach_bridge.commands import CommandError, positions_by_name, positions_from_array
@@ -547,13 +548,33 @@ def test_trajectory_from_another_process_moves_the_simulated_joint(harness: Harn
     seg1 = [r for r in refs if min(start_value, a) + 1e-6 < r < max(start_value, a) - 1e-6]
     seg2 = [r for r in refs if a + 1e-6 < r < b - 1e-6]
     assert len(seg1) >= 3 and len(seg2) >= 5, (seg1, seg2)
-    # Every reference lies on the commanded path: traj(t - lag) for a lag of at most 0.5 s (DDS delivery, one
-    # state cycle until the daemon reads it, a loaded CI machine). A jump or a wrong shape falls outside.
+    # Every reference is a target of the commanded path: the stopping point at the MOVETO acceleration of traj(t + d)
+    # (issue #26: the bridge samples the trajectory for the daemon's next send, a cycle ahead, as the feed-forward
+    # target the MCB passes the path with) for d from -0.5 s (DDS delivery, one state cycle until the daemon reads it,
+    # a loaded CI machine) to +0.25 s (the look-ahead, two cycles). A jump or a wrong shape falls outside.
     traj = trajectory.build(["WST"], [(0.5, [a], []), (1.5, [b], [])], 0.0, limits).anchor({"WST": start_value}, limits)
+    accel = math.radians(config.load().accel_deg_s2)
+
+    bounds = config.load().motion_bounds()
+    period = 1.0 / RATE  # the daemon's
+
+    def target(x: float) -> float:
+        q, v, _ = traj.sample_state(x)
+        return min(max(stopping_point(q["WST"], v["WST"], accel), lo), hi)
+
+    def reference(x: float) -> float:
+        """The target ahead by what the daemon's limiter trails it (``feedforward.limiter_lead``) over a period."""
+        speed = motion.LIMIT_MARGIN * bounds.max_velocity
+        step = min(max((target(x) - target(x - period)) / period, -speed), speed)
+        lead = limiter_lead(step, motion.LIMIT_MARGIN * bounds.max_acceleration)
+        return min(max(target(x) + lead, lo), hi)
+
     for t, r, _ in samples:
-        # Linear segments: the path's extremes sit at the waypoints, so sample those too, not just the 10 ms grid.
-        lags = [t - i * 0.01 for i in range(51)] + [w for w in (0.5, 1.5) if t - 0.5 <= w <= t]
-        path = [traj.sample(x)[0]["WST"] for x in lags]
+        # Linear segments: the path's extremes sit at the waypoints (each side), so sample those too.
+        lags = [t + 0.25 - i * 0.01 for i in range(76)]
+        lags += [w + e + d for w in (0.5, 1.5) for e in (-1e-6, 1e-6) for d in (0.0, period)
+                 if t - 0.5 <= w + d <= t + 0.25]
+        path = [f(x) for x in lags for f in (target, reference)]
         assert min(path) - 1e-9 <= r <= max(path) + 1e-9, f"WST reference {r} at t={t:.3f} s is off the trajectory"
 
 

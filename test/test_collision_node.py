@@ -353,6 +353,38 @@ def test_a_released_arm_waits_until_the_daemon_took_the_cleared_flag(model, echo
     assert np.abs(gate.ref[L] - target[L]).max() < 1e-9  # and then it goes on to its target
 
 
+def test_a_hold_is_released_after_the_filter_came_to_rest(model) -> None:
+    """The filter publishes only while its output moves (an event-driven pipeline, #26 item 6), so the input
+    stream stops while the gate still holds an arm. The runner then re-processes the newest input at the filter's
+    period while ``Gate.pending`` says the decision is unfolding: the held arm is released and reaches its target
+    with no new input, and the gate then says it has nothing pending (it sleeps until the next frame)."""
+    from mds_ach.nodes.collision import Observed
+
+    gate = make_gate(model)
+    point = [0.40, 0.0, -0.10]
+    target = HOME.copy()
+    target[L], target[R] = solve("left", point), solve("right", point)
+    core = FilterCore(parse_config({"rate": 1 / DT}), gate.ref, gate.mode)
+    core.set_target(target, ZERO_MODE)
+    now, latest, silent_steps = 0.0, None, 0
+    for k in range(int(8.0 / DT)):
+        if k == int(3.0 / DT):
+            target[R] = HOME[R]  # the right arm backs off; the left one is released once it is out of the way
+            core.set_target(target, ZERO_MODE)
+        now += DT
+        if core.moving() or latest is None:
+            latest = (core.step(), core.mode.copy())
+        elif gate.pending(*latest):
+            silent_steps += 1  # the filter rests: the runner re-decides on its newest input
+        else:
+            continue
+        gate.process(*latest, now, Observed(gate.ref.copy(), now, gate.last_report))
+        gate.report(now)
+    assert silent_steps > 0, "the left arm was released while the filter still moved: the scenario tests nothing"
+    assert np.abs(gate.ref[L] - target[L]).max() < 1e-9  # released and on its target with no new input
+    assert not gate.pending(*latest)
+
+
 def test_arms_in_measured_contact_are_held_and_can_be_moved_apart(model) -> None:
     """Both arms pushed into contact (e.g. compliant arms moved by hand): reported and held while their references
     stand still; a reference that brings them closer is refused, one that moves an arm away passes (escaping)."""
@@ -651,6 +683,70 @@ def test_runner_gates_the_channels(clean_shm: None, table_model) -> None:
         runner.stop()
         t.join(5)
         for ch in (out, collide, smooth):
+            ch.close()
+    assert not t.is_alive()
+
+
+def _state(pos: np.ndarray) -> mds.MDS_STATE:
+    """An mds-state frame as the daemon puts it now: every joint fresh at ``pos``."""
+    st = mds.MDS_STATE()
+    st.time = time.monotonic()
+    for a in range(N):
+        st.joint[a].pos = st.joint[a].ref = pos[a]
+        st.joint[a].active = 1
+    return st
+
+
+def test_at_rest_a_measured_pose_moved_into_contact_is_held_within_one_daemon_cycle(clean_shm: None, model) -> None:
+    """The gate sleeps at rest (no input, its report every 0.5 s), but it wakes on every mds-state frame: two
+    compliant arms pushed together by hand while nothing is commanded are reported and held within one daemon
+    cycle (10 Hz), not at its next idle report. The contact arrives right after an idle report, the worst phase
+    for a gate that only looks at mds-state when it wakes for something else."""
+    from mds_ach.robot.channels import StructChannel
+
+    _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, HOME)
+    lower, upper = joint_limits(model)
+    logs: list[str] = []
+    runner = GateRunner(model, GateConfig(), lower, upper, log=lambda level, msg: logs.append(msg))
+    t = threading.Thread(target=runner.run, daemon=True)
+    collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, mds.MDS_COLLIDE)
+    state = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+    pushed = HOME.copy()
+    pushed[L], pushed[R] = solve("left", [0.40, 0.05, -0.10]), solve("right", [0.40, 0.05, -0.10])
+    assert model.check(model.q_from_ref(pushed)).collides
+    measured = [HOME]
+    done = threading.Event()
+
+    def daemon() -> None:  # mds-state at the daemon's 10 Hz, with the newest measured pose
+        while not done.is_set():
+            state.put(_state(measured[0]))
+            done.wait(0.1)
+
+    beat = threading.Thread(target=daemon, daemon=True)
+    try:
+        beat.start()
+        t.start()
+        assert runner.ready.wait(30), logs
+        _put(mds.MDS_CHAN_REF_SMOOTH_NAME, HOME)  # the filter's output, then nothing: it rests
+        wait_for(lambda: runner.processed >= 1, 10, what="the gate to pass the filter's frame")
+        time.sleep(1.5)  # at rest: nothing new for more than a second
+        collide.latest()
+        report = wait_for(lambda: collide.wait(timeout=1.0), 5, what="an idle report")
+        assert report.isCollide == 0
+        measured[0] = pushed
+        state.put(_state(pushed))
+        t0 = time.monotonic()
+        report = wait_for(lambda: (c := collide.wait(timeout=1.0)) is not None and c.isCollide == 1 and c, 5,
+                          what="the contact on mds-collide")
+        took = time.monotonic() - t0
+        assert took <= 0.1, f"the contact was reported {took * 1e3:.0f} ms after the mds-state frame that showed it"
+        assert report.joint[mds.COLLIDE_L_HAND].isCollide and report.joint[mds.COLLIDE_R_HAND].isCollide
+    finally:
+        runner.stop()
+        done.set()
+        t.join(5)
+        beat.join(5)
+        for ch in (collide, state):
             ch.close()
     assert not t.is_alive()
 

@@ -169,6 +169,29 @@ def test_joints_the_direct_controller_owns_pass_unsmoothed() -> None:
         parse_config({"controllers": {"direct": {"mode": "warp"}}})
 
 
+def test_the_bridges_trajectory_frames_pass_unsmoothed_and_its_position_commands_are_smoothed() -> None:
+    """config/filter.yaml `controllers: ros: {mode: pass, modes: [1]}` (issue #26): the bridge's trajectory targets
+    (pass-through frames, already timed stopping points) are not smoothed a second time; its position commands (mode
+    0) are, as before; a joint switching from one to the other starts from rest where it is."""
+    shipped = load_config()
+    assert shipped.controllers["ros"][0] == PASS and shipped.controller_modes["ros"] == {mds.MDS_REF_MODE_REF}
+    owners = [None] * N
+    owners[mds.LSP] = owners[mds.LEP] = "ros"
+    config = {"rate": 40, "controllers": {"ros": {"mode": "pass", "modes": [1]}}}
+    core = FilterCore(parse_config(config), np.zeros(N), ZERO_MODE)
+    core.set_owners(owners)
+    mode = ZERO_MODE.copy()
+    mode[mds.LSP] = mds.MDS_REF_MODE_REF  # a trajectory's target on LSP, a position command on LEP
+    core.set_target(_target(LSP=0.5, LEP=0.5), mode)
+    out = core.step()
+    assert out[mds.LSP] == 0.5, "a trajectory's target is not smoothed"
+    assert 0 < out[mds.LEP] < 0.05, "a position command still is"
+    core.set_target(_target(LSP=0.0, LEP=0.5), ZERO_MODE)  # LSP: now a position command
+    assert core.vel[mds.LSP] == 0.0 and 0.45 < core.step()[mds.LSP] < 0.5
+    with pytest.raises(ValueError, match="controllers.ros: modes"):
+        parse_config({"controllers": {"ros": {"mode": "pass", "modes": [7]}}})
+
+
 def test_smoothed_joints_tell_the_daemon_not_to_filter_again() -> None:
     p = parse_config({"joints": [{"joints": "WST", "mode": "pass"}]})
     core = FilterCore(p, np.zeros(N), ZERO_MODE)

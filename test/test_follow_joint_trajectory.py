@@ -443,7 +443,7 @@ REST = [0.0, 0.0, 0.0, -0.5, 0.0, 0.0]  # inside every left-arm joint's limits (
         (ARM6, [(1.0, REST)], [[0.0, 0.0, 0.0, -0.1, 0.0, 0.0]], "INVALID_GOAL",
          "the last point's velocity is not zero (LEP -0.1 rad/s)"),
         (ARM6, [(1.0, REST), (1.2, [0.8, 0.0, 0.0, -0.5, 0.0, 0.0])], None, "INVALID_GOAL",
-         "LSP: 4.000 rad/s needed between points 0 and 1 (0.800 rad in 0.200 s), over the 1.5 rad/s"),
+         "LSP: 4.000 rad/s needed between points 0 and 1 (0.800 rad in 0.200 s), over the 1.02857 rad/s"),
     ],
 )
 def test_a_bad_goal_is_rejected_in_the_goal_callback_with_the_reason_logged(

@@ -28,6 +28,7 @@ from support.system import mds_ach, running_system, system_env
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.nodes.pipeline import HANDOFF_RT_PRIORITY
 from mds_ach.paths import user_label
 from mds_ach.robot import access as channel_access
 from mds_ach.robot.config import load
@@ -385,13 +386,18 @@ def test_status_reports_nodes_rate_bus_load_and_collisions(system: dict[str, str
 
 
 @pytest.mark.slow
-def test_only_the_daemon_loop_runs_real_time(system: dict[str, str]) -> None:
+def test_only_the_daemon_loop_and_the_hand_off_threads_run_real_time(system: dict[str, str]) -> None:
     """`mds-ach start` asks nothing of the scheduler itself: the daemon puts its loop thread under SCHED_FIFO 50
-    (where the user may); every other thread of every node stays at normal priority; `status` says which."""
-    threads = {name: realtime_threads(pid) for name, pid in _pids(system).items()}
+    and the reference pipeline its hand-off threads under SCHED_FIFO 40 (``pipeline.HANDOFF_RT_PRIORITY``: the mux's
+    readers and loop, the filter's loop, the gate's loop and readers), where the user may; every other thread of
+    every node stays at normal priority; `status` says which for the daemon."""
+    threads = {name: sorted(realtime_threads(pid)) for name, pid in _pids(system).items()}
     status = mds_ach("status", env=system).stdout
     if may_use_sched_fifo():
-        assert threads == {**{n: [] for n in NODES}, "daemon": [("mds-daemon-loop", 50)]}, threads
+        handoff = {"mux": ["mux", "mux-hold", "mux-in default", "mux-in direct", "mux-in ik", "mux-in ros"],
+                   "filter": ["filter"], "collision": ["gate", "wake mds-ref-sm", "wake mds-state"]}
+        assert threads == {**{n: [] for n in NODES}, "daemon": [("mds-daemon-loop", 50)],
+                           **{n: [(t, HANDOFF_RT_PRIORITY) for t in names] for n, names in handoff.items()}}, threads
         assert re.search(r"^daemon .*, loop real-time \(SCHED_FIFO 50, memory locked\), bus", status, re.M), status
     else:
         assert threads == {n: [] for n in NODES}, threads

@@ -27,7 +27,7 @@ from mds_ach.bus import mcb, simbus
 from mds_ach.bus.mcb import StateArg
 from mds_ach.kinematics import limits as effective_limits
 from mds_ach.kinematics.collision import load_model as load_collision_model
-from mds_ach.kinematics.limits import EffectiveLimits, compute, current_limits
+from mds_ach.kinematics.limits import FEEDFORWARD_ACCEL_SHARE, EffectiveLimits, compute, current_limits
 from mds_ach.kinematics.model import load_model
 from mds_ach.net.achd import RefLimitCheck
 from mds_ach.nodes import collision as collision_node
@@ -222,19 +222,22 @@ def test_viewer_sliders_span_the_effective_limits() -> None:
 
 
 def test_the_published_limits_say_what_each_joint_follows(clean_shm: None) -> None:
-    """Velocity = min(URDF, 0.9 x the daemon's bound), acceleration = the MOVETO acceleration the daemon commands
-    (80 deg/s^2, the MCB's own profile; below 0.9 x the daemon's 8 rad/s^2). Useful, not timid: the arms follow
-    >= 0.75 rad/s and >= 1.0 rad/s^2. Published on mds-limits and read back unchanged."""
+    """Acceleration = 0.75 x the MOVETO acceleration A the daemon commands (80 deg/s^2, the MCB's own profile; the
+    rest lets the MCB catch up with a moving stopping-point target), velocity = min(URDF, 0.9 x the daemon's bound /
+    (1 + a / A)), so the stopping points of a trajectory at these limits pass the daemon's limiter (issue #26 item 2).
+    Useful, not timid: the arms follow >= 0.75 rad/s and >= 1.0 rad/s^2. Published on mds-limits and read back
+    unchanged."""
     table = config.load("default")
     model = load_model()
     limits = compute(table)
     assert table.accel_deg_s2 == 80.0 and motion.LIMIT_MARGIN * table.max_acceleration > math.radians(80.0)
     for short in LEFT_ARM + RIGHT_ARM + ("WST", "NKY"):
         velocity, acceleration = limits.motion(short)
-        assert velocity == min(model.joints[short].velocity, motion.LIMIT_MARGIN * table.max_velocity) == 1.5
-        assert acceleration == math.radians(80.0) == pytest.approx(1.3963, abs=1e-4)
+        assert acceleration == FEEDFORWARD_ACCEL_SHARE * math.radians(80.0) == pytest.approx(1.0472, abs=1e-4)
+        assert velocity == min(model.joints[short].velocity, motion.LIMIT_MARGIN * table.max_velocity / (1 + 0.75)) \
+            == pytest.approx(1.0286, abs=1e-4)
         assert velocity >= 0.75 and acceleration >= 1.0, short
-    assert limits.motion("LF1") == (motion.LIMIT_MARGIN * table.max_velocity, math.radians(80.0))  # not in the URDF
+    assert limits.motion("LF1") == limits.motion("LSP")  # not in the URDF: its velocity (1.5 rad/s) bounds nothing
     assert limits.motion(0x01) is None  # no joint at that address
     msg = limits.to_msg(seq=1)
     assert check_limits(msg) is None
@@ -258,16 +261,21 @@ def test_the_followable_numbers_take_the_tightest_input() -> None:
         assert motion_ is not None
         return motion_
 
-    assert lsp(max_velocity=1.0) == (pytest.approx(0.9), math.radians(80.0))  # the daemon's bound at its margin
-    assert lsp(accel_deg_s2=40.0) == (1.5, math.radians(40.0))  # the MOVETO acceleration it commands
-    assert lsp(max_acceleration=1.0) == (1.5, pytest.approx(0.9))  # the daemon's acceleration bound at its margin
-    assert lsp(accel_deg_s2=120.0) == (1.5, math.radians(120.0))  # a faster MOVETO, still under 0.9 x 8 rad/s^2
+    share, a80 = FEEDFORWARD_ACCEL_SHARE, math.radians(80.0)
+    # the daemon's velocity bound at its margin, shared with the stopping point's lead
+    assert lsp(max_velocity=1.0) == (pytest.approx(0.9 / (1 + share)), share * a80)
+    assert lsp(accel_deg_s2=40.0) == (pytest.approx(1.8 / (1 + share)), share * math.radians(40.0))  # MOVETO's share
+    # the daemon's acceleration bound at its margin
+    assert lsp(max_acceleration=1.0) == (pytest.approx(1.8 / (1 + 0.9 / a80)), pytest.approx(0.9))
+    # a faster MOVETO, still under 0.9 x 8 rad/s^2; then the URDF's 1.5 rad/s is not the bound either
+    assert lsp(accel_deg_s2=120.0) == (pytest.approx(1.8 / (1 + share)), share * math.radians(120.0))
+    assert lsp(max_velocity=5.0) == (1.5, share * a80)  # the URDF's velocity
 
 
 def test_the_daemon_publishes_and_commands_the_followable_acceleration(clean_shm: None) -> None:
-    """The daemon publishes the followable numbers on mds-limits and the acceleration it sends the MCB with every
-    MOVETO (TRAJECTORY_ACCELERATION, counts/s^2) is the published acceleration: a trajectory within the published
-    limits asks nothing of the MCB its profile does not do."""
+    """The daemon publishes the followable numbers on mds-limits, and the acceleration it sends the MCB with every
+    MOVETO (TRAJECTORY_ACCELERATION, counts/s^2) is the one the published acceleration is the share of: a trajectory
+    within the published limits asks less of the MCB than its profile does."""
     from support.rig import TABLE, DaemonRig
 
     rig = DaemonRig(pose={"LEP": -1.0})
@@ -286,15 +294,18 @@ def test_the_daemon_publishes_and_commands_the_followable_acceleration(clean_shm
         sets = [f for f in rig.frames_to(lep.address) if f.argument == StateArg.TRAJECTORY_ACCELERATION]
         assert sets
         for f in sets:
-            assert f.value * 2 * math.pi / lep.cpr == pytest.approx(limits.motion("LEP")[1], rel=1e-6)  # float32
+            moveto = f.value * 2 * math.pi / lep.cpr
+            assert moveto == pytest.approx(math.radians(TABLE.accel_deg_s2), rel=1e-6)  # float32
+            assert limits.motion("LEP")[1] == pytest.approx(FEEDFORWARD_ACCEL_SHARE * moveto, rel=1e-6)
     finally:
         rig.close()
 
 
 def test_the_simulated_mcb_follows_the_published_limits() -> None:
     """The MCB's MOVETO (its documented model, ``simbus.trajectory_step``) with the acceleration the daemon commands,
-    across LSP's whole range: it reaches the published velocity and never changes speed faster than the published
-    acceleration; its own speed limit (0.5 rev/s, an assumption of the model) is above the published velocity."""
+    across LSP's whole range: it reaches the published velocity and never changes speed faster than the MOVETO
+    acceleration, of which the published one is a share; its own speed limit (0.5 rev/s, an assumption of the model)
+    is above the published velocity."""
     table = config.load("default")
     j = table["LSP"]
     velocity, acceleration = compute(table).motion("LSP")
@@ -310,7 +321,9 @@ def test_the_simulated_mcb_follows_the_published_limits() -> None:
         speeds.append(abs(float(vel[0])) * 2 * math.pi / j.cpr)
         assert len(speeds) < 1000
     assert max(speeds) >= velocity
-    assert max(abs(b - a) for a, b in zip(speeds, speeds[1:], strict=False)) <= acceleration * dt[0] * (1 + 1e-9)
+    moveto = math.radians(table.accel_deg_s2)
+    assert acceleration < moveto
+    assert max(abs(b - a) for a, b in zip(speeds, speeds[1:], strict=False)) <= moveto * dt[0] * (1 + 1e-9)
 
 
 def test_every_stage_lets_a_trajectory_at_the_published_limits_through() -> None:
@@ -379,6 +392,6 @@ def test_the_limits_verb_writes_and_checks_the_moveit_file(tmp_path) -> None:
     assert stale.returncode == 1 and "is out of date" in stale.stderr and "--robot default" in stale.stderr
     table = cli("--robot", "default")
     assert table.returncode == 0
-    assert re.search(r"^LSP\s+-1\.9185\s+1\.0185\s+1\.5000\s+1\.3963$", table.stdout, re.M), table.stdout
+    assert re.search(r"^LSP\s+-1\.9185\s+1\.0185\s+1\.0286\s+1\.0472$", table.stdout, re.M), table.stdout
     bad = cli("--robot", "nosuchrobot")
     assert bad.returncode == 1 and "unknown robot 'nosuchrobot'" in bad.stderr and "Traceback" not in bad.stderr

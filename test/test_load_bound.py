@@ -21,12 +21,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
 import pytest
 from support import in_netns
+from support.hogs import CpuHogs
 from support.motion_audit import audit, read_log
 from support.rig import TABLE, DaemonRig
 from support.system import Pipeline
@@ -114,44 +115,43 @@ STARVED = ("filter", "mux", "collision", "daemon")  # SIGSTOPped in turn while t
 SWING = {"LSP": (-1.0, 0.6), "RSP": (-1.0, 0.6), "LEP": (-1.4, -0.3)}  # far goals: the filter and limiter cruise
 
 
-class Hogs:
-    """Busy-loop processes at normal priority, one more than there are cores: every node waits for a CPU."""
-
-    def __init__(self) -> None:
-        n = (os.cpu_count() or 2) + 1
-        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
-
-    def close(self) -> None:
-        for p in self.procs:
-            p.kill()
-        for p in self.procs:
-            p.wait()
+def hogs() -> CpuHogs:
+    """Busy loops at normal priority, one more than there are cores: every node waits for a CPU. Each ends by itself
+    after 10 minutes if the test's process dies first."""
+    return CpuHogs((os.cpu_count() or 2) + 1, 600.0)
 
 
-class Swinger:
-    """A legacy client on mds-ref-filter: every 1.2 s the arms' goals switch between the ends of ``SWING``."""
+class PeriodicWriter:
+    """A client that puts a frame on ``channel`` every ``every`` seconds: all joints at home except those that
+    ``values(t)`` names (t seconds since start), so the limiter cruises, reverses and stops short."""
 
-    def __init__(self) -> None:
-        self.chan = StructChannel(mds.MDS_CHAN_REF_FILTER_NAME, MDS_REF)
+    def __init__(self, channel: str, every: float, values: Callable[[float], dict[str, float]]) -> None:
+        self.chan = StructChannel(channel, MDS_REF)
         self.ref = MDS_REF()
         for j in TABLE:
             self.ref.joint[j.address].ref, self.ref.joint[j.address].mode = j.home, mds.MDS_REF_MODE_REF
+        self._every, self._values = every, values
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         t0 = time.monotonic()
-        while not self._stop.wait(0.05):
-            end = int((time.monotonic() - t0) / 1.2) % 2
-            for short, ends in SWING.items():
-                self.ref.joint[TABLE[short].address].ref = ends[end]
+        while not self._stop.wait(self._every):
+            for short, q in self._values(time.monotonic() - t0).items():
+                self.ref.joint[TABLE[short].address].ref = q
             self.chan.put(self.ref)
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5)
         self.chan.close()
+
+
+def swinger() -> PeriodicWriter:
+    """A legacy client on mds-ref-filter: every 1.2 s the arms' goals switch between the ends of ``SWING``."""
+    return PeriodicWriter(mds.MDS_CHAN_REF_FILTER_NAME, 0.05,
+                          lambda t: {short: ends[int(t / 1.2) % 2] for short, ends in SWING.items()})
 
 
 @pytest.mark.ros
@@ -164,14 +164,14 @@ def test_every_target_obeys_the_bound_while_the_pipeline_and_the_daemon_are_star
     assert in_netns(), "run through tools/netns-run"
     can_log = tmp_path / "can.asc"
     nodes = Pipeline(tmp_path)
-    hogs = swinger = None
+    load = writer = None
     try:
         nodes.start("daemon", "--nocan", "--can-log", str(can_log))
         for name in ("collision", "filter", "mux"):
             nodes.start(name)
-        swinger = Swinger()
+        writer = swinger()
         time.sleep(2.0)
-        hogs = Hogs()
+        load = hogs()
         for name in STARVED:
             time.sleep(1.5)
             proc = nodes.procs[name]
@@ -180,7 +180,7 @@ def test_every_target_obeys_the_bound_while_the_pipeline_and_the_daemon_are_star
             proc.send_signal(signal.SIGCONT)
         time.sleep(2.0)
     finally:
-        for obj in (hogs, swinger):
+        for obj in (load, writer):
             if obj is not None:
                 obj.close()
         for proc in nodes.procs.values():
@@ -202,30 +202,10 @@ RATES = (10.0, 50.0, 100.0, 200.0)  # Hz: the supported range and the rates make
 STEPPED = {"LSP": ((-1.0, 0.6), 0.7), "LEP": ((-1.4, -0.3), 0.45), "RSP": ((-0.5, -0.3), 0.23)}  # ends, period
 
 
-class Stepper:
-    """Writes the daemon's input directly: every joint of ``STEPPED`` steps between its ends every period, so the
-    limiter cruises, reverses mid-move and stops short, at whatever rate the daemon runs."""
-
-    def __init__(self) -> None:
-        self.chan = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, MDS_REF)
-        self.ref = MDS_REF()
-        for j in TABLE:
-            self.ref.joint[j.address].ref, self.ref.joint[j.address].mode = j.home, mds.MDS_REF_MODE_REF
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        t0 = time.monotonic()
-        while not self._stop.wait(0.02):
-            for short, (ends, period) in STEPPED.items():
-                self.ref.joint[TABLE[short].address].ref = ends[int((time.monotonic() - t0) / period) % 2]
-            self.chan.put(self.ref)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
-        self.chan.close()
+def stepper() -> PeriodicWriter:
+    """Writes the daemon's input directly: every joint of ``STEPPED`` steps between its ends every period."""
+    return PeriodicWriter(mds.MDS_CHAN_DAEMON_INPUT_NAME, 0.02,
+                          lambda t: {short: ends[int(t / period) % 2] for short, (ends, period) in STEPPED.items()})
 
 
 @pytest.mark.ros
@@ -239,14 +219,14 @@ def test_the_daemon_obeys_the_bounds_at_every_rate_under_cpu_hogs(clean_shm: Non
     assert in_netns(), "run through tools/netns-run"
     can_log = tmp_path / "can.asc"
     nodes = Pipeline(tmp_path)
-    hogs = stepper = None
+    load = writer = None
     try:
         nodes.start("daemon", "--nocan", "--rate", f"{rate:g}", "--can-log", str(can_log))
-        hogs = Hogs()
-        stepper = Stepper()
+        load = hogs()
+        writer = stepper()
         time.sleep(8.0)
     finally:
-        for obj in (stepper, hogs):
+        for obj in (writer, load):
             if obj is not None:
                 obj.close()
         codes = nodes.stop_all()

@@ -106,10 +106,14 @@ def test_out_of_range_parameters_stop_the_node_with_one_line(clean_shm: None, ar
 
 @pytest.mark.ros
 def test_filter_output_rate_follows_rate(clean_shm: None) -> None:
+    """The filter ticks at ``rate`` while its output moves (a new input is stepped at once; at rest it sleeps)."""
     _put(mds.MDS_CHAN_DAEMON_INPUT_NAME, np.zeros(N))
     with StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF) as smooth, \
             running("filter", "--rate", "50", "--ros-args", "-p", "rate:=4"):  # -p wins over the option
         wait_for(lambda: smooth.wait(timeout=0.5), 60, what="the first smoothed frame")
+        target = np.zeros(N)
+        target[mds.BY_SHORT["LSR"].address] = 2.5  # ~2 s at 1.57 rad/s and 4 rad/s^2: 8 ticks of 0.25 s
+        _put(mds.MDS_CHAN_REF_MUX_NAME, target)
         stamps = []
         while len(stamps) < 7:
             if smooth.wait(timeout=2.0) is not None:

@@ -19,14 +19,18 @@ message (``EffectiveLimits.problem``).
 What a joint can follow (issue #26: a planner must not be told 1.5 rad/s while nothing says what acceleration the
 robot can follow), per joint (:func:`followable`):
 
+* acceleration = min(``FEEDFORWARD_ACCEL_SHARE`` (0.75) x the MOVETO acceleration ``A`` the daemon commands
+  (``trajectory: acceleration_deg_s2``), ``LIMIT_MARGIN`` x ``motion: max_acceleration_rad_s2``). The MCB runs every
+  MOVETO with the commanded acceleration, so no joint follows a faster change of speed; the daemon executes a
+  trajectory by sending its stopping point at ``A`` (``mds_ach.robot.feedforward``), and the MCB needs a share of
+  ``A`` to catch up with a target that moves. 80 deg/s^2 (1.396 rad/s^2) is ``A``: it is what the original daemon
+  sent (``specs/mds-original.md`` section b.4); the only other value on record is 5 deg/s^2 (the June 2015
+  captures, LEB and NKY); nothing shows the MCBs or the arms take more, so the daemon does not command more.
+  Published: 1.047 rad/s^2;
 * velocity = min(the URDF's ``<limit velocity>``, ``LIMIT_MARGIN`` x the daemon's bound ``motion:
-  max_velocity_rad_s``): a target at that speed passes the daemon's limiter unchanged;
-* acceleration = min(the MOVETO acceleration the daemon commands, ``trajectory: acceleration_deg_s2``,
-  ``LIMIT_MARGIN`` x ``motion: max_acceleration_rad_s2``). The MCB runs every MOVETO with the commanded
-  acceleration, so no joint follows a faster change of speed. 80 deg/s^2 (1.396 rad/s^2) is the bound: it is what
-  the original daemon sent (``specs/mds-original.md`` section b.4); the only other value on record is 5 deg/s^2
-  (the June 2015 captures, LEB and NKY); nothing shows the MCBs or the arms take more, so the daemon does not
-  command more;
+  max_velocity_rad_s`` / (1 + acceleration / ``A``)): the stopping-point targets of a trajectory at that speed
+  and acceleration move at most ``v (1 + a / A)``, which passes the daemon's limiter unchanged. Published:
+  1.029 rad/s;
 * jerk: not bounded by this design (a MOVETO switches its acceleration at once), so none is published.
 
 :func:`moveit_yaml` writes these as MoveIt's ``joint_limits.yaml`` (``config/joint_limits.yaml``, by
@@ -61,14 +65,25 @@ def _label(address: int) -> str:
     return joint.short if joint is not None else f"{address:#04x}"
 
 
+FEEDFORWARD_ACCEL_SHARE = 0.75
+"""The share of the MOVETO acceleration a trajectory may use: the MCB needs the rest to catch up with a target
+that moves (the daemon sends the trajectory's stopping point, ``mds_ach.robot.feedforward``)."""
+
+
 def followable(table: joint_config.JointTable, urdf_velocity: float | None = None) -> tuple[float, float]:
-    """(velocity rad/s, acceleration rad/s^2) a joint of ``table`` can follow (see the module doc): the daemon's
-    bounds at its limiter's margin, the MOVETO acceleration it commands, and the URDF's velocity if modelled (a
-    missing or non-positive one bounds nothing)."""
-    velocity = LIMIT_MARGIN * table.max_velocity
+    """(velocity rad/s, acceleration rad/s^2) a joint of ``table`` can follow (see the module doc).
+
+    The daemon executes a trajectory by sending, each cycle, its *stopping point* at the MOVETO acceleration ``A``
+    (``q + v|v| / 2A``, ``mds_ach.robot.feedforward``): that target sequence moves at up to ``v (1 + a / A)``, and it
+    must pass the daemon's limiter (``LIMIT_MARGIN`` x ``motion: max_velocity_rad_s``) unchanged. So: acceleration =
+    min(``FEEDFORWARD_ACCEL_SHARE`` x ``A``, the daemon's acceleration bound at its margin); velocity = min(the
+    URDF's velocity if modelled (a missing or non-positive one bounds nothing), the daemon's velocity bound at its
+    margin / (1 + acceleration / A))."""
+    moveto = math.radians(table.accel_deg_s2)
+    acceleration = min(FEEDFORWARD_ACCEL_SHARE * moveto, LIMIT_MARGIN * table.max_acceleration)
+    velocity = LIMIT_MARGIN * table.max_velocity / (1.0 + acceleration / moveto)
     if urdf_velocity is not None and math.isfinite(urdf_velocity) and urdf_velocity > 0:
         velocity = min(velocity, urdf_velocity)
-    acceleration = min(math.radians(table.accel_deg_s2), LIMIT_MARGIN * table.max_acceleration)
     return velocity, acceleration
 
 

@@ -79,6 +79,7 @@ while it passes a collision and ``mds/collision`` carries ``override_remaining``
 from __future__ import annotations
 
 import argparse
+import ctypes
 import itertools
 import json
 import math
@@ -101,10 +102,12 @@ from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import filters
 from mds_ach.nodes.pipeline import (
+    HANDOFF_RT_PRIORITY,
     KNOWN_ADDRESSES,
     ChannelGuard,
     ReseedWatch,
-    cancel_wait,
+    Wakeup,
+    handoff_thread,
     labels,
     make_ref,
     ref_arrays,
@@ -116,7 +119,7 @@ from mds_ach.ratelog import RateLimitedLog
 from mds_ach.robot import lifecycle
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO
-from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_STATE
+from mds_ach.robot.msgs import MDS_COLLIDE, MDS_COLLIDE_JNT_NUM, MDS_JOINT_COUNT, MDS_JOINT_STATE, MDS_STATE
 from mds_ach.robot.msgs.hold import HOLD_CANCEL, MDS_HOLD
 
 ARM_ADDRESSES: dict[str, np.ndarray] = {
@@ -159,6 +162,7 @@ _MASK_FOR = {apart: _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]] for apart, c
 
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
+IDLE_REPORT_PERIOD = 0.5  # s: mds-collide at rest (no input, nothing held, no contact, no override for 1 s)
 STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
 AHEAD_STEP = 0.05  # rad (fastest joint): spacing of the poses checked along an arm's braking path
 
@@ -215,6 +219,13 @@ def _count(data: Mapping[str, Any], key: str, default: int, where: str) -> int:
     return value
 
 
+_JOINT_STATE = np.dtype({"names": ["ref", "pos", "active"], "formats": ["<f8", "<f8", "u1"],
+                         "offsets": [MDS_JOINT_STATE.ref.offset, MDS_JOINT_STATE.pos.offset,
+                                     MDS_JOINT_STATE.active.offset],
+                         "itemsize": ctypes.sizeof(MDS_JOINT_STATE)})
+"""The fields of ``MDS_JOINT_STATE`` (packed, the wire layout) that ``Observed`` reads."""
+
+
 @dataclass(frozen=True)
 class Observed:
     """What the daemon reports back on ``mds-state``: the measured pose and the ``mds-collide`` it acted on."""
@@ -226,11 +237,12 @@ class Observed:
 
     @classmethod
     def from_state(cls, state: MDS_STATE) -> Observed:
-        """Stale joints (``active`` 0) count as unknown: the gate then takes them where they are commanded."""
-        pos = np.array([state.joint[a].pos if state.joint[a].active else math.nan
-                        for a in range(MDS_JOINT_COUNT)], dtype=float)
-        sent = np.array([state.joint[a].ref for a in range(MDS_JOINT_COUNT)], dtype=float)
-        return cls(pos, float(state.time), float(state.collide.time), sent)
+        """Stale joints (``active`` 0) count as unknown: the gate then takes them where they are commanded. Read as
+        one numpy view of ``state.joint[]`` (2 us, 160 us field by field): the gate does this on every mds-state
+        frame, also at rest."""
+        j = np.frombuffer(memoryview(state).cast("B"), dtype=_JOINT_STATE, count=MDS_JOINT_COUNT)
+        pos = np.where(j["active"] != 0, j["pos"], math.nan)
+        return cls(pos, float(state.time), float(state.collide.time), j["ref"].astype(float))
 
 
 @dataclass
@@ -511,13 +523,29 @@ class Gate:
 
     # ----- the decision
 
+    def _invalid(self, ref: np.ndarray, mode: np.ndarray) -> np.ndarray:
+        """The entries validation refuses (kept at their last output): NaN/Inf, out of limits, unknown mode."""
+        return ~np.isfinite(ref) | (ref < self.lower) | (ref > self.upper) | (mode < 0) | (mode > 3)
+
+    def pending(self, ref: np.ndarray, mode: np.ndarray) -> bool:
+        """Would processing the same input ``ref``/``mode`` again change something? True while a unit is held or
+        releasing, an arm settles at a contact, a released joint ramps back, or a valid input value is not
+        passed yet (the speed bound, a hold, a rest). The runner then re-processes its newest input at the
+        filter's period (``input_period``): the input stream stops when the filter comes to rest, the gate's
+        timed transitions (``release_time``, the daemon's echo, the ramp back) must not."""
+        if self._settle_since or self._ramp.any() or any(u.state != FREE for u in self.units.values()):
+            return True
+        ref = np.asarray(ref, dtype=float)
+        differs = (ref != self.ref) & self._known & ~self._invalid(ref, np.asarray(mode))
+        return bool(differs.any())
+
     def process(self, ref: np.ndarray, mode: np.ndarray, now: float, observed: Observed | None = None) -> Decision:
         self._measured = None
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         cand = ref.copy()
         cand_mode = mode.copy()
-        bad = ~np.isfinite(ref) | (ref < self.lower) | (ref > self.upper) | (mode < 0) | (mode > 3)
+        bad = self._invalid(ref, mode)
         cand[bad] = self.ref[bad]
         cand_mode[bad] = self.mode[bad]
         refused = tuple(int(a) for a in np.flatnonzero(bad & self._known))
@@ -824,6 +852,47 @@ class DecisionTimes:
         return self._ring[:len(self)].copy()
 
 
+class _StateNews:
+    """Is an ``mds-state`` frame news for the gate: a measured pose that moved (beyond ``tolerance`` rad since the
+    frame that last woke it) or became known or unknown, or the daemon's echo of a newer report? At rest the daemon
+    puts the same pose every cycle: the gate's loop is not woken for it (``pipeline.Wakeup``, its reader's thread)."""
+
+    def __init__(self, tolerance: float = 1e-4) -> None:
+        self.tolerance = tolerance
+        self._pos: np.ndarray | None = None
+        self._echo = -math.inf
+
+    def __call__(self, state: MDS_STATE) -> bool:
+        seen = Observed.from_state(state)
+        moved = self._pos is None or seen.collide_time != self._echo or _differs(self._pos, seen.pos, self.tolerance)
+        if moved:
+            self._pos, self._echo = seen.pos, seen.collide_time
+        return moved
+
+
+def _differs(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
+    """Do two measured poses differ: a joint known in one and not the other, or beyond ``tolerance`` rad?"""
+    known = np.isfinite(a)
+    if not np.array_equal(known, np.isfinite(b)):
+        return True
+    return bool(np.any(np.abs(a[known] - b[known]) > tolerance))
+
+
+def _pose(observed: Observed | None, now: float, timeout: float) -> np.ndarray | None:
+    """The measured pose the gate decides with (None: no recent ``mds-state``, as in ``Gate.process``)."""
+    return observed.pos if observed is not None and now - observed.time <= timeout else None
+
+
+def _moved(seen: np.ndarray | None, observed: Observed | None, now: float, timeout: float,
+           tolerance: float = 1e-4) -> bool:
+    """Has the measured pose changed (beyond ``tolerance`` rad, or become known or unknown) since the newest
+    decision? The gate then decides again on the same input: a joint pushed into contact at rest is held."""
+    pos = _pose(observed, now, timeout)
+    if pos is None or seen is None:
+        return (pos is None) != (seen is None)
+    return _differs(pos, seen, tolerance)
+
+
 class GateRunner:
     """Channels around ``Gate``: wait for ``mds-ref-smooth``, decide with the newest ``mds-state`` (measured pose,
     echoed ``mds-collide``), put ``mds-ref-gated`` and ``mds-collide``."""
@@ -831,7 +900,9 @@ class GateRunner:
     def __init__(self, model: Any, config: GateConfig, lower: np.ndarray, upper: np.ndarray,
                  log: Callable[[str, str], None] | None = None,
                  on_report: Callable[[Decision | None, Gate, float], None] | None = None,
-                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
+                 rt_priority: int = 0) -> None:
+        self.rt_priority = rt_priority  # SCHED_FIFO of the loop and its Wakeup readers (pipeline.HANDOFF_RT_PRIORITY)
         self.model = model
         self.config = config
         self.lower, self.upper = lower, upper
@@ -844,7 +915,7 @@ class GateRunner:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._override_requests: list[float] = []
-        self._inp: Any = None
+        self._wakeup: Wakeup | None = None  # the gate's inputs (mds-ref-smooth, mds-state), from run() on
         self.gate: Gate | None = None
         self.ready = threading.Event()
         self.processed = 0
@@ -854,8 +925,8 @@ class GateRunner:
 
     def stop(self) -> None:
         self._stop.set()
-        if self._inp is not None:
-            cancel_wait(self._inp)
+        if self._wakeup is not None:
+            self._wakeup.cancel()
 
     def request_override(self, seconds: float) -> None:
         """Thread-safe: queue an expert-override request (applied by the gate thread)."""
@@ -863,18 +934,21 @@ class GateRunner:
             self._override_requests.append(float(seconds))
 
     def run(self) -> None:
+        handoff_thread(self.rt_priority, "gate", self.log)
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
         ref, mode, source = found
         gate = Gate(self.model, self.config, ref, mode, time.monotonic(), self.lower, self.upper)
-        self._inp = inp = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
+        inp = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
         out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
         collide = StructChannel(mds.MDS_CHAN_COLLIDE_NAME, MDS_COLLIDE)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
         hold_ch = StructChannel(mds.MDS_CHAN_HOLD_NAME, MDS_HOLD)
         observed: Observed | None = None
         inp.latest()  # a frame already waiting is an old command: act only on frames that arrive from now on
+        self._wakeup = wakeup = Wakeup((inp.name, state_ch.name), (mds.MDS_REF, MDS_STATE), self.log,
+                                             self.rt_priority, news={state_ch.name: _StateNews()})
         self.gate = gate
         report_period = 1.0 / self.config.report_rate
         override_log = 0.0
@@ -891,8 +965,18 @@ class GateRunner:
                 self.log("info", msg)
             collide.put(gate.report(time.monotonic()))
             self.ready.set()
+            last_active = time.monotonic()
+            # the newest input (ref, mode); until one arrives, the reference the gate started from
+            latest: tuple[np.ndarray, np.ndarray] = (gate.ref.copy(), gate.mode.copy())
+            seen_pos: np.ndarray | None = None  # the measured pose the newest decision was made with
+            wait = report_period
             while not self._stop.is_set():
-                frame = guard.call(inp.name, inp.wait, timeout=report_period)  # broken input: hold, report
+                # Event-driven: a new mds-ref-smooth frame wakes the gate at once, and so does an mds-state frame with a
+                # measured pose that moved (_StateNews), so it is decided on within one daemon cycle. Between
+                # frames it wakes for its report (report_rate) or, while a decision on the newest input is still
+                # unfolding, at the filter's period (Gate.pending).
+                wakeup.wait(wait)
+                frame = guard.call(inp.name, inp.latest)  # broken input: hold, report
                 now = time.monotonic()
                 override_log = self._apply_overrides(gate, now, override_log)
                 state = guard.call(state_ch.name, state_ch.latest)  # a broken state: keep the last one
@@ -901,11 +985,31 @@ class GateRunner:
                 reseed = watch.poll()  # HOME, reset, resetbus: restart those joints where they are
                 if reseed is not None:
                     gate.reseed(*reseed)
+                    latest[0][reseed[0]] = reseed[1]  # the input is old there too (the filter re-seeds them)
                     self.log("info", f"re-seeded {labels(reseed[0])} where the joints are")
+                moved = _moved(seen_pos, observed, now, self.config.state_timeout)
+                repeat = False  # the input again (the filter's heartbeat at rest): nothing to decide anew
+                if frame is not None:
+                    new = ref_arrays(frame)
+                    repeat = (np.array_equal(new[0], latest[0])
+                              and np.array_equal(new[1], latest[1]) and reseed is None and not moved
+                              and not gate.pending(*new) and not gate.current.collides
+                              and gate.override_until == -math.inf)
+                    latest = new
+                    if repeat:
+                        frame = None
+                elif gate.pending(*latest) or reseed is not None or moved:
+                    frame = make_ref(*latest)  # the same input again: its timed decision goes on, or the robot moved
+                if repeat:  # the same output again, with its report first (as after a decision), counted the same
+                    guard.call(collide.name, collide.put, gate.report(now))
+                    guard.call(out.name, out.put, make_ref(gate.ref, gate.mode))
+                    self.processed += 1
+                    self.refused_count += bool(refusing)
                 decision = None
                 if frame is not None:
+                    seen_pos = _pose(observed, now, self.config.state_timeout)
                     t0 = time.perf_counter()
-                    decision = gate.process(*ref_arrays(frame), now, observed)
+                    decision = gate.process(*latest, now, observed)
                     self.check_times.add(time.perf_counter() - t0)
                     # The report before the reference: the daemon reads the reference first, then the report, so
                     # whenever it sees a held reference it also sees the hold.
@@ -923,14 +1027,20 @@ class GateRunner:
                                           f"{sorted(decision.result.pairs)}")
                         last_override_log = now
                 self.refusals.tick()
-                reported = frame is not None
-                if not reported and now - gate.last_report >= report_period:
+                busy = gate.pending(*latest)
+                if frame is not None or busy or gate.current.collides or gate.override_remaining(now) > 0:
+                    last_active = now
+                # reports at report_rate while anything goes on (and 1 s after), every IDLE_REPORT_PERIOD at rest
+                period = report_period if now - last_active <= 1.0 else max(report_period, IDLE_REPORT_PERIOD)
+                reported = frame is not None or repeat
+                if not reported and now - gate.last_report >= period - 1e-3:
                     guard.call(collide.name, collide.put, gate.report(now))
                     reported = True
                 if reported and self.on_report is not None:
                     self.on_report(decision, gate, now)
+                wait = self.config.input_period if busy else period
         finally:
-            for ch in (inp, out, collide, state_ch, hold_ch, watch):
+            for ch in (wakeup, inp, out, collide, state_ch, hold_ch, watch):
                 ch.close()
             if len(self.check_times):
                 ms = self.check_times.values() * 1e3
@@ -1061,7 +1171,8 @@ class CollisionNode(Node):
         self.create_subscription(Float64, COLLISION_TOPIC + "/override", self._on_override, 10)
         self._last_pub = -math.inf
         self._last_doc = ""
-        self.runner = GateRunner(model, gate_cfg, lower, upper, log=ros_log(self), on_report=self._on_report)
+        self.runner = GateRunner(model, gate_cfg, lower, upper, log=ros_log(self), on_report=self._on_report,
+                                 rt_priority=HANDOFF_RT_PRIORITY)
         self.thread = start_worker(self, self.runner.run, "collision")
 
     def _on_override(self, msg: Float64) -> None:
@@ -1069,6 +1180,8 @@ class CollisionNode(Node):
         self.runner.request_override(float(msg.data))
 
     def _on_report(self, decision: Decision | None, gate: Gate, now: float) -> None:
+        if self.pub.get_subscription_count() == 0:
+            return  # nobody listening: no document to build (a subscriber gets the next report, within 1/report_rate)
         doc = decision_to_dict(decision, gate, now, self.runner.refused_count)
         key = json.dumps({k: v for k, v in doc.items() if k != "time"})
         if not self.context.ok():  # shutting down after SIGINT/SIGTERM

@@ -1,7 +1,11 @@
 """Reference smoother (``ros2 run mds_ach filter``): ``mds-ref-mux`` -> per-joint filter -> ``mds-ref-smooth``.
 
-Runs at a fixed rate (parameter ``rate``, by default config/filter.yaml ``rate``: 40 Hz like the deployed
-mds-filter) on an absolute schedule and publishes every tick, so the collision gate sees a steady stream.
+Event-driven, time-based: a new ``mds-ref-mux`` frame is stepped at once (no tick to wait for), the ramps advance
+by the time since the previous step (at most one period), and while the output moves it ticks at ``rate``
+(parameter, by default config/filter.yaml ``rate``: 40 Hz like the deployed mds-filter) so a ramp goes on with no
+new input. At rest (every joint on its target, at rest) it sleeps until the next input, re-publishing its output
+once per ``IDLE_PERIOD`` (1 s) as a heartbeat; the collision gate re-decides by itself while its own decision
+unfolds (``collision.Gate.pending``).
 Per-joint modes (the maths is ``mds_ach.nodes.filters``, shared with the daemon):
 
 * ``velocity_limit`` (default): constant-speed ramp, 1.57 rad/s, snapping onto the target within one step,
@@ -14,13 +18,14 @@ Per-joint modes (the maths is ``mds_ach.nodes.filters``, shared with the daemon)
   so the reference stays compliant to where the joint really is. Falls back to ``ema`` without a state.
 * ``pass``: no smoothing.
 
-**Per controller** (config ``controllers``): the joints a given mux controller owns (``mds-mux-state`` owner[])
-use that controller's parameters instead. By default the mux's ``direct`` controller (``mds-ref``, the channel
-the original daemon executed, written by expert clients) is ``pass``: "unsmoothed" means only this stage is
-skipped for those joints. The filter stays in the path and nothing else is bypassed: the mux still refuses
-out-of-limit frames, the collision gate still checks every reference (and bounds its speed, ``max_velocity`` in
-config/collision.yaml), and the daemon still limits speed and acceleration (config/joints.yaml ``motion:``),
-so a step put on ``mds-ref`` reaches the motors as a bounded ramp.
+**Per controller** (config ``controllers``): the joints a given mux controller owns (``mds-mux-state`` owner[]) use
+that controller's parameters instead (with ``modes``: only for its frames in those ref modes; the bridge's
+trajectory targets, mode 1, pass unsmoothed while its position commands, mode 0, are smoothed). By default the mux's
+``direct`` controller (``mds-ref``, the channel the original daemon executed, written by expert clients) is
+``pass``: "unsmoothed" means only this stage is skipped for those joints. The filter stays in the path and nothing
+else is bypassed: the mux still refuses out-of-limit frames, the collision gate still checks every reference (and
+bounds its speed, ``max_velocity`` in config/collision.yaml), and the daemon still limits speed and acceleration
+(config/joints.yaml ``motion:``), so a step put on ``mds-ref`` reaches the motors as a bounded ramp.
 
 Why the velocity limiter is the default: its timing is predictable (a move of d rad takes d / 1.57 s, small
 moves are quick), it never overshoots, and it is what the robot ran in 2015; the EMA makes every move take
@@ -40,6 +45,7 @@ from __future__ import annotations
 import argparse
 import math
 import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -52,9 +58,11 @@ from rclpy.node import Node
 import mds_ach as mds
 from mds_ach.nodes import filters
 from mds_ach.nodes.pipeline import (
+    HANDOFF_RT_PRIORITY,
     ChannelGuard,
-    Periodic,
     ReseedWatch,
+    cancel_wait,
+    handoff_thread,
     labels,
     make_ref,
     ref_arrays,
@@ -87,13 +95,20 @@ class FilterParams:
     mark_smoothed: bool = True  # mode 0 out of a smoothing joint becomes mode 1 (the daemon passes it through)
     controllers: Mapping[str, tuple[int, float, float, float]] = field(default_factory=dict)
     """Mux controller name -> (mode, max_velocity, max_accel, length) for the joints it owns."""
+    controller_modes: Mapping[str, frozenset[int]] = field(default_factory=dict)
+    """Mux controller name -> the ref modes of its frames its parameters apply to (absent: every mode)."""
 
-    def for_owners(self, owners: Sequence[str | None]) -> FilterParams:
+    def for_owners(self, owners: Sequence[str | None], ref_modes: Sequence[int] | np.ndarray | None = None,
+                   ) -> FilterParams:
         """These parameters with the joints owned (``owners[address]``: controller name or None) by a configured
-        controller switched to that controller's parameters."""
+        controller switched to that controller's parameters (only where the joint's frame mode, ``ref_modes``, is one
+        of the controller's ``modes``, if it has any)."""
         arrays = {k: getattr(self, k).copy() for k in _PARAM_ARRAYS}
         for a, name in enumerate(owners):
             values = self.controllers.get(name) if name is not None else None
+            only = self.controller_modes.get(name) if name is not None else None
+            if only is not None and (ref_modes is None or int(ref_modes[a]) not in only):
+                values = None
             if values is not None:
                 for k, v in zip(_PARAM_ARRAYS, values, strict=True):
                     arrays[k][a] = v
@@ -157,11 +172,19 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
     if not isinstance(controllers, Mapping):
         raise ValueError(f"{where}: controllers must map mux controller names to parameters")
     by_controller: dict[str, tuple[int, float, float, float]] = {}
+    modes_of: dict[str, frozenset[int]] = {}
     for name, entry in controllers.items():
         here = f"{where}: controllers.{name}"
         if not isinstance(entry, Mapping) or "joints" in entry:
             raise ValueError(f"{here}: needs parameters ({', '.join(sorted(_PARAM_KEYS))}) for the joints that "
                              "controller owns")
+        if "modes" in entry:
+            given = entry["modes"]
+            if not isinstance(given, list) or not given or any(m not in (0, 1, 2, 3) for m in given):
+                raise ValueError(f"{here}: modes must be a list of ref modes (0 filter, 1 pass-through, 2 compliant, "
+                                 f"3 encoder filter), got {given!r}")
+            modes_of[str(name)] = frozenset(int(m) for m in given)
+            entry = {k: v for k, v in entry.items() if k != "modes"}
         c = _joint_params(entry, base, here)
         by_controller[str(name)] = (MODES.index(c["mode"]), c["max_velocity"],
                                     math.inf if c["max_accel"] is None else c["max_accel"],
@@ -174,6 +197,7 @@ def parse_config(data: Mapping[str, Any], where: str = "filter config", rate: fl
         length=np.array([filters.filter_length(rate, p["settle_time"], p["settle_fraction"]) for p in per]),
         mark_smoothed=bool(data.get("mark_smoothed", True)),
         controllers=by_controller,
+        controller_modes=modes_of,
     )
 
 
@@ -189,6 +213,18 @@ def load_config(path: str | Path | None = None, rate: float | None = None) -> Fi
 
 
 # --------------------------------------------------------------------------------------------- filter state
+
+
+ENC_REST = 1e-4  # rad: an enc_filter joint this close to its target rests (it follows the noisy measurement)
+IDLE_PERIOD = 1.0  # s: at rest the output is re-published this often (a heartbeat: the node is alive)
+
+
+def _length_for(length: float, periods: float) -> float:
+    """The EMA length that covers in ``periods`` configured periods what ``length`` covers in one: the
+    remaining error (1 - 1/L)^n is the same after the same time, whatever the step spacing."""
+    if periods == 1.0:
+        return length
+    return 1.0 / (1.0 - (1.0 - 1.0 / length) ** periods)
 
 
 class FilterCore:
@@ -216,6 +252,8 @@ class FilterCore:
         take = ok & ~self.held
         self.target[take] = ref[take]
         self.mode[ok] = np.asarray(mode, dtype=np.int16)[ok]
+        if self.base.controller_modes:  # a controller's parameters may depend on its frames' mode
+            self._apply_params()
         if not ok.all():
             return f"ignored non-finite targets for {labels(np.flatnonzero(~ok))}"
         return None
@@ -229,7 +267,11 @@ class FilterCore:
             self.owners = owners
             return
         self.owners = owners
-        new = self.base.for_owners(owners)
+        self._apply_params()
+
+    def _apply_params(self) -> None:
+        """The parameters in effect for the current owners and frame modes (``set_owners``)."""
+        new = self.base.for_owners(self.owners, self.mode)
         switched = new.mode != self.p.mode
         self.vel[switched] = 0.0
         self.p = new
@@ -276,9 +318,25 @@ class FilterCore:
         self.out = np.array(out, dtype=float)
         self.vel[:] = 0.0
 
-    def step(self, measured: np.ndarray | None = None) -> np.ndarray:
-        """Advance one tick. ``measured``: mds-state joint[].pos for the enc_filter joints (None = unknown)."""
+    def moving(self) -> bool:
+        """Will the next step change the output? False once every joint rests on its target (then the runner
+        sleeps until a new input instead of ticking). An ``enc_filter`` joint follows the measured position, which
+        never settles exactly: it counts as resting within ``ENC_REST`` of its target."""
+        p = self.p
+        gap = np.abs(self.target - self.out)
+        enc = p.mode == ENC
+        return bool(np.any(gap[~enc] > 0.0) or np.any(gap[enc] > ENC_REST) or np.any(self.vel != 0.0)
+                    or self.braking.any())
+
+    def step(self, measured: np.ndarray | None = None, dt: float | None = None) -> np.ndarray:
+        """Advance by ``dt`` seconds (None: one period of the configured rate). ``measured``: mds-state
+        joint[].pos for the enc_filter joints (None = unknown). Time-based: a step taken when an input arrives
+        between two ticks advances the ramps by the time since the previous step, so the speed and acceleration
+        limits hold whatever the spacing of the steps; the EMA covers the same fraction per second."""
         p, out, tgt = self.p, self.out, self.target
+        dt = p.dt if dt is None else dt
+        if not dt > 0:
+            return out.copy()
         new = out.copy()
         m = p.mode == PASS
         new[m] = tgt[m]
@@ -290,28 +348,28 @@ class FilterCore:
         for mask, source in groups:
             for length in np.unique(p.length[mask]):
                 sel = mask & (p.length == length)
-                new[sel] = filters.ema_step(source[sel], tgt[sel], float(length))
+                new[sel] = filters.ema_step(source[sel], tgt[sel], _length_for(float(length), dt / p.dt))
         vel = p.mode == VEL
         plain = vel & ~self._accel
         if plain.any():
-            new[plain] = filters.velocity_limit_step(out[plain], tgt[plain], p.max_velocity[plain], p.dt)
+            new[plain] = filters.velocity_limit_step(out[plain], tgt[plain], p.max_velocity[plain], dt)
         acc = vel & self._accel & ~self.braking
         brk = self.braking.copy()
         if brk.any():  # held while moving: decelerate at max_accel to rest, never reversing
-            speed = np.maximum(np.abs(self.vel[brk]) - p.max_accel[brk] * p.dt, 0.0)
+            speed = np.maximum(np.abs(self.vel[brk]) - p.max_accel[brk] * dt, 0.0)
             v = np.sign(self.vel[brk]) * speed
-            new[brk] = out[brk] + v * p.dt
+            new[brk] = out[brk] + v * dt
             self.vel[brk] = v
             stopped = np.flatnonzero(brk)[speed == 0.0]
             self.braking[stopped] = False
             self.target[stopped] = new[stopped]
         if acc.any():
             pos, v = filters.accel_limit_step(out[acc], self.vel[acc], tgt[acc], p.max_velocity[acc],
-                                              p.max_accel[acc], p.dt)
+                                              p.max_accel[acc], dt)
             new[acc] = pos
             self.vel[acc] = v
         rest = ~acc & ~self.braking & ~brk
-        self.vel[rest] = (new[rest] - out[rest]) * p.rate
+        self.vel[rest] = (new[rest] - out[rest]) / dt
         self.out = new
         return new
 
@@ -333,10 +391,13 @@ def owner_names(st: MDS_MUX_STATE) -> tuple[str | None, ...]:
 
 
 class FilterRunner:
-    """The real-time loop: channels + ``FilterCore`` on an absolute schedule. ``run()`` blocks until ``stop()``."""
+    """The loop: channels + ``FilterCore``, stepped on each input and at ``rate`` while moving (module doc).
+    ``run()`` blocks until ``stop()``."""
 
     def __init__(self, params: FilterParams, log: Callable[[str, str], None] | None = None,
-                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME)) -> None:
+                 sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
+                 rt_priority: int = 0) -> None:
+        self.rt_priority = rt_priority  # SCHED_FIFO of the loop (pipeline.HANDOFF_RT_PRIORITY)
         self.params = params
         self.log = log or (lambda level, msg: print(f"[filter] {level}: {msg}", flush=True))
         self.ignored = RateLimitedLog(self.log)  # a bad input can repeat every cycle: one line per change
@@ -346,11 +407,15 @@ class FilterRunner:
         self.core: FilterCore | None = None
         self.ticks = 0
         self.overruns = 0
+        self._inp: Any = None
 
     def stop(self) -> None:
         self._stop.set()
+        if self._inp is not None:
+            cancel_wait(self._inp)
 
     def run(self) -> None:
+        handoff_thread(self.rt_priority, "filter", self.log)
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
@@ -370,10 +435,14 @@ class FilterRunner:
         watch = ReseedWatch(self.log, self._stop)
         try:
             self.log("info", f"started from {source} at {self.params.rate:g} Hz ({self.params.describe()})")
-            timer = Periodic(self.params.dt)
+            period = self.params.dt
+            last_step = time.monotonic() - period
+            frame = None
+            self._inp = inp
             self.ready.set()
-            while True:
-                frame = guard.call(inp.name, inp.latest)  # a broken input: keep smoothing to the last target
+            while not self._stop.is_set():
+                if frame is None:
+                    frame = guard.call(inp.name, inp.latest)  # a broken input: keep smoothing to the last target
                 if frame is not None:
                     problem = core.set_target(*ref_arrays(frame))
                     if problem:
@@ -399,13 +468,21 @@ class FilterRunner:
                     elif measured is None and not warned_state:
                         self.log("warn", "enc_filter joints have no mds-state yet: using ema until it arrives")
                         warned_state = True
+                now = time.monotonic()
+                if now - last_step > period + 0.5 * period and core.moving():
+                    self.overruns += 1  # a tick came late (a busy machine): the ramp advances one period, no jump
+                dt = min(max(now - last_step, 0.0), period)
+                last_step = now
                 published = core.out.copy()
-                if not guard.put(out, make_ref(core.step(measured), core.out_mode())):
+                if not guard.put(out, make_ref(core.step(measured, dt), core.out_mode())):
                     core.stay(published)  # a damaged mds-ref-smooth: hold, so the gate sees no step after repair
                 self.ticks += 1
-                if not timer.wait(self._stop):
-                    break
-                self.overruns = timer.overruns
+                # Event-driven: a new mds-ref-mux frame wakes the loop at once (stepped by the time since the
+                # previous step). Without one: the next tick while the output moves, a heartbeat at rest.
+                deadline = last_step + (period if core.moving() else IDLE_PERIOD)
+                frame = guard.call(inp.name, inp.wait, timeout=max(0.0, deadline - time.monotonic()))
+                if frame is None and guard.failing(inp.name):  # a broken input answers at once: keep the pace
+                    self._stop.wait(max(0.0, last_step + period - time.monotonic()))
         finally:
             inp.close()
             out.close()
@@ -450,7 +527,7 @@ class FilterNode(Node):
         configured = load_config(path).rate  # the config's own rate is the parameter's default
         self.rate: float = declare(self, find(PARAMETERS, "rate"), configured if rate is None else rate)
         self.params = load_config(path, self.rate)
-        self.runner = FilterRunner(self.params, log=ros_log(self))
+        self.runner = FilterRunner(self.params, log=ros_log(self), rt_priority=HANDOFF_RT_PRIORITY)
         self.thread = start_worker(self, self.runner.run, "filter")
 
     def shutdown(self) -> None:

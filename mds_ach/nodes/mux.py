@@ -59,10 +59,12 @@ from rclpy.node import Node
 import mds_ach as mds
 from mds_ach.kinematics.limits import EffectiveLimits, current_limits
 from mds_ach.nodes.pipeline import (
+    HANDOFF_RT_PRIORITY,
     KNOWN_ADDRESSES,
     ChannelGuard,
     ReseedWatch,
     cancel_wait,
+    handoff_thread,
     joint_label,
     labels,
     make_ref,
@@ -99,6 +101,11 @@ from mds_ach.robot.msgs.mux_state import (  # noqa: F401  (mux.MDS_MUX_STATE)
 DEFAULT_STATE_RATE = 10.0
 HOLD_INPUT = -1
 """Queue index of an ``mds-hold`` request (controller inputs are 0..n-1)."""
+IDLE_STATE_PERIOD = 0.5
+"""s: ``mds-mux-state`` at rest (nothing received, nothing changed); half of ``muxverdict.LIVE_AGE``."""
+READER_TIMEOUT = 5.0
+"""s: the input readers' wait; a put wakes them at once and ``stop()`` cancels the wait, so this only bounds how
+long a reader sleeps (each wake-up costs CPU at rest)."""
 
 
 # --------------------------------------------------------------------------------------------- config
@@ -460,6 +467,15 @@ class MuxCore:
         self.dirty |= changed
         return changed
 
+    def next_stale(self) -> float:
+        """When the next controller that owns joints goes stale (``release_stale`` then changes something), or inf:
+        the runner waits until then, not a polling period."""
+        due = math.inf
+        for i, c in enumerate(self.controllers):
+            if c.timeout is not None and self.last_change[i] > -math.inf and (self.owner == i).any():
+                due = min(due, float(self.last_change[i]) + c.timeout + 1e-3)
+        return due
+
     def state(self, now: float, seq: int = 0) -> MDS_MUX_STATE:
         st = MDS_MUX_STATE()
         for a in range(MDS_JOINT_COUNT):
@@ -532,8 +548,9 @@ class MuxRunner:
                  on_state: Callable[[MDS_MUX_STATE], None] | None = None,
                  output: str = mds.MDS_CHAN_REF_MUX_NAME,
                  sources: Sequence[str] = (mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_CHAN_STATE_NAME),
-                 log_every: float = EVERY_S) -> None:
+                 log_every: float = EVERY_S, rt_priority: int = 0) -> None:
         self.controllers = list(controllers)
+        self.rt_priority = rt_priority  # SCHED_FIFO of the readers and the loop (pipeline.HANDOFF_RT_PRIORITY)
         self.state_period = 1.0 / state_rate
         self.log = log or (lambda level, msg: print(f"[mux] {level}: {msg}", flush=True))
         # A refused frame can repeat at the writer's rate: one line per change of reason, repeats counted
@@ -566,6 +583,7 @@ class MuxRunner:
             cancel_wait(self._hold_ch)
 
     def run(self) -> None:
+        handoff_thread(self.rt_priority, "mux", self.log)
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
         if found is None:
             return
@@ -621,17 +639,19 @@ class MuxRunner:
         ch = self._inputs[index]
         # A client that died inside a put leaves its input ACH_CORRUPT: keep this thread alive, say so, and pick
         # the channel up again once `mds-ach repair` fixed it.
+        handoff_thread(self.rt_priority, f"mux-in {self.controllers[index].name}")
         guard = ChannelGuard(self.log, self._stop)
         while not self._stop.is_set():
-            frame = guard.call(ch.name, ch.wait, timeout=0.5)
+            frame = guard.call(ch.name, ch.wait, timeout=READER_TIMEOUT)
             if frame is not None:
                 self._queue.put((index, frame, time.monotonic()))
 
     def _hold_reader(self) -> None:
         """Every ``mds-hold`` request in order (StructChannel.wait_next): each one counts, none is skipped."""
+        handoff_thread(self.rt_priority, "mux-hold")
         guard = ChannelGuard(self.log, self._stop)
         while not self._stop.is_set():
-            frame = guard.call(self._hold_ch.name, self._hold_ch.wait_next, timeout=0.5)
+            frame = guard.call(self._hold_ch.name, self._hold_ch.wait_next, timeout=READER_TIMEOUT)
             if frame is not None:
                 self._queue.put((HOLD_INPUT, frame, time.monotonic()))
 
@@ -643,15 +663,19 @@ class MuxRunner:
         return self._current_ref
 
     def _loop(self, core: MuxCore, out: Any, state_ch: Any, watch: ReseedWatch) -> None:
+        """Apply the queued frames in arrival order. ``mds-mux-state`` goes out at once after a hold or a verdict
+        change, within ``state_period`` after any other frame, at the moment a controller goes stale
+        (``MuxCore.next_stale``) and otherwise every ``IDLE_STATE_PERIOD``: at rest the mux sleeps."""
         seq = 0
         next_state = time.monotonic()
+        last_state = -math.inf
         while not self._stop.is_set():
             lost = core.heartbeats(time.monotonic())  # (checked on every pass: other inputs may keep the queue busy)
             for text in lost:
                 self.log("warning", text)
             if lost:
                 next_state = time.monotonic()  # the filter hears of the hold now
-            timeout = max(0.0, min(next_state, core.next_heartbeat()) - time.monotonic())
+            timeout = max(0.0, min(next_state, core.next_stale(), core.next_heartbeat()) - time.monotonic())
             try:
                 index, frame, t = self._queue.get(timeout=timeout)
             except queue.Empty:
@@ -674,11 +698,14 @@ class MuxRunner:
                         self.refusals(f"{name} clamped", core.clamp_message, kind=core.clamped_kind(index))
                 if changed:
                     self._publish(core, out)
+                next_state = min(next_state, last_state + self.state_period)  # its verdict within a state period
                 if core.dirty:  # a hold or a verdict: the filter and the requester hear it now
                     next_state = time.monotonic()
                 elif not self._queue.empty():
                     continue
             now = time.monotonic()
+            if core.release_stale(now):  # a controller went stale: its joints are free now, and said so
+                next_state = now
             if now >= next_state:
                 self.refusals.tick()
                 if self._unsent:  # mds-ref-mux was unwritable: try the newest merge again, once a state period
@@ -689,7 +716,8 @@ class MuxRunner:
                 self._guard.put(state_ch, st)  # a damaged mds-mux-state: the next period tries again
                 if self.on_state is not None:
                     self.on_state(st)
-                next_state = now + self.state_period
+                last_state = now
+                next_state = now + IDLE_STATE_PERIOD
 
     def _log_refusal(self, text: str) -> None:
         """A refused hold request: counted, logged through the refusal log (the first, then a count per window)."""
@@ -734,8 +762,9 @@ NODE_NAME = "mux"  # the ROS node name (`ros2 param`, the sections of a params f
 PARAMETERS = (
     Param("config", "", "mux YAML (controllers, priorities, timeouts); empty: the package's config/mux.yaml "
                         "(option --config)"),
-    Param("state_rate", DEFAULT_STATE_RATE, "publish rate of mds-mux-state and mds/mux_state in Hz; overrides "
-                                            "the config's state_rate", range=(0.1, 1000.0),
+    Param("state_rate", DEFAULT_STATE_RATE, "rate of mds-mux-state and mds/mux_state in Hz while frames arrive (at "
+                                            "rest every 0.5 s, at once on a hold, a verdict change or a release); "
+                                            "overrides the config's state_rate", range=(0.1, 1000.0),
           default_doc="config `state_rate` (`10.0`)"),
 )
 
@@ -750,11 +779,13 @@ class MuxNode(Node):
         self.state_rate: float = declare(self, find(PARAMETERS, "state_rate"), cfg["state_rate"])
         self.pub = self.create_publisher(MuxState, MUX_STATE_TOPIC, 10)
         self._joints = [joint_label(a) for a in KNOWN_ADDRESSES]
-        self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state)
+        self.runner = MuxRunner(cfg["controllers"], self.state_rate, log=ros_log(self), on_state=self._on_state,
+                                rt_priority=HANDOFF_RT_PRIORITY)
         self.thread = start_worker(self, self.runner.run, "mux")
 
     def _on_state(self, st: MDS_MUX_STATE) -> None:
-        if self.context.ok():  # not after SIGINT/SIGTERM shut the context down
+        listening = self.pub.get_subscription_count() > 0
+        if listening and self.context.ok():  # nobody listening: nothing to build; not after SIGINT/SIGTERM
             doc = state_to_dict(st)
             self.pub.publish(mux_state_msg(doc, self._joints, self.get_clock().now().to_msg()))
 

@@ -5,8 +5,8 @@
 * joint selections from config (``'all'``, group names, fnmatch patterns such as ``'L*'``, addresses);
 * the *current reference* at start-up, so a node started late (or restarted) continues from what the daemon
   is already commanding instead of jumping;
-* ``ChannelGuard`` (defined in ``mds_ach.robot.channels``), ``ReseedWatch``, ``Periodic``: a broken channel, a
-  re-seed request, an absolute schedule.
+* ``ChannelGuard`` (defined in ``mds_ach.robot.channels``), ``ReseedWatch``, ``Wakeup``, ``Periodic``: a broken
+  channel, a re-seed request, a loop woken by any of its inputs, an absolute schedule.
 
 No rclpy here: the helpers are used by tests and tools that never start ROS (the ROS side of the nodes is
 ``mds_ach.nodes.rosnode``).
@@ -17,13 +17,14 @@ from __future__ import annotations
 import fnmatch
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 import mds_ach as mds
 from mds_ach import ach
+from mds_ach.ach.glibc import tune_thread
 from mds_ach.robot import contracts
 from mds_ach.robot.channels import ChannelGuard, StructChannel
 from mds_ach.robot.joints import BY_ADDRESS, BY_SHORT, JOINTS, LEFT_ARM, MODEL_JOINTS, NECK, RIGHT_ARM, TORSO, lookup
@@ -220,6 +221,79 @@ def cancel_wait(channel: Any) -> None:
     except ach.AchException as exc:
         if exc.status != ach.ACH_CLOSED:
             raise
+
+
+HANDOFF_RT_PRIORITY = 40
+"""SCHED_FIFO priority the nodes ask for their hand-off threads (the mux's readers and loop, the filter's loop, the
+gate's loop and its ``Wakeup`` readers): below the daemon loop's 50, above every normal process. Each sleeps until a
+frame arrives and does bounded work per frame. Why: at normal priority a command crossed the three nodes in 1-2 ms
+median but up to 30-50 ms p99 on a loaded 2-core machine (each hop waits for a CPU behind busy processes); at this
+priority 2-3 ms p99 beside the same load (#26 item 5, docs/reliability.md E)."""
+
+
+def handoff_thread(rt_priority: int, name: str, log: Callable[[str, str], None] | None = None) -> bool:
+    """Put the calling hand-off thread at SCHED_FIFO ``rt_priority`` (0: normal scheduling) and name it. Refused
+    (no privilege): it runs at normal priority and, given ``log``, says so once. True if real-time."""
+    problems = [p for p in tune_thread(rt_priority, name=name) if "SCHED_FIFO" in p]
+    if problems and log is not None:
+        log("warn", f"{problems[0]}: a command may wait for a CPU on a busy machine (docs/reliability.md E)")
+    return rt_priority > 0 and not problems
+
+
+class Wakeup:
+    """Wakes one loop on a new frame on any of several channels, so a node with two inputs sleeps until either
+    moves instead of polling one of them. A thread per channel blocks on a handle of its own and sets an event; the
+    loop waits on the event (``wait``) and then reads its channels itself (``latest``): a frame that arrives while
+    the loop works leaves the event set, so no wake-up is lost. ``news`` (per channel name, optional) tells a
+    reader which frames are worth a wake-up (called on that reader's thread): e.g. not the same pose again."""
+
+    READER_TIMEOUT = 5.0
+    """s: how long a reader sleeps between looks at ``stop`` when nothing arrives (``close`` cancels the wait)."""
+
+    def __init__(self, names: Sequence[str], ctypes: Sequence[type], log: Callable[[str, str], None],
+                 rt_priority: int = 0, news: Mapping[str, Callable[[Any], bool]] | None = None) -> None:
+        self._rt_priority = rt_priority
+        self._news = dict(news or {})
+        self._event = threading.Event()
+        self._stop = threading.Event()
+        self._guard = ChannelGuard(log, self._stop)
+        self._channels: list[StructChannel[Any]] = [StructChannel(n, t) for n, t in zip(names, ctypes, strict=True)]
+        self._threads = [threading.Thread(target=self._watch, args=(ch,), name=f"wake {ch.name}", daemon=True)
+                         for ch in self._channels]
+        for t in self._threads:
+            t.start()
+
+    def _watch(self, ch: StructChannel[Any]) -> None:
+        handoff_thread(self._rt_priority, f"wake {ch.name}")
+        news = self._news.get(ch.name, lambda frame: True)
+        while not self._stop.is_set():
+            if (frame := self._guard.call(ch.name, ch.wait, timeout=self.READER_TIMEOUT)) is not None:
+                if news(frame):
+                    self._event.set()
+            elif self._guard.failing(ch.name):  # a broken channel answers at once: look again later
+                self._stop.wait(0.5)
+
+    def wait(self, timeout: float) -> bool:
+        """Sleep until a frame arrived on one of the channels since the previous call, at most ``timeout`` s."""
+        woken = self._event.wait(max(0.0, timeout))
+        self._event.clear()
+        return woken
+
+    def cancel(self) -> None:
+        """Wake the loop and end the readers (from any thread, e.g. a node's ``stop()``); the loop then finds its
+        own stop flag."""
+        self._stop.set()
+        self._event.set()
+        for ch in self._channels:
+            cancel_wait(ch)
+
+    def close(self) -> None:
+        """``cancel`` and release the channels (by the loop that owns this, when it ends)."""
+        self.cancel()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        for ch in self._channels:
+            ch.close()
 
 
 # --------------------------------------------------------------------------------------------- timing

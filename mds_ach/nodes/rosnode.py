@@ -19,6 +19,7 @@ import it at all (test_bridge).
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -196,9 +197,11 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
     parameter out of range or of the wrong type) is printed as one line with exit status 2; a real-time loop
     that died (``start_worker``) gives exit status 1.
 
-    Signals: our own SIGINT/SIGTERM handlers set a flag that a ``spin_once`` loop checks every 0.1 s. rclpy's
-    handlers are not used: a signal that arrives while the node is still being built could be lost there and
-    leave the executor spinning forever.
+    Signals: our own SIGINT/SIGTERM handlers set a flag that the ``spin_once`` loop checks. rclpy's handlers are
+    not used: a signal that arrives while the node is still being built could be lost there and leave the
+    executor spinning forever. The executor waits for work (``SPIN_TIMEOUT``), not a polling period: a signal
+    wakes it at once through ``signal.set_wakeup_fd`` and a guard condition (``_SignalWake``), so an idle node
+    costs nothing between its callbacks.
     """
     argv = list(sys.argv if argv is None else argv)
     args = parser.parse_args(strip_ros_args(argv)[1:])
@@ -215,6 +218,7 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    wake = _SignalWake(stop)
     logformat.use_ros_console_format()  # every line of the node's log with its time (rcutils reads it at init)
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node: StoppableNode | None = None
@@ -224,8 +228,9 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
             node = make_node(args)
             executor = SingleThreadedExecutor()
             executor.add_node(node)  # type: ignore[arg-type]  # an rclpy Node (the Protocol names what we call)
+            wake.attach(node)
             while not stop.is_set() and rclpy.ok():
-                executor.spin_once(timeout_sec=0.1)
+                executor.spin_once(timeout_sec=SPIN_TIMEOUT)
     except ExternalShutdownException:
         pass
     except (ValueError, OSError, ParameterException) as exc:
@@ -238,6 +243,55 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
                 status = 1
             node.destroy_node()
         rclpy.try_shutdown()
+        wake.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return status
+
+
+SPIN_TIMEOUT = 2.0
+"""s: the longest the executor waits without work; a signal or a shutdown wakes it earlier (``_SignalWake``)."""
+
+
+class _SignalWake:
+    """Wakes the executor when SIGINT/SIGTERM arrives: the interpreter runs a Python signal handler only when the
+    main thread gets back from C, and the executor's wait is C. The C-level handler writes the signal number to a
+    pipe (``signal.set_wakeup_fd``); a thread blocked on it sets ``stop`` and triggers a guard condition in the
+    executor's wait set."""
+
+    def __init__(self, stop: threading.Event) -> None:
+        self._stop = stop
+        self._guard: Any = None
+        self._read, self._write = os.pipe()
+        os.set_blocking(self._write, False)
+        self._previous = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
+        self._thread = threading.Thread(target=self._watch, name="signal-wake", daemon=True)
+        self._thread.start()
+
+    def attach(self, node: Any) -> None:
+        self._guard = node.create_guard_condition(lambda: None)
+        if self._stop.is_set():
+            self._guard.trigger()
+
+    def _watch(self) -> None:
+        while True:
+            try:
+                data = os.read(self._read, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            if {signal.SIGINT, signal.SIGTERM} & set(data):
+                self._stop.set()
+                guard = self._guard
+                if guard is not None:
+                    try:
+                        guard.trigger()
+                    except Exception:  # noqa: BLE001 - destroyed at shutdown: the loop sees stop anyway
+                        pass
+
+    def close(self) -> None:
+        signal.set_wakeup_fd(self._previous)
+        os.close(self._write)  # the watcher reads EOF and ends
+        self._thread.join(timeout=1.0)
+        os.close(self._read)

@@ -33,7 +33,7 @@ __all__ = ["HEARTBEATS", "START_TIMEOUT", "Pipeline", "arm_pos", "arm_refs", "ch
            "isolated_run", "mds_ach", "newest", "running_system", "state", "system_env", "wait_heartbeat"]
 
 START_TIMEOUT = 150.0  # s: cold start imports fcl and rclpy on a shared 2-core machine (5 engineers' tests)
-HEARTBEATS = {  # node -> a channel it writes periodically (mds-collide: reports at 10 Hz even without input)
+HEARTBEATS = {  # node -> a channel it writes periodically (mds-collide: at least every 0.5 s, even without input)
     "daemon": mds.MDS_CHAN_STATE_NAME,
     "mux": mds.MDS_CHAN_MUX_STATE_NAME,
     "filter": mds.MDS_CHAN_REF_SMOOTH_NAME,

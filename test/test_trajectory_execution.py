@@ -1,0 +1,181 @@
+"""Issue #26 items 2 and 3: a time-parameterized trajectory is executed on time at the daemon's rate (the MCB's MOVETO
+accounted for: the daemon sends the trajectory's stopping point, ``mds_ach.robot.feedforward``), a replacing goal
+starts from the commanded state, and a cancel brakes from the commanded velocity.
+
+Measured on the *measured* joint positions of the simulated robot (``mds-ach start nocan``, /joint_states), with
+MoveIt-style goals (points every 0.1 s with positions, velocities and accelerations, the first at the start state)
+at the published limits (``mds-limits``: what each joint can follow).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import pytest
+from support.system import running_system
+from support.tracking import (
+    Profile,
+    TrackingProbe,
+    cruise,
+    minimum_jerk,
+    minjerk_amplitude,
+    move_with_room,
+    published,
+    state_period,
+    stop_report,
+    trapezoid,
+)
+
+from mds_ach.kinematics.limits import current_limits
+from mds_ach.robot.feedforward import Braking, CycleClock, stopping_point
+
+ARM = ("LSP", "LEP")
+CONTROLLER = "left_arm_controller"
+MAX_ERROR = 0.05  # rad while the goal runs (issue #26)
+FINAL_ERROR = 0.01  # rad when the result comes
+
+
+# --------------------------------------------------------------------------------------------- the pure parts
+
+
+def test_the_stopping_point_is_where_braking_at_the_moveto_acceleration_ends() -> None:
+    assert stopping_point(0.3, 0.0, 1.4) == 0.3
+    assert stopping_point(0.0, 1.0, 2.0) == pytest.approx(0.25)
+    assert stopping_point(0.0, -1.0, 2.0) == pytest.approx(-0.25)
+    brake = Braking(0.0, 1.0, 10.0, 2.0)
+    assert brake.at(10.0) == (0.0, 1.0)
+    assert brake.at(10.25) == pytest.approx((0.25 - 0.5 * 2.0 * 0.0625, 0.5))
+    assert brake.at(11.0) == (pytest.approx(0.25), 0.0)
+    assert brake.moving(10.4) and not brake.moving(10.5) and not Braking(0.3, 0.0, 10.0, 2.0).moving(10.0)
+
+
+def test_the_cycle_clock_takes_the_median_frame_interval_and_ignores_stalls() -> None:
+    clock = CycleClock()
+    assert clock.period == CycleClock.MAX_PERIOD  # the daemon's default until frames tell
+    for k in range(10):
+        clock.update(100.0 + 0.05 * k + (0.004 if k % 3 == 0 else 0.0))
+    clock.update(101.5)  # a stall of a second: not a period
+    assert clock.period == pytest.approx(0.05, abs=0.005)
+    assert clock.lookahead() == pytest.approx(2 * clock.period - CycleClock.SEND_TO_STATE)
+
+
+def test_the_published_limits_keep_the_stopping_points_within_the_daemons_bounds() -> None:
+    """The targets of a trajectory at the published velocity v and acceleration a move at v (1 + a / A): within the
+    daemon's limiter (0.9 x 2 rad/s), and the limits stay useful (issue #26: >= 0.75 rad/s, >= 1.0 rad/s^2)."""
+    from mds_ach.robot import config, motion
+
+    table = config.load()
+    moveto = math.radians(table.accel_deg_s2)
+    for name in ARM:
+        v, a = current_limits().motion(name)
+        assert v >= 0.75 and a >= 1.0, name
+        assert a < moveto
+        assert v * (1 + a / moveto) <= motion.LIMIT_MARGIN * table.max_velocity + 1e-9
+
+
+# --------------------------------------------------------------------------------------------- the running system
+
+
+@pytest.fixture(scope="module")
+def probe(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TrackingProbe]:
+    with running_system(tmp_path_factory.mktemp("tracking")):
+        p = TrackingProbe()
+        try:
+            yield p
+        finally:
+            p.close()
+
+
+def _check(what: str, profile: Profile, probe: TrackingProbe) -> str:
+    from action_msgs.msg import GoalStatus
+
+    t = probe.run(CONTROLLER, profile)
+    line = f"{what} ({profile.duration:.2f} s, moves {[round(d, 3) for d in profile.delta]}): {t.describe()}"
+    assert t.status == GoalStatus.STATUS_SUCCEEDED, f"{line}: {t.error_string}"
+    assert t.max_error <= MAX_ERROR, line
+    assert t.final_error <= FINAL_ERROR, line
+    assert t.result_after <= t.allowance, line
+    return line
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_moveit_goals_at_the_published_limits_are_tracked_on_time(probe: TrackingProbe) -> None:
+    """Min-jerk goals of 1, 2 and 4 s and a trapezoid at the published velocity and acceleration, on the left arm:
+    max |desired - measured| <= 0.05 rad while running, final error <= 0.01 rad, the result within MoveIt's
+    allowance 1.2 T + 0.5 s. Before #26 (sampled at 10 Hz, smoothed again, the MOVETO's lag): 0.07-0.35 rad."""
+    v, a = published(ARM)
+    lines = []
+    start, delta = move_with_room(probe, ARM, 3.0)  # to the far end first: room for the long moves
+    lines.append(_check("trapezoid", trapezoid(ARM, start, delta, v, a), probe))
+    for duration in (4.0, 2.0, 1.0):
+        start, delta = move_with_room(probe, ARM, minjerk_amplitude(duration, v, a) * 0.98)
+        lines.append(_check("minimum jerk", minimum_jerk(ARM, start, delta, duration), probe))
+    print("\n".join(lines))
+
+
+# --------------------------------------------------------------------------------------------- replace and cancel
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("speed", [0.38, 0.9])
+def test_cancel_brakes_from_the_commanded_velocity(probe: TrackingProbe, speed: float) -> None:
+    """Cancelling a goal cruising at ``speed``: the arm travels at most v^2/2a + v period + 0.02 rad after the request
+    (a: the published acceleration) and never comes back. Before #26 (cancel held the reference, which ran ahead of
+    the arm): 0.17-0.26 rad more at 0.38 rad/s, stopping 0.54 s after the request."""
+    from action_msgs.msg import GoalStatus
+
+    _, a = published(ARM)
+    c = cruise(probe, CONTROLLER, "LSP", speed, 1.6)
+    period = state_period(probe)
+    t_request = probe.now()
+    cancel = c.handle.cancel_goal_async()
+    probe.spin_until(cancel.done, 10.0, "the cancel response")
+    res = probe.result(c.handle, 10.0)
+    assert res.status == GoalStatus.STATUS_CANCELED, res.result.error_string
+    probe.spin_for(2.0)  # stopped for good
+    v, travel, back = stop_report(probe, c, "LSP", t_request)
+    bound = v * v / (2 * a) + v * period + 0.02
+    report = f"cancel at {v:.3f} rad/s: travel {travel:.4f} rad after the request (bound {bound:.4f}), came back " \
+             f"{back:.4f} rad"
+    print(report)
+    assert travel <= bound, report
+    assert back <= 0.01, report
+    assert c.sign * (c.profile.end[0] - probe.position("LSP")) > 0.1, f"the cancel came too late to show: {report}"
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("direction", ["on", "back"])
+def test_a_replacing_goal_starts_from_the_commanded_state(probe: TrackingProbe, direction: str) -> None:
+    """A goal replaced mid-way by one starting at the measured state, at rest (what MoveIt sends): going on the same
+    way, the arm never reverses more than 0.01 rad; going back, it goes at most v^2/2a + v period + 0.01 rad past
+    the replacement point (a: the published acceleration, v: the velocity there). Both goals end as they should.
+    Before #26: the reference stepped back to the measured pose, the arm ran on 0.10-0.2 rad and reversed."""
+    from action_msgs.msg import GoalStatus
+
+    _, a = published(ARM)
+    c = cruise(probe, CONTROLLER, "LSP", 0.8, 1.6)
+    period = state_period(probe)
+    t_replace = probe.now()
+    step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3  # back: within what it travelled
+    second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
+    # stamp 0: starts on receipt, as MoveIt sends it
+    replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=FINAL_ERROR)
+    res = probe.result(c.handle, 10.0)
+    assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
+    res = probe.result(replaced, 20.0)
+    assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+    v, past, back = stop_report(probe, c, "LSP", t_replace)
+    if direction == "on":
+        report = f"replaced at {v:.3f} rad/s, going on: came back {back:.4f} rad"
+        print(report)
+        assert back <= 0.01, report
+    else:
+        bound = v * v / (2 * a) + v * period + 0.01
+        report = f"replaced at {v:.3f} rad/s, going back: {past:.4f} rad past the replacement point (bound {bound:.4f})"
+        print(report)
+        assert past <= bound, report
+    assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR
