@@ -51,8 +51,7 @@ enum { ACH_O_WAIT = 1, ACH_O_LAST = 2, ACH_O_COPY = 4 };
 #define ACHCORE_LOCK_TIMED_OUT (-1)
 
 /* how a wait for a new frame ended: no wait needed, woken by a futex wake (or the word changed before the sleep),
- * or with a frame that came without a wake-up (the sleep timed out and the frame was there, or a wake-up brought
- * more than one new frame: a broadcast-only writer put one in between). */
+ * or with a frame that came without a wake-up (the sleep timed out and the frame was there; see achcore_wait). */
 enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_UNWOKEN = 2 };
 
 #define ACHCORE_MAGIC 0xB07511F3u
