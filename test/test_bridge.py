@@ -240,7 +240,7 @@ def test_bad_parameters_are_refused_with_a_message(clean_shm: None, param: str, 
 
 # --------------------------------------------------------------------------------------------- the node
 
-RATE = 50.0  # daemon loop rate for these tests
+RATE = 50.0  # daemon loop rate for these tests: over the default robot's CAN budget (22 Hz), hence --over-budget
 NODE_PARAMS = [
     "-p", "ref_channel:=mds-ref-gated", "-p", "allow_ungated:=true",  # no mux/filter/gate here: straight to the daemon
     "-p", "command_mode:=1",  # pass-through, so a command shows in pos within a second, not after the filter
@@ -262,7 +262,7 @@ class Harness(Spinner):
         self.log = tmp / "bridge.log"
         self.daemon_log = tmp / "daemon.log"
         self.daemon = subprocess.Popen(
-            [str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "-r", str(RATE)],
+            [str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "-r", str(RATE), "--over-budget"],
             stdout=self.daemon_log.open("w"), stderr=subprocess.STDOUT,
         )  # fmt: skip
         self.bridge = subprocess.Popen(
