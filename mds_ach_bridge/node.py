@@ -272,6 +272,7 @@ class BridgeNode(Node):
         # accepted callback that follows (rclpy hands both the same request object).
         self._checked: dict[int, tuple[Any, trajectory.Trajectory, follow.Tolerances]] = {}
         self._measured: tuple[dict[str, float], dict[str, float]] | None = None  # newest frame's positions, velocities
+        self._state: MDS_STATE | None = None  # the newest state frame (the lock): a first write's base without a mux
         self._started = time.monotonic()
         self._last_frame_mono: float | None = None
         self._stalled = False
@@ -408,6 +409,7 @@ class BridgeNode(Node):
                 measured = (dict(zip(self._names, positions, strict=True)),
                             dict(zip(self._names, velocities, strict=True)))
                 self._measured = measured
+                self._state = state
                 feedback = self._follow_goals(measured_s, *measured)
                 running = self._running_by_joint()
                 late, self._late_rejections = self._late_rejections, []
@@ -531,11 +533,13 @@ class BridgeNode(Node):
 
     def _write_commands(self) -> None:
         """Write the accepted position commands now, not at the next state frame: a command is an event (#26 item
-        5). Before the bridge's first frame (built from the first state frame) the state thread writes them."""
+        5), the first one too (the bridge's first frame is built here then, as the state thread would build it)."""
         with self._write_lock:
             with self._lock:
-                if not self._pending or self._frame is None:
+                if not self._pending or self._state is None:
                     return
+                if self._frame is None:
+                    self._frame = self._base_frame(self._state)
                 commands = self._apply_pending()
                 self._writes.append(_Write(time.monotonic(), (), commands))
             self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again
