@@ -4,8 +4,10 @@ Threads: a dedicated state thread blocks on the state channel (newest frame wins
 frame, writes the bridge's reference if there is something new (the newest accepted command, or the
 running trajectory sampled at this cycle) and publishes ``joint_states`` and ``mds/joint_references``.
 The executor thread only runs subscription callbacks, which validate a command completely and hand it
-over under a lock, the diagnostics timer and the mds/hold, mds/resume services. A frame is never published
-twice; when the daemon stalls the topics fall silent and /diagnostics reports it.
+over under a lock (a position command is written at once), the diagnostics timer and the mds/hold, mds/resume
+services; it and the DDS reception threads run SCHED_FIFO (``bridge.main``: ``rosnode.run_node``'s
+``rt_priority``). A frame is never published twice; when the daemon stalls the topics fall silent and /diagnostics
+reports it.
 
 Lifecycle (issue 17): before each write the state thread reads what the mux did since the last cycle
 (``muxwatch``). A frame of the bridge the mux refused (another controller owns a joint, a joint not permitted)
