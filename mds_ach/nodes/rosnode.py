@@ -273,6 +273,7 @@ def realtime_dds_reception(rt_priority: int) -> tuple[list[str], list[str]]:
     changed: list[str] = []
     problems: list[str] = []
     for entry in sorted(os.listdir("/proc/self/task")):
+        name = f"thread {entry}"
         try:
             with open(f"/proc/self/task/{entry}/comm") as f:
                 name = f.read().strip()
@@ -294,13 +295,14 @@ def _realtime_callbacks(node: StoppableNode, rt_priority: int) -> None:
     from mds_ach.ach.glibc import renice_other_threads, tune_thread
     from mds_ach.nodes.daemon_loop import OTHER_THREADS_NICE
 
-    problems = tune_thread(rt_priority)
-    changed, refused = realtime_dds_reception(rt_priority)
-    if not changed:
-        refused.append("no DDS reception thread found (not Fast DDS 2.13+?)")
-    if not problems and (reniced := renice_other_threads(OTHER_THREADS_NICE)) is not None:
-        refused.append(f"the other threads at their nice value ({reniced})")
-    for problem in problems + refused:
+    problems = [p for p in tune_thread(rt_priority) if "SCHED_FIFO" in p]
+    if not problems:  # refused for the executor: refused for the others too, said once
+        changed, problems = realtime_dds_reception(rt_priority)
+        if not changed:
+            problems.append("no DDS reception thread found (not Fast DDS 2.13+?)")
+        if (reniced := renice_other_threads(OTHER_THREADS_NICE)) is not None:
+            problems.append(f"the other threads at their nice value ({reniced})")
+    for problem in problems:
         node.get_logger().warning(f"real-time callbacks: {problem}: a command may wait for a CPU on a busy machine "
                                   "(docs/reliability.md E)")
 
