@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -32,6 +32,7 @@ import mds_ach as mds
 from mds_ach import ach
 from mds_ach.ach.glibc import tune_thread
 from mds_ach.nodes.pipeline import make_ref, ref_arrays
+from mds_ach.robot.channels import StructChannel
 
 try:
     from bench.common import Row, percentile
@@ -109,19 +110,22 @@ def _realtime() -> bool:
 
 
 class _Recorder(threading.Thread):
-    """Blocks on one channel and records the arrival time (CLOCK_MONOTONIC) of every new frame."""
+    """Blocks on one reference channel and records the arrival time (CLOCK_MONOTONIC) of every new frame and its
+    reference for ``JOINT``."""
 
     def __init__(self, name: str) -> None:
         super().__init__(name=f"rec-{name}", daemon=True)
         self.chan = ach.Channel(name, create=False)
         self.chan.flush()
         self.times: list[float] = []
+        self.values: list[float] = []
         self.stop = threading.Event()
         self.realtime = False
 
     def run(self) -> None:
         self.realtime = _realtime()
         buf = mds.MDS_REF()
+        address = mds.BY_SHORT[JOINT].address
         while not self.stop.is_set():
             try:
                 status, _ = self.chan.get(buf, wait=True, last=True, timeout=0.2)
@@ -129,6 +133,7 @@ class _Recorder(threading.Thread):
                 return
             if status in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
                 self.times.append(time.monotonic())
+                self.values.append(buf.joint[address].ref)
 
     def close(self) -> None:
         self.stop.set()
@@ -171,9 +176,10 @@ def _ros_sender() -> tuple[Callable[[np.ndarray], None], Callable[[], None]]:
 
 
 def handoff_latency(source: str, count: int = 150, rate: float = 50.0, step: float = 0.001) -> Latency:
-    """Stream ``count`` commands at ``rate`` on ``source`` (a channel name, or ``ROS``: the bridge's topic), a ramp
-    of ``step`` rad per command on ``JOINT`` from the current reference; per stage output, the latency in s of each
-    command (until that stage's first frame after it)."""
+    """Stream ``count`` commands at ``rate`` on ``source`` (a channel name, or ``ROS``: the bridge's topic, with the
+    bridge's channel ``mds-ref-ros`` as a first stage), a ramp of ``step`` rad per command on ``JOINT`` from the
+    current reference; per stage output, the latency in s of each command (until that stage's first frame after
+    it)."""
     address = mds.BY_SHORT[JOINT].address
     gated = ach.Channel(mds.MDS_CHAN_DAEMON_INPUT_NAME, create=False)
     frame = mds.MDS_REF()
@@ -181,12 +187,14 @@ def handoff_latency(source: str, count: int = 150, rate: float = 50.0, step: flo
     gated.close()
     assert status in (ach.ACH_OK, ach.ACH_MISSED_FRAME), "no reference on mds-ref-gated"
     ref, mode = ref_arrays(frame)
+    stages = STAGES
     if source == ROS:
         send, close = _ros_sender()
+        stages = (mds.MDS_CHAN_REF_ROS_NAME, *STAGES)  # the bridge's own hand-off first
     else:
         inp = ach.Channel(source, create=False)
         send, close = (lambda r: inp.put(bytes(make_ref(r, mode)))), inp.close
-    recorders = {name: _Recorder(name) for name in STAGES}
+    recorders = {name: _Recorder(name) for name in stages}
     for r in recorders.values():
         r.start()
     put_times: list[float] = []
@@ -225,6 +233,144 @@ def handoff_latency(source: str, count: int = 150, rate: float = 50.0, step: flo
                 lat.append(float(later[0] - t))
         result[name] = lat
     return Latency(result, realtime[0] and all(r.realtime for r in recorders.values()))
+
+
+GOAL_STEP = 0.02
+"""rad: each FollowJointTrajectory goal of ``goal_first_target`` moves ``JOINT`` this far (back and forth)."""
+GOAL_DURATION = 0.3
+"""s: the goal's duration (its last point's time_from_start)."""
+GOAL_WARMUP = 2
+"""Goals sent first and not counted: a new action client's first goals waited 180-370 ms once in a few runs on the
+loaded machine (DDS matching of the action's topics and the bridge's first goal, one-time costs of a connection),
+the steady state is what a MoveIt or teleoperation client sees goal after goal."""
+
+
+class GoalLatency(NamedTuple):
+    """Per goal, the latency in s from sending it to its first target on each stage (``mds-ref-ros``: the bridge's
+    write; ``mds-ref-gated``: the daemon's input); ``period``: the daemon's (median ``mds-state`` interval), which a
+    goal's first target may wait for (the bridge writes a trajectory once per daemon cycle, at its state frame)."""
+
+    stages: dict[str, list[float]]
+    period: float
+    realtime: bool
+
+
+def _newest(name: str) -> float:
+    """``JOINT``'s reference in the newest frame of reference channel ``name`` (NaN: none yet)."""
+    with StructChannel(name, mds.MDS_REF, create=False) as chan:
+        frame = chan.latest()
+    return math.nan if frame is None else float(frame.joint[mds.BY_SHORT[JOINT].address].ref)
+
+
+def daemon_period(frames: int = 11) -> float:
+    """s: the median interval of ``frames`` consecutive ``mds-state`` frames."""
+    chan = ach.Channel(mds.MDS_CHAN_STATE_NAME, create=False)
+    buf = mds.MDS_STATE()
+    times: list[float] = []
+    try:
+        chan.flush()
+        while len(times) < frames:
+            status, _ = chan.get(buf, wait=True, last=True, timeout=2.0)
+            if status not in (ach.ACH_OK, ach.ACH_MISSED_FRAME):
+                raise RuntimeError(f"no mds-state frame within 2 s ({ach.result_string(status)})")
+            times.append(time.monotonic())
+    finally:
+        chan.close()
+    return float(np.median(np.diff(times)))
+
+
+def goal_first_target(count: int = 20) -> GoalLatency:
+    """Send ``count`` FollowJointTrajectory goals (after ``GOAL_WARMUP`` not counted), one at a time at a random
+    point of the daemon's cycle, each moving ``JOINT`` by ``GOAL_STEP`` over ``GOAL_DURATION`` from the measured
+    pose (the other joints of its controller staying), as MoveIt sends them; per stage, the latency of each goal
+    until the stage's first frame with a new ``JOINT`` reference."""
+    import rclpy
+    from control_msgs.action import FollowJointTrajectory
+    from rclpy.action import ActionClient
+    from rclpy.executors import SingleThreadedExecutor
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    from mds_ach_bridge import follow
+
+    controller = next(c for c, names in follow.CONTROLLERS.items() if JOINT in names)
+    names = list(follow.CONTROLLERS[controller])
+    period = daemon_period()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("bench_events_goals", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    client = ActionClient(node, FollowJointTrajectory, f"/{controller}/{follow.ACTION}")
+    stages = (mds.MDS_CHAN_REF_ROS_NAME, mds.MDS_CHAN_DAEMON_INPUT_NAME)
+    recorders = {name: _Recorder(name) for name in stages}
+    sent: list[tuple[float, dict[str, float]]] = []  # (send time, JOINT's reference on each stage before it)
+    problems: list[str] = []
+    realtime = [False]
+    phase = np.random.default_rng(26)
+
+    def wait(future: Any, what: str) -> Any:
+        executor.spin_until_future_complete(future, timeout_sec=30.0)
+        if not future.done():
+            raise RuntimeError(f"no {what} within 30 s")
+        return future.result()
+
+    def goals() -> None:
+        realtime[0] = _realtime()
+        try:
+            deadline = time.monotonic() + 30.0
+            while not client.server_is_ready():
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"no {controller} action server within 30 s")
+                executor.spin_once(timeout_sec=0.05)
+            for k in range(-GOAL_WARMUP, count):
+                with StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE, create=False) as chan:
+                    state = chan.wait(timeout=2.0)
+                if state is None:
+                    raise RuntimeError("no mds-state frame within 2 s")
+                time.sleep(phase.uniform(0.0, period))  # sent at any point of the daemon's cycle (at rest: same pose)
+                start = [state.joint[mds.BY_SHORT[n].address].pos for n in names]
+                end = [q + (GOAL_STEP if k % 2 == 0 and n == JOINT else -GOAL_STEP if n == JOINT else 0.0)
+                       for n, q in zip(names, start, strict=True)]
+                goal = FollowJointTrajectory.Goal()
+                goal.trajectory.joint_names = names
+                for t, pos in ((0.0, start), (GOAL_DURATION, end)):
+                    point = JointTrajectoryPoint(positions=pos)
+                    point.time_from_start.sec, point.time_from_start.nanosec = int(t), int(round(t % 1 * 1e9))
+                    goal.trajectory.points.append(point)
+                if k >= 0:
+                    sent.append((time.monotonic(), {name: _newest(name) for name in stages}))
+                handle = wait(client.send_goal_async(goal), "goal response")
+                if not handle.accepted:
+                    raise RuntimeError(f"goal {k} rejected")
+                wait(handle.get_result_async(), "goal result")
+                time.sleep(0.2)  # at rest again: the next goal's first target is the first change
+        except RuntimeError as exc:
+            problems.append(str(exc))
+
+    try:
+        for r in recorders.values():
+            r.start()
+        time.sleep(0.3)  # the recorders are blocked on their channels
+        runner = threading.Thread(target=goals, name="goals")
+        runner.start()
+        runner.join()
+    finally:
+        for r in recorders.values():
+            r.close()
+        node.destroy_node()
+        context.try_shutdown()
+    if problems:
+        raise RuntimeError(problems[0])
+    result: dict[str, list[float]] = {}
+    for name, r in recorders.items():
+        times, values = np.array(r.times), np.array(r.values)
+        lat = []
+        for t, before in sent:
+            later = (times >= t) & (np.abs(values - before[name]) > 1e-9)
+            if later.any():
+                lat.append(float(times[later][0] - t))
+        result[name] = lat
+    return GoalLatency(result, period, realtime[0] and all(r.realtime for r in recorders.values()))
 
 
 @contextmanager
@@ -274,6 +420,19 @@ def run(quick: bool = False) -> list[Row]:
                                 baseline_name=f"anchor: {anchor} (computed)", baseline_value=_anchor(rate, q),
                                 target="p99 <= 5 ms" if q == 99 else "",
                                 passed=value <= 5.0 if q == 99 else None))
+        # a goal's first target waits for the bridge's next cycle (the daemon's state frame): up to one period
+        goals = goal_first_target(count=8 if quick else 40)
+        first = [v * 1e3 for v in goals.stages[mds.MDS_CHAN_DAEMON_INPUT_NAME]]
+        bound = goals.period * 1e3 + 5.0
+        harness = "" if goals.realtime else ", harness not real-time"
+        for q in (50, 99):
+            value = percentile(first, q)
+            rows.append(Row(GROUP, f"FollowJointTrajectory goal -> first target on mds-ref-gated p{q} "
+                                   f"(daemon period {goals.period * 1e3:.0f} ms{harness})", value, "ms",
+                            baseline_name="anchor: joint_trajectory_controller 100 Hz (computed)",
+                            baseline_value=_anchor(JTC_RATE, q),
+                            target=f"p99 <= period + 5 ms ({bound:.0f} ms)" if q == 99 else "",
+                            passed=value <= bound if q == 99 else None))
     return rows
 
 

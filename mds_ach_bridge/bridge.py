@@ -11,6 +11,7 @@ import sys
 from typing import TYPE_CHECKING
 
 import mds_ach as mds
+from mds_ach.nodes.pipeline import HANDOFF_RT_PRIORITY
 from mds_ach.nodes.rosnode import run_node
 from mds_ach.robot import joints
 from mds_ach_bridge import topics
@@ -96,7 +97,10 @@ def _make_node(args: argparse.Namespace) -> BridgeNode:
 
 def main(argv: list[str] | None = None) -> int:
     """``argv`` without the program name (``sys.argv[1:]`` when None)."""
-    return run_node([sys.argv[0], *(sys.argv[1:] if argv is None else argv)], build_parser(), _make_node)
+    # The executor thread and the DDS reception threads hand a command over like the pipeline's hand-off threads:
+    # at normal priority a busy machine stretched a ROS command's p99 to 30+ ms (docs/reliability.md E).
+    return run_node([sys.argv[0], *(sys.argv[1:] if argv is None else argv)], build_parser(), _make_node,
+                    rt_priority=HANDOFF_RT_PRIORITY)
 
 
 if __name__ == "__main__":

@@ -4,8 +4,10 @@ Threads: a dedicated state thread blocks on the state channel (newest frame wins
 frame, writes the bridge's reference if there is something new (the newest accepted command, or the
 running trajectory sampled at this cycle) and publishes ``joint_states`` and ``mds/joint_references``.
 The executor thread only runs subscription callbacks, which validate a command completely and hand it
-over under a lock, the diagnostics timer and the mds/hold, mds/resume services. A frame is never published
-twice; when the daemon stalls the topics fall silent and /diagnostics reports it.
+over under a lock (a position command is written at once), the diagnostics timer and the mds/hold, mds/resume
+services; it and the DDS reception threads run SCHED_FIFO (``bridge.main``: ``rosnode.run_node``'s
+``rt_priority``). A frame is never published twice; when the daemon stalls the topics fall silent and /diagnostics
+reports it.
 
 Lifecycle (issue 17): before each write the state thread reads what the mux did since the last cycle
 (``muxwatch``). A frame of the bridge the mux refused (another controller owns a joint, a joint not permitted)
@@ -272,6 +274,7 @@ class BridgeNode(Node):
         # accepted callback that follows (rclpy hands both the same request object).
         self._checked: dict[int, tuple[Any, trajectory.Trajectory, follow.Tolerances]] = {}
         self._measured: tuple[dict[str, float], dict[str, float]] | None = None  # newest frame's positions, velocities
+        self._state: MDS_STATE | None = None  # the newest state frame (the lock): a first write's base without a mux
         self._started = time.monotonic()
         self._last_frame_mono: float | None = None
         self._stalled = False
@@ -408,6 +411,7 @@ class BridgeNode(Node):
                 measured = (dict(zip(self._names, positions, strict=True)),
                             dict(zip(self._names, velocities, strict=True)))
                 self._measured = measured
+                self._state = state
                 feedback = self._follow_goals(measured_s, *measured)
                 running = self._running_by_joint()
                 late, self._late_rejections = self._late_rejections, []
@@ -531,11 +535,13 @@ class BridgeNode(Node):
 
     def _write_commands(self) -> None:
         """Write the accepted position commands now, not at the next state frame: a command is an event (#26 item
-        5). Before the bridge's first frame (built from the first state frame) the state thread writes them."""
+        5), the first one too (the bridge's first frame is built here then, as the state thread would build it)."""
         with self._write_lock:
             with self._lock:
-                if not self._pending or self._frame is None:
+                if not self._pending or self._state is None:
                     return
+                if self._frame is None:
+                    self._frame = self._base_frame(self._state)
                 commands = self._apply_pending()
                 self._writes.append(_Write(time.monotonic(), (), commands))
             self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again

@@ -25,6 +25,8 @@ from support.spin import Spinner
 import mds_ach as mds
 from mds_ach import ach, paths
 from mds_ach.kinematics import model as kinematics
+from mds_ach.nodes.pipeline import HANDOFF_RT_PRIORITY
+from mds_ach.nodes.rosnode import DDS_RECEPTION_THREAD
 from mds_ach.robot import config, joints, motion
 from mds_ach.robot.feedforward import limiter_lead, stopping_point
 from mds_ach.robot.msgs import MDS_IK, MDS_STATE
@@ -394,14 +396,21 @@ def test_joint_states_carry_every_state_frame_once(harness: Harness) -> None:
 @pytest.mark.ros
 @pytest.mark.slow
 def test_state_thread_gets_the_requested_realtime_priority(harness: Harness) -> None:
-    """rt_priority:=7 puts exactly one thread (the state thread) under SCHED_FIFO 7, or says why not."""
+    """rt_priority:=7 puts exactly one thread (the state thread) under SCHED_FIFO 7, or says why not; the hand-off
+    threads of a ROS command (the executor, the main thread, and the DDS reception threads) run at
+    ``HANDOFF_RT_PRIORITY`` whatever rt_priority says (``bridge.main``), and nothing else is real-time."""
     tasks = [int(t) for t in os.listdir(f"/proc/{harness.bridge.pid}/task")]
     fifo = []
+    handoff = []
     for tid in tasks:
         try:
             if os.sched_getscheduler(tid) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO:  # tune_thread sets both
-                fifo.append(os.sched_getparam(tid).sched_priority)
-        except ProcessLookupError:
+                priority = os.sched_getparam(tid).sched_priority
+                if priority == HANDOFF_RT_PRIORITY:
+                    handoff.append(Path(f"/proc/{harness.bridge.pid}/task/{tid}/comm").read_text().strip())
+                else:
+                    fifo.append(priority)
+        except (ProcessLookupError, FileNotFoundError):
             pass
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
@@ -411,8 +420,11 @@ def test_state_thread_gets_the_requested_realtime_priority(harness: Harness) -> 
         allowed = False
     if allowed:
         assert fifo == [7], f"SCHED_FIFO priorities of the bridge's threads: {fifo}"
+        main = Path(f"/proc/{harness.bridge.pid}/comm").read_text().strip()
+        dds = [t for t in handoff if t != main]
+        assert main in handoff and dds and all(DDS_RECEPTION_THREAD.fullmatch(t) for t in dds), handoff
     else:
-        assert fifo == [] and "SCHED_FIFO 7 refused" in harness.bridge_log()
+        assert fifo == [] and handoff == [] and "SCHED_FIFO 7 refused" in harness.bridge_log()
 
 
 def assert_description_limits(text: str, limits) -> None:

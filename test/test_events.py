@@ -2,8 +2,9 @@
 
 On the whole system (``mds-ach start nocan``): a 50 Hz stream on ``mds-ref-filter`` reaches ``mds-ref-gated`` (the
 daemon's input: the daemon's own period is not in it) within 5 ms p99 of each put, not at the filter's next tick,
-on a busy machine (CPU hogs beside it: the hand-off threads run SCHED_FIFO, ``pipeline.HANDOFF_RT_PRIORITY``); a
-ROS position command is written by the bridge when it arrives, not at the next ``mds-state`` frame; at
+on a busy machine (CPU hogs beside it: the hand-off threads run SCHED_FIFO, ``pipeline.HANDOFF_RT_PRIORITY``); so
+does a ROS position command (the bridge writes it when it arrives, its DDS reception and executor threads run
+SCHED_FIFO too); a FollowJointTrajectory goal's first target within one daemon period and 5 ms; at
 rest every node together uses at most 5 % of one core, counted in CPU time (utime + stime of every process and its
 children), so a busy machine does not inflate it. The measurements are ``bench/bench_events.py``'s, the rows of
 ``make bench``.
@@ -54,16 +55,40 @@ def test_stream_reaches_the_daemon_input_within_5ms_p99_beside_cpu_hogs(system: 
     assert np.percentile(gated, 99) <= 5.0, f"mds-ref-filter -> each stage (ms): {text}"
 
 
-def test_a_ros_position_command_is_written_at_once_not_at_the_next_state_frame(system: Path) -> None:
-    """A 50 Hz stream of ``/mds/joint_command`` messages: the bridge writes each command when it arrives, so the
-    median latency to ``mds-ref-gated`` is a few ms. Written at the next ``mds-state`` frame (the daemon's 10 Hz), it
-    was half a daemon period (25-50 ms). Only the median: the ROS side (DDS receive thread, executor) runs at normal
-    priority, so its tail on a busy machine is the scheduler's (docs/reliability.md E)."""
-    lat = bench_events.handoff_latency(bench_events.ROS, count=150)
+def test_a_ros_position_command_reaches_the_daemon_input_within_5ms_p99_beside_cpu_hogs(system: Path) -> None:
+    """A 50 Hz stream of ``/mds/joint_command`` messages beside two CPU hogs: the bridge writes each command when it
+    arrives (not at the next ``mds-state`` frame: that was half a daemon period, 25-50 ms), and its DDS reception
+    threads and executor run SCHED_FIFO (``rosnode.run_node``'s ``rt_priority``): at normal priority they waited
+    for a CPU, 33-65 ms p99 (24 ms of it in the DDS reception thread). The bridge's very first command is written
+    at once too (it waited for the first state cycle: 100 ms for the first commands of a stream)."""
+    if not may_use_sched_fifo():
+        pytest.skip("no SCHED_FIFO here: neither the bridge's hand-off nor the harness can run real-time "
+                    "(docs/reliability.md E)")
+    with CpuHogs(2, 60.0):
+        lat = bench_events.handoff_latency(bench_events.ROS, count=300)
+    assert lat.realtime, "the harness did not get SCHED_FIFO"
     gated = np.array(lat.stages[mds.MDS_CHAN_DAEMON_INPUT_NAME]) * 1e3
-    assert len(gated) >= 140, f"only {len(gated)} of 150 commands reached mds-ref-gated"
-    assert np.percentile(gated, 50) <= 10.0, (f"/mds/joint_command -> mds-ref-gated p50 {np.percentile(gated, 50):.1f}"
-                                              f" ms, p99 {np.percentile(gated, 99):.1f} ms")
+    assert len(gated) >= 290, f"only {len(gated)} of 300 commands reached mds-ref-gated"
+    text = ", ".join(f"{n} p50 {np.percentile(v, 50) * 1e3:.2f} p99 {np.percentile(v, 99) * 1e3:.2f}"
+                     for n, v in lat.stages.items())
+    assert np.percentile(gated, 99) <= 5.0, f"/mds/joint_command -> each stage (ms): {text}"
+
+
+def test_a_goals_first_target_reaches_the_daemon_input_within_its_period_and_5ms_p99(system: Path) -> None:
+    """FollowJointTrajectory goals one after another: the bridge samples a trajectory at each daemon cycle (its
+    state frame), so a goal's first target waits at most one period, and the hand-off adds at most 5 ms. The client's
+    first goals are not counted (``bench_events.GOAL_WARMUP``: one-time costs of a new connection). Before the
+    bridge's executor and DDS reception threads were real-time: 298 ms p99 beside the hogs."""
+    if not may_use_sched_fifo():
+        pytest.skip("no SCHED_FIFO here (docs/reliability.md E)")
+    with CpuHogs(2, 60.0):
+        goals = bench_events.goal_first_target(count=30)
+    first = np.array(goals.stages[mds.MDS_CHAN_DAEMON_INPUT_NAME]) * 1e3
+    assert len(first) == 30, f"only {len(first)} of 30 goals reached mds-ref-gated"
+    text = ", ".join(f"{n} p50 {np.percentile(v, 50) * 1e3:.1f} p99 {np.percentile(v, 99) * 1e3:.1f}"
+                     for n, v in goals.stages.items())
+    assert np.percentile(first, 99) <= goals.period * 1e3 + 5.0, (
+        f"goal -> first target (ms; daemon period {goals.period * 1e3:.0f} ms): {text}")
 
 
 def test_whole_system_at_rest_uses_at_most_5_percent_of_a_core(system: Path) -> None:

@@ -390,12 +390,19 @@ def test_only_the_daemon_loop_and_the_hand_off_threads_run_real_time(system: dic
     """`mds-ach start` asks nothing of the scheduler itself: the daemon puts its loop thread under SCHED_FIFO 50
     and the reference pipeline its hand-off threads under SCHED_FIFO 40 (``pipeline.HANDOFF_RT_PRIORITY``: the mux's
     readers and loop, the filter's loop, the gate's loop and readers), where the user may; every other thread of
-    every node stays at normal priority; `status` says which for the daemon."""
-    threads = {name: sorted(realtime_threads(pid)) for name, pid in _pids(system).items()}
+    every node stays at normal priority; `status` says which for the daemon. The bridge's executor thread (its
+    main thread, named as the process) and its DDS reception threads (``dds.shm.<port>``, ``dds.udp.<port>``: the
+    ports vary, so they are compared without them) hand a ROS command over at the same priority
+    (``rosnode.run_node``)."""
+    pids = _pids(system)
+    threads = {name: sorted({(re.sub(r"^(dds\.\w+)\.\d+$", r"\1.N", t), p) for t, p in realtime_threads(pid)})
+               for name, pid in pids.items()}
     status = mds_ach("status", env=system).stdout
     if may_use_sched_fifo():
+        bridge_main = Path(f"/proc/{pids['bridge']}/comm").read_text().strip()
         handoff = {"mux": ["mux", "mux-hold", "mux-in default", "mux-in direct", "mux-in ik", "mux-in ros"],
-                   "filter": ["filter"], "collision": ["gate", "wake mds-ref-sm", "wake mds-state"]}
+                   "filter": ["filter"], "collision": ["gate", "wake mds-ref-sm", "wake mds-state"],
+                   "bridge": sorted([bridge_main, "dds.shm.N", "dds.udp.N"])}
         assert threads == {**{n: [] for n in NODES}, "daemon": [("mds-daemon-loop", 50)],
                            **{n: [(t, HANDOFF_RT_PRIORITY) for t in names] for n, names in handoff.items()}}, threads
         assert re.search(r"^daemon .*, loop real-time \(SCHED_FIFO 50, memory locked\), bus", status, re.M), status

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import sys
 import threading
@@ -187,9 +188,11 @@ class StoppableNode(Protocol):
 
     def destroy_node(self) -> None: ...
 
+    def get_logger(self) -> Any: ...
+
 
 def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
-             make_node: Callable[[argparse.Namespace], StoppableNode]) -> int:
+             make_node: Callable[[argparse.Namespace], StoppableNode], rt_priority: int = 0) -> int:
     """Parse the command line (ROS args removed), start rclpy, build the node, spin until SIGINT/SIGTERM; exit 0.
 
     ``argv`` includes the program name (``sys.argv`` when None). ``make_node(args)`` returns the node. A
@@ -202,6 +205,10 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
     executor spinning forever. The executor waits for work (``SPIN_TIMEOUT``), not a polling period: a signal
     wakes it at once through ``signal.set_wakeup_fd`` and a guard condition (``_SignalWake``), so an idle node
     costs nothing between its callbacks.
+
+    ``rt_priority`` > 0: once the node is built, the executor thread (this one) and the DDS reception threads
+    (``realtime_dds_reception``) run SCHED_FIFO at it, for a node whose subscription callbacks are a hand-off
+    (the bridge's commands, #26 item 5); refused (no privilege): logged once, normal priority.
     """
     argv = list(sys.argv if argv is None else argv)
     args = parser.parse_args(strip_ros_args(argv)[1:])
@@ -229,6 +236,8 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
             executor = SingleThreadedExecutor()
             executor.add_node(node)  # type: ignore[arg-type]  # an rclpy Node (the Protocol names what we call)
             wake.attach(node)
+            if rt_priority > 0:
+                _realtime_callbacks(node, rt_priority)
             while not stop.is_set() and rclpy.ok():
                 executor.spin_once(timeout_sec=SPIN_TIMEOUT)
     except ExternalShutdownException:
@@ -247,6 +256,55 @@ def run_node(argv: Sequence[str] | None, parser: argparse.ArgumentParser,
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return status
+
+
+DDS_RECEPTION_THREAD = re.compile(r"dds\.(shm|udp|tcp)[a-z0-9]*\.\d+")
+"""Fast DDS's names (2.13+) of its transports' reception threads: ``dds.shm.<port>``, ``dds.udp.<port>`` (not the
+shared-memory watchdog ``dds.shm.wdog``, the event thread ``dds.ev.N`` or the asynchronous writers ``dds.asyn.N``)."""
+
+
+def realtime_dds_reception(rt_priority: int) -> tuple[list[str], list[str]]:
+    """Put this process's DDS reception threads at SCHED_FIFO ``rt_priority`` (with SCHED_RESET_ON_FORK): (the
+    threads changed, what failed). Why: a message waits in the reception thread before any callback runs; at normal
+    priority on a busy 2-core machine that was 24 ms p99 of a ROS command's way to the daemon (docs/reliability.md E).
+    Each thread does bounded work per datagram (deserialise, queue, notify the executor). Done in the process, not
+    in the Fast DDS profile's thread settings, so that only the node that asks for it (the bridge) gets it, and a
+    user's own profile file does not lose it."""
+    changed: list[str] = []
+    problems: list[str] = []
+    for entry in sorted(os.listdir("/proc/self/task")):
+        name = f"thread {entry}"
+        try:
+            with open(f"/proc/self/task/{entry}/comm") as f:
+                name = f.read().strip()
+            if DDS_RECEPTION_THREAD.fullmatch(name):
+                os.sched_setscheduler(int(entry), os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(rt_priority))
+                changed.append(name)
+        except FileNotFoundError:  # the thread ended meanwhile
+            continue
+        except OSError as exc:
+            problems.append(f"{name}: SCHED_FIFO {rt_priority} refused ({exc.strerror or exc})")
+    return changed, problems
+
+
+def _realtime_callbacks(node: StoppableNode, rt_priority: int) -> None:
+    """The executor thread (the caller) and the DDS reception threads at SCHED_FIFO ``rt_priority`` (``run_node``);
+    refused or no reception thread found: one warning, and the node runs at normal priority. The node's other
+    threads go to the daemon's nice value for its other threads: they share Python's interpreter lock with the
+    executor, and one preempted while it holds the lock stops the executor too (measured: 39 ms once in 300)."""
+    from mds_ach.ach.glibc import renice_other_threads, tune_thread
+    from mds_ach.nodes.daemon_loop import OTHER_THREADS_NICE
+
+    problems = [p for p in tune_thread(rt_priority) if "SCHED_FIFO" in p]
+    if not problems:  # refused for the executor: refused for the others too, said once
+        changed, problems = realtime_dds_reception(rt_priority)
+        if not changed:
+            problems.append("no DDS reception thread found (not Fast DDS 2.13+?)")
+        if (reniced := renice_other_threads(OTHER_THREADS_NICE)) is not None:
+            problems.append(f"the other threads at their nice value ({reniced})")
+    for problem in problems:
+        node.get_logger().warning(f"real-time callbacks: {problem}: a command may wait for a CPU on a busy machine "
+                                  "(docs/reliability.md E)")
 
 
 SPIN_TIMEOUT = 2.0
