@@ -124,7 +124,8 @@ class Stack:
     def start_daemon(self, pose: dict[str, float] | None = None) -> None:
         log = self.rt / f"can-{len(self.can_logs) + 1}.asc"
         self.can_logs.append(log)
-        args = ["--nocan", "--rate", f"{self.rate:g}", "--can-log", str(log), "--sim-faults", str(self.socket)]
+        args = ["--nocan", "--rate", f"{self.rate:g}", "--over-budget", "--can-log", str(log),
+                "--sim-faults", str(self.socket)]
         if self.rt_priority is not None:
             args += ["--rt-priority", str(self.rt_priority)]
         if pose:

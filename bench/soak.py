@@ -263,7 +263,7 @@ def soak(minutes: float, rate: float, writer_rate: float, nodes: list[str], warm
         bad = [r for r in make_channels() if not r.ok]
         if bad:
             raise RuntimeError("cannot create channels: " + "; ".join(f"{r.name}: {r.detail}" for r in bad))
-        launcher.start_node("daemon", ["--nocan", "--rate", f"{rate:g}"], rt)
+        launcher.start_node("daemon", ["--nocan", "--rate", f"{rate:g}", "--over-budget"], rt)
         launcher.launch(True, 180.0, ["daemon", *nodes], rt, out=lambda t: print(t, flush=True))
         for name, pid in launcher.running_nodes(rt).items():
             procs[name] = Proc(name, pid)

@@ -99,11 +99,12 @@ def test_the_simulated_bus_carries_the_budgets_frames() -> None:
     assert sent + len(received) == budget.frames
 
 
-@pytest.mark.parametrize("rate, expected, warned", [("max", 22.0, False), ("10", 10.0, False), ("100", 100.0, True)])
+@pytest.mark.parametrize("rate, expected, extra",
+                         [("max", 22.0, ()), ("10", 10.0, ()), ("100", 100.0, ("--over-budget",))])
 def test_the_daemon_says_its_budget_at_start_and_runs_at_max(clean_shm: None, rate: str, expected: float,
-                                                             warned: bool) -> None:
-    """`--rate max` runs the highest rate within 60 % of the bus; every start says the budget at its rate, and a rate
-    over it is said to be over it (it runs: the motion bounds hold at every rate, issue #25 item 5)."""
+                                                             extra: tuple[str, ...]) -> None:
+    """`--rate max` runs the highest rate within 60 % of the bus; every start says the budget at its rate; a rate over
+    it runs only with --over-budget, and says so (the motion bounds hold at every rate, issue #25 item 5)."""
     import subprocess
     import sys
 
@@ -113,9 +114,27 @@ def test_the_daemon_says_its_budget_at_start_and_runs_at_max(clean_shm: None, ra
     from mds_ach.robot.msgs import daemon_status as ds
 
     proc = subprocess.run([sys.executable, "-m", "mds_ach.nodes.daemon", "--nocan", "--no-ros", "--rt-priority", "0",
-                           "--duration", "1.0", "--rate", rate], capture_output=True, text=True, timeout=120)
+                           "--duration", "1.0", "--rate", rate, *extra], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert f"CAN budget at {expected:g} Hz" in proc.stderr, proc.stderr
-    assert ("more than 60 %" in proc.stderr) == warned, proc.stderr
+    assert ("more than 60 %" in proc.stderr) == bool(extra), proc.stderr
     status = newest(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS)
     assert status is not None and status.rate_hz == expected
+
+
+@pytest.mark.parametrize("extra", [(), ("--sim-ideal",)], ids=["bus", "ideal-wire"])
+def test_a_rate_the_bus_cannot_carry_is_refused_unless_asked_for(clean_shm: None, extra: tuple[str, ...]) -> None:
+    """Issue #26 item 5: a rate whose worst-case traffic exceeds 60 % of the bus is refused at start with the
+    highest rate that fits (exit 2, one line, nothing started); the simulated bus without wire time (--sim-ideal)
+    has no budget to exceed."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "mds_ach.nodes.daemon", "--nocan", "--no-ros", "--rt-priority", "0",
+                           "--duration", "1.0", "--rate", "50", *extra], capture_output=True, text=True, timeout=120)
+    if extra:
+        assert proc.returncode == 0, proc.stderr
+        return
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "more than 60 %: use --rate 22 or less (or --rate max)" in last and "--over-budget" in last, last

@@ -221,7 +221,7 @@ def test_the_daemon_obeys_the_bounds_at_every_rate_under_cpu_hogs(clean_shm: Non
     nodes = Pipeline(tmp_path)
     load = writer = None
     try:
-        nodes.start("daemon", "--nocan", "--rate", f"{rate:g}", "--can-log", str(can_log))
+        nodes.start("daemon", "--nocan", "--rate", f"{rate:g}", "--over-budget", "--can-log", str(can_log))
         load = hogs()
         writer = stepper()
         time.sleep(8.0)

@@ -210,6 +210,6 @@ def test_ik_tolerance_and_max_iterations_decide_a_borderline_request(clean_shm: 
 @pytest.mark.slow
 def test_daemon_rate_parameter_sets_the_loop_rate(clean_shm: None) -> None:
     with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS) as status, \
-            running("daemon", "--nocan", "--ros-args", "-p", "rate:=25"):  # an integer is fine for a double
+            running("daemon", "--nocan", "--ros-args", "-p", "rate:=20"):  # an integer is fine for a double
         st = wait_for(lambda: status.latest(), 60, what="the daemon status")
-        assert st.rate_hz == 25.0
+        assert st.rate_hz == 20.0

@@ -112,7 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("-r", "--rate", type=_rate_option, default=1.0 / mds.MDS_LOOP_PERIOD, metavar="HZ|max",
                       help=f"loop rate in Hz (10; {motion.MIN_RATE_HZ:g} to {MAX_RATE_HZ:g}), or 'max': the highest "
                            "rate whose worst-case CAN traffic fits 60 %% of the bus (mds_ach.bus.budget; printed at "
-                           "start)")
+                           "start); a rate over the budget is refused unless --over-budget")
+    loop.add_argument("--over-budget", action="store_true",
+                      help="run a rate whose worst-case CAN traffic exceeds the budget anyway (tests of the motion "
+                           "bounds under overload): replies come late and joints may go stale")
     loop.add_argument("--robot", help="robot variant (isaac, lucas, octavia, default); else $MDS_ACH_ROBOT or the "
                                       "choice saved by `mds-ach changerobot`")
     loop.add_argument("--config", metavar="FILE", help="joint table YAML (default: the calibration XML when there "
@@ -203,15 +206,19 @@ def max_loop_rate(table: config.JointTable, bitrate: int) -> float:
     return min(max(budget.CycleBudget.for_table(table, bitrate).max_rate(), motion.MIN_RATE_HZ), MAX_RATE_HZ)
 
 
-def say_budget(table: config.JointTable, bitrate: int, rate: float) -> None:
-    """The CAN budget at start. A rate over it still runs, with a warning: the motion bounds hold at every rate the
-    daemon accepts (a late reply or a refused send never moves a joint), but replies then come late and joints may
-    go stale."""
-    cycle = budget.CycleBudget.for_table(table, bitrate)
+def say_budget(table: config.JointTable, bitrate: int | None, rate: float, over_budget: bool = False) -> None:
+    """The CAN budget at start. A rate whose worst-case traffic the bus cannot carry is refused (ValueError with the
+    highest rate it can), unless ``over_budget`` (``--over-budget``: testing the bounds under overload; the motion
+    bounds still hold, a late reply or a refused send never moves a joint, but replies come late and joints go
+    stale). ``bitrate`` None is the simulated bus without wire time (``--sim-ideal``): nothing to refuse."""
+    cycle = budget.CycleBudget.for_table(table, bitrate or canio.DEFAULT_BITRATE)
     log.info(cycle.describe(rate))
-    problem = cycle.problem(rate)
+    problem = cycle.problem(rate) if bitrate is not None else None
+    if problem and not over_budget:
+        raise ValueError(f"{problem}; --over-budget runs it anyway (replies late, joints stale: for tests)")
     if problem:
-        log.warning("%s; running at %g Hz anyway: replies may come late and joints go stale", problem, rate)
+        log.warning("%s; running at %g Hz anyway (--over-budget): replies may come late and joints go stale",
+                    problem, rate)
 
 
 def _table(args: argparse.Namespace) -> config.JointTable:
@@ -229,7 +236,9 @@ def build(args: argparse.Namespace) -> Daemon:
     table = _table(args)
     log.info("joint table: %s", config.describe(table))
     resolve_rate(args)
-    say_budget(table, args.bitrate or canio.DEFAULT_BITRATE, args.rate)
+    ideal = bool(args.nocan and getattr(args, "sim_ideal", False))
+    say_budget(table, None if ideal else args.bitrate or canio.DEFAULT_BITRATE, args.rate,
+               bool(getattr(args, "over_budget", False)))
     if args.sim_faults and not args.nocan:
         raise ValueError("--sim-faults needs --nocan: faults are injected into the simulated bus only")
     network = None
