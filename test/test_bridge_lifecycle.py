@@ -111,7 +111,9 @@ class System(Spinner):
         from mds_ach.robot.channels import StructChannel
 
         self.log = tmp / "bridge.log"
-        self.daemon = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "-r", str(RATE)],
+        # --sim-ideal: 50 Hz is over the CAN budget of the bus with wire time (refused at start since 34977f3)
+        self.daemon = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--sim-ideal", "-r",
+                                        str(RATE)],
                                        stdout=(tmp / "daemon.log").open("w"), stderr=subprocess.STDOUT)
         self.mux_log: list[str] = []
         self.mux = MuxRunner(CONTROLLERS, state_rate=10.0, log=lambda level, msg: self.mux_log.append(msg))
