@@ -338,3 +338,63 @@ def test_frames_without_a_wake_up_switch_the_reader_to_polling(clean_shm: None,
         assert delay(c_like) < 0.03  # woken frames in between do not end the polling
         time.sleep(1.6)  # UNWOKEN_HOLD after the last unwoken frame
         assert delay(c_like) > 0.2  # long slices again
+
+
+class _CountingHandle:
+    """A C handle that counts its gets: each is one return from C to Python (the interpreter lock taken again)."""
+
+    def __init__(self, handle: object) -> None:
+        self.handle, self.gets = handle, 0
+
+    def get(self, *args: object) -> tuple[int, int]:
+        self.gets += 1
+        return self.handle.get(*args)  # type: ignore[attr-defined]
+
+    def __getattr__(self, name: str) -> object:  # woken, detach, ...
+        return getattr(self.handle, name)
+
+
+@needs_fast
+def test_an_idle_reader_looks_for_broadcast_only_frames_inside_c(clean_shm: None) -> None:
+    """An idle waiting reader costs next to nothing (#26 item 6): it returns to Python only every IDLE_RETURN, and
+    the look for a frame from golems' libach writer (which only broadcasts the condvar) is made inside C every
+    IDLE_SLICE, so that frame is still seen within IDLE_SLICE. Returning every IDLE_SLICE, ten nodes' waiting
+    threads were a tenth of the whole system's CPU at rest."""
+    ach.create(NAME_FAST, 8, 32)
+    with ach.Channel(NAME_FAST) as r, ach.Channel(NAME_FAST, fast=False) as c_like:
+        c_like._wake_all = lambda: c_like._cond_broadcast(c_like._cond)  # libach's put: broadcast, no futex wake
+        counting = _CountingHandle(r._fast)
+        r._fast = counting  # type: ignore[assignment]
+        got: list[tuple[tuple[int, int], float]] = []
+        t = threading.Thread(target=lambda: got.append((r.get(bytearray(32), wait=True, timeout=10),
+                                                        time.monotonic())))
+        t.start()
+        time.sleep(2.0)  # idle: nothing is put
+        idle_gets = counting.gets
+        t0 = time.monotonic()
+        c_like.put(b"frame")
+        t.join(timeout=10)
+        assert got and got[0][0] == (ach.ACH_OK, 5)
+        assert idle_gets <= 2.0 / ach.IDLE_RETURN + 1, f"{idle_gets} returns to Python in 2 s of an idle wait"
+        assert got[0][1] - t0 < ach.IDLE_SLICE + 0.1, f"broadcast-only frame seen {got[0][1] - t0:.3f} s late"
+
+
+@needs_fast
+def test_a_reader_that_finds_two_woken_frames_does_not_start_polling(clean_shm: None) -> None:
+    """A reader that waited for a CPU (a busy machine; here: for the interpreter lock, held by this thread) finds a
+    waking writer's next frame too. That is no sign of a broadcast-only writer: taken for one, each such reader polled
+    every UNWOKEN_POLL for UNWOKEN_HOLD s, 1-3 % of a core each, and the system at rest went over its 5 % (#26 item
+    6) about one CI run in three."""
+    ach.create(NAME_FAST, 8, 32)
+    with ach.Channel(NAME_FAST) as r, ach.Channel(NAME_FAST) as w:
+        got: list[tuple[int, int]] = []
+        t = threading.Thread(target=lambda: got.append(r.get(bytearray(32), wait=True, last=True, timeout=10)))
+        t.start()
+        wait_for(lambda: r._active, timeout=5, what="the reader in its wait")
+        time.sleep(0.05)
+        w.put(b"one")  # wakes the reader, which then waits for the interpreter lock this thread holds ...
+        w.put(b"two")
+        sum(range(3_000_000))  # ... a while longer (a C loop: the lock is not handed over meanwhile)
+        t.join(timeout=10)
+        assert got == [(ach.ACH_MISSED_FRAME, 3)]  # the newest frame, "one" skipped: both came in this one wait
+        assert r._unwoken_until == 0.0, "two woken frames were taken for a broadcast-only writer: polling for 10 s"

@@ -24,8 +24,9 @@ Why some things look the way they do:
   wake it directly (``FUTEX_WAKE`` after the unlock) and still broadcast the condvar for C readers; the
   project's libach for C clients (``libach/``, sharing ``achcore.h`` with the C fast path) does the same. Frames
   from golems' libach writers, which only broadcast, are noticed by a re-check: with the C fast path an idle
-  reader re-checks every ``IDLE_SLICE`` until it has seen such a frame, then every ``UNWOKEN_POLL`` (inside C)
-  for ``UNWOKEN_HOLD`` seconds after the last one; the pure-Python path re-checks every ``POLL_SLICE``.
+  reader re-checks every ``IDLE_SLICE`` inside C (returning to Python only every ``IDLE_RETURN``) until it has
+  seen such a frame, then every ``UNWOKEN_POLL`` for ``UNWOKEN_HOLD`` seconds after the last one; the pure-Python
+  path re-checks every ``POLL_SLICE``.
   ``Channel(..., condvar_wait=True)`` waits in the condvar exactly like libach instead (C writers wake it at
   once; the dead-waiter hazard is then libach's too).
 * Waits are cut into short timed slices so that Ctrl-C, ``cancel()`` and ``close()`` are honoured even though
@@ -69,6 +70,7 @@ from __future__ import annotations
 from mds_ach.ach.channel import (
     _LOCK_TIMED_OUT,
     FAST_AVAILABLE,
+    IDLE_RETURN,
     IDLE_SLICE,
     POLL_SLICE,
     UNWOKEN_HOLD,
@@ -150,8 +152,8 @@ __all__ = [
     "ACH_MISSED_FRAME", "ACH_OK", "ACH_OVERFLOW", "ACH_O_ABSTIME", "ACH_O_COPY", "ACH_O_FIRST", "ACH_O_LAST",
     "ACH_O_NONBLOCK", "ACH_O_RELTIME", "ACH_O_WAIT", "ACH_STALE_FRAMES", "ACH_TIMEOUT", "CLOCK_MONOTONIC",
     "CLOCK_REALTIME", "FAST_AVAILABLE", "GUARD_AVAILABLE", "GUARD_DATA", "GUARD_HEADER", "GUARD_INDEX",
-    "IDLE_SLICE", "LAYOUTS", "LAYOUT_AARCH64", "LAYOUT_X86_64", "MAGIC", "NAME_MAX", "POLL_SLICE", "SHM_DIR",
-    "SHM_PREFIX", "UNWOKEN_HOLD", "UNWOKEN_POLL", "WAIT_SLICE", "AchException", "Channel", "ChannelImage",
+    "IDLE_RETURN", "IDLE_SLICE", "LAYOUTS", "LAYOUT_AARCH64", "LAYOUT_X86_64", "MAGIC", "NAME_MAX", "POLL_SLICE",
+    "SHM_DIR", "SHM_PREFIX", "UNWOKEN_HOLD", "UNWOKEN_POLL", "WAIT_SLICE", "AchException", "Channel", "ChannelImage",
     "IndexEntry", "Layout", "MappingGuard",
     "create", "detect_layout", "exists", "explain", "native_layout", "open_channel_file", "parse_image",
     "result_string", "set_open_check", "shm_path", "unlink", "validate_name",

@@ -51,8 +51,7 @@ enum { ACH_O_WAIT = 1, ACH_O_LAST = 2, ACH_O_COPY = 4 };
 #define ACHCORE_LOCK_TIMED_OUT (-1)
 
 /* how a wait for a new frame ended: no wait needed, woken by a futex wake (or the word changed before the sleep),
- * or with a frame that came without a wake-up (the sleep timed out and the frame was there, or a wake-up brought
- * more than one new frame: a broadcast-only writer put one in between). */
+ * or with a frame that came without a wake-up (the sleep timed out and the frame was there; see achcore_wait). */
 enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_UNWOKEN = 2 };
 
 #define ACHCORE_MAGIC 0xB07511F3u
@@ -405,11 +404,13 @@ static inline int achcore_wait(achcore_t *c, long long slice_ns, long long poll_
         ACHCORE_BLOCKING_END
         uint64_t now_last = *c->last_seq;
         if (now_last != seen) {
-            /* timed out with a frame there: nobody woke us. Woken with two or more new frames: at least one of
-             * them came from a writer that does not wake (a waking writer's frame wakes us within microseconds,
-             * far less than a control period). */
+            /* timed out with a frame there: nobody woke us. Woken with two or more new frames proves nothing: a
+             * reader that waited for a CPU (a busy machine) finds a waking writer's next frames too, and took that
+             * for a broadcast-only writer, polling every ACHCORE_UNWOKEN_POLL_NS for 10 s (1-3 % of a core per
+             * reader). A broadcast-only writer's frame is still seen with the next woken frame or at the end of
+             * the slice, whichever comes first, and that timeout then switches the reader to polling. */
             int timed_out = fr == -1 && err == ETIMEDOUT;
-            c->woken = (timed_out || now_last - seen >= 2) ? WAIT_UNWOKEN : WAIT_WOKEN;
+            c->woken = timed_out ? WAIT_UNWOKEN : WAIT_WOKEN;
             return 1;
         }
         if (!(fr == -1 && err == ETIMEDOUT))

@@ -80,7 +80,8 @@ if TYPE_CHECKING:  # the C extension is optional at run time (see _load_fast)
 
 WAIT_SLICE = 0.1  # s per condvar wait slice (condvar_wait=True), so Ctrl-C / cancel / close are seen promptly
 POLL_SLICE = 0.005  # pure-Python path: s per futex wait slice, how late a frame from a C libach writer can be seen
-IDLE_SLICE = 0.05  # C fast path: s per futex wait slice while every frame comes with a wake-up (fewer idle wakes)
+IDLE_SLICE = 0.05  # C fast path: how often an idle wait looks at last_seq (inside C: a broadcast-only writer's frame)
+IDLE_RETURN = 1.0  # C fast path: an idle wait returns to Python this often (cancel and close wake it; signals end it)
 UNWOKEN_POLL = 0.0003  # C fast path: after a frame came without a wake-up, look at last_seq this often (in C) ...
 UNWOKEN_HOLD = 10.0  # ... for this many seconds after the last such frame (golems' libach writers only broadcast)
 _WAIT_WOKEN, _WAIT_UNWOKEN = 1, 2  # _achfast.Handle.woken: how the last get's futex wait ended (0: no wait)
@@ -756,20 +757,23 @@ class Channel:
     def _slice(self, deadline: float | None) -> tuple[int, bool]:
         """Nanoseconds of the next wait slice, and whether it is the last one before the deadline.
 
-        Writers of this package and of its libach wake waiting readers, so a reader only needs to look again now
-        and then (IDLE_SLICE) for cancel and close."""
-        full = int(IDLE_SLICE * 1e9)
+        Writers of this package and of its libach wake waiting readers, and so do ``cancel`` and ``close``; a signal
+        ends the futex wait too. So a C wait returns to Python only every IDLE_RETURN (or at the deadline): the look
+        at last_seq for a broadcast-only writer's frame is made inside C every IDLE_SLICE (``_poll_ns``), without
+        taking the interpreter lock -- a Python round every 50 ms in each waiting thread was a tenth of the whole
+        system's CPU at rest."""
+        full = int(max(IDLE_RETURN, IDLE_SLICE) * 1e9)
         if deadline is None:
             return full, False
         left = int((deadline - time.clock_gettime(self._clock)) * 1e9)
         return (full, False) if left > full else (max(0, left), True)
 
     def _poll_ns(self) -> int:
-        """How often (ns) the C wait also looks at last_seq by itself; 0 = only when woken. A frame that came
-        without a wake-up (golems' libach writers only broadcast the condvar, which futex sleepers do not hear)
-        makes the reader look every UNWOKEN_POLL for UNWOKEN_HOLD seconds after the last such frame, also on
-        channels where other writers do wake it."""
-        return int(UNWOKEN_POLL * 1e9) if time.monotonic() < self._unwoken_until else 0
+        """How often (ns) the C wait looks at last_seq by itself: every IDLE_SLICE, so a frame from a writer that
+        does not wake the futex (golems' libach writers only broadcast the condvar, which futex sleepers do not
+        hear) is seen within IDLE_SLICE. Such a frame makes the reader look every UNWOKEN_POLL for UNWOKEN_HOLD
+        seconds after the last such frame, also on channels where other writers do wake it."""
+        return int((UNWOKEN_POLL if time.monotonic() < self._unwoken_until else IDLE_SLICE) * 1e9)
 
     def _get_fast(self, fast: _FastHandle, buf: object, options: int, deadline: float | None,
                   lock_ns: int = -1) -> tuple[int, int]:
