@@ -6,8 +6,8 @@ streams (a trajectory is a frame per state cycle), so its state thread must not 
 refusal and every hold request, so nothing is skipped, and each state tells:
 
 * refusals of the bridge's frames: ``refused[i]`` grew; the state names the owner or the forbidden joint
-  (``muxverdict.describe``) and when the refused frame arrived (``time - age[i]``), which the bridge maps to the
-  command that frame carried;
+  (``muxverdict.describe``), when the refused frame arrived (``time - age[i]``), which the bridge maps to the
+  command that frame carried, and which joints the bridge owned then (a frame of it the mux applied);
 * joints that became held or cancelled (a HOLD or CANCEL from anyone), when, and who asked;
 * who owns each joint now, so a CANCEL from the bridge never takes a joint away from another controller.
 """
@@ -34,6 +34,7 @@ class Refusal:
     count: int
     message: str  # e.g. "LSP owned by 'teleop' (priority 40)"
     owner: str  # the owning controller's name, "" when the frame was refused for another reason
+    owned: frozenset[int] = frozenset()  # addresses the refused controller owned in that state (a refusal changes none)
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,9 @@ class MuxTracker:
             if refused > self._refused:
                 b = st.blocker[i]
                 owner = get_name(bytes(st.name[b])) if 0 <= b < st.count else ""
-                news.refusals.append(Refusal(st.time - st.age[i], refused - self._refused, describe(st, i), owner))
+                owned = frozenset(a for a in range(MDS_JOINT_COUNT) if st.owner[a] == i)
+                news.refusals.append(Refusal(st.time - st.age[i], refused - self._refused, describe(st, i), owner,
+                                             owned))
             self._refused = refused
         held = [int(st.held[a]) for a in range(MDS_JOINT_COUNT)]
         new = frozenset(a for a in range(MDS_JOINT_COUNT) if held[a] != MUX_FREE and self._held[a] == MUX_FREE)

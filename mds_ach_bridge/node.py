@@ -975,9 +975,13 @@ class BridgeNode(Node):
                 r = self._running.get(serial)
                 if r is None:
                     continue
-                # Refused at its first frame: nothing of it was applied, nothing to cancel.
+                # Refused at its first frame: nothing of it was applied, nothing to cancel. The frame's arrival time
+                # maps it to a write only roughly (a late mux reader stamps its frame after the bridge wrote more):
+                # a frame the mux applied made the bridge own its joints, and a refusal changes no owner, so when
+                # the bridge owns none of them in the refusal's state, no frame of it moved anything either.
                 first = not any(serial in w.trajectories and w.time < write.time for w in self._writes)
-                self._stop_running(r, f"refused by the mux: {rf.message}", cancel=not first)
+                applied = bool(rf.owned & {joints.BY_SHORT[n].address for n in r.traj.names})
+                self._stop_running(r, f"refused by the mux: {rf.message}", cancel=applied and not first)
         for r in list(self._running.values()):
             if r.written is None or r.finished:
                 continue

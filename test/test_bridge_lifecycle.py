@@ -11,6 +11,7 @@ import math
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -119,6 +120,8 @@ class System(Spinner):
         self.mux_thread.start()
         assert self.mux.ready.wait(30), "the mux did not start (no mds-state from the daemon?)"
         self.teleop = StructChannel(TELEOP_CHANNEL, mds.MDS_REF)
+        # teleop's newest frame (ref, mode): the mux compares its next one with it
+        self.teleop_frame: tuple[np.ndarray, np.ndarray] | None = None
         self.bridge = subprocess.Popen([str(VENV_BIN / "mds-ach-bridge"), "--ros-args", *BRIDGE_PARAMS],
                                        stdout=self.log.open("w"), stderr=subprocess.STDOUT)
         self.open_node("bridge_lifecycle_probe")
@@ -142,6 +145,11 @@ class System(Spinner):
         assert m.header.stamp.sec > 0, m
         self.status.append({"event": m.event, "command": m.command, "message": m.message, "owner": m.owner,
                             "frames": m.frames, "code": m.code})
+
+    def put_teleop(self, frame: np.ndarray, mode: np.ndarray | None = None) -> None:
+        mode = self.core.mode.copy() if mode is None else mode
+        self.teleop_frame = (frame.copy(), mode)
+        self.teleop.put(make_ref(frame, mode))
 
     @property
     def core(self) -> MuxCore:
@@ -270,7 +278,7 @@ def test_refused_frames_are_reported_once_with_the_owner(system: System) -> None
 
     frame = system.core.ref.copy()
     frame[mds.LSP] += 0.05
-    system.teleop.put(make_ref(frame, system.core.mode))
+    system.put_teleop(frame)
     system.spin_until(lambda: system.core.owner[mds.LSP] == 0, 10.0, "teleop owning LSP")
     before = system.core.ref.copy()
     system.status.clear()
@@ -301,6 +309,65 @@ def test_refused_frames_are_reported_once_with_the_owner(system: System) -> None
     system.spin_until(lambda: any(e["event"] == "refused" for e in system.status), 10.0, "the NKY refusal")
     assert "NKY is not permitted" in system.status[-1]["message"]
     assert not math.isclose(system.core.ref[mds.NKY], 0.1)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_refusal_stamped_late_cancels_nothing_the_trajectory_never_moved(system: System) -> None:
+    """A loaded host wakes the mux's reader late: it stamps the trajectory's first frame after the bridge wrote
+    more of them, so the refusal maps to a later write. Every frame was refused (the bridge owns none of its
+    joints in the mux's state): nothing was applied, so nothing is cancelled (CI failure of
+    test_refused_frames_are_reported_once_with_the_owner at load 8-12). The reader here is the in-process mux's
+    thread, kept from the GIL for 0.4 s as a scheduler would keep it from a CPU."""
+    if system.core.owner[mds.LSP] != 0:
+        frame = system.core.ref.copy()
+        frame[mds.LSP] += 0.05
+        system.put_teleop(frame)
+        system.spin_until(lambda: system.core.owner[mds.LSP] == 0, 10.0, "teleop owning LSP")
+    system.spin_until(lambda: system.core.owner[mds.LEP] == -1 and system.core.held[mds.LEP] == MUX_FREE, 10.0,
+                      "LEP free, owned by nobody")
+    before = system.core.ref.copy()
+    refused = system.bridge_log().count("owned by 'teleop' (priority 40); nothing of that frame applied")
+    system.status.clear()
+    lsp, lep = float(before[mds.LSP]), float(before[mds.LEP])
+    system.trajectory.publish(_trajectory(["LSP", "LEP"], [lsp, lep], [lsp - 0.5, lep - 0.5], 2.0))
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(5.0)  # this busy thread keeps the GIL: the mux's reader wakes but cannot stamp its frame
+    try:
+        end = time.monotonic() + 0.4
+        while time.monotonic() < end:
+            pass
+    finally:
+        sys.setswitchinterval(switch)
+    system.spin_until(lambda: any(e["event"] == "stopped" for e in system.status), 10.0, "the trajectory stopped")
+    system.spin_for(2.5)  # a CANCEL would be sent with the stop: give it time to reach the mux
+    assert system.bridge_log().count("owned by 'teleop' (priority 40); nothing of that frame applied") == refused + 1
+    assert system.core.ref[mds.LSP] == before[mds.LSP] and system.core.ref[mds.LEP] == before[mds.LEP]
+    assert system.core.held[mds.LEP] == MUX_FREE, system.bridge_log()  # no frame of it was applied: nothing to cancel
+    assert "cancelled" not in system.bridge_log().split("trajectory #")[-1]
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_a_trajectory_refused_after_it_moved_cancels_the_joints_it_still_owns(system: System) -> None:
+    """The other side of the rule above: frames of the trajectory were applied (the bridge owns its joints), then
+    'teleop' takes LEP and the next frame is refused: the trajectory stops and the joint it still owns (LWY) is
+    cancelled where it is; LEP, teleop's now, is left to teleop."""
+    if system.teleop_frame is None:
+        system.put_teleop(system.core.ref.copy())  # the frame teleop's next one is compared with (changes nothing)
+    lep, lwy = float(system.core.ref[mds.LEP]), float(system.core.ref[mds.LWY])
+    system.status.clear()
+    system.trajectory.publish(_trajectory(["LEP", "LWY"], [lep, lwy], [lep - 0.4, lwy - 0.4], 3.0))
+    system.spin_until(lambda: system.core.ref[mds.LWY] < lwy - 0.05 and system.core.owner[mds.LWY] == 1, 15.0,
+                      "LWY moving along the trajectory, owned by 'ros'")
+    frame, mode = system.teleop_frame  # teleop modifies LEP only: it takes LEP, not the joints the bridge moved
+    frame = frame.copy()
+    frame[mds.LEP] = system.core.ref[mds.LEP] + 0.01
+    system.put_teleop(frame, mode)
+    system.spin_until(lambda: any(e["event"] == "stopped" for e in system.status), 10.0, "the trajectory stopped")
+    assert "refused by the mux" in next(e for e in system.status if e["event"] == "stopped")["message"]
+    system.spin_until(lambda: system.core.held[mds.LWY] == MUX_CANCELLED, 10.0, "LWY cancelled by the bridge")
+    assert system.core.owner[mds.LEP] == 0 and system.core.held[mds.LEP] == MUX_FREE
 
 
 @pytest.mark.ros
