@@ -63,7 +63,7 @@ def test_every_name_of_every_node_is_under_the_namespace_and_the_params_sections
     params = tmp_path / "params.yaml"
     params.write_text(yaml.safe_dump({
         "/**/filter": {"ros__parameters": {"rate": 20.0}},
-        "/robot1/mds_daemon": {"ros__parameters": {"rate": 25.0}},
+        "/robot1/mds_daemon": {"ros__parameters": {"rate": 20.0}},
         "/robot2/mds_daemon": {"ros__parameters": {"rate": 40.0}},  # another robot's: checked, not applied here
     }))
     with running_system(tmp_path, extra=("--namespace", "robot1", "--params", str(params))) as env:
@@ -83,7 +83,7 @@ def test_every_name_of_every_node_is_under_the_namespace_and_the_params_sections
         assert "/robot1/mds/ik_status" in names["ik"]
         with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS, create=False) as chan:
             st = chan.latest()
-        assert st is not None and st.rate_hz == pytest.approx(25.0)  # the /robot1/mds_daemon section
+        assert st is not None and st.rate_hz == pytest.approx(20.0)  # the /robot1/mds_daemon section
         status = mds_ach("status", env=env)
         assert "namespace  /robot1" in status.stdout, status.stdout
         echo = mds_ach("ros", "echo", "joint_states", "-n", "1", env=env)  # relative: the system's namespace

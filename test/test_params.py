@@ -131,7 +131,7 @@ def test_start_refuses_a_bad_file_before_anything_starts(clean_shm: None, tmp_pa
 
 
 FILE_VALUES: dict[str, dict[str, object]] = {  # launcher node -> {parameter: a value that is not the default}
-    "daemon": {"rate": 25.0, "nocan": True},
+    "daemon": {"rate": 20.0, "nocan": True},
     "mux": {"state_rate": 4.0},
     "filter": {"rate": 20.0},
     "collision": {"margin": 0.05},
@@ -184,4 +184,4 @@ def test_every_node_takes_its_values_from_the_params_file(tmp_path: Path) -> Non
             assert got == list(values.values()), (name, got)
         with StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, ds.MDS_DAEMON_STATUS) as status:
             st = wait_for(lambda: status.latest(), 60, what="the daemon status")
-            assert st.rate_hz == 25.0  # the loop runs at the file's rate (default 10 Hz)
+            assert st.rate_hz == 20.0  # the loop runs at the file's rate (default 10 Hz)
