@@ -20,7 +20,7 @@ from typing import Any
 import can
 
 from mds_ach.bus import canio
-from mds_ach.record.schema import _SEPARATOR
+from mds_ach.record.schema import HEADER_DEFINITIONS
 
 CAN_TOPIC = "/can/frames"
 CAN_TYPE = "mds_ach_wire/msg/CanFrame"
@@ -32,14 +32,7 @@ bool is_error
 bool is_rx
 uint8 dlc
 uint8[] data
-{_SEPARATOR}
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-{_SEPARATOR}
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec"""
+{HEADER_DEFINITIONS}"""
 CAN_SCHEMA = (CAN_TYPE, CAN_TEXT)
 
 WALL_CLOCK_FROM = 1e9

@@ -245,13 +245,7 @@ def frame_time(frame: Packed) -> float | None:
 
 # ------------------------------------------------------------------------------------------ sensor_msgs/JointState
 
-JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
-JOINT_STATE_TEXT = f"""std_msgs/Header header
-string[] name
-float64[] position
-float64[] velocity
-float64[] effort
-{_SEPARATOR}
+HEADER_DEFINITIONS = f"""{_SEPARATOR}
 MSG: std_msgs/Header
 builtin_interfaces/Time stamp
 string frame_id
@@ -259,6 +253,15 @@ string frame_id
 MSG: builtin_interfaces/Time
 int32 sec
 uint32 nanosec"""
+"""The nested definitions every schema with a ``std_msgs/Header header`` field ends with."""
+
+JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
+JOINT_STATE_TEXT = f"""std_msgs/Header header
+string[] name
+float64[] position
+float64[] velocity
+float64[] effort
+{HEADER_DEFINITIONS}"""
 
 
 def joint_state(state: MDS_STATE, stamp_ns: int) -> dict[str, Any]:
