@@ -223,22 +223,25 @@ def _room_to_cruise(probe: TrackingProbe, name: str, distance: float) -> None:
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.parametrize("daemon_rate", [None, 22.0], ids=["10Hz", "22Hz"], indirect=True)
-@pytest.mark.parametrize("speed", [0.42, 0.9])
+@pytest.mark.parametrize("speed", [0.42, 0.9, None], ids=["0.42", "0.9", "published"])
 def test_a_cancel_stops_within_the_bound_in_every_phase_of_the_daemons_cycle(
-        probe: TrackingProbe, daemon_rate: float | None, speed: float) -> None:
-    """A cancel requested at any moment of the daemon's cycle (``PHASES`` after an ``mds-state`` put), at the
-    default 10 Hz and at the fastest rate the CAN budget allows (22 Hz, ``--rate max``): the arm travels at most
+        probe: TrackingProbe, daemon_rate: float | None, speed: float | None) -> None:
+    """A cancel requested at any moment of the daemon's cycle (``PHASES`` after an ``mds-state`` put), at 0.42 and
+    0.9 rad/s and at the published velocity (None), at the default 10 Hz and at the fastest rate the CAN budget
+    allows (22 Hz, ``--rate max``): the arm travels at most
     v^2/2a + v period + 0.02 rad after the request and never comes back more than 0.01 rad. Before the stop held
     the daemon's own reference (the newest target still waiting for the next send ran up to two periods ahead of
     the request): up to ~1 mm beyond the bound at 0.33-0.51 rad/s and 10 Hz right after a state frame."""
     from action_msgs.msg import GoalStatus
 
-    _, a = published(ARM)
+    v_max, a = published(ARM)
+    speed = speed or v_max
+    distance = 1.6 if speed <= 0.9 else 1.9  # room to reach the speed, cruise and stop before the end
     lines, failed = [], []
     with StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE) as states:
         for phase in PHASES:
-            _room_to_cruise(probe, "LSP", 1.5)
-            c = cruise(probe, CONTROLLER, "LSP", speed, 1.6)
+            _room_to_cruise(probe, "LSP", distance - 0.1)
+            c = cruise(probe, CONTROLLER, "LSP", speed, distance)
             period = state_period(probe)
             states.flush()
             assert states.wait(timeout=5.0) is not None, "no mds-state frame"
