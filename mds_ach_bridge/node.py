@@ -163,8 +163,21 @@ class _Stop:
     reason: str
     hold: dict[str, float]  # where the frame holds each joint: the daemon's reference at the stop
     newest: dict[str, float]  # the newest value written before: the last target if the daemon took it first
+    brakes: dict[str, Braking]  # the joints' braking from the newest targets (``BridgeNode._braking``), for that case
     frame: int  # the state frames counted when written: the next one tells what the daemon took
     deadline: float  # monotonic: CANCEL then whatever the daemon took (no state frame: a stall)
+
+
+@dataclass(frozen=True)
+class _Retracted:
+    """A joint a new trajectory takes over from a moving one, its frame retracted to the daemon's reference
+    (``BridgeNode._retract``): the new trajectory's first cycle tells which of the two the daemon took
+    (``BridgeNode._replace``)."""
+
+    hold: float  # the daemon's reference at the replacement
+    newest: float  # the replaced trajectory's newest value
+    braking: Braking  # the replaced motion's braking from its newest target (if the daemon took that one)
+    frame: int  # the state frames counted at the replacement
 
 
 @dataclass(frozen=True)
@@ -284,6 +297,7 @@ class BridgeNode(Node):
         self._cancels: list[tuple[tuple[str, ...], str]] = []  # (joints, reason) to CANCEL, sent outside the lock
         self._stops: list[_Stop] = []  # retracted stops waiting for their CANCEL (``_check_stops``)
         self._stops_done = threading.Condition(self._lock)  # notified when ``_stops`` empties
+        self._retracted: dict[str, _Retracted] = {}  # joints a new trajectory takes from a retracted one
         # Frame values of stopped joints to write next (a retraction or its undoing, ``_check_stops``); put into the
         # frame under the write lock (a put reads the frame outside the lock), by ``_take_holds``.
         self._holds: dict[str, float] = {}
@@ -508,7 +522,7 @@ class BridgeNode(Node):
         sampled: list[int] = []
         for r in active:
             if r.written is None:
-                self._replace(r, due_s)
+                self._replace(r, due_s, state)
             if not r.traj.anchored:
                 # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample;
                 # a joint still braking from a replaced motion starts from its commanded state (position, velocity).
@@ -578,16 +592,28 @@ class BridgeNode(Node):
                 with self._lock:
                     self._counters.references_written += 1
 
-    def _replace(self, r: _Running, due_s: float) -> None:
+    def _replace(self, r: _Running, due_s: float, state: MDS_STATE) -> None:
         """A new trajectory's joints that were braking from a replaced motion keep their braking target until the
         new one's targets pass it (``_Floor``): the joint stops within the braking distance from its commanded
-        velocity and never goes back to meet a trajectory that goes on the same way (caller holds the lock)."""
+        velocity and never goes back to meet a trajectory that goes on the same way (caller holds the lock).
+
+        The braking target is the last one the daemon sent: the daemon's reference the replacement retracted the
+        frame to (``_stop_running``), if this cycle's state shows the daemon took it, else the replaced trajectory's
+        newest target (the daemon sent it before the retraction arrived)."""
         final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
         for n in r.traj.names:
+            retracted = self._retracted.pop(n, None)
+            hold = None
+            if retracted is not None and self._counters.frames <= retracted.frame + 1:
+                taken = state.joint[joints.BY_SHORT[n].address].ref_r
+                if abs(taken - retracted.newest) < abs(taken - retracted.hold):
+                    self._braking[n] = retracted.braking
+                else:
+                    hold = retracted.hold  # the reference itself: the daemon's target does not go back from it
             b = self._braking.get(n)
             if b is None or not b.moving(due_s):  # (at rest it may have been moved since by another controller)
                 continue
-            value = stopping_point(b.q0, b.v0, b.accel)
+            value = stopping_point(b.q0, b.v0, b.accel) if hold is None else hold
             sign = math.copysign(1.0, b.v0)
             r.floors[n] = _Floor(value, sign, b.t0 + abs(b.v0) / b.accel, sign * (final[n] - value) > 0.0)
 
@@ -665,6 +691,7 @@ class BridgeNode(Node):
             j.ref = value
             j.mode = mode
             self._resync.discard(name)
+            self._holds.pop(name, None)
 
     def _refuse_reason(self) -> str | None:
         """Commands need a live state stream: the bridge writes in step with it (caller holds the lock)."""
@@ -728,7 +755,7 @@ class BridgeNode(Node):
             if reason is None:
                 serial = self._new_command(f"{'' if controller is None else controller + ' '}trajectory #{{}} "
                                            f"({', '.join(traj.names)})")
-                replaced = self._preempt(traj.names, self._what[serial])
+                replaced = self._preempt(traj.names, self._what[serial], trajectory=True)
                 self._start(serial, traj)
         if reason is not None:
             self._reject(topic, reason)
@@ -796,7 +823,7 @@ class BridgeNode(Node):
                 serial = self._new_command(f"{controller} goal #{{}} ({', '.join(traj.names)})")
                 mine = tuple(r.serial for r in self._running.values()
                              if r.goal is not None and r.goal.controller == controller)
-                replaced = self._preempt(traj.names, self._what[serial], also=mine)
+                replaced = self._preempt(traj.names, self._what[serial], also=mine, trajectory=True)
                 self._start(serial, traj, goal)
             else:
                 goal.end(actions.ABORT, follow.Result.INVALID_GOAL, reason)
@@ -948,11 +975,13 @@ class BridgeNode(Node):
         return self._serial
 
     def _stop_running(self, r: _Running, reason: str, keep: tuple[str, ...] = (), cancel: bool = True,
-                      how: str = actions.ABORT, code: int = follow.Result.INVALID_GOAL, retract: bool = True) -> str:
+                      how: str = actions.ABORT, code: int = follow.Result.INVALID_GOAL, retract: bool = True,
+                      replaced: bool = False) -> str:
         """Stop streaming ``r`` for good and queue a CANCEL for its joints not in ``keep`` (a new command takes
         those); ``cancel`` False when nothing of it was applied. ``retract``: the bridge's frame may take back its
         newest targets first (``_retract``; not when the mux already stopped the joints: a new value would be a new
-        command). Its goal, if any, ends ``how`` with ``code``. Returns its description (caller holds the lock)."""
+        command); ``replaced``: a new trajectory takes the joints of ``keep``, which are retracted too (``_replace``).
+        Its goal, if any, ends ``how`` with ``code``. Returns its description (caller holds the lock)."""
         what = self._what.get(r.serial, "trajectory")
         self._running.pop(r.serial, None)
         for n in r.traj.names:
@@ -960,17 +989,25 @@ class BridgeNode(Node):
         names = tuple(n for n in r.traj.names if n not in keep)
         moved = cancel and not r.finished and r.written is not None and bool(names)
         held = self._retract(names) if moved and retract else {}
+        kept = tuple(n for n in r.traj.names if n in keep)
+        brakes: dict[str, Braking] = {}  # from the newest targets
+        taken = self._retract(kept) if replaced and not r.finished and r.written is not None and kept else {}
         if not r.finished and r.due is not None:  # its joints brake from the last target sent (feedforward)
             for n, (q, v) in r.desired.items():
-                due, desired = (r.previous[0], r.previous[1][n]) if n in held and r.previous else (r.due, (q, v))
-                self._braking[n] = Braking(*desired, due, self._moveto_accel)
+                brakes[n] = self._braking[n] = Braking(q, v, r.due, self._moveto_accel)
+                if (n in held or n in taken) and r.previous is not None:
+                    self._braking[n] = Braking(*r.previous[1][n], r.previous[0], self._moveto_accel)
+                if n in taken:
+                    self._retracted[n] = _Retracted(taken[n], self._frame_value(n), brakes[n],
+                                                    self._counters.frames)
+            self._holds.update(taken)
         if not r.finished:
             self._resync.update(names)
             if held:  # the CANCEL once the daemon took the retraction
                 newest = {n: self._frame_value(n) for n in held}
                 self._holds.update(held)
-                self._stops.append(_Stop(names, f"{what} stopped: {reason}", held, newest, self._counters.frames,
-                                         time.monotonic() + 3 * self._cycle.period + 0.1))
+                self._stops.append(_Stop(names, f"{what} stopped: {reason}", held, newest, brakes,
+                                         self._counters.frames, time.monotonic() + 3 * self._cycle.period + 0.1))
             elif moved:  # it moved them: end their targets where they are
                 self._cancels.append((names, f"{what} stopped: {reason}"))
             self._counters.stopped += 1
@@ -982,13 +1019,15 @@ class BridgeNode(Node):
             self._end_goal(r.goal, how, code, f"{what} stopped: {reason}")
         return what
 
-    def _preempt(self, names: tuple[str, ...], by: str, also: tuple[int, ...] = ()) -> list[str]:
+    def _preempt(self, names: tuple[str, ...], by: str, also: tuple[int, ...] = (), trajectory: bool = False,
+                 ) -> list[str]:
         """Stop the trajectories that share a joint with a new command ``by`` on ``names`` (and those of ``also``,
-        the preempted goal of the same controller); returns their descriptions (caller holds the lock)."""
+        the preempted goal of the same controller; ``trajectory``: the new command is one, ``_replace``); returns
+        their descriptions (caller holds the lock)."""
         taken = set(names)
         self._release_stops(taken)
         hit = [r for r in self._running.values() if r.serial in also or taken & set(r.traj.names)]
-        return [self._stop_running(r, f"preempted by {by}", keep=names) for r in hit]
+        return [self._stop_running(r, f"preempted by {by}", keep=names, replaced=trajectory) for r in hit]
 
     def _stop_all(self, reason: str) -> list[str]:
         """Stop every trajectory and goal (caller holds the lock)."""
@@ -1086,6 +1125,8 @@ class BridgeNode(Node):
                 newest = s.newest[n]
                 if value != newest and abs(taken - newest) < abs(taken - value):
                     s.hold[n] = self._holds[n] = newest
+                    if n in self._braking and n in s.brakes:
+                        self._braking[n] = s.brakes[n]
                     late = True
             if late and time.monotonic() < s.deadline:
                 s.frame = self._counters.frames
@@ -1108,6 +1149,7 @@ class BridgeNode(Node):
         """A new command takes ``names``: no pending CANCEL may end it (caller holds the lock)."""
         for n in names:
             self._holds.pop(n, None)
+            self._retracted.pop(n, None)
         for s in list(self._stops):
             s.names = tuple(n for n in s.names if n not in names)
             for n in names:

@@ -220,6 +220,17 @@ def _room_to_cruise(probe: TrackingProbe, name: str, distance: float) -> None:
     assert run.final_error <= FINAL_ERROR, run.describe()
 
 
+def _after_a_state_put(states: StructChannel, phase: float, period: float) -> float:
+    """Return ``phase`` periods after the next ``mds-state`` put; how far after it (in periods) it returned."""
+    states.flush()
+    assert states.wait(timeout=5.0) is not None, "no mds-state frame"
+    put = time.monotonic()
+    # The stimulus, not a wait for a condition: the request goes out `phase` of a period after the put.
+    while time.monotonic() < put + phase * period:
+        time.sleep(0.0005)
+    return (time.monotonic() - put) / period
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.parametrize("daemon_rate", [None, 22.0], ids=["10Hz", "22Hz"], indirect=True)
@@ -243,14 +254,8 @@ def test_a_cancel_stops_within_the_bound_in_every_phase_of_the_daemons_cycle(
             _room_to_cruise(probe, "LSP", distance - 0.1)
             c = cruise(probe, CONTROLLER, "LSP", speed, distance)
             period = state_period(probe)
-            states.flush()
-            assert states.wait(timeout=5.0) is not None, "no mds-state frame"
-            put = time.monotonic()
-            # The stimulus, not a wait for a condition: the request goes out `phase` of a period after the put.
-            while time.monotonic() < put + phase * period:
-                time.sleep(0.0005)
+            seen = _after_a_state_put(states, phase, period)
             t_request = probe.now()
-            seen = (time.monotonic() - put) / period
             cancel = c.handle.cancel_goal_async()
             probe.spin_until(cancel.done, 10.0, "the cancel response")
             res = probe.result(c.handle, 10.0)
@@ -265,5 +270,44 @@ def test_a_cancel_stops_within_the_bound_in_every_phase_of_the_daemons_cycle(
                 line = "BEYOND " + line
             lines.append(line)
             assert c.sign * (c.profile.end[0] - probe.position("LSP")) > 0.1, f"the cancel came too late: {line}"
+    print("\n".join(lines))
+    assert not failed, "\n".join(lines)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("direction", ["on", "back"])
+def test_a_replacing_goal_stays_within_the_bound_in_every_phase_of_the_daemons_cycle(
+        probe: TrackingProbe, direction: str) -> None:
+    """``test_a_replacing_goal_starts_from_the_commanded_state`` with the replacing goal sent at ``PHASES`` of the
+    daemon's cycle: going on, never back more than 0.01 rad; going back, at most v^2/2a + v period + 0.01 rad past
+    the replacement point."""
+    from action_msgs.msg import GoalStatus
+
+    _, a = published(ARM)
+    lines, failed = [], []
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE) as states:
+        for phase in PHASES:
+            _room_to_cruise(probe, "LSP", 1.5)
+            c = cruise(probe, CONTROLLER, "LSP", 0.8, 1.6)
+            period = state_period(probe)
+            step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3
+            seen = _after_a_state_put(states, phase, period)
+            t_replace = probe.now()
+            second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
+            replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=FINAL_ERROR)
+            res = probe.result(c.handle, 10.0)
+            assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
+            res = probe.result(replaced, 20.0)
+            assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+            v, past, back = stop_report(probe, c, "LSP", t_replace)
+            bound = v * v / (2 * a) + v * period + 0.01
+            line = (f"phase {seen:.2f}: replaced at {v:.3f} rad/s, going {direction}: {past:.4f} rad past the point "
+                    f"(bound {bound:.4f}), came back {back:.4f} rad")
+            if (direction == "on" and back > 0.01) or (direction == "back" and past > bound):
+                failed.append(line)
+                line = "BEYOND " + line
+            lines.append(line)
+            assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR, line
     print("\n".join(lines))
     assert not failed, "\n".join(lines)
