@@ -302,8 +302,9 @@ def test_a_replacing_goal_stays_within_the_bound_in_every_phase_of_the_daemons_c
             assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
             v, past, back = stop_report(probe, c, "LSP", t_replace)
             bound = v * v / (2 * a) + v * period + 0.01
-            line = (f"phase {seen:.2f}: replaced at {v:.3f} rad/s, going {direction}: {past:.4f} rad past the point "
-                    f"(bound {bound:.4f}), came back {back:.4f} rad")
+            line = f"phase {seen:.2f}: replaced at {v:.3f} rad/s, going {direction}: " + (
+                f"came back {back:.4f} rad" if direction == "on" else
+                f"{past:.4f} rad past the replacement point (bound {bound:.4f})")
             if (direction == "on" and back > 0.01) or (direction == "back" and past > bound):
                 failed.append(line)
                 line = "BEYOND " + line
