@@ -81,11 +81,11 @@ NODE_NAME = "mds_bridge"
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 WRITE_RECORDS = 64
+"""Recent writes remembered to tell which command a refused frame carried (the mux answers within a cycle)."""
 RETRACT_MARGIN = 0.02
 """s: how long before the daemon's next cycle a stop's retracted frame must be written to reach the daemon's input
 (through the mux, the filter and the collision gate: a few ms) in time; later, the daemon takes the newest frame
 first and that is the target the stop holds (``BridgeNode._retract``)."""
-"""Recent writes remembered to tell which command a refused frame carried (the mux answers within a cycle)."""
 STATE_QOS = {
     "sensor_data": qos_profile_sensor_data,  # best effort, keep last 5
     "reliable": QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
