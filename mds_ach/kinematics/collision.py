@@ -561,7 +561,7 @@ class CollisionModel:
         qs = np.atleast_2d(np.asarray(qs, dtype=float))
         if self._fast is not None:
             found = _collfast.check_many(self._fast, np.ascontiguousarray(qs))
-            return [_FREE if f is None else self._from_screen(q, f) for q, f in zip(qs, found, strict=True)]
+            return [_FREE if f is None else self._from_screen(qs[k], f) for k, f in enumerate(found)]
         poses = self.primitive_poses(qs)
         centres = poses[..., :3, 3]
         gap = np.linalg.norm(centres[:, self._I] - centres[:, self._J], axis=2) - self._rsum
