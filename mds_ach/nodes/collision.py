@@ -448,7 +448,7 @@ class Gate:
         repeat frame after frame, and so do those of a braking path where its arms are taken measured."""
         if not len(qs):
             return []
-        rows = np.asarray(qs, dtype=float)
+        rows = qs if type(qs) is np.ndarray else np.array(qs, dtype=float)
         raw, width = rows.tobytes(), rows.shape[1] * rows.itemsize
         keys = [raw[k:k + width] for k in range(0, len(raw), width)]
         cache = self._cache
