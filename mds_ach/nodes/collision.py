@@ -148,9 +148,8 @@ CLOSER = 1e-6  # m: colliding pairs whose total clearance drops by more than thi
 
 Choice = tuple[bool, bool, bool]  # per unit (left, right, body): True = its measured pose, False = its reference
 # Every choice of {reference, measured} per unit in itertools.product order, and for each the q columns taken
-# measured: _configs builds all the configurations of a frame in one array operation.
+# measured: _config_rows builds all the configurations of many poses in one array operation.
 _CHOICES: tuple[Choice, ...] = tuple(itertools.product((False, True), (False, True), (False, True)))
-_CHOICE_ROW = {c: k for k, c in enumerate(_CHOICES)}
 _UNIT_COLUMNS = np.zeros((len(UNITS), len(MODEL_ADDRESSES)), dtype=bool)
 for _k, _u in enumerate(UNITS):
     _UNIT_COLUMNS[_k, _UNIT_Q[_u]] = True
@@ -158,13 +157,17 @@ _CHOICE_MASK = np.array([np.any(_UNIT_COLUMNS[list(c)], axis=0) for c in _CHOICE
 # Which units are measured away from their reference -> the choices to check (a unit at its reference: once).
 _CHOICES_FOR = {apart: [c for c in _CHOICES if all(a or not m for m, a in zip(c, apart, strict=True))]
                 for apart in _CHOICES}
-_MASK_FOR = {apart: _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]] for apart, choices in _CHOICES_FOR.items()}
+# The same by the code of a pattern (its row in _CHOICES: 4 left + 2 right + body), for many poses at once: which of
+# the 8 rows of _CHOICE_MASK a pose with that pattern is checked in.
+_APART_CODE = np.array([4, 2, 1])
+_ROWS_FOR_CODE = np.array([[c in _CHOICES_FOR[apart] for c in _CHOICES] for apart in _CHOICES])
 
 FREE, HELD, RELEASING = "free", "held", "releasing"
 STOPPED_AT_CONTACT = "stopped at contact"
 IDLE_REPORT_PERIOD = 0.5  # s: mds-collide at rest (no input, nothing held, no contact, no override for 1 s)
 STOP_TOUCH = 0.005  # m beyond the margin: an arm stopped at contact still rests there (held, flagged, reported)
 AHEAD_STEP = 0.05  # rad (fastest joint): spacing of the poses checked along an arm's braking path
+_FRACTIONS: dict[int, np.ndarray] = {}  # n -> (1..n) / n as a column: where the n poses of a braking path lie
 
 
 @dataclass(frozen=True)
@@ -313,6 +316,8 @@ class Gate:
         self.release_velocity = self.config.release_velocity or filters.DEFAULT_MAX_VELOCITY
         self._ramp = np.zeros(MDS_JOINT_COUNT, dtype=bool)  # released joints still catching up with the input
         self._cache: dict[bytes, Any] = {}  # configuration -> CheckResult (a pure function of it), see _check
+        self._model_limits = (self.lower[self.model.addresses], self.upper[self.model.addresses])
+        self._columns: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.last_report = self.now
         self._override_time = -math.inf
         self._contact_time = -math.inf
@@ -321,8 +326,10 @@ class Gate:
         self.stopped: dict[str, str] = {}  # arm -> "right hand / left hand" while it rests where it was stopped
         self._stop_contact: dict[str, Any] = {}  # arm -> the contact it was stopped at (followed while it rests)
         self._settle_since: dict[str, float] = {}  # arm -> when it came to rest at a contact, unflagged
-        # the measured pose of this frame and its model joints (NaN: unknown), see _configs; reset every frame
+        # the measured pose of this frame and its model joints (NaN: unknown), see _measured_q; reset every frame
         self._measured: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._base: tuple[np.ndarray | None, dict[Choice, np.ndarray], dict[Choice, Any]] | None = None  # a frame's
+        self._ref_q: np.ndarray | None = None  # the previous output in model joints, see _output_q; every frame
 
     # ----- override
 
@@ -364,26 +371,24 @@ class Gate:
 
     # ----- configurations
 
-    def _configs(self, x: np.ndarray, pos: np.ndarray | None,
-                 choices: Iterable[Choice] | None = None) -> dict[Choice, np.ndarray]:
-        """Model joint vectors of output ``x`` combined per unit with the measured pose ``pos`` (NaN: not known,
-        taken at its reference). Without ``choices``: every distinct combination."""
-        addresses = self.model.addresses
-        q_ref = np.asarray(x, dtype=float).take(addresses)
-        if pos is None:
-            return {(False, False, False): q_ref}
+    def _measured_q(self, pos: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+        """The measured pose ``pos`` in model joints, taken at ``q_ref`` (one row or many) where it is not known."""
         if self._measured is None or self._measured[0] is not pos:  # once per frame: the measured joints in q
-            measured = pos.take(addresses)
+            measured = pos.take(self.model.addresses)
             self._measured = (pos, measured, np.isnan(measured))
-        q_pos = np.where(self._measured[2], q_ref, self._measured[1])
-        if choices is None:  # a unit measured within SAME_POSE of its reference counts once (taken at it)
-            apart = tuple((_UNIT_COLUMNS & (np.abs(q_pos - q_ref) > SAME_POSE)).any(axis=1).tolist())
-            choices, mask = _CHOICES_FOR[apart], _MASK_FOR[apart]
-        else:
-            choices = list(choices)
-            mask = _CHOICE_MASK[[_CHOICE_ROW[c] for c in choices]]
-        rows = np.where(mask, q_pos, q_ref)
-        return dict(zip(choices, rows, strict=True))
+        return np.where(self._measured[2], q_ref, self._measured[1])
+
+    def _config_rows(self, q_ref: np.ndarray, pos: np.ndarray | None) -> tuple[list[list[Choice]], np.ndarray]:
+        """Every distinct configuration of each output candidate ``q_ref`` (rows of model joint vectors), in one
+        array operation for all of them: per candidate its choices, and the configurations of all candidates
+        stacked (candidate by candidate, each in the order of its choices). A unit measured within ``SAME_POSE``
+        of its reference counts once (taken at it)."""
+        if pos is None:
+            return [[(False, False, False)]] * len(q_ref), q_ref
+        q_pos = self._measured_q(pos, q_ref)
+        codes = (np.abs(q_pos - q_ref) > SAME_POSE) @ _UNIT_COLUMNS.T @ _APART_CODE  # bool @: any per unit
+        every = np.where(_CHOICE_MASK, q_pos[:, None], q_ref[:, None])  # (candidates, 8 choices, joints)
+        return [_CHOICES_FOR[_CHOICES[k]] for k in codes.tolist()], every[_ROWS_FOR_CODE[codes]]
 
     def _analyze(self, x: np.ndarray, pos: np.ndarray | None,
                  new_only: bool = False) -> tuple[dict[Choice, Any], list[tuple[Choice, Any]]]:
@@ -392,34 +397,69 @@ class Gate:
         when the colliding pairs' total clearance dropped: a move out of contact may trade a little of one pair
         for more of the others (the straight way home from an interlock often does), never the total.
         ``new_only``: only new pairs block (a pose further ahead: the step rule governs pairs already in contact)."""
-        cfg = self._configs(x, pos)
-        res = dict(zip(cfg, self._check(list(cfg.values())), strict=True))
-        hit = [c for c, r in res.items() if r.collides]
+        choices, rows = self._config_rows(x.take(self.model.addresses)[None], pos)
+        results = self._check(rows)
+        return dict(zip(choices[0], results, strict=True)), self._compare(choices[0], rows, results, pos, new_only)
+
+    def _output_q(self) -> np.ndarray:
+        """The previous output's model joint vector (made once a frame)."""
+        if self._ref_q is None:
+            self._ref_q = self.ref.take(self.model.addresses)
+        return self._ref_q
+
+    def _base_configs(self, pos: np.ndarray | None) -> tuple[dict[Choice, np.ndarray], dict[Choice, dict[Any, float]]]:
+        """The previous output in every choice (``_config_rows``: the baseline of ``_compare``), made once a frame, and
+        the colliding pairs found there so far (pair -> clearance, filled by ``_compare``)."""
+        if self._base is None or self._base[0] is not pos:
+            q_ref = self._output_q()
+            if pos is None:
+                rows = {(False, False, False): q_ref}
+            else:
+                rows = dict(zip(_CHOICES, np.where(_CHOICE_MASK, self._measured_q(pos, q_ref), q_ref), strict=True))
+            self._base = (pos, rows, {})
+        return self._base[1], self._base[2]
+
+    def _compare(self, choices: Sequence[Choice], rows: np.ndarray | Sequence[np.ndarray], results: Sequence[Any],
+                 pos: np.ndarray | None, new_only: bool) -> list[tuple[Choice, Any]]:
+        """The blocking contacts of ``_analyze``: configurations ``rows`` (``choices``) with their ``results``
+        against the previous output in the same configurations."""
+        hit = [i for i, r in enumerate(results) if r.contacts]
         if not hit:
-            return res, []
-        base = self._configs(self.ref, pos, hit)
-        changed = [c for c in hit if not np.array_equal(cfg[c], base[c])]
-        before = dict(zip(changed, self._check([base[c] for c in changed]), strict=True))
+            return []
+        base, pairs = self._base_configs(pos)
+        changed = [i for i in hit if not (rows[i] == base[choices[i]]).all()]
+        todo = list(dict.fromkeys(choices[i] for i in changed if choices[i] not in pairs))
+        for c, r in zip(todo, self._check([base[c] for c in todo]), strict=True):
+            pairs[c] = {(k.a, k.b): k.clearance for k in r.contacts}
         blocking = []
-        for c in changed:
-            old = {(k.a, k.b): k.clearance for k in before[c].contacts}
-            new = [k for k in res[c].contacts if (k.a, k.b) not in old]
-            kept = [k for k in res[c].contacts if (k.a, k.b) in old]
+        for i in changed:
+            c, old, contacts = choices[i], pairs[choices[i]], results[i].contacts
+            new = [k for k in contacts if (k.a, k.b) not in old]
+            kept = [k for k in contacts if (k.a, k.b) in old]
             closer = sum(k.clearance - old[(k.a, k.b)] for k in kept) < -CLOSER
             blocking += [(c, k) for k in new]
             if closer and not new_only:
                 blocking += [(c, k) for k in kept if k.clearance < old[(k.a, k.b)]]
-        return res, blocking
+        return blocking
 
-    def _check(self, qs: list[np.ndarray]) -> list[Any]:
+    def _check(self, qs: np.ndarray | Sequence[np.ndarray]) -> list[Any]:
         """``model.check_many``, remembering the answers of recent frames: the previous output's configurations
-        (the baseline of every comparison) were checked in the previous frame, and a held arm's configurations
-        repeat frame after frame."""
-        keys = [q.tobytes() for q in qs]
-        todo = {k: q for k, q in zip(keys, qs, strict=True) if k not in self._cache}
+        (the baseline of every comparison) were checked in the previous frame, a held arm's configurations
+        repeat frame after frame, and so do those of a braking path where its arms are taken measured."""
+        if not len(qs):
+            return []
+        rows = qs if type(qs) is np.ndarray else np.array(qs, dtype=float)
+        raw, width = rows.tobytes(), rows.shape[1] * rows.itemsize
+        keys = [raw[k:k + width] for k in range(0, len(raw), width)]
+        cache = self._cache
+        todo: dict[bytes, int] = {}
+        for k, key in enumerate(keys):
+            if key not in cache and key not in todo:
+                todo[key] = k
         if todo:
-            self._cache.update(zip(todo, self.model.check_many(np.array(list(todo.values()))), strict=True))
-        return [self._cache[k] for k in keys]
+            new = rows if len(todo) == len(keys) else rows[list(todo.values())]
+            cache.update(zip(todo, self.model.check_many(new), strict=True))
+        return [cache[k] for k in keys]
 
     def _moves(self, x: np.ndarray, unit: str) -> bool:
         """Whether output candidate ``x`` moves ``unit`` from the previous output."""
@@ -453,44 +493,68 @@ class Gate:
                 out[arm] = min(mine, key=lambda k: k.clearance)
         return out
 
-    def _braking_path(self, x: np.ndarray, arms: Iterable[str], dt: float) -> list[np.ndarray]:
-        """The poses ``x`` would pass through if its moving ``arms`` started braking now: each arm keeps the
-        direction of its step from the previous output (all its joints scaled alike, so the hand stays on its
-        path) while its fastest joint decelerates at ``brake_accel``; checked every ``AHEAD_STEP`` rad and where
-        they stop. A step is taken as made in at most ``input_period`` (a late frame does not make it slower)."""
+    def _braking_path(self, x: np.ndarray, arms: Iterable[str], dt: float) -> np.ndarray:
+        """``x`` and the poses it would pass through if its moving ``arms`` started braking now, as model joint
+        vectors (rows; ``x`` first): each arm keeps the direction of its step from the previous output (all its
+        joints scaled alike, so the hand stays on its path) while its fastest joint decelerates at
+        ``brake_accel``; checked every ``AHEAD_STEP`` rad and where they stop. A step is taken as made in at most
+        ``input_period`` (a late frame does not make it slower)."""
+        q = x.take(self.model.addresses)
         h = min(dt, self.config.input_period)
         if h <= 0:
-            return []
-        ext: list[tuple[np.ndarray, np.ndarray]] = []
+            return q[None]
+        step = q - self._output_q()  # from the previous output
+        moving: list[str] = []
+        scale: list[float] = []
         reach = 0.0
         for arm in arms:
-            idx = UNIT_ADDRESSES[arm]
-            d = x[idx] - self.ref[idx]
-            fastest = float(np.abs(d).max())
+            fastest = float(np.abs(step[_UNIT_Q[arm]]).max())
             if fastest > 0:  # stopping distance v^2 / 2a of the fastest joint, v = fastest / h
                 k = fastest / (2.0 * self.config.brake_accel * h * h)
-                ext.append((idx, d * k))
+                moving.append(arm)
+                scale.append(k)
                 reach = max(reach, fastest * k)
-        n = math.ceil(reach / AHEAD_STEP) if ext else 0
-        if n == 0:
-            return []
-        path = np.tile(x, (n, 1))
-        fraction = np.arange(1, n + 1)[:, None] / n
-        for idx, e in ext:
-            path[:, idx] = np.minimum(np.maximum(x[idx] + e * fraction, self.lower[idx]), self.upper[idx])
-        return list(path)
+        n = math.ceil(reach / AHEAD_STEP) if moving else 0
+        path = np.empty((n + 1, len(q)))
+        path[:] = q
+        if n:
+            idx, sizes, lower, upper = self._arm_columns(tuple(moving))
+            fraction = _FRACTIONS.get(n)
+            if fraction is None:
+                fraction = _FRACTIONS[n] = np.arange(1, n + 1)[:, None] / n
+            e = step[idx] * np.repeat(scale, sizes)
+            path[1:, idx] = np.minimum(np.maximum(q[idx] + e * fraction, lower), upper)
+        return path
+
+    def _arm_columns(self, arms: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The model joint columns of ``arms`` (in order), their count per arm, and their limits."""
+        out = self._columns.get(arms)
+        if out is None:
+            idx = np.concatenate([_UNIT_Q[a] for a in arms])
+            lower, upper = self._model_limits
+            out = self._columns[arms] = (idx, np.array([len(_UNIT_Q[a]) for a in arms]), lower[idx], upper[idx])
+        return out
 
     def _blocks(self, x: np.ndarray, pos: np.ndarray | None, arms: Iterable[str],
                 dt: float) -> list[tuple[Choice, Any]]:
         """The blocking contacts of output candidate ``x``, or else of the first pose on its ``arms``' braking
-        path that has any: an arm must not go where it could no longer stop before a contact."""
-        blocking = self._analyze(x, pos)[1]
-        if blocking:
-            return blocking
-        for y in self._braking_path(x, arms, dt):
-            blocking = self._analyze(y, pos, new_only=True)[1]
-            if blocking:
-                return blocking
+        path that has any: an arm must not go where it could no longer stop before a contact. ``x`` and its path
+        are checked a few poses per call (the C screen's loop, not one call per pose: the bisection of
+        ``_approach`` runs this up to ``approach_iterations`` times a frame), then judged in order, as one by one."""
+        choices, rows = self._config_rows(self._braking_path(x, arms, dt), pos)
+        ends = list(itertools.accumulate(len(cs) for cs in choices))
+        results: list[Any] = []
+        k, size = 0, 2
+        for pose, cs in enumerate(choices):
+            if len(results) < ends[pose]:  # x and the next pose, then the next 4, 8...: a path that blocks early
+                results += self._check(rows[k:ends[min(len(ends), pose + size) - 1]])  # ends its checks early
+                size *= 2
+            got = results[k:k + len(cs)]
+            if any(r.contacts for r in got):
+                blocking = self._compare(cs, rows[k:k + len(cs)], got, pos, new_only=pose > 0)
+                if blocking:
+                    return blocking
+            k += len(cs)
         return []
 
     def _approach(self, cand: np.ndarray, cand_mode: np.ndarray, frozen: set[str], arms: set[str],
@@ -540,7 +604,7 @@ class Gate:
         return bool(differs.any())
 
     def process(self, ref: np.ndarray, mode: np.ndarray, now: float, observed: Observed | None = None) -> Decision:
-        self._measured = None
+        self._measured = self._base = self._ref_q = None
         ref = np.asarray(ref, dtype=float)
         mode = np.asarray(mode, dtype=np.int16)
         cand = ref.copy()
@@ -664,8 +728,8 @@ class Gate:
         if observed is None or observed.sent is None or now - observed.time > self.config.state_timeout:
             return out
         touching: set[str] = set()
-        now_cfg = self._configs(self.ref, observed.pos)
-        for (choice, _), result in zip(now_cfg.items(), self._check(list(now_cfg.values())), strict=True):
+        choices, rows = self._config_rows(self._output_q()[None], observed.pos)
+        for choice, result in zip(choices[0], self._check(rows), strict=True):
             touching |= {u for u in ("left", "right") if choice[UNITS.index(u)]
                          and any(u in (k.group_a, k.group_b) for k in result.contacts)}
         for arm in arms - touching:
