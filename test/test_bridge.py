@@ -19,8 +19,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from support import VENV_BIN, in_netns, remove_mds_channels
-from support.spin import Spinner
+from support import VENV_BIN
+from support.bridgeproc import BridgeProcs, module_harness
 
 import mds_ach as mds
 from mds_ach import ach, paths
@@ -251,7 +251,7 @@ NODE_PARAMS = [
 ]  # fmt: skip
 
 
-class Harness(Spinner):
+class Harness(BridgeProcs):
     """``daemon --nocan`` and the bridge as child processes, plus a probe node in this process."""
 
     def __init__(self, tmp: Path) -> None:
@@ -261,16 +261,8 @@ class Harness(Spinner):
         from std_msgs.msg import Float64MultiArray, String
         from trajectory_msgs.msg import JointTrajectory
 
-        self.log = tmp / "bridge.log"
-        self.daemon_log = tmp / "daemon.log"
-        self.daemon = subprocess.Popen(
-            [str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "-r", str(RATE), "--over-budget"],
-            stdout=self.daemon_log.open("w"), stderr=subprocess.STDOUT,
-        )  # fmt: skip
-        self.bridge = subprocess.Popen(
-            [str(VENV_BIN / "mds-ach-bridge"), "--ros-args", *NODE_PARAMS], stdout=self.log.open("w"),
-            stderr=subprocess.STDOUT,
-        )
+        self.start_daemon(tmp, "-r", str(RATE), "--over-budget")
+        self.start_bridge(*NODE_PARAMS)
         self.open_node("bridge_test_probe")
         self.states: list = []
         self.refs: list = []
@@ -296,10 +288,6 @@ class Harness(Spinner):
         self.start = dict(zip(self.states[-1].name, self.states[-1].position, strict=True))
 
 
-    def bridge_log(self) -> str:
-        daemon = self.daemon_log.read_text() if self.daemon_log.exists() else ""
-        return (self.log.read_text() if self.log.exists() else "") + "\n--- daemon:\n" + daemon[-3000:]
-
     def last_diag(self, name_part: str):
         for arr in reversed(self.diags):
             for st in arr.status:
@@ -311,29 +299,11 @@ class Harness(Spinner):
         st = self.last_diag(name_part)
         return {} if st is None else {kv.key: kv.value for kv in st.values}
 
-    def close(self) -> int:
-        self.close_node()
-        for proc in (self.daemon,):
-            if proc.poll() is None:
-                os.kill(proc.pid, signal.SIGCONT)
-                proc.terminate()
-                proc.wait(timeout=10)
-        if self.bridge.poll() is None:
-            self.bridge.send_signal(signal.SIGTERM)
-        return self.bridge.wait(timeout=15)
 
 
 @pytest.fixture(scope="module")
 def harness(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Harness]:
-    assert in_netns(), "run the suite through tools/netns-run (make test)"
-    remove_mds_channels()
-    h = Harness(tmp_path_factory.mktemp("bridge"))
-    try:
-        yield h
-    finally:
-        rc = h.close()
-        remove_mds_channels()
-    assert rc == 0, f"bridge exited with {rc} on SIGTERM; log:\n{h.bridge_log()}"
+    yield from module_harness(lambda: Harness(tmp_path_factory.mktemp("bridge")))
 
 
 def _state_channel():

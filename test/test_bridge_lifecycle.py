@@ -8,9 +8,6 @@ refuse the bridge's frames; they talk to the bridge over DDS (inside tools/netns
 from __future__ import annotations
 
 import math
-import os
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -20,8 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mds_ach_interfaces.msg import CommandStatus
-from support import VENV_BIN, in_netns, remove_mds_channels
-from support.spin import Spinner
+from support.bridgeproc import BridgeProcs, module_harness
 
 import mds_ach as mds
 from mds_ach.nodes.mux import Controller, MuxCore, MuxRunner
@@ -99,7 +95,7 @@ RATE = 50.0  # over the default robot's CAN budget (22 Hz), hence --over-budget
 BRIDGE_PARAMS = ["-p", "diagnostics_period:=0.2", "-p", "stale_timeout:=1.0"]
 
 
-class System(Spinner):
+class System(BridgeProcs):
     """daemon --nocan and the bridge as child processes, the mux in this process, a probe node for DDS."""
 
     def __init__(self, tmp: Path) -> None:
@@ -110,10 +106,7 @@ class System(Spinner):
 
         from mds_ach.robot.channels import StructChannel
 
-        self.log = tmp / "bridge.log"
-        self.daemon = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "-r", str(RATE),
-                                        "--over-budget"],
-                                       stdout=(tmp / "daemon.log").open("w"), stderr=subprocess.STDOUT)
+        self.start_daemon(tmp, "-r", str(RATE), "--over-budget")
         self.mux_log: list[str] = []
         self.mux = MuxRunner(CONTROLLERS, state_rate=10.0, log=lambda level, msg: self.mux_log.append(msg))
         self.mux_thread = threading.Thread(target=self.mux.run, daemon=True)
@@ -122,8 +115,7 @@ class System(Spinner):
         self.teleop = StructChannel(TELEOP_CHANNEL, mds.MDS_REF)
         # teleop's newest frame (ref, mode): the mux compares its next one with it
         self.teleop_frame: tuple[np.ndarray, np.ndarray] | None = None
-        self.bridge = subprocess.Popen([str(VENV_BIN / "mds-ach-bridge"), "--ros-args", *BRIDGE_PARAMS],
-                                       stdout=self.log.open("w"), stderr=subprocess.STDOUT)
+        self.start_bridge(*BRIDGE_PARAMS)
         self.open_node("bridge_lifecycle_probe")
         self.diags: list = []
         self.status: list[dict] = []
@@ -164,9 +156,6 @@ class System(Spinner):
         self.spin_until(future.done, timeout, f"the answer of {client.srv_name}")
         return future.result()
 
-    def bridge_log(self) -> str:
-        return self.log.read_text() if self.log.exists() else ""
-
     def commands_diag(self):
         for arr in reversed(self.diags):
             for st in arr.status:
@@ -176,30 +165,17 @@ class System(Spinner):
 
     def close(self) -> int:
         self.close_node()
-        if self.bridge.poll() is None:
-            self.bridge.send_signal(signal.SIGTERM)
-        rc = self.bridge.wait(timeout=15)
+        rc = self.stop_bridge()
         self.mux.stop()
         self.mux_thread.join(5)
         self.teleop.close()
-        if self.daemon.poll() is None:
-            os.kill(self.daemon.pid, signal.SIGCONT)
-            self.daemon.terminate()
-            self.daemon.wait(timeout=10)
+        self.stop_daemon()
         return rc
 
 
 @pytest.fixture(scope="module")
 def system(tmp_path_factory: pytest.TempPathFactory) -> Iterator[System]:
-    assert in_netns(), "run the suite through tools/netns-run (make test)"
-    remove_mds_channels()
-    s = System(tmp_path_factory.mktemp("bridge_lifecycle"))
-    try:
-        yield s
-    finally:
-        rc = s.close()
-        remove_mds_channels()
-    assert rc == 0, f"bridge exited with {rc} on SIGTERM; log:\n{s.bridge_log()}"
+    yield from module_harness(lambda: System(tmp_path_factory.mktemp("bridge_lifecycle")))
 
 
 def _trajectory(names: list[str], start: list[float], end: list[float], seconds: float):

@@ -7,16 +7,14 @@ joints on the latched /tf_static, the moving ones on /tf with the stamp and posi
 from __future__ import annotations
 
 import math
-import signal
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from support import REPO, VENV_BIN, in_netns, remove_mds_channels
-from support.spin import Spinner
+from support import REPO
+from support.bridgeproc import BridgeProcs, module_harness
 
 from mds_ach.kinematics.model import load_model
 
@@ -34,7 +32,7 @@ def _matrix(tf) -> np.ndarray:  # type: ignore[no-untyped-def]
     return T
 
 
-class TfHarness(Spinner):
+class TfHarness(BridgeProcs):
     """``daemon --nocan`` (a left elbow bent, so the transforms are not the zero pose) and the bridge."""
 
     def __init__(self, tmp: Path) -> None:
@@ -42,12 +40,8 @@ class TfHarness(Spinner):
         from sensor_msgs.msg import JointState
         from tf2_msgs.msg import TFMessage
 
-        self.log = tmp / "bridge.log"
-        self.daemon = subprocess.Popen([str(VENV_BIN / "mds-ach-daemon"), "--nocan", "--no-ros", "--sim-pose",
-                                        "LEP=-1.0", "--sim-pose", "RSP=0.4"], stdout=(tmp / "daemon.log").open("w"),
-                                       stderr=subprocess.STDOUT)
-        self.bridge = subprocess.Popen([str(VENV_BIN / "mds-ach-bridge")], stdout=self.log.open("w"),
-                                       stderr=subprocess.STDOUT)
+        self.start_daemon(tmp, "--sim-pose", "LEP=-1.0", "--sim-pose", "RSP=0.4")
+        self.start_bridge()
         self.open_node("tf_test_probe")
         self.tf: list = []
         self.static: list = []
@@ -58,28 +52,11 @@ class TfHarness(Spinner):
         self.node.create_subscription(TFMessage, "/tf_static", self.static.append, latched)
         self.node.create_subscription(JointState, "/joint_states", self.states.append, 100)
 
-    def bridge_log(self) -> str:
-        return self.log.read_text() if self.log.exists() else ""
-
-    def close(self) -> int:
-        self.close_node()
-        self.daemon.terminate()
-        self.daemon.wait(timeout=10)
-        self.bridge.send_signal(signal.SIGTERM)
-        return self.bridge.wait(timeout=15)
 
 
 @pytest.fixture(scope="module")
 def harness(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TfHarness]:
-    assert in_netns(), "run the suite through tools/netns-run (make test)"
-    remove_mds_channels()
-    h = TfHarness(tmp_path_factory.mktemp("tf"))
-    try:
-        yield h
-    finally:
-        rc = h.close()
-        remove_mds_channels()
-    assert rc == 0, f"bridge exited with {rc} on SIGTERM; log:\n{h.bridge_log()}"
+    yield from module_harness(lambda: TfHarness(tmp_path_factory.mktemp("tf")))
 
 
 @pytest.mark.ros

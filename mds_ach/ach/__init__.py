@@ -25,8 +25,9 @@ Why some things look the way they do:
   project's libach for C clients (``libach/``, sharing ``achcore.h`` with the C fast path) does the same. Frames
   from golems' libach writers, which only broadcast, are noticed by a re-check: with the C fast path an idle
   reader re-checks every ``IDLE_SLICE`` inside C (returning to Python only every ``IDLE_RETURN``) until it has
-  seen such a frame, then every ``UNWOKEN_POLL`` for ``UNWOKEN_HOLD`` seconds after the last one; the pure-Python
-  path re-checks every ``POLL_SLICE``.
+  seen such a frame, then every ``UNWOKEN_POLL`` for ``UNWOKEN_HOLD`` seconds after the last one (and for
+  ``UNWOKEN_PROBE`` after a wake-up that found several frames: on a channel a waking writer streams to as well, the
+  broadcast-only frames arrive just before a woken one); the pure-Python path re-checks every ``POLL_SLICE``.
   ``Channel(..., condvar_wait=True)`` waits in the condvar exactly like libach instead (C writers wake it at
   once; the dead-waiter hazard is then libach's too).
 * Waits are cut into short timed slices so that Ctrl-C, ``cancel()`` and ``close()`` are honoured even though
@@ -75,6 +76,7 @@ from mds_ach.ach.channel import (
     POLL_SLICE,
     UNWOKEN_HOLD,
     UNWOKEN_POLL,
+    UNWOKEN_PROBE,
     WAIT_SLICE,
     Channel,
     _achfast,
@@ -153,8 +155,8 @@ __all__ = [
     "ACH_O_NONBLOCK", "ACH_O_RELTIME", "ACH_O_WAIT", "ACH_STALE_FRAMES", "ACH_TIMEOUT", "CLOCK_MONOTONIC",
     "CLOCK_REALTIME", "FAST_AVAILABLE", "GUARD_AVAILABLE", "GUARD_DATA", "GUARD_HEADER", "GUARD_INDEX",
     "IDLE_RETURN", "IDLE_SLICE", "LAYOUTS", "LAYOUT_AARCH64", "LAYOUT_X86_64", "MAGIC", "NAME_MAX", "POLL_SLICE",
-    "SHM_DIR", "SHM_PREFIX", "UNWOKEN_HOLD", "UNWOKEN_POLL", "WAIT_SLICE", "AchException", "Channel", "ChannelImage",
-    "IndexEntry", "Layout", "MappingGuard",
+    "SHM_DIR", "SHM_PREFIX", "UNWOKEN_HOLD", "UNWOKEN_POLL", "UNWOKEN_PROBE", "WAIT_SLICE", "AchException",
+    "Channel", "ChannelImage", "IndexEntry", "Layout", "MappingGuard",
     "create", "detect_layout", "exists", "explain", "native_layout", "open_channel_file", "parse_image",
     "result_string", "set_open_check", "shm_path", "unlink", "validate_name",
     "_LOCK_TIMED_OUT", "_achfast", "_shmguard",

@@ -51,8 +51,9 @@ enum { ACH_O_WAIT = 1, ACH_O_LAST = 2, ACH_O_COPY = 4 };
 #define ACHCORE_LOCK_TIMED_OUT (-1)
 
 /* how a wait for a new frame ended: no wait needed, woken by a futex wake (or the word changed before the sleep),
- * or with a frame that came without a wake-up (the sleep timed out and the frame was there; see achcore_wait). */
-enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_UNWOKEN = 2 };
+ * with a frame that came without a wake-up (the sleep timed out and the frame was there; see achcore_wait), or
+ * woken with two or more new frames (one of them may have come without a wake-up: a short look, see there). */
+enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_UNWOKEN = 2, WAIT_SEVERAL = 3 };
 
 #define ACHCORE_MAGIC 0xB07511F3u
 #define ACHCORE_GUARD_HEADER 0x1A2A3A4A5A6A7A8AULL
@@ -62,6 +63,7 @@ enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_UNWOKEN = 2 };
 #define ACHCORE_IDLE_SLICE_NS 50000000LL /* libach: a waiting reader re-checks cancel this often */
 #define ACHCORE_UNWOKEN_POLL_NS 300000LL /* look at last_seq this often after a frame came without a wake-up */
 #define ACHCORE_UNWOKEN_HOLD_NS 10000000000LL /* ... for this long after the last such frame */
+#define ACHCORE_UNWOKEN_PROBE_NS 300000000LL /* ... and for this long after a wake-up that found several frames */
 
 /* header words, in u64 units from the start of the file (ach-format.md 2.1) */
 #define ACHCORE_Q_LEN 1
@@ -375,6 +377,8 @@ static inline int achcore_flush(achcore_t *c, long long lock_ns) {
 static inline long long achcore_poll_ns(achcore_t *c, long long now) {
     if (c->woken == WAIT_UNWOKEN)
         c->unwoken_until = now + ACHCORE_UNWOKEN_HOLD_NS;
+    else if (c->woken == WAIT_SEVERAL && c->unwoken_until < now + ACHCORE_UNWOKEN_PROBE_NS)
+        c->unwoken_until = now + ACHCORE_UNWOKEN_PROBE_NS;
     c->woken = WAIT_NONE;
     return now < c->unwoken_until ? ACHCORE_UNWOKEN_POLL_NS : 0;
 }
@@ -405,12 +409,13 @@ static inline int achcore_wait(achcore_t *c, long long slice_ns, long long poll_
         uint64_t now_last = *c->last_seq;
         if (now_last != seen) {
             /* timed out with a frame there: nobody woke us. Woken with two or more new frames proves nothing: a
-             * reader that waited for a CPU (a busy machine) finds a waking writer's next frames too, and took that
-             * for a broadcast-only writer, polling every ACHCORE_UNWOKEN_POLL_NS for 10 s (1-3 % of a core per
-             * reader). A broadcast-only writer's frame is still seen with the next woken frame or at the end of
-             * the slice, whichever comes first, and that timeout then switches the reader to polling. */
+             * reader that waited for a CPU (a busy machine) finds a waking writer's next frames too; taken for a
+             * broadcast-only writer, each such reader polled every ACHCORE_UNWOKEN_POLL_NS for 10 s (1-3 % of a
+             * core per reader). But on a channel a waking writer also streams to, a broadcast-only writer's frames
+             * are only ever seen with the waking writer's next one (never at the end of a slice): so the caller
+             * looks briefly (ACHCORE_UNWOKEN_PROBE_NS), long enough for such a frame to time a look out. */
             int timed_out = fr == -1 && err == ETIMEDOUT;
-            c->woken = timed_out ? WAIT_UNWOKEN : WAIT_WOKEN;
+            c->woken = timed_out ? WAIT_UNWOKEN : now_last - seen >= 2 ? WAIT_SEVERAL : WAIT_WOKEN;
             return 1;
         }
         if (!(fr == -1 && err == ETIMEDOUT))

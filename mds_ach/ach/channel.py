@@ -84,7 +84,9 @@ IDLE_SLICE = 0.05  # C fast path: how often an idle wait looks at last_seq (insi
 IDLE_RETURN = 1.0  # C fast path: an idle wait returns to Python this often (cancel and close wake it; signals end it)
 UNWOKEN_POLL = 0.0003  # C fast path: after a frame came without a wake-up, look at last_seq this often (in C) ...
 UNWOKEN_HOLD = 10.0  # ... for this many seconds after the last such frame (golems' libach writers only broadcast)
-_WAIT_WOKEN, _WAIT_UNWOKEN = 1, 2  # _achfast.Handle.woken: how the last get's futex wait ended (0: no wait)
+UNWOKEN_PROBE = 0.3  # ... and for this long after a wake-up that found several frames (one may have come unwoken)
+# _achfast.Handle.woken: how the last get's futex wait ended (0: no wait; achcore.h WAIT_*)
+_WAIT_WOKEN, _WAIT_UNWOKEN, _WAIT_SEVERAL = 1, 2, 3
 
 _U64 = struct.Struct("<Q")
 _U64_MAX = 2**64 - 1
@@ -801,8 +803,12 @@ class Channel:
                     return ACH_TIMEOUT, 0
                 span, final = self._slice(deadline)
                 status, size = get(buf, options, span, lock_ns, self._poll_ns())
-            if wait and status in (ACH_OK, ACH_MISSED_FRAME) and fast.woken == _WAIT_UNWOKEN:
-                self._unwoken_until = time.monotonic() + UNWOKEN_HOLD  # the frame came without a wake-up
+            if wait and status in (ACH_OK, ACH_MISSED_FRAME) and fast.woken >= _WAIT_UNWOKEN:
+                now = time.monotonic()
+                if fast.woken == _WAIT_UNWOKEN:  # the frame came without a wake-up
+                    self._unwoken_until = now + UNWOKEN_HOLD
+                else:  # one of the frames may have: look briefly (achcore_wait says why)
+                    self._unwoken_until = max(self._unwoken_until, now + UNWOKEN_PROBE)
             return status, size
         finally:
             active.pop()

@@ -558,10 +558,11 @@ class CollisionModel:
     def check_many(self, qs: np.ndarray) -> list[CheckResult]:
         """``check`` for each row of ``qs`` (K, 17): the C screen per row, else one batched numpy FK and broad
         phase."""
-        qs = np.atleast_2d(np.asarray(qs, dtype=float))
+        if not (type(qs) is np.ndarray and qs.ndim == 2 and qs.dtype == np.float64 and qs.flags.c_contiguous):
+            qs = np.ascontiguousarray(np.atleast_2d(np.asarray(qs, dtype=float)))  # (the gate's rows already are)
         if self._fast is not None:
-            found = _collfast.check_many(self._fast, np.ascontiguousarray(qs))
-            return [_FREE if f is None else self._from_screen(q, f) for q, f in zip(qs, found, strict=True)]
+            found = _collfast.check_many(self._fast, qs)
+            return [_FREE if f is None else self._from_screen(qs[k], f) for k, f in enumerate(found)]
         poses = self.primitive_poses(qs)
         centres = poses[..., :3, 3]
         gap = np.linalg.norm(centres[:, self._I] - centres[:, self._J], axis=2) - self._rsum
