@@ -561,6 +561,9 @@ class CollisionModel:
             if found is NotImplemented:
                 q = np.ascontiguousarray(q, dtype=float)
                 found = _collfast.check_one(self._fast, q)
+                if found is NotImplemented:
+                    raise ValueError(f"a configuration needs {len(self.joint_names)} joint values, got shape "
+                                     f"{q.shape}")
             if found is not False:
                 return found
             return self._check_screened(np.asarray(q, dtype=float))
