@@ -212,7 +212,7 @@ def _interleaved(contenders: dict[str, Callable[[np.ndarray], Any]], qs: np.ndar
 def run(quick: bool = False) -> list[Row]:
     import mds_ach as mds
     from mds_ach.kinematics.collision import FAST_AVAILABLE, load_model
-    from mds_ach.nodes.collision import Gate, GateConfig, Observed, joint_limits
+    from mds_ach.nodes.gate import Gate, GateConfig, Observed, joint_limits
 
     model = load_model(world=TABLE)
     slow = load_model(world=TABLE)
@@ -361,7 +361,7 @@ def _gate_on_scenes(scenes: dict[str, np.ndarray], peer: PinocchioCoal | None, l
     checks cost in C++, without the gate's logic and without clearances)."""
     import mds_ach as mds
     from mds_ach.kinematics.collision import load_model
-    from mds_ach.nodes.collision import Gate, GateConfig, Observed
+    from mds_ach.nodes.gate import Gate, GateConfig, Observed
 
     rows: list[Row] = []
     model = load_model(world=TABLE)

@@ -82,6 +82,10 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 WRITE_RECORDS = 64
 """Recent writes remembered to tell which command a refused frame carried (the mux answers within a cycle)."""
+RETRACT_MARGIN = 0.02
+"""s: how long before the daemon's next cycle a stop's retracted frame must be written to reach the daemon's input
+(through the mux, the filter and the collision gate: a few ms) in time; later, the daemon takes the newest frame
+first and that is the target the stop holds (``BridgeNode._retract``)."""
 STATE_QOS = {
     "sensor_data": qos_profile_sensor_data,  # best effort, keep last 5
     "reliable": QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
@@ -129,6 +133,7 @@ class _Running:
     slowed: set[str] = field(default_factory=set)  # its joints the daemon's collaborative mode slowed (#31)
     due: float | None = None  # the time its newest written targets were sampled for (node clock)
     desired: dict[str, tuple[float, float]] = field(default_factory=dict)  # (position, velocity) there, per joint
+    previous: tuple[float, dict[str, tuple[float, float]]] | None = None  # (due, desired) of the sample before
     floors: dict[str, _Floor] = field(default_factory=dict)  # a replaced motion's braking, per joint (``_Floor``)
     ramps: dict[str, float] = field(default_factory=dict)  # joints going back from a floor: their last target
 
@@ -147,6 +152,32 @@ class _Floor:
     sign: float
     rest: float
     forward: bool
+
+
+@dataclass
+class _Stop:
+    """Joints of a stopped trajectory whose frame was retracted to the daemon's reference (``BridgeNode._retract``),
+    waiting for their CANCEL until the daemon has taken it (``BridgeNode._check_stops``)."""
+
+    names: tuple[str, ...]
+    reason: str
+    hold: dict[str, float]  # where the frame holds each joint: the daemon's reference at the stop
+    newest: dict[str, float]  # the newest value written before: the last target if the daemon took it first
+    brakes: dict[str, Braking]  # the joints' braking from the newest targets (``BridgeNode._braking``), for that case
+    frame: int  # the state frames counted when written: the next one tells what the daemon took
+    deadline: float  # monotonic: CANCEL then whatever the daemon took (no state frame: a stall)
+
+
+@dataclass(frozen=True)
+class _Retracted:
+    """A joint a new trajectory takes over from a moving one, its frame retracted to the daemon's reference
+    (``BridgeNode._retract``): the new trajectory's first cycle tells which of the two the daemon took
+    (``BridgeNode._replace``)."""
+
+    hold: float  # the daemon's reference at the replacement
+    newest: float  # the replaced trajectory's newest value
+    braking: Braking  # the replaced motion's braking from its newest target (if the daemon took that one)
+    frame: int  # the state frames counted at the replacement
 
 
 @dataclass(frozen=True)
@@ -264,6 +295,12 @@ class BridgeNode(Node):
         self._writes: deque[_Write] = deque(maxlen=WRITE_RECORDS)  # appended under _write_lock, read under _lock
         self._reported: deque[int] = deque(maxlen=WRITE_RECORDS)  # serials whose refusal was logged already
         self._cancels: list[tuple[tuple[str, ...], str]] = []  # (joints, reason) to CANCEL, sent outside the lock
+        self._stops: list[_Stop] = []  # retracted stops waiting for their CANCEL (``_check_stops``)
+        self._stops_done = threading.Condition(self._lock)  # notified when ``_stops`` empties
+        self._retracted: dict[str, _Retracted] = {}  # joints a new trajectory takes from a retracted one
+        # Frame values of stopped joints to write next (a retraction or its undoing, ``_check_stops``); put into the
+        # frame under the write lock (a put reads the frame outside the lock), by ``_take_holds``.
+        self._holds: dict[str, float] = {}
         self._resync: set[str] = set()  # joints of a stopped trajectory: the frame's value is not where they hold
         # The commanded motion of joints whose trajectory stopped or was replaced while moving: they brake at the
         # MOVETO acceleration from their desired state at the last written target onto its stopping point. A new
@@ -404,15 +441,17 @@ class BridgeNode(Node):
                 self._last_frame_mono = mono
                 self._counters.frames += 1
                 self._take_mux_news(news)
+                self._check_stops(state)
                 ref = self._next_reference(state, due_s)
-                if ref is None and self._unsent:  # the newest frame did not get through: write it again
-                    ref = self._frame
                 carried = self._carried
                 measured = (dict(zip(self._names, positions, strict=True)),
                             dict(zip(self._names, velocities, strict=True)))
                 self._measured = measured
                 self._state = state
                 feedback = self._follow_goals(measured_s, *measured)
+                # The newest frame did not get through, or a stop's retraction is to be written: write it (again).
+                if self._take_holds() or (ref is None and self._unsent):
+                    ref = self._frame
                 running = self._running_by_joint()
                 late, self._late_rejections = self._late_rejections, []
             if ref is not None:
@@ -455,6 +494,7 @@ class BridgeNode(Node):
             self._stalled = True
             # A trajectory must not jump ahead when the state comes back: drop it and hold.
             dropped = bool(self._stop_all("aborted: the state stream stalled"))
+            self._end_stops(everything=True)
         what = "no state frame yet" if self._last_frame_mono is None else f"no new state frame for {now - since:.2f} s"
         self.get_logger().warning(
             f"{self._state_name}: {what}; is the daemon running?" + (" Trajectory aborted." if dropped else "")
@@ -482,7 +522,7 @@ class BridgeNode(Node):
         sampled: list[int] = []
         for r in active:
             if r.written is None:
-                self._replace(r, due_s)
+                self._replace(r, due_s, state)
             if not r.traj.anchored:
                 # Joints of a stopped trajectory hold where the daemon's reference is, not at the frame's last sample;
                 # a joint still braking from a replaced motion starts from its commanded state (position, velocity).
@@ -505,6 +545,8 @@ class BridgeNode(Node):
                         self._end_goal(r.goal, actions.ABORT, follow.Result.INVALID_GOAL, str(exc))
                     continue
             values, speeds, done = r.traj.sample_state(due_s)
+            if r.due is not None:
+                r.previous = (r.due, r.desired)
             r.due, r.desired = due_s, {n: (values[n], speeds[n]) for n in values}
             targets = self._floored(r, self._feedforward(values, speeds), due_s)
             self._apply(targets if done else self._lead(targets), self._trajectory_mode)  # the end: exactly there
@@ -543,22 +585,35 @@ class BridgeNode(Node):
                 if self._frame is None:
                     self._frame = self._base_frame(self._state)
                 commands = self._apply_pending()
+                self._take_holds()
                 self._writes.append(_Write(time.monotonic(), (), commands))
             self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again
             if not self._unsent:
                 with self._lock:
                     self._counters.references_written += 1
 
-    def _replace(self, r: _Running, due_s: float) -> None:
+    def _replace(self, r: _Running, due_s: float, state: MDS_STATE) -> None:
         """A new trajectory's joints that were braking from a replaced motion keep their braking target until the
         new one's targets pass it (``_Floor``): the joint stops within the braking distance from its commanded
-        velocity and never goes back to meet a trajectory that goes on the same way (caller holds the lock)."""
+        velocity and never goes back to meet a trajectory that goes on the same way (caller holds the lock).
+
+        The braking target is the last one the daemon sent: the daemon's reference the replacement retracted the
+        frame to (``_stop_running``), if this cycle's state shows the daemon took it, else the replaced trajectory's
+        newest target (the daemon sent it before the retraction arrived)."""
         final = dict(zip(r.traj.names, r.traj.positions[-1], strict=True))
         for n in r.traj.names:
+            retracted = self._retracted.pop(n, None)
+            hold = None
+            if retracted is not None and self._counters.frames <= retracted.frame + 1:
+                taken = state.joint[joints.BY_SHORT[n].address].ref_r
+                if abs(taken - retracted.newest) < abs(taken - retracted.hold):
+                    self._braking[n] = retracted.braking
+                else:
+                    hold = retracted.hold  # the reference itself: the daemon's target does not go back from it
             b = self._braking.get(n)
             if b is None or not b.moving(due_s):  # (at rest it may have been moved since by another controller)
                 continue
-            value = stopping_point(b.q0, b.v0, b.accel)
+            value = stopping_point(b.q0, b.v0, b.accel) if hold is None else hold
             sign = math.copysign(1.0, b.v0)
             r.floors[n] = _Floor(value, sign, b.t0 + abs(b.v0) / b.accel, sign * (final[n] - value) > 0.0)
 
@@ -636,6 +691,7 @@ class BridgeNode(Node):
             j.ref = value
             j.mode = mode
             self._resync.discard(name)
+            self._holds.pop(name, None)
 
     def _refuse_reason(self) -> str | None:
         """Commands need a live state stream: the bridge writes in step with it (caller holds the lock)."""
@@ -699,11 +755,12 @@ class BridgeNode(Node):
             if reason is None:
                 serial = self._new_command(f"{'' if controller is None else controller + ' '}trajectory #{{}} "
                                            f"({', '.join(traj.names)})")
-                replaced = self._preempt(traj.names, self._what[serial])
+                replaced = self._preempt(traj.names, self._what[serial], trajectory=True)
                 self._start(serial, traj)
         if reason is not None:
             self._reject(topic, reason)
             return
+        self._flush_cancels()
         self._emit()
         self._announce_accepted(serial, replaced,
                                 f"{len(traj.names)} joints, {len(traj.times)} points, {traj.times[-1]:.3f} s")
@@ -766,7 +823,7 @@ class BridgeNode(Node):
                 serial = self._new_command(f"{controller} goal #{{}} ({', '.join(traj.names)})")
                 mine = tuple(r.serial for r in self._running.values()
                              if r.goal is not None and r.goal.controller == controller)
-                replaced = self._preempt(traj.names, self._what[serial], also=mine)
+                replaced = self._preempt(traj.names, self._what[serial], also=mine, trajectory=True)
                 self._start(serial, traj, goal)
             else:
                 goal.end(actions.ABORT, follow.Result.INVALID_GOAL, reason)
@@ -918,21 +975,40 @@ class BridgeNode(Node):
         return self._serial
 
     def _stop_running(self, r: _Running, reason: str, keep: tuple[str, ...] = (), cancel: bool = True,
-                      how: str = actions.ABORT, code: int = follow.Result.INVALID_GOAL) -> str:
+                      how: str = actions.ABORT, code: int = follow.Result.INVALID_GOAL, retract: bool = True,
+                      replaced: bool = False) -> str:
         """Stop streaming ``r`` for good and queue a CANCEL for its joints not in ``keep`` (a new command takes
-        those); ``cancel`` False when nothing of it was applied. Its goal, if any, ends ``how`` with ``code``.
-        Returns its description (caller holds the lock)."""
+        those); ``cancel`` False when nothing of it was applied. ``retract``: the bridge's frame may take back its
+        newest targets first (``_retract``; not when the mux already stopped the joints: a new value would be a new
+        command); ``replaced``: a new trajectory takes the joints of ``keep``, which are retracted too (``_replace``).
+        Its goal, if any, ends ``how`` with ``code``. Returns its description (caller holds the lock)."""
         what = self._what.get(r.serial, "trajectory")
         self._running.pop(r.serial, None)
         for n in r.traj.names:
             self._intended.pop(n, None)
-        if not r.finished and r.due is not None:  # its joints brake from the last written target (feedforward)
+        names = tuple(n for n in r.traj.names if n not in keep)
+        moved = cancel and not r.finished and r.written is not None and bool(names)
+        held = self._retract(names) if moved and retract else {}
+        kept = tuple(n for n in r.traj.names if n in keep)
+        brakes: dict[str, Braking] = {}  # from the newest targets
+        taken = self._retract(kept) if replaced and not r.finished and r.written is not None and kept else {}
+        if not r.finished and r.due is not None:  # its joints brake from the last target sent (feedforward)
             for n, (q, v) in r.desired.items():
-                self._braking[n] = Braking(q, v, r.due, self._moveto_accel)
+                brakes[n] = self._braking[n] = Braking(q, v, r.due, self._moveto_accel)
+                if (n in held or n in taken) and r.previous is not None:
+                    self._braking[n] = Braking(*r.previous[1][n], r.previous[0], self._moveto_accel)
+                if n in taken:
+                    self._retracted[n] = _Retracted(taken[n], self._frame_value(n), brakes[n],
+                                                    self._counters.frames)
+            self._holds.update(taken)
         if not r.finished:
-            names = tuple(n for n in r.traj.names if n not in keep)
             self._resync.update(names)
-            if cancel and r.written is not None and names:  # it moved them: end their targets where they are
+            if held:  # the CANCEL once the daemon took the retraction
+                newest = {n: self._frame_value(n) for n in held}
+                self._holds.update(held)
+                self._stops.append(_Stop(names, f"{what} stopped: {reason}", held, newest, brakes,
+                                         self._counters.frames, time.monotonic() + 3 * self._cycle.period + 0.1))
+            elif moved:  # it moved them: end their targets where they are
                 self._cancels.append((names, f"{what} stopped: {reason}"))
             self._counters.stopped += 1
             self._counters.last_stop = f"{what}: {reason}"
@@ -943,12 +1019,15 @@ class BridgeNode(Node):
             self._end_goal(r.goal, how, code, f"{what} stopped: {reason}")
         return what
 
-    def _preempt(self, names: tuple[str, ...], by: str, also: tuple[int, ...] = ()) -> list[str]:
+    def _preempt(self, names: tuple[str, ...], by: str, also: tuple[int, ...] = (), trajectory: bool = False,
+                 ) -> list[str]:
         """Stop the trajectories that share a joint with a new command ``by`` on ``names`` (and those of ``also``,
-        the preempted goal of the same controller); returns their descriptions (caller holds the lock)."""
+        the preempted goal of the same controller; ``trajectory``: the new command is one, ``_replace``); returns
+        their descriptions (caller holds the lock)."""
         taken = set(names)
+        self._release_stops(taken)
         hit = [r for r in self._running.values() if r.serial in also or taken & set(r.traj.names)]
-        return [self._stop_running(r, f"preempted by {by}", keep=names) for r in hit]
+        return [self._stop_running(r, f"preempted by {by}", keep=names, replaced=trajectory) for r in hit]
 
     def _stop_all(self, reason: str) -> list[str]:
         """Stop every trajectory and goal (caller holds the lock)."""
@@ -981,7 +1060,8 @@ class BridgeNode(Node):
                 # the bridge owns none of them in the refusal's state, no frame of it moved anything either.
                 first = not any(serial in w.trajectories and w.time < write.time for w in self._writes)
                 applied = bool(rf.owned & {joints.BY_SHORT[n].address for n in r.traj.names})
-                self._stop_running(r, f"refused by the mux: {rf.message}", cancel=applied and not first)
+                self._stop_running(r, f"refused by the mux: {rf.message}", cancel=applied and not first,
+                                   retract=False)
         for r in list(self._running.values()):
             if r.written is None or r.finished:
                 continue
@@ -990,13 +1070,114 @@ class BridgeNode(Node):
                 hit = h.addresses & mine
                 if h.time >= r.written - 1e-6 and hit:
                     self._stop_running(r, f"{labels(sorted(hit))} {'held' if h.action == 'hold' else h.action + 'led'} "
-                                          f"by '{h.source}'")
+                                          f"by '{h.source}'", retract=False)
                     break
 
+    def _retract(self, names: tuple[str, ...]) -> dict[str, float]:
+        """Where a stop holds ``names`` (caller holds the lock): the daemon's reference now (``mds-state`` ref_r),
+        for those whose newest frame value is still waiting for the daemon's next cycle; empty when there is no
+        time left before that cycle (``RETRACT_MARGIN``): the daemon takes the newest frame, its last target then.
+
+        Each frame aims at the daemon's next send and the one after (``feedforward.CycleClock.lookahead``): held
+        there, a stop travels up to two periods of the motion more than braking needs. The daemon's reference is
+        where its last target sent came from: held there the joint brakes from the commanded state onto that target
+        (plus the limiter's lead), which the MCB is already running to, so the stop moves it no further than it was
+        already going and never reverses it (no target is taken back once sent)."""
+        state, frame, seen = self._state, self._frame, self._last_frame_mono
+        if state is None or frame is None or seen is None or self._stalled:
+            return {}
+        left = seen + self._cycle.period - CycleClock.SEND_TO_STATE - time.monotonic()
+        if left < RETRACT_MARGIN:
+            return {}
+        addresses = {n: joints.BY_SHORT[n].address for n in names}
+        theirs = self._mux.others_own(addresses.values())
+        out = {}
+        for n, a in addresses.items():
+            reference = state.joint[a].ref_r
+            if a not in theirs and math.isfinite(reference) and reference != frame.joint[a].ref:
+                out[n] = reference
+        return out
+
+    def _frame_value(self, name: str) -> float:
+        assert self._frame is not None
+        return float(self._frame.joint[joints.BY_SHORT[name].address].ref)
+
+    def _take_holds(self) -> bool:
+        """Put ``_holds`` into the frame, modes unchanged (not ``_apply``: the joints stay to be re-synced); True if
+        there were any (caller holds the write lock and the lock)."""
+        if not self._holds or self._frame is None:
+            return False
+        for n, value in self._holds.items():
+            self._frame.joint[joints.BY_SHORT[n].address].ref = value
+        self._holds = {}
+        return True
+
+    def _check_stops(self, state: MDS_STATE) -> None:
+        """The retracted stops, on a state frame after their write (caller holds the lock): each joint whose
+        reference the daemon took is CANCELled there; one whose newest value the daemon took first (the retraction
+        arrived after its cycle) gets that value back, its last target, and is CANCELled once the daemon has it."""
+        for s in list(self._stops):
+            if self._counters.frames <= s.frame:
+                continue
+            late = False
+            for n, value in s.hold.items():
+                taken = state.joint[joints.BY_SHORT[n].address].ref_r
+                newest = s.newest[n]
+                if value != newest and abs(taken - newest) < abs(taken - value):
+                    s.hold[n] = self._holds[n] = newest
+                    if n in self._braking and n in s.brakes:
+                        self._braking[n] = s.brakes[n]
+                    late = True
+            if late and time.monotonic() < s.deadline:
+                s.frame = self._counters.frames
+                continue
+            self._stops.remove(s)
+            self._cancels.append((s.names, s.reason))
+        self._end_stops()
+
+    def _end_stops(self, everything: bool = False) -> None:
+        """CANCEL the retracted stops past their deadline (``everything``: all of them, the state stream stalled)
+        and tell ``_on_hold`` when none is left (caller holds the lock)."""
+        now = time.monotonic()
+        for s in [s for s in self._stops if everything or now >= s.deadline]:
+            self._stops.remove(s)
+            self._cancels.append((s.names, s.reason))
+        if not self._stops:
+            self._stops_done.notify_all()
+
+    def _release_stops(self, names: set[str]) -> None:
+        """A new command takes ``names``: no pending CANCEL may end it (caller holds the lock)."""
+        for n in names:
+            self._holds.pop(n, None)
+            self._retracted.pop(n, None)
+        for s in list(self._stops):
+            s.names = tuple(n for n in s.names if n not in names)
+            for n in names:
+                s.hold.pop(n, None)
+                s.newest.pop(n, None)
+            if not s.names:
+                self._stops.remove(s)
+        if not self._stops:
+            self._stops_done.notify_all()
+
+    def _write_retraction(self) -> None:
+        """Write the frame now when it holds a retraction (or its undoing) the state thread has not written."""
+        with self._write_lock:
+            with self._lock:
+                if not self._take_holds():
+                    return
+                self._writes.append(_Write(time.monotonic(), (), ()))
+            self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again
+            if not self._unsent:
+                with self._lock:
+                    self._counters.references_written += 1
+
     def _flush_cancels(self) -> None:
-        """Send the queued CANCELs: the joints of a stopped trajectory hold where they are. Joints another
-        controller owns are left to it (a CANCEL would end its target)."""
+        """Write a retraction, then send the queued CANCELs: the joints of a stopped trajectory hold where they are.
+        Joints another controller owns are left to it (a CANCEL would end its target)."""
+        self._write_retraction()
         with self._lock:
+            self._end_stops()
             todo, self._cancels = self._cancels, []
         for names, reason in todo:
             addresses = [joints.BY_SHORT[n].address for n in names]
@@ -1039,7 +1220,13 @@ class BridgeNode(Node):
         every joint through the mux; success only when the mux acknowledged it."""
         with self._lock:
             stopped = " and ".join(self._stop_all(f"hold requested on {topics.HOLD_SERVICE}"))
+            wait = 3 * self._cycle.period + 0.2
         self._emit()
+        self._flush_cancels()
+        # The CANCELs before the HOLD (the retracted frame would be a new command after it): the daemon takes the
+        # retraction within a cycle (``_check_stops``).
+        with self._lock:
+            self._stops_done.wait_for(lambda: not self._stops, timeout=wait)
         self._flush_cancels()
         ack = self._mux_request(lifecycle.HOLD_HOLD, f"ROS {topics.HOLD_SERVICE}")
         response.success = ack.ok

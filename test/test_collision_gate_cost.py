@@ -20,8 +20,8 @@ import pytest
 
 import mds_ach as mds
 from mds_ach.kinematics.collision import load_model
-from mds_ach.nodes import collision as gate_module
-from mds_ach.nodes.collision import Decision, Gate, GateConfig, Observed, joint_limits
+from mds_ach.nodes import gate as gate_module
+from mds_ach.nodes.gate import Decision, Gate, GateConfig, Observed, joint_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.bench_collision import TABLE, _home, hand_over_table, hands_together  # noqa: E402  (bench/: no package)

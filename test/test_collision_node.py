@@ -16,8 +16,9 @@ from support import VENV_BIN, wait_for
 import mds_ach as mds
 from mds_ach import ik
 from mds_ach.kinematics.collision import load_model
-from mds_ach.nodes.collision import Gate, GateConfig, GateRunner, decision_to_dict, joint_limits
+from mds_ach.nodes.collision import GateRunner
 from mds_ach.nodes.filter import FilterCore, parse_config
+from mds_ach.nodes.gate import Gate, GateConfig, decision_to_dict, joint_limits
 from mds_ach.nodes.pipeline import make_ref, ref_arrays
 from mds_ach.robot.joints import BY_SHORT, LEFT_ARM, RIGHT_ARM
 
@@ -258,7 +259,7 @@ def test_report_hysteresis_on_wall_time(model) -> None:
 def test_the_measured_pose_of_a_compliant_arm_holds_the_other_arm(model) -> None:
     """Mode 2: the left arm's reference went home but the arm stays where it is (the daemon's target follows the
     encoder). The right hand sent to where the left hand physically is must stop short of it, reported."""
-    from mds_ach.nodes.collision import Observed
+    from mds_ach.nodes.gate import Observed
 
     point = [0.40, 0.05, -0.10]
     left_there = solve("left", point)
@@ -322,7 +323,7 @@ def test_a_flagged_arm_never_moves_and_a_released_one_comes_back_at_the_filter_s
 def test_a_released_arm_waits_until_the_daemon_took_the_cleared_flag(model, echo: bool) -> None:
     """After a hold the flag is cleared first; the arm's reference stays put until mds-state shows that the daemon
     took a report without the flag (its 10 Hz cycle copies mds-collide into state.collide), or release_wait."""
-    from mds_ach.nodes.collision import Observed
+    from mds_ach.nodes.gate import Observed
 
     gate = make_gate(model)
     point = [0.40, 0.0, -0.10]
@@ -358,7 +359,7 @@ def test_a_hold_is_released_after_the_filter_came_to_rest(model) -> None:
     stream stops while the gate still holds an arm. The runner then re-processes the newest input at the filter's
     period while ``Gate.pending`` says the decision is unfolding: the held arm is released and reaches its target
     with no new input, and the gate then says it has nothing pending (it sleeps until the next frame)."""
-    from mds_ach.nodes.collision import Observed
+    from mds_ach.nodes.gate import Observed
 
     gate = make_gate(model)
     point = [0.40, 0.0, -0.10]
@@ -388,7 +389,7 @@ def test_a_hold_is_released_after_the_filter_came_to_rest(model) -> None:
 def test_arms_in_measured_contact_are_held_and_can_be_moved_apart(model) -> None:
     """Both arms pushed into contact (e.g. compliant arms moved by hand): reported and held while their references
     stand still; a reference that brings them closer is refused, one that moves an arm away passes (escaping)."""
-    from mds_ach.nodes.collision import Observed
+    from mds_ach.nodes.gate import Observed
 
     pos = HOME.copy()
     pos[L], pos[R] = solve("left", [0.40, 0.02, -0.1]), solve("right", [0.40, -0.02, -0.1])
@@ -529,7 +530,7 @@ def test_at_the_contact_the_daemons_target_arrives_before_the_arm_is_flagged(mod
     """A flag makes the daemon withhold the arm where its rate-limited target is, which lags the reference: so at
     the contact the arm first rests there unflagged (its reference frozen) until mds-state shows the daemon's
     target there, then it is held and flagged as before. The stop (and the cancel) comes at the first frame."""
-    from mds_ach.nodes.collision import Observed
+    from mds_ach.nodes.gate import Observed
 
     gate = make_gate(model, approach_iterations=APPROACH)
     target = HOME.copy()
@@ -563,7 +564,7 @@ def _with_the_daemon(gate: Gate, target: np.ndarray, seconds: float, rate: float
     and loop ``rate``, desired velocity estimated from the references per cycle as the daemon does), which withholds
     flagged arms. A daemon cycle reads the newest gated reference (the frames of the gate's 40 Hz up to it) and the
     gate sees the daemon's newest target. Returns the gate's decisions and the daemon's targets at every cycle."""
-    from mds_ach.nodes.collision import Observed
+    from mds_ach.nodes.gate import Observed
     from mds_ach.robot import config, motion
 
     period = 1.0 / rate

@@ -181,8 +181,8 @@ def test_pipeline_nodes_never_pass_on_what_they_must_refuse(fresh: None, gate_pa
     of the wrong size are dropped (StructChannel counts them); NaN/Inf frames are refused by the mux and counted; the
     filter ignores non-finite targets with a warning; the gate passes only finite, in-limit, collision-free
     references with valid modes."""
-    from mds_ach.nodes.collision import Gate
     from mds_ach.nodes.filter import FilterCore, load_config
+    from mds_ach.nodes.gate import Gate
     from mds_ach.nodes.mux import MuxCore
     from mds_ach.nodes.mux import load_config as mux_config
     from mds_ach.nodes.pipeline import make_ref

@@ -419,7 +419,7 @@ def test_a_stop_at_contact_gets_a_second_answer(clean_shm: None) -> None:
     """After a solution was written, the gate's HOLD_CANCEL (source collision) for that arm gives the request a
     second status frame with the same seq: IK_STOPPED_AT_CONTACT, 'stopped at contact: right hand / left hand'.
     Another writer's cancel, or one for the other arm, is not a stop at contact of this request."""
-    from mds_ach.nodes.collision import UNIT_ADDRESSES
+    from mds_ach.nodes.gate import UNIT_ADDRESSES
     from mds_ach.robot import lifecycle
     from mds_ach.robot.channels import StructChannel
     from mds_ach.robot.msgs.hold import MDS_HOLD

@@ -33,7 +33,7 @@ from mds_ach.net.achd import RefLimitCheck
 from mds_ach.nodes import collision as collision_node
 from mds_ach.nodes import filter as filter_node
 from mds_ach.nodes import ik as ik_node
-from mds_ach.nodes.collision import joint_limits
+from mds_ach.nodes.gate import joint_limits
 from mds_ach.nodes.mux import Controller, MuxCore
 from mds_ach.nodes.pipeline import make_ref
 from mds_ach.robot import config, joints, motion

@@ -14,8 +14,9 @@ from support import wait_for
 
 import mds_ach as mds
 from mds_ach.kinematics.collision import load_model
-from mds_ach.nodes.collision import GateConfig, GateRunner, joint_limits
+from mds_ach.nodes.collision import GateRunner
 from mds_ach.nodes.filter import FilterRunner, parse_config
+from mds_ach.nodes.gate import GateConfig, joint_limits
 from mds_ach.nodes.mux import Controller, MuxRunner
 from mds_ach.nodes.pipeline import KNOWN_ADDRESSES, ReseedWatch, make_ref, ref_arrays
 from mds_ach.robot.channels import StructChannel

@@ -10,7 +10,9 @@ at the published limits (``mds-limits``: what each joint can follow).
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from support.system import running_system
@@ -27,8 +29,11 @@ from support.tracking import (
     trapezoid,
 )
 
+import mds_ach as mds
 from mds_ach.kinematics.limits import current_limits
+from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.feedforward import Braking, CycleClock, stopping_point
+from mds_ach.robot.msgs import MDS_STATE
 
 ARM = ("LSP", "LEP")
 CONTROLLER = "left_arm_controller"
@@ -78,8 +83,25 @@ def test_the_published_limits_keep_the_stopping_points_within_the_daemons_bounds
 
 
 @pytest.fixture(scope="module")
-def probe(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TrackingProbe]:
-    with running_system(tmp_path_factory.mktemp("tracking")):
+def daemon_rate(request: pytest.FixtureRequest) -> float | None:
+    """The daemon's loop rate for the module's system: its default (None, 10 Hz) unless a test asks for another
+    (``indirect`` parametrization: that test gets a system of its own)."""
+    return getattr(request, "param", None)
+
+
+def _params_for(rate: float | None, where: Path) -> tuple[str, ...]:
+    """``mds-ach start`` arguments for a daemon at ``rate`` (a params file), none for its default."""
+    if rate is None:
+        return ()
+    path = where / "params.yaml"
+    path.write_text(f"/**/mds_daemon:\n  ros__parameters:\n    rate: {rate}\n")
+    return ("--params", str(path))
+
+
+@pytest.fixture(scope="module")
+def probe(tmp_path_factory: pytest.TempPathFactory, daemon_rate: float | None) -> Iterator[TrackingProbe]:
+    extra = _params_for(daemon_rate, tmp_path_factory.mktemp("params"))
+    with running_system(tmp_path_factory.mktemp("tracking"), extra=extra):
         p = TrackingProbe()
         try:
             yield p
@@ -179,3 +201,114 @@ def test_a_replacing_goal_starts_from_the_commanded_state(probe: TrackingProbe, 
         print(report)
         assert past <= bound, report
     assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR
+
+
+PHASES = (0.0, 0.15, 0.3, 0.5, 0.7, 0.9)
+"""When a stop is requested within the daemon's cycle: fractions of its period after an ``mds-state`` put."""
+
+
+def _room_to_cruise(probe: TrackingProbe, name: str, distance: float) -> None:
+    """Move ``name`` to the end of its range it is nearer to unless it has ``distance`` of room one way already, so
+    each cruise reaches its speed and is stopped well before its end."""
+    lower, upper = current_limits().by_short((name,))[name]
+    q = probe.position(name)
+    if max(upper - q, q - lower) - 0.1 >= distance:
+        return
+    v, a = published((name,))
+    end = lower + 0.06 if q - lower < upper - q else upper - 0.06
+    run = probe.run(CONTROLLER, trapezoid((name,), (q,), (end - q,), v, a))
+    assert run.final_error <= FINAL_ERROR, run.describe()
+
+
+def _after_a_state_put(states: StructChannel, phase: float, period: float) -> float:
+    """Return ``phase`` periods after the next ``mds-state`` put; how far after it (in periods) it returned."""
+    states.flush()
+    assert states.wait(timeout=5.0) is not None, "no mds-state frame"
+    put = time.monotonic()
+    # The stimulus, not a wait for a condition: the request goes out `phase` of a period after the put.
+    while time.monotonic() < put + phase * period:
+        time.sleep(0.0005)
+    return (time.monotonic() - put) / period
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("daemon_rate", [None, 22.0], ids=["10Hz", "22Hz"], indirect=True)
+@pytest.mark.parametrize("speed", [0.42, 0.9, None], ids=["0.42", "0.9", "published"])
+def test_a_cancel_stops_within_the_bound_in_every_phase_of_the_daemons_cycle(
+        probe: TrackingProbe, daemon_rate: float | None, speed: float | None) -> None:
+    """A cancel requested at any moment of the daemon's cycle (``PHASES`` after an ``mds-state`` put), at 0.42 and
+    0.9 rad/s and at the published velocity (None), at the default 10 Hz and at the fastest rate the CAN budget
+    allows (22 Hz, ``--rate max``): the arm travels at most
+    v^2/2a + v period + 0.02 rad after the request and never comes back more than 0.01 rad. Before the stop held
+    the daemon's own reference (the newest target still waiting for the next send ran up to two periods ahead of
+    the request): up to ~1 mm beyond the bound at 0.33-0.51 rad/s and 10 Hz right after a state frame."""
+    from action_msgs.msg import GoalStatus
+
+    v_max, a = published(ARM)
+    speed = speed or v_max
+    distance = 1.6 if speed <= 0.9 else 1.9  # room to reach the speed, cruise and stop before the end
+    lines, failed = [], []
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE) as states:
+        for phase in PHASES:
+            _room_to_cruise(probe, "LSP", distance - 0.1)
+            c = cruise(probe, CONTROLLER, "LSP", speed, distance)
+            period = state_period(probe)
+            seen = _after_a_state_put(states, phase, period)
+            t_request = probe.now()
+            cancel = c.handle.cancel_goal_async()
+            probe.spin_until(cancel.done, 10.0, "the cancel response")
+            res = probe.result(c.handle, 10.0)
+            assert res.status == GoalStatus.STATUS_CANCELED, res.result.error_string
+            probe.spin_for(1.5)  # watched until well after it stopped: no reversal
+            v, travel, back = stop_report(probe, c, "LSP", t_request)
+            bound = v * v / (2 * a) + v * period + 0.02
+            line = (f"{1 / period:.0f} Hz, phase {seen:.2f}: cancel at {v:.3f} rad/s: travel {travel:.4f} rad "
+                    f"(bound {bound:.4f}, margin {bound - travel:+.4f}), came back {back:.4f} rad")
+            if travel > bound or back > 0.01:
+                failed.append(line)
+                line = "BEYOND " + line
+            lines.append(line)
+            assert c.sign * (c.profile.end[0] - probe.position("LSP")) > 0.1, f"the cancel came too late: {line}"
+    print("\n".join(lines))
+    assert not failed, "\n".join(lines)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("direction", ["on", "back"])
+def test_a_replacing_goal_stays_within_the_bound_in_every_phase_of_the_daemons_cycle(
+        probe: TrackingProbe, direction: str) -> None:
+    """``test_a_replacing_goal_starts_from_the_commanded_state`` with the replacing goal sent at ``PHASES`` of the
+    daemon's cycle: going on, never back more than 0.01 rad; going back, at most v^2/2a + v period + 0.01 rad past
+    the replacement point."""
+    from action_msgs.msg import GoalStatus
+
+    _, a = published(ARM)
+    lines, failed = [], []
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE) as states:
+        for phase in PHASES:
+            _room_to_cruise(probe, "LSP", 1.5)
+            c = cruise(probe, CONTROLLER, "LSP", 0.8, 1.6)
+            period = state_period(probe)
+            step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3
+            seen = _after_a_state_put(states, phase, period)
+            t_replace = probe.now()
+            second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
+            replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=FINAL_ERROR)
+            res = probe.result(c.handle, 10.0)
+            assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
+            res = probe.result(replaced, 20.0)
+            assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+            v, past, back = stop_report(probe, c, "LSP", t_replace)
+            bound = v * v / (2 * a) + v * period + 0.01
+            line = f"phase {seen:.2f}: replaced at {v:.3f} rad/s, going {direction}: " + (
+                f"came back {back:.4f} rad" if direction == "on" else
+                f"{past:.4f} rad past the replacement point (bound {bound:.4f})")
+            if (direction == "on" and back > 0.01) or (direction == "back" and past > bound):
+                failed.append(line)
+                line = "BEYOND " + line
+            lines.append(line)
+            assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR, line
+    print("\n".join(lines))
+    assert not failed, "\n".join(lines)

@@ -59,9 +59,10 @@ class Profile:
             t = min(k * dt, self.duration)
             q, v, a = self.at(t)
             rest = [0.0] * len(still)
+            ns = round(t * 1e9)  # (a t just below a whole second rounds up to it, not to the second before)
             msg.points.append(JointTrajectoryPoint(
                 positions=[*q, *still.values()], velocities=[*v, *rest], accelerations=[*a, *rest],
-                time_from_start=Duration(sec=int(t), nanosec=int(round((t % 1.0) * 1e9)) % 1_000_000_000)))
+                time_from_start=Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)))
         return msg
 
 
