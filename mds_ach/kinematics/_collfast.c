@@ -20,6 +20,7 @@
 enum { SPHERE = 0, BOX = 1, CYLINDER = 2 };
 
 #define GJK_TOL 1e-9  /* m: a GJK or EPA distance is within this of the true one */
+#define GJK_RESTARTS 2  /* new simplices when GJK stalls short of GJK_TOL on shapes apart */
 
 /* A 3x4 affine transform, row-major: R (3x3) and t in the last column. */
 typedef double Affine[12];
@@ -512,16 +513,32 @@ static int gjk_simplex(const Shape *a, const Shape *b, double tol, double apart_
     support_diff(a, b, dot3(dir0, dir0) > 0 ? dir0 : one, W[0]);
     memcpy(v, W[0], sizeof v);
     double upper = INFINITY, lower = -INFINITY;  /* the best bounds so far */
-    for (int iter = 0; iter < 64; iter++) {
+    double last = INFINITY, restart[3];  /* |v| of the run's last step; the support point towards its best v */
+    int restarts = 0;
+    for (int iter = 0; iter < 64 * (1 + GJK_RESTARTS); iter++) {
         const double vv = dot3(v, v);
         if (!(vv > 1e-24))  /* touching, or lost: not ours to decide */
             return GJK_UNDECIDED;
         const double vn = sqrt(vv);
-        if (!(vn < upper))  /* no progress (rounding on a flat simplex): the bounds decide, or fcl */
-            break;
-        upper = vn;
+        if (!(vn < last)) {  /* no progress (rounding on a flat simplex of points close together) */
+            if (restarts == GJK_RESTARTS || !(lower > 0))
+                break;  /* the bounds decide, or fcl */
+            /* apart and stuck a few nanometres short of the tolerance (a cylinder's rim against a face): a new run
+             * from the support point towards the best direction, with the bounds kept (they hold whatever the
+             * simplex did) */
+            restarts++;
+            n = 1;
+            memcpy(W[0], restart, sizeof restart);
+            memcpy(v, restart, sizeof v);
+            last = INFINITY;
+            continue;
+        }
+        last = vn;
+        upper = fmin(upper, vn);
         const double neg[3] = {-v[0], -v[1], -v[2]};
         support_diff(a, b, neg, w);
+        if (vn <= upper)
+            memcpy(restart, w, sizeof w);
         lower = fmax(lower, dot3(v, w) / vn);
         if (lower > apart_above) {
             *dist = lower;
