@@ -515,3 +515,16 @@ def test_clearance_first_rule_keeps_fcls_answer_at_its_threshold() -> None:
         {p[1].removeprefix("world:") for p in ours.pairs if p[0] == "left_forearm_link"}
     assert {f"gap{k}" for k, d in enumerate(deltas) if d <= -2e-6} <= touching
     assert not touching & {f"gap{k}" for k, d in enumerate(deltas) if d >= 1e-6}
+
+
+def test_check_takes_any_vector_of_the_joints_and_refuses_a_wrong_length() -> None:
+    """``check`` hands a contiguous float64 vector to the C code as it is and converts anything else (a list,
+    float32, a strided view) first: the same answer; a vector of the wrong length is refused with its shape."""
+    model = collision.load_model(world=TABLE)
+    for q in random_configs(model, 40, seed=41):
+        answer = model.check(q)
+        assert model.check(list(q)) == answer
+        assert model.check(np.stack([q, q], axis=1)[:, 0]) == answer  # not contiguous
+        assert model.check(q.astype(np.float32)).pairs == model.check(q.astype(np.float32).astype(float)).pairs
+    with pytest.raises(ValueError, match="17 joint values"):
+        model.check(np.zeros(16))

@@ -5,8 +5,9 @@
  *
  * Why C: the numpy path costs ~100 us per configuration, nearly all of it per-call overhead of small arrays
  * (FK level by level, the broad phase); the same arithmetic here takes ~2 us. python-fcl stays the judge of every
- * pair this screen cannot decide, and computes the clearances, so answers are those of python-fcl. Optional:
- * without a compiler, mds_ach.kinematics.collision runs the numpy path (same answers, slower).
+ * pair this screen cannot decide (within eps of touching) and of every clearance it cannot certify, so answers
+ * are those of python-fcl. check_one/check_many build the answer objects (CheckResult, Contact) here too.
+ * Optional: without a compiler, mds_ach.kinematics.collision runs the numpy path (same answers, slower).
  *
  * Status of a pair: 0 = apart by more than eps (certain), 1 = undecided (ask fcl), 2 = overlapping by more than
  * eps (certain). eps keeps near-touching pairs, where two algorithms may round differently, with fcl.

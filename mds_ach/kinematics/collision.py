@@ -559,15 +559,19 @@ class CollisionModel:
         if self._fast is not None:
             found = _collfast.check_one(self._fast, q)  # NotImplemented: not a contiguous float64 vector
             if found is NotImplemented:
-                q = np.ascontiguousarray(q, dtype=float)
+                q = self._vector(q)
                 found = _collfast.check_one(self._fast, q)
-                if found is NotImplemented:
-                    raise ValueError(f"a configuration needs {len(self.joint_names)} joint values, got shape "
-                                     f"{q.shape}")
             if found is not False:
                 return found
             return self._check_screened(np.asarray(q, dtype=float))
-        return self.check_many(np.asarray(q, dtype=float)[None])[0]
+        return self.check_many(self._vector(q)[None])[0]
+
+    def _vector(self, q: Any) -> np.ndarray:
+        """q as a contiguous float64 vector of the model's joints; ValueError naming the shape otherwise."""
+        q = np.ascontiguousarray(q, dtype=float)
+        if q.shape != (len(self.joint_names),):
+            raise ValueError(f"a configuration needs {len(self.joint_names)} joint values, got shape {q.shape}")
+        return q
 
     def check_many(self, qs: np.ndarray) -> list[CheckResult]:
         """``check`` for each row of ``qs`` (K, 17): the C screen per row, else one batched numpy FK and broad
