@@ -34,9 +34,10 @@ Issue 5/15: full check median <= 0.5 ms, p99 <= 2 ms; gate with the measured pos
 
 from __future__ import annotations
 
+import itertools
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -313,16 +314,7 @@ def run(quick: bool = False) -> list[Row]:
     # gate's limits; some of them collide, so holds and the per-arm re-check are part of the measurement.
     n = 300 if quick else 3000
     lower, upper = joint_limits(model)
-    lo, hi = lower[model.addresses], upper[model.addresses]
-    stream: list[np.ndarray] = []
-    q = rng.uniform(lo, hi)
-    while len(stream) < n:
-        goal = rng.uniform(lo, hi)
-        steps = max(1, int(np.ceil(np.abs(goal - q).max() / (1.57 / 40))))
-        stream.extend(q + (goal - q) * k / steps for k in range(1, steps + 1))
-        q = goal
-    refs = np.zeros((n, mds.MDS_JOINT_COUNT))
-    refs[:, model.addresses] = np.array(stream[:n])
+    refs = random_stream(model, lower, upper, n, rng)
     zero_mode = np.zeros(mds.MDS_JOINT_COUNT, dtype=np.int16)
     gate = Gate(model, GateConfig(), refs[0], zero_mode, 0.0, lower, upper)
     clock = iter(np.arange(1, n + 1) * 0.025)
@@ -350,6 +342,44 @@ def run(quick: bool = False) -> list[Row]:
     return rows
 
 
+def _ramps(start: np.ndarray, goals: Iterator[np.ndarray], n: int) -> np.ndarray:
+    """``n`` references of the filter's 1.57 rad/s ramps (40 Hz) from ``start`` through ``goals`` (model joints)."""
+    stream: list[np.ndarray] = []
+    q = start
+    while len(stream) < n:
+        goal = next(goals)
+        steps = max(1, int(np.ceil(np.abs(goal - q).max() / (1.57 / 40))))
+        stream.extend(q + (goal - q) * s / steps for s in range(1, steps + 1))
+        q = goal
+    return np.array(stream[:n])
+
+
+def scene_stream(model: Any, targets: np.ndarray, lower: np.ndarray, upper: np.ndarray, n: int) -> np.ndarray:
+    """The gate's input on a paper scene: ramps from home to a scene configuration (``targets``, clipped to the
+    gate's limits) and back, then the next one... (n, 17) frames."""
+    lo, hi = lower[model.addresses], upper[model.addresses]
+    home = np.clip(_home(model, 1)[0], lo, hi)
+    goals = np.clip(targets, lo, hi)
+    return _frames(model, _ramps(home, (goals[k // 2 % len(goals)] if k % 2 == 0 else home
+                                        for k in itertools.count()), n))
+
+
+def random_stream(model: Any, lower: np.ndarray, upper: np.ndarray, n: int, rng: np.random.Generator,
+                  ) -> np.ndarray:
+    """The gate's input on random ramps between targets inside its limits (some collide): (n, 17) frames."""
+    lo, hi = lower[model.addresses], upper[model.addresses]
+    start = rng.uniform(lo, hi)
+    return _frames(model, _ramps(start, (rng.uniform(lo, hi) for _ in itertools.count()), n))
+
+
+def _frames(model: Any, stream: np.ndarray) -> np.ndarray:
+    from mds_ach.robot.msgs import MDS_JOINT_COUNT
+
+    refs = np.zeros((len(stream), MDS_JOINT_COUNT))
+    refs[:, model.addresses] = stream
+    return refs
+
+
 def _gate_on_scenes(scenes: dict[str, np.ndarray], peer: PinocchioCoal | None, lower: np.ndarray, upper: np.ndarray,
                     n: int) -> list[Row]:
     """``Gate.process`` per frame on the paper scenes: the filter's 1.57 rad/s ramps (40 Hz) from the home pose to
@@ -373,21 +403,9 @@ def _gate_on_scenes(scenes: dict[str, np.ndarray], peer: PinocchioCoal | None, l
         return inner(qs)
 
     model.check_many = recording  # type: ignore[method-assign]
-    lo, hi = lower[model.addresses], upper[model.addresses]
     zero_mode = np.zeros(mds.MDS_JOINT_COUNT, dtype=np.int16)
-    home = np.clip(_home(model, 1)[0], lo, hi)
     for scene in ("hands together", "hand over table"):
-        targets = np.clip(scenes[scene], lo, hi)
-        stream: list[np.ndarray] = []
-        q, k = home, 0
-        while len(stream) < n:  # home, a scene configuration, home, the next one...
-            goal = targets[k // 2 % len(targets)] if k % 2 == 0 else home
-            k += 1
-            steps = max(1, int(np.ceil(np.abs(goal - q).max() / (1.57 / 40))))
-            stream.extend(q + (goal - q) * s / steps for s in range(1, steps + 1))
-            q = goal
-        refs = np.zeros((n, mds.MDS_JOINT_COUNT))
-        refs[:, model.addresses] = np.array(stream[:n])
+        refs = scene_stream(model, scenes[scene], lower, upper, n)
         gate = Gate(model, GateConfig(), refs[0], zero_mode, 0.0, lower, upper)
         outputs = [refs[0]]
         ours: list[float] = []

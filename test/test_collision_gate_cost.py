@@ -24,7 +24,13 @@ from mds_ach.nodes import gate as gate_module
 from mds_ach.nodes.gate import Decision, Gate, GateConfig, Observed, joint_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench.bench_collision import TABLE, _home, hand_over_table, hands_together  # noqa: E402  (bench/: no package)
+from bench.bench_collision import (  # noqa: E402  (bench/: no package)
+    TABLE,
+    hand_over_table,
+    hands_together,
+    random_stream,
+    scene_stream,
+)
 
 ZERO_MODE = np.zeros(mds.MDS_JOINT_COUNT, dtype=np.int16)
 LAG = 4  # frames the measured pose is behind the output, as in the bench
@@ -102,43 +108,6 @@ class OnePoseAtATime(Gate):
         return []
 
 
-def scene_stream(model: Any, targets: np.ndarray, n: int) -> np.ndarray:
-    """The bench's scene stream: the filter's 1.57 rad/s ramps (40 Hz) from home to a scene configuration and
-    back, the next one... (``bench_collision._gate_on_scenes``)."""
-    lower, upper = joint_limits(model)
-    lo, hi = lower[model.addresses], upper[model.addresses]
-    home = np.clip(_home(model, 1)[0], lo, hi)
-    targets = np.clip(targets, lo, hi)
-    stream: list[np.ndarray] = []
-    q, k = home, 0
-    while len(stream) < n:
-        goal = targets[k // 2 % len(targets)] if k % 2 == 0 else home
-        k += 1
-        steps = max(1, int(np.ceil(np.abs(goal - q).max() / (1.57 / 40))))
-        stream.extend(q + (goal - q) * s / steps for s in range(1, steps + 1))
-        q = goal
-    refs = np.zeros((n, mds.MDS_JOINT_COUNT))
-    refs[:, model.addresses] = np.array(stream[:n])
-    return refs
-
-
-def random_stream(model: Any, n: int, seed: int = 5) -> np.ndarray:
-    """Ramps between random targets inside the gate's limits (some collide): holds and re-checks."""
-    lower, upper = joint_limits(model)
-    lo, hi = lower[model.addresses], upper[model.addresses]
-    rng = np.random.default_rng(seed)
-    stream: list[np.ndarray] = []
-    q = rng.uniform(lo, hi)
-    while len(stream) < n:
-        goal = rng.uniform(lo, hi)
-        steps = max(1, int(np.ceil(np.abs(goal - q).max() / (1.57 / 40))))
-        stream.extend(q + (goal - q) * k / steps for k in range(1, steps + 1))
-        q = goal
-    refs = np.zeros((n, mds.MDS_JOINT_COUNT))
-    refs[:, model.addresses] = np.array(stream[:n])
-    return refs
-
-
 def same_decision(a: Decision, b: Decision) -> bool:
     def contacts(r: Any) -> list[tuple[Any, ...]]:
         return [(c.a, c.b, c.group_a, c.group_b, c.part_a, c.part_b, c.clearance) for c in r.contacts]
@@ -197,8 +166,9 @@ def lockstep(refs: np.ndarray, measured: bool = True, passes: int = 1) -> dict[s
 @pytest.fixture(scope="module")
 def scenes() -> dict[str, np.ndarray]:
     model = load_model(world=TABLE)
-    return {"hands together": scene_stream(model, hands_together(model, 300), 2000),
-            "hand over table": scene_stream(model, hand_over_table(model, 300), 2000)}
+    lower, upper = joint_limits(model)
+    return {"hands together": scene_stream(model, hands_together(model, 300), lower, upper, 2000),
+            "hand over table": scene_stream(model, hand_over_table(model, 300), lower, upper, 2000)}
 
 
 @pytest.mark.parametrize("scene", ["hands together", "hand over table"])
@@ -212,7 +182,8 @@ def test_batched_checks_decide_as_one_pose_at_a_time(scenes: dict[str, np.ndarra
 
 @pytest.mark.parametrize("measured", [True, False])
 def test_batched_checks_decide_as_one_pose_at_a_time_on_random_ramps(measured: bool) -> None:
-    lockstep(random_stream(load_model(world=TABLE), 600), measured=measured)
+    model = load_model(world=TABLE)
+    lockstep(random_stream(model, *joint_limits(model), 600, np.random.default_rng(5)), measured=measured)
 
 
 def test_hands_together_costs_far_less_cpu_per_frame_than_one_pose_at_a_time(scenes: dict[str, np.ndarray]) -> None:
