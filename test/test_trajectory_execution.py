@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from support.system import running_system
 from support.tracking import (
+    Cruise,
     Profile,
     TrackingProbe,
     cruise,
@@ -168,6 +169,24 @@ def test_cancel_brakes_from_the_commanded_velocity(probe: TrackingProbe, speed: 
     assert c.sign * (c.profile.end[0] - probe.position("LSP")) > 0.1, f"the cancel came too late to show: {report}"
 
 
+def _replace_mid_cruise(probe: TrackingProbe, c: Cruise, direction: str) -> tuple[float, float, float]:
+    """Replace cruise ``c`` now by a 2 s minimum-jerk goal from the measured state at rest, stamp 0 (what MoveIt
+    sends), going on the same way (0.6 rad) or back (0.3 rad: within what it travelled); both goals end as they
+    should. Returns ``stop_report``'s (velocity at the replacement, travel past it, how far it came back)."""
+    from action_msgs.msg import GoalStatus
+
+    t_replace = probe.now()
+    step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3
+    second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
+    replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=FINAL_ERROR)
+    res = probe.result(c.handle, 10.0)
+    assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
+    res = probe.result(replaced, 20.0)
+    assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
+    assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR, "the replacing goal did not end at its end"
+    return stop_report(probe, c, "LSP", t_replace)
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.parametrize("direction", ["on", "back"])
@@ -176,21 +195,11 @@ def test_a_replacing_goal_starts_from_the_commanded_state(probe: TrackingProbe, 
     way, the arm never reverses more than 0.01 rad; going back, it goes at most v^2/2a + v period + 0.01 rad past
     the replacement point (a: the published acceleration, v: the velocity there). Both goals end as they should.
     Before #26: the reference stepped back to the measured pose, the arm ran on 0.10-0.2 rad and reversed."""
-    from action_msgs.msg import GoalStatus
 
     _, a = published(ARM)
     c = cruise(probe, CONTROLLER, "LSP", 0.8, 1.6)
     period = state_period(probe)
-    t_replace = probe.now()
-    step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3  # back: within what it travelled
-    second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
-    # stamp 0: starts on receipt, as MoveIt sends it
-    replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=FINAL_ERROR)
-    res = probe.result(c.handle, 10.0)
-    assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
-    res = probe.result(replaced, 20.0)
-    assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
-    v, past, back = stop_report(probe, c, "LSP", t_replace)
+    v, past, back = _replace_mid_cruise(probe, c, direction)
     if direction == "on":
         report = f"replaced at {v:.3f} rad/s, going on: came back {back:.4f} rad"
         print(report)
@@ -200,7 +209,6 @@ def test_a_replacing_goal_starts_from_the_commanded_state(probe: TrackingProbe, 
         report = f"replaced at {v:.3f} rad/s, going back: {past:.4f} rad past the replacement point (bound {bound:.4f})"
         print(report)
         assert past <= bound, report
-    assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR
 
 
 PHASES = (0.0, 0.15, 0.3, 0.5, 0.7, 0.9)
@@ -282,7 +290,6 @@ def test_a_replacing_goal_stays_within_the_bound_in_every_phase_of_the_daemons_c
     """``test_a_replacing_goal_starts_from_the_commanded_state`` with the replacing goal sent at ``PHASES`` of the
     daemon's cycle: going on, never back more than 0.01 rad; going back, at most v^2/2a + v period + 0.01 rad past
     the replacement point."""
-    from action_msgs.msg import GoalStatus
 
     _, a = published(ARM)
     lines, failed = [], []
@@ -291,16 +298,8 @@ def test_a_replacing_goal_stays_within_the_bound_in_every_phase_of_the_daemons_c
             _room_to_cruise(probe, "LSP", 1.5)
             c = cruise(probe, CONTROLLER, "LSP", 0.8, 1.6)
             period = state_period(probe)
-            step = c.sign * 0.6 if direction == "on" else -c.sign * 0.3
             seen = _after_a_state_put(states, phase, period)
-            t_replace = probe.now()
-            second = minimum_jerk(("LSP",), (probe.position("LSP"),), (step,), 2.0)
-            replaced = probe.send(CONTROLLER, probe.goal_message(CONTROLLER, second, 0.0), tolerance=FINAL_ERROR)
-            res = probe.result(c.handle, 10.0)
-            assert res.status == GoalStatus.STATUS_ABORTED and "preempted" in res.result.error_string, res.result
-            res = probe.result(replaced, 20.0)
-            assert res.status == GoalStatus.STATUS_SUCCEEDED, res.result.error_string
-            v, past, back = stop_report(probe, c, "LSP", t_replace)
+            v, past, back = _replace_mid_cruise(probe, c, direction)
             bound = v * v / (2 * a) + v * period + 0.01
             line = f"phase {seen:.2f}: replaced at {v:.3f} rad/s, going {direction}: " + (
                 f"came back {back:.4f} rad" if direction == "on" else
@@ -309,6 +308,5 @@ def test_a_replacing_goal_stays_within_the_bound_in_every_phase_of_the_daemons_c
                 failed.append(line)
                 line = "BEYOND " + line
             lines.append(line)
-            assert abs(probe.position("LSP") - second.end[0]) <= FINAL_ERROR, line
     print("\n".join(lines))
     assert not failed, "\n".join(lines)
