@@ -391,7 +391,7 @@ def test_a_reader_that_finds_two_woken_frames_only_looks_briefly(clean_shm: None
         t = threading.Thread(target=lambda: got.append(r.get(bytearray(32), wait=True, last=True, timeout=10)))
         t.start()
         wait_for(lambda: r._active, timeout=5, what="the reader in its wait")
-        time.sleep(0.05)
+        time.sleep(0.02)  # inside its first look (IDLE_SLICE), not at its end
         w.put(b"one")  # wakes the reader, which then waits for the interpreter lock this thread holds ...
         w.put(b"two")
         sum(range(3_000_000))  # ... a while longer (a C loop: the lock is not handed over meanwhile)

@@ -64,6 +64,7 @@ enum { WAIT_NONE = 0, WAIT_WOKEN = 1, WAIT_UNWOKEN = 2, WAIT_SEVERAL = 3 };
 #define ACHCORE_UNWOKEN_POLL_NS 300000LL /* look at last_seq this often after a frame came without a wake-up */
 #define ACHCORE_UNWOKEN_HOLD_NS 10000000000LL /* ... for this long after the last such frame */
 #define ACHCORE_UNWOKEN_PROBE_NS 300000000LL /* ... and for this long after a wake-up that found several frames */
+#define ACHCORE_LATE_LOOK_NS 1000000LL /* a timed-out look that returned this much late proves no unwoken frame */
 
 /* header words, in u64 units from the start of the file (ach-format.md 2.1) */
 #define ACHCORE_Q_LEN 1
@@ -399,6 +400,7 @@ static inline int achcore_wait(achcore_t *c, long long slice_ns, long long poll_
         if (left <= 0)
             return 0;
         long long span = poll_ns > 0 && poll_ns < left ? poll_ns : left;
+        long long span_end = achcore_mono_ns() + span;
         struct timespec ts = {(time_t)(span / 1000000000LL), (long)(span % 1000000000LL)};
         long fr;
         int err;
@@ -415,7 +417,11 @@ static inline int achcore_wait(achcore_t *c, long long slice_ns, long long poll_
              * are only ever seen with the waking writer's next one (never at the end of a slice): so the caller
              * looks briefly (ACHCORE_UNWOKEN_PROBE_NS), long enough for such a frame to time a look out. */
             int timed_out = fr == -1 && err == ETIMEDOUT;
-            c->woken = timed_out ? WAIT_UNWOKEN : now_last - seen >= 2 ? WAIT_SEVERAL : WAIT_WOKEN;
+            /* A timed-out look that got its CPU late (a busy machine) may find a waking writer's frame put after
+             * the timeout, its wake-up lost on nobody: proof of nothing, so only a short look too. */
+            int late = achcore_mono_ns() - span_end > ACHCORE_LATE_LOOK_NS;
+            c->woken = timed_out && !late ? WAIT_UNWOKEN
+                       : timed_out || now_last - seen >= 2 ? WAIT_SEVERAL : WAIT_WOKEN;
             return 1;
         }
         if (!(fr == -1 && err == ETIMEDOUT))
