@@ -89,6 +89,9 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 WRITE_RECORDS = 64
 """Recent writes remembered to tell which command a refused frame carried (the mux answers within a cycle)."""
+HOLD_RECHECK = 0.005
+"""s after a put of a trajectory frame: by then the mux has handled it and said whether it released a hold
+(``BridgeNode._recheck_holds``)."""
 STATE_QOS = {
     "sensor_data": qos_profile_sensor_data,  # best effort, keep last 5
     "reliable": QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
@@ -304,6 +307,7 @@ class BridgeNode(Node):
         # Frame values of stopped joints to write next (a retraction or its undoing, ``_check_stops``); put into the
         # frame under the write lock (a put reads the frame outside the lock), by ``_take_holds``.
         self._holds: dict[str, float] = {}
+        self._recheck_at: float | None = None  # monotonic: when to read the mux's news after a put (``_recheck_holds``)
         self._resync: set[str] = set()  # joints of a stopped trajectory: the frame's value is not where they hold
         # The commanded motion of joints whose trajectory stopped or was replaced while moving: they brake at the
         # MOVETO acceleration from their desired state at the last written target onto its stopping point. A new
@@ -409,9 +413,12 @@ class BridgeNode(Node):
         try:
             while not self._stop.is_set():
                 # The wait returns on every put; its timeout only paces the stall check.
-                state = self._guard.call(self._state_chan.name, self._state_chan.wait,
-                                         timeout=max(0.01, min(0.25, self._stale_timeout / 4)))
+                timeout = max(0.01, min(0.25, self._stale_timeout / 4))
+                if self._recheck_at is not None:
+                    timeout = max(0.0, min(timeout, self._recheck_at - time.monotonic()))
+                state = self._guard.call(self._state_chan.name, self._state_chan.wait, timeout=timeout)
                 if state is None:
+                    self._recheck_holds()
                     self._check_stall()
                     self._flush_cancels()
                     continue
@@ -466,6 +473,8 @@ class BridgeNode(Node):
                 if not self._unsent:
                     with self._lock:
                         self._counters.references_written += 1
+                    if carried[0]:
+                        self._recheck_at = time.monotonic() + HOLD_RECHECK
         for topic, reason in late:
             self._reject(topic, reason)
         self._emit()
@@ -490,6 +499,21 @@ class BridgeNode(Node):
         if was_stalled:
             self.get_logger().info(f"{self._state_name} is live again")
             self._publish_diagnostics()
+
+    def _recheck_holds(self) -> None:
+        """``HOLD_RECHECK`` after a put of a trajectory frame: a hold the mux handled between the last read of its
+        news and that put was released by the frame; the mux says so at once (its held mask changed). The
+        trajectory then stops now, retracted to the daemon's reference while the daemon has not sent the frame
+        (``_take_mux_news``), not at the next cycle, after the daemon sent it."""
+        if self._recheck_at is None or time.monotonic() < self._recheck_at:
+            return
+        self._recheck_at = None
+        news = self._guard.call(self._mux.states.name, self._mux.poll, default=MuxNews())
+        if not news.holds and not news.refusals:
+            return
+        with self._lock:
+            self._take_mux_news(news)
+        self._emit()
 
     def _held_meanwhile(self, before: MDS_REF | None, sampled: tuple[int, ...]) -> None:
         """Just before the put of a frame sampling the trajectories ``sampled``: a hold or cancel that reached the
@@ -1090,6 +1114,8 @@ class BridgeNode(Node):
                 applied = bool(rf.owned & {joints.BY_SHORT[n].address for n in r.traj.names})
                 self._stop_running(r, f"refused by the mux: {rf.message}", cancel=applied and not first,
                                    retract=False)
+        held, cancelled = self._mux.held()
+        stopped = set(held) | set(cancelled)
         for r in list(self._running.values()):
             if r.written is None or r.finished:
                 continue
@@ -1097,8 +1123,11 @@ class BridgeNode(Node):
             for h in news.holds:
                 hit = h.addresses & mine
                 if h.time >= r.written - 1e-6 and hit:
+                    # Retracted like the bridge's own stops only when a frame of it released the hold (the mux
+                    # handled the hold first): the joints are free, a retraction releases nothing. Still held, the
+                    # filter stops them by the same rule (a new value would release the hold).
                     self._stop_running(r, f"{labels(sorted(hit))} {'held' if h.action == 'hold' else h.action + 'led'} "
-                                          f"by '{h.source}'", retract=False)
+                                          f"by '{h.source}'", retract=not hit & stopped)
                     break
 
     def _retract(self, names: tuple[str, ...]) -> dict[str, float]:
