@@ -304,7 +304,7 @@ def test_a_hold_or_cancel_from_another_client_stops_within_the_bound_in_every_ph
     client, sent at ``PHASES`` of the daemon's cycle while a goal cruises at ``speed`` (10 Hz): the arm travels at most
     v^2/2a + v period + 0.02 rad after the request and never comes back more than 0.01 rad; the goal ends (aborted:
     its joints were held). Before (the filter held the newest target, still waiting for the daemon's next send):
-    beyond the bound right after a state frame at 0.42 rad/s."""
+    0.52 rad at 0.9 rad/s right after a state frame (bound 0.497)."""
     from action_msgs.msg import GoalStatus
 
     from mds_ach.robot import joints, lifecycle
