@@ -26,7 +26,8 @@ within 1e-6 m (each peer is off somewhere, see the comment in ``run``; where bot
 against alternating projections in numpy).
 
 Targets (issue 20): gate decision median and p99 <= Pinocchio + coal's; answers identical on every
-configuration. Issue 26: the gate per frame on the paper scenes p99 <= 1 ms; clearances equal within 1e-6 m.
+configuration. Issue 26: the gate per frame on the paper scenes p99 <= 1 ms; the pair list with clearances p99 <=
+Pinocchio + coal's pair list (without clearances) on every scene; clearances equal within 1e-6 m.
 Issue 5/15: full check median <= 0.5 ms, p99 <= 2 ms; gate with the measured pose median
 <= 2 ms, p99 <= 5 ms. Run: ``python -m bench --only bench_collision [--quick]``.
 """
@@ -287,10 +288,12 @@ def run(quick: bool = False) -> list[Row]:
         for stat, fn in (("median", median), ("p99", lambda x: percentile(x, 99))):
             ours = fn(t["list"])
             base = fn(t["coal list"]) if peer else None
+            if stat == "median":
+                target, met = "<= 500 us", ours <= 500
+            else:  # issue 26: at least level with coal at p99 (coal without clearances), and the issue-5 bound
+                target, met = "<= coal, <= 2000 us", ours <= 2000 and (base is None or ours <= base)
             rows.append(Row(group, f"pair list + clearances {stat} ({scene})", ours, "us",
-                            "Pinocchio + coal, pair list" if peer else coal_name, base,
-                            "<= 500 us" if stat == "median" else "<= 2000 us",
-                            ours <= (500 if stat == "median" else 2000)))
+                            "Pinocchio + coal, pair list" if peer else coal_name, base, target, met))
             if scene == "random":
                 rows.append(Row(group, f"pair list + clearances {stat} ({scene})", ours, "us",
                                 "persistent python-fcl set, all pairs", fn(t["fcl"]), "<= fcl",

@@ -319,6 +319,7 @@ class BridgeNode(Node):
         self._checked: dict[int, tuple[Any, trajectory.Trajectory, follow.Tolerances]] = {}
         self._measured: tuple[dict[str, float], dict[str, float]] | None = None  # newest frame's positions, velocities
         self._state: MDS_STATE | None = None  # the newest state frame (the lock): a first write's base without a mux
+        self._due: float | None = None  # what the targets written after the newest frame are sampled for (the lock)
         self._started = time.monotonic()
         self._last_frame_mono: float | None = None
         self._stalled = False
@@ -459,6 +460,7 @@ class BridgeNode(Node):
                             dict(zip(self._names, velocities, strict=True)))
                 self._measured = measured
                 self._state = state
+                self._due = due_s
                 feedback = self._follow_goals(measured_s, *measured)
                 # The newest frame did not get through, or a stop's retraction is to be written: write it (again).
                 if self._take_holds() or (ref is None and self._unsent):
@@ -571,6 +573,14 @@ class BridgeNode(Node):
             return None  # nothing new: the mux holds the last frame (an unchanged frame would not count anyway)
         if self._frame is None:
             self._frame = self._base_frame(state)
+        sampled = self._sample(active, state, due_s)
+        self._carried = (tuple(sampled), self._apply_pending())
+        return self._frame
+
+    def _sample(self, active: list[_Running], state: MDS_STATE, due_s: float) -> list[int]:
+        """Write the targets of the trajectories ``active`` for ``due_s`` into the frame (anchored first where they
+        need it): their serials (caller holds the lock, the frame exists)."""
+        assert self._frame is not None
         sampled: list[int] = []
         for r in active:
             if r.written is None:
@@ -613,8 +623,7 @@ class BridgeNode(Node):
                     del self._running[r.serial]
                 what = self._what.get(r.serial, "trajectory")
                 self._events.append(_Event("info", f"{what} finished", {"event": "finished", "command": what}))
-        self._carried = (tuple(sampled), self._apply_pending())
-        return self._frame
+        return sampled
 
     def _apply_pending(self) -> tuple[int, ...]:
         """Put the accepted position commands into the frame; their serials (caller holds the lock)."""
@@ -639,6 +648,36 @@ class BridgeNode(Node):
                 commands = self._apply_pending()
                 self._take_holds()
                 self._writes.append(_Write(time.monotonic(), (), commands))
+            self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again
+            if not self._unsent:
+                with self._lock:
+                    self._counters.references_written += 1
+
+    def _write_started(self) -> None:
+        """Write a trajectory accepted between two state frames now, for the daemon's next cycle, instead of at the
+        next frame (#26 items 2 and 5): its first target is then sent one cycle earlier. Written now, it is sent at
+        the daemon's next cycle, the one the newest frame's targets were written for, so it is sampled for that
+        frame's due time (``_due``); one that misses that cycle is never sent: the next frame's write replaces it
+        before the cycle after. A trajectory that takes over joints from a moving one is written on the next frame
+        (which of the retracted and the newest targets the daemon sent is known there, ``_replace``). Other
+        trajectories and commands keep their values in the frame."""
+        with self._write_lock:
+            with self._lock:
+                due = self._due
+                if self._state is None or due is None or self._stalled:
+                    return
+                fresh = [r for r in self._running.values() if r.written is None and not r.finished
+                         and not any(n in self._retracted or ((b := self._braking.get(n)) is not None and b.moving(due))
+                                     for n in r.traj.names)]
+                if not fresh:
+                    return
+                if self._frame is None:
+                    self._frame = self._base_frame(self._state)
+                held = self._take_holds()  # a retraction of the same callback goes with it
+                sampled = self._sample(fresh, self._state, due)
+                if not sampled and not held:  # refused when anchored (reported by the state thread)
+                    return
+                self._writes.append(_Write(time.monotonic(), tuple(sampled), ()))
             self._unsent = not self._guard.put(self._ref_chan, self._frame)  # the next state cycle writes it again
             if not self._unsent:
                 with self._lock:
@@ -812,6 +851,7 @@ class BridgeNode(Node):
         if reason is not None:
             self._reject(topic, reason)
             return
+        self._write_started()
         self._flush_cancels()
         self._emit()
         self._announce_accepted(serial, replaced,
@@ -883,6 +923,7 @@ class BridgeNode(Node):
             self._reject(action, reason)
             goal.publish_end()
             return
+        self._write_started()
         self._flush_cancels()
         self._emit()
         self._announce_accepted(serial, replaced, f"{len(traj.times)} points, {traj.times[-1]:.3f} s")

@@ -413,3 +413,118 @@ def test_c_clearances_equal_an_independent_reference() -> None:
     assert reference[worst] - ours[worst] <= 1e-6, (model.primitives[first[worst]], model.primitives[second[worst]],
                                                     reference[worst], ours[worst])
     assert checked == len(configs) * len(model.pairs)
+
+
+@pytest.mark.skipif(not collision.FAST_AVAILABLE, reason="mds_ach.kinematics._collfast not built")
+def test_c_answers_are_fcls_on_every_pair_where_pairs_barely_touch() -> None:
+    """The C path decides a pair itself when it is apart or overlapping by more than SCREEN_EPS (closed forms,
+    GJK, and for pairs with a cylinder the un-inflated clearance first: apart beyond sqrt(3) (pad_i + pad_j),
+    overlapping within pad_i + pad_j - 2 eps) and leaves the pairs closer to touching to python-fcl, so that both
+    round alike. Its pair lists must be those of fcl on every pair also there: where one pair starts to collide
+    along the segment between a configuration where fcl finds it apart and one where it finds it colliding
+    (bisection to 1e-12 of the segment), and 1e-9 to 1e-5 of the segment either side, where that pair is within
+    nanometres to tens of micrometres of touching. The pairs: every box-cylinder and cylinder-cylinder pair that
+    collides somewhere in the pool (their decisions go through GJK and the clearance-first rules), and the pairs
+    that collide first along random segments (mostly the hands' spheres). fcl judges every pair at the poses of
+    the C code's FK: at a boundary itself, fcl's answer flips with the last bit of a pose (the numpy FK's), and
+    even between points 1e-9 apart (its GJK stops within ~1e-7 m)."""
+    model = collision.load_model(world=TABLE)
+    slow = collision.load_model(world=TABLE)
+    slow._fast = None
+    rng = np.random.default_rng(23)
+    pool = np.concatenate([random_configs(model, 150, seed=29), hands_together(model, 60, seed=31),
+                           hand_over_table(model, 90, seed=37)])
+    kinds = [(model.primitives[i].kind, model.primitives[j].kind) for i, j in model.pairs]
+
+    def hits(q: np.ndarray, pair: int | None) -> bool:
+        if pair is None:
+            return slow.check(q).collides
+        return bool(slow._narrow(slow.primitive_poses(q), [pair]).contacts)
+
+    pool_hits = np.array([[c.a, c.b] for q in pool for c in slow.check(q).contacts])
+    segments: list[tuple[np.ndarray, np.ndarray, int | None]] = []
+    for k, (i, j) in enumerate(model.pairs):
+        if "sphere" in kinds[k] or "cylinder" not in kinds[k]:
+            continue
+        names = [model.primitives[i].name, model.primitives[j].name]
+        if not ((pool_hits[:, 0] == names[0]) & (pool_hits[:, 1] == names[1])).any():
+            continue
+        verdict = np.array([hits(q, k) for q in pool])
+        segments.append((pool[rng.choice(np.flatnonzero(~verdict))], pool[rng.choice(np.flatnonzero(verdict))], k))
+    assert len(segments) >= 10, len(segments)
+    any_hit = np.array([hits(q, None) for q in pool])
+    segments += [(pool[rng.choice(np.flatnonzero(~any_hit))], pool[rng.choice(np.flatnonzero(any_hit))], None)
+                 for _ in range(30)]
+    compared = decided_by_c = 0
+    poses = np.zeros((len(model.primitives), 4, 4))
+    for a, b, pair in segments:
+        lo, hi = 0.0, 1.0  # a + t (b - a): apart at lo, colliding at hi
+        while hi - lo > 1e-12:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if hits(a + mid * (b - a), pair) else (mid, hi)
+        for t in (lo, hi, *(hi + s * d for d in (1e-9, 1e-7, 1e-5) for s in (-1, 1))):
+            q = np.ascontiguousarray(a + t * (b - a))
+            collision._collfast.poses(model._fast, q, poses)
+            ours, full = model.check(q), model._narrow(poses, range(len(model.pairs)))
+            assert ours.pairs == full.pairs, (pair, t, ours.pairs ^ full.pairs)
+            assert model.collides(q) == full.collides
+            compared += 1
+            decided_by_c += _collfast_decides(model, q)
+    assert decided_by_c > compared // 6, decided_by_c  # the C decisions near touching are exercised, not only fcl's
+
+
+def _collfast_decides(model: collision.CollisionModel, q: np.ndarray) -> bool:
+    """Whether the C code answered configuration q without python-fcl."""
+    return collision._collfast.check_one(model._fast, np.ascontiguousarray(q, dtype=float)) is not False
+
+
+@pytest.mark.skipif(not collision.FAST_AVAILABLE, reason="mds_ach.kinematics._collfast not built")
+def test_clearance_first_rule_keeps_fcls_answer_at_its_threshold() -> None:
+    """The C path proves a pair with a cylinder overlapping when its un-inflated shapes are closer than
+    pad_i + pad_j - 2 eps (each inflated shape contains its un-inflated one grown by pad). That threshold is met
+    where the inflated shapes are exactly the grown ones: a box face-on to a cylinder's side. World boxes face-on
+    to the left forearm's cylinder at un-inflated gaps of 2 pad + delta, delta from -20 to +20 um: every answer
+    (all pairs, fcl on every pair at the same poses) and the box-forearm pair in the list exactly when fcl finds
+    the inflated gap delta closed."""
+    base = collision.load_model()
+    q = q_of(**{**HOME, "LEP": -0.6})
+    poses = base.primitive_poses(q)
+    cyl = base.primitives[index(base, "left_forearm_link")]
+    T = poses[index(base, "left_forearm_link")]
+    a, c, r = T[:3, 2], T[:3, 3], cyl.size[0]
+    pad = base.margin / 2
+    deltas = (-2e-5, -5e-6, -2.5e-6, -2.01e-6, -1.99e-6, -1e-6, -5e-7, 0.0, 5e-7, 1e-6, 1.5e-6, 5e-6, 2e-5)
+    objects = []
+    for k, delta in enumerate(deltas):  # around the forearm, one box per gap, each face-on to its side
+        angle = 2 * math.pi * k / len(deltas)
+        u = np.cross(a, [0.0, 0.0, 1.0])
+        u /= np.linalg.norm(u)
+        n = math.cos(angle) * u + math.sin(angle) * np.cross(a, u)
+        R = np.column_stack([a, np.cross(n, a), n])  # the box's -z face looks at the forearm
+        centre = c + n * (r + 2 * pad + delta + 0.02)
+        rpy = [math.atan2(R[2, 1], R[2, 2]), -math.asin(R[2, 0]), math.atan2(R[1, 0], R[0, 0])]
+        objects.append({"name": f"gap{k}", "shape": "box", "size": [0.4, 0.03, 0.04], "frame": "base",
+                        "xyz": centre.tolist(), "rpy": rpy})
+    model = collision.load_model(world={"objects": objects})
+    qc = np.ascontiguousarray(q)
+    c_poses = np.zeros((len(model.primitives), 4, 4))
+    collision._collfast.poses(model._fast, qc, c_poses)
+    ours, full = model.check(qc), model._narrow(c_poses, range(len(model.pairs)))
+    assert ours.pairs == full.pairs
+    touching = {p[0].removeprefix("world:") for p in ours.pairs if p[1] == "left_forearm_link"} | \
+        {p[1].removeprefix("world:") for p in ours.pairs if p[0] == "left_forearm_link"}
+    assert {f"gap{k}" for k, d in enumerate(deltas) if d <= -2e-6} <= touching
+    assert not touching & {f"gap{k}" for k, d in enumerate(deltas) if d >= 1e-6}
+
+
+def test_check_takes_any_vector_of_the_joints_and_refuses_a_wrong_length() -> None:
+    """``check`` hands a contiguous float64 vector to the C code as it is and converts anything else (a list,
+    float32, a strided view) first: the same answer; a vector of the wrong length is refused with its shape."""
+    model = collision.load_model(world=TABLE)
+    for q in random_configs(model, 40, seed=41):
+        answer = model.check(q)
+        assert model.check(list(q)) == answer
+        assert model.check(np.stack([q, q], axis=1)[:, 0]) == answer  # not contiguous
+        assert model.check(q.astype(np.float32)).pairs == model.check(q.astype(np.float32).astype(float)).pairs
+    with pytest.raises(ValueError, match="17 joint values"):
+        model.check(np.zeros(16))

@@ -5,8 +5,9 @@
  *
  * Why C: the numpy path costs ~100 us per configuration, nearly all of it per-call overhead of small arrays
  * (FK level by level, the broad phase); the same arithmetic here takes ~2 us. python-fcl stays the judge of every
- * pair this screen cannot decide, and computes the clearances, so answers are those of python-fcl. Optional:
- * without a compiler, mds_ach.kinematics.collision runs the numpy path (same answers, slower).
+ * pair this screen cannot decide (within eps of touching) and of every clearance it cannot certify, so answers
+ * are those of python-fcl. check_one/check_many build the answer objects (CheckResult, Contact) here too.
+ * Optional: without a compiler, mds_ach.kinematics.collision runs the numpy path (same answers, slower).
  *
  * Status of a pair: 0 = apart by more than eps (certain), 1 = undecided (ask fcl), 2 = overlapping by more than
  * eps (certain). eps keeps near-touching pairs, where two algorithms may round differently, with fcl.
@@ -20,6 +21,7 @@
 enum { SPHERE = 0, BOX = 1, CYLINDER = 2 };
 
 #define GJK_TOL 1e-9  /* m: a GJK or EPA distance is within this of the true one */
+#define GJK_RESTARTS 2  /* new simplices when GJK stalls short of GJK_TOL on shapes apart */
 
 /* A 3x4 affine transform, row-major: R (3x3) and t in the last column. */
 typedef double Affine[12];
@@ -36,17 +38,25 @@ typedef struct {
     double *dims;       /* P * 3: sphere (r), box (half x, y, z), cylinder (r, half length) -- inflated */
     double *raw;        /* P * 3: the same, un-inflated (for clearances) */
     double *brad;       /* P: bounding radius about the centre */
+    double *pad;        /* P: how far the inflation moved every side of the primitive out (least) */
+    double *padmax;     /* P: the same, most */
     int64_t *I, *J;     /* M pairs */
     double *T;          /* (n + 1) * 12 work: joint frames */
     double *W;          /* P * 12 work: primitive poses */
+    double *poses;      /* P * 16 work: the same as 4 x 4 */
+    PyObject *contact;  /* the Contact class, and per pair the dict of its fields (clearance set per contact) */
+    PyObject *fields;   /* tuple of M dicts */
+    PyObject *result;   /* the CheckResult class, and its instance without contacts; all four NULL until contacts() */
+    PyObject *free;
 } Model;
 
 static void model_free(Model *m) {
     if (m == NULL)
         return;
     PyMem_Free(m->A); PyMem_Free(m->parent); PyMem_Free(m->order); PyMem_Free(m->owner);
-    PyMem_Free(m->offset); PyMem_Free(m->kind); PyMem_Free(m->dims); PyMem_Free(m->raw); PyMem_Free(m->brad);
-    PyMem_Free(m->I); PyMem_Free(m->J); PyMem_Free(m->T); PyMem_Free(m->W);
+    PyMem_Free(m->offset); PyMem_Free(m->kind); PyMem_Free(m->dims); PyMem_Free(m->raw); PyMem_Free(m->brad); PyMem_Free(m->pad); PyMem_Free(m->padmax);
+    PyMem_Free(m->I); PyMem_Free(m->J); PyMem_Free(m->T); PyMem_Free(m->W); PyMem_Free(m->poses);
+    Py_XDECREF(m->contact); Py_XDECREF(m->fields); Py_XDECREF(m->result); Py_XDECREF(m->free);
     PyMem_Free(m);
 }
 
@@ -127,9 +137,22 @@ static PyObject *build(PyObject *self, PyObject *args) {
     }
     m->T = PyMem_Malloc((n + 1) * 12 * sizeof(double));
     m->W = PyMem_Malloc((P > 0 ? P : 1) * 12 * sizeof(double));
-    if (m->T == NULL || m->W == NULL) {
+    m->pad = PyMem_Malloc((P > 0 ? P : 1) * sizeof(double));
+    m->padmax = PyMem_Malloc((P > 0 ? P : 1) * sizeof(double));
+    m->poses = PyMem_Malloc((P > 0 ? P : 1) * 16 * sizeof(double));
+    if (m->T == NULL || m->W == NULL || m->pad == NULL || m->padmax == NULL || m->poses == NULL) {
         model_free(m);
         return PyErr_NoMemory();
+    }
+    for (Py_ssize_t p = 0; p < P; p++) {  /* the smallest side move: sphere r; box x, y, z; cylinder r, length */
+        const int used = m->kind[p] == SPHERE ? 1 : (m->kind[p] == BOX ? 3 : 2);
+        double pad = INFINITY, padmax = -INFINITY;
+        for (int k = 0; k < used; k++) {
+            pad = fmin(pad, m->dims[3 * p + k] - m->raw[3 * p + k]);
+            padmax = fmax(padmax, m->dims[3 * p + k] - m->raw[3 * p + k]);
+        }
+        m->pad[p] = pad;
+        m->padmax[p] = padmax;
     }
     PyObject *cap = PyCapsule_New(m, "mds_collfast.Model", capsule_free);
     if (cap == NULL)
@@ -281,17 +304,18 @@ static void support(const Shape *s, const double *dir, double *out) {
         const double n = sqrt(dot3(l, l));
         if (n > 0)
             for (int k = 0; k < 3; k++)
-                p[k] = l[k] * s->d[0] / n;
+                p[k] = l[k] * (s->d[0] / n);
         else
             p[0] = s->d[0];
     } else if (s->kind == BOX) {
         for (int k = 0; k < 3; k++)
             p[k] = l[k] >= 0 ? s->d[k] : -s->d[k];
     } else {
-        const double rr = hypot(l[0], l[1]);
+        const double rr = sqrt(l[0] * l[0] + l[1] * l[1]);  /* not hypot: several times slower, no overflow here */
         if (rr > 0) {
-            p[0] = l[0] * s->d[0] / rr;
-            p[1] = l[1] * s->d[0] / rr;
+            const double scale = s->d[0] / rr;
+            p[0] = l[0] * scale;
+            p[1] = l[1] * scale;
         }
         p[2] = l[2] >= 0 ? s->d[1] : -s->d[1];
     }
@@ -490,16 +514,32 @@ static int gjk_simplex(const Shape *a, const Shape *b, double tol, double apart_
     support_diff(a, b, dot3(dir0, dir0) > 0 ? dir0 : one, W[0]);
     memcpy(v, W[0], sizeof v);
     double upper = INFINITY, lower = -INFINITY;  /* the best bounds so far */
-    for (int iter = 0; iter < 64; iter++) {
+    double last = INFINITY, restart[3];  /* |v| of the run's last step; the support point towards its best v */
+    int restarts = 0;
+    for (int iter = 0; iter < 64 * (1 + GJK_RESTARTS); iter++) {
         const double vv = dot3(v, v);
         if (!(vv > 1e-24))  /* touching, or lost: not ours to decide */
             return GJK_UNDECIDED;
         const double vn = sqrt(vv);
-        if (!(vn < upper))  /* no progress (rounding on a flat simplex): the bounds decide, or fcl */
-            break;
-        upper = vn;
+        if (!(vn < last)) {  /* no progress (rounding on a flat simplex of points close together) */
+            if (restarts == GJK_RESTARTS || !(lower > 0))
+                break;  /* the bounds decide, or fcl */
+            /* apart and stuck a few nanometres short of the tolerance (a cylinder's rim against a face): a new run
+             * from the support point towards the best direction, with the bounds kept (they hold whatever the
+             * simplex did) */
+            restarts++;
+            n = 1;
+            memcpy(W[0], restart, sizeof restart);
+            memcpy(v, restart, sizeof v);
+            last = INFINITY;
+            continue;
+        }
+        last = vn;
+        upper = fmin(upper, vn);
         const double neg[3] = {-v[0], -v[1], -v[2]};
         support_diff(a, b, neg, w);
+        if (vn <= upper)
+            memcpy(restart, w, sizeof w);
         lower = fmax(lower, dot3(v, w) / vn);
         if (lower > apart_above) {
             *dist = lower;
@@ -529,16 +569,40 @@ static int gjk(const Shape *a, const Shape *b, double tol, double apart_above, d
 
 /* EPA: the penetration depth of two overlapping shapes (the distance from the origin to the boundary of A - B),
  * grown from GJK's tetrahedron around the origin. Certified as GJK is: the polytope lies inside A - B, so its
- * nearest face's distance is a lower bound of the depth, and the support value of A - B along that face's
- * normal an upper bound; the depth is returned when they agree within `tol`. Returns 1 and *depth, or 0 (no
- * tetrahedron, a degenerate face, out of room or iterations): ask fcl. */
+ * nearest face's distance is a lower bound of the depth, and the support value of A - B along any direction an
+ * upper bound; the depth is returned when the nearest face's distance and the lowest support value seen agree
+ * within `tol`. Returns 1 and *depth, or 0 (no tetrahedron, a degenerate face, out of room or iterations): ask
+ * fcl. The faces are kept packed (the last face takes a removed one's slot), so each iteration is one pass over
+ * the live faces: which ones the new point sees, and the nearest of the others and the new ones. */
 #define EPA_VERTS 132
 #define EPA_FACES (2 * EPA_VERTS)
+
+typedef struct {
+    int v[3];
+    double n[3], d;  /* unit outward normal, distance of the plane from the origin */
+} Face;
+
+/* Face through vertices i0, i1, i2 of V (counter-clockwise seen from outside); 0 when degenerate or when the
+ * origin is outside its plane (numerically lost). */
+static int face_make(double V[][3], int i0, int i1, int i2, Face *f) {
+    double e1[3], e2[3], n[3];
+    sub3(V[i1], V[i0], e1);
+    sub3(V[i2], V[i0], e2);
+    cross3(e1, e2, n);
+    const double len = sqrt(dot3(n, n));
+    if (!(len > 1e-18))
+        return 0;
+    f->v[0] = i0; f->v[1] = i1; f->v[2] = i2;
+    for (int k = 0; k < 3; k++)
+        f->n[k] = n[k] / len;
+    f->d = dot3(f->n, V[i0]);
+    return f->d >= -1e-12;
+}
+
 static int epa(const Shape *a, const Shape *b, double W[4][3], double tol, double *depth) {
     double V[EPA_VERTS][3];
-    int F[EPA_FACES][3], nf = 0, nv = 4;
-    double N[EPA_FACES][3], D[EPA_FACES];
-    char alive[EPA_FACES];
+    Face F[EPA_FACES];
+    int nf = 0, nv = 4, best = -1;
     memcpy(V, W, sizeof(double) * 12);
     static const int tet[4][4] = {{0, 1, 2, 3}, {0, 3, 1, 2}, {0, 2, 3, 1}, {1, 3, 2, 0}};
     for (int f = 0; f < 4; f++) {
@@ -551,52 +615,41 @@ static int epa(const Shape *a, const Shape *b, double W[4][3], double tol, doubl
         if (dot3(n, o) > 0) {  /* orient outwards: away from the opposite vertex */
             const int t = i1; i1 = i2; i2 = t;
         }
-        F[nf][0] = i0; F[nf][1] = i1; F[nf][2] = i2;
-        alive[nf++] = 1;
-    }
-    for (int iter = 0;; iter++) {
-        /* normals and distances of the new faces (those not computed yet are marked with D = NAN) */
-        int best = -1;
-        for (int f = 0; f < nf; f++) {
-            if (!alive[f])
-                continue;
-            if (iter == 0 || D[f] != D[f]) {
-                double e1[3], e2[3], n[3];
-                sub3(V[F[f][1]], V[F[f][0]], e1);
-                sub3(V[F[f][2]], V[F[f][0]], e2);
-                cross3(e1, e2, n);
-                const double len = sqrt(dot3(n, n));
-                if (!(len > 1e-18))
-                    return 0;
-                for (int k = 0; k < 3; k++)
-                    N[f][k] = n[k] / len;
-                D[f] = dot3(N[f], V[F[f][0]]);
-                if (D[f] < -1e-12)  /* the origin outside the polytope: numerically lost */
-                    return 0;
-            }
-            if (best < 0 || D[f] < D[best])
-                best = f;
-        }
-        if (best < 0)
+        if (!face_make(V, i0, i1, i2, &F[nf]))
             return 0;
+        if (best < 0 || F[nf].d < F[best].d)
+            best = nf;
+        nf++;
+    }
+    double upper = INFINITY;
+    for (int iter = 0;; iter++) {
         double w[3];
-        support_diff(a, b, N[best], w);
-        const double upper = dot3(N[best], w);
-        if (upper - D[best] <= tol) {
-            *depth = D[best] > 0 ? D[best] : 0.0;
+        support_diff(a, b, F[best].n, w);
+        upper = fmin(upper, dot3(F[best].n, w));
+        if (upper - F[best].d <= tol) {
+            *depth = F[best].d > 0 ? F[best].d : 0.0;
             return 1;
         }
         if (nv == EPA_VERTS || iter > EPA_VERTS)
             return 0;
         memcpy(V[nv], w, sizeof w);
-        /* remove the faces w sees; the horizon (their edges not shared by another removed face) gets new faces */
+        /* remove the faces w sees (the last face takes a removed one's slot); the horizon, their edges not
+         * shared by another removed face, gets new faces to w */
         int edges[3 * EPA_FACES][2], ne = 0;
-        for (int f = 0; f < nf; f++) {
-            if (!alive[f] || dot3(N[f], w) - D[f] <= 1e-12)  /* w on a face's plane: keep the face */
+        double nearest = INFINITY;  /* (in a register: F[best].d would be reloaded after every store) */
+        best = -1;
+        for (int f = 0; f < nf;) {
+            const double fd = F[f].d;
+            if (dot3(F[f].n, w) - fd <= 1e-12) {  /* w on or behind a face's plane: keep the face */
+                if (fd < nearest) {
+                    nearest = fd;
+                    best = f;
+                }
+                f++;
                 continue;
-            alive[f] = 0;
+            }
             for (int e = 0; e < 3; e++) {
-                const int u = F[f][e], x = F[f][(e + 1) % 3];
+                const int u = F[f].v[e], x = F[f].v[(e + 1) % 3];
                 int shared = -1;
                 for (int k = 0; k < ne; k++)
                     if (edges[k][0] == x && edges[k][1] == u) {
@@ -612,21 +665,18 @@ static int epa(const Shape *a, const Shape *b, double W[4][3], double tol, doubl
                     ne++;
                 }
             }
+            F[f] = F[--nf];  /* not yet looked at: f is looked at again */
         }
-        if (ne == 0)
+        if (ne == 0 || nf + ne > EPA_FACES)
             return 0;
         for (int k = 0; k < ne; k++) {
-            int f = 0;
-            while (f < nf && alive[f])  /* reuse a dead slot */
-                f++;
-            if (f == nf) {
-                if (nf == EPA_FACES)
-                    return 0;
-                nf++;
+            if (!face_make(V, edges[k][0], edges[k][1], nv, &F[nf]))
+                return 0;
+            if (F[nf].d < nearest) {
+                nearest = F[nf].d;
+                best = nf;
             }
-            F[f][0] = edges[k][0]; F[f][1] = edges[k][1]; F[f][2] = nv;
-            alive[f] = 1;
-            D[f] = NAN;
+            nf++;
         }
         nv++;
     }
@@ -659,7 +709,14 @@ static double thinnest(const Shape *s) {
     return fmin(s->d[0], fmin(s->d[1], s->d[2]));
 }
 
-static int pair_status(const Model *m, Py_ssize_t i, Py_ssize_t j) {
+static double signed_distance(const Model *m, const double *poses, Py_ssize_t i, Py_ssize_t j);
+
+/* The status of pair (i, j) at the poses in m->W. With `clearance` (then `poses`: the same poses, P x 4 x 4), a
+ * pair that needs GJK gets the signed distance of its un-inflated shapes computed first and stored there (NaN:
+ * not certified), and *computed set: the clearance is wanted anyway when the pair overlaps, and it proves most
+ * overlaps on its own (see below), sparing the test on the shrunk shapes. */
+static int pair_status(const Model *m, Py_ssize_t i, Py_ssize_t j, const double *poses, double *clearance,
+                       int *computed) {
     const double *Ti = m->W + 12 * i, *Tj = m->W + 12 * j;
     double ci[3], cj[3];
     centre(Ti, ci);
@@ -706,10 +763,30 @@ static int pair_status(const Model *m, Py_ssize_t i, Py_ssize_t j) {
         if (segment_segment2(ci, u, cj, v) > r * r)
             return 0;
     }
-    /* GJK on the shapes themselves: apart when the certified lower bound of their distance exceeds eps;
-     * overlapping by more than eps when the shapes shrunk by eps on every side still share an interior point */
     Shape a, b;
     double d;
+    if (clearance != NULL) {
+        /* The clearance first (wanted anyway when the pair overlaps; pairs with a sphere never get here): one GJK on
+         * the un-inflated shapes decides most pairs. An inflated primitive lies within its un-inflated one grown by
+         * a ball of radius sqrt(3) padmax (a box's corner moves that far, a cylinder's rim sqrt(2) pad), so
+         * un-inflated shapes further apart than sqrt(3) (padmax_i + padmax_j) + eps leave the inflated ones apart
+         * by more than eps. And it contains the un-inflated one grown by pad, so, shrunk by eps, the one grown by
+         * pad - eps: un-inflated shapes closer than pad_i + pad_j - 2 eps (certified within GJK_TOL) make the
+         * shrunk inflated ones share an interior point, which is what the test below proves. */
+        const double far = 1.7320508075688774 * (m->padmax[i] + m->padmax[j]) + eps + GJK_TOL;
+        double W[4][3];
+        make_shape(&a, ki, Ti, m->raw + 3 * i, 0.0);
+        make_shape(&b, kj, Tj, m->raw + 3 * j, 0.0);
+        const int g = gjk_simplex(&a, &b, GJK_TOL, far, &d, W);
+        if (g == GJK_APART && d > far)  /* a lower bound past `far`, or the distance within GJK_TOL */
+            return 0;
+        *computed = 1;
+        *clearance = g == GJK_APART ? d : (g == GJK_INTERSECT && epa(&a, &b, W, GJK_TOL, &d) ? -d : NAN);
+        if (*clearance + GJK_TOL < m->pad[i] + m->pad[j] - 2 * eps)
+            return 2;
+    }
+    /* GJK on the shapes themselves: apart when the certified lower bound of their distance exceeds eps;
+     * overlapping by more than eps when the shapes shrunk by eps on every side still share an interior point */
     make_shape(&a, ki, Ti, di, 0.0);
     make_shape(&b, kj, Tj, dj, 0.0);
     if (gjk(&a, &b, GJK_TOL, eps, &d) == GJK_APART && d - GJK_TOL > eps)
@@ -791,7 +868,7 @@ static PyObject *screen(PyObject *self, PyObject *args) {
     if (out == NULL)
         goto done;
     for (Py_ssize_t k = 0; k < m->M; k++) {
-        const int status = pair_status(m, m->I[k], m->J[k]);
+        const int status = pair_status(m, m->I[k], m->J[k], NULL, NULL, NULL);
         if (status == 0)
             continue;
         PyObject *v = PyLong_FromSsize_t(status == 2 ? -1 - k : k);
@@ -863,18 +940,153 @@ done:
     return out;
 }
 
-/* check_many(handle, Q) -> per row of Q (K x n doubles, C order): None when every pair is proven apart, else the
- * list of the pairs not proven apart, in pair order: (k, d) for pair k proven overlapping by more than eps, with
- * d the signed distance of its un-inflated shapes (NaN: ask fcl), or (k, None) for an undecided pair (ask fcl).
- * One call for all the configurations of a gate frame: no Python work for the configurations that are free. */
+/* contacts(handle, contact_class, fields, result_class, free): what check_many and check_one build their answers
+ * from: an instance of contact_class per contact whose __dict__ is a copy of fields[pair] (a tuple of one dict per
+ * pair) with "clearance" set, and an instance of result_class whose __dict__ is {"contacts": (contact, ...)}, as
+ * object.__new__ and object.__setattr__(c, "__dict__", ...) would make them (a frozen dataclass's __init__ costs
+ * ~0.9 us a contact, a third of the pair list's tail on many-contact configurations); `free` when every pair is
+ * apart. */
+static PyObject *contacts(PyObject *self, PyObject *args) {
+    PyObject *cap, *cls, *fields, *result, *free;
+    if (!PyArg_ParseTuple(args, "OO!O!O!O", &cap, &PyType_Type, &cls, &PyTuple_Type, &fields, &PyType_Type, &result,
+                          &free))
+        return NULL;
+    Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
+    if (m == NULL)
+        return NULL;
+    if (PyTuple_GET_SIZE(fields) != m->M) {
+        PyErr_Format(PyExc_ValueError, "_collfast.contacts: fields needs one dict per pair (%zd), got %zd", m->M,
+                     PyTuple_GET_SIZE(fields));
+        return NULL;
+    }
+    for (Py_ssize_t k = 0; k < m->M; k++)
+        if (!PyDict_Check(PyTuple_GET_ITEM(fields, k))) {
+            PyErr_SetString(PyExc_TypeError, "_collfast.contacts: fields must be dicts");
+            return NULL;
+        }
+    Py_INCREF(cls);
+    Py_INCREF(fields);
+    Py_INCREF(result);
+    Py_INCREF(free);
+    Py_XSETREF(m->contact, cls);
+    Py_XSETREF(m->fields, fields);
+    Py_XSETREF(m->result, result);
+    Py_XSETREF(m->free, free);
+    Py_RETURN_NONE;
+}
+
+static PyObject *empty_args, *dict_name, *clearance_name, *contacts_name;
+
+/* An instance of cls whose __dict__ is `values` (a reference taken). */
+static PyObject *instance(PyObject *cls, PyObject *values) {
+    if (values == NULL)
+        return NULL;
+    PyObject *out = PyBaseObject_Type.tp_new((PyTypeObject *)cls, empty_args, NULL);
+    if (out != NULL && PyObject_GenericSetAttr(out, dict_name, values) < 0)
+        Py_CLEAR(out);
+    Py_DECREF(values);
+    return out;
+}
+
+static PyObject *make_contact(const Model *m, Py_ssize_t k, double d) {
+    PyObject *values = PyDict_Copy(PyTuple_GET_ITEM(m->fields, k)), *clearance = PyFloat_FromDouble(d);
+    if (values == NULL || clearance == NULL || PyDict_SetItem(values, clearance_name, clearance) < 0) {
+        Py_XDECREF(values);
+        Py_XDECREF(clearance);
+        return NULL;
+    }
+    Py_DECREF(clearance);
+    return instance(m->contact, values);
+}
+
+/* The answer for configuration q (m->n doubles): m->free, a result_class instance with the contacts, or Py_False
+ * (ask fcl); a new reference, NULL on error. */
+static PyObject *answer(Model *m, const double *q) {
+    PyObject *stack[64], **found = stack;  /* the contacts so far (on the heap past 64) */
+    Py_ssize_t nfound = 0, room = 64;
+    double *poses = m->poses;
+    place(m, q);
+    for (Py_ssize_t p = 0; p < m->P; p++) {
+        memcpy(poses + 16 * p, m->W + 12 * p, 12 * sizeof(double));
+        poses[16 * p + 12] = poses[16 * p + 13] = poses[16 * p + 14] = 0.0;
+        poses[16 * p + 15] = 1.0;
+    }
+    PyObject *out = NULL;
+    for (Py_ssize_t k = 0; k < m->M; k++) {
+        double d = NAN;
+        int computed = 0;
+        const int status = pair_status(m, m->I[k], m->J[k], poses, &d, &computed);
+        if (status == 0)
+            continue;
+        if (status == 2 && !computed)
+            d = signed_distance(m, poses, m->I[k], m->J[k]);
+        if (status != 2 || d != d) {  /* fcl's: the rest would be thrown away */
+            out = Py_False;
+            Py_INCREF(out);
+            goto done;
+        }
+        if (nfound == room) {
+            PyObject **more = PyMem_Malloc(2 * room * sizeof(PyObject *));
+            if (more == NULL) {
+                PyErr_NoMemory();
+                goto done;
+            }
+            memcpy(more, found, nfound * sizeof(PyObject *));
+            if (found != stack)
+                PyMem_Free(found);
+            found = more;
+            room *= 2;
+        }
+        if ((found[nfound] = make_contact(m, k, d)) == NULL)
+            goto done;
+        nfound++;
+    }
+    if (nfound == 0) {
+        out = m->free;
+        Py_INCREF(out);
+        goto done;
+    }
+    PyObject *tuple = PyTuple_New(nfound), *values = PyDict_New();
+    if (tuple == NULL || values == NULL || PyDict_SetItem(values, contacts_name, tuple) < 0) {
+        Py_XDECREF(tuple);
+        Py_XDECREF(values);
+        goto done;
+    }
+    for (Py_ssize_t k = 0; k < nfound; k++)
+        PyTuple_SET_ITEM(tuple, k, found[k]);  /* the tuple takes the references */
+    nfound = 0;
+    Py_DECREF(tuple);
+    out = instance(m->result, values);
+done:
+    for (Py_ssize_t k = 0; k < nfound; k++)
+        Py_DECREF(found[k]);
+    if (found != stack)
+        PyMem_Free(found);
+    return out;
+}
+
+/* The model of a handle, with contacts() done. */
+static Model *ready(PyObject *cap, const char *who) {
+    Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
+    if (m != NULL && m->contact == NULL) {
+        PyErr_Format(PyExc_RuntimeError, "_collfast.%s: call contacts() first", who);
+        return NULL;
+    }
+    return m;
+}
+
+/* check_many(handle, Q) -> per row of Q (K x n doubles, C order) its answer: the `free` result when every pair is
+ * proven apart; a result with the contacts (see contacts()), in pair order, when every pair not proven apart is
+ * proven overlapping by more than eps and has a certified clearance; else False (an undecided pair or an
+ * uncertified clearance: ask fcl). One call for all the configurations of a gate frame, and no Python work per
+ * configuration or pair. */
 static PyObject *check_many(PyObject *self, PyObject *args) {
     PyObject *cap;
     Py_buffer qb;
     if (!PyArg_ParseTuple(args, "Oy*", &cap, &qb))
         return NULL;
     PyObject *out = NULL;
-    double *poses = NULL;
-    Model *m = PyCapsule_GetPointer(cap, "mds_collfast.Model");
+    Model *m = ready(cap, "check_many");
     if (m == NULL)
         goto done;
     const Py_ssize_t row = m->n * (Py_ssize_t)sizeof(double);
@@ -882,50 +1094,43 @@ static PyObject *check_many(PyObject *self, PyObject *args) {
         PyErr_Format(PyExc_ValueError, "_collfast.check_many: Q needs rows of %zd doubles, got %zd bytes", m->n, qb.len);
         goto done;
     }
-    poses = PyMem_Malloc((m->P > 0 ? m->P : 1) * 16 * sizeof(double));
-    if (poses == NULL) {
-        PyErr_NoMemory();
-        goto done;
-    }
     const Py_ssize_t K = qb.len / row;
     out = PyList_New(K);
-    if (out == NULL)
-        goto done;
-    for (Py_ssize_t r = 0; r < K; r++) {
-        place(m, (const double *)qb.buf + r * m->n);
-        for (Py_ssize_t p = 0; p < m->P; p++) {
-            memcpy(poses + 16 * p, m->W + 12 * p, 12 * sizeof(double));
-            poses[16 * p + 12] = poses[16 * p + 13] = poses[16 * p + 14] = 0.0;
-            poses[16 * p + 15] = 1.0;
-        }
-        PyObject *found = NULL;
-        for (Py_ssize_t k = 0; k < m->M; k++) {
-            const int status = pair_status(m, m->I[k], m->J[k]);
-            if (status == 0)
-                continue;
-            if (found == NULL && (found = PyList_New(0)) == NULL)
-                goto fail;
-            PyObject *item = status == 2
-                ? Py_BuildValue("(nd)", k, signed_distance(m, poses, m->I[k], m->J[k]))
-                : Py_BuildValue("(nO)", k, Py_None);
-            if (item == NULL || PyList_Append(found, item) < 0) {
-                Py_XDECREF(item);
-                Py_DECREF(found);
-                goto fail;
-            }
-            Py_DECREF(item);
-        }
-        if (found == NULL) {
-            Py_INCREF(Py_None);
-            found = Py_None;
-        }
-        PyList_SET_ITEM(out, r, found);
+    for (Py_ssize_t r = 0; out != NULL && r < K; r++) {
+        PyObject *verdict = answer(m, (const double *)qb.buf + r * m->n);
+        if (verdict == NULL)
+            Py_CLEAR(out);
+        else
+            PyList_SET_ITEM(out, r, verdict);
     }
-    goto done;
-fail:
-    Py_CLEAR(out);
 done:
-    PyMem_Free(poses);
+    PyBuffer_Release(&qb);
+    return out;
+}
+
+/* check_one(handle, q) -> the answer for one configuration (as check_many's), or NotImplemented when q is not a
+ * C-contiguous buffer of n doubles (the caller converts it). Without numpy's conversions: the pair list of one
+ * configuration is what the gate's per-frame time and the benchmark's pair-list rows are made of. */
+static PyObject *check_one(PyObject *self, PyObject *args) {
+    PyObject *cap, *q;
+    if (!PyArg_ParseTuple(args, "OO", &cap, &q))
+        return NULL;
+    Model *m = ready(cap, "check_one");
+    if (m == NULL)
+        return NULL;
+    Py_buffer qb;
+    if (!PyObject_CheckBuffer(q) || PyObject_GetBuffer(q, &qb, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        PyErr_Clear();
+        Py_RETURN_NOTIMPLEMENTED;
+    }
+    const char *f = qb.format;
+    if (f != NULL && (*f == '<' || *f == '=' || *f == '@'))
+        f++;
+    if (f == NULL || strcmp(f, "d") != 0 || qb.itemsize != sizeof(double) || qb.len != m->n * (Py_ssize_t)sizeof(double)) {
+        PyBuffer_Release(&qb);
+        Py_RETURN_NOTIMPLEMENTED;
+    }
+    PyObject *out = answer(m, (const double *)qb.buf);
     PyBuffer_Release(&qb);
     return out;
 }
@@ -935,7 +1140,10 @@ static PyMethodDef methods[] = {
      "build(n, P, M, eps, A, parent, order, owner, offset, kind, dims, raw, brad, I, J)"},
     {"screen", screen, METH_VARARGS, "screen(handle, q, poses_out, stop_at_sure=False) -> [pair or -1 - pair]"},
     {"poses", poses, METH_VARARGS, "poses(handle, q, poses_out): primitive poses only"},
-    {"check_many", check_many, METH_VARARGS, "check_many(handle, Q) -> [None or [(pair, distance or None)]]"},
+    {"contacts", contacts, METH_VARARGS,
+     "contacts(handle, contact_class, fields, result_class, free): what check_many's answers are made of"},
+    {"check_many", check_many, METH_VARARGS, "check_many(handle, Q) -> [a result, or False: ask fcl]"},
+    {"check_one", check_one, METH_VARARGS, "check_one(handle, q) -> a result, False (ask fcl) or NotImplemented"},
     {"distance", distance, METH_VARARGS, "distance(handle, poses, i, j) -> signed distance (un-inflated), NaN: ask fcl"},
     {NULL, NULL, 0, NULL},
 };
@@ -943,4 +1151,10 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef moduledef = {PyModuleDef_HEAD_INIT, "_collfast",
                                        "C screen of the collision gate (see _collfast.c)", -1, methods};
 
-PyMODINIT_FUNC PyInit__collfast(void) { return PyModule_Create(&moduledef); }
+PyMODINIT_FUNC PyInit__collfast(void) {
+    if ((empty_args = PyTuple_New(0)) == NULL || (dict_name = PyUnicode_InternFromString("__dict__")) == NULL
+        || (clearance_name = PyUnicode_InternFromString("clearance")) == NULL
+        || (contacts_name = PyUnicode_InternFromString("contacts")) == NULL)
+        return NULL;
+    return PyModule_Create(&moduledef);
+}

@@ -465,11 +465,14 @@ class CollisionModel:
         self._rsum = self._radius[self._I] + self._radius[self._J]
         self._pair_info = [(prims[i].name, prims[j].name, prims[i].group, prims[j].group, prims[i].part,
                             prims[j].part) for i, j in pairs]
+        self._contact_fields = tuple(Contact(*info).__dict__ for info in self._pair_info)
         self._request = fcl.CollisionRequest()
         self._signed = fcl.DistanceRequest(enable_signed_distance=True)
         self._plain = fcl.DistanceRequest()
         self._fcl = fcl
         self._fast: Any = self._build_screen(pad) if FAST_AVAILABLE else None
+        if self._fast is not None:  # check's answers: CheckResult((Contact(*pair_info[k], clearance), ...)), in C
+            _collfast.contacts(self._fast, Contact, self._contact_fields, CheckResult, _FREE)
         self._pose_buffer = np.zeros((len(prims), 4, 4))
 
     def _build_screen(self, pad: float) -> Any:
@@ -553,7 +556,22 @@ class CollisionModel:
 
     def check(self, q: np.ndarray) -> CheckResult:
         """Predicted collisions (clearance below ``margin``) for one configuration."""
-        return self.check_many(np.asarray(q, dtype=float)[None])[0]
+        if self._fast is not None:
+            found = _collfast.check_one(self._fast, q)  # NotImplemented: not a contiguous float64 vector
+            if found is NotImplemented:
+                q = self._vector(q)
+                found = _collfast.check_one(self._fast, q)
+            if found is not False:
+                return found
+            return self._check_screened(np.asarray(q, dtype=float))
+        return self.check_many(self._vector(q)[None])[0]
+
+    def _vector(self, q: Any) -> np.ndarray:
+        """q as a contiguous float64 vector of the model's joints; ValueError naming the shape otherwise."""
+        q = np.ascontiguousarray(q, dtype=float)
+        if q.shape != (len(self.joint_names),):
+            raise ValueError(f"a configuration needs {len(self.joint_names)} joint values, got shape {q.shape}")
+        return q
 
     def check_many(self, qs: np.ndarray) -> list[CheckResult]:
         """``check`` for each row of ``qs`` (K, 17): the C screen per row, else one batched numpy FK and broad
@@ -562,25 +580,16 @@ class CollisionModel:
             qs = np.ascontiguousarray(np.atleast_2d(np.asarray(qs, dtype=float)))  # (the gate's rows already are)
         if self._fast is not None:
             found = _collfast.check_many(self._fast, qs)
-            return [_FREE if f is None else self._from_screen(qs[k], f) for k, f in enumerate(found)]
+            return [self._check_screened(qs[k]) if f is False else f for k, f in enumerate(found)]
         poses = self.primitive_poses(qs)
         centres = poses[..., :3, 3]
         gap = np.linalg.norm(centres[:, self._I] - centres[:, self._J], axis=2) - self._rsum
         return [self._narrow(p, np.flatnonzero(g < 0.0)) for p, g in zip(poses, gap, strict=True)]
 
-    def _from_screen(self, q: np.ndarray, found: list[tuple[int, float | None]]) -> CheckResult:
-        """The result of configuration ``q`` from ``_collfast.check_many``'s pairs not proven apart: pairs proven
-        overlapping, with their clearance, are the contacts; an undecided pair (or a clearance the C code could not
-        certify) sends the configuration the fcl way, ``_check_screened``, which gives the same answer."""
-        contacts = []
-        info = self._pair_info
-        for k, d in found:
-            if d is None or d != d:
-                return self._check_screened(q)
-            contacts.append(Contact(*info[k], d))
-        return CheckResult(tuple(contacts))
-
     def _check_screened(self, q: np.ndarray) -> CheckResult:
+        """The fcl way for a configuration the C code could not settle (``_collfast.check_many`` answered False: an
+        undecided pair or a clearance it could not certify): the same screen, fcl on the pairs it did not prove
+        apart; the same answer."""
         poses = self._pose_buffer
         candidates = _collfast.screen(self._fast, np.ascontiguousarray(q, dtype=float), poses)
         return self._narrow(poses, candidates) if candidates else _FREE
