@@ -64,7 +64,14 @@ from mds_ach.nodes.status_msgs import command_status_msg
 from mds_ach.robot import config as joint_config
 from mds_ach.robot import contracts, joints, lifecycle, motion
 from mds_ach.robot.channels import ChannelGuard, StructChannel
-from mds_ach.robot.feedforward import Braking, CycleClock, limiter_lead, stopping_point
+from mds_ach.robot.feedforward import (
+    Braking,
+    CycleClock,
+    limiter_lead,
+    retraction_in_time,
+    stopping_point,
+    took_newest,
+)
 from mds_ach.robot.msgs import MDS_IK, MDS_REF, MDS_STATE
 from mds_ach.robot.msgs.daemon_status import JOINT_SLOWED, MDS_DAEMON_STATUS
 from mds_ach.robot.msgs.mux_state import MUX_CANCELLED, MUX_FREE, MUX_HELD
@@ -82,10 +89,9 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 WRITE_RECORDS = 64
 """Recent writes remembered to tell which command a refused frame carried (the mux answers within a cycle)."""
-RETRACT_MARGIN = 0.02
-"""s: how long before the daemon's next cycle a stop's retracted frame must be written to reach the daemon's input
-(through the mux, the filter and the collision gate: a few ms) in time; later, the daemon takes the newest frame
-first and that is the target the stop holds (``BridgeNode._retract``)."""
+HOLD_RECHECK = 0.005
+"""s after a put of a trajectory frame: by then the mux has handled it and said whether it released a hold
+(``BridgeNode._recheck_holds``)."""
 STATE_QOS = {
     "sensor_data": qos_profile_sensor_data,  # best effort, keep last 5
     "reliable": QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE),
@@ -301,6 +307,7 @@ class BridgeNode(Node):
         # Frame values of stopped joints to write next (a retraction or its undoing, ``_check_stops``); put into the
         # frame under the write lock (a put reads the frame outside the lock), by ``_take_holds``.
         self._holds: dict[str, float] = {}
+        self._recheck_at: float | None = None  # monotonic: when to read the mux's news after a put (``_recheck_holds``)
         self._resync: set[str] = set()  # joints of a stopped trajectory: the frame's value is not where they hold
         # The commanded motion of joints whose trajectory stopped or was replaced while moving: they brake at the
         # MOVETO acceleration from their desired state at the last written target onto its stopping point. A new
@@ -407,9 +414,12 @@ class BridgeNode(Node):
         try:
             while not self._stop.is_set():
                 # The wait returns on every put; its timeout only paces the stall check.
-                state = self._guard.call(self._state_chan.name, self._state_chan.wait,
-                                         timeout=max(0.01, min(0.25, self._stale_timeout / 4)))
+                timeout = max(0.01, min(0.25, self._stale_timeout / 4))
+                if self._recheck_at is not None:
+                    timeout = max(0.0, min(timeout, self._recheck_at - time.monotonic()))
+                state = self._guard.call(self._state_chan.name, self._state_chan.wait, timeout=timeout)
                 if state is None:
+                    self._recheck_holds()
                     self._check_stall()
                     self._flush_cancels()
                     continue
@@ -443,6 +453,7 @@ class BridgeNode(Node):
                 self._counters.frames += 1
                 self._take_mux_news(news)
                 self._check_stops(state)
+                before = None if self._frame is None else MDS_REF.from_buffer_copy(self._frame)
                 ref = self._next_reference(state, due_s)
                 carried = self._carried
                 measured = (dict(zip(self._names, positions, strict=True)),
@@ -456,12 +467,16 @@ class BridgeNode(Node):
                     ref = self._frame
                 running = self._running_by_joint()
                 late, self._late_rejections = self._late_rejections, []
+            if ref is not None and carried[0]:
+                self._held_meanwhile(before, carried[0])
             if ref is not None:
                 self._writes.append(_Write(time.monotonic(), *carried))
                 self._unsent = not self._guard.put(self._ref_chan, ref)  # reported; the next cycle writes it again
                 if not self._unsent:
                     with self._lock:
                         self._counters.references_written += 1
+                    if carried[0]:
+                        self._recheck_at = time.monotonic() + HOLD_RECHECK
         for topic, reason in late:
             self._reject(topic, reason)
         self._emit()
@@ -486,6 +501,43 @@ class BridgeNode(Node):
         if was_stalled:
             self.get_logger().info(f"{self._state_name} is live again")
             self._publish_diagnostics()
+
+    def _recheck_holds(self) -> None:
+        """``HOLD_RECHECK`` after a put of a trajectory frame: a hold the mux handled between the last read of its
+        news and that put was released by the frame; the mux says so at once (its held mask changed). The
+        trajectory then stops now, retracted to the daemon's reference while the daemon has not sent the frame
+        (``_take_mux_news``), not at the next cycle, after the daemon sent it."""
+        if self._recheck_at is None or time.monotonic() < self._recheck_at:
+            return
+        self._recheck_at = None
+        news = self._guard.call(self._mux.states.name, self._mux.poll, default=MuxNews())
+        if not news.holds and not news.refusals:
+            return
+        with self._lock:
+            self._take_mux_news(news)
+        self._emit()
+
+    def _held_meanwhile(self, before: MDS_REF | None, sampled: tuple[int, ...]) -> None:
+        """Just before the put of a frame sampling the trajectories ``sampled``: a hold or cancel that reached the
+        mux since this cycle's news (another client's, sent right after the daemon's state frame) would be released
+        by the frame (a changed value is a new command) and the joint would run on to the new target. Read the mux's
+        news once more: a trajectory a hold stopped meanwhile (``_take_mux_news``) keeps its joints' previous values
+        in the frame (``before``), so the frame commands nothing new for them (caller holds the write lock)."""
+        news = self._guard.call(self._mux.states.name, self._mux.poll, default=MuxNews())
+        if not news.holds and not news.refusals:
+            return
+        with self._lock:
+            names = {s: self._running[s].traj.names for s in sampled if s in self._running}
+            self._take_mux_news(news)
+            if before is None or self._frame is None:
+                return
+            for serial, stopped in names.items():
+                if serial in self._running:
+                    continue
+                for n in stopped:
+                    a = joints.BY_SHORT[n].address
+                    self._frame.joint[a].ref = before.joint[a].ref
+                    self._frame.joint[a].mode = before.joint[a].mode
 
     def _check_stall(self) -> None:
         now = time.monotonic()
@@ -1103,6 +1155,8 @@ class BridgeNode(Node):
                 applied = bool(rf.owned & {joints.BY_SHORT[n].address for n in r.traj.names})
                 self._stop_running(r, f"refused by the mux: {rf.message}", cancel=applied and not first,
                                    retract=False)
+        held, cancelled = self._mux.held()
+        stopped = set(held) | set(cancelled)
         for r in list(self._running.values()):
             if r.written is None or r.finished:
                 continue
@@ -1110,14 +1164,18 @@ class BridgeNode(Node):
             for h in news.holds:
                 hit = h.addresses & mine
                 if h.time >= r.written - 1e-6 and hit:
+                    # Retracted like the bridge's own stops only when a frame of it released the hold (the mux
+                    # handled the hold first): the joints are free, a retraction releases nothing. Still held, the
+                    # filter stops them by the same rule (a new value would release the hold).
                     self._stop_running(r, f"{labels(sorted(hit))} {'held' if h.action == 'hold' else h.action + 'led'} "
-                                          f"by '{h.source}'", retract=False)
+                                          f"by '{h.source}'", retract=not hit & stopped)
                     break
 
     def _retract(self, names: tuple[str, ...]) -> dict[str, float]:
         """Where a stop holds ``names`` (caller holds the lock): the daemon's reference now (``mds-state`` ref_r),
         for those whose newest frame value is still waiting for the daemon's next cycle; empty when there is no
-        time left before that cycle (``RETRACT_MARGIN``): the daemon takes the newest frame, its last target then.
+        time left before that cycle (``feedforward.retraction_in_time``, the rule every stopping stage shares): the
+        daemon takes the newest frame, its last target then.
 
         Each frame aims at the daemon's next send and the one after (``feedforward.CycleClock.lookahead``): held
         there, a stop travels up to two periods of the motion more than braking needs. The daemon's reference is
@@ -1127,8 +1185,7 @@ class BridgeNode(Node):
         state, frame, seen = self._state, self._frame, self._last_frame_mono
         if state is None or frame is None or seen is None or self._stalled:
             return {}
-        left = seen + self._cycle.period - CycleClock.SEND_TO_STATE - time.monotonic()
-        if left < RETRACT_MARGIN:
+        if not retraction_in_time(seen, self._cycle.period, time.monotonic()):
             return {}
         addresses = {n: joints.BY_SHORT[n].address for n in names}
         theirs = self._mux.others_own(addresses.values())
@@ -1164,7 +1221,7 @@ class BridgeNode(Node):
             for n, value in s.hold.items():
                 taken = state.joint[joints.BY_SHORT[n].address].ref_r
                 newest = s.newest[n]
-                if value != newest and abs(taken - newest) < abs(taken - value):
+                if took_newest(taken, newest, value):
                     s.hold[n] = self._holds[n] = newest
                     if n in self._braking and n in s.brakes:
                         self._braking[n] = s.brakes[n]

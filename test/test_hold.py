@@ -230,6 +230,73 @@ def test_filter_restarts_a_joint_the_gate_held_back_where_the_robot_is_sent() ->
         assert f.step()[mds.LSP] == 0.3
 
 
+def _passing() -> FilterCore:
+    """A filter passing its targets unsmoothed (the bridge's trajectory stopping points, config ``controllers``)."""
+    return FilterCore(parse_config({"rate": 40.0, "default": {"mode": "pass"}}), np.zeros(MDS_JOINT_COUNT),
+                      ZERO_MODE)
+
+
+def _daemon_took(**values: float) -> np.ndarray:
+    taken = np.full(MDS_JOINT_COUNT, np.nan)
+    for name, v in values.items():
+        taken[getattr(mds, name)] = v
+    return taken
+
+
+def test_a_hold_stops_an_unsmoothed_joint_at_the_daemons_last_reference() -> None:
+    """A trajectory's joint passed unsmoothed, its newest stopping point (0.5) still waiting for the daemon's next
+    send: held in time (``feedforward.retraction_in_time``), it stops at the reference the daemon took (0.4), not
+    at the newest; the daemon's next cycle shows it took the retraction: it stays. Without ``taken`` (too late
+    before the next send) it stops at the newest, as before."""
+    held = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+    held[mds.LSP] = True
+    for taken, stop in ((_daemon_took(LSP=0.4), 0.4), (None, 0.5)):
+        f = _passing()
+        f.set_target(_frame(LSP=0.5), ZERO_MODE)
+        f.step()
+        f.hold(held, reference=f.out.copy(), taken=taken)
+        for _ in range(5):
+            assert f.step()[mds.LSP] == stop
+            f.set_target(_frame(LSP=0.6), ZERO_MODE)  # a newer frame is a released joint's target, not a held one's
+        assert f.settle_retractions(_daemon_took(LSP=0.4)) == [] and not f.retracted
+        assert f.step()[mds.LSP] == stop
+    f = _passing()
+    f.set_target(_frame(LSP=0.5, RSP=0.2), ZERO_MODE)
+    f.step()
+    f.hold(held, taken=_daemon_took(LSP=0.4, RSP=0.1))
+    assert f.step()[mds.RSP] == 0.2  # a joint not held is not retracted
+
+
+def test_a_retraction_the_daemon_missed_goes_back_to_the_newest_target() -> None:
+    """The retraction reached the daemon after its cycle: the daemon took the newest (0.5), its last target now; the
+    filter goes back to it before the next cycle (``settle_retractions``), else the target already sent would be
+    taken back (a reversal)."""
+    f = _passing()
+    f.set_target(_frame(LSP=0.5), ZERO_MODE)
+    f.step()
+    held = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+    held[mds.LSP] = True
+    f.hold(held, taken=_daemon_took(LSP=0.4))
+    assert f.step()[mds.LSP] == 0.4
+    assert f.settle_retractions(_daemon_took(LSP=0.5)) == [mds.LSP]
+    for _ in range(3):
+        assert f.step()[mds.LSP] == 0.5
+
+
+def test_a_hold_of_a_smoothed_joint_is_not_retracted() -> None:
+    """An acceleration-limited joint brakes at the filter's acceleration as before: its output is already a
+    reference the daemon follows without a lead, so nothing is taken back."""
+    f = _filter()
+    f.set_target(_frame(LSP=2.0), ZERO_MODE)
+    for _ in range(5):
+        f.step()
+    before = f.out[mds.LSP]
+    held = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+    held[mds.LSP] = True
+    f.hold(held, taken=_daemon_took(LSP=0.0))
+    assert f.step()[mds.LSP] > before and not f.retracted
+
+
 # --------------------------------------------------------------------------------------------- with channels
 
 

@@ -33,7 +33,14 @@ from support.tracking import (
 import mds_ach as mds
 from mds_ach.kinematics.limits import current_limits
 from mds_ach.robot.channels import StructChannel
-from mds_ach.robot.feedforward import Braking, CycleClock, stopping_point
+from mds_ach.robot.feedforward import (
+    RETRACT_MARGIN,
+    Braking,
+    CycleClock,
+    retraction_in_time,
+    stopping_point,
+    took_newest,
+)
 from mds_ach.robot.msgs import MDS_STATE
 
 ARM = ("LSP", "LEP")
@@ -64,6 +71,19 @@ def test_the_cycle_clock_takes_the_median_frame_interval_and_ignores_stalls() ->
     clock.update(101.5)  # a stall of a second: not a period
     assert clock.period == pytest.approx(0.05, abs=0.005)
     assert clock.lookahead() == pytest.approx(2 * clock.period - CycleClock.SEND_TO_STATE)
+
+
+def test_a_stop_takes_back_the_newest_target_only_in_time_for_the_daemons_next_send() -> None:
+    """The one rule for every stage that stops a joint (the bridge's frame, the filter's hold): the daemon's next
+    send is a period after the sends of its state frame (put ``SEND_TO_STATE`` after them); a retraction needs
+    ``RETRACT_MARGIN`` before it. After that cycle, the daemon's reference tells which of the two it took."""
+    period, put = 0.1, 50.0
+    send = put + period - CycleClock.SEND_TO_STATE
+    assert retraction_in_time(put, period, put + 0.001)
+    assert retraction_in_time(put, period, send - RETRACT_MARGIN)
+    assert not retraction_in_time(put, period, send - RETRACT_MARGIN + 0.001)
+    assert not retraction_in_time(put, period, send + 0.01)  # past the send: the newest is the last target
+    assert took_newest(0.5, 0.5, 0.4) and not took_newest(0.4, 0.5, 0.4) and not took_newest(0.5, 0.5, 0.5)
 
 
 def test_the_published_limits_keep_the_stopping_points_within_the_daemons_bounds() -> None:
@@ -278,6 +298,53 @@ def test_a_cancel_stops_within_the_bound_in_every_phase_of_the_daemons_cycle(
                 line = "BEYOND " + line
             lines.append(line)
             assert c.sign * (c.profile.end[0] - probe.position("LSP")) > 0.1, f"the cancel came too late: {line}"
+    print("\n".join(lines))
+    assert not failed, "\n".join(lines)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("speed", [0.42, 0.9])
+@pytest.mark.parametrize("action", ["hold", "cancel"])
+def test_a_hold_or_cancel_from_another_client_stops_within_the_bound_in_every_phase(
+        probe: TrackingProbe, action: str, speed: float) -> None:
+    """A HOLD of every joint (console ``hold``, ``mds-ach hold``) or a CANCEL of the arm on ``mds-hold`` from another
+    client, sent at ``PHASES`` of the daemon's cycle while a goal cruises at ``speed`` (10 Hz): the arm travels at most
+    v^2/2a + v period + 0.02 rad after the request and never comes back more than 0.01 rad; the goal ends (aborted:
+    its joints were held). Before (the filter held the newest target, still waiting for the daemon's next send):
+    0.52 rad at 0.9 rad/s right after a state frame (bound 0.497)."""
+    from action_msgs.msg import GoalStatus
+
+    from mds_ach.robot import joints, lifecycle
+
+    _, a = published(ARM)
+    lines, failed = [], []
+    arm = [joints.BY_SHORT[n].address for n in ARM]
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE) as states:
+        for phase in PHASES:
+            _room_to_cruise(probe, "LSP", 1.5)
+            c = cruise(probe, CONTROLLER, "LSP", speed, 1.6)
+            period = state_period(probe)
+            seen = _after_a_state_put(states, phase, period)
+            t_request = probe.now()
+            if action == "hold":
+                lifecycle.send(lifecycle.HOLD_HOLD, source="another client", reason="test hold")
+            else:
+                lifecycle.send(lifecycle.HOLD_CANCEL, arm, source="another client", reason="test cancel")
+            res = probe.result(c.handle, 10.0)
+            assert res.status == GoalStatus.STATUS_ABORTED, res.result.error_string
+            probe.spin_for(1.5)  # watched until well after it stopped: no reversal
+            if action == "hold":
+                assert lifecycle.request(lifecycle.HOLD_RESUME, source="another client").ok
+            v, travel, back = stop_report(probe, c, "LSP", t_request)
+            bound = v * v / (2 * a) + v * period + 0.02
+            line = (f"{1 / period:.0f} Hz, phase {seen:.2f}: {action} at {v:.3f} rad/s: travel {travel:.4f} rad "
+                    f"(bound {bound:.4f}, margin {bound - travel:+.4f}), came back {back:.4f} rad")
+            if travel > bound or back > 0.01:
+                failed.append(line)
+                line = "BEYOND " + line
+            lines.append(line)
+            assert c.sign * (c.profile.end[0] - probe.position("LSP")) > 0.1, f"the {action} came too late: {line}"
     print("\n".join(lines))
     assert not failed, "\n".join(lines)
 

@@ -73,8 +73,10 @@ from mds_ach.nodes.pipeline import (
 from mds_ach.nodes.rosnode import Param, declare, find, ros_log, run_node, start_worker
 from mds_ach.paths import config_path
 from mds_ach.ratelog import RateLimitedLog
+from mds_ach.robot import feedforward
 from mds_ach.robot.channels import StructChannel
 from mds_ach.robot.msgs import MDS_JOINT_COUNT, MDS_MUX_STATE
+from mds_ach.robot.msgs.daemon_status import MDS_DAEMON_STATUS
 
 MODES = ("pass", "ema", "enc_filter", "velocity_limit")
 PASS, EMA, ENC, VEL = range(4)
@@ -217,6 +219,7 @@ def load_config(path: str | Path | None = None, rate: float | None = None) -> Fi
 
 ENC_REST = 1e-4  # rad: an enc_filter joint this close to its target rests (it follows the noisy measurement)
 IDLE_PERIOD = 1.0  # s: at rest the output is re-published this often (a heartbeat: the node is alive)
+RETRACTION_POLL = 0.005  # s: how often a hold's retraction looks for the daemon's next cycle (one or two cycles)
 
 
 def _length_for(length: float, periods: float) -> float:
@@ -242,6 +245,12 @@ class FilterCore:
         self._accel = np.isfinite(params.max_accel)
         self.held = np.zeros(MDS_JOINT_COUNT, dtype=bool)
         self.braking = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+        # Joints whose last output was passed unsmoothed (a trajectory's stopping points): a hold stops them at the
+        # daemon's last reference when there is time (``hold``); kept from the step, a CANCEL changes the owner first.
+        self.unsmoothed = params.mode == PASS
+        # Held joints whose output was taken back to the daemon's reference: address -> (newest output, held at),
+        # until the daemon's next cycle tells which of the two it took (``settle_retractions``).
+        self.retracted: dict[int, tuple[float, float]] = {}
 
     def set_target(self, ref: np.ndarray, mode: np.ndarray) -> str | None:
         """New desired reference; non-finite entries keep their old target; held joints keep their rest point
@@ -277,13 +286,20 @@ class FilterCore:
         self.p = new
         self._accel = np.isfinite(new.max_accel)
 
-    def hold(self, held: np.ndarray, reference: np.ndarray | None = None) -> None:
-        """The mux's held mask (``mds-mux-state`` held[]). Newly held joints stop advancing toward their target
-        at once: acceleration-limited joints brake at ``max_accel`` (never reversing, so no overshoot-and-return
-        and no step), the other modes stop where their output is. A newly held joint whose output is more
-        than two steps away from ``reference`` (``mds-ref-gated``: the collision gate or a limit held it back) restarts
-        at ``reference`` instead, where the robot is sent, so it never moves on when the gate clears. Released
-        joints go back to the mux's target."""
+    def hold(self, held: np.ndarray, reference: np.ndarray | None = None, taken: np.ndarray | None = None) -> None:
+        """The mux's held mask (``mds-mux-state`` held[]: a HOLD, a CANCEL, a heartbeat's stop). Newly held joints
+        stop advancing toward their target at once: acceleration-limited joints brake at ``max_accel`` (never
+        reversing, so no overshoot-and-return and no step), the other modes stop where their output is. A newly
+        held joint whose output is more than two steps away from ``reference`` (``mds-ref-gated``: the collision
+        gate or a limit held it back) restarts at ``reference`` instead, where the robot is sent, so it never moves
+        on when the gate clears. Released joints go back to the mux's target.
+
+        ``taken``: the daemon's reference of its last cycle (``mds-state`` ``ref_r``) when the stop may still take
+        back the newest output (``feedforward.retraction_in_time``; None: it may not). A newly held joint passed
+        unsmoothed (a trajectory's stopping points, each aimed at the daemon's next send and the one after) then
+        stops there, at the last target the daemon took, instead of at the newest still waiting for its next send:
+        the joint brakes from the commanded state onto a target the MCB is already running to. Until the daemon's
+        next cycle tells which it took, ``retracted`` keeps the newest (``settle_retractions``)."""
         held = np.asarray(held, dtype=bool)
         new = held & ~self.held
         released = ~held & self.held
@@ -291,6 +307,8 @@ class FilterCore:
         if released.any():
             self.braking[released] = False
             self.target[released] = self.wanted[released]
+            for a in np.flatnonzero(released):
+                self.retracted.pop(int(a), None)
         if not new.any():
             return
         if reference is not None:
@@ -299,11 +317,32 @@ class FilterCore:
             if behind.any():
                 self.reseed(np.flatnonzero(behind), np.asarray(reference)[behind])
                 new &= ~behind
-        brake = new & (self.p.mode == VEL) & self._accel & (self.vel != 0.0)
+        back = np.zeros(MDS_JOINT_COUNT, dtype=bool)
+        if taken is not None:
+            taken = np.asarray(taken, dtype=float)
+            back = new & self.unsmoothed & np.isfinite(taken) & (taken != self.out)
+            for a in np.flatnonzero(back):
+                self.retracted[int(a)] = (float(self.out[a]), float(taken[a]))
+            self.out[back] = taken[back]
+        brake = new & ~back & (self.p.mode == VEL) & self._accel & (self.vel != 0.0)
         self.braking |= brake
         stop = new & ~brake
         self.target[stop] = self.out[stop]
         self.vel[stop] = 0.0
+
+    def settle_retractions(self, taken: np.ndarray) -> list[int]:
+        """The daemon's reference after its next cycle (``mds-state`` ``ref_r``) for the ``retracted`` joints: one
+        whose newest output the daemon took first (the retraction reached it after its cycle,
+        ``feedforward.took_newest``) goes back to that output, its last target, before the next cycle (else that
+        target would be taken back: a reversal). Returns those joints; ``retracted`` is empty afterwards."""
+        undone = []
+        for a, (newest, hold) in self.retracted.items():
+            if self.held[a] and self.out[a] == hold and feedforward.took_newest(float(taken[a]), newest, hold):
+                self.out[a] = self.target[a] = newest
+                self.vel[a] = 0.0
+                undone.append(a)
+        self.retracted = {}
+        return undone
 
     def reseed(self, addresses: np.ndarray, positions: np.ndarray) -> None:
         """Restart these joints where they are, at rest (``pipeline.ReseedWatch``): output and target."""
@@ -371,6 +410,7 @@ class FilterCore:
         rest = ~acc & ~self.braking & ~brk
         self.vel[rest] = (new[rest] - out[rest]) / dt
         self.out = new
+        self.unsmoothed = p.mode == PASS
         return new
 
     def out_mode(self) -> np.ndarray:
@@ -382,6 +422,11 @@ class FilterCore:
 
 
 # --------------------------------------------------------------------------------------------- Ach side
+
+
+def state_references(state: mds.MDS_STATE) -> np.ndarray:
+    """``state.joint[i].ref_r`` (the reference the daemon took at its cycle, rad) for all 100 addresses."""
+    return np.array([state.joint[i].ref_r for i in range(MDS_JOINT_COUNT)], dtype=float)
 
 
 def owner_names(st: MDS_MUX_STATE) -> tuple[str | None, ...]:
@@ -414,6 +459,20 @@ class FilterRunner:
         if self._inp is not None:
             cancel_wait(self._inp)
 
+    @staticmethod
+    def _daemon_reference(guard: ChannelGuard, state_ch: Any, status_ch: Any) -> tuple[float, np.ndarray] | None:
+        """For a hold arriving now: (the daemon's newest ``mds-state`` stamp, its reference then: ``ref_r``) when the
+        hold may still take the newest output back to that reference (``feedforward.retraction_in_time``, the
+        daemon's period from its configured rate, ``mds-daemon-status``), else None (no daemon yet, a stall, too
+        close to its next send: the newest is its last target)."""
+        st = guard.call(state_ch.name, state_ch.latest)
+        status = guard.call(status_ch.name, status_ch.latest)
+        if st is None or status is None or not status.rate_hz > 0:
+            return None
+        if not feedforward.retraction_in_time(float(st.time), 1.0 / float(status.rate_hz), time.monotonic()):
+            return None
+        return float(st.time), state_references(st)
+
     def run(self) -> None:
         handoff_thread(self.rt_priority, "filter", self.log)
         found = wait_current_reference(self._stop, lambda m: self.log("info", m), self.sources)
@@ -424,12 +483,14 @@ class FilterRunner:
         inp = StructChannel(mds.MDS_CHAN_REF_MUX_NAME, mds.MDS_REF)
         out = StructChannel(mds.MDS_CHAN_REF_SMOOTH_NAME, mds.MDS_REF)
         state_ch = StructChannel(mds.MDS_CHAN_STATE_NAME, mds.MDS_STATE)
+        daemon_status = StructChannel(mds.MDS_CHAN_DAEMON_STATUS_NAME, MDS_DAEMON_STATUS)
         mux_state = StructChannel(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
         gate_out = StructChannel(mds.MDS_CHAN_DAEMON_INPUT_NAME, mds.MDS_REF)
         reference: np.ndarray | None = None
         needs_state = bool(np.any(self.params.mode == ENC))
         measured: np.ndarray | None = None
         warned_state = False
+        retracted_at = 0.0  # the daemon's frame (mds-state stamp) whose reference held joints were taken back to
         self.core = core
         guard = ChannelGuard(self.log, self._stop, pause=0.0)  # the schedule paces the loop
         watch = ReseedWatch(self.log, self._stop)
@@ -455,7 +516,19 @@ class FilterRunner:
                 if mux is not None:  # the mux's hold mask: brake newly held joints, release the others
                     core.set_owners(owner_names(mux))  # before the hold: braking depends on the joint's mode
                     held = np.frombuffer(bytes(mux.held), dtype=np.uint8) != 0
-                    core.hold(held, reference)
+                    taken = None
+                    if (held & ~core.held & core.unsmoothed).any():
+                        daemon = self._daemon_reference(guard, state_ch, daemon_status)
+                        if daemon is not None:
+                            retracted_at, taken = daemon
+                    core.hold(held, reference, taken)
+                if core.retracted:  # which did the daemon take at its next cycle: the retraction or the newest?
+                    st = guard.call(state_ch.name, state_ch.latest)
+                    if st is not None and st.time != retracted_at:
+                        undone = core.settle_retractions(state_references(st))
+                        if undone:
+                            self.log("info", f"{labels(undone)} held at their newest target: the daemon took it "
+                                             f"before the hold's retraction reached it")
                 reseed = watch.poll()  # after the new target: a re-seed (HOME, reset, resetbus) wins
                 if reseed is not None:
                     core.reseed(*reseed)
@@ -480,6 +553,8 @@ class FilterRunner:
                 # Event-driven: a new mds-ref-mux frame wakes the loop at once (stepped by the time since the
                 # previous step). Without one: the next tick while the output moves, a heartbeat at rest.
                 deadline = last_step + (period if core.moving() else IDLE_PERIOD)
+                if core.retracted:  # the daemon's next cycle must be seen before the one after (``settle_retractions``)
+                    deadline = min(deadline, time.monotonic() + RETRACTION_POLL)
                 frame = guard.call(inp.name, inp.wait, timeout=max(0.0, deadline - time.monotonic()))
                 if frame is None and guard.failing(inp.name):  # a broken input answers at once: keep the pace
                     self._stop.wait(max(0.0, last_step + period - time.monotonic()))
@@ -487,6 +562,7 @@ class FilterRunner:
             inp.close()
             out.close()
             state_ch.close()
+            daemon_status.close()
             mux_state.close()
             gate_out.close()
             watch.close()

@@ -683,11 +683,20 @@ class MuxRunner:
             else:
                 self._reseed(core, out, watch)  # before the frame: a command after HOME starts at the joint
                 if index == HOLD_INPUT:
+                    before = core.held.copy()
                     changed, text = core.hold(frame, self._reference_now())
                     if core.hold_status == MUX_HOLD_REFUSED:
                         self._log_refusal(text)
                     else:
                         self.log("info", text)
+                    if ((core.held != MUX_FREE) & (before == MUX_FREE)).any():
+                        # Newly held joints: the state first, then the output again (a put on mds-ref-mux wakes
+                        # the filter, which then reads the hold mask): the filter stops them within milliseconds,
+                        # in time to hold the daemon's last reference rather than the newest (filter.FilterCore.hold).
+                        seq += 1
+                        last_state = time.monotonic()
+                        self._put_state(core, state_ch, seq, last_state)
+                        changed = True
                 else:
                     changed, problem = core.update(index, *ref_arrays(frame), t)
                     if problem:
@@ -712,12 +721,16 @@ class MuxRunner:
                     self._publish(core, out)
                 core.release_stale(now)
                 seq += 1
-                st = core.state(now, seq)
-                self._guard.put(state_ch, st)  # a damaged mds-mux-state: the next period tries again
-                if self.on_state is not None:
-                    self.on_state(st)
+                self._put_state(core, state_ch, seq, now)
                 last_state = now
                 next_state = now + IDLE_STATE_PERIOD
+
+    def _put_state(self, core: MuxCore, state_ch: Any, seq: int, now: float) -> None:
+        """Write ``mds-mux-state`` (a damaged channel: the next period tries again)."""
+        st = core.state(now, seq)
+        self._guard.put(state_ch, st)
+        if self.on_state is not None:
+            self.on_state(st)
 
     def _log_refusal(self, text: str) -> None:
         """A refused hold request: counted, logged through the refusal log (the first, then a count per window)."""

@@ -65,6 +65,33 @@ class Braking:
         return self.q0 + self.v0 * dt - s * 0.5 * self.accel * dt * dt, self.v0 - s * self.accel * dt
 
 
+RETRACT_MARGIN = 0.02
+"""s: how long before the daemon's next send a stop's retraction must be decided to reach the daemon's input (through
+the mux, the filter and the collision gate: a few ms) in time; later, the daemon takes the newest target first and
+that is the target the stop holds (:func:`retraction_in_time`)."""
+
+
+def retraction_in_time(state_time: float, period: float, now: float) -> bool:
+    """May a stop decided at ``now`` still take back the newest target, holding the daemon's reference of its last
+    cycle (``mds-state`` ``ref_r``, the frame put at ``state_time``) instead? Every target aims at the daemon's next
+    send and the one after (:meth:`CycleClock.lookahead`): held at the newest, a stop travels up to two periods of
+    the motion more than braking needs; held at the daemon's reference, the joint brakes from the commanded state
+    onto the last target sent, which the MCB is already running to (no target sent is taken back). Only when at
+    least ``RETRACT_MARGIN`` is left before the daemon's next send (one ``period`` after the sends of that frame's
+    cycle, ``SEND_TO_STATE`` before it); otherwise the newest goes out first and is the stop's target. The one rule
+    for every stage that stops a joint (the bridge's frame, the filter's hold); times on ``time.monotonic``, the
+    daemon's stamps."""
+    return state_time + period - CycleClock.SEND_TO_STATE - now >= RETRACT_MARGIN
+
+
+def took_newest(taken: float, newest: float, hold: float) -> bool:
+    """A stop held ``hold`` (the daemon's reference) instead of ``newest``: did the daemon take ``newest`` first
+    (its reference ``taken`` at its next cycle is nearer it; the retraction arrived after that cycle)? Then
+    ``newest`` is its last target and the stop must go back to it before the next cycle, else that target would be
+    taken back (a reversal)."""
+    return hold != newest and abs(taken - newest) < abs(taken - hold)
+
+
 class CycleClock:
     """The daemon's cycle as seen from its ``mds-state`` frames: their own stamps give the period."""
 
