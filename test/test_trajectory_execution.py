@@ -351,6 +351,67 @@ def test_a_hold_or_cancel_from_another_client_stops_within_the_bound_in_every_ph
 
 @pytest.mark.ros
 @pytest.mark.slow
+@pytest.mark.parametrize("speed", [0.42, 0.9])
+@pytest.mark.parametrize("value", ["measured", "daemon"])
+def test_a_preemption_by_a_put_on_mds_ref_stops_within_the_bound_in_every_phase(
+        probe: TrackingProbe, value: str, speed: float) -> None:
+    """Another client puts a frame on ``mds-ref`` (the ``direct`` controller, priority 40, config/mux.yaml) with LSP
+    at its measured position (behind the reference: the arm then goes back there, as commanded) or at the daemon's
+    reference (``ref_r``), at ``PHASES`` of the daemon's cycle while a goal cruises at ``speed`` (10 Hz): the arm
+    travels at most v^2/2a + v period + 0.02 rad after the put and the goal ends (aborted: preempted). How far it
+    comes back is what the put commands, not asserted: a put of ``ref_r`` read late in the cycle can reach the daemon
+    after it sent a newer target (0.012 rad back once at 0.42 rad/s, phase 0.9). Each cruise starts once
+    the arm rests at the previous put's value and ``direct`` has timed out, from a fresh /joint_states: a scratch
+    measurement that started a goal from the position read before the arm had come back (0.1-0.4 rad off it) had the
+    arm trail its trajectory by up to 0.2 rad in one phase per run and measured that much more travel (0.60, 0.72)."""
+    from action_msgs.msg import GoalStatus
+    from support.channels import newest
+
+    from mds_ach.nodes.filter import owner_names
+    from mds_ach.robot import joints
+    from mds_ach.robot.msgs import MDS_MUX_STATE, MDS_REF
+
+    _, a = published(ARM)
+    lsp = joints.BY_SHORT["LSP"].address
+    lines, failed = [], []
+    with StructChannel(mds.MDS_CHAN_STATE_NAME, MDS_STATE) as states, \
+            StructChannel(mds.MDS_CHAN_REF_NAME, MDS_REF) as direct:
+
+        def settled(target: float) -> bool:
+            """The arm rests at ``target`` and ``direct`` no longer owns LSP (timed out)."""
+            st, ms = newest(mds.MDS_CHAN_STATE_NAME, MDS_STATE), newest(mds.MDS_CHAN_MUX_STATE_NAME, MDS_MUX_STATE)
+            return (st is not None and ms is not None and abs(st.joint[lsp].pos - target) < 0.005
+                    and st.joint[lsp].vel == 0.0 and owner_names(ms)[lsp] != "direct")
+
+        for phase in PHASES:
+            _room_to_cruise(probe, "LSP", 1.5)
+            c = cruise(probe, CONTROLLER, "LSP", speed, 1.6)
+            period = state_period(probe)
+            seen = _after_a_state_put(states, phase, period)
+            t_request = probe.now()
+            frame, st = newest(mds.MDS_CHAN_REF_MUX_NAME, MDS_REF), newest(mds.MDS_CHAN_STATE_NAME, MDS_STATE)
+            assert frame is not None and st is not None
+            frame.joint[lsp].ref = st.joint[lsp].pos if value == "measured" else st.joint[lsp].ref_r
+            direct.put(frame)
+            res = probe.result(c.handle, 10.0)
+            assert res.status == GoalStatus.STATUS_ABORTED, res.result.error_string
+            target = frame.joint[lsp].ref
+            probe.spin_until(lambda t=target: settled(t), 15.0, f"LSP at rest at {target:.4f}, direct timed out")
+            probe.spin_for(0.3)  # fresh /joint_states for the next goal's start
+            v, travel, back = stop_report(probe, c, "LSP", t_request)
+            bound = v * v / (2 * a) + v * period + 0.02
+            line = (f"{1 / period:.0f} Hz, phase {seen:.2f}: put of the {value} position at {v:.3f} rad/s: travel "
+                    f"{travel:.4f} rad (bound {bound:.4f}, margin {bound - travel:+.4f}), came back {back:.4f} rad")
+            if travel > bound:
+                failed.append(line)
+                line = "BEYOND " + line
+            lines.append(line)
+    print("\n".join(lines))
+    assert not failed, "\n".join(lines)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
 @pytest.mark.parametrize("direction", ["on", "back"])
 def test_a_replacing_goal_stays_within_the_bound_in_every_phase_of_the_daemons_cycle(
         probe: TrackingProbe, direction: str) -> None:
